@@ -1,0 +1,45 @@
+"""antireplay: stop captured, validly signed robot and drone commands from working twice.
+
+This module only re-exports the public API; each concept lives in its own module.
+"""
+
+from antireplay.clock import Clock, ManualClock, SystemClock
+from antireplay.config import SecurityConfig
+from antireplay.errors import (
+    AntiReplayError,
+    Code,
+    ConfigError,
+    InvalidMessageIdError,
+    InvalidTimestampError,
+    MessageFromFutureError,
+    MessageStaleError,
+    NonceExhaustedError,
+    ReplayAttackError,
+    ReplayDetectedError,
+)
+from antireplay.messages import MessageType, SafetyEvent
+from antireplay.window import ReplayCache, Verdict
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AntiReplayError",
+    "Clock",
+    "Code",
+    "ConfigError",
+    "InvalidMessageIdError",
+    "InvalidTimestampError",
+    "ManualClock",
+    "MessageFromFutureError",
+    "MessageStaleError",
+    "MessageType",
+    "NonceExhaustedError",
+    "ReplayAttackError",
+    "ReplayCache",
+    "ReplayDetectedError",
+    "SafetyEvent",
+    "SecurityConfig",
+    "SystemClock",
+    "Verdict",
+    "__version__",
+]

@@ -1,0 +1,218 @@
+"""Error codes, the exception family, and their wire mapping (HTTP status, COMMAND_NACK).
+
+Theory of operation
+-------------------
+Errors are data.  Every rejection anywhere in antireplay is one of the stable
+:class:`Code` values below; the code alone decides the HTTP status and the
+NACK body, so an adapter never invents a status and a reader finds the whole
+mapping in :data:`HTTP_STATUS`.  Exceptions carry the code, a short human
+reason, and an optional machine ``detail`` (for example ``"watermark"`` when a
+message is stale because the bounded cache had to forget older entries).
+
+Rejections of a *message* derive from :class:`ReplayAttackError` (the name the
+RCAN SDK uses for this family), so ``except ReplayAttackError`` catches every
+verdict that should be answered with a COMMAND_NACK.  Operator mistakes
+(:class:`ConfigError`) and sender-side exhaustion (:class:`NonceExhaustedError`)
+are separate: they are not answers to a peer.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+from typing import Any
+
+
+class Code(StrEnum):
+    """Stable rejection codes; the string value is what goes on the wire."""
+
+    REPLAY_DETECTED = "REPLAY_DETECTED"
+    MESSAGE_STALE = "MESSAGE_STALE"
+    MESSAGE_FROM_FUTURE = "MESSAGE_FROM_FUTURE"
+    INVALID_TIMESTAMP = "INVALID_TIMESTAMP"
+    INVALID_MESSAGE_ID = "INVALID_MESSAGE_ID"
+    INVALID_ENVELOPE = "INVALID_ENVELOPE"
+    INVALID_FRAME = "INVALID_FRAME"
+    VERSION_INCOMPATIBLE = "VERSION_INCOMPATIBLE"
+    AUTH_FAILED = "AUTH_FAILED"
+    SIGNATURE_INVALID = "SIGNATURE_INVALID"
+    SCOPE_DENIED = "SCOPE_DENIED"
+    COUNTER_REPLAYED = "COUNTER_REPLAYED"
+    COUNTER_TOO_OLD = "COUNTER_TOO_OLD"
+    COUNTER_EXHAUSTED = "COUNTER_EXHAUSTED"
+    EPOCH_REPLAYED = "EPOCH_REPLAYED"
+    EPOCH_TOO_FAR_AHEAD = "EPOCH_TOO_FAR_AHEAD"
+    STREAM_TABLE_FULL = "STREAM_TABLE_FULL"
+    STATE_UNAVAILABLE = "STATE_UNAVAILABLE"
+
+
+#: The one place where a code becomes an HTTP status.
+HTTP_STATUS: dict[Code, int] = {
+    Code.REPLAY_DETECTED: 409,
+    Code.MESSAGE_STALE: 408,
+    Code.MESSAGE_FROM_FUTURE: 400,
+    Code.INVALID_TIMESTAMP: 400,
+    Code.INVALID_MESSAGE_ID: 400,
+    Code.INVALID_ENVELOPE: 400,
+    Code.INVALID_FRAME: 400,
+    Code.VERSION_INCOMPATIBLE: 426,
+    Code.AUTH_FAILED: 401,
+    Code.SIGNATURE_INVALID: 401,
+    Code.SCOPE_DENIED: 403,
+    Code.COUNTER_REPLAYED: 409,
+    Code.COUNTER_TOO_OLD: 408,
+    Code.COUNTER_EXHAUSTED: 409,
+    Code.EPOCH_REPLAYED: 409,
+    Code.EPOCH_TOO_FAR_AHEAD: 400,
+    Code.STREAM_TABLE_FULL: 503,
+    Code.STATE_UNAVAILABLE: 503,
+}
+
+#: COMMAND_NACK in the current canonical RCAN numbering; 31 was its number in RCAN v1.5/v1.6.
+NACK_TYPE_CURRENT = 18
+NACK_TYPE_LEGACY = 31
+
+
+class AntiReplayError(Exception):
+    """Base of every antireplay exception."""
+
+
+class ReplayAttackError(AntiReplayError):
+    """A message was rejected; carries the code, HTTP status and a short reason."""
+
+    code: Code = Code.INVALID_ENVELOPE
+
+    def __init__(self, reason: str, *, detail: str | None = None) -> None:
+        super().__init__(f"{self.code.value}: {reason}")
+        self.reason = reason
+        self.detail = detail
+
+    @property
+    def http_status(self) -> int:
+        """HTTP status for HTTP transports (see :data:`HTTP_STATUS`)."""
+        return HTTP_STATUS[self.code]
+
+    def to_nack(self, msg_id: str | None, *, nack_type: int = NACK_TYPE_CURRENT) -> dict[str, Any]:
+        """The COMMAND_NACK body answering the rejected message.
+
+        ``msg_id`` must already be sanitized by the caller when it came from an
+        unauthenticated peer; the NACK never echoes the payload.
+        """
+        body: dict[str, Any] = {
+            "type": nack_type,
+            "code": self.code.value,
+            "ref_msg_id": msg_id,
+            "reason": self.reason,
+        }
+        if self.detail is not None:
+            body["detail"] = self.detail
+        return body
+
+
+class ReplayDetectedError(ReplayAttackError):
+    """The msg_id was already accepted and its message could still pass the freshness test."""
+
+    code = Code.REPLAY_DETECTED
+
+
+class MessageStaleError(ReplayAttackError):
+    """The message is older than its window (or below the cache's low watermark)."""
+
+    code = Code.MESSAGE_STALE
+
+
+class MessageFromFutureError(ReplayAttackError):
+    """The message is stamped further ahead than the allowed clock skew."""
+
+    code = Code.MESSAGE_FROM_FUTURE
+
+
+class InvalidTimestampError(ReplayAttackError):
+    """The timestamp is not finite, non-negative Unix seconds."""
+
+    code = Code.INVALID_TIMESTAMP
+
+
+class InvalidMessageIdError(ReplayAttackError):
+    """The msg_id is not a non-empty string of at most 128 characters."""
+
+    code = Code.INVALID_MESSAGE_ID
+
+
+class InvalidFrameError(ReplayAttackError):
+    """A binary frame (session frame, epoch announcement, ping) is malformed."""
+
+    code = Code.INVALID_FRAME
+
+
+class AuthenticationError(ReplayAttackError):
+    """A MAC or signature did not verify."""
+
+    code = Code.SIGNATURE_INVALID
+
+
+class CounterReplayError(ReplayAttackError):
+    """The counter was already accepted on this stream."""
+
+    code = Code.COUNTER_REPLAYED
+
+
+class CounterTooOldError(ReplayAttackError):
+    """The counter fell behind the sliding window; it cannot be proven fresh."""
+
+    code = Code.COUNTER_TOO_OLD
+
+
+class CounterLimitError(ReplayAttackError):
+    """The counter is at or above the limit: the session must be rekeyed."""
+
+    code = Code.COUNTER_EXHAUSTED
+
+
+class EpochReplayError(ReplayAttackError):
+    """The epoch is not greater than the last one accepted from that prefix."""
+
+    code = Code.EPOCH_REPLAYED
+
+
+class EpochTooFarAheadError(ReplayAttackError):
+    """An authentic epoch jumped further ahead than ``max_forward_s`` allows."""
+
+    code = Code.EPOCH_TOO_FAR_AHEAD
+
+
+class StreamTableFullError(ReplayAttackError):
+    """No stream slot can be freed without re-opening replay for an evicted stream."""
+
+    code = Code.STREAM_TABLE_FULL
+
+
+class StateUnavailableError(ReplayAttackError):
+    """The replay state store cannot be reached; fail closed."""
+
+    code = Code.STATE_UNAVAILABLE
+
+
+class ConfigError(AntiReplayError, ValueError):
+    """Invalid configuration; names the key, the value and what is allowed. Never clamped."""
+
+    def __init__(self, key: str, value: object, allowed: str) -> None:
+        super().__init__(f"invalid config {key}={value!r}: allowed {allowed}")
+        self.key = key
+        self.value = value
+        self.allowed = allowed
+
+
+class NonceExhaustedError(AntiReplayError):
+    """A sender counter reached its limit; rekey instead of wrapping."""
+
+
+class StateFileError(AntiReplayError):
+    """A crash-safe state file is corrupt, truncated or rolled back; refuse to start."""
+
+    def __init__(self, path: str, problem: str) -> None:
+        super().__init__(
+            f"state file {path}: {problem}; refusing to start. Recover with: "
+            f"antireplay state repair {path}"
+        )
+        self.path = path
+        self.problem = problem

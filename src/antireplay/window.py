@@ -1,0 +1,378 @@
+"""The freshness window and msg_id seen-set (RCAN §8.3 Replay Attack Prevention).
+
+Theory of operation
+-------------------
+Rule 1: everything that decides whether an RCAN message is fresh and unique
+lives in this file, in :meth:`ReplayCache._run`.  The cache takes values and a
+:class:`~antireplay.clock.Clock` and returns a verdict; it never reads the
+system time, sleeps or does I/O.
+
+A message with timestamp ``ts`` (Unix seconds, the *sender's* clock) and window
+``w`` is
+
+* ``MESSAGE_STALE``        when ``now - ts > w``;
+* ``MESSAGE_FROM_FUTURE``  when ``ts > now + skew``;
+* ``REPLAY_DETECTED``      when its msg_id was accepted before and that entry
+  has not expired.
+
+``w`` is ``replay_window_s`` (default 30 s) and ``min(replay_window_s, 10)`` for
+SAFETY messages (type 6).  An entry *expires* at ``ts + w`` of the message that
+created it, measured on the receiver's wall clock: that is exactly the instant
+after which the same message fails the freshness test, so it can be forgotten.
+Entries are never keyed on receipt time (a message stamped 4 s in the future
+stays fresh 4 s longer than one stamped now), and each entry carries its own
+expiry, so a SAFETY message's 10 s window never shortens the life of a
+COMMAND's 30 s entry.
+
+Forgetting is monitored by a **low watermark** ``W``: the largest expiry of any
+entry ever removed.  A message whose own expiry ``ts + w`` is ``<= W`` might
+have had its entry removed, so it is rejected as ``MESSAGE_STALE`` with
+``detail="watermark"``.  In normal operation entries are removed only after
+they expire, so ``W < now`` and the watermark never rejects a message that
+the plain freshness test would accept.  It binds in two situations:
+
+* **Saturation.** At ``max_size`` entries, an entry from the soonest-expiring
+  slot (entries are grouped by expiry into 0.1 s slots, a timing wheel: O(1)
+  insert and purge, no heap sifting) is dropped and ``W`` rises to its expiry;
+  a newcomer that would not outlive that whole slot is refused instead of
+  evicting anything.  Memory stays bounded and the cache fails closed: a
+  flood can make fresh messages be refused, never make a replay (an exact
+  copy, same msg_id and timestamp) pass.  A *new* message that reuses an
+  evicted msg_id with a later timestamp can pass: it is not a copy of anything
+  captured, since the timestamp is signed.  (We chose ``MESSAGE_STALE`` over
+  a separate code so peers need no new handling: resend with a fresh
+  timestamp and msg_id; the cause is visible in ``detail`` and in
+  ``saturation_evictions``.)
+* **Wall-clock steps backwards.** Entries removed before the step stay
+  covered by ``W``, so a step back never re-opens a replay.  A forward step
+  ages everything early, which only rejects more.
+
+ESTOP invariant: a fresh SAFETY message with ``safety_event == "ESTOP"`` is
+always accepted; if its msg_id was seen, or it falls under the watermark, the
+verdict carries ``warning="REPLAY_DETECTED"`` (to be audited).  A stale ESTOP
+(older than the 10 s safety window) is rejected; STOP and RESUME get no
+exemption.
+
+Timestamps are finite, non-negative Unix **seconds**: ``int``/``float`` or a
+plain decimal string (``"1700000000.25"``, as the RCAN SDK emits).  Rejected
+with ``INVALID_TIMESTAMP``: NaN, ±inf, booleans, ``None``, negatives, exponent
+or signed strings, ISO-8601 strings (ambiguous time zones; send Unix seconds),
+and values at or above 1e11, which are milliseconds sent in a seconds field
+(the RCAN SDK's ``timestamp_ms`` field is converted by the envelope layer,
+where its unit is explicit).
+
+Check order inside :meth:`ReplayCache.check`: msg_id shape, timestamp shape,
+staleness, future, watermark, duplicate, then commit.  ``precheck`` runs the
+same rules and records nothing, so a pipeline can throw replays away before
+any cryptography and commit only after authentication.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import re
+import threading
+from typing import NamedTuple
+
+from antireplay.clock import Clock, resolve
+from antireplay.config import ALLOWED, SecurityConfig
+from antireplay.errors import (
+    ConfigError,
+    InvalidMessageIdError,
+    InvalidTimestampError,
+    MessageFromFutureError,
+    MessageStaleError,
+    ReplayDetectedError,
+)
+from antireplay.messages import MessageType, SafetyEvent
+
+MAX_MSG_ID_LEN = 128
+#: Seconds values at or above this are treated as milliseconds sent by mistake (year 5138).
+MILLISECONDS_THRESHOLD = 1e11
+#: At most this many expired entries are purged per call: bounded work, no latency spikes.
+PURGE_BATCH = 64
+#: Entries are grouped by expiry into slots of 1/SLOTS_PER_SECOND s (a timing wheel).
+SLOTS_PER_SECOND = 10
+
+# Plain constants: enum attribute access costs ~150 ns on the hot path (CPython 3.11).
+_SAFETY = int(MessageType.SAFETY)
+_ESTOP = str(SafetyEvent.ESTOP)
+_DECIMAL = re.compile(r"[0-9]{1,12}(?:\.[0-9]{1,9})?")
+_ISO_HINT = re.compile(r"[0-9]{4}-[0-9]{2}-[0-9]{2}")
+
+
+class Verdict(NamedTuple):
+    """An accepted message: when its entry expires and any warning to audit."""
+
+    msg_id: str
+    timestamp: float
+    window_s: float
+    expires_at: float
+    warning: str | None = None
+
+
+_new_verdict = tuple.__new__
+
+
+def coerce_timestamp(value: object) -> float:
+    """Validate a timestamp and return it as float seconds, or raise ``INVALID_TIMESTAMP``."""
+    if isinstance(value, bool) or value is None:
+        raise InvalidTimestampError(f"timestamp must be Unix seconds, got {type(value).__name__}")
+    if isinstance(value, int):
+        ts = float(value)
+    elif isinstance(value, float):
+        ts = value
+    elif isinstance(value, str):
+        if _DECIMAL.fullmatch(value) is None:
+            hint = (
+                " (ISO-8601 is not accepted; send Unix seconds)" if _ISO_HINT.match(value) else ""
+            )
+            raise InvalidTimestampError("timestamp string is not plain decimal seconds" + hint)
+        ts = float(value)
+    else:
+        raise InvalidTimestampError(f"timestamp must be Unix seconds, got {type(value).__name__}")
+    if not math.isfinite(ts):
+        raise InvalidTimestampError("timestamp must be finite")
+    if ts < 0:
+        raise InvalidTimestampError("timestamp must not be negative")
+    if ts >= MILLISECONDS_THRESHOLD:
+        raise InvalidTimestampError(
+            "timestamp looks like milliseconds; send seconds (or timestamp_ms in an envelope)"
+        )
+    return ts
+
+
+def validate_msg_id(value: object) -> str:
+    """A msg_id is a non-empty string of at most 128 characters."""
+    if not isinstance(value, str):
+        raise InvalidMessageIdError(f"msg_id must be a string, got {type(value).__name__}")
+    if not value:
+        raise InvalidMessageIdError("msg_id must not be empty")
+    if len(value) > MAX_MSG_ID_LEN:
+        raise InvalidMessageIdError(f"msg_id longer than {MAX_MSG_ID_LEN} characters")
+    return value
+
+
+class ReplayCache:
+    """Bounded, thread-safe freshness window + msg_id seen-set (see the module docstring).
+
+    ``_run`` holds every rule in one place; it is deliberately written as one flat
+    function because each Python call costs ~100-300 ns on small robot CPUs.
+    """
+
+    def __init__(
+        self,
+        window_s: float = 30.0,
+        max_size: int = 10_000,
+        skew_s: float = 5.0,
+        clock: Clock | None = None,
+        *,
+        safety_window_s: float = 10.0,
+    ) -> None:
+        cfg = _validated(window_s, max_size, skew_s, safety_window_s)
+        self.window_s = cfg.replay_window_s
+        self.safety_window_s = min(cfg.safety_window_s, cfg.replay_window_s)
+        self.skew_s = cfg.skew_s
+        self.max_size = cfg.msg_id_cache_size
+        self._wall = resolve(clock).wall
+        self._expiry: dict[str, float] = {}
+        self._slots: dict[int, dict[str, float]] = {}
+        self._slot_keys: list[int] = []  # min-heap of the keys of _slots
+        self._watermark = -math.inf
+        self._lock = threading.Lock()
+        self.saturation_evictions = 0
+
+    @classmethod
+    def from_config(cls, config: SecurityConfig, clock: Clock | None = None) -> ReplayCache:
+        """Build a cache from a validated ``security:`` block."""
+        return cls(
+            config.replay_window_s,
+            config.msg_id_cache_size,
+            config.skew_s,
+            clock,
+            safety_window_s=config.safety_window_s,
+        )
+
+    def window_for(self, msg_type: int) -> float:
+        """SAFETY messages get ``min(replay_window_s, 10)``; others the configured window."""
+        return self.safety_window_s if msg_type == _SAFETY else self.window_s
+
+    @property
+    def watermark(self) -> float:
+        """Largest expiry ever forgotten; messages expiring at or before it are refused."""
+        return self._watermark
+
+    def __len__(self) -> int:
+        return len(self._expiry)
+
+    def precheck(
+        self,
+        msg_id: object,
+        timestamp: object,
+        msg_type: int = MessageType.COMMAND,
+        safety_event: str | None = None,
+    ) -> Verdict:
+        """Apply every rule and record nothing (the pipeline's cheap pre-crypto step)."""
+        return self._run(msg_id, timestamp, msg_type, safety_event, False)
+
+    def check(
+        self,
+        msg_id: object,
+        timestamp: object,
+        msg_type: int = MessageType.COMMAND,
+        safety_event: str | None = None,
+    ) -> Verdict:
+        """Apply every rule and atomically record the msg_id on acceptance."""
+        return self._run(msg_id, timestamp, msg_type, safety_event, True)
+
+    def purge(self) -> int:
+        """Forget every expired entry now; returns how many were removed."""
+        with self._lock:
+            return self._purge(self._wall(), len(self._expiry) + 1)
+
+    def _run(  # noqa: PLR0912 - one flat function on purpose (see the class docstring)
+        self, mid: object, ts: object, msg_type: int, event: str | None, commit: bool
+    ) -> Verdict:
+        if type(mid) is not str or not 0 < len(mid) <= MAX_MSG_ID_LEN:
+            mid = validate_msg_id(mid)
+        if type(ts) is not float or not 0.0 <= ts < MILLISECONDS_THRESHOLD:
+            ts = coerce_timestamp(ts)
+        safety = msg_type == _SAFETY
+        window = self.safety_window_s if safety else self.window_s
+        estop = safety and event == _ESTOP
+        warning = None
+        lock = self._lock
+        lock.acquire()
+        try:
+            now = self._wall()
+            keys, table = self._slot_keys, self._expiry
+            if commit and keys and keys[0] < now * SLOTS_PER_SECOND - 1:
+                self._purge(now, PURGE_BATCH)
+            if now - ts > window:
+                raise MessageStaleError(f"message is {now - ts:.3f}s old; window is {window:g}s")
+            if ts > now + self.skew_s:
+                raise MessageFromFutureError(
+                    f"message is {ts - now:.3f}s ahead; allowed skew is {self.skew_s:g}s"
+                )
+            expiry = ts + window
+            if expiry <= self._watermark:
+                if not estop:
+                    raise MessageStaleError(
+                        "message is older than the replay cache's low watermark",
+                        detail="watermark",
+                    )
+                warning = "REPLAY_DETECTED"
+            seen = table.get(mid)
+            if seen is not None and seen >= now:
+                if not estop:
+                    raise ReplayDetectedError("msg_id already accepted within its window")
+                warning = "REPLAY_DETECTED"
+            if commit:
+                if seen is None and len(table) < self.max_size:
+                    key = int(expiry * SLOTS_PER_SECOND)
+                    slot = self._slots.get(key)
+                    if slot is None:
+                        self._insert(mid, expiry)
+                    else:
+                        slot[mid] = expiry
+                        table[mid] = expiry
+                else:
+                    self._record(mid, expiry, now, estop)
+            return _new_verdict(Verdict, (mid, ts, window, expiry, warning))
+        finally:
+            lock.release()
+
+    def _record(self, mid: str, expires: float, now: float, force: bool) -> None:
+        """Insert or extend the entry; when full, evict from the soonest slot (fail closed).
+
+        An id's entry lives until the latest expiry of any accepted message with that id.
+        ``force`` (a fresh ESTOP) always records, even if that raises the watermark.
+        """
+        table = self._expiry
+        old = table.get(mid)
+        if old is not None:
+            if old < expires:
+                self._insert(mid, expires)
+            return
+        keys = self._slot_keys
+        if keys and keys[0] < now * SLOTS_PER_SECOND - 1:
+            self._purge(now, PURGE_BATCH)
+        if len(table) >= self.max_size:
+            # Evicting helps only if the newcomer outlives the whole soonest slot.
+            if not force and int(expires * SLOTS_PER_SECOND) <= keys[0]:
+                raise _saturated()
+            self._evict_one()
+            self.saturation_evictions += 1
+        self._insert(mid, expires)
+
+    def _insert(self, mid: str, expires: float) -> None:
+        key = int(expires * SLOTS_PER_SECOND)
+        slot = self._slots.get(key)
+        if slot is None:
+            slot = self._slots[key] = {}
+            heapq.heappush(self._slot_keys, key)
+        slot[mid] = expires
+        self._expiry[mid] = expires
+
+    def _evict_one(self) -> None:
+        """Forget one live entry from the soonest-expiring slot and raise the watermark.
+
+        Empty slots are dropped at once, so ``_slot_keys[0]`` always names a non-empty slot.
+        """
+        table, slots, keys = self._expiry, self._slots, self._slot_keys
+        evicted = False
+        while not evicted:
+            slot = slots[keys[0]]
+            mid, expires = slot.popitem()
+            if table.get(mid) == expires:
+                del table[mid]
+                self._watermark = max(self._watermark, expires)
+                evicted = True
+            if not slot:
+                del slots[heapq.heappop(keys)]
+
+    def _purge(self, now: float, limit: int) -> int:
+        """Forget up to ``limit`` entries from slots that have wholly expired."""
+        table, slots, keys, removed = self._expiry, self._slots, self._slot_keys, 0
+        horizon = int(now * SLOTS_PER_SECOND)  # every entry of a slot below this has expired
+        while keys and keys[0] < horizon and removed < limit:
+            slot = slots[keys[0]]
+            while slot and removed < limit:
+                mid, expires = slot.popitem()
+                if table.get(mid) == expires:
+                    del table[mid]
+                    removed += 1
+                    self._watermark = max(self._watermark, expires)
+            if not slot:
+                del slots[heapq.heappop(keys)]
+        return removed
+
+
+def _saturated() -> MessageStaleError:
+    return MessageStaleError(
+        "replay cache saturated; message expires before every live entry", detail="watermark"
+    )
+
+
+def _validated(
+    window_s: float, max_size: int, skew_s: float, safety_window_s: float
+) -> SecurityConfig:
+    """Constructor arguments obey the same ranges as the YAML block (no clamping)."""
+    if isinstance(max_size, bool) or not isinstance(max_size, int):
+        raise ConfigError("max_size", max_size, ALLOWED["msg_id_cache_size"])
+    for key, value in (
+        ("window_s", window_s),
+        ("skew_s", skew_s),
+        ("safety_window_s", safety_window_s),
+    ):
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(key, value, "a number of seconds")
+    return SecurityConfig.from_mapping(
+        {
+            "replay_window_s": float(window_s),
+            "msg_id_cache_size": max_size,
+            "skew_s": float(skew_s),
+            "safety_window_s": float(safety_window_s),
+        }
+    )

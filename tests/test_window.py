@@ -1,0 +1,429 @@
+"""Every §8.3 rule of the freshness window, and the RCAN SDK's failures as regressions."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from antireplay import (
+    Code,
+    ConfigError,
+    InvalidMessageIdError,
+    InvalidTimestampError,
+    ManualClock,
+    MessageFromFutureError,
+    MessageStaleError,
+    MessageType,
+    ReplayAttackError,
+    ReplayCache,
+    ReplayDetectedError,
+    SecurityConfig,
+)
+
+SAFETY = MessageType.SAFETY
+
+
+@pytest.fixture
+def clock() -> ManualClock:
+    return ManualClock(wall=1_800_000_000.0)
+
+
+@pytest.fixture
+def cache(clock: ManualClock) -> ReplayCache:
+    return ReplayCache(window_s=30, max_size=10_000, skew_s=5.0, clock=clock)
+
+
+# --- freshness --------------------------------------------------------------------------------
+
+
+def test_fresh_unique_message_is_accepted(cache: ReplayCache, clock: ManualClock) -> None:
+    verdict = cache.check("m1", clock.wall())
+    assert verdict.warning is None
+    assert verdict.expires_at == clock.wall() + 30
+
+
+def test_stale_boundary_is_exact(cache: ReplayCache, clock: ManualClock) -> None:
+    now = clock.wall()
+    cache.check("edge", now - 30)  # age == window: still fresh
+    with pytest.raises(MessageStaleError) as err:
+        cache.check("past-edge", now - 30.001)
+    assert err.value.code is Code.MESSAGE_STALE
+    assert err.value.http_status == 408
+
+
+def test_future_beyond_skew_rejected(cache: ReplayCache, clock: ManualClock) -> None:
+    now = clock.wall()
+    cache.check("ahead-ok", now + 5)
+    with pytest.raises(MessageFromFutureError):
+        cache.check("ahead-bad", now + 5.001)
+
+
+def test_duplicate_is_replay_with_409(cache: ReplayCache, clock: ManualClock) -> None:
+    cache.check("m1", clock.wall())
+    with pytest.raises(ReplayDetectedError) as err:
+        cache.check("m1", clock.wall())
+    assert err.value.http_status == 409
+    assert err.value.to_nack("m1")["type"] == 18
+    assert err.value.to_nack("m1", nack_type=31)["code"] == "REPLAY_DETECTED"
+
+
+def test_safety_window_is_ten_seconds(cache: ReplayCache, clock: ManualClock) -> None:
+    now = clock.wall()
+    cache.check("s-ok", now - 10, SAFETY, "STOP")
+    with pytest.raises(MessageStaleError):
+        cache.check("s-old", now - 10.5, SAFETY, "STOP")
+    cache.check("c-ok", now - 10.5, MessageType.COMMAND)
+
+
+def test_safety_window_never_exceeds_configured_window(clock: ManualClock) -> None:
+    cache = ReplayCache(window_s=5, clock=clock)
+    assert cache.window_for(SAFETY) == 5
+    with pytest.raises(MessageStaleError):
+        cache.check("s", clock.wall() - 6, SAFETY)
+
+
+def test_entry_lives_until_its_timestamp_plus_window(
+    cache: ReplayCache, clock: ManualClock
+) -> None:
+    ts = clock.wall() + 4
+    cache.check("future-stamped", ts)
+    clock.advance(34)  # receipt + 34 s, but ts + 30 == now: still fresh, so still remembered
+    cache.purge()
+    with pytest.raises(ReplayDetectedError):
+        cache.check("future-stamped", ts)
+    clock.advance(0.01)
+    with pytest.raises(MessageStaleError):
+        cache.check("future-stamped", ts)
+
+
+def test_entries_are_forgotten_after_expiry(cache: ReplayCache, clock: ManualClock) -> None:
+    for i in range(100):
+        cache.check(f"m{i}", clock.wall())
+    clock.advance(31)
+    assert cache.purge() == 100
+    assert len(cache) == 0
+
+
+def test_same_id_with_new_timestamp_after_expiry_is_a_new_message(
+    cache: ReplayCache, clock: ManualClock
+) -> None:
+    cache.check("reused", clock.wall())
+    clock.advance(31)
+    cache.check("reused", clock.wall())
+    with pytest.raises(ReplayDetectedError):
+        cache.check("reused", clock.wall())
+
+
+def test_precheck_records_nothing(cache: ReplayCache, clock: ManualClock) -> None:
+    cache.precheck("p", clock.wall())
+    cache.precheck("p", clock.wall())
+    assert len(cache) == 0
+    cache.check("p", clock.wall())
+    with pytest.raises(ReplayDetectedError):
+        cache.precheck("p", clock.wall())
+
+
+# --- ESTOP invariant ------------------------------------------------------------------------
+
+
+def test_fresh_duplicate_estop_is_accepted_with_warning(
+    cache: ReplayCache, clock: ManualClock
+) -> None:
+    first = cache.check("e", clock.wall(), SAFETY, "ESTOP")
+    second = cache.check("e", clock.wall(), SAFETY, "ESTOP")
+    assert first.warning is None
+    assert second.warning == "REPLAY_DETECTED"
+
+
+def test_stale_estop_is_rejected(cache: ReplayCache, clock: ManualClock) -> None:
+    with pytest.raises(MessageStaleError):
+        cache.check("e-old", clock.wall() - 10.5, SAFETY, "ESTOP")
+
+
+@pytest.mark.parametrize("event", ["RESUME", "STOP", None])
+def test_other_safety_events_get_no_exemption(
+    cache: ReplayCache, clock: ManualClock, event: str | None
+) -> None:
+    cache.check("x", clock.wall(), SAFETY, event)
+    with pytest.raises(ReplayDetectedError):
+        cache.check("x", clock.wall(), SAFETY, event)
+
+
+def test_estop_flag_on_command_type_gets_no_exemption(
+    cache: ReplayCache, clock: ManualClock
+) -> None:
+    cache.check("c", clock.wall(), MessageType.COMMAND, "ESTOP")
+    with pytest.raises(ReplayDetectedError):
+        cache.check("c", clock.wall(), MessageType.COMMAND, "ESTOP")
+
+
+# --- input validation -----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        math.nan,
+        math.inf,
+        -math.inf,
+        True,
+        False,
+        None,
+        -1,
+        -0.5,
+        "nan",
+        "NaN",
+        "inf",
+        "-1",
+        "1e9",
+        " 1700000000",
+        "",
+        "abc",
+        "2026-11-23T16:00:00Z",
+        [1],
+        {"t": 1},
+        b"1700000000",
+        1_800_000_000_000,  # milliseconds in a seconds field
+    ],
+)
+def test_invalid_timestamps_are_typed_400(cache: ReplayCache, bad: object) -> None:
+    with pytest.raises(InvalidTimestampError) as err:
+        cache.check("m", bad)
+    assert err.value.http_status == 400
+    assert len(cache) == 0
+
+
+def test_iso8601_rejection_says_why(cache: ReplayCache) -> None:
+    with pytest.raises(InvalidTimestampError, match="ISO-8601"):
+        cache.check("m", "2026-11-23T16:00:00Z")
+
+
+def test_decimal_string_and_int_timestamps_are_accepted(
+    cache: ReplayCache, clock: ManualClock
+) -> None:
+    now = clock.wall()
+    assert cache.check("s", f"{now:.3f}").timestamp == now
+    assert cache.check("i", int(now)).timestamp == int(now)
+
+
+@pytest.mark.parametrize("bad", ["", "x" * 129, None, 7, b"id", ["a"]])
+def test_invalid_msg_ids_are_typed_400(cache: ReplayCache, clock: ManualClock, bad: object) -> None:
+    with pytest.raises(InvalidMessageIdError) as err:
+        cache.check(bad, clock.wall())
+    assert err.value.http_status == 400
+
+
+def test_msg_id_of_128_chars_is_fine(cache: ReplayCache, clock: ManualClock) -> None:
+    cache.check("x" * 128, clock.wall())
+
+
+# --- bounded memory -------------------------------------------------------------------------
+
+
+def test_flood_never_reopens_replay(clock: ManualClock) -> None:
+    cache = ReplayCache(window_s=30, max_size=100, clock=clock)
+    victim_ts = clock.wall()
+    cache.check("victim", victim_ts)
+    refused = 0
+    for i in range(10_000):
+        try:
+            cache.check(f"flood-{i}", clock.wall() + (i % 6))
+        except MessageStaleError as exc:
+            assert exc.detail == "watermark"
+            refused += 1
+    assert len(cache) <= 100
+    assert refused > 0
+    assert cache.saturation_evictions > 0
+    with pytest.raises(ReplayAttackError) as err:
+        cache.check("victim", victim_ts)
+    assert err.value.code in {Code.REPLAY_DETECTED, Code.MESSAGE_STALE}
+
+
+def test_saturation_drops_soonest_expiring_entry(clock: ManualClock) -> None:
+    cache = ReplayCache(window_s=30, max_size=2, clock=clock)
+    now = clock.wall()
+    cache.check("late", now + 3)
+    cache.check("early", now - 3)
+    cache.check("new", now)  # evicts "early" (expires soonest), watermark = now + 27
+    assert cache.watermark == now + 27
+    with pytest.raises(MessageStaleError):
+        cache.check("early", now - 3)
+    with pytest.raises(ReplayDetectedError):
+        cache.check("late", now + 3)
+    with pytest.raises(MessageStaleError, match="saturated"):
+        cache.check("too-early", now - 2)  # would expire before every live entry
+
+
+def test_fresh_estop_passes_even_when_saturated(clock: ManualClock) -> None:
+    cache = ReplayCache(window_s=30, max_size=5, clock=clock)
+    for i in range(50):
+        with contextlib.suppress(MessageStaleError):
+            cache.check(f"f{i}", clock.wall() + 5)
+    with pytest.raises(MessageStaleError):
+        cache.check("cmd", clock.wall(), MessageType.COMMAND)  # saturated: commands fail closed
+    assert cache.check("estop", clock.wall(), SAFETY, "ESTOP").warning is None
+    assert cache.check("estop", clock.wall(), SAFETY, "ESTOP").warning == "REPLAY_DETECTED"
+    assert len(cache) == 5
+
+
+def test_purge_work_is_bounded_per_check(cache: ReplayCache, clock: ManualClock) -> None:
+    for i in range(1_000):
+        cache.check(f"m{i}", clock.wall())
+    clock.advance(60)
+    cache.check("next", clock.wall())
+    assert len(cache) == 1_000 - 64 + 1
+
+
+# --- clock steps ----------------------------------------------------------------------------
+
+
+def test_wall_clock_step_back_never_reopens_replay(cache: ReplayCache, clock: ManualClock) -> None:
+    ts = clock.wall()
+    cache.check("m", ts)
+    clock.advance(31)
+    cache.purge()
+    assert len(cache) == 0
+    clock.step_wall(-20)  # NTP pulls the clock back: the capture looks fresh again
+    with pytest.raises(MessageStaleError) as err:
+        cache.check("m", ts)
+    assert err.value.detail == "watermark"
+
+
+# --- concurrency ----------------------------------------------------------------------------
+
+
+def race(threads_n: int, action: Callable[[], object]) -> tuple[int, int]:
+    """Start ``threads_n`` threads behind a barrier; count successes and ReplayAttackErrors."""
+    barrier = threading.Barrier(threads_n)
+    results: list[bool] = []
+
+    def worker() -> None:
+        barrier.wait()
+        try:
+            action()
+            results.append(True)
+        except ReplayAttackError:
+            results.append(False)
+
+    threads = [threading.Thread(target=worker) for _ in range(threads_n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return results.count(True), results.count(False)
+
+
+def test_threads_racing_on_one_msg_id_give_exactly_one_acceptance(clock: ManualClock) -> None:
+    cache = ReplayCache(clock=clock)
+    for round_no in range(200):
+        mid = f"race-{round_no}"
+        wins, losses = race(8, lambda mid=mid: cache.check(mid, clock.wall()))  # type: ignore[misc]
+        assert (wins, losses) == (1, 7), f"round {round_no}"
+
+
+# --- configuration (no clamping) ------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "key"),
+    [
+        ({"window_s": 1000}, "replay_window_s"),
+        ({"window_s": 4}, "replay_window_s"),
+        ({"window_s": math.nan}, "replay_window_s"),
+        ({"max_size": 0}, "msg_id_cache_size"),
+        ({"max_size": 2.5}, "max_size"),
+        ({"skew_s": -1}, "skew_s"),
+        ({"window_s": True}, "window_s"),
+    ],
+)
+def test_bad_constructor_values_raise_config_error(kwargs: dict[str, object], key: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        ReplayCache(**kwargs)  # type: ignore[arg-type]
+    assert key in err.value.key
+
+
+def test_yaml_config_round_trip(tmp_path: Path) -> None:
+    path = tmp_path / "robot.yaml"
+    path.write_text("security:\n  replay_window_s: 60\n  msg_id_cache_size: 500\n  skew_s: 2\n")
+    cfg = SecurityConfig.from_yaml(path)
+    cache = ReplayCache.from_config(cfg, ManualClock())
+    assert (cache.window_s, cache.max_size, cache.skew_s) == (60, 500, 2)
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "key", "value"),
+    [
+        ("security:\n  replay_window_s: 1000\n", "security.replay_window_s", 1000),
+        ("security:\n  replay_window_s: 2\n", "security.replay_window_s", 2),
+        ("security:\n  replay_window_s: fast\n", "security.replay_window_s", "fast"),
+        ("security:\n  msg_id_cache_size: -5\n", "security.msg_id_cache_size", -5),
+        ("security:\n  replay_windows_s: 30\n", "security.replay_windows_s", 30),
+        ("security:\n  nack_type: 19\n", "security.nack_type", 19),
+        ("security:\n  skew_s: true\n", "security.skew_s", True),
+        ("security: 5\n", "security", 5),
+    ],
+)
+def test_yaml_errors_name_key_value_and_range(
+    tmp_path: Path, yaml_text: str, key: str, value: object
+) -> None:
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml_text)
+    with pytest.raises(ConfigError) as err:
+        SecurityConfig.from_yaml(path)
+    assert err.value.key == key
+    assert err.value.value == value
+    assert "allowed" in str(err.value)
+
+
+def test_legacy_nack_type_31_is_accepted(tmp_path: Path) -> None:
+    path = tmp_path / "robot.yaml"
+    path.write_text("security:\n  nack_type: 31\n")
+    assert SecurityConfig.from_yaml(path).nack_type == 31
+
+
+def test_missing_and_broken_yaml_are_config_errors(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError):
+        SecurityConfig.from_yaml(tmp_path / "absent.yaml")
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("security: [\n")
+    with pytest.raises(ConfigError):
+        SecurityConfig.from_yaml(broken)
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("")
+    assert SecurityConfig.from_yaml(empty).replay_window_s == 30
+
+
+# --- the RCAN SDK 3.7.0 failures, as regressions --------------------------------------------
+
+
+def test_regression_safety_message_does_not_expire_command_entries(
+    cache: ReplayCache, clock: ManualClock
+) -> None:
+    ts = clock.wall()
+    cache.check("cmd", ts)
+    clock.advance(5)
+    cache.check("stop", clock.wall(), SAFETY, "STOP")
+    clock.advance(10)  # command is 15 s old: past the safety window, inside its own
+    cache.check("stop-2", clock.wall(), SAFETY, "STOP")
+    with pytest.raises(ReplayDetectedError):
+        cache.check("cmd", ts)
+
+
+def test_regression_flood_of_unique_ids_does_not_evict_live_entry(clock: ManualClock) -> None:
+    cache = ReplayCache(window_s=30, max_size=1_000, clock=clock)
+    cache.check("victim", clock.wall())
+    for i in range(1_500):
+        with contextlib.suppress(MessageStaleError):
+            cache.check(f"u{i}", clock.wall() + 1)
+    with pytest.raises(ReplayAttackError):
+        cache.check("victim", clock.wall())
+
+
+def test_regression_nan_string_rejected(cache: ReplayCache) -> None:
+    with pytest.raises(InvalidTimestampError):
+        cache.check("m", "nan")
