@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import threading
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -24,13 +22,9 @@ from antireplay import (
     ReplayDetectedError,
     SecurityConfig,
 )
+from tests.conftest import race
 
 SAFETY = MessageType.SAFETY
-
-
-@pytest.fixture
-def clock() -> ManualClock:
-    return ManualClock(wall=1_800_000_000.0)
 
 
 @pytest.fixture
@@ -295,27 +289,6 @@ def test_wall_clock_step_back_never_reopens_replay(cache: ReplayCache, clock: Ma
 
 
 # --- concurrency ----------------------------------------------------------------------------
-
-
-def race(threads_n: int, action: Callable[[], object]) -> tuple[int, int]:
-    """Start ``threads_n`` threads behind a barrier; count successes and ReplayAttackErrors."""
-    barrier = threading.Barrier(threads_n)
-    results: list[bool] = []
-
-    def worker() -> None:
-        barrier.wait()
-        try:
-            action()
-            results.append(True)
-        except ReplayAttackError:
-            results.append(False)
-
-    threads = [threading.Thread(target=worker) for _ in range(threads_n)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
-    return results.count(True), results.count(False)
 
 
 def test_threads_racing_on_one_msg_id_give_exactly_one_acceptance(clock: ManualClock) -> None:

@@ -41,7 +41,8 @@ class Code(StrEnum):
     COUNTER_EXHAUSTED = "COUNTER_EXHAUSTED"
     EPOCH_REPLAYED = "EPOCH_REPLAYED"
     EPOCH_TOO_FAR_AHEAD = "EPOCH_TOO_FAR_AHEAD"
-    STREAM_TABLE_FULL = "STREAM_TABLE_FULL"
+    SESSION_CLOSED = "SESSION_CLOSED"
+    UNKNOWN_SESSION = "UNKNOWN_SESSION"
     STATE_UNAVAILABLE = "STATE_UNAVAILABLE"
 
 
@@ -63,7 +64,8 @@ HTTP_STATUS: dict[Code, int] = {
     Code.COUNTER_EXHAUSTED: 409,
     Code.EPOCH_REPLAYED: 409,
     Code.EPOCH_TOO_FAR_AHEAD: 400,
-    Code.STREAM_TABLE_FULL: 503,
+    Code.SESSION_CLOSED: 401,
+    Code.UNKNOWN_SESSION: 401,
     Code.STATE_UNAVAILABLE: 503,
 }
 
@@ -180,10 +182,16 @@ class EpochTooFarAheadError(ReplayAttackError):
     code = Code.EPOCH_TOO_FAR_AHEAD
 
 
-class StreamTableFullError(ReplayAttackError):
-    """No stream slot can be freed without re-opening replay for an evicted stream."""
+class SessionClosedError(ReplayAttackError):
+    """The stream's session was closed or evicted; only a new handshake helps."""
 
-    code = Code.STREAM_TABLE_FULL
+    code = Code.SESSION_CLOSED
+
+
+class UnknownSessionError(ReplayAttackError):
+    """The frame names a session this receiver never opened."""
+
+    code = Code.UNKNOWN_SESSION
 
 
 class StateUnavailableError(ReplayAttackError):

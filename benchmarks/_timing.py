@@ -1,0 +1,24 @@
+"""Shared timing helper for the benchmarks: medians of repeated batches."""
+
+from __future__ import annotations
+
+import gc
+import statistics
+import time
+from collections.abc import Callable
+
+
+def per_op_ns(action: Callable[[], object], batch: int, repeats: int = 7) -> float:
+    """Median nanoseconds per call of ``action`` over ``repeats`` batches."""
+    samples = []
+    for _ in range(repeats):
+        gc.collect()
+        start = time.perf_counter_ns()
+        for _ in range(batch):
+            action()
+        samples.append((time.perf_counter_ns() - start) / batch)
+    return statistics.median(samples)
+
+
+def rate(ns: float) -> str:
+    return f"{1e9 / ns:>12,.0f}/s"

@@ -1,0 +1,375 @@
+"""Post-quantum sessions with session-bound counters (CleitonQ style, with its gaps closed).
+
+Theory of operation
+-------------------
+Two roles.  The **initiator** (a ground station or operator) owns an ML-DSA-87
+identity key; the **responder** (the robot) owns an ML-KEM-1024 key and a
+registry of initiator public keys.
+
+Handshake (two messages)::
+
+    HS1  i -> r : 0xA1 | ver | ts_ms u64 | id_len u16 | initiator_id
+                  | responder_key_hash[32] | kem_ct[1568] | nonce_i[32] | ML-DSA-87 sig
+    HS2  r -> i : 0xA2 | ver | session_id[16] | nonce_r[32] | HMAC-SHA256(confirm_key, transcript)
+
+The signature (context ``antireplay/v1 hs1``) covers everything before it, so
+the encapsulation is bound to the initiator's identity and to this responder's
+KEM key.  The responder runs the cheap checks first (shape, a 30 s freshness
+window and a seen-set on the HS1 digest, :class:`~antireplay.window.ReplayCache`),
+then verifies the signature and decapsulates, and only then commits the digest.
+It picks a **session sequence** (strictly increasing, from a
+:class:`~antireplay.counters.NonceCounter`) and a fresh ``nonce_r``::
+
+    transcript = SHA-256("antireplay/v1 transcript" | HS1 | seq u64 | nonce_r)
+    session_id = seq u64 | transcript[:8]
+    key(label) = HKDF-SHA256(ikm=shared_secret, salt=transcript, info="antireplay/v1 " + label)
+
+with labels ``i2r data``, ``r2i data`` and ``confirm``.  Because the responder
+contributes ``nonce_r`` and a new sequence, even an HS1 replayed after its
+window could never reopen a session with the same keys or id.
+
+Frames::
+
+    0xA5 | ver | purpose | direction | session_id[16] | counter u64 | payload | tag
+
+``purpose`` is ``data`` (tag = HMAC-SHA256 under the direction's data key) or
+``command`` (initiator to responder only; tag = ML-DSA-87 signature by the
+initiator's identity key, context ``antireplay/v1 cmd``).  The tag covers the
+whole header and the payload, so a frame moved to another session, direction
+or purpose fails.  Each (direction, purpose) has its own counter starting at
+0 and its own :class:`~antireplay.counters.CounterWindow` on the receiving
+side, so reordering within 8,128 frames is fine and each counter is accepted
+once.  Receive order: parse, window ``check`` (before crypto), verify, window
+``accept`` (commit): a forged far-future counter changes nothing.
+
+Rekeying: :attr:`Session.needs_rekey` turns true at ``REKEY_AFTER`` (2**60)
+frames in either direction, long before the hard limit where ``seal`` raises
+:class:`~antireplay.errors.NonceExhaustedError`.  Bounded memory: a responder
+keeps at most ``max_sessions``; the oldest sequence is evicted *with its keys*,
+so none of its frames can ever verify again (eviction forces a new session
+rather than re-opening a window), and a frame for it gets ``SESSION_CLOSED``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+import struct
+import threading
+from dataclasses import dataclass, field
+from enum import IntEnum
+
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import hashes
+from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
+from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+
+from antireplay.clock import Clock, resolve
+from antireplay.counters import COUNTER_LIMIT, CounterWindow, NonceCounter
+from antireplay.errors import (
+    AuthenticationError,
+    CounterReplayError,
+    InvalidFrameError,
+    SessionClosedError,
+    UnknownSessionError,
+)
+from antireplay.window import ReplayCache
+
+VERSION = 1
+HS1_MAGIC, HS2_MAGIC, FRAME_MAGIC = 0xA1, 0xA2, 0xA5
+KEM_CT_LEN, NONCE_LEN, SIG_LEN, MAC_LEN, SESSION_ID_LEN = 1568, 32, 4627, 32, 16
+MAX_ID_LEN = 128
+MAX_FRAME = 65_536
+REKEY_AFTER = 2**60
+HANDSHAKE_WINDOW_S = 30.0
+_HS1_HEAD = struct.Struct(">BBQH")
+_FRAME_HEAD = struct.Struct(">BBBB16sQ")
+_HS2_LEN = 2 + SESSION_ID_LEN + NONCE_LEN + MAC_LEN
+_CTX_HS1, _CTX_CMD = b"antireplay/v1 hs1", b"antireplay/v1 cmd"
+
+
+class Purpose(IntEnum):
+    DATA = 1
+    COMMAND = 2
+
+
+class Direction(IntEnum):
+    I2R = 1
+    R2I = 2
+
+
+@dataclass(frozen=True)
+class Opened:
+    """An authenticated, fresh frame."""
+
+    payload: bytes
+    counter: int
+    purpose: Purpose
+    session_id: bytes
+
+
+def _hkdf(secret: bytes, salt: bytes, label: str) -> bytes:
+    kdf = HKDF(
+        algorithm=hashes.SHA256(), length=32, salt=salt, info=b"antireplay/v1 " + label.encode()
+    )
+    return kdf.derive(secret)
+
+
+def _transcript(hs1: bytes, seq: int, nonce_r: bytes) -> bytes:
+    return hashlib.sha256(
+        b"antireplay/v1 transcript" + hs1 + seq.to_bytes(8, "big") + nonce_r
+    ).digest()
+
+
+@dataclass
+class Session:
+    """One established session; use :meth:`seal` to send and :meth:`open` to receive."""
+
+    session_id: bytes
+    role: Direction  # the direction this side *sends* in
+    peer_id: str
+    send_key: bytes
+    recv_key: bytes
+    signing_key: mldsa.MLDSA87PrivateKey | None = None
+    peer_verify_key: mldsa.MLDSA87PublicKey | None = None
+    _send: dict[Purpose, NonceCounter] = field(default_factory=dict)
+    _recv: dict[Purpose, CounterWindow] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for purpose in Purpose:
+            self._send[purpose] = NonceCounter(0)
+            self._recv[purpose] = CounterWindow()
+
+    @property
+    def seq(self) -> int:
+        return int.from_bytes(self.session_id[:8], "big")
+
+    @property
+    def needs_rekey(self) -> bool:
+        """True once any counter passed ``REKEY_AFTER``: start a new handshake now."""
+        sent = max(c.peek for c in self._send.values())
+        received = max(w.last for w in self._recv.values())
+        return max(sent, received) >= REKEY_AFTER
+
+    def seal(self, payload: bytes, purpose: Purpose = Purpose.DATA) -> bytes:
+        """Frame ``payload`` with the next counter; commands are signed with ML-DSA-87."""
+        counter = self._send[purpose].next()
+        head = _FRAME_HEAD.pack(FRAME_MAGIC, VERSION, purpose, self.role, self.session_id, counter)
+        if len(head) + len(payload) + (MAC_LEN if purpose is Purpose.DATA else SIG_LEN) > MAX_FRAME:
+            raise ValueError("payload too large for one frame")
+        if purpose is Purpose.DATA:
+            return head + payload + hmac.digest(self.send_key, head + payload, "sha256")
+        if self.signing_key is None:
+            raise ValueError("only the initiator signs command frames")
+        return head + payload + self.signing_key.sign(head + payload, _CTX_CMD)
+
+    def open(self, frame: bytes) -> Opened:
+        """Parse, window check (pre-crypto), verify, commit."""
+        return self.open_parsed(frame, parse_frame_head(frame))
+
+    def open_parsed(self, frame: bytes, head: tuple[Purpose, Direction, bytes, int]) -> Opened:
+        """:meth:`open` for a frame whose header the caller already parsed."""
+        purpose, direction, sid, counter = head
+        if sid != self.session_id:
+            raise UnknownSessionError("frame belongs to another session")
+        if direction is self.role:
+            raise InvalidFrameError("frame travels in the wrong direction")
+        tag_len = MAC_LEN if purpose is Purpose.DATA else SIG_LEN
+        if len(frame) < _FRAME_HEAD.size + tag_len:
+            raise InvalidFrameError("frame too short for its tag")
+        window = self._recv[purpose]
+        window.check(counter)
+        body, tag = frame[:-tag_len], frame[-tag_len:]
+        if purpose is Purpose.DATA:
+            good = hmac.compare_digest(hmac.digest(self.recv_key, body, "sha256"), tag)
+        else:
+            good = self._verify_command(body, tag)
+        if not good:
+            raise AuthenticationError("frame tag does not verify")
+        if not window.accept(counter):
+            raise CounterReplayError(f"counter {counter} already accepted")
+        return Opened(body[_FRAME_HEAD.size :], counter, purpose, self.session_id)
+
+    def _verify_command(self, body: bytes, tag: bytes) -> bool:
+        if self.peer_verify_key is None:
+            return False
+        try:
+            self.peer_verify_key.verify(tag, body, _CTX_CMD)
+        except InvalidSignature:
+            return False
+        return True
+
+
+_PURPOSES = {int(p): p for p in Purpose}
+_DIRECTIONS = {int(d): d for d in Direction}
+
+
+def parse_frame_head(frame: bytes) -> tuple[Purpose, Direction, bytes, int]:
+    """Strictly parse a frame header; every failure is a typed INVALID_FRAME."""
+    if type(frame) is not bytes:
+        if not isinstance(frame, bytes | bytearray | memoryview):
+            raise InvalidFrameError("frame must be bytes")
+        frame = bytes(frame)
+    if len(frame) > MAX_FRAME:
+        raise InvalidFrameError(f"frame longer than {MAX_FRAME} bytes")
+    if len(frame) < _FRAME_HEAD.size + MAC_LEN:
+        raise InvalidFrameError("frame too short")
+    magic, ver, purpose, direction, sid, counter = _FRAME_HEAD.unpack_from(frame)
+    if magic != FRAME_MAGIC or ver != VERSION:
+        raise InvalidFrameError("not an antireplay v1 frame")
+    p, d = _PURPOSES.get(purpose), _DIRECTIONS.get(direction)
+    if p is None or d is None:
+        raise InvalidFrameError("unknown purpose or direction")
+    return p, d, sid, counter
+
+
+class Initiator:
+    """The side that owns an ML-DSA-87 identity key and opens sessions."""
+
+    def __init__(
+        self, identity: str, signing_key: mldsa.MLDSA87PrivateKey, clock: Clock | None = None
+    ) -> None:
+        raw = identity.encode()
+        if not 0 < len(raw) <= MAX_ID_LEN:
+            raise ValueError(f"identity must be 1..{MAX_ID_LEN} bytes of UTF-8")
+        self.identity = identity
+        self.signing_key = signing_key
+        self._clock = resolve(clock)
+        self._pending: dict[bytes, tuple[bytes, bytes]] = {}
+
+    def start(self, responder_key: mlkem.MLKEM1024PublicKey) -> bytes:
+        """Build HS1 for a responder; keep the shared secret until HS2 arrives."""
+        secret, kem_ct = responder_key.encapsulate()
+        raw_id = self.identity.encode()
+        head = _HS1_HEAD.pack(HS1_MAGIC, VERSION, int(self._clock.wall() * 1000), len(raw_id))
+        key_hash = hashlib.sha256(responder_key.public_bytes_raw()).digest()
+        body = head + raw_id + key_hash + kem_ct + os.urandom(NONCE_LEN)
+        hs1 = body + self.signing_key.sign(body, _CTX_HS1)
+        self._pending[hashlib.sha256(hs1).digest()] = (hs1, secret)
+        return hs1
+
+    def finish(self, hs1: bytes, hs2: bytes) -> Session:
+        """Check the responder's key confirmation and derive the session."""
+        pending = self._pending.pop(hashlib.sha256(hs1).digest(), None)
+        if pending is None:
+            raise UnknownSessionError("no handshake in progress for this HS1")
+        _, secret = pending
+        if len(hs2) != _HS2_LEN or hs2[0] != HS2_MAGIC or hs2[1] != VERSION:
+            raise InvalidFrameError("malformed HS2")
+        sid, nonce_r, mac = hs2[2:18], hs2[18:50], hs2[50:]
+        seq = int.from_bytes(sid[:8], "big")
+        transcript = _transcript(hs1, seq, nonce_r)
+        confirm = _hkdf(secret, transcript, "confirm")
+        expected = hmac.digest(confirm, b"hs2" + transcript, "sha256")
+        if sid[8:] != transcript[:8] or not hmac.compare_digest(mac, expected):
+            raise AuthenticationError("HS2 key confirmation failed")
+        return Session(
+            sid,
+            Direction.I2R,
+            "responder",
+            _hkdf(secret, transcript, "i2r data"),
+            _hkdf(secret, transcript, "r2i data"),
+            signing_key=self.signing_key,
+        )
+
+
+class Responder:
+    """The robot side: answers handshakes and routes frames to bounded sessions."""
+
+    def __init__(
+        self,
+        kem_key: mlkem.MLKEM1024PrivateKey,
+        peers: dict[str, mldsa.MLDSA87PublicKey],
+        *,
+        max_sessions: int = 256,
+        sequence: NonceCounter | None = None,
+        clock: Clock | None = None,
+    ) -> None:
+        self.kem_key = kem_key
+        self.peers = dict(peers)
+        self.max_sessions = max_sessions
+        self._key_hash = hashlib.sha256(kem_key.public_key().public_bytes_raw()).digest()
+        self._seq = sequence if sequence is not None else NonceCounter(1)
+        self._seen_hs1 = ReplayCache(HANDSHAKE_WINDOW_S, 100_000, 5.0, clock)
+        self._sessions: dict[int, Session] = {}
+        self._lock = threading.Lock()
+
+    def accept_handshake(self, hs1: bytes) -> tuple[Session, bytes]:
+        """Validate HS1 (cheap checks, then signature, then KEM), open a session, return HS2."""
+        peer_id, digest, ts, body, sig, kem_ct = self._parse_hs1(hs1)
+        self._seen_hs1.precheck(digest, ts)
+        peer_key = self.peers.get(peer_id)
+        if peer_key is None:
+            raise AuthenticationError("unknown initiator identity")
+        try:
+            peer_key.verify(sig, body, _CTX_HS1)
+        except InvalidSignature:
+            raise AuthenticationError("HS1 signature does not verify") from None
+        try:
+            secret = self.kem_key.decapsulate(kem_ct)
+        except ValueError:
+            raise AuthenticationError("KEM decapsulation failed") from None
+        self._seen_hs1.check(digest, ts)
+        seq, nonce_r = self._seq.next(), os.urandom(NONCE_LEN)
+        transcript = _transcript(hs1, seq, nonce_r)
+        sid = seq.to_bytes(8, "big") + transcript[:8]
+        session = Session(
+            sid,
+            Direction.R2I,
+            peer_id,
+            _hkdf(secret, transcript, "r2i data"),
+            _hkdf(secret, transcript, "i2r data"),
+            peer_verify_key=peer_key,
+        )
+        confirm = _hkdf(secret, transcript, "confirm")
+        hs2 = bytes([HS2_MAGIC, VERSION]) + sid + nonce_r
+        hs2 += hmac.digest(confirm, b"hs2" + transcript, "sha256")
+        with self._lock:
+            if len(self._sessions) >= self.max_sessions:
+                del self._sessions[min(self._sessions)]  # the oldest; its keys go with it
+            self._sessions[seq] = session
+        return session, hs2
+
+    def _parse_hs1(self, hs1: bytes) -> tuple[str, str, float, bytes, bytes, bytes]:
+        if not isinstance(hs1, bytes) or len(hs1) < _HS1_HEAD.size:
+            raise InvalidFrameError("HS1 too short")
+        magic, ver, ts_ms, id_len = _HS1_HEAD.unpack_from(hs1)
+        if magic != HS1_MAGIC or ver != VERSION:
+            raise InvalidFrameError("not an antireplay v1 HS1")
+        if not 0 < id_len <= MAX_ID_LEN:
+            raise InvalidFrameError("bad identity length")
+        expected = _HS1_HEAD.size + id_len + 32 + KEM_CT_LEN + NONCE_LEN + SIG_LEN
+        if len(hs1) != expected:
+            raise InvalidFrameError(f"HS1 must be {expected} bytes, got {len(hs1)}")
+        at = _HS1_HEAD.size
+        try:
+            peer_id = hs1[at : at + id_len].decode()
+        except UnicodeDecodeError:
+            raise InvalidFrameError("identity is not UTF-8") from None
+        at += id_len
+        if not hmac.compare_digest(hs1[at : at + 32], self._key_hash):
+            raise InvalidFrameError("HS1 is addressed to another responder key")
+        kem_ct = hs1[at + 32 : at + 32 + KEM_CT_LEN]
+        digest = hashlib.sha256(hs1).hexdigest()
+        return peer_id, digest, ts_ms / 1000, hs1[:-SIG_LEN], hs1[-SIG_LEN:], kem_ct
+
+    def open(self, frame: bytes) -> Opened:
+        """Route a frame to its session; unknown or evicted sessions get typed errors."""
+        head = parse_frame_head(frame)
+        sid = head[2]
+        seq = int.from_bytes(sid[:8], "big")
+        session = self._sessions.get(seq)
+        if session is None or session.session_id != sid:
+            if session is None and seq < self._seq.peek:
+                raise SessionClosedError("session was closed or evicted; handshake again")
+            raise UnknownSessionError("no such session")
+        return session.open_parsed(bytes(frame), head)
+
+    def close(self, session: Session) -> None:
+        """End a session (after a rekey): its keys are dropped, so its frames can never pass."""
+        with self._lock:
+            self._sessions.pop(session.seq, None)
+
+
+__all__ = ["COUNTER_LIMIT", "Direction", "Initiator", "Opened", "Purpose", "Responder", "Session"]

@@ -1,0 +1,73 @@
+"""Shared fixtures and helpers."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from antireplay import ManualClock, ReplayAttackError
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture
+def clock() -> ManualClock:
+    return ManualClock(wall=1_800_000_000.0)
+
+
+def race(threads_n: int, action: Callable[[], object]) -> tuple[int, int]:
+    """Start ``threads_n`` threads behind a barrier; count successes and typed rejections."""
+    barrier = threading.Barrier(threads_n)
+    results: list[bool] = []
+    lock = threading.Lock()
+
+    def worker() -> None:
+        barrier.wait()
+        try:
+            action()
+            ok = True
+        except ReplayAttackError:
+            ok = False
+        with lock:
+            results.append(ok)
+
+    threads = [threading.Thread(target=worker) for _ in range(threads_n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return results.count(True), results.count(False)
+
+
+def run_and_kill(args: list[str], lines: int, rng: random.Random) -> list[str]:
+    """Start a Python helper, read ``lines`` lines of output, then SIGKILL it mid-stride."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen(
+        [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True
+    )
+    assert proc.stdout is not None
+    out: list[str] = []
+    for _ in range(lines):
+        line = proc.stdout.readline()
+        if not line:
+            break
+        out.append(line.strip())
+    if rng.random() < 0.5:  # sometimes let it run a little further before the kill
+        for _ in range(rng.randint(1, 50)):
+            line = proc.stdout.readline()
+            if line:
+                out.append(line.strip())
+    proc.send_signal(signal.SIGKILL)
+    rest, err = proc.communicate(timeout=30)
+    out.extend(x for x in rest.split("\n") if x.strip())
+    if proc.returncode != -signal.SIGKILL:
+        raise AssertionError(f"helper exited {proc.returncode}: {err}")
+    return out

@@ -1,0 +1,219 @@
+"""ML-KEM-1024 / ML-DSA-87 sessions with session-bound counters."""
+
+from __future__ import annotations
+
+import pytest
+from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from antireplay import ManualClock
+from antireplay.counters import NonceCounter
+from antireplay.errors import (
+    AuthenticationError,
+    CounterReplayError,
+    InvalidFrameError,
+    MessageStaleError,
+    NonceExhaustedError,
+    ReplayAttackError,
+    ReplayDetectedError,
+    SessionClosedError,
+    UnknownSessionError,
+)
+from antireplay.session import (
+    REKEY_AFTER,
+    Initiator,
+    Purpose,
+    Responder,
+    Session,
+)
+
+GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
+ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
+
+
+def pair(clock: ManualClock, max_sessions: int = 256) -> tuple[Initiator, Responder]:
+    gcs = Initiator("gcs-1", GCS_KEY, clock)
+    robot = Responder(
+        ROBOT_KEM, {"gcs-1": GCS_KEY.public_key()}, clock=clock, max_sessions=max_sessions
+    )
+    return gcs, robot
+
+
+def connect(gcs: Initiator, robot: Responder) -> tuple[Session, Session, bytes]:
+    hs1 = gcs.start(ROBOT_KEM.public_key())
+    robot_side, hs2 = robot.accept_handshake(hs1)
+    return gcs.finish(hs1, hs2), robot_side, hs1
+
+
+def test_round_trip_both_directions(clock: ManualClock) -> None:
+    gcs_side, robot_side, _ = connect(*pair(clock))
+    frame = gcs_side.seal(b"move_forward 1m")
+    opened = robot_side.open(frame)
+    assert (opened.payload, opened.counter, opened.purpose) == (b"move_forward 1m", 0, Purpose.DATA)
+    assert gcs_side.open(robot_side.seal(b"ack")).payload == b"ack"
+
+
+def test_signed_command_frames(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    gcs_side, _, _ = connect(gcs, robot)
+    frame = gcs_side.seal(b"ARM", Purpose.COMMAND)
+    assert robot.open(frame).purpose is Purpose.COMMAND
+    with pytest.raises(CounterReplayError):
+        robot.open(frame)
+
+
+def test_replay_within_session_rejected(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    gcs_side, _, _ = connect(gcs, robot)
+    frame = gcs_side.seal(b"ARM")
+    robot.open(frame)
+    with pytest.raises(CounterReplayError):
+        robot.open(frame)
+
+
+def test_reordered_frames_accepted_once_each(clock: ManualClock) -> None:
+    gcs_side, robot_side, _ = connect(*pair(clock))
+    frames = [gcs_side.seal(f"m{i}".encode()) for i in range(10)]
+    order = [3, 0, 1, 9, 2, 8, 4, 7, 5, 6]
+    assert [robot_side.open(frames[i]).counter for i in order] == order
+    for f in frames:
+        with pytest.raises(CounterReplayError):
+            robot_side.open(f)
+
+
+def test_forged_far_future_counter_changes_no_state(clock: ManualClock) -> None:
+    gcs_side, robot_side, _ = connect(*pair(clock))
+    real = gcs_side.seal(b"hello")
+    forged = bytearray(real)
+    forged[20:28] = (2**63).to_bytes(8, "big")  # counter field, tag left as is
+    with pytest.raises(AuthenticationError):
+        robot_side.open(bytes(forged))
+    assert robot_side._recv[Purpose.DATA].last == 0
+    assert robot_side.open(real).counter == 0
+    assert robot_side.open(gcs_side.seal(b"next")).counter == 1
+
+
+def test_cross_session_replay_rejected(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    first, _, _ = connect(gcs, robot)
+    second, _, _ = connect(gcs, robot)
+    captured = first.seal(b"ARM")
+    moved = captured[:4] + second.session_id + captured[20:]  # re-address to the new session
+    with pytest.raises(AuthenticationError):
+        robot.open(moved)
+    robot.open(captured)  # the original still works once in its own session
+    with pytest.raises(CounterReplayError):
+        robot.open(captured)
+
+
+def test_wrong_direction_and_purpose_fail(clock: ManualClock) -> None:
+    gcs_side, robot_side, _ = connect(*pair(clock))
+    frame = gcs_side.seal(b"x" * 5_000)
+    with pytest.raises(InvalidFrameError, match="direction"):
+        gcs_side.open(frame)  # reflected back to its sender
+    swapped = bytearray(frame)
+    swapped[2] = int(Purpose.COMMAND)
+    with pytest.raises(AuthenticationError):
+        robot_side.open(bytes(swapped))
+
+
+def test_handshake_replay_rejected_and_never_reuses_keys(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    hs1 = gcs.start(ROBOT_KEM.public_key())
+    session, _ = robot.accept_handshake(hs1)
+    with pytest.raises(ReplayDetectedError):
+        robot.accept_handshake(hs1)
+    clock.advance(40)
+    with pytest.raises(MessageStaleError):
+        robot.accept_handshake(hs1)
+    # Even a responder that lost its seen-set (restart) derives new keys: nonce_r is fresh.
+    earlier = ManualClock(clock.wall() - 40)
+    peers = {"gcs-1": GCS_KEY.public_key()}
+    again, _ = Responder(ROBOT_KEM, peers, clock=earlier).accept_handshake(hs1)
+    third, _ = Responder(ROBOT_KEM, peers, clock=earlier).accept_handshake(hs1)
+    assert len({session.recv_key, again.recv_key, third.recv_key}) == 3
+
+
+def test_forged_handshake_leaves_no_state(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    hs1 = bytearray(gcs.start(ROBOT_KEM.public_key()))
+    hs1[-1] ^= 1
+    with pytest.raises(AuthenticationError):
+        robot.accept_handshake(bytes(hs1))
+    hs1[-1] ^= 1
+    robot.accept_handshake(bytes(hs1))  # the genuine one still opens (no poisoning)
+
+
+def test_unknown_initiator_and_other_responder_rejected(clock: ManualClock) -> None:
+    stranger = Initiator("intruder", mldsa.MLDSA87PrivateKey.generate(), clock)
+    _, robot = pair(clock)
+    with pytest.raises(AuthenticationError):
+        robot.accept_handshake(stranger.start(ROBOT_KEM.public_key()))
+    gcs, _ = pair(clock)
+    other_robot = mlkem.MLKEM1024PrivateKey.generate()
+    with pytest.raises(InvalidFrameError, match="another responder"):
+        robot.accept_handshake(gcs.start(other_robot.public_key()))
+
+
+def test_tampered_hs2_rejected(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    hs1 = gcs.start(ROBOT_KEM.public_key())
+    _, hs2 = robot.accept_handshake(hs1)
+    bad = hs2[:-1] + bytes([hs2[-1] ^ 1])
+    with pytest.raises(AuthenticationError):
+        gcs.finish(hs1, bad)
+
+
+def test_evicted_session_gets_session_closed(clock: ManualClock) -> None:
+    gcs, robot = pair(clock, max_sessions=2)
+    first, _, _ = connect(gcs, robot)
+    connect(gcs, robot)
+    connect(gcs, robot)  # evicts the first (oldest) session with its keys
+    with pytest.raises(SessionClosedError):
+        robot.open(first.seal(b"late"))
+
+
+def test_unknown_session_rejected(clock: ManualClock) -> None:
+    gcs_side, _, _ = connect(*pair(clock))
+    _, lonely = pair(clock)
+    with pytest.raises(UnknownSessionError):
+        lonely.open(gcs_side.seal(b"x"))
+
+
+def test_rekey_threshold_and_hard_limit(clock: ManualClock) -> None:
+    gcs_side, robot_side, _ = connect(*pair(clock))
+    assert not gcs_side.needs_rekey
+    gcs_side._send[Purpose.DATA] = NonceCounter(REKEY_AFTER)
+    assert gcs_side.needs_rekey
+    robot_side.open(gcs_side.seal(b"x"))
+    assert robot_side.needs_rekey
+    gcs_side._send[Purpose.DATA] = NonceCounter(2**64 - 2**13 - 2)
+    gcs_side.seal(b"last")
+    with pytest.raises(NonceExhaustedError):
+        gcs_side.seal(b"one too many")
+
+
+@settings(max_examples=2_000, deadline=None)
+@given(st.binary(max_size=200))
+def test_fuzzed_frames_only_typed_errors(data: bytes) -> None:
+    with pytest.raises(ReplayAttackError):
+        FUZZ_ROBOT.open(data)
+    with pytest.raises(ReplayAttackError):
+        FUZZ_ROBOT.accept_handshake(data)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 200), st.integers(0, 255))
+def test_bit_flips_in_a_real_frame_are_rejected(index: int, mask: int) -> None:
+    frame = FUZZ_GCS.seal(b"payload-" + bytes(range(40)))
+    index %= len(frame)
+    flipped = bytearray(frame)
+    flipped[index] ^= mask or 1
+    with pytest.raises(ReplayAttackError):
+        FUZZ_ROBOT.open(bytes(flipped))
+
+
+FUZZ_CLOCK = ManualClock()
+_g, FUZZ_ROBOT = pair(FUZZ_CLOCK)
+FUZZ_GCS, _r, _h = connect(_g, FUZZ_ROBOT)
