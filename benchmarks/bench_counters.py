@@ -1,23 +1,19 @@
 """Counters and sessions: accept rates, seal/open, ML-DSA-87, and replay-rejection cost.
 
-Run: ``python benchmarks/bench_counters.py``.  The replayed frame is rejected by the
+Run: ``python -m benchmarks.bench_counters``.  The replayed frame is rejected by the
 window check *before* any cryptography; its cost is compared with a full verify.
 """
 
 from __future__ import annotations
 
 import itertools
-import sys
-from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 
-sys.path.insert(0, str(Path(__file__).parent))
-from _timing import per_op_ns, rate  # noqa: E402
-
-from antireplay.counters import CounterWindow, NonceTracker  # noqa: E402
-from antireplay.errors import CounterReplayError  # noqa: E402
-from antireplay.session import Initiator, Purpose, Responder  # noqa: E402
+from antireplay.counters import CounterWindow, NonceTracker
+from antireplay.errors import CounterReplayError
+from antireplay.session import Initiator, Purpose, Responder
+from benchmarks._timing import per_op_ns, rate
 
 
 def main() -> None:
@@ -31,7 +27,7 @@ def main() -> None:
     gcs = Initiator("gcs", gcs_key)
     robot = Responder(kem, {"gcs": gcs_key.public_key()})
     hs1 = gcs.start(kem.public_key())
-    robot_side, hs2 = robot.accept_handshake(hs1)
+    _, hs2 = robot.accept_handshake(hs1)
     gcs_side = gcs.finish(hs1, hs2)
     payload = b"COMMAND_LONG target=1 cmd=400 param1=1" * 2
     rows.append(("session seal (HMAC)", per_op_ns(lambda: gcs_side.seal(payload), 20_000)))

@@ -1,6 +1,6 @@
 """Throughput of ReplayCache.check vs rcan 3.7.0's ReplayCache.check_and_record, same ids.
 
-Run: ``python benchmarks/bench_window.py`` (needs the ``dev`` extra for rcan).
+Run: ``python -m benchmarks.bench_window`` (needs the ``dev`` extra for rcan).
 Both caches are pre-filled to capacity and then fed new unique ids, so every check
 runs the full-cache path (ours: evict the soonest-expiring entry; rcan: evict the
 oldest).  Figures are medians of several timed batches; the machine is noisy.

@@ -9,11 +9,15 @@ import click
 from rich.console import Console
 from rich.table import Table
 
+from antireplay import counters, epochs
 from antireplay.config import SecurityConfig
 from antireplay.demo import run_window_demo
+from antireplay.durable import read_kind, repair
 from antireplay.errors import ConfigError
 
 console = Console()
+#: Importing these registers their state reseeders for ``state repair``.
+STATE_OWNERS = (counters, epochs)
 
 
 @click.group()
@@ -57,3 +61,26 @@ def config_check(path: Path) -> None:
         console.print(f"[red]{exc}[/red]")
         sys.exit(2)
     console.print_json(data=cfg.model_dump())
+
+
+@main.group()
+def state() -> None:
+    """Crash-safe state files (counters, epochs)."""
+
+
+@state.command("repair")
+@click.argument("path", type=click.Path(path_type=Path))
+@click.option(
+    "--kind",
+    type=click.Choice(["nonce-counter", "epoch-signer", "epoch-verifier"]),
+    help="State kind; read from the file when it is still legible.",
+)
+def state_repair(path: Path, kind: str | None) -> None:
+    """Reseed a damaged state file safely above anything that could have been used."""
+    kind = kind or read_kind(path)
+    if kind is None:
+        console.print(f"[red]cannot tell what {path} holds; pass --kind[/red]")
+        sys.exit(2)
+    reseeded = repair(path, kind)
+    console.print(f"[green]repaired {path} ({kind})[/green]")
+    console.print_json(data=reseeded)

@@ -1,0 +1,17 @@
+"""Run every benchmark: ``python -m benchmarks`` (or ``antireplay bench``)."""
+
+from __future__ import annotations
+
+import importlib
+
+MODULES = ["bench_window", "bench_counters", "bench_epochs"]
+
+
+def main() -> None:
+    for name in MODULES:
+        print(f"\n== {name} ==", flush=True)
+        importlib.import_module(f"benchmarks.{name}").main()
+
+
+if __name__ == "__main__":
+    main()

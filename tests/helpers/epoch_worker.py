@@ -1,0 +1,29 @@
+"""Subprocess for the kill -9 tests: emit epochs with a frozen wall clock until killed.
+
+The clock never moves, so only the persisted ceiling keeps epochs increasing across restarts.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from antireplay import ManualClock
+from antireplay.epochs import EpochSigner
+
+
+def main() -> None:
+    signer = EpochSigner(
+        b"k" * 32,
+        service_name="svc",
+        state_file=sys.argv[1],
+        clock=ManualClock(wall=1_000.0),
+        reserve_s=float(sys.argv[2]),
+    )
+    out = sys.stdout
+    while True:
+        out.write(f"{signer.next_epoch()}\n")
+        out.flush()
+
+
+if __name__ == "__main__":
+    main()

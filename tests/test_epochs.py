@@ -1,0 +1,334 @@
+"""Epoch-authenticated announcements: vectors, replay rules, crash safety, collisions."""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import random
+import shutil
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from antireplay import ManualClock
+from antireplay.durable import repair
+from antireplay.epochs import (
+    Announcement,
+    EpochSigner,
+    EpochVerifier,
+    Kind,
+    prefix_for_service,
+)
+from antireplay.errors import (
+    AuthenticationError,
+    EpochReplayError,
+    EpochTooFarAheadError,
+    InvalidFrameError,
+    MessageStaleError,
+    ReplayAttackError,
+    StateFileError,
+)
+from tests.conftest import run_and_kill
+
+PSK = b"fleet-pre-shared-key-0123456789ab"
+VECTORS = json.loads((Path(__file__).parent / "vectors" / "epochs.json").read_text())
+
+
+def hkdf_sha256(ikm: bytes, info: bytes) -> bytes:
+    """RFC 5869 written out by hand: a second implementation to check the vectors."""
+    prk = hmac.new(b"\0" * 32, ikm, hashlib.sha256).digest()
+    return hmac.new(prk, info + b"\x01", hashlib.sha256).digest()
+
+
+def test_vectors_match_an_independent_implementation() -> None:
+    psk = bytes.fromhex(VECTORS["psk"])
+    keys = {1: hkdf_sha256(psk, b"antireplay/v1 epoch announcement"),
+            2: hkdf_sha256(psk, b"antireplay/v1 epoch binding ping")}  # fmt: skip
+    assert keys[1].hex() == VECTORS["keys"]["announcement"]
+    assert keys[2].hex() == VECTORS["keys"]["binding ping"]
+    for name, prefix in VECTORS["service_prefixes"].items():
+        assert hashlib.sha256(b"antireplay/v1 prefix" + name.encode()).digest()[:8].hex() == prefix
+    for case in VECTORS["cases"]:
+        prefix, payload = bytes.fromhex(case["nonce_prefix"]), bytes.fromhex(case["payload"])
+        epoch, kind = case["epoch"].to_bytes(8, "big"), case["kind"]
+        tag = hmac.new(keys[kind], payload + prefix + epoch + bytes([1, kind]), "sha256").digest()
+        assert (bytes([1, kind]) + prefix + epoch + payload + tag).hex() == case["sealed"]
+
+
+def test_vectors_open_and_reproduce_with_our_code() -> None:
+    psk = bytes.fromhex(VECTORS["psk"])
+    verifier = EpochVerifier(psk)
+    clock = ManualClock(wall=1_800_000_000.0)
+    signer = EpochSigner(psk, service_name="discovery-1", clock=clock)
+    for case, advance in zip(VECTORS["cases"], [0, 0, 0, 1.0, 0.5], strict=True):
+        sealed = bytes.fromhex(case["sealed"])
+        got = verifier.open(sealed, kind=Kind(case["kind"]))
+        assert got.epoch == case["epoch"]
+        clock.advance(advance)
+        assert signer.seal(bytes.fromhex(case["payload"]), kind=Kind(case["kind"])) == sealed
+
+
+def test_round_trip_and_exact_replay(clock: ManualClock) -> None:
+    signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, clock=clock)
+    sealed = signer.seal(b"participant A")
+    got = verifier.open(sealed)
+    assert got == Announcement(b"participant A", signer.nonce_prefix, signer.last_epoch)
+    with pytest.raises(EpochReplayError):
+        verifier.open(sealed)
+
+
+def test_older_epoch_after_newer_rejected(clock: ManualClock) -> None:
+    signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, clock=clock)
+    old, new = signer.seal(b"1"), signer.seal(b"2")
+    verifier.open(new)
+    with pytest.raises(EpochReplayError):
+        verifier.open(old)
+    assert verifier.prefix_collisions == 1  # an authentic unseen older epoch: reported
+
+
+def test_every_single_bit_flip_is_rejected_and_changes_nothing(clock: ManualClock) -> None:
+    signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, clock=clock)
+    sealed = signer.seal(b"participant data")
+    for i in range(len(sealed) * 8):
+        flipped = bytearray(sealed)
+        flipped[i // 8] ^= 1 << (i % 8)
+        with pytest.raises((AuthenticationError, InvalidFrameError)):
+            verifier.open(bytes(flipped))
+        assert verifier.last(signer.nonce_prefix) is None
+    verifier.open(sealed)
+
+
+def test_bad_tag_with_far_future_epoch_does_not_jam(clock: ManualClock) -> None:
+    signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, clock=clock)
+    sealed = bytearray(signer.seal(b"x"))
+    sealed[10:18] = (2**64 - 2).to_bytes(8, "big")
+    with pytest.raises(AuthenticationError):
+        verifier.open(bytes(sealed))
+    verifier.open(signer.seal(b"y"))
+
+
+def test_authentic_far_future_epoch_is_refused_and_counted(clock: ManualClock) -> None:
+    ahead = ManualClock(wall=clock.wall() + 3_600)  # a sender whose clock stepped an hour ahead
+    signer = EpochSigner(PSK, clock=ahead)
+    verifier = EpochVerifier(PSK, clock=clock, max_forward_s=10)
+    with pytest.raises(EpochTooFarAheadError):
+        verifier.open(signer.seal(b"from the future"))
+    assert verifier.forward_rejections == 1
+    assert verifier.last(signer.nonce_prefix) is None  # not locked out
+
+
+def test_max_age_rejects_old_capture_from_unknown_sender(clock: ManualClock) -> None:
+    signer = EpochSigner(PSK, clock=clock)
+    captured = signer.seal(b"yesterday")
+    clock.advance(86_400)
+    verifier = EpochVerifier(PSK, clock=clock, max_age_s=30)
+    with pytest.raises(MessageStaleError):
+        verifier.open(captured)
+    verifier.open(signer.seal(b"today"))
+
+
+def test_wall_clock_step_back_does_not_regress(clock: ManualClock) -> None:
+    signer = EpochSigner(PSK, clock=clock)
+    before = [signer.next_epoch() for _ in range(3)]
+    clock.step_wall(-3_600)
+    after = [signer.next_epoch() for _ in range(3)]
+    assert before + after == sorted(set(before + after))
+    assert after[0] == before[-1] + 1
+
+
+def test_pings_use_a_separate_key(clock: ManualClock) -> None:
+    signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, clock=clock)
+    ping = signer.seal_ping(b"bind")
+    assert verifier.open_ping(ping).kind is Kind.PING
+    with pytest.raises(InvalidFrameError):
+        verifier.open(ping)
+    relabeled = bytes([1, 1]) + ping[2:]
+    with pytest.raises(AuthenticationError):
+        verifier.open(relabeled)
+    with pytest.raises(EpochReplayError):
+        verifier.open_ping(ping)
+
+
+def test_replayed_announcement_cannot_renew_a_lease(clock: ManualClock) -> None:
+    """The lease table is renewed only with what open() returns."""
+    signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, clock=clock)
+    leases: dict[bytes, float] = {}
+    first = signer.seal(b"alive")
+    leases[verifier.open(first).nonce_prefix] = clock.wall() + 10
+    clock.advance(20)  # participant died; attacker replays its old announcement
+    with pytest.raises(EpochReplayError):
+        leases[verifier.open(first).nonce_prefix] = clock.wall() + 10
+    assert leases[signer.nonce_prefix] < clock.wall()
+
+
+def test_prefix_collision_reported(clock: ManualClock, caplog: pytest.LogCaptureFixture) -> None:
+    a = EpochSigner(PSK, service_name="ds", clock=clock)
+    b = EpochSigner(PSK, service_name="ds", clock=ManualClock(wall=clock.wall() - 5))
+    verifier = EpochVerifier(PSK, clock=clock)
+    verifier.open(a.seal(b"a1"))
+    clock.advance(1)
+    verifier.open(a.seal(b"a2"))
+    with pytest.raises(EpochReplayError, match="collision"):
+        verifier.open(b.seal(b"b1"))
+    assert verifier.prefix_collisions == 1
+    assert "used by two senders" in caplog.text
+    assert prefix_for_service("ds").hex() in caplog.text
+
+
+def test_prefix_table_is_bounded_and_fenced(clock: ManualClock) -> None:
+    verifier = EpochVerifier(PSK, clock=clock, max_prefixes=3)
+    signers = [EpochSigner(PSK, clock=clock) for _ in range(4)]
+    first = [s.seal(b"hi") for s in signers]
+    for sealed in first[:3]:
+        verifier.open(sealed)
+    clock.advance(1)
+    verifier.open(signers[3].seal(b"hi"))  # evicts the oldest prefix, floor rises
+    with pytest.raises(EpochReplayError):
+        verifier.open(first[0])
+
+
+def test_sender_restart_with_state_file_keeps_increasing(tmp_path: Path) -> None:
+    frozen = ManualClock(wall=1_000.0)
+    path = tmp_path / "signer.state"
+    a = EpochSigner(PSK, service_name="svc", state_file=path, clock=frozen)
+    emitted = [a.next_epoch() for _ in range(10)]
+    b = EpochSigner(PSK, service_name="svc", state_file=path, clock=frozen)  # "host reboot"
+    assert b.next_epoch() > max(emitted)
+    assert b.nonce_prefix == a.nonce_prefix
+
+
+def test_random_prefix_is_kept_across_restart(tmp_path: Path, clock: ManualClock) -> None:
+    path = tmp_path / "signer.state"
+    a = EpochSigner(PSK, state_file=path, clock=clock)
+    a.seal(b"x")
+    assert EpochSigner(PSK, state_file=path, clock=clock).nonce_prefix == a.nonce_prefix
+    with pytest.raises(StateFileError, match="another nonce_prefix"):
+        EpochSigner(PSK, state_file=path, clock=clock, nonce_prefix=b"\0" * 8)
+
+
+def test_block_reservation_writes_rarely(tmp_path: Path) -> None:
+    clock = ManualClock(wall=1_000.0)
+    signer = EpochSigner(PSK, state_file=tmp_path / "s", clock=clock, reserve_s=1.0)
+    for _ in range(1_000):
+        clock.advance(0.01)
+        signer.seal(b"busy")
+    assert signer._state is not None
+    assert 9 <= signer._state.writes <= 11
+
+
+def test_sender_kill9_at_random_moments_never_repeats(tmp_path: Path) -> None:
+    path = tmp_path / "signer.state"
+    rng = random.Random(99)
+    seen: list[int] = []
+    for _ in range(100):
+        lines = run_and_kill(
+            ["-m", "tests.helpers.epoch_worker", str(path), "0.000002"], rng.randint(1, 150), rng
+        )
+        epochs = [int(x) for x in lines]
+        assert epochs
+        if seen:
+            assert epochs[0] > max(seen), "a restarted sender re-emitted an epoch"
+        seen.extend(epochs)
+    assert len(seen) == len(set(seen))
+
+
+def test_verifier_restart_rejects_everything_old(tmp_path: Path, clock: ManualClock) -> None:
+    path = tmp_path / "verifier.state"
+    signer = EpochSigner(PSK, clock=clock)
+    sent = [signer.seal(f"a{i}".encode()) for i in range(5)]
+    verifier = EpochVerifier(PSK, state_file=path, clock=clock)
+    for sealed in sent[::2]:
+        verifier.open(sealed)  # accept 0, 2, 4; 1 and 3 are superseded
+    restarted = EpochVerifier(PSK, state_file=path, clock=clock)
+    for sealed in sent:
+        with pytest.raises(EpochReplayError):
+            restarted.open(sealed)
+    restarted.open(signer.seal(b"fresh"))
+
+
+@pytest.mark.parametrize("damage", ["corrupt", "truncate", "rollback"])
+def test_damaged_verifier_state_refuses_start_until_repaired(
+    tmp_path: Path, clock: ManualClock, damage: str
+) -> None:
+    path = tmp_path / "verifier.state"
+    signer = EpochSigner(PSK, clock=clock)
+    verifier = EpochVerifier(PSK, state_file=path, clock=clock)
+    old = signer.seal(b"old")
+    verifier.open(old)
+    shutil.copy(path, tmp_path / "backup")
+    clock.advance(1)
+    newer = signer.seal(b"newer")
+    verifier.open(newer)
+    raw = path.read_bytes()
+    if damage == "corrupt":
+        path.write_bytes(raw.replace(b'"floor"', b'"floar"'))
+    elif damage == "truncate":
+        path.write_bytes(raw[: len(raw) // 3])
+    else:
+        shutil.copy(tmp_path / "backup", path)
+    with pytest.raises(StateFileError, match="antireplay state repair"):
+        EpochVerifier(PSK, state_file=path, clock=clock)
+    repair(path, "epoch-verifier", now_ns=int(clock.wall() * 1e9))
+    repaired = EpochVerifier(PSK, state_file=path, clock=clock)
+    for sealed in (old, newer):
+        with pytest.raises(EpochReplayError):
+            repaired.open(sealed)
+    clock.advance(0.001)
+    repaired.open(signer.seal(b"after repair"))
+
+
+def test_damaged_signer_state_refused_then_repaired_above(tmp_path: Path) -> None:
+    path = tmp_path / "signer.state"
+    frozen = ManualClock(wall=1_000.0)
+    signer = EpochSigner(PSK, state_file=path, clock=frozen, reserve_s=5)
+    emitted = [signer.next_epoch() for _ in range(3)]
+    path.write_bytes(b"\0" * 20)
+    with pytest.raises(StateFileError):
+        EpochSigner(PSK, state_file=path, clock=frozen)
+    repair(path, "epoch-signer", now_ns=0)
+    with pytest.raises(StateFileError, match="another nonce_prefix"):
+        EpochSigner(PSK, state_file=path, clock=frozen, nonce_prefix=signer.nonce_prefix)
+    again = EpochSigner(PSK, state_file=path, clock=ManualClock(wall=2_000.0))
+    assert again.next_epoch() > max(emitted)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.lists(
+        st.one_of(
+            st.tuples(st.just("send"), st.integers(0, 2)),
+            st.tuples(st.just("replay"), st.integers(0, 1_000)),
+            st.tuples(st.just("restart"), st.integers(0, 2)),
+            st.tuples(st.just("tick"), st.integers(0, 3)),
+        ),
+        max_size=60,
+    )
+)
+def test_property_each_prefix_epoch_accepted_at_most_once(ops: list[tuple[str, int]]) -> None:
+    clock = ManualClock(wall=1_000.0)
+    signers = [EpochSigner(PSK, nonce_prefix=bytes([i]) * 8, clock=clock) for i in range(3)]
+    verifier = EpochVerifier(PSK, clock=clock)
+    sent: list[bytes] = []
+    accepted: set[tuple[bytes, int]] = set()
+    for op, arg in ops:
+        if op == "send":
+            sent.append(signers[arg].seal(b"pa"))
+            candidate = sent[-1]
+        elif op == "replay" and sent:
+            candidate = sent[arg % len(sent)]
+        elif op == "restart":  # a process restart without state: wall anchoring keeps order
+            signers[arg] = EpochSigner(PSK, nonce_prefix=bytes([arg]) * 8, clock=clock)
+            continue
+        else:
+            clock.advance(arg / 1000)
+            continue
+        try:
+            got = verifier.open(candidate)
+        except ReplayAttackError:
+            continue
+        key = (got.nonce_prefix, got.epoch)
+        assert key not in accepted
+        accepted.add(key)
