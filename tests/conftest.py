@@ -8,12 +8,13 @@ import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
 from antireplay import ManualClock, ReplayAttackError
+from tests.redis_server import RedisServer
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -71,3 +72,14 @@ def run_and_kill(args: list[str], lines: int, rng: random.Random) -> list[str]:
     if proc.returncode != -signal.SIGKILL:
         raise AssertionError(f"helper exited {proc.returncode}: {err}")
     return out
+
+
+@pytest.fixture(scope="session")
+def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A real redis-server started for this test session (fails, never skips, if missing)."""
+    server = RedisServer(tmp_path_factory.mktemp("redis"))
+    server.start()
+    try:
+        yield server.url
+    finally:
+        server.stop()

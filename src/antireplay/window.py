@@ -84,8 +84,10 @@ from antireplay.errors import (
     MessageFromFutureError,
     MessageStaleError,
     ReplayDetectedError,
+    StateUnavailableError,
 )
 from antireplay.messages import MessageType, SafetyEvent
+from antireplay.stores import ReplayStore
 
 MAX_MSG_ID_LEN = 128
 #: Seconds values at or above this are treated as milliseconds sent by mistake (year 5138).
@@ -169,8 +171,13 @@ class ReplayCache:
         clock: Clock | None = None,
         *,
         safety_window_s: float = 10.0,
+        store: ReplayStore | None = None,
     ) -> None:
         cfg = _validated(window_s, max_size, skew_s, safety_window_s)
+        self._store = store
+        # Restart fence: a store that may have forgotten accepted messages (a fresh
+        # MemoryStore) refuses anything stamped at or before its start time + skew.
+        self.fence_rejections = 0
         self.window_s = cfg.replay_window_s
         self.safety_window_s = min(cfg.safety_window_s, cfg.replay_window_s)
         self.skew_s = cfg.skew_s
@@ -184,7 +191,9 @@ class ReplayCache:
         self.saturation_evictions = 0
 
     @classmethod
-    def from_config(cls, config: SecurityConfig, clock: Clock | None = None) -> ReplayCache:
+    def from_config(
+        cls, config: SecurityConfig, clock: Clock | None = None, store: ReplayStore | None = None
+    ) -> ReplayCache:
         """Build a cache from a validated ``security:`` block."""
         return cls(
             config.replay_window_s,
@@ -192,6 +201,7 @@ class ReplayCache:
             config.skew_s,
             clock,
             safety_window_s=config.safety_window_s,
+            store=store,
         )
 
     def window_for(self, msg_type: int) -> float:
@@ -263,6 +273,12 @@ class ReplayCache:
                         detail="watermark",
                     )
                 warning = "REPLAY_DETECTED"
+            if self._store is not None:
+                shared = self._shared(
+                    mid, ts=ts, expiry=expiry, now=now, estop=estop, commit=commit
+                )
+                warning = shared or warning
+                return _new_verdict(Verdict, (mid, ts, window, expiry, warning))
             seen = table.get(mid)
             if seen is not None and seen >= now:
                 if not estop:
@@ -282,6 +298,43 @@ class ReplayCache:
             return _new_verdict(Verdict, (mid, ts, window, expiry, warning))
         finally:
             lock.release()
+
+    def _shared(
+        self, mid: str, *, ts: float, expiry: float, now: float, estop: bool, commit: bool
+    ) -> str | None:
+        """The seen-set step against a store; returns a warning for a fresh ESTOP.
+
+        The restart fence is read after the lookup, because that call is where a
+        store notices it lost its state.  A store that cannot be reached fails
+        closed (``STATE_UNAVAILABLE``, 503) for everything except a fresh ESTOP,
+        which is processed with a warning: safety beats the replay check's
+        availability.
+        """
+        store = self._store
+        assert store is not None
+        warning = None
+        try:
+            seen = store.lookup(mid)
+            if ts <= store.fence() + self.skew_s:
+                if not estop:
+                    self.fence_rejections += 1
+                    raise MessageStaleError(
+                        "message may predate a restart of the replay state",
+                        detail="restart_fence",
+                    )
+                warning = "REPLAY_DETECTED"
+            duplicate = seen is not None and seen >= now
+            if not duplicate and commit:
+                duplicate = not store.record(mid, expiry, now)
+        except StateUnavailableError:
+            if estop:
+                return "STATE_UNAVAILABLE"
+            raise
+        if not duplicate:
+            return warning
+        if not estop:
+            raise ReplayDetectedError("msg_id already accepted within its window")
+        return "REPLAY_DETECTED"
 
     def _record(self, mid: str, expires: float, now: float, force: bool) -> None:
         """Insert or extend the entry; when full, evict from the soonest slot (fail closed).
