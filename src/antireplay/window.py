@@ -304,8 +304,9 @@ class ReplayCache:
     ) -> str | None:
         """The seen-set step against a store; returns a warning for a fresh ESTOP.
 
-        The restart fence is read after the lookup, because that call is where a
-        store notices it lost its state.  A store that cannot be reached fails
+        The restart fence is read after the store call, because that call is where
+        a store notices it lost its state (a fenced message may then have been
+        recorded: harmless, it is refused).  A store that cannot be reached fails
         closed (``STATE_UNAVAILABLE``, 503) for everything except a fresh ESTOP,
         which is processed with a warning: safety beats the replay check's
         availability.
@@ -314,7 +315,11 @@ class ReplayCache:
         assert store is not None
         warning = None
         try:
-            seen = store.lookup(mid)
+            if commit:  # one round trip: the atomic record is also the duplicate test
+                duplicate = not store.record(mid, expiry, now)
+            else:
+                seen = store.lookup(mid)
+                duplicate = seen is not None and seen >= now
             if ts <= store.fence() + self.skew_s:
                 if not estop:
                     self.fence_rejections += 1
@@ -323,9 +328,6 @@ class ReplayCache:
                         detail="restart_fence",
                     )
                 warning = "REPLAY_DETECTED"
-            duplicate = seen is not None and seen >= now
-            if not duplicate and commit:
-                duplicate = not store.record(mid, expiry, now)
         except StateUnavailableError:
             if estop:
                 return "STATE_UNAVAILABLE"
