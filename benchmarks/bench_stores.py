@@ -87,7 +87,7 @@ def main() -> None:
             for live in (10_000, 1_000_000):
                 print(f"\n-- {live:,} live entries --")
                 started = time.perf_counter()
-                stores = {
+                stores: dict[str, MemoryStore | SqliteStore | RedisStore] = {
                     "memory": MemoryStore(clock=ManualClock(wall=NOW - 60), max_entries=2_000_000),
                     "sqlite": SqliteStore(Path(tmp) / f"bench-{live}.db"),
                     "redis": RedisStore(

@@ -140,6 +140,30 @@ class InvalidMessageIdError(ReplayAttackError):
     code = Code.INVALID_MESSAGE_ID
 
 
+class InvalidEnvelopeError(ReplayAttackError):
+    """The bytes are not a well-formed RCAN envelope."""
+
+    code = Code.INVALID_ENVELOPE
+
+
+class VersionIncompatibleError(ReplayAttackError):
+    """The envelope's RCAN version is not one this receiver speaks."""
+
+    code = Code.VERSION_INCOMPATIBLE
+
+
+class AuthFailedError(ReplayAttackError):
+    """The bearer token (JWT) is missing, invalid, expired or for someone else."""
+
+    code = Code.AUTH_FAILED
+
+
+class ScopeDeniedError(ReplayAttackError):
+    """The authenticated sender may not do this."""
+
+    code = Code.SCOPE_DENIED
+
+
 class InvalidFrameError(ReplayAttackError):
     """A binary frame (session frame, epoch announcement, ping) is malformed."""
 

@@ -1,0 +1,235 @@
+"""Authentication: envelope signatures (Ed25519, ML-DSA-65/87, hybrid), JWTs, the key registry.
+
+Theory of operation
+-------------------
+A :class:`KeyRegistry` maps a ``kid`` to a :class:`KeyEntry`: the owner (the
+identity a JWT subject must match), the algorithm, the public key(s) and the
+scopes the owner may use.  ``verify`` checks ``sig`` over
+:func:`~antireplay.envelope.canonical_bytes` (every field but ``sig``/``jwt``).
+Algorithms (``sig.alg``):
+
+* ``ed25519``, ``ml-dsa-65``, ``ml-dsa-87``: one signature, via ``cryptography``;
+* ``ed25519+ml-dsa-65``: hybrid, ``value`` is ``<ed25519>.<ml-dsa-65>`` and both
+  must verify (secure while either algorithm stands).
+
+Compatibility mode (off by default): a ``ml-dsa-65`` signature made by the
+official RCAN SDK covers only ``rcan, msg_id, timestamp, cmd, target, params``.
+With ``sdk_compat=True`` such a signature is accepted, but the result is
+marked ``subset=True`` and the pipeline refuses the message if it sets any
+policy field the SDK does not sign (type, safety_event, scope, qos, sender).
+
+Every call that does cryptography increments ``verifications`` (and
+:class:`JwtVerifier` ``decodes``), so tests can prove that a replay or a stale
+message was thrown away before any of it.
+
+JWTs (PyJWT): from ``Authorization: Bearer`` or the envelope's ``jwt`` field;
+EdDSA and ES256 always, HS256 only when a shared secret is configured.
+``exp`` and ``nbf`` are enforced with the receiver's :class:`Clock` (not the
+library's), ``aud`` and ``iss`` by PyJWT; ``sub`` must equal the signing key's
+owner.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import json
+from dataclasses import dataclass, field
+from typing import Any
+
+import jwt
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ec, ed25519, mldsa
+
+from antireplay.clock import Clock, resolve
+from antireplay.envelope import Envelope, canonical_bytes, parse, sdk_signed_bytes
+from antireplay.errors import AuthenticationError, AuthFailedError
+
+PublicKey = ed25519.Ed25519PublicKey | mldsa.MLDSA65PublicKey | mldsa.MLDSA87PublicKey
+ALGORITHMS: dict[str, tuple[type, ...]] = {
+    "ed25519": (ed25519.Ed25519PublicKey,),
+    "ml-dsa-65": (mldsa.MLDSA65PublicKey,),
+    "ml-dsa-87": (mldsa.MLDSA87PublicKey,),
+    "ed25519+ml-dsa-65": (ed25519.Ed25519PublicKey, mldsa.MLDSA65PublicKey),
+}
+
+
+@dataclass(frozen=True)
+class KeyEntry:
+    """One signing key: who owns it, how it signs, what it may do."""
+
+    kid: str
+    owner: str
+    alg: str
+    public_keys: tuple[PublicKey, ...]
+    scopes: frozenset[str] = frozenset({"control"})
+
+
+@dataclass(frozen=True)
+class Signer:
+    """The authenticated origin of a message."""
+
+    kid: str
+    owner: str
+    scopes: frozenset[str]
+    subset: bool = False  # True: only the SDK's field subset is signed
+
+
+def b64decode(value: str) -> bytes:
+    """base64url with or without padding; typed error on garbage."""
+    try:
+        return base64.urlsafe_b64decode(value + "=" * (-len(value) % 4))
+    except (binascii.Error, ValueError):
+        raise AuthenticationError("signature is not base64url") from None
+
+
+def b64encode(raw: bytes) -> str:
+    return base64.urlsafe_b64encode(raw).rstrip(b"=").decode()
+
+
+def load_public_key(pem: bytes) -> PublicKey:
+    key = serialization.load_pem_public_key(pem)
+    if not isinstance(
+        key, ed25519.Ed25519PublicKey | mldsa.MLDSA65PublicKey | mldsa.MLDSA87PublicKey
+    ):
+        raise ValueError(f"unsupported public key type {type(key).__name__}")
+    return key
+
+
+def _check(key: PublicKey, sig: bytes, data: bytes) -> bool:
+    try:
+        key.verify(sig, data)
+    except InvalidSignature:
+        return False
+    return True
+
+
+@dataclass
+class KeyRegistry:
+    """kid -> :class:`KeyEntry`; verifies envelope signatures."""
+
+    entries: dict[str, KeyEntry] = field(default_factory=dict)
+    sdk_compat: bool = False
+    verifications: int = 0
+
+    def add(
+        self,
+        kid: str,
+        owner: str,
+        alg: str,
+        public_keys: PublicKey | tuple[PublicKey, ...],
+        scopes: frozenset[str] | set[str] = frozenset({"control"}),
+    ) -> KeyEntry:
+        keys = public_keys if isinstance(public_keys, tuple) else (public_keys,)
+        expected = ALGORITHMS.get(alg)
+        if expected is None or len(keys) != len(expected):
+            raise ValueError(f"unsupported algorithm {alg!r} for {len(keys)} key(s)")
+        for key, kind in zip(keys, expected, strict=True):
+            if not isinstance(key, kind):
+                raise ValueError(f"{alg} needs a {kind.__name__}, got {type(key).__name__}")
+        entry = KeyEntry(kid, owner, alg, keys, frozenset(scopes))
+        self.entries[kid] = entry
+        return entry
+
+    def verify(self, env: Envelope) -> Signer:
+        """Verify ``env.sig``; raises ``SIGNATURE_INVALID`` (401) on any failure."""
+        sig = env.sig
+        if sig is None:
+            raise AuthenticationError("message is not signed")
+        entry = self.entries.get(sig.kid)
+        if entry is None:
+            raise AuthenticationError("unknown signing key")
+        if sig.alg != entry.alg:
+            raise AuthenticationError("signature algorithm does not match the key")
+        parts = sig.value.split(".")
+        if len(parts) != len(entry.public_keys):
+            raise AuthenticationError("wrong number of signature parts")
+        raw = [b64decode(p) for p in parts]
+        self.verifications += 1
+        data = canonical_bytes(env)
+        if all(_check(k, s, data) for k, s in zip(entry.public_keys, raw, strict=True)):
+            return Signer(entry.kid, entry.owner, entry.scopes)
+        if self.sdk_compat and entry.alg == "ml-dsa-65" and env.timestamp is not None:
+            self.verifications += 1
+            if _check(entry.public_keys[0], raw[0], sdk_signed_bytes(env)):
+                return Signer(entry.kid, entry.owner, entry.scopes, subset=True)
+        raise AuthenticationError("signature does not verify")
+
+
+@dataclass
+class JwtVerifier:
+    """Bearer-token checks with the receiver's clock; see the module docstring."""
+
+    keys: dict[str, Any]
+    audience: str | None = None
+    issuer: str | None = None
+    hs256_secret: bytes | None = None
+    leeway_s: float = 0.0
+    clock: Clock | None = None
+    decodes: int = 0
+
+    def check(self, token: str, expected_subject: str) -> dict[str, Any]:
+        """Decode and validate; raises ``AUTH_FAILED`` (401) with a short reason."""
+        self.decodes += 1
+        try:
+            header = jwt.get_unverified_header(token)
+            alg = header.get("alg")
+            if alg == "HS256" and self.hs256_secret is not None:
+                key: Any = self.hs256_secret
+            elif alg in ("EdDSA", "ES256"):
+                key = self.keys.get(str(header.get("kid")))
+                if key is None:
+                    raise AuthFailedError("unknown token key")
+                if alg == "ES256" and not isinstance(key, ec.EllipticCurvePublicKey):
+                    raise AuthFailedError("token algorithm does not match its key")
+                if alg == "EdDSA" and not isinstance(key, ed25519.Ed25519PublicKey):
+                    raise AuthFailedError("token algorithm does not match its key")
+            else:
+                raise AuthFailedError("token algorithm not allowed")
+            claims: dict[str, Any] = jwt.decode(
+                token,
+                key,
+                algorithms=[alg],
+                audience=self.audience,
+                issuer=self.issuer,
+                options={
+                    "verify_exp": False,
+                    "verify_nbf": False,
+                    "verify_iat": False,
+                    "require": ["exp", "sub"],
+                    "verify_aud": self.audience is not None,
+                    "verify_iss": self.issuer is not None,
+                },
+            )
+        except jwt.PyJWTError as exc:
+            raise AuthFailedError(f"invalid token: {type(exc).__name__}") from None
+        now = resolve(self.clock).wall()
+        exp, nbf = claims.get("exp"), claims.get("nbf")
+        if not isinstance(exp, int | float) or now > exp + self.leeway_s:
+            raise AuthFailedError("token expired")
+        if nbf is not None and (not isinstance(nbf, int | float) or now < nbf - self.leeway_s):
+            raise AuthFailedError("token not yet valid")
+        if claims.get("sub") != expected_subject:
+            raise AuthFailedError("token subject does not own the signing key")
+        return claims
+
+
+PrivateKey = ed25519.Ed25519PrivateKey | mldsa.MLDSA65PrivateKey | mldsa.MLDSA87PrivateKey
+
+
+def sign_envelope(
+    message: dict[str, Any], kid: str, alg: str, keys: PrivateKey | tuple[PrivateKey, ...]
+) -> dict[str, Any]:
+    """Return ``message`` with a ``sig`` block over its canonical form (the sender's side).
+
+    The message goes through the same parser the receiver uses, so both sides
+    canonicalize identically.
+    """
+    private = keys if isinstance(keys, tuple) else (keys,)
+    if alg not in ALGORITHMS or len(private) != len(ALGORITHMS[alg]):
+        raise ValueError(f"unsupported algorithm {alg!r} for {len(private)} key(s)")
+    unsigned = {k: v for k, v in message.items() if k != "sig"}
+    data = canonical_bytes(parse(json.dumps(unsigned).encode()))
+    value = ".".join(b64encode(key.sign(data)) for key in private)
+    return {**unsigned, "sig": {"alg": alg, "kid": kid, "value": value}}

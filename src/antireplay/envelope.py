@@ -1,0 +1,172 @@
+"""The RCAN JSON envelope: strict parsing and the canonical signing bytes.
+
+Theory of operation
+-------------------
+``parse`` turns untrusted bytes into an :class:`Envelope` or raises
+``INVALID_ENVELOPE`` with a reason; nothing else ever escapes.  msgspec does
+the typed decoding (about a microsecond), after a size check (default 64 KiB)
+and before a depth check (default 16 levels of nesting).
+
+Field policy: the fields the official RCAN SDK emits (``RCANMessage.to_dict``),
+plus ``type``, ``safety_event``, ``timestamp_ms`` and ``jwt``, are known;
+**any other field is rejected**, so two parsers can never disagree about a
+field one of them ignored.  Exactly one of ``timestamp`` (Unix seconds) and
+``timestamp_ms`` (integer milliseconds, the SDK's safety-message unit) must be
+present.  ``msg_id`` and the timestamp's *value* are judged by the window
+(``INVALID_MESSAGE_ID`` / ``INVALID_TIMESTAMP``), not here.
+
+Canonical form (what signatures cover): the envelope as decoded, **minus
+``sig`` and ``jwt``**, encoded as JSON with keys sorted, no whitespace, UTF-8,
+and numbers as Python's shortest round-trip repr.  It covers every field that
+affects policy (type, scope, qos, target, safety_event, timestamp, msg_id,
+params, sender, …), so none can be changed without breaking the signature.
+Duplicate JSON keys resolve to the last one; the gateway forwards the
+canonical re-encoding, never the raw bytes, so no downstream parser sees a
+different message than the one that was verified.
+
+``sdk_signed_bytes`` reproduces the official SDK's subset
+(``rcan, msg_id, timestamp, cmd, target, params``) for the compatibility mode.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import msgspec
+
+from antireplay.errors import InvalidEnvelopeError
+from antireplay.messages import MessageType
+
+MAX_BYTES = 64 * 1024
+MAX_DEPTH = 16
+
+
+class Signature(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
+    """``sig``: algorithm, key id, base64url value."""
+
+    alg: str
+    kid: str
+    value: str
+
+
+class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_defaults=True):
+    """An RCAN message as the SDK's ``to_dict`` emits it, plus typed-message fields."""
+
+    msg_id: Any
+    cmd: str
+    target: str
+    rcan: str = ""
+    rcan_version: str = ""
+    timestamp: Any = None
+    timestamp_ms: Any = None
+    type: int = int(MessageType.COMMAND)
+    safety_event: str | None = None
+    params: dict[str, Any] = msgspec.field(default_factory=dict)
+    sender: str | None = None
+    scope: str | None = None
+    sig: Signature | None = None
+    key_id: str | None = None
+    qos: int = 0
+    jwt: str | None = None
+    confidence: float | None = None
+    sender_type: str | None = None
+    cloud_provider: str | None = None
+    sequence_number: int | None = None
+    delegation_chain: list[Any] = msgspec.field(default_factory=list)
+    group_id: str | None = None
+    read_only: bool = False
+    presence_verified: bool = False
+    proximity_m: float | None = None
+    loa: int | None = None
+    transport_encoding: str | None = None
+    firmware_hash: str | None = None
+    attestation_ref: str | None = None
+
+    @property
+    def seconds(self) -> object:
+        """The timestamp in seconds (``timestamp_ms`` converted exactly), still unvalidated."""
+        if self.timestamp_ms is not None:
+            ms = self.timestamp_ms
+            if isinstance(ms, bool) or not isinstance(ms, int):
+                return ms  # the window rejects it with INVALID_TIMESTAMP
+            return ms / 1000
+        return self.timestamp
+
+
+_DECODER = msgspec.json.Decoder(Envelope)
+_ENCODER = msgspec.json.Encoder()
+
+
+def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH) -> Envelope:
+    """Strictly decode one envelope; every failure is ``INVALID_ENVELOPE`` with a reason."""
+    if not isinstance(raw, bytes | bytearray | memoryview):
+        raise InvalidEnvelopeError("body must be bytes")
+    if len(raw) > max_bytes:
+        raise InvalidEnvelopeError(f"envelope larger than {max_bytes} bytes")
+    try:
+        env = _DECODER.decode(raw)
+    except msgspec.ValidationError as exc:
+        raise InvalidEnvelopeError(f"schema: {_short(str(exc))}") from None
+    except msgspec.DecodeError as exc:
+        raise InvalidEnvelopeError(f"not JSON: {_short(str(exc))}") from None
+    except RecursionError:
+        raise InvalidEnvelopeError("nested too deeply") from None
+    if (env.timestamp is None) == (env.timestamp_ms is None):
+        raise InvalidEnvelopeError("exactly one of timestamp and timestamp_ms is required")
+    if _depth(env.params) > max_depth or _depth(env.delegation_chain) > max_depth:
+        raise InvalidEnvelopeError(f"nested deeper than {max_depth} levels")
+    return env
+
+
+def _short(text: str) -> str:
+    """Error reasons are capped and never echo more than a hint of attacker input."""
+    return text[:120]
+
+
+def _depth(value: object, level: int = 1) -> int:
+    if level > MAX_DEPTH + 1:
+        return level
+    if isinstance(value, dict):
+        return max((_depth(v, level + 1) for v in value.values()), default=level)
+    if isinstance(value, list):
+        return max((_depth(v, level + 1) for v in value), default=level)
+    return level
+
+
+def canonical_bytes(env: Envelope) -> bytes:
+    """The bytes every signature covers: all fields except ``sig`` and ``jwt``."""
+    body = msgspec.to_builtins(env)
+    body.pop("sig", None)
+    body.pop("jwt", None)
+    return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()
+
+
+def encode(env: Envelope) -> bytes:
+    """The envelope as forwarded upstream (what was verified, with its signature)."""
+    return _ENCODER.encode(env)
+
+
+def sdk_signed_bytes(env: Envelope) -> bytes:
+    """The official RCAN SDK's canonical subset (``rcan.signing._canonical_message_bytes``)."""
+    payload = {
+        "rcan": env.rcan,
+        "msg_id": env.msg_id,
+        "timestamp": env.timestamp,
+        "cmd": env.cmd,
+        "target": env.target,
+        "params": env.params,
+    }
+    return json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()
+
+
+#: Fields the SDK does not sign; in compatibility mode a message using any of them is refused.
+SDK_UNSIGNED_POLICY_FIELDS = ("type", "safety_event", "scope", "qos", "sender", "timestamp_ms")
+
+
+def unsigned_policy_fields(env: Envelope) -> list[str]:
+    """Policy-relevant fields set on an envelope that the SDK's signature does not cover."""
+    defaults = Envelope(msg_id="", cmd="", target="", timestamp=0)
+    return [
+        name for name in SDK_UNSIGNED_POLICY_FIELDS if getattr(env, name) != getattr(defaults, name)
+    ]

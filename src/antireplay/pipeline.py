@@ -1,0 +1,231 @@
+"""The receive path: RCAN §8.3's check order, check -> authenticate -> commit, NACKs and audit.
+
+Theory of operation
+-------------------
+:meth:`Receiver.receive` runs the steps cheapest first, so a replay is thrown
+away before any cryptography:
+
+1. parse the envelope (size, depth, schema)              -> INVALID_ENVELOPE 400
+2. check the RCAN version                                -> VERSION_INCOMPATIBLE 426
+3. replay **pre**check: freshness + msg_id seen-set      -> MESSAGE_STALE 408 /
+   (:meth:`ReplayCache.precheck`, records nothing)          REPLAY_DETECTED 409
+4. JWT, if configured or presented                       -> AUTH_FAILED 401
+5. signature over the canonical envelope                 -> SIGNATURE_INVALID 401
+6. authorization (scopes; SDK-compat field rule)         -> SCOPE_DENIED 403
+7. **commit**: the atomic record of the msg_id           -> REPLAY_DETECTED 409
+   (two copies racing through crypto: exactly one wins)
+
+Nothing an unauthenticated packet carries changes replay state: the msg_id is
+recorded only at step 7.  So a forged message carrying a victim's msg_id is
+rejected at step 5 and the genuine message is still accepted afterwards.
+
+ESTOP invariant, end to end: a fresh, *authentic* SAFETY/ESTOP whose msg_id
+was already seen passes with ``warning="REPLAY_DETECTED"``; the warning is
+audited.  Because the signature covers ``type`` and ``safety_event``, nobody
+can turn a captured command into an exempt ESTOP.
+
+Every rejection becomes an :class:`Outcome` carrying the code, the HTTP status
+and the COMMAND_NACK (type 18, or 31 with ``nack_type: 31``); nothing raises out
+of ``receive``.  The audit trail always gets accepted messages and every
+rejection from step 2 on; malformed input (step 1 and bad msg_id/timestamp
+shapes) is audited at most ``invalid_audit_per_s`` times a second so a flood of
+garbage cannot turn into a flood of fsyncs (it is still counted in ``stats``).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from antireplay.audit import AuditLog, sanitize
+from antireplay.auth import JwtVerifier, KeyRegistry, Signer
+from antireplay.clock import Clock, resolve
+from antireplay.config import SecurityConfig
+from antireplay.envelope import Envelope, parse, unsigned_policy_fields
+from antireplay.errors import (
+    AuthFailedError,
+    Code,
+    ReplayAttackError,
+    ScopeDeniedError,
+    VersionIncompatibleError,
+)
+from antireplay.messages import MessageType
+from antireplay.stores import ReplayStore
+from antireplay.window import ReplayCache
+
+SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What happened to one message, ready for any transport."""
+
+    accepted: bool
+    status: int
+    code: str | None = None
+    reason: str | None = None
+    warning: str | None = None
+    msg_id: str | None = None
+    envelope: Envelope | None = None
+    signer: Signer | None = None
+    nack: dict[str, Any] | None = None
+
+
+@dataclass
+class Stats:
+    """Counters for metrics: accepted, rejected by code, warnings, unaudited shape errors."""
+
+    accepted: int = 0
+    rejected: Counter[str] = field(default_factory=Counter)
+    warnings: Counter[str] = field(default_factory=Counter)
+    unaudited: int = 0
+
+
+class Receiver:
+    """One robot's receive path; thread-safe (the window and stores are atomic)."""
+
+    def __init__(
+        self,
+        config: SecurityConfig,
+        keys: KeyRegistry,
+        store: ReplayStore | None = None,
+        audit: AuditLog | None = None,
+        clock: Clock | None = None,
+        *,
+        jwt: JwtVerifier | None = None,
+        jwt_required: bool = False,
+        versions: frozenset[str] = frozenset({"3"}),
+        invalid_audit_per_s: float = 10.0,
+    ) -> None:
+        self.config = config
+        self.keys = keys
+        self.audit = audit
+        self.clock = resolve(clock)
+        self.cache = ReplayCache.from_config(config, self.clock, store)
+        self.jwt = jwt
+        self.jwt_required = jwt_required
+        self.versions = versions
+        self.stats = Stats()
+        self._bucket = _TokenBucket(invalid_audit_per_s, self.clock)
+
+    def receive(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Outcome:
+        """Run the §8.3 steps; never raises for anything a peer can send."""
+        env: Envelope | None = None
+        signer: Signer | None = None
+        try:
+            env = parse(raw)
+            self._check_version(env)
+            self.cache.precheck(env.msg_id, env.seconds, env.type, env.safety_event)
+            self._check_jwt(env, headers or {})
+            signer = self.keys.verify(env)
+            self._authorize(env, signer)
+            verdict = self.cache.check(env.msg_id, env.seconds, env.type, env.safety_event)
+        except ReplayAttackError as exc:
+            return self._reject(exc, env, signer)
+        outcome = Outcome(
+            True, 200, warning=verdict.warning, msg_id=sanitize(env.msg_id), envelope=env,
+            signer=signer,
+        )  # fmt: skip
+        self.stats.accepted += 1
+        if verdict.warning:
+            self.stats.warnings[verdict.warning] += 1
+        self._audit(outcome, env, signer)
+        return outcome
+
+    def _check_version(self, env: Envelope) -> None:
+        version = env.rcan_version or env.rcan
+        if not version:
+            raise VersionIncompatibleError("no rcan_version")
+        if version.split(".", 1)[0] not in self.versions:
+            raise VersionIncompatibleError(
+                f"RCAN major version not supported (speaks {sorted(self.versions)})"
+            )
+
+    def _check_jwt(self, env: Envelope, headers: Mapping[str, str]) -> None:
+        token = _bearer(headers) or env.jwt
+        if token is None:
+            if self.jwt_required:
+                raise AuthFailedError("bearer token required")
+            return
+        if self.jwt is None:
+            raise AuthFailedError("bearer tokens are not accepted here")
+        entry = self.keys.entries.get(env.sig.kid) if env.sig is not None else None
+        if entry is None:
+            raise AuthFailedError("token presented for an unknown signing key")
+        self.jwt.check(token, entry.owner)
+
+    def _authorize(self, env: Envelope, signer: Signer) -> None:
+        if signer.subset:
+            unsigned = unsigned_policy_fields(env)
+            if unsigned:
+                raise ScopeDeniedError(
+                    f"fields not covered by the RCAN SDK signature: {', '.join(unsigned)}"
+                )
+        needed = "safety" if env.type == MessageType.SAFETY else (env.scope or "control")
+        if needed not in signer.scopes and "*" not in signer.scopes:
+            raise ScopeDeniedError(f"key {sanitize(signer.kid)} lacks scope {sanitize(needed)}")
+
+    def _reject(
+        self, exc: ReplayAttackError, env: Envelope | None, signer: Signer | None
+    ) -> Outcome:
+        msg_id = sanitize(env.msg_id) if env is not None else None
+        outcome = Outcome(
+            False,
+            exc.http_status,
+            exc.code.value,
+            exc.reason,
+            msg_id=msg_id,
+            envelope=env,
+            signer=signer,
+            nack=exc.to_nack(msg_id, nack_type=self.config.nack_type),
+        )
+        self.stats.rejected[exc.code.value] += 1
+        if exc.code in SHAPE_ERRORS and not self._bucket.take():
+            self.stats.unaudited += 1
+        else:
+            self._audit(outcome, env, signer)
+        return outcome
+
+    def _audit(self, outcome: Outcome, env: Envelope | None, signer: Signer | None) -> None:
+        if self.audit is None:
+            return
+        claimed = env.sender if env is not None else None
+        self.audit.append(
+            at=self.clock.wall(),
+            outcome="accepted" if outcome.accepted else "rejected",
+            code=outcome.code,
+            warning=outcome.warning,
+            msg_type=env.type if env is not None else None,
+            sender=signer.owner if signer is not None else claimed,
+            sender_verified=signer is not None,
+            msg_id=outcome.msg_id,
+        )
+
+
+def _bearer(headers: Mapping[str, str]) -> str | None:
+    for name, value in headers.items():
+        if name.lower() == "authorization" and value.startswith("Bearer "):
+            return value[len("Bearer ") :].strip() or None
+    return None
+
+
+class _TokenBucket:
+    """Audit rate limit for malformed input."""
+
+    def __init__(self, rate: float, clock: Clock) -> None:
+        self.rate, self.clock = rate, clock
+        self.tokens, self.stamp = rate, clock.monotonic()
+        self._lock = threading.Lock()
+
+    def take(self) -> bool:
+        with self._lock:
+            now = self.clock.monotonic()
+            self.tokens = min(self.rate, self.tokens + (now - self.stamp) * self.rate)
+            self.stamp = now
+            if self.tokens >= 1:
+                self.tokens -= 1
+                return True
+            return False
