@@ -134,7 +134,7 @@ class KeyRegistry:
 
     def verify(self, env: Envelope) -> Signer:
         """Verify ``env.sig``; raises ``SIGNATURE_INVALID`` (401) on any failure."""
-        sig = env.sig
+        sig = env.signature()
         if sig is None:
             raise AuthenticationError("message is not signed")
         entry = self.entries.get(sig.kid)

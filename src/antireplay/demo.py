@@ -35,7 +35,7 @@ def _answer(action: Callable[[], object]) -> str:
     try:
         verdict = action()
     except ReplayAttackError as exc:
-        return f"{exc.code.value} ({exc.http_status})"
+        return f"{exc.code} ({exc.http_status})"
     warning = getattr(verdict, "warning", None)
     return ACCEPTED if warning is None else f"{ACCEPTED}, warning {warning}"
 

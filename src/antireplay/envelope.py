@@ -65,7 +65,8 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
     params: dict[str, Any] = msgspec.field(default_factory=dict)
     sender: str | None = None
     scope: str | None = None
-    sig: Signature | None = None
+    # Kept raw and decoded only at the signature step: a replay never pays for it.
+    sig: msgspec.Raw = msgspec.field(default_factory=msgspec.Raw)
     key_id: str | None = None
     qos: int = 0
     jwt: str | None = None
@@ -83,6 +84,15 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
     firmware_hash: str | None = None
     attestation_ref: str | None = None
 
+    def signature(self) -> Signature | None:
+        """The ``sig`` block, decoded now; a malformed one is ``INVALID_ENVELOPE``."""
+        if not self.sig:
+            return None
+        try:
+            return _SIG_DECODER.decode(self.sig)
+        except msgspec.MsgspecError as exc:
+            raise InvalidEnvelopeError(f"sig: {_short(str(exc))}") from None
+
     @property
     def seconds(self) -> object:
         """The timestamp in seconds (``timestamp_ms`` converted exactly), still unvalidated."""
@@ -95,6 +105,7 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
 
 
 _DECODER = msgspec.json.Decoder(Envelope)
+_SIG_DECODER = msgspec.json.Decoder(Signature)
 _ENCODER = msgspec.json.Encoder()
 
 
@@ -114,7 +125,8 @@ def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH)
         raise InvalidEnvelopeError("nested too deeply") from None
     if (env.timestamp is None) == (env.timestamp_ms is None):
         raise InvalidEnvelopeError("exactly one of timestamp and timestamp_ms is required")
-    if _depth(env.params) > max_depth or _depth(env.delegation_chain) > max_depth:
+    deep = _nested(env.params) or bool(env.delegation_chain)
+    if deep and max(_depth(env.params), _depth(env.delegation_chain)) > max_depth:
         raise InvalidEnvelopeError(f"nested deeper than {max_depth} levels")
     return env
 
@@ -122,6 +134,11 @@ def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH)
 def _short(text: str) -> str:
     """Error reasons are capped and never echo more than a hint of attacker input."""
     return text[:120]
+
+
+def _nested(params: dict[str, Any]) -> bool:
+    """Fast path: flat params (the common case) cannot be too deep."""
+    return any(type(v) is dict or type(v) is list for v in params.values())
 
 
 def _depth(value: object, level: int = 1) -> int:
@@ -136,7 +153,7 @@ def _depth(value: object, level: int = 1) -> int:
 
 def canonical_bytes(env: Envelope) -> bytes:
     """The bytes every signature covers: all fields except ``sig`` and ``jwt``."""
-    body = msgspec.to_builtins(env)
+    body = msgspec.to_builtins(env, builtin_types=(msgspec.Raw,))
     body.pop("sig", None)
     body.pop("jwt", None)
     return json.dumps(body, sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()

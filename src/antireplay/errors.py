@@ -84,9 +84,12 @@ class ReplayAttackError(AntiReplayError):
     code: Code = Code.INVALID_ENVELOPE
 
     def __init__(self, reason: str, *, detail: str | None = None) -> None:
-        super().__init__(f"{self.code.value}: {reason}")
+        super().__init__(reason)
         self.reason = reason
         self.detail = detail
+
+    def __str__(self) -> str:
+        return f"{self.code}: {self.reason}"
 
     @property
     def http_status(self) -> int:
@@ -101,7 +104,7 @@ class ReplayAttackError(AntiReplayError):
         """
         body: dict[str, Any] = {
             "type": nack_type,
-            "code": self.code.value,
+            "code": str(self.code),
             "ref_msg_id": msg_id,
             "reason": self.reason,
         }

@@ -59,7 +59,7 @@ from antireplay.window import ReplayCache
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Outcome:
     """What happened to one message, ready for any transport."""
 
@@ -71,7 +71,15 @@ class Outcome:
     msg_id: str | None = None
     envelope: Envelope | None = None
     signer: Signer | None = None
-    nack: dict[str, Any] | None = None
+    error: ReplayAttackError | None = None
+    nack_type: int = 18
+
+    @property
+    def nack(self) -> dict[str, Any] | None:
+        """The COMMAND_NACK answering a rejection (built on demand)."""
+        if self.error is None:
+            return None
+        return self.error.to_nack(self.msg_id, nack_type=self.nack_type)
 
 
 @dataclass
@@ -152,7 +160,8 @@ class Receiver:
             return
         if self.jwt is None:
             raise AuthFailedError("bearer tokens are not accepted here")
-        entry = self.keys.entries.get(env.sig.kid) if env.sig is not None else None
+        sig = env.signature()
+        entry = self.keys.entries.get(sig.kid) if sig is not None else None
         if entry is None:
             raise AuthFailedError("token presented for an unknown signing key")
         self.jwt.check(token, entry.owner)
@@ -175,14 +184,15 @@ class Receiver:
         outcome = Outcome(
             False,
             exc.http_status,
-            exc.code.value,
+            str(exc.code),
             exc.reason,
             msg_id=msg_id,
             envelope=env,
             signer=signer,
-            nack=exc.to_nack(msg_id, nack_type=self.config.nack_type),
+            error=exc,
+            nack_type=self.config.nack_type,
         )
-        self.stats.rejected[exc.code.value] += 1
+        self.stats.rejected[exc.code] += 1
         if exc.code in SHAPE_ERRORS and not self._bucket.take():
             self.stats.unaudited += 1
         else:
