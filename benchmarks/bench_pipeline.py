@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import uuid
+from collections.abc import Iterator
 from typing import Any
 
 from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa
@@ -43,10 +44,18 @@ def main() -> None:
         fresh = iter(
             [json.dumps(sign_envelope(body(), kid, alg, key)).encode() for _ in range(n * 7)]
         )
-        accept_ns = per_op_ns(lambda it=fresh: rx.receive(next(it)), n)
+
+        def accept(it: Iterator[bytes] = fresh) -> object:
+            return rx.receive(next(it))
+
+        accept_ns = per_op_ns(accept, n)
         replay = json.dumps(sign_envelope(body(), kid, alg, key)).encode()
         rx.receive(replay)
-        replay_ns = per_op_ns(lambda r=replay: rx.receive(r), 20_000)
+
+        def again(raw: bytes = replay) -> object:
+            return rx.receive(raw)
+
+        replay_ns = per_op_ns(again, 20_000)
         rows += [(f"{alg}: accept fresh", accept_ns), (f"{alg}: reject replay", replay_ns)]
         print(f"{alg}: replay path is {accept_ns / replay_ns:.0f}x cheaper than accept (>= 50x)")
     pair = MLDSAKeyPair.generate()
