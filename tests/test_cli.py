@@ -4,18 +4,50 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from click.testing import CliRunner
 
 from antireplay.cli import main
 from antireplay.counters import NonceCounter
+from antireplay.demo import GatewayProcess, write_demo_config
 from antireplay.errors import StateFileError
 
 
-def test_demo_passes() -> None:
-    result = CliRunner().invoke(main, ["demo"])
+@pytest.mark.parametrize("args", [["demo", "--in-process"], ["demo"]])
+def test_demo_passes(args: list[str]) -> None:
+    result = CliRunner().invoke(main, args)
     assert result.exit_code == 0, result.output
     assert "behaved as expected" in result.output
     assert "MISMATCH" not in result.output
+
+
+def test_keygen_sign_send_and_audit(tmp_path: Path) -> None:
+    runner = CliRunner()
+    gw = GatewayProcess(write_demo_config(tmp_path))
+    gw.start()
+    try:
+        signed = runner.invoke(
+            main,
+            ["sign", "--key", str(tmp_path / "operator.key.pem"), "--kid", "operator",
+             "--cmd", "move_forward", "--target", "rcan://r/acme/arm/v2/u1", "--param", "d=1.5"],
+        )  # fmt: skip
+        assert signed.exit_code == 0, signed.output
+        envelope = tmp_path / "msg.json"
+        envelope.write_text(signed.output)
+        sent = runner.invoke(main, ["send", gw.url, str(envelope)])
+        assert sent.exit_code == 0, sent.output
+        again = runner.invoke(main, ["send", gw.url, str(envelope)])
+        assert again.exit_code == 1 and "REPLAY_DETECTED" in again.output
+    finally:
+        gw.stop()
+    checked = runner.invoke(main, ["audit", "verify", str(tmp_path / "audit.db")])
+    assert checked.exit_code == 0 and "2 records" in checked.output
+    tail = runner.invoke(main, ["audit", "tail", str(tmp_path / "audit.db")])
+    assert "rejected" in tail.output and tail.exit_code == 0
+    made = runner.invoke(main, ["keygen", "--alg", "ml-dsa-87", "--out", str(tmp_path / "k")])
+    assert made.exit_code == 0 and (tmp_path / "k.pub.pem").exists()
+    again_made = runner.invoke(main, ["keygen", "--out", str(tmp_path / "k")])
+    assert again_made.exit_code == 2
 
 
 def test_config_check_reports_key_value_range(tmp_path: Path) -> None:

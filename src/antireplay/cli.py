@@ -2,22 +2,43 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
 import sys
+import time
+import uuid
 from pathlib import Path
+from typing import Any
 
 import click
+import httpx
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa
 from rich.console import Console
+from rich.progress import Progress
 from rich.table import Table
 
 from antireplay import counters, epochs
-from antireplay.config import SecurityConfig
-from antireplay.demo import run_window_demo
+from antireplay.audit import AuditLog, verify
+from antireplay.auth import PrivateKey, sign_envelope
+from antireplay.config import AppConfig
+from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.durable import read_kind, repair
-from antireplay.errors import ConfigError
+from antireplay.errors import ConfigError, ReplayAttackError
 
 console = Console()
 #: Importing these registers their state reseeders for ``state repair``.
 STATE_OWNERS = (counters, epochs)
+KEY_TYPES: dict[str, Any] = {
+    "ed25519": ed25519.Ed25519PrivateKey,
+    "ml-dsa-65": mldsa.MLDSA65PrivateKey,
+    "ml-dsa-87": mldsa.MLDSA87PrivateKey,
+}
+BENCHMARKS = [
+    "bench_window", "bench_counters", "bench_epochs", "bench_stores", "bench_pipeline",
+    "bench_gateway", "bench_mavlink",
+]  # fmt: skip
 
 
 @click.group()
@@ -26,24 +47,213 @@ def main() -> None:
     """Stop captured robot and drone commands from working twice."""
 
 
+def _fail(message: str, code: int = 2) -> None:
+    console.print(f"[red]{message}[/red]")
+    sys.exit(code)
+
+
+def _load_config(path: Path | None, state_dir: Path) -> AppConfig:
+    from antireplay.gateway import embedded_default  # noqa: PLC0415 - keeps `--help` fast
+
+    try:
+        return AppConfig.from_yaml(path) if path is not None else embedded_default(state_dir)
+    except ConfigError as exc:
+        _fail(str(exc))
+        raise
+
+
 @main.command()
-def demo() -> None:
-    """Play operator and attacker against a receiver; exit non-zero if any answer differs."""
-    results = run_window_demo()
-    table = Table(title="antireplay demo: RCAN §8.3 freshness window + msg_id seen-set")
-    table.add_column("step")
-    table.add_column("expected")
-    table.add_column("got")
-    table.add_column("")
+@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None)
+@click.option("--host", default="127.0.0.1", show_default=True)
+@click.option("--port", default=8080, show_default=True, type=int)
+@click.option("--state-dir", default=Path(".antireplay"), type=click.Path(path_type=Path))
+def serve(config_path: Path | None, host: str, port: int, state_dir: Path) -> None:
+    """Run the HTTP gateway (embedded default without --config)."""
+    import uvicorn  # noqa: PLC0415
+
+    from antireplay.gateway import create_app  # noqa: PLC0415
+
+    config = _load_config(config_path, state_dir)
+    try:
+        app = create_app(config)
+    except ConfigError as exc:
+        _fail(str(exc))
+    uvicorn.run(app, host=host, port=port, log_level="warning", timeout_graceful_shutdown=10)
+
+
+def _table(results: list[StepResult], title: str) -> Table:
+    table = Table(title=title)
+    for column in ("step", "expected", "got", ""):
+        table.add_column(column)
     for r in results:
-        mark = "[green]ok[/green]" if r.ok else "[red]MISMATCH[/red]"
-        table.add_row(r.step, r.expected, r.got, mark)
-    console.print(table)
+        table.add_row(r.step, r.expected, r.got, "[green]ok[/green]" if r.ok else "[red]MISMATCH")
+    return table
+
+
+@main.command()
+@click.option("--in-process", is_flag=True, help="Only the §8.3 window, no gateway process.")
+def demo(in_process: bool) -> None:
+    """Play operator and attacker; exit non-zero if any answer differs."""
+    if in_process:
+        results = run_window_demo()
+        console.print(_table(results, "antireplay demo: RCAN §8.3 window (in process)"))
+        chain_ok = True
+    else:
+        with console.status("starting a gateway on a free loopback port…"):
+            results, report = run_gateway_demo()
+        console.print(_table(results, "antireplay demo: gateway on loopback, SQLite state"))
+        chain_ok = report.ok
+        verdict = "[green]intact[/green]" if report.ok else f"[red]broken at {report.broken_at}"
+        console.print(f"audit chain: {report.records} records, {verdict}")
     failed = [r for r in results if not r.ok]
-    if failed:
+    if failed or not chain_ok:
         console.print(f"[red]{len(failed)} step(s) differ[/red]")
         sys.exit(1)
     console.print(f"[green]all {len(results)} steps behaved as expected[/green]")
+
+
+@main.command()
+@click.option("--alg", type=click.Choice(sorted(KEY_TYPES)), default="ed25519", show_default=True)
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="File prefix.")
+def keygen(alg: str, out: Path) -> None:
+    """Write PREFIX.key.pem (mode 0600) and PREFIX.pub.pem."""
+    key = KEY_TYPES[alg].generate()
+    private = out.with_name(out.name + ".key.pem")
+    public = out.with_name(out.name + ".pub.pem")
+    pem = key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
+    try:
+        fd = os.open(private, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        _fail(f"{private} exists; refusing to overwrite a key")
+    with os.fdopen(fd, "wb") as handle:
+        handle.write(pem)
+    public.write_bytes(
+        key.public_key().public_bytes(
+            serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+        )
+    )
+    console.print(f"[green]{alg} key pair:[/green] {private} {public}")
+
+
+def _private_key(paths: tuple[Path, ...]) -> PrivateKey | tuple[PrivateKey, ...]:
+    keys = []
+    for path in paths:
+        key = serialization.load_pem_private_key(path.read_bytes(), None)
+        if not isinstance(key, PrivateKey):
+            _fail(f"{path}: unsupported key type {type(key).__name__}")
+            raise SystemExit(2)
+        keys.append(key)
+    return keys[0] if len(keys) == 1 else tuple(keys)
+
+
+@main.command()
+@click.option("--key", "key_paths", multiple=True, required=True, type=click.Path(path_type=Path))
+@click.option("--kid", required=True)
+@click.option("--alg", default="ed25519", show_default=True)
+@click.option("--json", "json_file", type=click.File("r"), help="Base message (JSON file or -).")
+@click.option("--cmd", default=None)
+@click.option("--target", default=None)
+@click.option(
+    "--param", "params", multiple=True, help="key=value (value parsed as JSON if it can be)"
+)
+@click.option("--type", "msg_type", type=int, default=None)
+@click.option("--safety-event", default=None)
+@click.option("--scope", default=None)
+def sign(  # noqa: PLR0917 - one option per envelope field
+    key_paths: tuple[Path, ...],
+    kid: str,
+    alg: str,
+    json_file: Any,
+    cmd: str | None,
+    target: str | None,
+    params: tuple[str, ...],
+    msg_type: int | None,
+    safety_event: str | None,
+    scope: str | None,
+) -> None:
+    """Build and sign an envelope (fresh msg_id and timestamp unless given); print it."""
+    body: dict[str, Any] = json.load(json_file) if json_file is not None else {}
+    body.setdefault("rcan", "3.2")
+    body.setdefault("rcan_version", "3.2")
+    body.setdefault("msg_id", str(uuid.uuid4()))
+    if "timestamp_ms" not in body:
+        body.setdefault("timestamp", round(time.time(), 6))
+    extra = {"cmd": cmd, "target": target, "type": msg_type, "safety_event": safety_event}
+    body.update({k: v for k, v in {**extra, "scope": scope}.items() if v is not None})
+    for item in params:
+        name, _, raw = item.partition("=")
+        try:
+            value: Any = json.loads(raw)
+        except ValueError:
+            value = raw
+        body.setdefault("params", {})[name] = value
+    try:
+        signed = sign_envelope(body, kid, alg, _private_key(key_paths))
+    except (ValueError, ReplayAttackError) as exc:
+        _fail(f"cannot sign: {exc}")
+    click.echo(json.dumps(signed))
+
+
+@main.command()
+@click.argument("url")
+@click.argument("message", type=click.File("rb"), default="-")
+@click.option("--bearer", default=None, help="JWT for the Authorization header.")
+def send(url: str, message: Any, bearer: str | None) -> None:
+    """POST a signed envelope to a gateway and print the verdict (exit 1 if refused)."""
+    headers = {"content-type": "application/json"}
+    if bearer:
+        headers["authorization"] = f"Bearer {bearer}"
+    if not url.rstrip("/").endswith("/v1/messages"):
+        url = url.rstrip("/") + "/v1/messages"
+    try:
+        reply = httpx.post(url, content=message.read(), headers=headers, timeout=10)
+    except httpx.HTTPError as exc:
+        _fail(f"cannot reach {url}: {exc}")
+    table = Table(title=f"{url} answered HTTP {reply.status_code}")
+    table.add_column("field")
+    table.add_column("value")
+    try:
+        body = reply.json()
+    except ValueError:
+        body = {"body": reply.text[:200]}
+    for name, value in body.items():
+        table.add_row(str(name), json.dumps(value) if not isinstance(value, str) else value)
+    console.print(table)
+    sys.exit(0 if reply.status_code < 300 else 1)
+
+
+@main.group()
+def audit() -> None:
+    """The hash-chained audit trail."""
+
+
+@audit.command("verify")
+@click.argument("path", type=click.Path(exists=True, path_type=Path))
+def audit_verify(path: Path) -> None:
+    """Check the hash chain; report the first broken link."""
+    report = verify(path)
+    if report.ok:
+        console.print(f"[green]chain intact: {report.records} records[/green]")
+        return
+    _fail(f"chain broken at record {report.broken_at}: {report.reason}", 1)
+
+
+@audit.command("tail")
+@click.argument("path", type=click.Path(exists=True, path_type=Path))
+@click.option("-n", "count", default=20, show_default=True)
+def audit_tail(path: Path, count: int) -> None:
+    """Print the most recent records."""
+    table = Table(title=str(path))
+    for column in ("seq", "time (UTC)", "outcome", "code", "warning", "type", "sender", "msg_id"):
+        table.add_column(column)
+    for r in AuditLog(path).tail(count):
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(r.at))
+        sender = f"{r.sender}" + ("" if r.sender_verified else " (claimed)")
+        row = (r.seq, when, r.outcome, r.code, r.warning, r.msg_type, sender, r.msg_id)
+        table.add_row(*("" if v is None else str(v) for v in row))
+    console.print(table)
 
 
 @main.group()
@@ -56,11 +266,35 @@ def config() -> None:
 def config_check(path: Path) -> None:
     """Validate a YAML config with the same errors as the library."""
     try:
-        cfg = SecurityConfig.from_yaml(path)
+        cfg = AppConfig.from_yaml(path)
     except ConfigError as exc:
-        console.print(f"[red]{exc}[/red]")
-        sys.exit(2)
+        _fail(str(exc))
     console.print_json(data=cfg.model_dump())
+
+
+@main.command()
+@click.argument("names", nargs=-1)
+def bench(names: tuple[str, ...]) -> None:
+    """Run the benchmarks (from a source checkout) and print their ratio tables."""
+    chosen = [n for n in BENCHMARKS if not names or n in names or n.removeprefix("bench_") in names]
+    outputs = []
+    with Progress(console=console) as progress:
+        task = progress.add_task("benchmarks", total=len(chosen))
+        for name in chosen:
+            progress.update(task, description=name)
+            run = subprocess.run(
+                [sys.executable, "-m", f"benchmarks.{name}"],
+                capture_output=True,
+                text=True,
+                check=False,
+            )
+            outputs.append((name, run.returncode, run.stdout + run.stderr[-2000:]))
+            progress.advance(task)
+    for name, code, text in outputs:
+        console.rule(f"{name} {'' if code == 0 else f'(exit {code})'}")
+        console.print(text, markup=False, highlight=False)
+    if any(code for _, code, _ in outputs):
+        sys.exit(1)
 
 
 @main.group()
@@ -79,8 +313,8 @@ def state_repair(path: Path, kind: str | None) -> None:
     """Reseed a damaged state file safely above anything that could have been used."""
     kind = kind or read_kind(path)
     if kind is None:
-        console.print(f"[red]cannot tell what {path} holds; pass --kind[/red]")
-        sys.exit(2)
+        _fail(f"cannot tell what {path} holds; pass --kind")
+        return
     reseeded = repair(path, kind)
     console.print(f"[green]repaired {path} ({kind})[/green]")
     console.print_json(data=reseeded)

@@ -67,18 +67,80 @@ class SecurityConfig(BaseModel):
     @classmethod
     def from_yaml(cls, path: str | Path) -> SecurityConfig:
         """Read the ``security:`` block of a YAML file."""
+        return cls.from_mapping(load_yaml(path).get("security"))
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """A YAML file's top-level mapping, or ConfigError."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError("file", str(path), f"a readable YAML file ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError("file", str(path), f"valid YAML ({exc})") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise ConfigError("file", str(path), "a YAML mapping at the top level")
+    return doc
+
+
+class KeyConfig(BaseModel):
+    """One signing key of the registry (``keys:`` list)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    kid: str = Field(min_length=1, max_length=128)
+    owner: str = Field(min_length=1, max_length=128)
+    alg: Literal["ed25519", "ml-dsa-65", "ml-dsa-87", "ed25519+ml-dsa-65"]
+    public_keys: list[str] = Field(min_length=1, max_length=2)  # PEM file paths
+    scopes: list[str] = Field(default_factory=lambda: ["control"])
+
+
+class JwtConfig(BaseModel):
+    """Bearer tokens (``jwt:``)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    required: bool = False
+    audience: str | None = None
+    issuer: str | None = None
+    keys: dict[str, str] = Field(default_factory=dict)  # kid -> PEM path (EdDSA / ES256)
+    hs256_secret_env: str | None = None  # name of an environment variable; HS256 only if set
+    leeway_s: float = Field(default=0.0, ge=0, le=300)
+
+
+class AppConfig(BaseModel):
+    """The whole gateway configuration file; ``security:`` is the §8.3 block."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    security: SecurityConfig = Field(default_factory=SecurityConfig)
+    store: str = "sqlite:.antireplay/state.db"
+    audit: str = ".antireplay/audit.db"
+    keys: list[KeyConfig] = Field(default_factory=list)
+    sdk_compat: bool = False
+    jwt: JwtConfig = Field(default_factory=JwtConfig)
+    versions: list[str] = Field(default_factory=lambda: ["3"])
+    upstream: str | None = None  # http(s)://… or module:function
+    upstream_timeout_s: float = Field(default=5.0, gt=0, le=120)
+    max_body_bytes: int = Field(default=65_536, ge=256, le=16_777_216)
+
+    @classmethod
+    def from_mapping(cls, data: dict[str, Any]) -> AppConfig:
+        """Validate the whole file; errors name the dotted key, the value and what is allowed."""
+        data = dict(data)
+        security = SecurityConfig.from_mapping(data.pop("security", None))
         try:
-            text = Path(path).read_text(encoding="utf-8")
-            doc = yaml.safe_load(text)
-        except OSError as exc:
-            raise ConfigError("file", str(path), f"a readable YAML file ({exc.strerror})") from None
-        except yaml.YAMLError as exc:
-            raise ConfigError("file", str(path), f"valid YAML ({exc})") from None
-        if doc is None:
-            doc = {}
-        if not isinstance(doc, dict):
-            raise ConfigError("file", str(path), "a YAML mapping at the top level")
-        return cls.from_mapping(doc.get("security"))
+            return cls.model_validate({**data, "security": security})
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            key = ".".join(str(p) for p in err["loc"]) or "config"
+            raise ConfigError(key, err.get("input"), err["msg"]) from None
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> AppConfig:
+        return cls.from_mapping(load_yaml(path))
 
 
 def _widen_ints(data: dict[Any, Any]) -> dict[Any, Any]:

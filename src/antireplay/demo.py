@@ -1,15 +1,38 @@
-"""The operator-and-attacker demo: every §8.3 rule exercised against a real ReplayCache.
+"""The operator-and-attacker demo, against a real gateway process or an in-process cache.
 
-Each step states what the receiver must answer and what it did answer; the
-demo fails (non-zero exit in the CLI) if any step differs.  Time is a
-:class:`ManualClock`, so the demo is deterministic and instant.
+Each step states what the robot must answer and what it did answer; the demo
+fails (non-zero exit in the CLI) if any step differs.
+
+* :func:`run_gateway_demo` (``antireplay demo``) starts ``antireplay serve`` on a
+  free loopback port with a temporary state directory, plays operator and
+  attacker over HTTP, restarts the gateway, and checks the audit chain.
+* :func:`run_window_demo` (``antireplay demo --in-process``) exercises the §8.3
+  window alone with a :class:`ManualClock`: deterministic and instant.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+import json
+import socket
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
+import httpx
+import yaml
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ed25519
+
+from antireplay.audit import ChainReport, verify
+from antireplay.auth import sign_envelope
 from antireplay.clock import ManualClock
 from antireplay.errors import ReplayAttackError
 from antireplay.messages import MessageType, SafetyEvent
@@ -106,3 +129,179 @@ def run_window_demo() -> list[StepResult]:
         ),
     ]
     return results
+
+
+def robot(envelope: dict[str, Any]) -> dict[str, Any]:
+    """The demo's stand-in robot API (the gateway's ``module:function`` upstream)."""
+    return {"executed": envelope.get("cmd"), "msg_id": envelope.get("msg_id")}
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@dataclass
+class GatewayProcess:
+    """``antireplay serve`` as a real subprocess on loopback."""
+
+    config: Path
+    port: int = field(default_factory=free_port)
+    proc: subprocess.Popen[bytes] | None = None
+
+    @property
+    def url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def start(self, timeout_s: float = 30.0) -> None:
+        args = [sys.executable, "-m", "antireplay", "serve", "--config", str(self.config)]
+        args += ["--host", "127.0.0.1", "--port", str(self.port)]
+        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                err = self.proc.stderr.read().decode() if self.proc.stderr else ""
+                raise RuntimeError(f"gateway exited early: {err[-2000:]}")
+            try:
+                if httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                time.sleep(0.05)
+        raise RuntimeError("gateway did not become healthy")
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.terminate()  # graceful: uvicorn finishes in-flight requests
+            self.proc.wait(timeout=30)
+            self.proc = None
+
+
+def write_demo_config(state: Path, **overrides: Any) -> Path:
+    """A gateway config with a fresh Ed25519 operator key under ``state``."""
+    key = ed25519.Ed25519PrivateKey.generate()
+    (state / "operator.key.pem").write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM,
+            serialization.PrivateFormat.PKCS8,
+            serialization.NoEncryption(),
+        )
+    )
+    (state / "operator.pub.pem").write_bytes(
+        key.public_key().public_bytes(
+            serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+        )
+    )
+    config = {
+        "store": f"sqlite:{state / 'state.db'}",
+        "audit": str(state / "audit.db"),
+        "upstream": "antireplay.demo:robot",
+        "keys": [
+            {
+                "kid": "operator",
+                "owner": "operator",
+                "alg": "ed25519",
+                "public_keys": [str(state / "operator.pub.pem")],
+                "scopes": ["control", "safety"],
+            }
+        ],
+        **overrides,
+    }
+    path = state / "antireplay.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def load_operator_key(state: Path) -> ed25519.Ed25519PrivateKey:
+    key = serialization.load_pem_private_key((state / "operator.key.pem").read_bytes(), None)
+    assert isinstance(key, ed25519.Ed25519PrivateKey)
+    return key
+
+
+def command(key: ed25519.Ed25519PrivateKey, age_s: float = 0.0, **fields: Any) -> bytes:
+    """A signed RCAN command stamped ``age_s`` seconds ago."""
+    body = {
+        "rcan": "3.2", "rcan_version": "3.2", "msg_id": str(uuid.uuid4()),
+        "timestamp": round(time.time() - age_s, 6), "cmd": "move_forward",
+        "target": "rcan://registry.rcan.dev/acme/arm/v2/unit-001",
+        "params": {"distance_m": 0.5}, **fields,
+    }  # fmt: skip
+    return json.dumps(sign_envelope(body, "operator", "ed25519", key)).encode()
+
+
+def answer(reply: httpx.Response) -> str:
+    """How a step's HTTP reply reads in the table."""
+    try:
+        body = reply.json()
+    except ValueError:
+        return f"HTTP {reply.status_code}"
+    if reply.status_code == 200:
+        return "accepted" + (f", warning {body['warning']}" if body.get("warning") else "")
+    return f"{body.get('code')} ({reply.status_code})"
+
+
+def state_rows(state: Path) -> int:
+    db = sqlite3.connect(f"file:{state / 'state.db'}?mode=ro", uri=True)
+    try:
+        return int(db.execute("SELECT count(*) FROM seen").fetchone()[0])
+    finally:
+        db.close()
+
+
+@contextmanager
+def _gateway(config: Path) -> Iterator[GatewayProcess]:
+    gateway = GatewayProcess(config)
+    gateway.start()
+    try:
+        yield gateway
+    finally:
+        gateway.stop()
+
+
+def run_gateway_demo(flood: int = 300) -> tuple[list[StepResult], ChainReport]:
+    """Play operator and attacker against a real gateway; return the steps and audit check."""
+    with tempfile.TemporaryDirectory(prefix="antireplay-demo-") as tmp:
+        state = Path(tmp)
+        config = write_demo_config(state)
+        key = load_operator_key(state)
+        results: list[StepResult] = []
+        with _gateway(config) as gw, httpx.Client(base_url=gw.url, timeout=10) as http:
+
+            def post(raw: bytes) -> httpx.Response:
+                return http.post("/v1/messages", content=raw, headers=JSON)
+
+            def step(name: str, expected: str, raw: bytes) -> None:
+                results.append(StepResult(name, expected, answer(post(raw))))
+
+            first = command(key)
+            step("operator: move_forward", ACCEPTED, first)
+            step("attacker: exact replay", "REPLAY_DETECTED (409)", first)
+            step("attacker: capture from 40 s ago", "MESSAGE_STALE (408)", command(key, 40))
+            genuine = json.loads(command(key))
+            forged = {**genuine, "cmd": "arm_motors"}
+            step("attacker: forged msg with victim's msg_id", "SIGNATURE_INVALID (401)",
+                 json.dumps(forged).encode())  # fmt: skip
+            step("operator: the genuine message", ACCEPTED, json.dumps(genuine).encode())
+            before = state_rows(state)
+            garbage = [
+                json.dumps({**json.loads(command(key)), "msg_id": f"flood-{i}", "cmd": "x"})
+                for i in range(flood)
+            ]
+            refused = sum(post(g.encode()).status_code == 401 for g in garbage)
+            results.append(StepResult(
+                f"attacker: {flood} unique forged msgs (state rows {before} -> "
+                f"{state_rows(state)})", f"{flood} refused", f"{refused} refused",
+            ))  # fmt: skip
+            step("attacker: replay after the flood", "REPLAY_DETECTED (409)", first)
+            estop = command(key, type=6, safety_event="ESTOP", cmd="estop")
+            step("operator: ESTOP", ACCEPTED, estop)
+            step("network: duplicate fresh ESTOP", f"{ACCEPTED}, warning REPLAY_DETECTED", estop)
+            stale_estop = command(key, 11, type=6, safety_event="ESTOP", cmd="estop")
+            step("attacker: ESTOP from 11 s ago", "MESSAGE_STALE (408)", stale_estop)
+            gw.stop()
+            gw.start()
+            step("attacker: replay after gateway restart", "REPLAY_DETECTED (409)", first)
+        return results, verify(state / "audit.db")
+
+
+JSON = {"content-type": "application/json"}

@@ -1,0 +1,262 @@
+"""The HTTP gateway: a thin Starlette adapter in front of a robot's command API.
+
+``POST /v1/messages`` takes one RCAN envelope (``application/json``, at most
+``max_body_bytes``), runs :class:`~antireplay.pipeline.Receiver`, and either
+forwards the accepted message upstream (the canonical re-encoding, never the
+raw bytes) and answers with the upstream's result, or answers with the
+COMMAND_NACK and its HTTP status.  ``GET /healthz`` and ``GET /metrics``
+(Prometheus) complete it.  No rule lives here: every decision is the
+pipeline's.  Every audit record is committed (fsync) before the response is
+sent, so a graceful or abrupt shutdown loses no answered message's record.
+
+With no configuration the gateway runs on the embedded default: SQLite state
+and audit under ``./.antireplay/`` and a generated demo key pair
+(:func:`embedded_default`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ed25519
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from starlette.applications import Starlette
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect, Request
+from starlette.responses import JSONResponse, Response
+from starlette.routing import Route
+
+from antireplay.audit import AuditLog
+from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key
+from antireplay.clock import Clock, resolve
+from antireplay.config import AppConfig, KeyConfig
+from antireplay.envelope import encode
+from antireplay.errors import ConfigError
+from antireplay.pipeline import Outcome, Receiver
+from antireplay.stores import open_store
+
+DEMO_KID = "demo-operator"
+Upstream = Callable[[dict[str, Any]], Awaitable[tuple[int, Any]]]
+
+
+def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
+    """SQLite state and audit under ``state_dir`` and a demo Ed25519 key pair (made once)."""
+    state_dir.mkdir(parents=True, exist_ok=True)
+    private, public = state_dir / f"{DEMO_KID}.key.pem", state_dir / f"{DEMO_KID}.pub.pem"
+    if not private.exists():
+        key = ed25519.Ed25519PrivateKey.generate()
+        pem = key.private_bytes(
+            serialization.Encoding.PEM,
+            serialization.PrivateFormat.PKCS8,
+            serialization.NoEncryption(),
+        )
+        fd = os.open(private, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(pem)
+        public.write_bytes(
+            key.public_key().public_bytes(
+                serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+            )
+        )
+    return AppConfig(
+        store=f"sqlite:{state_dir / 'state.db'}",
+        audit=str(state_dir / "audit.db"),
+        keys=[
+            KeyConfig(
+                kid=DEMO_KID,
+                owner="operator",
+                alg="ed25519",
+                public_keys=[str(public)],
+                scopes=["control", "safety"],
+            )
+        ],
+    )
+
+
+def build_registry(config: AppConfig) -> KeyRegistry:
+    keys = KeyRegistry(sdk_compat=config.sdk_compat)
+    for entry in config.keys:
+        try:
+            loaded = tuple(load_public_key(Path(p).read_bytes()) for p in entry.public_keys)
+            keys.add(entry.kid, entry.owner, entry.alg, loaded, set(entry.scopes))
+        except (OSError, ValueError) as exc:
+            raise ConfigError(
+                f"keys.{entry.kid}.public_keys", entry.public_keys, str(exc)
+            ) from None
+    return keys
+
+
+def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
+    """Wire a Receiver from configuration: keys, store, audit, JWT."""
+    verifier = None
+    if config.jwt.keys or config.jwt.hs256_secret_env:
+        secret = os.environ.get(config.jwt.hs256_secret_env or "", "") or None
+        verifier = JwtVerifier(
+            {kid: load_public_key(Path(p).read_bytes()) for kid, p in config.jwt.keys.items()},
+            audience=config.jwt.audience,
+            issuer=config.jwt.issuer,
+            hs256_secret=secret.encode() if secret else None,
+            leeway_s=config.jwt.leeway_s,
+            clock=clock,
+        )
+    return Receiver(
+        config.security,
+        build_registry(config),
+        open_store(config.store, clock=clock),
+        AuditLog(config.audit),
+        clock,
+        jwt=verifier,
+        jwt_required=config.jwt.required,
+        versions=frozenset(config.versions),
+    )
+
+
+def resolve_upstream(spec: str | None, timeout_s: float) -> Upstream | None:
+    """``http(s)://…`` → POST via httpx; ``module:function`` → call it; None → answer locally."""
+    if spec is None:
+        return None
+    if spec.startswith(("http://", "https://")):
+        client = httpx.AsyncClient(timeout=timeout_s)
+
+        async def post(envelope: dict[str, Any]) -> tuple[int, Any]:
+            reply = await client.post(spec, json=envelope)
+            try:
+                return reply.status_code, reply.json()
+            except ValueError:
+                return reply.status_code, {"body": reply.text[:1000]}
+
+        return post
+    module_name, _, attr = spec.partition(":")
+    try:
+        func = getattr(importlib.import_module(module_name), attr)
+    except (ImportError, AttributeError, ValueError) as exc:
+        raise ConfigError("upstream", spec, f"http(s)://URL or module:function ({exc})") from None
+
+    async def call(envelope: dict[str, Any]) -> tuple[int, Any]:
+        return 200, await run_in_threadpool(func, envelope)
+
+    return call
+
+
+class Metrics:
+    """Prometheus metrics of one gateway (its own registry, so tests can run several)."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        r = self.registry
+        self.accepted = Counter("antireplay_accepted", "Accepted messages", registry=r)
+        self.rejected = Counter("antireplay_rejected", "Rejected messages", ["code"], registry=r)
+        self.warnings = Counter(
+            "antireplay_warnings", "Accepted with warning", ["warning"], registry=r
+        )
+        self.latency = Histogram("antireplay_latency_seconds", "Pipeline latency", registry=r)
+        self.cache_size = Gauge("antireplay_cache_entries", "In-memory window entries", registry=r)
+        self.watermark_raises = Gauge(
+            "antireplay_watermark_raises", "Saturation evictions (watermark raised)", registry=r
+        )
+        self.fence = Gauge("antireplay_restart_fence_rejections", "Restart fence hits", registry=r)
+        self.store_errors = Counter(
+            "antireplay_store_errors", "STATE_UNAVAILABLE answers", registry=r
+        )
+        self.upstream_errors = Counter(
+            "antireplay_upstream_errors", "Upstream failures", registry=r
+        )
+
+    def observe(self, outcome: Outcome, seconds: float) -> None:
+        self.latency.observe(seconds)
+        if outcome.accepted:
+            self.accepted.inc()
+            if outcome.warning:
+                self.warnings.labels(outcome.warning).inc()
+        else:
+            self.rejected.labels(outcome.code or "UNKNOWN").inc()
+            if outcome.code == "STATE_UNAVAILABLE":
+                self.store_errors.inc()
+
+
+def _nack(outcome: Outcome) -> JSONResponse:
+    return JSONResponse(outcome.nack, status_code=outcome.status)
+
+
+def _refuse(status: int, reason: str) -> JSONResponse:
+    """Transport-level refusals use the same NACK shape."""
+    body = {"type": 18, "code": "INVALID_ENVELOPE", "ref_msg_id": None, "reason": reason}
+    return JSONResponse(body, status_code=status)
+
+
+def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
+    """The gateway application for ``config``."""
+    receiver = build_receiver(config, clock)
+    upstream = resolve_upstream(config.upstream, config.upstream_timeout_s)
+    metrics = Metrics()
+    limit = config.max_body_bytes
+    ticker = resolve(None)
+
+    async def messages(request: Request) -> Response:  # noqa: PLR0911 - one answer per case
+        ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+        if ctype != "application/json":
+            return _refuse(415, "content-type must be application/json")
+        declared = request.headers.get("content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > limit):
+            return _refuse(413, f"body larger than {limit} bytes")
+        body = bytearray()
+        try:
+            async for chunk in request.stream():
+                body += chunk
+                if len(body) > limit:
+                    return _refuse(413, f"body larger than {limit} bytes")
+        except ClientDisconnect:
+            return _refuse(400, "client disconnected")
+        started = ticker.monotonic()
+        outcome = await run_in_threadpool(receiver.receive, bytes(body), dict(request.headers))
+        metrics.observe(outcome, ticker.monotonic() - started)
+        if not outcome.accepted:
+            return _nack(outcome)
+        assert outcome.envelope is not None
+        answer: dict[str, Any] = {"accepted": True, "msg_id": outcome.msg_id}
+        if outcome.warning:
+            answer["warning"] = outcome.warning
+        if upstream is None:
+            return JSONResponse(answer)
+        try:
+            status, result = await upstream(json.loads(encode(outcome.envelope)))
+        except Exception as exc:
+            metrics.upstream_errors.inc()
+            return JSONResponse({**answer, "upstream_error": type(exc).__name__}, status_code=502)
+        return JSONResponse({**answer, "result": result}, status_code=status)
+
+    async def healthz(_: Request) -> Response:
+        return JSONResponse({"status": "ok", "time": time.time()})
+
+    async def metrics_endpoint(_: Request) -> Response:
+        metrics.cache_size.set(len(receiver.cache))
+        metrics.watermark_raises.set(receiver.cache.saturation_evictions)
+        metrics.fence.set(receiver.cache.fence_rejections)
+        return Response(generate_latest(metrics.registry), media_type="text/plain; version=0.0.4")
+
+    @asynccontextmanager
+    async def lifespan(_: Starlette) -> AsyncIterator[None]:
+        yield
+        if receiver.audit is not None:
+            receiver.audit.close()
+
+    app = Starlette(
+        routes=[
+            Route("/v1/messages", messages, methods=["POST"]),
+            Route("/healthz", healthz, methods=["GET"]),
+            Route("/metrics", metrics_endpoint, methods=["GET"]),
+        ],
+        lifespan=lifespan,
+    )
+    app.state.receiver = receiver
+    app.state.metrics = metrics
+    return app

@@ -1,0 +1,240 @@
+"""End to end: `antireplay serve` as a real subprocess, spoken to over loopback with httpx."""
+
+from __future__ import annotations
+
+import json
+import re
+import threading
+from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, HTTPServer
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from antireplay.audit import AuditLog, verify
+from antireplay.demo import (
+    JSON,
+    GatewayProcess,
+    command,
+    free_port,
+    load_operator_key,
+    state_rows,
+    write_demo_config,
+)
+from antireplay.stores.redis_store import RedisStore
+
+
+@pytest.fixture(scope="module")
+def state(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("gateway")
+
+
+@pytest.fixture(scope="module")
+def gateway(state: Path) -> Iterator[GatewayProcess]:
+    gw = GatewayProcess(write_demo_config(state))
+    gw.start()
+    yield gw
+    gw.stop()
+
+
+@pytest.fixture
+def http(gateway: GatewayProcess) -> Iterator[httpx.Client]:
+    with httpx.Client(base_url=gateway.url, timeout=10) as client:
+        yield client
+
+
+def post(http: httpx.Client, raw: bytes, **headers: str) -> httpx.Response:
+    return http.post("/v1/messages", content=raw, headers={**JSON, **headers})
+
+
+def metric(http: httpx.Client, name: str, labels: str = "") -> float:
+    text = http.get("/metrics").text
+    pattern = rf"^{re.escape(name)}{re.escape(labels)} ([0-9.e+]+)$"
+    found = re.search(pattern, text, re.MULTILINE)
+    return float(found.group(1)) if found else 0.0
+
+
+def test_accept_forwards_to_upstream(http: httpx.Client, state: Path) -> None:
+    raw = command(load_operator_key(state))
+    reply = post(http, raw)
+    assert reply.status_code == 200
+    body = reply.json()
+    assert body["accepted"] and body["result"]["executed"] == "move_forward"
+
+
+def test_replay_is_409_nack(http: httpx.Client, state: Path) -> None:
+    raw = command(load_operator_key(state))
+    post(http, raw)
+    reply = post(http, raw)
+    assert reply.status_code == 409
+    assert reply.json()["code"] == "REPLAY_DETECTED" and reply.json()["type"] == 18
+
+
+def test_stale_capture_is_408(http: httpx.Client, state: Path) -> None:
+    reply = post(http, command(load_operator_key(state), 40))
+    assert (reply.status_code, reply.json()["code"]) == (408, "MESSAGE_STALE")
+
+
+def test_forged_then_genuine(http: httpx.Client, state: Path) -> None:
+    genuine = json.loads(command(load_operator_key(state)))
+    forged = {**genuine, "params": {"distance_m": 50}}
+    assert post(http, json.dumps(forged).encode()).status_code == 401
+    assert post(http, json.dumps(genuine).encode()).status_code == 200
+
+
+def test_flood_records_nothing_and_opens_no_replay(http: httpx.Client, state: Path) -> None:
+    key = load_operator_key(state)
+    victim = command(key)
+    post(http, victim)
+    before = state_rows(state)
+    for i in range(200):
+        body = {**json.loads(command(key)), "msg_id": f"garbage-{i}", "cmd": "x"}
+        assert post(http, json.dumps(body).encode()).status_code == 401
+    assert state_rows(state) == before
+    assert post(http, victim).status_code == 409
+
+
+def test_estop_duplicate_processed_and_audited(http: httpx.Client, state: Path) -> None:
+    estop = command(load_operator_key(state), type=6, safety_event="ESTOP", cmd="estop")
+    assert post(http, estop).json().get("warning") is None
+    again = post(http, estop)
+    assert again.status_code == 200 and again.json()["warning"] == "REPLAY_DETECTED"
+    msg_id = json.loads(estop)["msg_id"]
+    records = [r for r in AuditLog(state / "audit.db").tail(1000) if r.msg_id == msg_id]
+    assert [r.warning for r in records] == [None, "REPLAY_DETECTED"]
+
+
+def test_stale_estop_rejected(http: httpx.Client, state: Path) -> None:
+    stale = command(load_operator_key(state), 11, type=6, safety_event="ESTOP", cmd="estop")
+    assert post(http, stale).status_code == 408
+
+
+def test_metrics_count_what_happened(http: httpx.Client, state: Path) -> None:
+    key = load_operator_key(state)
+    accepted = metric(http, "antireplay_accepted_total")
+    replays = metric(http, "antireplay_rejected_total", '{code="REPLAY_DETECTED"}')
+    raw = command(key)
+    post(http, raw)
+    for _ in range(3):
+        post(http, raw)
+    assert metric(http, "antireplay_accepted_total") == accepted + 1
+    assert metric(http, "antireplay_rejected_total", '{code="REPLAY_DETECTED"}') == replays + 3
+
+
+def test_restart_then_replay_rejected(gateway: GatewayProcess, state: Path) -> None:
+    raw = command(load_operator_key(state))
+    assert httpx.post(f"{gateway.url}/v1/messages", content=raw, headers=JSON).status_code == 200
+    gateway.stop()
+    gateway.start()
+    reply = httpx.post(f"{gateway.url}/v1/messages", content=raw, headers=JSON)
+    assert reply.status_code == 409
+    assert verify(state / "audit.db").ok
+
+
+def test_transport_refusals(http: httpx.Client) -> None:
+    assert (
+        http.post("/v1/messages", content=b"{}", headers={"content-type": "text/plain"}).status_code
+        == 415
+    )
+    huge = b'{"x":"' + b"a" * 70_000 + b'"}'
+    reply = post(http, huge)
+    assert reply.status_code == 413 and reply.json()["code"] == "INVALID_ENVELOPE"
+    assert http.get("/healthz").json()["status"] == "ok"
+
+
+@settings(max_examples=2_000, deadline=None, suppress_health_check=list(HealthCheck))
+@given(
+    body=st.one_of(
+        st.binary(max_size=200),
+        st.dictionaries(st.text(max_size=10), st.text(max_size=10), max_size=6).map(
+            lambda d: json.dumps(d).encode()
+        ),
+    ),
+    ctype=st.sampled_from(
+        ["application/json", "application/json; charset=utf-8", "text/plain", ""]
+    ),
+)
+def test_hypothesis_bad_requests_get_4xx_with_code(
+    http: httpx.Client, body: bytes, ctype: str
+) -> None:
+    reply = http.post("/v1/messages", content=body, headers={"content-type": ctype})
+    assert 400 <= reply.status_code < 500
+    assert reply.json()["code"]
+
+
+# --- upstream over HTTP ----------------------------------------------------------------------
+
+
+class _Robot(BaseHTTPRequestHandler):
+    def do_POST(self) -> None:
+        length = int(self.headers["content-length"])
+        envelope = json.loads(self.rfile.read(length))
+        body = json.dumps({"moved": envelope["params"]["distance_m"]}).encode()
+        self.send_response(201)
+        self.send_header("content-type", "application/json")
+        self.send_header("content-length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def log_message(self, *args: Any) -> None:
+        """Quiet."""
+
+
+def test_http_upstream_and_upstream_failure(tmp_path: Path) -> None:
+    robot = HTTPServer(("127.0.0.1", 0), _Robot)
+    threading.Thread(target=robot.serve_forever, daemon=True).start()
+    up = tmp_path / "up"
+    up.mkdir()
+    good = GatewayProcess(write_demo_config(up, upstream=f"http://127.0.0.1:{robot.server_port}/"))
+    down = tmp_path / "down"
+    down.mkdir()
+    bad = GatewayProcess(write_demo_config(down, upstream=f"http://127.0.0.1:{free_port()}/"))
+    good.start()
+    bad.start()
+    try:
+        reply = httpx.post(
+            f"{good.url}/v1/messages", content=command(load_operator_key(up)), headers=JSON
+        )
+        assert (reply.status_code, reply.json()["result"]) == (201, {"moved": 0.5})
+        reply = httpx.post(
+            f"{bad.url}/v1/messages", content=command(load_operator_key(down)), headers=JSON
+        )
+        assert reply.status_code == 502
+    finally:
+        good.stop()
+        bad.stop()
+        robot.shutdown()
+
+
+# --- two replicas on one Redis -------------------------------------------------------------------
+
+
+def test_two_replicas_on_one_redis(tmp_path: Path, redis_url: str) -> None:
+    shared = redis_url.rsplit("/", 1)[0] + "/5"
+    a_dir, b_dir = tmp_path / "a", tmp_path / "b"
+    a_dir.mkdir()
+    b_dir.mkdir()
+    a_cfg = write_demo_config(a_dir, store=shared)
+    b_cfg = write_demo_config(b_dir, store=shared)
+    # Both replicas trust the same operator key.
+    (b_dir / "operator.pub.pem").write_bytes((a_dir / "operator.pub.pem").read_bytes())
+    # An existing deployment: the shared Redis already holds antireplay's sentinel, so no
+    # data-loss fence applies (a brand-new or wiped Redis would fence for one skew period).
+    RedisStore(shared).lookup("warm-up")
+    a, b = GatewayProcess(a_cfg), GatewayProcess(b_cfg)
+    a.start()
+    b.start()
+    try:
+        key = load_operator_key(a_dir)
+        raw = command(key)
+        first = httpx.post(f"{a.url}/v1/messages", content=raw, headers=JSON)
+        assert first.status_code == 200, first.text
+        replay = httpx.post(f"{b.url}/v1/messages", content=raw, headers=JSON)
+        assert (replay.status_code, replay.json()["code"]) == (409, "REPLAY_DETECTED")
+    finally:
+        a.stop()
+        b.stop()
