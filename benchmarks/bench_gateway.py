@@ -39,7 +39,7 @@ def bare_app() -> Starlette:
     return Starlette(routes=[Route("/v1/messages", messages, methods=["POST"])])
 
 
-def drive(url: str, bodies: list[bytes]) -> tuple[float, float, float]:
+def drive(url: str, bodies: list[bytes], expect: int = 200) -> tuple[float, float, float]:
     """(requests/s, p50 ms, p99 ms) for sequential requests on one connection."""
     latencies = []
     with httpx.Client(base_url=url, timeout=30) as client:
@@ -47,8 +47,10 @@ def drive(url: str, bodies: list[bytes]) -> tuple[float, float, float]:
         started = time.perf_counter()
         for body in bodies[1:]:
             t0 = time.perf_counter()
-            client.post("/v1/messages", content=body, headers=JSON)
+            status = client.post("/v1/messages", content=body, headers=JSON).status_code
             latencies.append(time.perf_counter() - t0)
+            if status != expect:
+                raise SystemExit(f"{url}: expected HTTP {expect}, got {status}")
         elapsed = time.perf_counter() - started
     cuts = statistics.quantiles(latencies, n=100)
     return len(latencies) / elapsed, cuts[49] * 1e3, cuts[98] * 1e3
