@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from pathlib import Path
@@ -318,3 +319,112 @@ def state_repair(path: Path, kind: str | None) -> None:
     reseeded = repair(path, kind)
     console.print(f"[green]repaired {path} ({kind})[/green]")
     console.print_json(data=reseeded)
+
+
+def _udp(spec: str) -> tuple[str, int]:
+    scheme, _, rest = spec.partition(":")
+    host, _, port = rest.rpartition(":")
+    if scheme != "udp" or not host or not port.isdigit():
+        raise click.BadParameter(f"{spec!r}: expected udp:HOST:PORT")
+    return host, int(port)
+
+
+def _signing_key(path: Path) -> bytes:
+    raw = path.read_bytes().strip()
+    if len(raw) == 64:
+        try:
+            return bytes.fromhex(raw.decode())
+        except ValueError:
+            pass
+    if len(raw) != 32:
+        raise click.BadParameter(f"{path}: a 32-byte key, raw or as 64 hex characters")
+    return raw
+
+
+@main.command("mavlink-proxy")
+@click.option("--listen", required=True, help="udp:HOST:PORT the ground station talks to")
+@click.option("--forward", required=True, help="udp:HOST:PORT of the vehicle (or SITL)")
+@click.option("--key-file", required=True, type=click.Path(exists=True, path_type=Path))
+@click.option("--system-id", type=int, default=None, help="This vehicle's system id (binding).")
+@click.option("--store", "store_spec", default="sqlite:.antireplay/mavlink.db", show_default=True)
+@click.option("--audit", "audit_path", default=".antireplay/mavlink-audit.db", show_default=True)
+@click.option("--metrics-port", type=int, default=None, help="Serve Prometheus metrics here.")
+@click.option("--allow-unsigned", multiple=True, type=int, help="Message id allowed unsigned.")
+@click.option("--reorder-window", type=int, default=0, show_default=True)
+def mavlink_proxy(  # noqa: PLR0917 - one option per knob
+    listen: str,
+    forward: str,
+    key_file: Path,
+    system_id: int | None,
+    store_spec: str,
+    audit_path: str,
+    metrics_port: int | None,
+    allow_unsigned: tuple[int, ...],
+    reorder_window: int,
+) -> None:
+    """Forward only MAVLink v2 frames the guard accepts, both directions."""
+    import signal  # noqa: PLC0415
+
+    from antireplay.mavlink import MavlinkGuard, MavlinkProxy  # noqa: PLC0415
+    from antireplay.stores import open_store  # noqa: PLC0415
+
+    key = _signing_key(key_file)
+    store = open_store(store_spec)
+    audit_log = AuditLog(audit_path)
+    common: dict[str, Any] = {
+        "store": store, "allow_unsigned": frozenset(allow_unsigned),
+        "reorder_window": reorder_window,
+    }  # fmt: skip
+    inbound = MavlinkGuard(key, system_id=system_id, store_prefix="mav-in", **common)
+    outbound = MavlinkGuard(key, store_prefix="mav-out", **common)
+    bucket = {"tokens": 50.0, "at": time.monotonic()}
+
+    def audit_reject(direction: str, exc: ReplayAttackError, raw: bytes) -> None:
+        now = time.monotonic()
+        bucket["tokens"] = min(50.0, bucket["tokens"] + (now - bucket["at"]) * 50)
+        bucket["at"] = now
+        if bucket["tokens"] < 1:
+            return
+        bucket["tokens"] -= 1
+        sender = f"mav:{raw[5]}/{raw[6]}" if len(raw) > 6 else None
+        audit_log.append(
+            at=time.time(), outcome="rejected", code=str(exc.code), warning=direction,
+            msg_type=None, sender=sender, sender_verified=False, msg_id=None,
+        )  # fmt: skip
+
+    proxy = MavlinkProxy(_udp(listen), _udp(forward), inbound, outbound, audit_reject)
+    if metrics_port is not None:
+        _serve_proxy_metrics(proxy, metrics_port)
+    done = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    signal.signal(signal.SIGINT, lambda *_: done.set())
+    proxy.start()
+    console.print(f"[green]mavlink-proxy {listen} -> {forward} (system id {system_id})[/green]")
+    done.wait()
+    proxy.stop()
+    audit_log.close()
+    store.close()
+
+
+def _serve_proxy_metrics(proxy: Any, port: int) -> None:
+    from prometheus_client import REGISTRY, start_http_server  # noqa: PLC0415
+    from prometheus_client.core import CounterMetricFamily  # noqa: PLC0415
+
+    class ProxyCollector:
+        def collect(self) -> Any:
+            forwarded = CounterMetricFamily(
+                "antireplay_mavlink_forwarded", "Frames forwarded", labels=["direction"]
+            )
+            for direction, n in proxy.stats.forwarded.items():
+                forwarded.add_metric([direction], n)
+            dropped = CounterMetricFamily(
+                "antireplay_mavlink_dropped", "Frames dropped", labels=["direction", "code"]
+            )
+            for label, n in proxy.stats.dropped.items():
+                direction, _, code = label.partition(":")
+                dropped.add_metric([direction, code], n)
+            yield forwarded
+            yield dropped
+
+    REGISTRY.register(ProxyCollector())
+    start_http_server(port, addr="127.0.0.1")

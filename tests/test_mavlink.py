@@ -1,0 +1,409 @@
+"""MAVLink v2 guard and proxy, with real pymavlink ground station and vehicle over UDP loopback."""
+
+from __future__ import annotations
+
+import os
+import random
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+os.environ["MAVLINK20"] = "1"  # pymavlink's mavutil speaks MAVLink 1 unless told otherwise
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from antireplay import ManualClock
+from antireplay.errors import (
+    AuthenticationError,
+    CounterReplayError,
+    InvalidFrameError,
+    MessageFromFutureError,
+    MessageStaleError,
+    NonceExhaustedError,
+)
+from antireplay.mavlink import (
+    MAV_EPOCH,
+    TS_LIMIT,
+    UNITS_PER_S,
+    MavlinkGuard,
+    MavlinkProxy,
+    TimestampSource,
+    mav_time,
+    sign_frame,
+)
+from antireplay.stores.sqlite import SqliteStore
+from tests.conftest import ROOT
+from tests.redis_server import free_port
+
+KEY = bytes(range(32))
+NOW = 1_800_000_000.0
+
+
+class _Sink:
+    def __init__(self) -> None:
+        self.frames: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.frames.append(bytes(data))
+
+
+def encoder(sysid: int = 255, link_id: int = 1, ts: int | None = None) -> tuple[Any, _Sink]:
+    """A pymavlink MAVLink object that signs into a list (a GCS without a socket)."""
+    sink = _Sink()
+    mav = dialect.MAVLink(sink, srcSystem=sysid, srcComponent=190)
+    mav.signing.secret_key = KEY
+    mav.signing.sign_outgoing = True
+    mav.signing.link_id = link_id
+    mav.signing.timestamp = mav_time(ManualClock(NOW)) if ts is None else ts
+    return mav, sink
+
+
+def command_frame(mav: Any, sink: _Sink, target: int = 1, param1: float = 1.0) -> bytes:
+    mav.command_long_send(target, 1, 400, 0, param1, 0, 0, 0, 0, 0, 0)
+    return sink.frames[-1]
+
+
+@pytest.fixture
+def clock() -> ManualClock:
+    return ManualClock(wall=NOW)
+
+
+# --- the guard, directly ------------------------------------------------------------------------
+
+
+def test_signed_frame_accepted_once(clock: ManualClock) -> None:
+    guard = MavlinkGuard(KEY, clock=clock, system_id=1)
+    frame = command_frame(*encoder())
+    assert guard.check(frame).signed
+    with pytest.raises(CounterReplayError):
+        guard.check(frame)
+
+
+def test_jamming_frame_changes_nothing(clock: ManualClock) -> None:
+    guard = MavlinkGuard(KEY, clock=clock)
+    mav, sink = encoder()
+    guard.check(command_frame(mav, sink))
+    jam = bytearray(command_frame(mav, sink))
+    jam[-12:-6] = (TS_LIMIT - 1).to_bytes(6, "little")
+    with pytest.raises(AuthenticationError):
+        guard.check(bytes(jam))
+    assert guard.check(command_frame(mav, sink)).signed  # later legitimate frames pass
+
+
+def test_forged_new_streams_do_not_grow_the_table(clock: ManualClock) -> None:
+    guard = MavlinkGuard(KEY, clock=clock)
+    rng = random.Random(3)
+    for _ in range(1_000):
+        other = dialect.MAVLink(
+            _Sink(), srcSystem=rng.randint(1, 250), srcComponent=rng.randint(1, 250)
+        )
+        other.signing.secret_key = bytes(32)  # the attacker's key
+        other.signing.sign_outgoing = True
+        other.signing.link_id = rng.randint(0, 255)
+        other.signing.timestamp = mav_time(clock)
+        other.command_long_send(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)
+        with pytest.raises(AuthenticationError):
+            guard.check(other.file.frames[-1])
+    assert len(guard) == 0
+
+
+def test_new_stream_rule_uses_the_wall_clock(clock: ManualClock) -> None:
+    guard = MavlinkGuard(KEY, clock=clock)
+    old = command_frame(*encoder(ts=mav_time(clock) - 61 * UNITS_PER_S))
+    with pytest.raises(MessageStaleError):
+        guard.check(old)
+    guard.check(command_frame(*encoder(link_id=2, ts=mav_time(clock) - 59 * UNITS_PER_S)))
+
+
+def test_forward_jump_bound(clock: ManualClock) -> None:
+    guard = MavlinkGuard(KEY, clock=clock)
+    with pytest.raises(MessageFromFutureError):
+        guard.check(command_frame(*encoder(ts=mav_time(clock) + 120 * UNITS_PER_S)))
+    assert len(guard) == 0
+
+
+def test_frame_for_another_vehicle_is_refused(clock: ManualClock) -> None:
+    vehicle_two = MavlinkGuard(KEY, clock=clock, system_id=2)
+    with pytest.raises(AuthenticationError, match="system 1"):
+        vehicle_two.check(command_frame(*encoder(), target=1))
+    vehicle_two.check(command_frame(*encoder(link_id=3), target=2))
+
+
+def test_reordered_pair_passes_once_each(clock: ManualClock) -> None:
+    guard = MavlinkGuard(KEY, clock=clock, reorder_window=1_000)
+    mav, sink = encoder()
+    first, second = command_frame(mav, sink), command_frame(mav, sink)
+    guard.check(second)
+    guard.check(first)
+    for frame in (first, second):
+        with pytest.raises(CounterReplayError):
+            guard.check(frame)
+
+
+def test_allow_listed_id_with_signed_flag_and_bad_signature_dropped(clock: ManualClock) -> None:
+    guard = MavlinkGuard(KEY, clock=clock, allow_unsigned=frozenset({0}))
+    mav, sink = encoder()
+    mav.heartbeat_send(6, 8, 0, 0, 0)
+    signed = bytearray(sink.frames[-1])
+    signed[-1] ^= 0xFF
+    with pytest.raises(AuthenticationError):
+        guard.check(bytes(signed))
+    plain = dialect.MAVLink(_Sink(), srcSystem=255, srcComponent=190)
+    plain.heartbeat_send(6, 8, 0, 0, 0)
+    assert not guard.check(plain.file.frames[-1]).signed
+    plain.command_long_send(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)
+    with pytest.raises(AuthenticationError, match="not allow-listed"):
+        guard.check(plain.file.frames[-1])
+
+
+@pytest.mark.parametrize(
+    "bad", [b"", b"\xfd", b"\xfe\x09" + bytes(20), b"\xfd\x09\x00", b"\xfd\x01\x80" + bytes(20)]
+)
+def test_malformed_frames_are_typed(clock: ManualClock, bad: bytes) -> None:
+    with pytest.raises(InvalidFrameError):
+        MavlinkGuard(KEY, clock=clock).check(bad)
+
+
+def test_eviction_fences_old_streams(clock: ManualClock) -> None:
+    guard = MavlinkGuard(KEY, clock=clock, max_streams=2)
+    frames = [command_frame(*encoder(link_id=i, ts=mav_time(clock) + i)) for i in range(3)]
+    for frame in frames:
+        guard.check(frame)
+    assert len(guard) == 2
+    with pytest.raises((MessageStaleError, CounterReplayError)):
+        guard.check(frames[0])
+
+
+def test_store_makes_a_restarted_guard_reject_old_captures(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    store = SqliteStore(tmp_path / "mav.db")
+    mav, sink = encoder(ts=mav_time(clock) - 59 * UNITS_PER_S)
+    old = command_frame(mav, sink)
+    mav.signing.timestamp = mav_time(clock) - 5 * UNITS_PER_S
+    recent = command_frame(mav, sink)
+    MavlinkGuard(KEY, clock=clock, store=store).check(old)
+    MavlinkGuard(KEY, clock=clock, store=store).check(recent)
+    restarted = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
+    for frame in (old, recent):
+        with pytest.raises(CounterReplayError):
+            restarted.check(frame)
+    restarted.check(command_frame(mav, sink))
+
+
+def test_timestamp_source_tracks_time_and_refuses_wrap(clock: ManualClock) -> None:
+    source = TimestampSource(clock)
+    a, b = source.next(), source.next()
+    assert a == mav_time(clock) and b == a + 1
+    clock.advance(1)
+    assert source.next() == mav_time(clock)
+    with pytest.raises(NonceExhaustedError):
+        TimestampSource(clock, last=TS_LIMIT - 1).next()
+
+
+def test_sign_frame_is_accepted_by_guard_and_pymavlink(clock: ManualClock) -> None:
+    plain = dialect.MAVLink(_Sink(), srcSystem=255, srcComponent=190)
+    plain.command_long_send(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)
+    signed = sign_frame(plain.file.frames[-1], KEY, 4, TimestampSource(clock))
+    assert MavlinkGuard(KEY, clock=clock).check(signed).stream == (255, 190, 4)
+    receiver = dialect.MAVLink(_Sink())
+    receiver.signing.secret_key = KEY
+    receiver.signing.timestamp = mav_time(clock)
+    assert receiver.check_signature(bytearray(signed), 255, 190)
+    assert MAV_EPOCH < NOW
+
+
+# --- the proxy with real pymavlink endpoints --------------------------------------------------
+
+
+class Rig:
+    """GCS (pymavlink, signing) -> proxy -> vehicle (pymavlink, observing everything)."""
+
+    def __init__(self, system_id: int = 1) -> None:
+        vport = free_port()
+        self.vehicle = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{vport}", source_system=system_id, source_component=1
+        )
+        self.proxy = MavlinkProxy(
+            ("127.0.0.1", 0),
+            ("127.0.0.1", vport),
+            MavlinkGuard(KEY, system_id=system_id),
+            MavlinkGuard(KEY),
+        )
+        self.proxy.start()
+        host, port = self.proxy.address
+        self.gcs = mavutil.mavlink_connection(
+            f"udpout:{host}:{port}", source_system=255, source_component=190
+        )
+        self.gcs.setup_signing(KEY, sign_outgoing=True, link_id=1)
+        self.raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+    def send_command(self, param1: float, target: int = 1) -> bytes:
+        msg = self.gcs.mav.command_long_encode(target, 1, 400, 0, param1, 0, 0, 0, 0, 0, 0)
+        self.gcs.mav.send(msg)
+        return bytes(msg.get_msgbuf())
+
+    def inject(self, raw: bytes) -> None:
+        self.raw.sendto(raw, self.proxy.address)
+
+    def commands_until(self, sentinel: float) -> list[float]:
+        """Every COMMAND_LONG param1 the vehicle received, up to and including the sentinel."""
+        seen: list[float] = []
+        while True:
+            msg = self.vehicle.recv_match(type="COMMAND_LONG", blocking=True, timeout=10)
+            assert msg is not None, f"sentinel {sentinel} never arrived; got {seen}"
+            seen.append(float(msg.param1))
+            if msg.param1 == sentinel:
+                return seen
+
+    def close(self) -> None:
+        self.proxy.stop()
+        self.gcs.close()
+        self.vehicle.close()
+        self.raw.close()
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    made = Rig()
+    yield made
+    made.close()
+
+
+def test_command_arrives_once_and_exact_replay_is_dropped(rig: Rig) -> None:
+    captured = rig.send_command(1.0)
+    assert rig.commands_until(1.0) == [1.0]
+    rig.inject(captured)
+    rig.send_command(2.0)
+    assert rig.commands_until(2.0) == [2.0]
+    assert rig.proxy.stats.dropped["inbound:COUNTER_REPLAYED"] == 1
+
+
+def test_jamming_through_the_proxy(rig: Rig) -> None:
+    frame = bytearray(rig.send_command(1.0))
+    rig.commands_until(1.0)
+    frame[-12:-6] = (TS_LIMIT - 1).to_bytes(6, "little")
+    rig.inject(bytes(frame))
+    rig.send_command(2.0)
+    assert rig.commands_until(2.0) == [2.0]
+    assert rig.proxy.stats.dropped["inbound:SIGNATURE_INVALID"] == 1
+
+
+def test_thousand_forged_streams_through_the_proxy(rig: Rig) -> None:
+    rig.send_command(1.0)
+    rig.commands_until(1.0)
+    before = len(rig.proxy.inbound)
+    rng = random.Random(11)
+    for _ in range(1_000):
+        forger = dialect.MAVLink(
+            _Sink(), srcSystem=rng.randint(1, 250), srcComponent=rng.randint(1, 250)
+        )
+        forger.signing.secret_key = os.urandom(32)
+        forger.signing.sign_outgoing = True
+        forger.signing.link_id = rng.randint(0, 255)
+        forger.signing.timestamp = mav_time(ManualClock(time.time()))
+        forger.command_long_send(1, 1, 400, 0, 9.0, 0, 0, 0, 0, 0, 0)
+        rig.inject(forger.file.frames[-1])
+    rig.send_command(2.0)
+    assert rig.commands_until(2.0) == [2.0]
+    assert len(rig.proxy.inbound) == before
+
+
+def test_malformed_datagrams_counted_and_dropped(rig: Rig) -> None:
+    for bad in (b"\xfd\x05", b"hello", bytes(3), b"\xfd\x09\x00\x00\x01\xff\xbe\x4c\x00\x00"):
+        rig.inject(bad)
+    rig.send_command(3.0)
+    assert rig.commands_until(3.0) == [3.0]
+    assert rig.proxy.stats.dropped["inbound:INVALID_FRAME"] == 4
+
+
+def test_replay_towards_a_second_vehicle_is_dropped(rig: Rig) -> None:
+    captured = rig.send_command(1.0, target=1)
+    rig.commands_until(1.0)
+    second = Rig(system_id=2)
+    try:
+        second.inject(captured)
+        second.send_command(5.0, target=2)
+        assert second.commands_until(5.0) == [5.0]
+        assert second.proxy.stats.dropped["inbound:SIGNATURE_INVALID"] == 1
+    finally:
+        second.close()
+
+
+def test_round_trip_both_directions_with_signing_everywhere() -> None:
+    rig = Rig()
+    try:
+        rig.vehicle.setup_signing(KEY, sign_outgoing=True, link_id=7)
+        rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        rig.vehicle.mav.heartbeat_send(2, 3, 0, 0, 4)
+        reply = rig.gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=10)
+        assert reply is not None and reply.get_srcSystem() == 1
+        assert rig.proxy.stats.forwarded["outbound"] >= 1
+    finally:
+        rig.close()
+
+
+def test_cli_proxy_restart_then_old_captures_dropped(tmp_path: Path) -> None:
+    key_file = tmp_path / "key.hex"
+    key_file.write_text(KEY.hex())
+    vport, pport = free_port(), free_port()
+    vehicle = mavutil.mavlink_connection(f"udpin:127.0.0.1:{vport}", source_system=1)
+    args = [
+        sys.executable, "-m", "antireplay", "mavlink-proxy", "--listen", f"udp:127.0.0.1:{pport}",
+        "--forward", f"udp:127.0.0.1:{vport}", "--key-file", str(key_file), "--system-id", "1",
+        "--store", f"sqlite:{tmp_path / 'mav.db'}", "--audit", str(tmp_path / "audit.db"),
+    ]  # fmt: skip
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+
+    def start() -> subprocess.Popen[bytes]:
+        proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert proc.stdout is not None
+        assert b"mavlink-proxy" in proc.stdout.readline()  # listening
+        return proc
+
+    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{pport}", source_system=255)
+    now = mav_time(ManualClock(time.time()))
+    gcs.setup_signing(KEY, sign_outgoing=True, link_id=1, initial_timestamp=now - 59 * UNITS_PER_S)
+    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+    def command(param1: float) -> bytes:
+        msg = gcs.mav.command_long_encode(1, 1, 400, 0, param1, 0, 0, 0, 0, 0, 0)
+        gcs.mav.send(msg)
+        return bytes(msg.get_msgbuf())
+
+    def until(sentinel: float) -> list[float]:
+        seen: list[float] = []
+        while not seen or seen[-1] != sentinel:
+            msg = vehicle.recv_match(type="COMMAND_LONG", blocking=True, timeout=10)
+            assert msg is not None, seen
+            seen.append(float(msg.param1))
+        return seen
+
+    proxy = start()
+    try:
+        old = command(59.0)  # captured 59 s ago
+        gcs.mav.signing.timestamp = now - 5 * UNITS_PER_S
+        recent = command(5.0)  # captured 5 s ago
+        assert until(5.0) == [59.0, 5.0]
+        proxy.send_signal(signal.SIGKILL)
+        proxy.wait()
+        proxy = start()
+        raw.sendto(old, ("127.0.0.1", pport))
+        raw.sendto(recent, ("127.0.0.1", pport))
+        gcs.mav.signing.timestamp = now
+        command(1.0)
+        assert until(1.0) == [1.0]
+    finally:
+        proxy.terminate()
+        proxy.wait()
+        vehicle.close()
+        gcs.close()
+        raw.close()
