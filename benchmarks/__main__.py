@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import importlib
 
-MODULES = ["bench_window", "bench_counters", "bench_epochs"]
+MODULES = [
+    "bench_window", "bench_counters", "bench_epochs", "bench_stores", "bench_pipeline",
+    "bench_gateway", "bench_mavlink",
+]  # fmt: skip
 
 
 def main() -> None:

@@ -285,16 +285,12 @@ class ReplayCache:
                     raise ReplayDetectedError("msg_id already accepted within its window")
                 warning = "REPLAY_DETECTED"
             if commit:
-                if seen is None and len(table) < self.max_size:
-                    key = int(expiry * SLOTS_PER_SECOND)
-                    slot = self._slots.get(key)
-                    if slot is None:
-                        self._insert(mid, expiry)
-                    else:
-                        slot[mid] = expiry
-                        table[mid] = expiry
+                slot = self._slots.get(int(expiry * SLOTS_PER_SECOND))
+                if seen is None and slot is not None and len(table) < self.max_size:
+                    slot[mid] = expiry  # the common case: a new entry in an existing slot
+                    table[mid] = expiry
                 else:
-                    self._record(mid, expiry, now, estop)
+                    self._record(mid, expiry, estop)
             return _new_verdict(Verdict, (mid, ts, window, expiry, warning))
         finally:
             lock.release()
@@ -338,7 +334,7 @@ class ReplayCache:
             raise ReplayDetectedError("msg_id already accepted within its window")
         return "REPLAY_DETECTED"
 
-    def _record(self, mid: str, expires: float, now: float, force: bool) -> None:
+    def _record(self, mid: str, expires: float, force: bool) -> None:
         """Insert or extend the entry; when full, evict from the soonest slot (fail closed).
 
         An id's entry lives until the latest expiry of any accepted message with that id.
@@ -346,46 +342,34 @@ class ReplayCache:
         """
         table = self._expiry
         old = table.get(mid)
-        if old is not None:
-            if old < expires:
-                self._insert(mid, expires)
+        if old is not None and old >= expires:
             return
-        keys = self._slot_keys
-        if keys and keys[0] < now * SLOTS_PER_SECOND - 1:
-            self._purge(now, PURGE_BATCH)
-        if len(table) >= self.max_size:
-            # Evicting helps only if the newcomer outlives the whole soonest slot.
-            if not force and int(expires * SLOTS_PER_SECOND) <= keys[0]:
-                raise _saturated()
-            self._evict_one()
-            self.saturation_evictions += 1
-        self._insert(mid, expires)
-
-    def _insert(self, mid: str, expires: float) -> None:
+        keys = self._slot_keys  # _run already purged a bounded batch of expired entries
         key = int(expires * SLOTS_PER_SECOND)
-        slot = self._slots.get(key)
+        slots = self._slots
+        if old is None and len(table) >= self.max_size:
+            # Evicting helps only if the newcomer outlives the whole soonest slot.
+            if not force and key <= keys[0]:
+                raise _saturated()
+            # Forget one live entry of the soonest slot; the watermark covers it from now on.
+            # Empty slots are dropped at once, so keys[0] always names a non-empty slot.
+            evicted = False
+            while not evicted:
+                soonest = slots[keys[0]]
+                victim, victim_expiry = soonest.popitem()
+                if table.get(victim) == victim_expiry:
+                    del table[victim]
+                    self._watermark = max(self._watermark, victim_expiry)
+                    evicted = True
+                if not soonest:
+                    del slots[heapq.heappop(keys)]
+            self.saturation_evictions += 1
+        slot = slots.get(key)
         if slot is None:
-            slot = self._slots[key] = {}
-            heapq.heappush(self._slot_keys, key)
+            slot = slots[key] = {}
+            heapq.heappush(keys, key)
         slot[mid] = expires
-        self._expiry[mid] = expires
-
-    def _evict_one(self) -> None:
-        """Forget one live entry from the soonest-expiring slot and raise the watermark.
-
-        Empty slots are dropped at once, so ``_slot_keys[0]`` always names a non-empty slot.
-        """
-        table, slots, keys = self._expiry, self._slots, self._slot_keys
-        evicted = False
-        while not evicted:
-            slot = slots[keys[0]]
-            mid, expires = slot.popitem()
-            if table.get(mid) == expires:
-                del table[mid]
-                self._watermark = max(self._watermark, expires)
-                evicted = True
-            if not slot:
-                del slots[heapq.heappop(keys)]
+        table[mid] = expires
 
     def _purge(self, now: float, limit: int) -> int:
         """Forget up to ``limit`` entries from slots that have wholly expired."""
