@@ -24,14 +24,27 @@ def clock() -> ManualClock:
     return ManualClock(wall=1_800_000_000.0)
 
 
+def run_threads(threads_n: int, work: Callable[[int], object]) -> None:
+    """Run ``work(index)`` in ``threads_n`` real threads released together by a barrier."""
+    barrier = threading.Barrier(threads_n)
+
+    def worker(index: int) -> None:
+        barrier.wait()
+        work(index)
+
+    threads = [threading.Thread(target=worker, args=(i,)) for i in range(threads_n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+
+
 def race(threads_n: int, action: Callable[[], object]) -> tuple[int, int]:
     """Start ``threads_n`` threads behind a barrier; count successes and typed rejections."""
-    barrier = threading.Barrier(threads_n)
     results: list[bool] = []
     lock = threading.Lock()
 
-    def worker() -> None:
-        barrier.wait()
+    def attempt(_: int) -> None:
         try:
             action()
             ok = True
@@ -40,11 +53,7 @@ def race(threads_n: int, action: Callable[[], object]) -> tuple[int, int]:
         with lock:
             results.append(ok)
 
-    threads = [threading.Thread(target=worker) for _ in range(threads_n)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    run_threads(threads_n, attempt)
     return results.count(True), results.count(False)
 
 

@@ -27,7 +27,7 @@ from antireplay.errors import (
     NonceExhaustedError,
     SessionClosedError,
 )
-from tests.conftest import race, run_and_kill
+from tests.conftest import race, run_and_kill, run_threads
 
 # --- the three CleitonQ properties, ported ----------------------------------------------------
 
@@ -35,17 +35,7 @@ from tests.conftest import race, run_and_kill
 def test_eight_threads_thousand_next_are_distinct() -> None:
     counter = NonceCounter()
     values: list[list[int]] = [[] for _ in range(8)]
-    barrier = threading.Barrier(8)
-
-    def worker(i: int) -> None:
-        barrier.wait()
-        values[i].extend(counter.next() for _ in range(1_000))
-
-    threads = [threading.Thread(target=worker, args=(i,)) for i in range(8)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    run_threads(8, lambda i: values[i].extend(counter.next() for _ in range(1_000)))
     flat = [v for vs in values for v in vs]
     assert len(set(flat)) == 8_000
     assert all(a < b for vs in values for a, b in itertools.pairwise(vs))
@@ -61,20 +51,14 @@ def test_four_threads_offering_1_to_500_give_500_acceptances() -> None:
     tracker = NonceTracker()
     accepted: list[int] = []
     lock = threading.Lock()
-    barrier = threading.Barrier(4)
 
-    def worker() -> None:
-        barrier.wait()
+    def offer(_: int) -> None:
         for n in range(1, 501):
             if tracker.accept(n):
                 with lock:
                     accepted.append(n)
 
-    threads = [threading.Thread(target=worker) for _ in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    run_threads(4, offer)
     assert len(accepted) == 500
     assert sorted(accepted) == list(range(1, 501))
     assert tracker.last_accepted == 500
@@ -234,18 +218,12 @@ def test_window_race_has_one_winner() -> None:
     window = CounterWindow()
     for c in range(100):
         wins: list[int] = []
-        barrier = threading.Barrier(4)
 
-        def worker(value: int = c, b: threading.Barrier = barrier, w: list[int] = wins) -> None:
-            b.wait()
+        def offer(_: int, value: int = c, w: list[int] = wins) -> None:
             if window.accept(value):
                 w.append(value)
 
-        threads = [threading.Thread(target=worker) for _ in range(4)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        run_threads(4, offer)
         assert len(wins) == 1
 
 

@@ -3,6 +3,7 @@ multi-process races, kill -9 restarts, the restart fence and Redis outages."""
 
 from __future__ import annotations
 
+import json
 import multiprocessing
 import random
 import threading
@@ -11,6 +12,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay import (
     ManualClock,
@@ -19,12 +22,13 @@ from antireplay import (
     ReplayCache,
     ReplayDetectedError,
 )
+from antireplay.auth import sign_envelope
 from antireplay.errors import ConfigError, StateUnavailableError
 from antireplay.stores import ReplayStore, open_store
 from antireplay.stores.memory import MemoryStore
 from antireplay.stores.redis_store import RedisStore
 from antireplay.stores.sqlite import SqliteStore
-from tests.conftest import run_and_kill
+from tests.conftest import run_and_kill, run_threads
 from tests.helpers import store_worker
 from tests.redis_server import RedisServer
 
@@ -78,19 +82,11 @@ def test_record_many_batch(store: ReplayStore) -> None:
 def test_threads_racing_on_record_have_one_winner(store: ReplayStore) -> None:
     for round_no in range(30):
         wins: list[bool] = []
-        barrier = threading.Barrier(6)
 
-        def worker(
-            key: str = f"k{round_no}", b: threading.Barrier = barrier, out: list[bool] = wins
-        ) -> None:
-            b.wait()
+        def attempt(_: int, key: str = f"k{round_no}", out: list[bool] = wins) -> None:
             out.append(store.record(key, NOW + 30, NOW))
 
-        threads = [threading.Thread(target=worker) for _ in range(6)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+        run_threads(6, attempt)
         assert wins.count(True) == 1
 
 
@@ -181,12 +177,25 @@ def test_memory_store_full_fails_closed() -> None:
 
 
 def _race_processes(spec: str, rounds: int) -> list[int]:
+    """Two OS processes receive the same signed messages, round by round, concurrently."""
+    key = ed25519.Ed25519PrivateKey.generate()
+    public = key.public_key().public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+    )
+    messages = [
+        json.dumps(
+            sign_envelope(
+                {"rcan": "3.2", "msg_id": f"round-{i}", "timestamp": store_worker.WALL - 1,
+                 "cmd": "move_forward", "target": "rcan://r/acme/arm/v2/u1"},
+                "op", "ed25519", key,
+            )
+        ).encode()
+        for i in range(rounds)
+    ]  # fmt: skip
     ctx = multiprocessing.get_context("spawn")
     barrier, results = ctx.Barrier(2, timeout=60), ctx.Queue()
-    procs = [
-        ctx.Process(target=store_worker.race_rounds, args=(spec, rounds, barrier, results))
-        for _ in range(2)
-    ]
+    args = (spec, messages, public, barrier, results)
+    procs = [ctx.Process(target=store_worker.race_rounds, args=args) for _ in range(2)]
     for p in procs:
         p.start()
     accepted = [results.get(timeout=300), results.get(timeout=300)]

@@ -6,27 +6,32 @@ import sys
 from multiprocessing.synchronize import Barrier
 from typing import Any
 
-from antireplay import ManualClock, ReplayAttackError, ReplayCache
+from antireplay import ManualClock, ReplayAttackError, ReplayCache, SecurityConfig
+from antireplay.auth import KeyRegistry, load_public_key
+from antireplay.pipeline import Receiver
 from antireplay.stores import open_store
 
 WALL = 1_800_000_000.0
 
 
-def race_rounds(spec: str, rounds: int, barrier: Barrier, results: Any) -> None:
-    """Each round: wait for the other process, then check the same msg_id once."""
+def race_rounds(
+    spec: str, messages: list[bytes], public_pem: bytes, barrier: Barrier, results: Any
+) -> None:
+    """Each round: wait for the other process, then receive the same signed message once."""
     try:
-        clock = ManualClock(wall=WALL)
+        keys = KeyRegistry()
+        keys.add("op", "operator", "ed25519", load_public_key(public_pem))
         store = open_store(spec, clock=ManualClock(wall=WALL - 60))
-        cache = ReplayCache(window_s=300, clock=clock, store=store)
+        config = SecurityConfig(replay_window_s=300)
+        receiver = Receiver(config, keys, store, None, ManualClock(wall=WALL))
         accepted = []
-        for i in range(rounds):
+        for i, raw in enumerate(messages):
             barrier.wait()
-            try:
-                cache.check(f"round-{i}", WALL - 1)
+            outcome = receiver.receive(raw)
+            if outcome.accepted:
                 accepted.append(i)
-            except ReplayAttackError as exc:
-                if exc.http_status != 409:
-                    raise
+            elif outcome.code != "REPLAY_DETECTED":
+                raise AssertionError(f"round {i}: {outcome.code} {outcome.reason}")
         results.put(accepted)
     except BaseException as exc:
         barrier.abort()
