@@ -56,7 +56,19 @@ def main() -> None:
             return rx.receive(raw)
 
         replay_ns = per_op_ns(again, 20_000)
-        rows += [(f"{alg}: accept fresh", accept_ns), (f"{alg}: reject replay", replay_ns)]
+        # The same message re-serialized (other bytes): the full parse + window path.
+        other_bytes = json.dumps(json.loads(replay), indent=1).encode()
+
+        def reserialized(raw: bytes = other_bytes) -> object:
+            return rx.receive(raw)
+
+        full_ns = per_op_ns(reserialized, 20_000)
+        rows += [
+            (f"{alg}: accept fresh", accept_ns),
+            (f"{alg}: reject exact replay", replay_ns),
+            (f"{alg}: reject re-serialized replay", full_ns),
+        ]
+        print(f"{alg}: re-serialized replay is {accept_ns / full_ns:.0f}x cheaper than accept")
         print(f"{alg}: replay path is {accept_ns / replay_ns:.0f}x cheaper than accept (>= 50x)")
     pair = MLDSAKeyPair.generate()
     msg = RCANMessage(
@@ -74,7 +86,8 @@ def main() -> None:
     )
     for name, ns in rows:
         print(f"{name:<40} {ns:>12,.0f} ns {rate(ns)}")
-    print(f"our ML-DSA-65 accept vs SDK verify alone: {rows[-1][1] / rows[2][1]:.0f}x faster")
+    ours = dict(rows)["ml-dsa-65: accept fresh"]
+    print(f"our ML-DSA-65 accept vs SDK verify alone: {rows[-1][1] / ours:.0f}x faster")
 
 
 if __name__ == "__main__":

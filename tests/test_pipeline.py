@@ -437,3 +437,23 @@ def test_fuzz_envelopes_only_typed_rejections(body: dict[str, Any], base: bool) 
 def test_b64_helper_round_trip() -> None:
     assert base64.urlsafe_b64decode("AA==") == b"\0"
     assert time.time() > 0
+
+
+def test_exact_copy_memo_and_its_limits(receiver: Receiver, clock: ManualClock) -> None:
+    raw = signed()
+    assert receiver.receive(raw).accepted
+    assert receiver.receive(raw).code == "REPLAY_DETECTED"  # byte-identical: caught before parsing
+    reserialized = json.dumps(json.loads(raw), indent=1).encode()
+    assert receiver.receive(reserialized).code == "REPLAY_DETECTED"  # same message, other bytes
+    clock.advance(31)
+    assert receiver.receive(raw).code == "MESSAGE_STALE"  # the memo never outlives the window
+    assert receiver.audit is not None
+    codes_seen = [r.code for r in receiver.audit.tail(10)]
+    assert codes_seen == [None, "REPLAY_DETECTED", "REPLAY_DETECTED", "MESSAGE_STALE"]
+
+
+def test_rejected_messages_never_enter_the_copy_memo(receiver: Receiver) -> None:
+    body = json.loads(signed())
+    forged = json.dumps({**body, "cmd": "arm"}).encode()
+    assert receiver.receive(forged).code == "SIGNATURE_INVALID"
+    assert receiver.receive(forged).code == "SIGNATURE_INVALID"  # not REPLAY: never accepted

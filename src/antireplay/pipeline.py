@@ -49,12 +49,13 @@ from antireplay.errors import (
     AuthFailedError,
     Code,
     ReplayAttackError,
+    ReplayDetectedError,
     ScopeDeniedError,
     VersionIncompatibleError,
 )
 from antireplay.messages import MessageType
 from antireplay.stores import ReplayStore
-from antireplay.window import ReplayCache
+from antireplay.window import ReplayCache, is_estop
 
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
 
@@ -80,6 +81,17 @@ class Outcome:
         if self.error is None:
             return None
         return self.error.to_nack(self.msg_id, nack_type=self.nack_type)
+
+
+@dataclass(frozen=True, slots=True)
+class _Copy:
+    """What is remembered of an accepted body (never the body itself)."""
+
+    length: int
+    expires_at: float
+    msg_id: str | None
+    msg_type: int
+    sender: str | None
 
 
 @dataclass
@@ -117,12 +129,16 @@ class Receiver:
         self.jwt_required = jwt_required
         self.versions = versions
         self.stats = Stats()
+        self._copies: dict[int, _Copy] = {}
         self._bucket = _TokenBucket(invalid_audit_per_s, self.clock)
 
     def receive(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Outcome:
         """Run the §8.3 steps; never raises for anything a peer can send."""
         env: Envelope | None = None
         signer: Signer | None = None
+        copy = self._copies.get(hash(raw)) if type(raw) is bytes else None
+        if copy is not None and copy.length == len(raw) and copy.expires_at >= self.clock.wall():
+            return self._reject_copy(copy)
         try:
             env = parse(raw)
             self._check_version(env)
@@ -140,7 +156,37 @@ class Receiver:
         self.stats.accepted += 1
         if verdict.warning:
             self.stats.warnings[verdict.warning] += 1
+        elif not is_estop(env.type, env.safety_event):
+            self._remember_copy(raw, env, verdict.expires_at)
         self._audit(outcome, env, signer)
+        return outcome
+
+    def _remember_copy(self, raw: bytes, env: Envelope, expires_at: float) -> None:
+        """Memo of accepted bodies: a byte-identical copy is a replay, known before parsing.
+
+        Only authenticated, accepted, non-ESTOP messages enter it (a fresh duplicate ESTOP
+        must still be processed), keyed by Python's keyed SipHash of the body plus its
+        length; it is bounded (oldest forgotten first) and forgetting only means the copy
+        takes the full path, where the window rejects it as before.
+        """
+        copies = self._copies
+        if len(copies) >= self.config.msg_id_cache_size:
+            del copies[next(iter(copies))]
+        copies[hash(raw)] = _Copy(len(raw), expires_at, sanitize(env.msg_id), env.type, env.sender)
+
+    def _reject_copy(self, copy: _Copy) -> Outcome:
+        exc = ReplayDetectedError("an identical message was already accepted")
+        outcome = Outcome(
+            False, exc.http_status, str(exc.code), exc.reason, msg_id=copy.msg_id, error=exc,
+            nack_type=self.config.nack_type,
+        )  # fmt: skip
+        self.stats.rejected[exc.code] += 1
+        if self.audit is not None:
+            self.audit.append(
+                at=self.clock.wall(), outcome="rejected", code=outcome.code, warning=None,
+                msg_type=copy.msg_type, sender=copy.sender, sender_verified=False,
+                msg_id=copy.msg_id,
+            )  # fmt: skip
         return outcome
 
     def _check_version(self, env: Envelope) -> None:

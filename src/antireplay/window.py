@@ -100,6 +100,13 @@ SLOTS_PER_SECOND = 10
 # Plain constants: enum attribute access costs ~150 ns on the hot path (CPython 3.11).
 _SAFETY = int(MessageType.SAFETY)
 _ESTOP = str(SafetyEvent.ESTOP)
+
+
+def is_estop(msg_type: int, safety_event: str | None) -> bool:
+    """The ESTOP invariant covers SAFETY messages with the ESTOP event only (inlined in _run)."""
+    return msg_type == _SAFETY and safety_event == _ESTOP
+
+
 _DECIMAL = re.compile(r"[0-9]{1,12}(?:\.[0-9]{1,9})?")
 _ISO_HINT = re.compile(r"[0-9]{4}-[0-9]{2}-[0-9]{2}")
 
