@@ -238,3 +238,23 @@ def test_two_replicas_on_one_redis(tmp_path: Path, redis_url: str) -> None:
     finally:
         a.stop()
         b.stop()
+
+
+def test_sigterm_loses_no_audit_record(tmp_path: Path) -> None:
+    gw = GatewayProcess(write_demo_config(tmp_path))
+    gw.start()
+    key = load_operator_key(tmp_path)
+    answered = 0
+    try:
+        with httpx.Client(base_url=gw.url, timeout=10) as client:
+            for _ in range(40):
+                raw = command(key)
+                answered += (
+                    client.post("/v1/messages", content=raw, headers=JSON).status_code == 200
+                )
+    finally:
+        gw.stop()  # SIGTERM: graceful shutdown
+    records = AuditLog(tmp_path / "audit.db").tail(1000)
+    assert answered == 40
+    assert sum(r.outcome == "accepted" for r in records) == answered
+    assert verify(tmp_path / "audit.db").ok

@@ -12,7 +12,7 @@ from typing import Any
 
 import jwt as pyjwt
 import pytest
-from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa
+from cryptography.hazmat.primitives.asymmetric import ec, ed25519, mldsa
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rcan import RCANMessage
@@ -286,6 +286,16 @@ def test_jwt_rules(jwt_receiver: Receiver, tok: Any, code: str | None) -> None:
     value = tok()
     headers = {} if value is None else {"Authorization": f"Bearer {value}"}
     assert jwt_receiver.receive(signed(), headers).code == code
+
+
+def test_es256_tokens_and_algorithm_confusion(clock: ManualClock) -> None:
+    es_key = ec.generate_private_key(ec.SECP256R1())
+    verifier = JwtVerifier({"es": es_key.public_key(), "ed": JWT_KEY.public_key()}, clock=clock)
+    rx = Receiver(SecurityConfig(), registry(), None, None, clock, jwt=verifier)
+    good = pyjwt.encode({"sub": "operator", "exp": NOW + 60}, es_key, "ES256", {"kid": "es"})
+    assert rx.receive(signed(), {"Authorization": f"Bearer {good}"}).accepted
+    wrong_key = pyjwt.encode({"sub": "operator", "exp": NOW + 60}, es_key, "ES256", {"kid": "ed"})
+    assert rx.receive(signed(), {"Authorization": f"Bearer {wrong_key}"}).code == "AUTH_FAILED"
 
 
 def test_jwt_in_envelope_field(jwt_receiver: Receiver) -> None:
