@@ -467,3 +467,13 @@ def test_rejected_messages_never_enter_the_copy_memo(receiver: Receiver) -> None
     forged = json.dumps({**body, "cmd": "arm"}).encode()
     assert receiver.receive(forged).code == "SIGNATURE_INVALID"
     assert receiver.receive(forged).code == "SIGNATURE_INVALID"  # not REPLAY: never accepted
+
+
+def test_unauditable_accept_is_refused_not_lost(tmp_path: Path, receiver: Receiver) -> None:
+    assert receiver.audit is not None
+    receiver.audit.close()  # the audit database is gone (disk full, unmounted…)
+    out = receiver.receive(signed())
+    assert (out.accepted, out.status, out.code) == (False, 503, "STATE_UNAVAILABLE")
+    assert receiver.stats.accepted == 0
+    assert receiver.stats.audit_failures == 2  # the accept, then its 503 answer
+    assert receiver.receive(signed(timestamp=NOW - 100)).code == "MESSAGE_STALE"

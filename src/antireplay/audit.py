@@ -28,6 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from antireplay.errors import StateUnavailableError
+
 GENESIS = "0" * 64
 _SAFE = re.compile(r"[A-Za-z0-9._:@/-]{1,64}")
 _SCHEMA = """
@@ -115,7 +117,31 @@ class AuditLog:
         sender_verified: bool,
         msg_id: object,
     ) -> int:
-        """Durably append one record; returns its sequence number."""
+        """Durably append one record; returns its sequence number.
+
+        Raises ``STATE_UNAVAILABLE`` when the record cannot be made durable (disk full,
+        closed database): callers must not act on a message they could not audit.
+        """
+        try:
+            return self._append(
+                at=at, outcome=outcome, code=code, warning=warning, msg_type=msg_type,
+                sender=sender, sender_verified=sender_verified, msg_id=msg_id,
+            )  # fmt: skip
+        except (sqlite3.Error, OSError) as exc:
+            raise StateUnavailableError(f"audit trail unavailable: {exc}") from None
+
+    def _append(
+        self,
+        *,
+        at: float,
+        outcome: str,
+        code: str | None,
+        warning: str | None,
+        msg_type: int | None,
+        sender: object,
+        sender_verified: bool,
+        msg_id: object,
+    ) -> int:
         with self._lock:
             db = self._db
             db.execute("BEGIN IMMEDIATE")

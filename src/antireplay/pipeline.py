@@ -51,6 +51,7 @@ from antireplay.errors import (
     ReplayAttackError,
     ReplayDetectedError,
     ScopeDeniedError,
+    StateUnavailableError,
     VersionIncompatibleError,
 )
 from antireplay.messages import MessageType
@@ -102,6 +103,7 @@ class Stats:
     rejected: Counter[str] = field(default_factory=Counter)
     warnings: Counter[str] = field(default_factory=Counter)
     unaudited: int = 0
+    audit_failures: int = 0
 
 
 class Receiver:
@@ -153,12 +155,18 @@ class Receiver:
             True, 200, warning=verdict.warning, msg_id=sanitize(env.msg_id), envelope=env,
             signer=signer,
         )  # fmt: skip
+        try:
+            self._audit(outcome, env, signer)
+        except StateUnavailableError as exc:
+            # Nothing accepted may be missing from the audit trail: refuse to act on it.
+            # Its msg_id is spent; the sender resends with a new one once the disk is back.
+            self.stats.audit_failures += 1
+            return self._reject(exc, env, signer)
         self.stats.accepted += 1
         if verdict.warning:
             self.stats.warnings[verdict.warning] += 1
         elif not is_estop(env.type, env.safety_event):
             self._remember_copy(raw, env, verdict.expires_at)
-        self._audit(outcome, env, signer)
         return outcome
 
     def _remember_copy(self, raw: bytes, env: Envelope, expires_at: float) -> None:
@@ -182,12 +190,19 @@ class Receiver:
         )  # fmt: skip
         self.stats.rejected[exc.code] += 1
         if self.audit is not None:
+            self._append_copy_rejection(copy)
+        return outcome
+
+    def _append_copy_rejection(self, copy: _Copy) -> None:
+        assert self.audit is not None
+        try:
             self.audit.append(
-                at=self.clock.wall(), outcome="rejected", code=outcome.code, warning=None,
+                at=self.clock.wall(), outcome="rejected", code="REPLAY_DETECTED", warning=None,
                 msg_type=copy.msg_type, sender=copy.sender, sender_verified=False,
                 msg_id=copy.msg_id,
             )  # fmt: skip
-        return outcome
+        except StateUnavailableError:
+            self.stats.audit_failures += 1
 
     def _check_version(self, env: Envelope) -> None:
         version = env.rcan_version or env.rcan
@@ -241,8 +256,11 @@ class Receiver:
         self.stats.rejected[exc.code] += 1
         if exc.code in SHAPE_ERRORS and not self._bucket.take():
             self.stats.unaudited += 1
-        else:
+            return outcome
+        try:
             self._audit(outcome, env, signer)
+        except StateUnavailableError:
+            self.stats.audit_failures += 1  # the rejection stands; it could not be recorded
         return outcome
 
     def _audit(self, outcome: Outcome, env: Envelope | None, signer: Signer | None) -> None:
