@@ -83,6 +83,7 @@ MAX_ID_LEN = 128
 MAX_FRAME = 65_536
 REKEY_AFTER = 2**60
 HANDSHAKE_WINDOW_S = 30.0
+MAX_PENDING = 64
 _HS1_HEAD = struct.Struct(">BBQH")
 _FRAME_HEAD = struct.Struct(">BBBB16sQ")
 _HS2_LEN = 2 + SESSION_ID_LEN + NONCE_LEN + MAC_LEN
@@ -246,6 +247,8 @@ class Initiator:
         key_hash = hashlib.sha256(responder_key.public_bytes_raw()).digest()
         body = head + raw_id + key_hash + kem_ct + os.urandom(NONCE_LEN)
         hs1 = body + self.signing_key.sign(body, _CTX_HS1)
+        if len(self._pending) >= MAX_PENDING:
+            del self._pending[next(iter(self._pending))]  # the oldest unanswered handshake
         self._pending[hashlib.sha256(hs1).digest()] = (hs1, secret)
         return hs1
 
