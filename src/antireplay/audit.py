@@ -122,26 +122,23 @@ class AuditLog:
         Raises ``STATE_UNAVAILABLE`` when the record cannot be made durable (disk full,
         closed database): callers must not act on a message they could not audit.
         """
+        row: dict[str, Any] = {
+            "at": at,
+            "outcome": outcome,
+            "code": code,
+            "warning": warning,
+            "msg_type": msg_type,
+            "sender": sanitize(sender),
+            "sender_verified": int(sender_verified),
+            "msg_id": sanitize(msg_id),
+        }
         try:
-            return self._append(
-                at=at, outcome=outcome, code=code, warning=warning, msg_type=msg_type,
-                sender=sender, sender_verified=sender_verified, msg_id=msg_id,
-            )  # fmt: skip
+            return self._write(row)
         except (sqlite3.Error, OSError) as exc:
             raise StateUnavailableError(f"audit trail unavailable: {exc}") from None
 
-    def _append(
-        self,
-        *,
-        at: float,
-        outcome: str,
-        code: str | None,
-        warning: str | None,
-        msg_type: int | None,
-        sender: object,
-        sender_verified: bool,
-        msg_id: object,
-    ) -> int:
+    def _write(self, fields: dict[str, Any]) -> int:
+        """Chain and commit one row in a single write transaction."""
         with self._lock:
             db = self._db
             db.execute("BEGIN IMMEDIATE")
@@ -150,17 +147,7 @@ class AuditLog:
                     "SELECT seq, hash FROM audit ORDER BY seq DESC LIMIT 1"
                 ).fetchone()
                 seq, prev = (1, GENESIS) if last is None else (last[0] + 1, last[1])
-                row = {
-                    "seq": seq,
-                    "at": at,
-                    "outcome": outcome,
-                    "code": code,
-                    "warning": warning,
-                    "msg_type": msg_type,
-                    "sender": sanitize(sender),
-                    "sender_verified": int(sender_verified),
-                    "msg_id": sanitize(msg_id),
-                }
+                row = {"seq": seq, **fields}
                 db.execute(
                     "INSERT INTO audit VALUES (?,?,?,?,?,?,?,?,?,?,?)",
                     (*(row[f] for f in _FIELDS), prev, _digest(prev, row)),
