@@ -72,6 +72,7 @@ from __future__ import annotations
 import heapq
 import math
 import re
+import sys
 import threading
 from typing import NamedTuple
 
@@ -96,6 +97,8 @@ MILLISECONDS_THRESHOLD = 1e11
 PURGE_BATCH = 64
 #: Entries are grouped by expiry into slots of 1/SLOTS_PER_SECOND s (a timing wheel).
 SLOTS_PER_SECOND = 10
+#: A horizon above every slot key: "forget from the soonest slot, whatever it is".
+ANY_SLOT = sys.maxsize
 
 # Plain constants: enum attribute access costs ~150 ns on the hot path (CPython 3.11).
 _SAFETY = int(MessageType.SAFETY)
@@ -359,17 +362,7 @@ class ReplayCache:
             if not force and key <= keys[0]:
                 raise _saturated()
             # Forget one live entry of the soonest slot; the watermark covers it from now on.
-            # Empty slots are dropped at once, so keys[0] always names a non-empty slot.
-            evicted = False
-            while not evicted:
-                soonest = slots[keys[0]]
-                victim, victim_expiry = soonest.popitem()
-                if table.get(victim) == victim_expiry:
-                    del table[victim]
-                    self._watermark = max(self._watermark, victim_expiry)
-                    evicted = True
-                if not soonest:
-                    del slots[heapq.heappop(keys)]
+            self._forget(ANY_SLOT, 1)
             self.saturation_evictions += 1
         slot = slots.get(key)
         if slot is None:
@@ -380,8 +373,16 @@ class ReplayCache:
 
     def _purge(self, now: float, limit: int) -> int:
         """Forget up to ``limit`` entries from slots that have wholly expired."""
+        return self._forget(int(now * SLOTS_PER_SECOND), limit)
+
+    def _forget(self, horizon: int, limit: int) -> int:
+        """Forget up to ``limit`` live entries, soonest slot first, from slots below ``horizon``.
+
+        The one way entries leave the table (expiry and saturation alike): every forgotten
+        expiry raises the watermark, and empty slots are dropped at once, so
+        ``_slot_keys[0]`` always names a non-empty slot.
+        """
         table, slots, keys, removed = self._expiry, self._slots, self._slot_keys, 0
-        horizon = int(now * SLOTS_PER_SECOND)  # every entry of a slot below this has expired
         while keys and keys[0] < horizon and removed < limit:
             slot = slots[keys[0]]
             while slot and removed < limit:
