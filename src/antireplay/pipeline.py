@@ -91,7 +91,7 @@ class _Copy:
     length: int
     expires_at: float
     msg_id: str | None
-    msg_type: int
+    type: int  # named like Envelope's fields, so the audit reads either the same way
     sender: str | None
 
 
@@ -184,25 +184,7 @@ class Receiver:
 
     def _reject_copy(self, copy: _Copy) -> Outcome:
         exc = ReplayDetectedError("an identical message was already accepted")
-        outcome = Outcome(
-            False, exc.http_status, str(exc.code), exc.reason, msg_id=copy.msg_id, error=exc,
-            nack_type=self.config.nack_type,
-        )  # fmt: skip
-        self.stats.rejected[exc.code] += 1
-        if self.audit is not None:
-            self._append_copy_rejection(copy)
-        return outcome
-
-    def _append_copy_rejection(self, copy: _Copy) -> None:
-        assert self.audit is not None
-        try:
-            self.audit.append(
-                at=self.clock.wall(), outcome="rejected", code="REPLAY_DETECTED", warning=None,
-                msg_type=copy.msg_type, sender=copy.sender, sender_verified=False,
-                msg_id=copy.msg_id,
-            )  # fmt: skip
-        except StateUnavailableError:
-            self.stats.audit_failures += 1
+        return self._reject(exc, None, None, copy=copy)
 
     def _check_version(self, env: Envelope) -> None:
         version = env.rcan_version or env.rcan
@@ -239,9 +221,15 @@ class Receiver:
             raise ScopeDeniedError(f"key {sanitize(signer.kid)} lacks scope {sanitize(needed)}")
 
     def _reject(
-        self, exc: ReplayAttackError, env: Envelope | None, signer: Signer | None
+        self,
+        exc: ReplayAttackError,
+        env: Envelope | None,
+        signer: Signer | None,
+        *,
+        copy: _Copy | None = None,
     ) -> Outcome:
-        msg_id = sanitize(env.msg_id) if env is not None else None
+        """The NACK outcome for ``exc``; ``copy`` describes a memo hit (no envelope parsed)."""
+        msg_id = copy.msg_id if copy is not None else sanitize(env.msg_id) if env else None
         outcome = Outcome(
             False,
             exc.http_status,
@@ -258,22 +246,28 @@ class Receiver:
             self.stats.unaudited += 1
             return outcome
         try:
-            self._audit(outcome, env, signer)
+            self._audit(outcome, env, signer, copy)
         except StateUnavailableError:
             self.stats.audit_failures += 1  # the rejection stands; it could not be recorded
         return outcome
 
-    def _audit(self, outcome: Outcome, env: Envelope | None, signer: Signer | None) -> None:
+    def _audit(
+        self,
+        outcome: Outcome,
+        env: Envelope | None,
+        signer: Signer | None,
+        copy: _Copy | None = None,
+    ) -> None:
         if self.audit is None:
             return
-        claimed = env.sender if env is not None else None
+        source = copy if copy is not None else env  # both carry ``type`` and ``sender``
         self.audit.append(
             at=self.clock.wall(),
             outcome="accepted" if outcome.accepted else "rejected",
             code=outcome.code,
             warning=outcome.warning,
-            msg_type=env.type if env is not None else None,
-            sender=signer.owner if signer is not None else claimed,
+            msg_type=source.type if source is not None else None,
+            sender=signer.owner if signer else source.sender if source is not None else None,
             sender_verified=signer is not None,
             msg_id=outcome.msg_id,
         )
