@@ -117,6 +117,24 @@ def _hkdf(secret: bytes, salt: bytes, label: str) -> bytes:
     return kdf.derive(secret)
 
 
+@dataclass(frozen=True)
+class _HandshakeKeys:
+    """Everything both sides derive from the KEM secret and the transcript."""
+
+    i2r: bytes
+    r2i: bytes
+    confirmation: bytes  # the HS2 MAC
+
+    @classmethod
+    def derive(cls, secret: bytes, transcript: bytes) -> _HandshakeKeys:
+        confirm = _hkdf(secret, transcript, "confirm")
+        return cls(
+            _hkdf(secret, transcript, "i2r data"),
+            _hkdf(secret, transcript, "r2i data"),
+            hmac.digest(confirm, b"hs2" + transcript, "sha256"),
+        )
+
+
 def _transcript(hs1: bytes, seq: int, nonce_r: bytes) -> bytes:
     return hashlib.sha256(
         b"antireplay/v1 transcript" + hs1 + seq.to_bytes(8, "big") + nonce_r
@@ -263,17 +281,11 @@ class Initiator:
         sid, nonce_r, mac = hs2[2:18], hs2[18:50], hs2[50:]
         seq = int.from_bytes(sid[:8], "big")
         transcript = _transcript(hs1, seq, nonce_r)
-        confirm = _hkdf(secret, transcript, "confirm")
-        expected = hmac.digest(confirm, b"hs2" + transcript, "sha256")
-        if sid[8:] != transcript[:8] or not hmac.compare_digest(mac, expected):
+        keys = _HandshakeKeys.derive(secret, transcript)
+        if sid[8:] != transcript[:8] or not hmac.compare_digest(mac, keys.confirmation):
             raise AuthenticationError("HS2 key confirmation failed")
         return Session(
-            sid,
-            Direction.I2R,
-            "responder",
-            _hkdf(secret, transcript, "i2r data"),
-            _hkdf(secret, transcript, "r2i data"),
-            signing_key=self.signing_key,
+            sid, Direction.I2R, "responder", keys.i2r, keys.r2i, signing_key=self.signing_key
         )
 
 
@@ -317,17 +329,9 @@ class Responder:
         seq, nonce_r = self._seq.next(), os.urandom(NONCE_LEN)
         transcript = _transcript(hs1, seq, nonce_r)
         sid = seq.to_bytes(8, "big") + transcript[:8]
-        session = Session(
-            sid,
-            Direction.R2I,
-            peer_id,
-            _hkdf(secret, transcript, "r2i data"),
-            _hkdf(secret, transcript, "i2r data"),
-            peer_verify_key=peer_key,
-        )
-        confirm = _hkdf(secret, transcript, "confirm")
-        hs2 = bytes([HS2_MAGIC, VERSION]) + sid + nonce_r
-        hs2 += hmac.digest(confirm, b"hs2" + transcript, "sha256")
+        keys = _HandshakeKeys.derive(secret, transcript)
+        session = Session(sid, Direction.R2I, peer_id, keys.r2i, keys.i2r, peer_verify_key=peer_key)
+        hs2 = bytes([HS2_MAGIC, VERSION]) + sid + nonce_r + keys.confirmation
         with self._lock:
             if len(self._sessions) >= self.max_sessions:
                 del self._sessions[min(self._sessions)]  # the oldest; its keys go with it
