@@ -23,10 +23,12 @@ from rich.table import Table
 from antireplay import counters, epochs
 from antireplay.audit import AuditLog, verify
 from antireplay.auth import PrivateKey, sign_envelope
+from antireplay.clock import SystemClock
 from antireplay.config import AppConfig
 from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.durable import read_kind, repair
 from antireplay.errors import ConfigError, ReplayAttackError
+from antireplay.pipeline import TokenBucket
 
 console = Console()
 #: Importing these registers their state reseeders for ``state repair``.
@@ -377,15 +379,11 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
     }  # fmt: skip
     inbound = MavlinkGuard(key, system_id=system_id, store_prefix="mav-in", **common)
     outbound = MavlinkGuard(key, store_prefix="mav-out", **common)
-    bucket = {"tokens": 50.0, "at": time.monotonic()}
+    bucket = TokenBucket(50.0, SystemClock())
 
     def audit_reject(direction: str, exc: ReplayAttackError, raw: bytes) -> None:
-        now = time.monotonic()
-        bucket["tokens"] = min(50.0, bucket["tokens"] + (now - bucket["at"]) * 50)
-        bucket["at"] = now
-        if bucket["tokens"] < 1:
+        if not bucket.take():
             return
-        bucket["tokens"] -= 1
         sender = f"mav:{raw[5]}/{raw[6]}" if len(raw) > 6 else None
         audit_log.append(
             at=time.time(), outcome="rejected", code=str(exc.code), warning=direction,

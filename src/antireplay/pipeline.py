@@ -132,7 +132,7 @@ class Receiver:
         self.versions = versions
         self.stats = Stats()
         self._copies: dict[int, _Copy] = {}
-        self._bucket = _TokenBucket(invalid_audit_per_s, self.clock)
+        self._bucket = TokenBucket(invalid_audit_per_s, self.clock)
 
     def receive(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Outcome:
         """Run the §8.3 steps; never raises for anything a peer can send."""
@@ -280,8 +280,8 @@ def _bearer(headers: Mapping[str, str]) -> str | None:
     return None
 
 
-class _TokenBucket:
-    """Audit rate limit for malformed input."""
+class TokenBucket:
+    """Rate limit for auditing input that is malformed or unauthenticated (``rate`` per s)."""
 
     def __init__(self, rate: float, clock: Clock) -> None:
         self.rate, self.clock = rate, clock
