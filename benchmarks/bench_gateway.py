@@ -82,17 +82,11 @@ def main() -> None:
             for label, root in (("disk", Path(tmp)), ("tmpfs", Path("/dev/shm"))):
                 with tempfile.TemporaryDirectory(dir=root) as state_dir:
                     state = Path(state_dir)
-                    (state / "operator.key.pem").write_bytes(
-                        (key_dir / "operator.key.pem").read_bytes()
-                    )
-                    config = write_config(state, upstream=None)
-                    (state / "operator.pub.pem").write_bytes(
-                        (key_dir / "operator.pub.pem").read_bytes()
-                    )
-                    gateway = GatewayProcess(config)
+                    gateway = GatewayProcess(write_config(state, upstream=None))
+                    operator = load_operator_key(state)
                     gateway.start()
                     try:
-                        fresh = [command(key) for _ in range(N)]
+                        fresh = [command(operator) for _ in range(N)]
                         rows.append((f"gateway accept ({label})", drive(gateway.url, fresh)))
                         replay = [fresh[1]] * N
                         rows.append(

@@ -34,7 +34,9 @@ from __future__ import annotations
 import base64
 import binascii
 import json
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import jwt
@@ -233,3 +235,21 @@ def sign_envelope(
     data = canonical_bytes(parse(json.dumps(unsigned).encode()))
     value = ".".join(b64encode(key.sign(data)) for key in private)
     return {**unsigned, "sig": {"alg": alg, "kid": kid, "value": value}}
+
+
+def write_key_pair(key: PrivateKey, private: Path, public: Path) -> None:
+    """Write a PKCS#8 private key (created mode 0600, never overwritten) and its public key.
+
+    Raises :class:`FileExistsError` if ``private`` exists: a key is never replaced silently.
+    """
+    pem = key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
+    fd = os.open(private, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as handle:
+        handle.write(pem)
+    public.write_bytes(
+        key.public_key().public_bytes(
+            serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+        )
+    )

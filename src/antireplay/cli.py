@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import threading
@@ -22,7 +21,7 @@ from rich.table import Table
 
 from antireplay import counters, epochs
 from antireplay.audit import AuditLog, verify
-from antireplay.auth import PrivateKey, sign_envelope
+from antireplay.auth import PrivateKey, sign_envelope, write_key_pair
 from antireplay.clock import SystemClock
 from antireplay.config import AppConfig
 from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
@@ -123,20 +122,10 @@ def keygen(alg: str, out: Path) -> None:
     key = KEY_TYPES[alg].generate()
     private = out.with_name(out.name + ".key.pem")
     public = out.with_name(out.name + ".pub.pem")
-    pem = key.private_bytes(
-        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
-    )
     try:
-        fd = os.open(private, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        write_key_pair(key, private, public)
     except FileExistsError:
         _fail(f"{private} exists; refusing to overwrite a key")
-    with os.fdopen(fd, "wb") as handle:
-        handle.write(pem)
-    public.write_bytes(
-        key.public_key().public_bytes(
-            serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
-        )
-    )
     console.print(f"[green]{alg} key pair:[/green] {private} {public}")
 
 

@@ -32,7 +32,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay.audit import ChainReport, verify
-from antireplay.auth import sign_envelope
+from antireplay.auth import sign_envelope, write_key_pair
 from antireplay.clock import ManualClock
 from antireplay.errors import ReplayAttackError
 from antireplay.messages import MessageType, SafetyEvent
@@ -179,18 +179,8 @@ class GatewayProcess:
 
 def write_demo_config(state: Path, **overrides: Any) -> Path:
     """A gateway config with a fresh Ed25519 operator key under ``state``."""
-    key = ed25519.Ed25519PrivateKey.generate()
-    (state / "operator.key.pem").write_bytes(
-        key.private_bytes(
-            serialization.Encoding.PEM,
-            serialization.PrivateFormat.PKCS8,
-            serialization.NoEncryption(),
-        )
-    )
-    (state / "operator.pub.pem").write_bytes(
-        key.public_key().public_bytes(
-            serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
-        )
+    write_key_pair(
+        ed25519.Ed25519PrivateKey.generate(), state / "operator.key.pem", state / "operator.pub.pem"
     )
     config = {
         "store": f"sqlite:{state / 'state.db'}",

@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ed25519
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 from starlette.applications import Starlette
@@ -36,7 +35,7 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 
 from antireplay.audit import AuditLog
-from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key
+from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key, write_key_pair
 from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig, KeyConfig
 from antireplay.envelope import encode
@@ -53,20 +52,7 @@ def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
     state_dir.mkdir(parents=True, exist_ok=True)
     private, public = state_dir / f"{DEMO_KID}.key.pem", state_dir / f"{DEMO_KID}.pub.pem"
     if not private.exists():
-        key = ed25519.Ed25519PrivateKey.generate()
-        pem = key.private_bytes(
-            serialization.Encoding.PEM,
-            serialization.PrivateFormat.PKCS8,
-            serialization.NoEncryption(),
-        )
-        fd = os.open(private, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(pem)
-        public.write_bytes(
-            key.public_key().public_bytes(
-                serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
-            )
-        )
+        write_key_pair(ed25519.Ed25519PrivateKey.generate(), private, public)
     return AppConfig(
         store=f"sqlite:{state_dir / 'state.db'}",
         audit=str(state_dir / "audit.db"),
