@@ -92,3 +92,21 @@ def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         yield server.url
     finally:
         server.stop()
+
+
+def kill9_runs(args: list[str], rounds: int, max_lines: int, seed: int) -> list[list[str]]:
+    """Run a helper ``rounds`` times on the same state, SIGKILLing each at a random moment."""
+    rng = random.Random(seed)
+    return [run_and_kill(args, rng.randint(1, max_lines), rng) for _ in range(rounds)]
+
+
+def assert_never_reused(runs: list[list[str]], what: str) -> None:
+    """Each run starts above everything earlier runs printed, and no value ever repeats."""
+    seen: list[int] = []
+    for lines in runs:
+        values = [int(x) for x in lines]
+        assert values, "worker produced nothing"
+        if seen:
+            assert values[0] > max(seen), f"a restarted {what} reused a value"
+        seen.extend(values)
+    assert len(seen) == len(set(seen))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import random
 import threading
 import time
 from pathlib import Path
@@ -27,7 +26,7 @@ from antireplay.errors import (
     NonceExhaustedError,
     SessionClosedError,
 )
-from tests.conftest import race, run_and_kill, run_threads
+from tests.conftest import assert_never_reused, kill9_runs, race, run_threads
 
 # --- the three CleitonQ properties, ported ----------------------------------------------------
 
@@ -117,19 +116,8 @@ def test_persistent_counter_resumes_above_ceiling(tmp_path: Path) -> None:
 
 def test_persistent_counter_never_reuses_across_kill9(tmp_path: Path) -> None:
     """100 real subprocesses, each SIGKILLed at a random moment."""
-    path = tmp_path / "ctr.state"
-    rng = random.Random(1234)
-    seen: list[int] = []
-    for _ in range(100):
-        lines = run_and_kill(
-            ["-m", "tests.helpers.counter_worker", str(path), "16"], rng.randint(1, 120), rng
-        )
-        values = [int(x) for x in lines]
-        assert values, "worker produced nothing"
-        if seen:
-            assert values[0] > max(seen), "a restarted counter reused a value"
-        seen.extend(values)
-    assert len(seen) == len(set(seen))
+    args = ["-m", "tests.helpers.counter_worker", str(tmp_path / "ctr.state"), "16"]
+    assert_never_reused(kill9_runs(args, 100, 120, seed=1234), "counter")
 
 
 # --- CounterWindow: WireGuard's published vectors (size 8128, limit 2**64 - 2**4 - 1) ----------

@@ -5,7 +5,6 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
-import random
 import shutil
 from pathlib import Path
 
@@ -31,7 +30,7 @@ from antireplay.errors import (
     ReplayAttackError,
     StateFileError,
 )
-from tests.conftest import run_and_kill
+from tests.conftest import assert_never_reused, kill9_runs
 
 PSK = b"fleet-pre-shared-key-0123456789ab"
 VECTORS = json.loads((Path(__file__).parent / "vectors" / "epochs.json").read_text())
@@ -220,19 +219,8 @@ def test_block_reservation_writes_rarely(tmp_path: Path) -> None:
 
 
 def test_sender_kill9_at_random_moments_never_repeats(tmp_path: Path) -> None:
-    path = tmp_path / "signer.state"
-    rng = random.Random(99)
-    seen: list[int] = []
-    for _ in range(100):
-        lines = run_and_kill(
-            ["-m", "tests.helpers.epoch_worker", str(path), "0.000002"], rng.randint(1, 150), rng
-        )
-        epochs = [int(x) for x in lines]
-        assert epochs
-        if seen:
-            assert epochs[0] > max(seen), "a restarted sender re-emitted an epoch"
-        seen.extend(epochs)
-    assert len(seen) == len(set(seen))
+    args = ["-m", "tests.helpers.epoch_worker", str(tmp_path / "signer.state"), "0.000002"]
+    assert_never_reused(kill9_runs(args, 100, 150, seed=99), "sender")
 
 
 def test_verifier_restart_rejects_everything_old(tmp_path: Path, clock: ManualClock) -> None:

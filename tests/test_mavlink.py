@@ -20,6 +20,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
+from antireplay.demo import free_port
 from antireplay.errors import (
     AuthenticationError,
     CounterReplayError,
@@ -40,7 +41,6 @@ from antireplay.mavlink import (
 )
 from antireplay.stores.sqlite import SqliteStore
 from tests.conftest import ROOT
-from tests.redis_server import free_port
 
 KEY = bytes(range(32))
 NOW = 1_800_000_000.0

@@ -28,7 +28,7 @@ from antireplay.stores import ReplayStore, open_store
 from antireplay.stores.memory import MemoryStore
 from antireplay.stores.redis_store import RedisStore
 from antireplay.stores.sqlite import SqliteStore
-from tests.conftest import run_and_kill, run_threads
+from tests.conftest import kill9_runs, run_threads
 from tests.helpers import store_worker
 from tests.redis_server import RedisServer
 
@@ -216,14 +216,10 @@ def test_two_processes_one_redis_exactly_one_acceptance(redis_url: str) -> None:
 
 
 def test_sqlite_kill9_under_load_never_accepts_twice(tmp_path: Path) -> None:
-    path = tmp_path / "receiver.db"
-    rng = random.Random(5)
-    accepted: list[str] = []
-    for _ in range(15):
-        lines = run_and_kill(
-            ["-m", "tests.helpers.store_worker", str(path)], rng.randint(1, 60), rng
-        )
-        accepted.extend(lines)
+    runs = kill9_runs(
+        ["-m", "tests.helpers.store_worker", str(tmp_path / "receiver.db")], 15, 60, 5
+    )
+    accepted = [msg_id for run in runs for msg_id in run]
     assert accepted, "nothing was accepted"
     assert len(accepted) == len(set(accepted)), "a message was accepted twice across kill -9"
 
