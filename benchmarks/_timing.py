@@ -22,3 +22,16 @@ def per_op_ns(action: Callable[[], object], batch: int, repeats: int = 7) -> flo
 
 def rate(ns: float) -> str:
     return f"{1e9 / ns:>12,.0f}/s"
+
+
+def rejected(action: Callable[[], object], *errors: type[Exception]) -> Callable[[], None]:
+    """``action`` wrapped so a benchmark loop proves every call is refused with ``errors``."""
+
+    def attempt() -> None:
+        try:
+            action()
+        except errors:
+            return
+        raise AssertionError("a replay was accepted")
+
+    return attempt
