@@ -39,7 +39,7 @@ from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key, write_key
 from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig, KeyConfig
 from antireplay.envelope import encode
-from antireplay.errors import ConfigError
+from antireplay.errors import ConfigError, InvalidEnvelopeError
 from antireplay.pipeline import Outcome, Receiver
 from antireplay.stores import open_store
 
@@ -173,12 +173,6 @@ def _nack(outcome: Outcome) -> JSONResponse:
     return JSONResponse(outcome.nack, status_code=outcome.status)
 
 
-def _refuse(status: int, reason: str) -> JSONResponse:
-    """Transport-level refusals use the same NACK shape."""
-    body = {"type": 18, "code": "INVALID_ENVELOPE", "ref_msg_id": None, "reason": reason}
-    return JSONResponse(body, status_code=status)
-
-
 def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     """The gateway application for ``config``."""
     receiver = build_receiver(config, clock)
@@ -186,6 +180,11 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     metrics = Metrics()
     limit = config.max_body_bytes
     ticker = resolve(None)
+
+    def _refuse(status: int, reason: str) -> JSONResponse:
+        """Transport-level refusals: the same NACK as the pipeline's, with the configured type."""
+        nack = InvalidEnvelopeError(reason).to_nack(None, nack_type=config.security.nack_type)
+        return JSONResponse(nack, status_code=status)
 
     async def messages(request: Request) -> Response:  # noqa: PLR0911 - one answer per case
         ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
