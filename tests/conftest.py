@@ -13,10 +13,23 @@ from pathlib import Path
 
 import pytest
 
-from antireplay import ManualClock, ReplayAttackError
+from antireplay import ManualClock, ReplayAttackError, ReplayCache, _native
 from tests.redis_server import RedisServer
 
 ROOT = Path(__file__).resolve().parent.parent
+
+#: The window's builds under test: whatever ``import antireplay`` runs (the compiled
+#: extension in a normal install) and the pure-Python source, loaded beside it.
+WINDOW_BUILDS: dict[str, type[ReplayCache]] = {
+    "installed": ReplayCache,
+    "source": _native.load_source("antireplay._window_source").ReplayCache,
+}
+
+
+@pytest.fixture(params=sorted(WINDOW_BUILDS))
+def impl(request: pytest.FixtureRequest) -> type[ReplayCache]:
+    """Each window test runs against both builds, so they cannot drift apart."""
+    return WINDOW_BUILDS[request.param]
 
 
 @pytest.fixture

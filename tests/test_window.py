@@ -28,8 +28,8 @@ SAFETY = MessageType.SAFETY
 
 
 @pytest.fixture
-def cache(clock: ManualClock) -> ReplayCache:
-    return ReplayCache(window_s=30, max_size=10_000, skew_s=5.0, clock=clock)
+def cache(impl: type[ReplayCache], clock: ManualClock) -> ReplayCache:
+    return impl(window_s=30, max_size=10_000, skew_s=5.0, clock=clock)
 
 
 # --- freshness --------------------------------------------------------------------------------
@@ -74,8 +74,10 @@ def test_safety_window_is_ten_seconds(cache: ReplayCache, clock: ManualClock) ->
     cache.check("c-ok", now - 10.5, MessageType.COMMAND)
 
 
-def test_safety_window_never_exceeds_configured_window(clock: ManualClock) -> None:
-    cache = ReplayCache(window_s=5, clock=clock)
+def test_safety_window_never_exceeds_configured_window(
+    impl: type[ReplayCache], clock: ManualClock
+) -> None:
+    cache = impl(window_s=5, clock=clock)
     assert cache.window_for(SAFETY) == 5
     with pytest.raises(MessageStaleError):
         cache.check("s", clock.wall() - 6, SAFETY)
@@ -219,8 +221,8 @@ def test_msg_id_of_128_chars_is_fine(cache: ReplayCache, clock: ManualClock) -> 
 # --- bounded memory -------------------------------------------------------------------------
 
 
-def test_flood_never_reopens_replay(clock: ManualClock) -> None:
-    cache = ReplayCache(window_s=30, max_size=100, clock=clock)
+def test_flood_never_reopens_replay(impl: type[ReplayCache], clock: ManualClock) -> None:
+    cache = impl(window_s=30, max_size=100, clock=clock)
     victim_ts = clock.wall()
     cache.check("victim", victim_ts)
     refused = 0
@@ -238,8 +240,10 @@ def test_flood_never_reopens_replay(clock: ManualClock) -> None:
     assert err.value.code in {Code.REPLAY_DETECTED, Code.MESSAGE_STALE}
 
 
-def test_saturation_drops_soonest_expiring_entry(clock: ManualClock) -> None:
-    cache = ReplayCache(window_s=30, max_size=2, clock=clock)
+def test_saturation_drops_soonest_expiring_entry(
+    impl: type[ReplayCache], clock: ManualClock
+) -> None:
+    cache = impl(window_s=30, max_size=2, clock=clock)
     now = clock.wall()
     cache.check("late", now + 3)
     cache.check("early", now - 3)
@@ -253,8 +257,10 @@ def test_saturation_drops_soonest_expiring_entry(clock: ManualClock) -> None:
         cache.check("too-early", now - 2)  # would expire before every live entry
 
 
-def test_fresh_estop_passes_even_when_saturated(clock: ManualClock) -> None:
-    cache = ReplayCache(window_s=30, max_size=5, clock=clock)
+def test_fresh_estop_passes_even_when_saturated(
+    impl: type[ReplayCache], clock: ManualClock
+) -> None:
+    cache = impl(window_s=30, max_size=5, clock=clock)
     for i in range(50):
         with contextlib.suppress(MessageStaleError):
             cache.check(f"f{i}", clock.wall() + 5)
@@ -291,8 +297,10 @@ def test_wall_clock_step_back_never_reopens_replay(cache: ReplayCache, clock: Ma
 # --- concurrency ----------------------------------------------------------------------------
 
 
-def test_threads_racing_on_one_msg_id_give_exactly_one_acceptance(clock: ManualClock) -> None:
-    cache = ReplayCache(clock=clock)
+def test_threads_racing_on_one_msg_id_give_exactly_one_acceptance(
+    impl: type[ReplayCache], clock: ManualClock
+) -> None:
+    cache = impl(clock=clock)
     for round_no in range(200):
         mid = f"race-{round_no}"
         wins, losses = race(8, lambda mid=mid: cache.check(mid, clock.wall()))  # type: ignore[misc]
@@ -314,17 +322,19 @@ def test_threads_racing_on_one_msg_id_give_exactly_one_acceptance(clock: ManualC
         ({"window_s": True}, "window_s"),
     ],
 )
-def test_bad_constructor_values_raise_config_error(kwargs: dict[str, object], key: str) -> None:
+def test_bad_constructor_values_raise_config_error(
+    impl: type[ReplayCache], kwargs: dict[str, object], key: str
+) -> None:
     with pytest.raises(ConfigError) as err:
-        ReplayCache(**kwargs)  # type: ignore[arg-type]
+        impl(**kwargs)  # type: ignore[arg-type]
     assert key in err.value.key
 
 
-def test_yaml_config_round_trip(tmp_path: Path) -> None:
+def test_yaml_config_round_trip(impl: type[ReplayCache], tmp_path: Path) -> None:
     path = tmp_path / "robot.yaml"
     path.write_text("security:\n  replay_window_s: 60\n  msg_id_cache_size: 500\n  skew_s: 2\n")
     cfg = SecurityConfig.from_yaml(path)
-    cache = ReplayCache.from_config(cfg, ManualClock())
+    cache = impl.from_config(cfg, ManualClock())
     assert (cache.window_s, cache.max_size, cache.skew_s) == (60, 500, 2)
 
 
@@ -387,8 +397,10 @@ def test_regression_safety_message_does_not_expire_command_entries(
         cache.check("cmd", ts)
 
 
-def test_regression_flood_of_unique_ids_does_not_evict_live_entry(clock: ManualClock) -> None:
-    cache = ReplayCache(window_s=30, max_size=1_000, clock=clock)
+def test_regression_flood_of_unique_ids_does_not_evict_live_entry(
+    impl: type[ReplayCache], clock: ManualClock
+) -> None:
+    cache = impl(window_s=30, max_size=1_000, clock=clock)
     cache.check("victim", clock.wall())
     for i in range(1_500):
         with contextlib.suppress(MessageStaleError):

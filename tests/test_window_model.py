@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
 from antireplay import ManualClock, MessageType, ReplayAttackError, ReplayCache
+from tests.conftest import WINDOW_BUILDS
 
 WINDOW, SAFETY_WINDOW, SKEW, MAX_SIZE = 30.0, 10.0, 5.0, 8
 IDS = st.sampled_from([f"id{i}" for i in range(6)])
@@ -42,10 +43,12 @@ class Model:
 
 
 class CacheVsModel(RuleBasedStateMachine):
+    impl: type[ReplayCache] = WINDOW_BUILDS["installed"]
+
     def __init__(self) -> None:
         super().__init__()
         self.clock = ManualClock(wall=1_800_000_000.0)
-        self.cache = ReplayCache(WINDOW, MAX_SIZE, SKEW, self.clock)
+        self.cache = self.impl(WINDOW, MAX_SIZE, SKEW, self.clock)
         self.model = Model()
         self.stepped_back = False
 
@@ -114,5 +117,14 @@ class CacheVsModel(RuleBasedStateMachine):
         assert len(self.cache) <= MAX_SIZE
 
 
-CacheVsModel.TestCase.settings = settings(max_examples=300, stateful_step_count=60, deadline=None)
+class SourceCacheVsModel(CacheVsModel):
+    """The same machine against the pure-Python build of the window."""
+
+    impl = WINDOW_BUILDS["source"]
+
+
+SETTINGS = settings(max_examples=300, stateful_step_count=60, deadline=None)
+CacheVsModel.TestCase.settings = SETTINGS
+SourceCacheVsModel.TestCase.settings = SETTINGS
 TestCacheVsModel = CacheVsModel.TestCase
+TestSourceCacheVsModel = SourceCacheVsModel.TestCase

@@ -1,8 +1,10 @@
 """antireplay: stop captured, validly signed robot and drone commands from working twice.
 
 This module only re-exports the public API; each concept lives in its own module.
+``WINDOW_BUILD`` says whether the compiled or the source build of the window runs.
 """
 
+from antireplay._native import IMPLEMENTATION as WINDOW_BUILD  # first: picks the window build
 from antireplay.clock import Clock, ManualClock, SystemClock
 from antireplay.config import SecurityConfig
 from antireplay.errors import (
@@ -23,6 +25,7 @@ from antireplay.window import ReplayCache, Verdict
 __version__ = "0.1.0"
 
 __all__ = [
+    "WINDOW_BUILD",
     "AntiReplayError",
     "Clock",
     "Code",

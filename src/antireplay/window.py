@@ -74,7 +74,8 @@ import math
 import re
 import sys
 import threading
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Final, NamedTuple, SupportsFloat, SupportsIndex
 
 from antireplay.clock import Clock, resolve
 from antireplay.config import ALLOWED, SecurityConfig
@@ -90,19 +91,19 @@ from antireplay.errors import (
 from antireplay.messages import MessageType, SafetyEvent
 from antireplay.stores import ReplayStore
 
-MAX_MSG_ID_LEN = 128
+MAX_MSG_ID_LEN: Final = 128
 #: Seconds values at or above this are treated as milliseconds sent by mistake (year 5138).
-MILLISECONDS_THRESHOLD = 1e11
+MILLISECONDS_THRESHOLD: Final = 1e11
 #: At most this many expired entries are purged per call: bounded work, no latency spikes.
-PURGE_BATCH = 64
+PURGE_BATCH: Final = 64
 #: Entries are grouped by expiry into slots of 1/SLOTS_PER_SECOND s (a timing wheel).
-SLOTS_PER_SECOND = 10
+SLOTS_PER_SECOND: Final = 10
 #: A horizon above every slot key: "forget from the soonest slot, whatever it is".
-ANY_SLOT = sys.maxsize
+ANY_SLOT: Final = sys.maxsize
 
 # Plain constants: enum attribute access costs ~150 ns on the hot path (CPython 3.11).
-_SAFETY = int(MessageType.SAFETY)
-_ESTOP = str(SafetyEvent.ESTOP)
+_SAFETY: Final = int(MessageType.SAFETY)
+_ESTOP: Final = str(SafetyEvent.ESTOP)
 
 
 def is_estop(msg_type: int, safety_event: str | None) -> bool:
@@ -124,7 +125,8 @@ class Verdict(NamedTuple):
     warning: str | None = None
 
 
-_new_verdict = tuple.__new__
+_new_verdict: Final = tuple.__new__
+_VERDICT: Final = Verdict
 
 
 def coerce_timestamp(value: object) -> float:
@@ -175,29 +177,35 @@ class ReplayCache:
 
     def __init__(
         self,
-        window_s: float = 30.0,
-        max_size: int = 10_000,
-        skew_s: float = 5.0,
+        window_s: SupportsFloat = 30.0,
+        max_size: SupportsIndex = 10_000,
+        skew_s: SupportsFloat = 5.0,
         clock: Clock | None = None,
         *,
-        safety_window_s: float = 10.0,
+        safety_window_s: SupportsFloat = 10.0,
         store: ReplayStore | None = None,
     ) -> None:
+        # Protocol types on purpose: the compiled build checks them here, in _validated,
+        # raising ConfigError (key, value, allowed range) instead of a bare TypeError.
         cfg = _validated(window_s, max_size, skew_s, safety_window_s)
         self._store = store
         # Restart fence: a store that may have forgotten accepted messages (a fresh
         # MemoryStore) refuses anything stamped at or before its start time + skew.
         self.fence_rejections = 0
-        self.window_s = cfg.replay_window_s
-        self.safety_window_s = min(cfg.safety_window_s, cfg.replay_window_s)
-        self.skew_s = cfg.skew_s
-        self.max_size = cfg.msg_id_cache_size
-        self._wall = resolve(clock).wall
-        self._expiry: dict[str, float] = {}
-        self._slots: dict[int, dict[str, float]] = {}
+        self.window_s: float = cfg.replay_window_s
+        self.safety_window_s: float = min(cfg.safety_window_s, cfg.replay_window_s)
+        self.skew_s: float = cfg.skew_s
+        self.max_size: int = cfg.msg_id_cache_size
+        self._wall: Callable[[], float] = resolve(clock).wall
+        self._expiry: dict[str, float] = {}  # msg_id -> expiry of its entry
+        self._slots: dict[int, list[str]] = {}  # slot key -> msg_ids filed there
         self._slot_keys: list[int] = []  # min-heap of the keys of _slots
+        self._tail_key = -1  # the slot that took the last insert (most inserts hit it again)
+        self._tail: list[str] = []
         self._watermark = -math.inf
-        self._lock = threading.Lock()
+        lock = threading.Lock()
+        self._acquire: Callable[[], object] = lock.acquire
+        self._release: Callable[[], object] = lock.release
         self.saturation_evictions = 0
 
     @classmethod
@@ -248,34 +256,37 @@ class ReplayCache:
 
     def purge(self) -> int:
         """Forget every expired entry now; returns how many were removed."""
-        with self._lock:
-            return self._purge(self._wall(), len(self._expiry) + 1)
+        self._acquire()
+        try:
+            return self._forget(int(self._wall() * SLOTS_PER_SECOND), len(self._expiry) + 1)
+        finally:
+            self._release()
 
     def _run(  # noqa: PLR0912 - one flat function on purpose (see the class docstring)
         self, mid: object, ts: object, msg_type: int, event: str | None, commit: bool
     ) -> Verdict:
         if type(mid) is not str or not 0 < len(mid) <= MAX_MSG_ID_LEN:
             mid = validate_msg_id(mid)
-        if type(ts) is not float or not 0.0 <= ts < MILLISECONDS_THRESHOLD:
-            ts = coerce_timestamp(ts)
+        t = ts if type(ts) is float else coerce_timestamp(ts)
+        if not 0.0 <= t < MILLISECONDS_THRESHOLD:
+            t = coerce_timestamp(ts)  # raises INVALID_TIMESTAMP with the reason
         safety = msg_type == _SAFETY
         window = self.safety_window_s if safety else self.window_s
         estop = safety and event == _ESTOP
         warning = None
-        lock = self._lock
-        lock.acquire()
+        self._acquire()
         try:
             now = self._wall()
-            keys, table = self._slot_keys, self._expiry
+            keys = self._slot_keys
             if commit and keys and keys[0] < now * SLOTS_PER_SECOND - 1:
-                self._purge(now, PURGE_BATCH)
-            if now - ts > window:
-                raise MessageStaleError(f"message is {now - ts:.3f}s old; window is {window:g}s")
-            if ts > now + self.skew_s:
+                self._forget(int(now * SLOTS_PER_SECOND), PURGE_BATCH)
+            if now - t > window:
+                raise MessageStaleError(f"message is {now - t:.3f}s old; window is {window:g}s")
+            if t > now + self.skew_s:
                 raise MessageFromFutureError(
-                    f"message is {ts - now:.3f}s ahead; allowed skew is {self.skew_s:g}s"
+                    f"message is {t - now:.3f}s ahead; allowed skew is {self.skew_s:g}s"
                 )
-            expiry = ts + window
+            expiry = t + window
             if expiry <= self._watermark:
                 if not estop:
                     raise MessageStaleError(
@@ -284,26 +295,21 @@ class ReplayCache:
                     )
                 warning = "REPLAY_DETECTED"
             if self._store is not None:
-                shared = self._shared(
-                    mid, ts=ts, expiry=expiry, now=now, estop=estop, commit=commit
+                warning = (
+                    self._shared(mid, ts=t, expiry=expiry, now=now, estop=estop, commit=commit)
+                    or warning
                 )
-                warning = shared or warning
-                return _new_verdict(Verdict, (mid, ts, window, expiry, warning))
-            seen = table.get(mid)
-            if seen is not None and seen >= now:
-                if not estop:
-                    raise ReplayDetectedError("msg_id already accepted within its window")
-                warning = "REPLAY_DETECTED"
-            if commit:
-                slot = self._slots.get(int(expiry * SLOTS_PER_SECOND))
-                if seen is None and slot is not None and len(table) < self.max_size:
-                    slot[mid] = expiry  # the common case: a new entry in an existing slot
-                    table[mid] = expiry
-                else:
-                    self._record(mid, expiry, estop)
-            return _new_verdict(Verdict, (mid, ts, window, expiry, warning))
+            else:
+                seen = self._expiry.get(mid)
+                if seen is not None and seen >= now:
+                    if not estop:
+                        raise ReplayDetectedError("msg_id already accepted within its window")
+                    warning = "REPLAY_DETECTED"
+                if commit and (seen is None or seen < expiry):
+                    self._record(mid, expiry, seen is None, estop)
+            return _new_verdict(_VERDICT, (mid, t, window, expiry, warning))
         finally:
-            lock.release()
+            self._release()
 
     def _shared(
         self, mid: str, *, ts: float, expiry: float, now: float, estop: bool, commit: bool
@@ -344,36 +350,31 @@ class ReplayCache:
             raise ReplayDetectedError("msg_id already accepted within its window")
         return "REPLAY_DETECTED"
 
-    def _record(self, mid: str, expires: float, force: bool) -> None:
-        """Insert or extend the entry; when full, evict from the soonest slot (fail closed).
+    def _record(self, mid: str, expires: float, new: bool, force: bool) -> None:
+        """File the entry under its expiry slot; when full, evict from the soonest slot.
 
-        An id's entry lives until the latest expiry of any accepted message with that id.
-        ``force`` (a fresh ESTOP) always records, even if that raises the watermark.
+        An id's entry lives until the latest expiry of any accepted message with that
+        id; an entry moved to a later slot leaves its old filing behind, which
+        ``_forget`` recognises and skips.  ``force`` (a fresh ESTOP) always records,
+        even if that raises the watermark.
         """
-        table = self._expiry
-        old = table.get(mid)
-        if old is not None and old >= expires:
-            return
-        keys = self._slot_keys  # _run already purged a bounded batch of expired entries
         key = int(expires * SLOTS_PER_SECOND)
-        slots = self._slots
-        if old is None and len(table) >= self.max_size:
-            # Evicting helps only if the newcomer outlives the whole soonest slot.
-            if not force and key <= keys[0]:
+        if new and len(self._expiry) >= self.max_size:
+            # Evicting helps only if the newcomer outlives the whole soonest slot (fail closed).
+            if not force and key <= self._slot_keys[0]:
                 raise _saturated()
-            # Forget one live entry of the soonest slot; the watermark covers it from now on.
             self._forget(ANY_SLOT, 1)
             self.saturation_evictions += 1
-        slot = slots.get(key)
-        if slot is None:
-            slot = slots[key] = {}
-            heapq.heappush(keys, key)
-        slot[mid] = expires
-        table[mid] = expires
-
-    def _purge(self, now: float, limit: int) -> int:
-        """Forget up to ``limit`` entries from slots that have wholly expired."""
-        return self._forget(int(now * SLOTS_PER_SECOND), limit)
+        if key == self._tail_key:
+            self._tail.append(mid)
+        else:
+            slot = self._slots.get(key)
+            if slot is None:
+                slot = self._slots[key] = []
+                heapq.heappush(self._slot_keys, key)
+            slot.append(mid)
+            self._tail_key, self._tail = key, slot
+        self._expiry[mid] = expires
 
     def _forget(self, horizon: int, limit: int) -> int:
         """Forget up to ``limit`` live entries, soonest slot first, from slots below ``horizon``.
@@ -384,15 +385,21 @@ class ReplayCache:
         """
         table, slots, keys, removed = self._expiry, self._slots, self._slot_keys, 0
         while keys and keys[0] < horizon and removed < limit:
-            slot = slots[keys[0]]
+            key = keys[0]
+            slot = slots[key]
             while slot and removed < limit:
-                mid, expires = slot.popitem()
-                if table.get(mid) == expires:
-                    del table[mid]
-                    removed += 1
-                    self._watermark = max(self._watermark, expires)
+                mid = slot.pop()
+                expires = table.get(mid)
+                if expires is None or int(expires * SLOTS_PER_SECOND) != key:
+                    continue  # a filing left behind by an entry forgotten or moved later
+                del table[mid]
+                removed += 1
+                if expires > self._watermark:  # noqa: PLR1730 - max() is a slow generic call
+                    self._watermark = expires
             if not slot:
                 del slots[heapq.heappop(keys)]
+                if key == self._tail_key:
+                    self._tail_key = -1
         return removed
 
 
@@ -403,23 +410,20 @@ def _saturated() -> MessageStaleError:
 
 
 def _validated(
-    window_s: float, max_size: int, skew_s: float, safety_window_s: float
+    window_s: object, max_size: object, skew_s: object, safety_window_s: object
 ) -> SecurityConfig:
     """Constructor arguments obey the same ranges as the YAML block (no clamping)."""
     if isinstance(max_size, bool) or not isinstance(max_size, int):
         raise ConfigError("max_size", max_size, ALLOWED["msg_id_cache_size"])
+    seconds: dict[str, float] = {}
     for key, value in (
-        ("window_s", window_s),
+        ("replay_window_s", window_s),
         ("skew_s", skew_s),
         ("safety_window_s", safety_window_s),
     ):
         if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(key, value, "a number of seconds")
-    return SecurityConfig.from_mapping(
-        {
-            "replay_window_s": float(window_s),
-            "msg_id_cache_size": max_size,
-            "skew_s": float(skew_s),
-            "safety_window_s": float(safety_window_s),
-        }
-    )
+            raise ConfigError(
+                "window_s" if key == "replay_window_s" else key, value, "a number of seconds"
+            )
+        seconds[key] = float(value)
+    return SecurityConfig.from_mapping({**seconds, "msg_id_cache_size": max_size})
