@@ -34,22 +34,30 @@ REPEATS = 7
 SOURCE_BUILD: type[ReplayCache] = _native.load_source("antireplay._window_source").ReplayCache
 
 
+Batch = Callable[[int], None]  # runs batch number r of one contender
+
+
 def ids(prefix: str, n: int) -> list[str]:
     return [f"{prefix}-{i:012d}" for i in range(n)]
 
 
-def median_ns_per_op(run_batch: Callable[[int], None], batch: int) -> float:
-    """Median wall time per operation over REPEATS batches of ``batch`` operations."""
-    samples = []
+def interleaved_ns_per_op(contenders: list[tuple[Batch, int]]) -> list[float]:
+    """Median ns per operation of each ``(run_batch, batch size)``, batches interleaved.
+
+    Batch r of every contender runs before batch r + 1 of any, so a burst of noise on
+    this shared machine lands on all of them alike instead of skewing one ratio.
+    """
+    samples: list[list[float]] = [[] for _ in contenders]
     for r in range(REPEATS):
-        gc.collect()
-        start = time.perf_counter_ns()
-        run_batch(r)
-        samples.append((time.perf_counter_ns() - start) / batch)
-    return statistics.median(samples)
+        for (run_batch, batch), out in zip(contenders, samples, strict=True):
+            gc.collect()
+            start = time.perf_counter_ns()
+            run_batch(r)
+            out.append((time.perf_counter_ns() - start) / batch)
+    return [statistics.median(out) for out in samples]
 
 
-def ours_full(impl: type[ReplayCache], size: int, batch: int) -> float:
+def ours_full(impl: type[ReplayCache], size: int, batch: int) -> Batch:
     cache = impl(window_s=300, max_size=size)  # the system clock, as rcan uses
     now = time.time()
     for i, mid in enumerate(ids("fill", size)):
@@ -63,10 +71,10 @@ def ours_full(impl: type[ReplayCache], size: int, batch: int) -> float:
         for mid, ts in zip(fresh[lo:hi], stamps[lo:hi], strict=True):
             check(mid, ts)
 
-    return median_ns_per_op(run, batch)
+    return run
 
 
-def ours_steady(size: int, batch: int) -> float:
+def ours_steady(size: int, batch: int) -> Batch:
     """Live set of ``size`` entries kept by expiry (clock advances), no saturation."""
     clock = ManualClock(wall=time.time())
     cache = ReplayCache(window_s=30, max_size=size * 2, clock=clock)
@@ -82,10 +90,10 @@ def ours_steady(size: int, batch: int) -> float:
             advance(step)
             check(mid, wall())
 
-    return median_ns_per_op(run, batch)
+    return run
 
 
-def dict_floor(size: int, batch: int) -> float:
+def dict_floor(size: int, batch: int) -> Batch:
     """Bare dict get (miss) + insert + delete per operation on a table of ``size`` ids."""
     table = dict.fromkeys(ids("fill", size), 0.0)
     victims = ids("fill", size)
@@ -100,10 +108,10 @@ def dict_floor(size: int, batch: int) -> float:
             table[mid] = 1.0
             del table[victims[i]]
 
-    return median_ns_per_op(run, batch)
+    return run
 
 
-def rcan_full(size: int, batch: int) -> float:
+def rcan_full(size: int, batch: int) -> Batch:
     cache = RcanCache(window_s=300, max_size=size)
     now = time.time()
     for mid in ids("fill", size):
@@ -115,7 +123,7 @@ def rcan_full(size: int, batch: int) -> float:
         for mid in fresh[r * batch : (r + 1) * batch]:
             check(mid, now)
 
-    return median_ns_per_op(run, batch)
+    return run
 
 
 def bytes_per_entry(n: int = 100_000) -> float:
@@ -138,16 +146,16 @@ def main() -> None:
     print(f"installed window build: {WINDOW_BUILD}")
     rows = []
     for size, batch, rcan_batch in ((10_000, 20_000, 5_000), (1_000_000, 20_000, 300)):
-        rows.append(
-            (
-                size,
-                ours_full(ReplayCache, size, batch),
-                ours_full(SOURCE_BUILD, size, batch),
-                ours_steady(size, batch),
-                rcan_full(size, rcan_batch),
-                dict_floor(size, batch),
-            )
-        )
+        contenders = [
+            (ours_full(ReplayCache, size, batch), batch),
+            (ours_full(SOURCE_BUILD, size, batch), batch),
+            (ours_steady(size, batch), batch),
+            (rcan_full(size, rcan_batch), rcan_batch),
+            (dict_floor(size, batch), batch),
+        ]
+        ours, source, steady, base, floor = interleaved_ns_per_op(contenders)
+        rows.append((size, ours, source, steady, base, floor))
+        del contenders
     print(
         f"{'entries':>10} {'installed':>12} {'source':>12} {'steady':>12} {'rcan 3.7.0':>12}"
         f" {'speedup':>8} {'dict floor':>12}"
