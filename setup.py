@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import os
 from pathlib import Path
+from typing import Any
 
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
@@ -33,16 +34,35 @@ MYPYC_ARGS = [str(HOT_MODULE), "--ignore-missing-imports"]
 class MypycBuildExt(build_ext):
     """Compile ``antireplay.window`` with mypyc and record the digest of its source."""
 
-    def run(self) -> None:
+    def finalize_options(self) -> None:
+        # Runs once, when a build needs this command: swap the placeholder for mypyc's
+        # extensions before setuptools annotates them.
+        self.distribution.ext_modules = self._mypyc_extensions()
+        super().finalize_options()
+
+    def _mypyc_extensions(self) -> list[Any]:  # the stubs disagree on which Extension
         if os.environ.get(PURE_ENV) == "1":
-            return
+            return []
         try:
             from mypyc.build import mypycify  # noqa: PLC0415 - a build-only dependency
 
-            self.extensions = mypycify(MYPYC_ARGS, opt_level="3")
+            return mypycify(MYPYC_ARGS, opt_level="3")
+        except (Exception, SystemExit) as exc:  # mypyc missing or failing: ship pure Python
+            self._fall_back(exc)
+            return []
+
+    def _fall_back(self, exc: BaseException) -> None:
+        self.warn(f"antireplay: not compiling {HOT_MODULE} ({exc!r}); using pure Python")
+        self.extensions = []
+        self.distribution.ext_modules = []
+
+    def run(self) -> None:
+        if not self.extensions:
+            return
+        try:
             super().run()
-        except (Exception, SystemExit) as exc:  # any failure means: ship pure Python
-            self.warn(f"antireplay: compiling {HOT_MODULE} failed ({exc!r}); using pure Python")
+        except Exception as exc:  # no C compiler, or it failed: ship pure Python
+            self._fall_back(exc)
             return
         digest = hashlib.sha256(HOT_MODULE.read_bytes()).hexdigest()
         target = Path(self.get_ext_fullpath("antireplay.window")).with_name("window.sha256")
@@ -50,7 +70,7 @@ class MypycBuildExt(build_ext):
 
 
 # A placeholder: it makes setuptools run build_ext and tag the wheel as
-# platform-specific; MypycBuildExt replaces it with mypyc's real extensions.
+# platform-specific; MypycBuildExt swaps it for mypyc's real extensions.
 PLACEHOLDER = Extension("antireplay.window", sources=[])
 
 setup(ext_modules=[PLACEHOLDER], cmdclass={"build_ext": MypycBuildExt})
