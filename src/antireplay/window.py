@@ -65,6 +65,15 @@ Check order inside :meth:`ReplayCache.check`: msg_id shape, timestamp shape,
 staleness, future, watermark, duplicate, then commit.  ``precheck`` runs the
 same rules and records nothing, so a pipeline can throw replays away before
 any cryptography and commit only after authentication.
+
+Speed: a normal install compiles this module with mypyc (``setup.py``;
+:mod:`antireplay._native` picks the build), so it is written in the style that
+compiles to native code: ``Final`` constants, typed attributes, plain ``if``
+instead of generic builtins such as ``max``, and the lock's bound methods.  A
+slot is a list of msg_ids; an entry that moves to a later slot (an extended
+ESTOP entry) leaves its old filing behind, and forgetting skips filings whose
+entry is gone or lives in another slot.  The slot of the last insert and the
+soonest slot are cached, which spares most slot-key lookups.
 """
 
 from __future__ import annotations
