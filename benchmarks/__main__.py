@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import importlib
+import pkgutil
 
-MODULES = [
-    "bench_window", "bench_counters", "bench_epochs", "bench_stores", "bench_pipeline",
-    "bench_gateway", "bench_mavlink",
-]  # fmt: skip
+import benchmarks
+
+#: Every ``bench_*`` module of this package (``antireplay bench`` finds the same files).
+MODULES = sorted(
+    m.name for m in pkgutil.iter_modules(benchmarks.__path__) if m.name.startswith("bench_")
+)
 
 
 def main() -> None:

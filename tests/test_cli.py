@@ -5,12 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from benchmarks.__main__ import MODULES
 from click.testing import CliRunner
 
 from antireplay.cli import main
 from antireplay.counters import NonceCounter
 from antireplay.demo import GatewayProcess, write_demo_config
 from antireplay.errors import StateFileError
+from tests.conftest import ROOT
 
 
 @pytest.mark.parametrize("args", [["demo", "--in-process"], ["demo"]])
@@ -84,3 +86,21 @@ def test_state_repair_needs_kind_for_unreadable_file(tmp_path: Path) -> None:
     assert CliRunner().invoke(main, ["state", "repair", str(path)]).exit_code == 2
     result = CliRunner().invoke(main, ["state", "repair", str(path), "--kind", "epoch-verifier"])
     assert result.exit_code == 0, result.output
+
+
+def test_bench_refuses_unknown_names_and_lists_the_benchmarks(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.chdir(ROOT)
+    result = CliRunner().invoke(main, ["bench", "no_such"])
+    assert result.exit_code == 2
+    assert "unknown benchmark no_such" in result.output
+    for name in MODULES:  # the CLI and `python -m benchmarks` find the same modules
+        assert name in result.output.replace("\n", "")
+
+
+def test_bench_outside_a_checkout_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(main, ["bench"])
+    assert result.exit_code == 2
+    assert "source checkout" in result.output

@@ -37,10 +37,6 @@ KEY_TYPES: dict[str, Any] = {
     "ml-dsa-65": mldsa.MLDSA65PrivateKey,
     "ml-dsa-87": mldsa.MLDSA87PrivateKey,
 }
-BENCHMARKS = [
-    "bench_window", "bench_counters", "bench_epochs", "bench_stores", "bench_pipeline",
-    "bench_gateway", "bench_mavlink",
-]  # fmt: skip
 
 
 @click.group()
@@ -268,7 +264,13 @@ def config_check(path: Path) -> None:
 @click.argument("names", nargs=-1)
 def bench(names: tuple[str, ...]) -> None:
     """Run the benchmarks (from a source checkout) and print their ratio tables."""
-    chosen = [n for n in BENCHMARKS if not names or n in names or n.removeprefix("bench_") in names]
+    available = sorted(p.stem for p in Path("benchmarks").glob("bench_*.py"))
+    if not available:
+        _fail("no benchmarks/ here: run `antireplay bench` from a source checkout")
+    unknown = [n for n in names if n not in available and f"bench_{n}" not in available]
+    if unknown:
+        _fail(f"unknown benchmark {', '.join(unknown)}; available: {', '.join(available)}")
+    chosen = [n for n in available if not names or n in names or n.removeprefix("bench_") in names]
     outputs = []
     with Progress(console=console) as progress:
         task = progress.add_task("benchmarks", total=len(chosen))
