@@ -70,11 +70,11 @@ Speed: a normal install compiles this module with mypyc (``setup.py``;
 :mod:`antireplay._native` picks the build), so it is written in the style that
 compiles to native code: ``Final`` constants, typed attributes, plain ``if``
 instead of generic builtins such as ``max``, and the lock's bound methods.  A
-slot maps msg_id to expiry; an entry that moves to a later slot (an extended
-ESTOP entry) leaves its old filing behind, and forgetting skips filings whose
-entry is gone or has another expiry.  Slots are ``str -> float`` dicts, which
-the garbage collector does not track, so a full collection never walks the
-entries.  The slot of the last insert and the
+slot is a dict of msg_ids (values ``None``); an entry that moves to a later
+slot (an extended ESTOP entry) leaves its old filing behind, and forgetting
+skips filings whose entry is gone or lives in another slot.  Such dicts hold
+no containers, so the garbage collector does not track them and a full
+collection never walks the entries.  The slot of the last insert and the
 soonest slot are cached, which spares most slot-key lookups.
 """
 
@@ -227,15 +227,16 @@ class ReplayCache:
         self.max_size: int = cfg.msg_id_cache_size
         self._wall: Callable[[], float] = resolve(clock).wall
         self._expiry: dict[str, float] = {}  # msg_id -> expiry of its entry
-        # slot key -> {msg_id: expiry} filed there.  str -> float dicts hold no containers,
+        # slot key -> {msg_id: None} filed there.  Dicts of str and None hold no containers,
         # so the garbage collector never tracks them: a full collection does not walk
-        # every entry (lists would make it: ~30 ms at 1,000,000 entries).
-        self._slots: dict[int, dict[str, float]] = {}
+        # every entry (lists would make it: ~30 ms at 1,000,000 entries).  None values
+        # cost no allocation (a float would: the compiled build boxes each store apart).
+        self._slots: dict[int, dict[str, None]] = {}
         self._slot_keys: list[int] = []  # min-heap of the keys of _slots
         self._tail_key = -1  # the slot that took the last insert (most inserts hit it again)
-        self._tail: dict[str, float] = {}
+        self._tail: dict[str, None] = {}
         self._head_key = -1  # the soonest slot, as last looked up by _forget
-        self._head: dict[str, float] = {}
+        self._head: dict[str, None] = {}
         self._watermark = -math.inf
         lock = threading.Lock()
         self._acquire: Callable[[], object] = lock.acquire
@@ -400,13 +401,13 @@ class ReplayCache:
             self._forget(ANY_SLOT, 1)
             self.saturation_evictions += 1
         if key == self._tail_key:
-            self._tail[mid] = expires
+            self._tail[mid] = None
         else:
             slot = self._slots.get(key)
             if slot is None:
                 slot = self._slots[key] = {}
                 heapq.heappush(self._slot_keys, key)
-            slot[mid] = expires
+            slot[mid] = None
             self._tail_key, self._tail = key, slot
         self._expiry[mid] = expires
 
@@ -424,9 +425,9 @@ class ReplayCache:
                 self._head_key, self._head = key, slots[key]
             slot = self._head
             while slot and removed < limit:
-                mid, expires = slot.popitem()
-                current = table.get(mid)
-                if current is None or current != expires:
+                mid = slot.popitem()[0]
+                expires = table.get(mid)
+                if expires is None or int(expires * SLOTS_PER_SECOND) != key:
                     continue  # a filing left behind by an entry forgotten or moved later
                 del table[mid]
                 removed += 1
