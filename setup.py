@@ -2,7 +2,7 @@
 
 Everything else is declared in pyproject.toml.  ``antireplay.window`` is compiled from
 its own, unchanged source (the same file the pure-Python fallback runs), which makes
-``ReplayCache.check`` about 2.8x faster.  Next to the extension the build writes the
+``ReplayCache.check`` about 2.9x faster.  Next to the extension the build writes the
 SHA-256 of the source it compiled, so that at import time :mod:`antireplay._native`
 can refuse a stale extension (an editable install whose ``window.py`` was edited
 after the build) and run the source instead.
