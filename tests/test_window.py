@@ -137,6 +137,22 @@ def test_fresh_duplicate_estop_is_accepted_with_warning(
     assert second.warning == "REPLAY_DETECTED"
 
 
+def test_later_duplicate_estop_extends_the_entry_past_its_first_expiry(
+    cache: ReplayCache, clock: ManualClock
+) -> None:
+    t0 = clock.wall()
+    cache.check("e", t0, SAFETY, "ESTOP")  # entry expires at t0 + 10
+    clock.advance(5)
+    cache.check("e", t0 + 5, SAFETY, "ESTOP")  # duplicate: entry now expires at t0 + 15
+    clock.advance(6)
+    assert cache.purge() == 0  # the t0 + 10 slot held only the superseded filing
+    with pytest.raises(ReplayDetectedError):
+        cache.check("e", t0 + 5, SAFETY, "STOP")  # same id, still within t0 + 15
+    clock.advance(5)
+    assert cache.purge() == 1
+    assert len(cache) == 0
+
+
 def test_stale_estop_is_rejected(cache: ReplayCache, clock: ManualClock) -> None:
     with pytest.raises(MessageStaleError):
         cache.check("e-old", clock.wall() - 10.5, SAFETY, "ESTOP")
