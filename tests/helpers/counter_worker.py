@@ -5,14 +5,12 @@ from __future__ import annotations
 import sys
 
 from antireplay.counters import NonceCounter
+from tests.helpers import emit_forever
 
 
 def main() -> None:
     counter = NonceCounter.persistent(sys.argv[1], lease=int(sys.argv[2]))
-    out = sys.stdout
-    while True:
-        out.write(f"{counter.next()}\n")
-        out.flush()
+    emit_forever(counter.next)
 
 
 if __name__ == "__main__":

@@ -9,6 +9,7 @@ import sys
 
 from antireplay import ManualClock
 from antireplay.epochs import EpochSigner
+from tests.helpers import emit_forever
 
 
 def main() -> None:
@@ -19,10 +20,7 @@ def main() -> None:
         clock=ManualClock(wall=1_000.0),
         reserve_s=float(sys.argv[2]),
     )
-    out = sys.stdout
-    while True:
-        out.write(f"{signer.next_epoch()}\n")
-        out.flush()
+    emit_forever(signer.next_epoch)
 
 
 if __name__ == "__main__":
