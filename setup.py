@@ -1,11 +1,11 @@
-"""Build script: compiles the freshness window's hot path with mypyc, falling back to pure Python.
+"""Build script: compiles the replay hot path with mypyc, falling back to pure Python.
 
-Everything else is declared in pyproject.toml.  ``antireplay.window`` is compiled from
-its own, unchanged source (the same file the pure-Python fallback runs), which makes
-``ReplayCache.check`` about 2.9x faster.  Next to the extension the build writes the
-SHA-256 of the source it compiled, so that at import time :mod:`antireplay._native`
-can refuse a stale extension (an editable install whose ``window.py`` was edited
-after the build) and run the source instead.
+Everything else is declared in pyproject.toml.  The hot modules (the window policy,
+the memory store and the ReplayCache that joins them, ``HOT_MODULES``) are compiled
+from their own, unchanged sources (the same files the pure-Python fallback runs).
+Next to each extension the build writes the SHA-256 of the source it compiled, so
+that at import time :mod:`antireplay._native` can refuse a stale build (an editable
+install whose sources were edited after the build) and run the sources instead.
 
 mypyc runs inside ``build_ext`` only: pip imports this file several times (for its
 build requirements and metadata), and type-checking on every import would triple
@@ -24,14 +24,18 @@ from typing import Any
 from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
-HOT_MODULE = Path("src", "antireplay", "window.py")
+HOT_MODULES = [
+    Path("src", "antireplay", "window.py"),
+    Path("src", "antireplay", "stores", "memory.py"),
+    Path("src", "antireplay", "replay.py"),
+]
 PURE_ENV = "ANTIREPLAY_PURE_PYTHON"
 # While pip builds (build isolation) the third-party packages that window.py's own
 # imports use may be absent: they are not on the compiled hot path, so they are
 # typed Any, without the project's strict settings (CI runs mypy --strict itself),
 # and only window.py's own type errors stop the compilation.
 MYPYC_ARGS = [
-    str(HOT_MODULE),
+    *map(str, HOT_MODULES),
     "--config-file=",
     "--ignore-missing-imports",
     "--follow-imports=silent",
@@ -39,7 +43,7 @@ MYPYC_ARGS = [
 
 
 class MypycBuildExt(build_ext):
-    """Compile ``antireplay.window`` with mypyc and record the digest of its source."""
+    """Compile the hot modules with mypyc and record the digest of each source."""
 
     def finalize_options(self) -> None:
         # Runs once, when a build needs this command: swap the placeholder for mypyc's
@@ -59,7 +63,7 @@ class MypycBuildExt(build_ext):
             return []
 
     def _fall_back(self, exc: BaseException) -> None:
-        self.warn(f"antireplay: not compiling {HOT_MODULE} ({exc!r}); using pure Python")
+        self.warn(f"antireplay: not compiling the hot modules ({exc!r}); using pure Python")
         self.extensions = []
         self.distribution.ext_modules = []
 
@@ -71,9 +75,11 @@ class MypycBuildExt(build_ext):
         except Exception as exc:  # no C compiler, or it failed: ship pure Python
             self._fall_back(exc)
             return
-        digest = hashlib.sha256(HOT_MODULE.read_bytes()).hexdigest()
-        target = Path(self.get_ext_fullpath("antireplay.window")).with_name("window.sha256")
-        target.write_text(digest + "\n", encoding="ascii")
+        for source in HOT_MODULES:
+            name = ".".join(source.with_suffix("").parts[1:])
+            digest = hashlib.sha256(source.read_bytes()).hexdigest()
+            target = Path(self.get_ext_fullpath(name)).with_name(f"{source.stem}.sha256")
+            target.write_text(digest + "\n", encoding="ascii")
 
 
 # A placeholder: it makes setuptools run build_ext and tag the wheel as

@@ -10,26 +10,34 @@ import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from antireplay import ManualClock, ReplayAttackError, ReplayCache, _native
+from antireplay import ManualClock, ReplayAttackError, ReplayCache
 from tests.redis_server import RedisServer
 
 ROOT = Path(__file__).resolve().parent.parent
 
-#: The window's builds under test: whatever ``import antireplay`` runs (the compiled
-#: extension in a normal install) and the pure-Python source, loaded beside it.
-WINDOW_BUILDS: dict[str, type[ReplayCache]] = {
-    "installed": ReplayCache,
-    "source": _native.load_source("antireplay._window_source").ReplayCache,
-}
+def _fresh_cache(*args: Any, **kwargs: Any) -> ReplayCache:
+    """A ReplayCache whose ManualClock is moved past its restart fence (start + skew + window).
+
+    A new in-memory cache refuses anything stamped at or before its start plus skew
+    (it cannot know what a previous process accepted); tests that are not about
+    that fence start just after it.
+    """
+    cache = ReplayCache(*args, **kwargs)
+    clock = kwargs.get("clock", args[3] if len(args) > 3 else None)
+    if isinstance(clock, ManualClock):
+        clock.advance(cache.policy.window_s + cache.policy.skew_s + 1)
+    return cache
 
 
-@pytest.fixture(params=sorted(WINDOW_BUILDS))
-def impl(request: pytest.FixtureRequest) -> type[ReplayCache]:
-    """Each window test runs against both builds, so they cannot drift apart."""
-    return WINDOW_BUILDS[request.param]
+@pytest.fixture
+def impl() -> Callable[..., ReplayCache]:
+    """Builds caches as tests need them.  The compiled build runs here; the pure-Python
+    build runs the same tests in a subprocess (tests/test_native.py)."""
+    return _fresh_cache
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
 from antireplay import ManualClock, MessageType, ReplayAttackError, ReplayCache
-from tests.conftest import WINDOW_BUILDS
+from tests.conftest import _fresh_cache
 
 WINDOW, SAFETY_WINDOW, SKEW, MAX_SIZE = 30.0, 10.0, 5.0, 8
 IDS = st.sampled_from([f"id{i}" for i in range(6)])
@@ -43,12 +43,11 @@ class Model:
 
 
 class CacheVsModel(RuleBasedStateMachine):
-    impl: type[ReplayCache] = WINDOW_BUILDS["installed"]
 
     def __init__(self) -> None:
         super().__init__()
         self.clock = ManualClock(wall=1_800_000_000.0)
-        self.cache = self.impl(WINDOW, MAX_SIZE, SKEW, self.clock)
+        self.cache: ReplayCache = _fresh_cache(WINDOW, MAX_SIZE, SKEW, self.clock)
         self.model = Model()
         self.stepped_back = False
 
@@ -60,13 +59,13 @@ class CacheVsModel(RuleBasedStateMachine):
         now = self.clock.wall()
         expected = self.model.decide(mid, ts, kind, now)
         try:
-            verdict = self.cache.check(mid, ts, kind[0], kind[1])
+            verdict = self.cache.commit(mid, ts, kind[0], kind[1])
         except ReplayAttackError as exc:
             if expected in {"accept", "accept-warn"}:
                 # Only the fail-closed watermark may refuse what the model accepts.
                 assert exc.detail == "watermark", (expected, exc)
                 assert (
-                    self.cache.saturation_evictions > 0
+                    self.cache.store.status()["evictions"] > 0
                     or self.stepped_back
                     or len(self.cache) >= MAX_SIZE
                 )
@@ -86,7 +85,7 @@ class CacheVsModel(RuleBasedStateMachine):
 
     @property
     def degraded(self) -> bool:
-        return self.cache.saturation_evictions > 0 or self.stepped_back
+        return self.cache.store.status()["evictions"] > 0 or self.stepped_back
 
     @rule(data=st.data())
     def replay_exact(self, data: st.DataObject) -> None:
@@ -117,14 +116,6 @@ class CacheVsModel(RuleBasedStateMachine):
         assert len(self.cache) <= MAX_SIZE
 
 
-class SourceCacheVsModel(CacheVsModel):
-    """The same machine against the pure-Python build of the window."""
-
-    impl = WINDOW_BUILDS["source"]
-
-
 SETTINGS = settings(max_examples=300, stateful_step_count=60, deadline=None)
 CacheVsModel.TestCase.settings = SETTINGS
-SourceCacheVsModel.TestCase.settings = SETTINGS
 TestCacheVsModel = CacheVsModel.TestCase
-TestSourceCacheVsModel = SourceCacheVsModel.TestCase

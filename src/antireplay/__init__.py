@@ -20,7 +20,8 @@ from antireplay.errors import (
     ReplayDetectedError,
 )
 from antireplay.messages import MessageType, SafetyEvent
-from antireplay.window import ReplayCache, Verdict
+from antireplay.replay import ReplayCache
+from antireplay.window import Seen, Verdict, Window
 
 __version__ = "0.1.0"
 
@@ -41,8 +42,10 @@ __all__ = [
     "ReplayCache",
     "ReplayDetectedError",
     "SafetyEvent",
+    "Seen",
     "SecurityConfig",
     "SystemClock",
     "Verdict",
+    "Window",
     "__version__",
 ]

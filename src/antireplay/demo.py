@@ -36,7 +36,7 @@ from antireplay.auth import sign_envelope, write_key_pair
 from antireplay.clock import ManualClock
 from antireplay.errors import ReplayAttackError
 from antireplay.messages import MessageType, SafetyEvent
-from antireplay.window import ReplayCache
+from antireplay.replay import ReplayCache
 
 ACCEPTED = "accepted"
 
@@ -67,19 +67,20 @@ def run_window_demo() -> list[StepResult]:
     """Play the operator and the attacker against one receiver; return every step."""
     clock = ManualClock(wall=1_800_000_000.0)
     cache = ReplayCache(window_s=30, max_size=1_000, clock=clock)
+    clock.advance(6)  # past the new receiver's restart fence (start + skew)
     t0 = clock.wall()
     cmd, safety, estop = MessageType.COMMAND, MessageType.SAFETY, SafetyEvent.ESTOP
     steps: list[tuple[str, str, Callable[[], object]]] = [
-        ("operator: move_forward", ACCEPTED, lambda: cache.check("cmd-1", t0, cmd)),
-        ("attacker: exact replay", "REPLAY_DETECTED (409)", lambda: cache.check("cmd-1", t0, cmd)),
-        ("attacker: 40 s old capture", "MESSAGE_STALE (408)", lambda: cache.check("old", t0 - 40)),
+        ("operator: move_forward", ACCEPTED, lambda: cache.commit("cmd-1", t0, cmd)),
+        ("attacker: exact replay", "REPLAY_DETECTED (409)", lambda: cache.commit("cmd-1", t0, cmd)),
+        ("attacker: 40 s old capture", "MESSAGE_STALE (408)", lambda: cache.commit("old", t0 - 40)),
         (
             "attacker: stamped 60 s ahead",
             "MESSAGE_FROM_FUTURE (400)",
-            lambda: cache.check("f", t0 + 60),
+            lambda: cache.commit("f", t0 + 60),
         ),
-        ("attacker: timestamp 'nan'", "INVALID_TIMESTAMP (400)", lambda: cache.check("n", "nan")),
-        ("operator: SAFETY STOP", ACCEPTED, lambda: cache.check("stop-1", t0, safety, "STOP")),
+        ("attacker: timestamp 'nan'", "INVALID_TIMESTAMP (400)", lambda: cache.commit("n", "nan")),
+        ("operator: SAFETY STOP", ACCEPTED, lambda: cache.commit("stop-1", t0, safety, "STOP")),
     ]
     results = [StepResult(name, want, _answer(act)) for name, want, act in steps]
     clock.advance(15)
@@ -87,45 +88,47 @@ def run_window_demo() -> list[StepResult]:
         StepResult(
             "attacker: replay 15 s old command after a SAFETY msg",
             "REPLAY_DETECTED (409)",
-            _answer(lambda: cache.check("cmd-1", t0, cmd)),
+            _answer(lambda: cache.commit("cmd-1", t0, cmd)),
         )
     )
     now = clock.wall()
     flooded = ReplayCache(window_s=30, max_size=1_000, clock=clock)
-    flooded.check("cmd-2", now, cmd)
+    clock.advance(6)
+    now = clock.wall()
+    flooded.commit("cmd-2", now, cmd)
     for i in range(5_000):
         try:
-            flooded.check(f"flood-{i}", now + 5)
+            flooded.commit(f"flood-{i}", now + 5)
         except ReplayAttackError:
             break
     results.append(
         StepResult(
             f"attacker: 5000-id flood, then replay (cache holds {len(flooded)})",
             "MESSAGE_STALE (408)",
-            _answer(lambda: flooded.check("cmd-2", now, cmd)),
+            _answer(lambda: flooded.commit("cmd-2", now, cmd)),
         )
     )
     results += [
         StepResult(
-            "operator: ESTOP", ACCEPTED, _answer(lambda: cache.check("e-1", now, safety, estop))
+            "operator: ESTOP", ACCEPTED, _answer(lambda: cache.commit("e-1", now, safety, estop))
         ),
         StepResult(
             "network: duplicate fresh ESTOP",
             f"{ACCEPTED}, warning REPLAY_DETECTED",
-            _answer(lambda: cache.check("e-1", now, safety, estop)),
+            _answer(lambda: cache.commit("e-1", now, safety, estop)),
         ),
         StepResult(
             "attacker: 11 s old ESTOP",
             "MESSAGE_STALE (408)",
-            _answer(lambda: cache.check("e-old", now - 11, safety, estop)),
+            _answer(lambda: cache.commit("e-old", now - 11, safety, estop)),
         ),
         StepResult(
-            "operator: RESUME", ACCEPTED, _answer(lambda: cache.check("r-1", now, safety, "RESUME"))
+            "operator: RESUME", ACCEPTED, _answer(lambda: cache.commit("r-1", now, safety, "RESUME"))
         ),
         StepResult(
             "attacker: replay RESUME",
             "REPLAY_DETECTED (409)",
-            _answer(lambda: cache.check("r-1", now, safety, "RESUME")),
+            _answer(lambda: cache.commit("r-1", now, safety, "RESUME")),
         ),
     ]
     return results

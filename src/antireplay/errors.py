@@ -244,10 +244,9 @@ class NonceExhaustedError(AntiReplayError):
 class StateFileError(AntiReplayError):
     """A crash-safe state file is corrupt, truncated or rolled back; refuse to start."""
 
-    def __init__(self, path: str, problem: str) -> None:
-        super().__init__(
-            f"state file {path}: {problem}; refusing to start. Recover with: "
-            f"antireplay state repair {path}"
-        )
+    def __init__(self, path: str, problem: str, *, recovery: str | None = None) -> None:
+        recovery = recovery or f"antireplay state repair {path}"
+        super().__init__(f"state file {path}: {problem}; refusing to start. Recover with: {recovery}")
+        self.recovery = recovery
         self.path = path
         self.problem = problem

@@ -20,14 +20,16 @@ import importlib
 import json
 import os
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
 
 import httpx
 from cryptography.hazmat.primitives.asymmetric import ed25519
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect, Request
@@ -39,7 +41,7 @@ from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key, write_key
 from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig, KeyConfig
 from antireplay.envelope import encode
-from antireplay.errors import ConfigError, InvalidEnvelopeError
+from antireplay.errors import ConfigError, InvalidEnvelopeError, StateUnavailableError
 from antireplay.pipeline import Outcome, Receiver
 from antireplay.stores import open_store
 
@@ -94,10 +96,16 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
             leeway_s=config.jwt.leeway_s,
             clock=clock,
         )
+    store = open_store(
+        config.store,
+        clock=clock,
+        max_entries=config.security.msg_id_cache_size,
+        skew_s=config.security.skew_s,
+    )
     return Receiver(
         config.security,
         build_registry(config),
-        open_store(config.store, clock=clock),
+        store,
         AuditLog(config.audit),
         clock,
         jwt=verifier,
@@ -136,7 +144,7 @@ def resolve_upstream(spec: str | None, timeout_s: float) -> Upstream | None:
 class Metrics:
     """Prometheus metrics of one gateway (its own registry, so tests can run several)."""
 
-    def __init__(self) -> None:
+    def __init__(self, receiver: Receiver) -> None:
         self.registry = CollectorRegistry()
         r = self.registry
         self.accepted = Counter("antireplay_accepted", "Accepted messages", registry=r)
@@ -145,17 +153,13 @@ class Metrics:
             "antireplay_warnings", "Accepted with warning", ["warning"], registry=r
         )
         self.latency = Histogram("antireplay_latency_seconds", "Pipeline latency", registry=r)
-        self.cache_size = Gauge("antireplay_cache_entries", "In-memory window entries", registry=r)
-        self.watermark_raises = Gauge(
-            "antireplay_watermark_raises", "Saturation evictions (watermark raised)", registry=r
-        )
-        self.fence = Gauge("antireplay_restart_fence_rejections", "Restart fence hits", registry=r)
         self.store_errors = Counter(
             "antireplay_store_errors", "STATE_UNAVAILABLE answers", registry=r
         )
         self.upstream_errors = Counter(
             "antireplay_upstream_errors", "Upstream failures", registry=r
         )
+        r.register(StateCollector(receiver))
 
     def observe(self, outcome: Outcome, seconds: float) -> None:
         self.latency.observe(seconds)
@@ -169,6 +173,47 @@ class Metrics:
                 self.store_errors.inc()
 
 
+class StateCollector(Collector):
+    """The replay state of the backend actually in use, read at scrape time."""
+
+    def __init__(self, receiver: Receiver) -> None:
+        self.receiver = receiver
+
+    def collect(self) -> Iterator[Metric]:
+        cache = self.receiver.cache
+        try:
+            status = cache.store.status()
+        except StateUnavailableError:
+            status = {}
+        backend = cache.store.backend
+        for name, doc, key in (
+            ("antireplay_cache_entries", "Entries in the seen-set", "entries"),
+            ("antireplay_state_watermark_seconds", "Largest expiry forgotten", "watermark"),
+            ("antireplay_state_fence_seconds", "Restart/data-loss fence", "fence"),
+        ):
+            gauge = GaugeMetricFamily(name, doc, labels=["backend"])
+            gauge.add_metric([backend], status.get(key, float("nan")))
+            yield gauge
+        for name, doc, key in (
+            ("antireplay_watermark_raises", "Entries evicted early (saturation)", "evictions"),
+            ("antireplay_state_data_loss", "Data-loss events noticed", "data_loss_events"),
+        ):
+            counter = CounterMetricFamily(name, doc, labels=["backend"])
+            counter.add_metric([backend], status.get(key, float("nan")))
+            yield counter
+        refusals = CounterMetricFamily(
+            "antireplay_replay_refusals", "Window refusals by cause", labels=["cause"]
+        )
+        for cause, count in sorted(cache.refusals.items()):
+            refusals.add_metric([cause], count)
+        yield refusals
+        fence = CounterMetricFamily(
+            "antireplay_restart_fence_rejections", "Refused by the restart/data-loss fence"
+        )
+        fence.add_metric([], cache.refusals["restart_fence"])
+        yield fence
+
+
 def _nack(outcome: Outcome) -> JSONResponse:
     return JSONResponse(outcome.nack, status_code=outcome.status)
 
@@ -177,7 +222,7 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     """The gateway application for ``config``."""
     receiver = build_receiver(config, clock)
     upstream = resolve_upstream(config.upstream, config.upstream_timeout_s)
-    metrics = Metrics()
+    metrics = Metrics(receiver)
     limit = config.max_body_bytes
     ticker = resolve(None)
 
@@ -225,10 +270,8 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
         return JSONResponse({"status": "ok", "time": time.time()})
 
     async def metrics_endpoint(_: Request) -> Response:
-        metrics.cache_size.set(len(receiver.cache))
-        metrics.watermark_raises.set(receiver.cache.saturation_evictions)
-        metrics.fence.set(receiver.cache.fence_rejections)
-        return Response(generate_latest(metrics.registry), media_type="text/plain; version=0.0.4")
+        body = await run_in_threadpool(generate_latest, metrics.registry)  # may read the store
+        return Response(body, media_type="text/plain; version=0.0.4")
 
     @asynccontextmanager
     async def lifespan(_: Starlette) -> AsyncIterator[None]:

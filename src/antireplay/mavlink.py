@@ -248,8 +248,10 @@ class MavlinkGuard:
             stream.window.check(ts)
             if not stream.window.accept(ts):
                 raise CounterReplayError("timestamp already seen in the reorder window")
-        if self.store is not None:
-            self.store.advance(self._store_key(key), ts)
+        if self.store is not None and not self.store.advance(self._store_key(key), ts):
+            # Another guard on the same store (a second proxy, a restarted one still
+            # running) already took this timestamp or a later one: this copy is a replay.
+            raise CounterReplayError("timestamp already committed to the shared stream state")
         stream.last = max(stream.last, ts)
         self._streams[key] = stream
         self._streams.move_to_end(key)

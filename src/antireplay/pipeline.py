@@ -7,13 +7,16 @@ away before any cryptography:
 
 1. parse the envelope (size, depth, schema)              -> INVALID_ENVELOPE 400
 2. check the RCAN version                                -> VERSION_INCOMPATIBLE 426
-3. replay **pre**check: freshness + msg_id seen-set      -> MESSAGE_STALE 408 /
-   (:meth:`ReplayCache.precheck`, records nothing)          REPLAY_DETECTED 409
+3. replay check: freshness + msg_id seen-set, the       -> MESSAGE_STALE 408 /
+   store's fence and watermark                              REPLAY_DETECTED 409
+   (:meth:`ReplayCache.check`, records nothing)
 4. JWT, if configured or presented                       -> AUTH_FAILED 401
 5. signature over the canonical envelope                 -> SIGNATURE_INVALID 401
 6. authorization (scopes; SDK-compat field rule)         -> SCOPE_DENIED 403
-7. **commit**: the atomic record of the msg_id           -> REPLAY_DETECTED 409
-   (two copies racing through crypto: exactly one wins)
+7. **commit**: the store's atomic record of the msg_id   -> REPLAY_DETECTED 409
+   (:meth:`ReplayCache.commit`; two copies racing         MESSAGE_STALE 408
+   through crypto: exactly one wins; a store that lost   (fence, watermark)
+   state is noticed here, atomically)
 
 Nothing an unauthenticated packet carries changes replay state: the msg_id is
 recorded only at step 7.  So a forged message carrying a victim's msg_id is
@@ -56,7 +59,8 @@ from antireplay.errors import (
 )
 from antireplay.messages import MessageType
 from antireplay.stores import ReplayStore
-from antireplay.window import ReplayCache, is_estop
+from antireplay.replay import ReplayCache
+from antireplay.window import is_estop
 
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
 
@@ -104,6 +108,7 @@ class Stats:
     warnings: Counter[str] = field(default_factory=Counter)
     unaudited: int = 0
     audit_failures: int = 0
+    losses: int = 0
 
 
 class Receiver:
@@ -127,6 +132,10 @@ class Receiver:
         self.audit = audit
         self.clock = resolve(clock)
         self.cache = ReplayCache.from_config(config, self.clock, store)
+        self.cache.on_loss = self._audit_loss
+        reason = getattr(self.cache.store, "loss_reason", None)
+        if reason is not None:  # noticed while the store opened (a lost or rolled-back file)
+            self._audit_loss(str(reason))
         self.jwt = jwt
         self.jwt_required = jwt_required
         self.versions = versions
@@ -144,11 +153,11 @@ class Receiver:
         try:
             env = parse(raw)
             self._check_version(env)
-            self.cache.precheck(env.msg_id, env.seconds, env.type, env.safety_event)
+            self.cache.check(env.msg_id, env.seconds, env.type, env.safety_event)
             self._check_jwt(env, headers or {})
             signer = self.keys.verify(env)
             self._authorize(env, signer)
-            verdict = self.cache.check(env.msg_id, env.seconds, env.type, env.safety_event)
+            verdict = self.cache.commit(env.msg_id, env.seconds, env.type, env.safety_event)
         except ReplayAttackError as exc:
             return self._reject(exc, env, signer)
         outcome = Outcome(
@@ -251,6 +260,19 @@ class Receiver:
             self.stats.audit_failures += 1  # the rejection stands; it could not be recorded
         return outcome
 
+    def _audit_loss(self, reason: str) -> None:
+        """A store noticed it may have forgotten accepted messages: fenced, and on the record."""
+        self.stats.losses += 1
+        if self.audit is None:
+            return
+        try:
+            self.audit.append(
+                at=self.clock.wall(), outcome="state", code="STATE_LOST", warning=reason[:200],
+                msg_type=None, sender=None, sender_verified=False, msg_id=None,
+            )  # fmt: skip
+        except StateUnavailableError:
+            self.stats.audit_failures += 1
+
     def _audit(
         self,
         outcome: Outcome,
@@ -265,7 +287,7 @@ class Receiver:
             at=self.clock.wall(),
             outcome="accepted" if outcome.accepted else "rejected",
             code=outcome.code,
-            warning=outcome.warning,
+            warning=outcome.warning or (outcome.error.detail if outcome.error else None),
             msg_type=source.type if source is not None else None,
             sender=signer.owner if signer else source.sender if source is not None else None,
             sender_verified=signer is not None,

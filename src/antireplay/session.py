@@ -74,7 +74,7 @@ from antireplay.errors import (
     SessionClosedError,
     UnknownSessionError,
 )
-from antireplay.window import ReplayCache
+from antireplay.replay import ReplayCache
 
 VERSION = 1
 HS1_MAGIC, HS2_MAGIC, FRAME_MAGIC = 0xA1, 0xA2, 0xA5
@@ -313,7 +313,7 @@ class Responder:
     def accept_handshake(self, hs1: bytes) -> tuple[Session, bytes]:
         """Validate HS1 (cheap checks, then signature, then KEM), open a session, return HS2."""
         peer_id, digest, ts, body, sig, kem_ct = self._parse_hs1(hs1)
-        self._seen_hs1.precheck(digest, ts)
+        self._seen_hs1.check(digest, ts)
         peer_key = self.peers.get(peer_id)
         if peer_key is None:
             raise AuthenticationError("unknown initiator identity")
@@ -325,7 +325,7 @@ class Responder:
             secret = self.kem_key.decapsulate(kem_ct)
         except ValueError:
             raise AuthenticationError("KEM decapsulation failed") from None
-        self._seen_hs1.check(digest, ts)
+        self._seen_hs1.commit(digest, ts)
         seq, nonce_r = self._seq.next(), os.urandom(NONCE_LEN)
         transcript = _transcript(hs1, seq, nonce_r)
         sid = seq.to_bytes(8, "big") + transcript[:8]

@@ -1,81 +1,100 @@
-"""Replay state stores: one small contract, three backends.
+"""Replay state stores: one contract that carries the safety, three backends that keep it.
 
 Theory of operation
 -------------------
-The policies (:mod:`antireplay.window`, counters, epochs) decide; a store only
-keeps their state and offers the few **atomic** operations they need, so that
-several threads, processes or gateway replicas sharing one store still accept
-each message exactly once.  Stores hold no rules of their own.
+The policies (:mod:`antireplay.window`, the MAVLink guard) decide; a store keeps
+their state and offers the few **atomic** operations they need, so that several
+threads, processes or gateway replicas sharing one store accept each message
+exactly once.  The contract (:class:`ReplayStore`) is also where the replay
+guarantees live, so every backend keeps them, and the product runs the same
+code the tests and benchmarks exercise:
 
-The contract (:class:`ReplayStore`):
+* ``lookup(key) -> Seen``: records nothing (the pipeline's pre-crypto check).
+* ``commit(key, expires_at, now, force) -> Seen``: atomically record ``key``
+  unless it has a live entry (``expiry >= now``); ``force`` (a fresh ESTOP)
+  extends a live entry instead.  Two racers for one key: exactly one gets
+  ``recorded``.  Data-loss detection runs *in the same atomic operation*.
+* ``advance(key, value) -> bool`` / ``current(key)``: compare-and-advance for
+  high-water counters (MAVLink stream timestamps).
+* ``status()``: figures for ``/metrics`` (entries, watermark, fence,
+  evictions, data-loss events).
 
-* ``lookup(key) -> expiry | None``: non-mutating; an entry at or past its
-  expiry may still be returned, the caller compares with its clock.
-* ``record(key, expires_at, now) -> bool``: atomically insert the key unless an
-  entry that has not expired (``expiry >= now``) exists; True iff this call
-  recorded it.  Two racers for one key: exactly one True.
-* ``record_many(items, now) -> list[bool]``: the same for a batch (pipelined
-  on Redis).
-* ``advance(key, value) -> bool``: compare-and-advance for counters and epochs;
-  sets ``value`` iff it is greater than the current one (or none exists).
-* ``current(key) -> int | None``: non-mutating read of a counter.
-* ``fence() -> float``: wall time before which the store may have forgotten
-  accepted messages: a fresh ``MemoryStore`` returns its start time, a
-  ``SqliteStore`` ``-inf``, a ``RedisStore`` the moment it found its state
-  missing.  The window refuses anything stamped at or before ``fence + skew``
-  (the **restart fence**), so a restart never opens a replay hole.
+Every :class:`~antireplay.window.Seen` carries the store's **watermark** and
+**fence** as of that operation:
 
-Backends: :class:`~antireplay.stores.memory.MemoryStore` (one process, the
-default), :class:`~antireplay.stores.sqlite.SqliteStore` (one machine,
-survives ``kill -9`` and reboots), :class:`~antireplay.stores.redis_store.RedisStore`
-(many replicas; fails closed with ``STATE_UNAVAILABLE`` when Redis is down).
-Select one from config with :func:`open_store`:
-``memory``, ``sqlite:PATH`` or ``redis://HOST:PORT/DB``.
+* **An entry lives until its own expiry.**  Anything removed earlier on any
+  clock (saturation, a purge after a clock step) raises the watermark to its
+  expiry, persisted and shared with the entries.
+* **Possible data loss raises the fence** to the moment it was noticed, in the
+  shared state, so every replica applies it, not just the first to notice:
+  a new process (memory), a deleted, truncated, replaced or rolled-back file
+  (SQLite), a Redis that restarted, failed over, was flushed or restored from
+  older data (Redis, checked atomically with every commit).
+
+Backends: :class:`~antireplay.stores.memory.MemoryStore` (one process, bounded
+by ``msg_id_cache_size``), :class:`~antireplay.stores.sqlite.SqliteStore` (one
+machine, survives ``kill -9`` and reboots), :class:`~antireplay.stores.redis_store.RedisStore`
+(many replicas, standalone Redis or Redis Cluster; fails closed with
+``STATE_UNAVAILABLE`` when Redis is down).  Select one with :func:`open_store`:
+``memory``, ``sqlite:PATH``, ``redis://HOST:PORT/DB`` or
+``redis+cluster://HOST:PORT``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from typing import Protocol, runtime_checkable
 
 from antireplay.clock import Clock
 from antireplay.errors import ConfigError
+from antireplay.window import Seen
 
 
 @runtime_checkable
 class ReplayStore(Protocol):
     """Atomic replay state; see the module docstring for the contract."""
 
-    def lookup(self, key: str) -> float | None: ...
+    @property
+    def backend(self) -> str:
+        """``memory``, ``sqlite``, ``redis`` or ``redis-cluster`` (a metrics label)."""
 
-    def record(self, key: str, expires_at: float, now: float) -> bool: ...
+    @property
+    def persistent(self) -> bool:
+        """Whether the state survives a restart of this process."""
 
-    def record_many(self, items: Sequence[tuple[str, float]], now: float) -> list[bool]: ...
+    def lookup(self, key: str) -> Seen: ...
+
+    def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen: ...
 
     def advance(self, key: str, value: int) -> bool: ...
 
     def current(self, key: str) -> int | None: ...
 
-    def fence(self) -> float: ...
+    def status(self) -> dict[str, float]: ...
 
     def close(self) -> None: ...
 
 
-def open_store(spec: str, *, clock: Clock | None = None) -> ReplayStore:
-    """Build a store from ``memory``, ``sqlite:PATH`` or ``redis://…`` (``rediss://`` too)."""
+#: The store specs open_store understands, in words (for errors and the docs).
+STORE_SPECS = "memory, sqlite:PATH, redis://HOST:PORT/DB or redis+cluster://HOST:PORT"
+
+
+def open_store(
+    spec: str, *, clock: Clock | None = None, max_entries: int = 10_000, skew_s: float = 5.0
+) -> ReplayStore:
+    """Build a store from its spec; ``max_entries`` bounds the memory backend."""
     if spec == "memory":
         from antireplay.stores.memory import MemoryStore  # noqa: PLC0415 - optional backends
 
-        return MemoryStore(clock=clock)
+        return MemoryStore(max_entries=max_entries, clock=clock)
     if spec.startswith("sqlite:") and len(spec) > len("sqlite:"):
         from antireplay.stores.sqlite import SqliteStore  # noqa: PLC0415
 
-        return SqliteStore(spec[len("sqlite:") :])
-    if spec.startswith(("redis://", "rediss://", "unix://")):
+        return SqliteStore(spec[len("sqlite:") :], clock=clock)
+    if spec.startswith(("redis://", "rediss://", "unix://", "redis+cluster://")):
         from antireplay.stores.redis_store import RedisStore  # noqa: PLC0415
 
-        return RedisStore(spec, clock=clock)
-    raise ConfigError("store", spec, "memory, sqlite:PATH or redis://HOST:PORT/DB")
+        return RedisStore(spec, clock=clock, skew_s=skew_s)
+    raise ConfigError("store", spec, STORE_SPECS)
 
 
-__all__ = ["ReplayStore", "open_store"]
+__all__ = ["STORE_SPECS", "ReplayStore", "Seen", "open_store"]

@@ -1,46 +1,88 @@
-"""RedisStore: replay state shared by every gateway replica, failing closed.
+"""RedisStore: replay state shared by every gateway replica, failing closed, noticing loss.
 
-* msg_ids: ``SET key expiry NX PX ttl`` (one round trip, atomic); the TTL is
-  relative (``ceil((expiry - now) * 1000)`` ms), so the Redis server's wall
-  clock does not matter.  Only when the key exists does a Lua script check
-  whether its stored expiry already passed on *our* clock (atomic replace).
-* counters and epochs: a Lua script compares fixed-width decimal strings and
-  advances atomically (Lua numbers are doubles and would round 64-bit values).
-* Keys are ``<prefix>{<hash tag>}:m:<msg_id>`` and ``…:c:<name>``: the hash tag
-  puts one deployment's keys in one Redis Cluster slot, so pipelines and
-  scripts never cross slots.
-* A connection pool is shared by all threads; ``record_many`` pipelines a
-  batch in one round trip.
-* Any connection error or timeout raises ``STATE_UNAVAILABLE`` (HTTP 503): the
-  window then refuses everything but a fresh ESTOP.
-* **Data loss is detected, not assumed away.**  A sentinel key marks a Redis
-  that holds our state.  At start and after every connection error the store
-  checks it; if it is missing (a Redis restarted without persistence, a
-  flushed or failed-over empty node, or simply a first deployment) the store
-  raises its ``fence()`` to the current time, and the window then refuses
-  everything stamped before it (plus skew) for one window, exactly like a
-  restarted in-memory receiver.  Run Redis with AOF to avoid even that pause.
+Theory of operation
+-------------------
+* **One script per commit.**  ``commit`` is one Lua script (atomic on the
+  server): it checks the deployment's ``meta`` hash against the identity of
+  the server process running it, reads the entry, records or refuses, and
+  returns the entry with the shared fence and watermark.  Detection therefore
+  happens on the very next commit, atomically with it, whether or not the
+  client saw a dropped connection (redis-py retries hide restarts).
+* **Data loss is detected, whatever caused it.**  ``meta`` records the
+  ``run_id`` of the server process that holds our state.  A restart (from an
+  RDB snapshot older than our last write, or from nothing), a failover to a
+  replica that missed writes, or a restore all put our keys in the hands of
+  another server process; ``FLUSHALL``/``FLUSHDB`` remove ``meta`` itself.
+  Either way the script raises the **fence** in ``meta`` to
+  ``max(the caller's now, the server's time)`` and counts a data-loss event.
+  The fence lives in Redis, so every replica applies it on its next commit,
+  not just the first to notice.  A restart that lost nothing (AOF with
+  ``appendfsync always``) is fenced too: one cannot tell it from one that lost
+  something, and a fence only costs ``skew_s`` seconds of refusals.
+* **Eviction is refused at start.**  A ``maxmemory-policy`` other than
+  ``noeviction`` could silently drop our keys, so :class:`RedisStore` refuses
+  such a server (``ConfigError``); a full Redis then answers errors, which
+  fail closed (``STATE_UNAVAILABLE``).
+* **Entry lifetimes do not depend on one replica's clock.**  An entry's TTL is
+  ``expiry - min(caller's now, server time) + skew_s``: a replica whose clock
+  runs ahead (within ``skew_s``) cannot shorten it, nor can a server clock
+  that runs ahead.  An entry that exists but has expired on the caller's
+  clock is replaced atomically.
+* **Redis Cluster**: ``redis+cluster://HOST:PORT`` uses redis-py's cluster
+  client.  Keys are ``<prefix>{<hash tag>}:…``: the hash tag puts a
+  deployment's keys in one slot, so the script never crosses slots and the
+  node that owns the slot (and its identity) answers for all of them.
+* Any connection error, timeout or server error raises ``STATE_UNAVAILABLE``
+  (HTTP 503): the window then refuses everything but a fresh ESTOP.
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Sequence
-from typing import Any, TypeVar
+import logging
+from collections.abc import Callable
+from typing import Any, Final, TypeVar
 
 import redis
+import redis.cluster
 
 from antireplay.clock import Clock, resolve
-from antireplay.errors import StateUnavailableError
+from antireplay.errors import ConfigError, StateUnavailableError
 from antireplay.stores import _codec
+from antireplay.window import NEVER, Seen
 
 T = TypeVar("T")
+log = logging.getLogger("antireplay.stores.redis")
 
-_REPLACE_EXPIRED = """
-local cur = redis.call('GET', KEYS[1])
-if cur and tonumber(cur) >= tonumber(ARGV[2]) then return 0 end
-redis.call('SET', KEYS[1], ARGV[1], 'PX', ARGV[3])
-return 1
+#: "No fence / nothing forgotten" in Redis (Lua's tonumber does not read "-inf").
+_FLOOR: Final = "-1e18"
+
+_COMMIT = """
+local run = string.match(redis.call('INFO', 'server'), 'run_id:(%w+)')
+local t = redis.call('TIME')
+local server_now = tonumber(t[1]) + tonumber(t[2]) / 1000000
+local now = tonumber(ARGV[2])
+local meta = redis.call('HMGET', KEYS[1], 'run', 'fence', 'wm')
+local fence, wm, lost = meta[2] or ARGV[5], meta[3] or ARGV[5], 0
+if meta[1] ~= run then
+  local f = math.max(tonumber(fence), now, server_now)
+  fence = string.format('%.6f', f + 0.000001)
+  redis.call('HSET', KEYS[1], 'run', run, 'fence', fence, 'wm', wm)
+  redis.call('HINCRBY', KEYS[1], 'losses', 1)
+  lost = 1
+end
+if ARGV[1] == '' then return {0, false, fence, wm, lost} end
+local expiry = tonumber(ARGV[1])
+local ttl = math.ceil((expiry - math.min(now, server_now) + tonumber(ARGV[3])) * 1000) + 1
+if ttl < 1 then ttl = 1 end
+local cur = redis.call('GET', KEYS[2])
+if cur and tonumber(cur) >= now then
+  if ARGV[4] == '1' and expiry > tonumber(cur) then
+    redis.call('SET', KEYS[2], ARGV[1], 'PX', ttl)
+  end
+  return {0, cur, fence, wm, lost}
+end
+redis.call('SET', KEYS[2], ARGV[1], 'PX', ttl)
+return {1, cur or false, fence, wm, lost}
 """
 
 _ADVANCE = """
@@ -50,11 +92,13 @@ redis.call('SET', KEYS[1], ARGV[1])
 return 1
 """
 
+Client = redis.Redis | redis.cluster.RedisCluster
+
 
 class RedisStore:
-    """The store contract on Redis (standalone or Cluster via hash tags)."""
+    """The store contract on Redis or Redis Cluster (see the module docstring)."""
 
-    persistent = True
+    persistent: Final = True
 
     def __init__(
         self,
@@ -64,49 +108,77 @@ class RedisStore:
         hash_tag: str = "antireplay",
         timeout_s: float = 0.5,
         max_connections: int = 64,
+        skew_s: float = 5.0,
         clock: Clock | None = None,
     ) -> None:
-        self._pool = redis.ConnectionPool.from_url(
-            url,
-            socket_timeout=timeout_s,
-            socket_connect_timeout=timeout_s,
-            max_connections=max_connections,
-        )
-        self._redis = redis.Redis(connection_pool=self._pool)
+        self.url = url
+        options: dict[str, Any] = {
+            "socket_timeout": timeout_s,
+            "socket_connect_timeout": timeout_s,
+            "max_connections": max_connections,
+        }
+        self._redis: Client
+        self.backend = "redis"
+        if url.startswith("redis+cluster://"):
+            self.backend = "redis-cluster"
+            self._redis = redis.cluster.RedisCluster.from_url(
+                "redis://" + url[len("redis+cluster://") :], **options
+            )
+        else:
+            self._redis = redis.Redis.from_url(url, **options)
         self._base = f"{prefix}{{{hash_tag}}}:"
+        self._meta = f"{self._base}meta"
+        self._commit = self._redis.register_script(_COMMIT)
         self._advance = self._redis.register_script(_ADVANCE)
-        self._replace = self._redis.register_script(_REPLACE_EXPIRED)
         self._clock = resolve(clock)
-        self._fence = float("-inf")
-        self._suspect = True  # verify the sentinel on the first successful call
+        self._skew = repr(float(skew_s))
+        self._fence = NEVER
+        self._watermark = NEVER
+        self._policy_checked = False
         self.data_loss_events = 0
+        try:
+            self._check_policy()
+        except (redis.ConnectionError, redis.TimeoutError):
+            pass  # Redis is down at start: checked on the first call that reaches it
 
     def fence(self) -> float:
         return self._fence
 
+    def watermark(self) -> float:
+        return self._watermark
+
     def msg_key(self, key: str) -> str:
         return f"{self._base}m:{key}"
 
-    def lookup(self, key: str) -> float | None:
+    def lookup(self, key: str) -> Seen:
+        """A plain GET (records nothing); fence and watermark as of the last commit."""
         value = self._call(lambda: self._redis.get(self.msg_key(key)))
-        return None if value is None else float(value)
+        return Seen(NEVER if value is None else float(value), self._watermark, self._fence)
 
-    def record(self, key: str, expires_at: float, now: float) -> bool:
-        name, ttl = self.msg_key(key), _ttl_ms(expires_at, now)
-        if self._call(lambda: self._redis.set(name, repr(expires_at), nx=True, px=ttl)):
-            return True
-        # Rare path: the key exists; it may be expired by our clock but not yet by Redis's.
-        args: list[str | int] = [repr(expires_at), repr(now), ttl]
-        return bool(self._call(lambda: self._replace(keys=[name], args=args)))
+    def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
+        args = [repr(expires_at), repr(now), self._skew, "1" if force else "0", _FLOOR]
+        reply = self._call(lambda: self._commit(keys=[self._meta, self.msg_key(key)], args=args))
+        return self._seen(reply)
 
-    def record_many(self, items: Sequence[tuple[str, float]], now: float) -> list[bool]:
-        def batch() -> list[Any]:
-            pipe = self._redis.pipeline(transaction=False)
-            for key, expires_at in items:
-                pipe.set(self.msg_key(key), repr(expires_at), nx=True, px=_ttl_ms(expires_at, now))
-            return pipe.execute()
+    def verify(self) -> Seen:
+        """Run the identity check alone (start-up, readiness probes)."""
+        args = ["", repr(self._clock.wall()), self._skew, "0", _FLOOR]
+        return self._seen(self._call(lambda: self._commit(keys=[self._meta, self._meta], args=args)))
 
-        return [bool(r) for r in self._call(batch)]
+    def _seen(self, reply: list[Any]) -> Seen:
+        recorded, cur, fence, watermark, lost = reply
+        self._fence = _floor(float(fence))
+        self._watermark = _floor(float(watermark))
+        if lost:
+            self.data_loss_events += 1
+            log.warning(
+                "redis %s lost or replaced our replay state (restart, failover, flush or "
+                "restore); fence raised to %s",
+                self.url,
+                fence,
+            )
+        expiry = NEVER if cur is None else float(cur)
+        return Seen(expiry, self._watermark, self._fence, bool(recorded), False, bool(lost))
 
     def advance(self, key: str, value: int) -> bool:
         encoded = _codec.encode(value)
@@ -118,30 +190,45 @@ class RedisStore:
         value = self._call(lambda: self._redis.get(f"{self._base}c:{key}"))
         return None if value is None else _codec.decode(value)
 
+    def status(self) -> dict[str, float]:
+        return {
+            "entries": float("nan"),  # not counted: a SCAN per scrape would cost O(n)
+            "watermark": self._watermark,
+            "fence": self._fence,
+            "evictions": 0.0,
+            "data_loss_events": float(self.data_loss_events),
+        }
+
     def close(self) -> None:
-        self._pool.disconnect()
+        self._redis.close()
+
+    def _check_policy(self) -> None:
+        """Refuse a Redis that may evict our keys (``maxmemory-policy`` other than noeviction)."""
+        info: Any = self._redis.info("memory")
+        nodes = info.values() if isinstance(self._redis, redis.cluster.RedisCluster) else [info]
+        for node in nodes:
+            policy = node.get("maxmemory_policy", "noeviction") if isinstance(node, dict) else None
+            if policy is not None and policy != "noeviction":
+                raise ConfigError(
+                    "store",
+                    self.url,
+                    f"a Redis with maxmemory-policy noeviction (this one has {policy}, which "
+                    "can silently evict replay state)",
+                )
+        self._policy_checked = True
 
     def _call(self, op: Callable[[], T]) -> T:
         try:
-            if self._suspect:
-                self._check_sentinel()
+            if not self._policy_checked:
+                self._check_policy()
             return op()
         except (redis.ConnectionError, redis.TimeoutError) as exc:
-            self._suspect = True
             raise StateUnavailableError(f"redis unreachable: {exc}") from None
+        except ConfigError as exc:  # an evicting Redis found after start: fail closed
+            raise StateUnavailableError(str(exc)) from None
         except redis.RedisError as exc:
-            self._suspect = True
             raise StateUnavailableError(f"redis error: {exc}") from None
 
-    def _check_sentinel(self) -> None:
-        """If our sentinel is gone, Redis lost (or never had) our state: raise the fence."""
-        now = self._clock.wall()
-        if self._redis.set(f"{self._base}sentinel", repr(now), nx=True):
-            self._fence = max(self._fence, now)
-            self.data_loss_events += 1
-        self._suspect = False
 
-
-def _ttl_ms(expires_at: float, now: float) -> int:
-    """At least 1 ms; rounded up so the key never expires before the message goes stale."""
-    return max(1, math.ceil((expires_at - now) * 1000) + 1)
+def _floor(value: float) -> float:
+    return NEVER if value <= -1e17 else value

@@ -1,55 +1,156 @@
-"""SqliteStore: replay state on one machine that survives kill -9 and reboots.
+"""SqliteStore: replay state on one machine that survives kill -9 and reboots, and notices loss.
 
-WAL journal with ``synchronous=FULL``: a ``record`` returns only after its
-commit is durable, so a message accepted before a crash is still remembered
-after it.  Several processes may share one file; SQLite's write lock makes
-``record`` and ``advance`` atomic across them (``busy_timeout`` waits for the
-lock instead of failing).  Expired rows are purged a few at a time on every
-write (bounded work per call), so the file stays bounded by the live set.
+Theory of operation
+-------------------
+WAL journal with ``synchronous=FULL``: a ``commit`` returns only after its
+transaction is durable, so a message accepted before a crash is still
+remembered after it.  Several processes may share one file; SQLite's write lock
+(``BEGIN IMMEDIATE``) makes ``commit`` and ``advance`` atomic across them.
+
+* **Entries live to their own expiry; early removal raises the watermark.**
+  Each commit purges at most ``PURGE_BATCH`` rows whose expiry is below the
+  caller's ``now`` and raises the persisted watermark (table ``meta``) to the
+  largest expiry it removed, in the same transaction.  A purge that runs while
+  the wall clock has stepped forward therefore never re-opens a replay when
+  the clock steps back.
+* **A lost, truncated, replaced or rolled-back file is detected.**  Beside the
+  database lives a small **witness** file (``<db>.witness``): a deployment id
+  and a generation, rewritten in place and ``fdatasync``-ed inside every write
+  transaction, before its COMMIT.  The database's ``meta`` row carries the
+  same two values.  At open:
+
+  ==========================================  =====================================
+  what is found                               what it means / what happens
+  ==========================================  =====================================
+  neither database nor witness                a new deployment: created, no fence
+  witness, database missing or empty          deleted or truncated: **fence**
+  witness of another deployment               the file was replaced: **fence**
+  database generation below the witness's     rolled back (a restored copy): **fence**
+  database with state but no witness          witness lost (or made by an older
+                                              version): **fence**
+  a file that is not a readable database      refused at start (``StateFileError``
+                                              names the file and the recovery:
+                                              move it aside; the next start fences)
+  ==========================================  =====================================
+
+  A fence is the wall time at which the loss was noticed, persisted in
+  ``meta``; the window refuses anything stamped at or before ``fence + skew``,
+  which covers every message the lost state could have held, and counts it
+  (``data_loss_events``).  A crash between the witness write and the COMMIT
+  leaves the witness one generation ahead: the next start fences (a false
+  alarm that fails closed, never a silent loss).
+
+Deleting the database *and* its witness is indistinguishable from a new
+deployment; that is the documented way to reset (``antireplay state reset``
+does it and raises a fence).
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
 import sqlite3
+import struct
 import threading
 import time
-from collections.abc import Callable, Sequence
+import uuid
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any, Final, TypeVar
 
-from antireplay.errors import StateUnavailableError
+from antireplay.clock import Clock, resolve
+from antireplay.errors import StateFileError, StateUnavailableError
 from antireplay.stores import _codec
+from antireplay.window import NEVER, Seen
 
 T = TypeVar("T")
-PURGE_BATCH = 32
+PURGE_BATCH: Final = 32
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS seen (key TEXT PRIMARY KEY, expires REAL NOT NULL) WITHOUT ROWID;
 CREATE INDEX IF NOT EXISTS seen_expires ON seen (expires);
 CREATE TABLE IF NOT EXISTS counters (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS meta (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    deployment TEXT NOT NULL,
+    generation INTEGER NOT NULL,
+    watermark REAL NOT NULL,
+    fence REAL NOT NULL,
+    data_loss_events INTEGER NOT NULL
+);
 """
-_RECORD = """
-INSERT INTO seen (key, expires) VALUES (?, ?)
-ON CONFLICT (key) DO UPDATE SET expires = excluded.expires WHERE seen.expires < ?
-"""
-_PURGE = """
-DELETE FROM seen WHERE key IN (SELECT key FROM seen WHERE expires < ? ORDER BY expires LIMIT ?)
-"""
+_PURGE_SELECT = "SELECT key, expires FROM seen WHERE expires < ? ORDER BY expires LIMIT ?"
 _ADVANCE = """
 INSERT INTO counters (key, value) VALUES (?, ?)
 ON CONFLICT (key) DO UPDATE SET value = excluded.value WHERE excluded.value > counters.value
 """
+_FLOOR = -1e300  # SQLite REAL has no -inf literal that round-trips everywhere: "nothing yet"
+
+
+class Witness:
+    """The small file beside the database: deployment id and generation, checksummed.
+
+    It is rewritten in place (one ``pwrite`` of 64 bytes, well inside one disk
+    sector, then ``fdatasync``); a torn or foreign file reads as ``None``.
+    """
+
+    MAGIC: Final = b"ARWITN01"
+    _LAYOUT: Final = struct.Struct("<8s16sQ")
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._fd: int | None = None
+
+    def read(self) -> tuple[str, int] | None | bool:
+        """``(deployment, generation)``, ``None`` if absent, ``False`` if unreadable."""
+        try:
+            raw = self.path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError:
+            return False
+        size = self._LAYOUT.size
+        if len(raw) < size + 16 or hashlib.sha256(raw[:size]).digest()[:16] != raw[size:][:16]:
+            return False
+        magic, deployment, generation = self._LAYOUT.unpack_from(raw)
+        if magic != self.MAGIC:
+            return False
+        return uuid.UUID(bytes=deployment).hex, generation
+
+    def write(self, deployment: str, generation: int) -> None:
+        body = self._LAYOUT.pack(self.MAGIC, uuid.UUID(hex=deployment).bytes, generation)
+        record = (body + hashlib.sha256(body).digest()[:16]).ljust(64, b"\0")
+        if self._fd is None:
+            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+        os.pwrite(self._fd, record, 0)
+        os.fdatasync(self._fd)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
 
 
 class SqliteStore:
-    """The store contract on a SQLite file (WAL, synchronous commits)."""
+    """The store contract on a SQLite file (WAL, synchronous commits, witness file)."""
 
-    persistent = True
+    persistent: Final = True
+    backend: Final = "sqlite"
 
-    def __init__(self, path: str | Path, *, timeout_s: float = 10.0) -> None:
+    def __init__(
+        self, path: str | Path, *, timeout_s: float = 10.0, clock: Clock | None = None
+    ) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._db = self._open(timeout_s)
+        self.witness = Witness(self.path.with_name(self.path.name + ".witness"))
+        self._clock = resolve(clock)
         self._lock = threading.Lock()
+        self._db = self._open(timeout_s)
+        self._deployment = ""
+        self._watermark = NEVER
+        self._fence = NEVER
+        self.data_loss_events = 0
+        self.loss_reason: str | None = None
+        self._run(self._verify)
 
     def _open(self, timeout_s: float) -> sqlite3.Connection:
         """Connect and set up; processes opening one new file at once may briefly collide.
@@ -69,33 +170,107 @@ class SqliteStore:
                 return db
             except sqlite3.OperationalError as exc:
                 if "locked" not in str(exc) or time.monotonic() > deadline:
-                    raise StateUnavailableError(f"cannot open {self.path}: {exc}") from None
+                    raise self._unreadable(exc) from None
                 time.sleep(0.01)
             except sqlite3.Error as exc:
-                raise StateUnavailableError(f"cannot open {self.path}: {exc}") from None
+                raise self._unreadable(exc) from None
+
+    def _unreadable(self, exc: Exception) -> StateFileError:
+        return StateFileError(
+            str(self.path),
+            f"not a readable replay-state database ({exc})",
+            recovery=f"mv {self.path} {self.path}.corrupt (the next start re-creates it "
+            "behind a restart fence)",
+        )
+
+    def _verify(self) -> None:
+        """At open: compare the database with its witness; fence on any sign of loss."""
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        try:
+            row = db.execute(
+                "SELECT deployment, generation, watermark, fence, data_loss_events FROM meta"
+            ).fetchone()
+            rows = db.execute("SELECT count(*) FROM seen").fetchone()[0]
+            counters = db.execute("SELECT count(*) FROM counters").fetchone()[0]
+            found = self.witness.read()
+            reason = _loss_reason(row, found, bool(rows or counters))
+            if row is None:
+                deployment = found[0] if isinstance(found, tuple) else uuid.uuid4().hex
+                generation, watermark, fence, losses = 0, _FLOOR, _FLOOR, 0
+            else:
+                deployment, generation, watermark, fence, losses = row
+            if isinstance(found, tuple):
+                generation = max(generation, found[1])
+            if reason is not None:
+                fence = max(fence, self._clock.wall())
+                losses += 1
+                self.loss_reason = reason
+            self._deployment = deployment
+            self._store_meta(generation + 1, watermark, fence, losses)
+            db.execute("COMMIT")
+        except BaseException:
+            db.execute("ROLLBACK")
+            raise
+
+    def _store_meta(self, generation: int, watermark: float, fence: float, losses: int) -> None:
+        """Write the meta row and the witness (inside the caller's write transaction)."""
+        self._db.execute(
+            "INSERT OR REPLACE INTO meta VALUES (1, ?, ?, ?, ?, ?)",
+            (self._deployment, generation, watermark, fence, losses),
+        )
+        self.witness.write(self._deployment, generation)
+        self._watermark = NEVER if watermark <= _FLOOR else watermark
+        self._fence = NEVER if fence <= _FLOOR else fence
+        self.data_loss_events = losses
 
     def fence(self) -> float:
-        return float("-inf")
+        return self._fence
 
-    def lookup(self, key: str) -> float | None:
-        found = self._fetch("SELECT expires FROM seen WHERE key = ?", (key,))
-        return None if found is None else float(found[0])
+    def watermark(self) -> float:
+        return self._watermark
 
-    def record(self, key: str, expires_at: float, now: float) -> bool:
-        return self.record_many([(key, expires_at)], now)[0]
+    def lookup(self, key: str) -> Seen:
+        def query() -> Seen:
+            row = self._db.execute(
+                "SELECT (SELECT expires FROM seen WHERE key = ?), watermark, fence FROM meta",
+                (key,),
+            ).fetchone()
+            expiry, watermark, fence = row
+            return Seen(
+                NEVER if expiry is None else float(expiry),
+                NEVER if watermark <= _FLOOR else float(watermark),
+                NEVER if fence <= _FLOOR else float(fence),
+            )
 
-    def record_many(self, items: Sequence[tuple[str, float]], now: float) -> list[bool]:
-        def tx() -> list[bool]:
+        with self._lock:
+            return self._run(query)
+
+    def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
+        """One transaction: bounded purge (raising the watermark), record, meta + witness."""
+
+        def tx() -> Seen:
             db = self._db
             db.execute("BEGIN IMMEDIATE")
             try:
-                db.execute(_PURGE, (now, PURGE_BATCH))
-                results = [db.execute(_RECORD, (k, e, now)).rowcount == 1 for k, e in items]
+                generation, watermark, fence, losses = db.execute(
+                    "SELECT generation, watermark, fence, data_loss_events FROM meta"
+                ).fetchone()
+                purged = db.execute(_PURGE_SELECT, (now, PURGE_BATCH)).fetchall()
+                if purged:
+                    db.executemany("DELETE FROM seen WHERE key = ?", [(k,) for k, _ in purged])
+                    watermark = max(watermark, max(e for _, e in purged))
+                found = db.execute("SELECT expires FROM seen WHERE key = ?", (key,)).fetchone()
+                seen = NEVER if found is None else float(found[0])
+                recorded = not seen >= now
+                if recorded or (force and seen < expires_at):
+                    db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (key, expires_at))
+                self._store_meta(generation + 1, watermark, fence, losses)
                 db.execute("COMMIT")
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
-            return results
+            return Seen(seen, self._watermark, self._fence, recorded)
 
         with self._lock:
             return self._run(tx)
@@ -118,9 +293,19 @@ class SqliteStore:
         row = self._fetch("SELECT count(*) FROM seen", ())
         return 0 if row is None else int(row[0])
 
+    def status(self) -> dict[str, float]:
+        return {
+            "entries": float(self.count()),
+            "watermark": self._watermark,
+            "fence": self._fence,
+            "evictions": 0.0,
+            "data_loss_events": float(self.data_loss_events),
+        }
+
     def close(self) -> None:
         with self._lock:
             self._db.close()
+            self.witness.close()
 
     def _fetch(self, sql: str, params: tuple[object, ...]) -> tuple[Any, ...] | None:
         def query() -> tuple[Any, ...] | None:
@@ -130,9 +315,34 @@ class SqliteStore:
         with self._lock:
             return self._run(query)
 
-    @staticmethod
-    def _run(op: Callable[[], T]) -> T:
+    def _run(self, op: Callable[[], T]) -> T:
         try:
             return op()
-        except sqlite3.Error as exc:
-            raise StateUnavailableError(f"sqlite: {exc}") from None
+        except sqlite3.DatabaseError as exc:
+            if "malformed" in str(exc) or "not a database" in str(exc):
+                raise self._unreadable(exc) from None
+            raise StateUnavailableError(f"sqlite {self.path}: {exc}") from None
+        except OSError as exc:
+            raise StateUnavailableError(f"sqlite witness {self.witness.path}: {exc}") from None
+
+
+def _loss_reason(
+    meta: tuple[Any, ...] | None, witness: tuple[str, int] | None | bool, has_state: bool
+) -> str | None:
+    """Why the database may have lost state (None: it provably has not)."""
+    if meta is None:
+        if witness is None and not has_state:
+            return None  # a new deployment
+        if witness is None:
+            return "state without meta or witness (made by an older version?)"
+        return "database missing, truncated or replaced (the witness says it existed)"
+    if witness is None:
+        return "witness file missing"
+    if witness is False:
+        return "witness file unreadable"
+    assert isinstance(witness, tuple)
+    if witness[0] != meta[0]:
+        return "database belongs to another deployment than its witness (replaced)"
+    if meta[1] < witness[1]:
+        return f"database generation {meta[1]} is behind its witness's {witness[1]} (rolled back)"
+    return None
