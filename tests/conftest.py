@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 
 from antireplay import ManualClock, ReplayAttackError, ReplayCache
+from antireplay.pipeline import Receiver
 from tests.redis_server import RedisServer
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -31,6 +32,23 @@ def _fresh_cache(*args: Any, **kwargs: Any) -> ReplayCache:
     if isinstance(clock, ManualClock):
         clock.advance(cache.policy.window_s + cache.policy.skew_s + 1)
     return cache
+
+
+#: How long before a test's "now" its receiver's in-memory store started (> window + skew).
+STARTED_BEFORE_S = 400.0
+
+
+def fresh_receiver(*args: Any, **kwargs: Any) -> Receiver:
+    """A Receiver whose in-memory store started long enough ago that its restart fence
+    refuses nothing the test sends (the fence has its own tests)."""
+    clock = kwargs.get("clock", args[4] if len(args) > 4 else None)
+    if not isinstance(clock, ManualClock):
+        return Receiver(*args, **kwargs)
+    clock.step_wall(-STARTED_BEFORE_S)
+    try:
+        return Receiver(*args, **kwargs)
+    finally:
+        clock.step_wall(STARTED_BEFORE_S)
 
 
 @pytest.fixture

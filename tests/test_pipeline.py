@@ -22,7 +22,7 @@ from antireplay import ManualClock, SecurityConfig
 from antireplay.audit import AuditLog, verify
 from antireplay.auth import JwtVerifier, KeyRegistry, sign_envelope
 from antireplay.pipeline import Outcome, Receiver
-from tests.conftest import race
+from tests.conftest import fresh_receiver, race
 
 ED = ed25519.Ed25519PrivateKey.generate()
 PQ = mldsa.MLDSA65PrivateKey.generate()
@@ -70,7 +70,7 @@ def clock() -> ManualClock:
 
 @pytest.fixture
 def receiver(tmp_path: Path, clock: ManualClock) -> Receiver:
-    return Receiver(SecurityConfig(), registry(), None, AuditLog(tmp_path / "audit.db"), clock)
+    return fresh_receiver(SecurityConfig(), registry(), None, AuditLog(tmp_path / "audit.db"), clock)
 
 
 def codes(outcome: Outcome) -> tuple[bool, int, str | None]:
@@ -106,7 +106,7 @@ def test_exact_replay_is_409_with_nack(receiver: Receiver) -> None:
 
 
 def test_legacy_nack_type_31(tmp_path: Path, clock: ManualClock) -> None:
-    rx = Receiver(SecurityConfig(nack_type=31), registry(), None, None, clock)
+    rx = fresh_receiver(SecurityConfig(nack_type=31), registry(), None, None, clock)
     raw = signed()
     rx.receive(raw)
     nack = rx.receive(raw).nack
@@ -167,7 +167,7 @@ def test_bad_version_and_stale_reports_version(receiver: Receiver) -> None:
 def test_replay_and_stale_paths_do_no_crypto(tmp_path: Path, clock: ManualClock) -> None:
     keys = registry()
     jwt_verifier = JwtVerifier({"jwt-1": JWT_KEY.public_key()}, clock=clock)
-    rx = Receiver(SecurityConfig(), keys, None, None, clock, jwt=jwt_verifier)
+    rx = fresh_receiver(SecurityConfig(), keys, None, None, clock, jwt=jwt_verifier)
     raw = signed()
     rx.receive(raw, {"Authorization": f"Bearer {token()}"})
     before = (keys.verifications, jwt_verifier.decodes)
@@ -260,7 +260,7 @@ def jwt_receiver(clock: ManualClock) -> Receiver:
     verifier = JwtVerifier(
         {"jwt-1": JWT_KEY.public_key()}, audience="robot-1", issuer="fleet", clock=clock
     )
-    return Receiver(
+    return fresh_receiver(
         SecurityConfig(), registry(), None, None, clock, jwt=verifier, jwt_required=True
     )
 
@@ -291,7 +291,7 @@ def test_jwt_rules(jwt_receiver: Receiver, tok: Any, code: str | None) -> None:
 def test_es256_tokens_and_algorithm_confusion(clock: ManualClock) -> None:
     es_key = ec.generate_private_key(ec.SECP256R1())
     verifier = JwtVerifier({"es": es_key.public_key(), "ed": JWT_KEY.public_key()}, clock=clock)
-    rx = Receiver(SecurityConfig(), registry(), None, None, clock, jwt=verifier)
+    rx = fresh_receiver(SecurityConfig(), registry(), None, None, clock, jwt=verifier)
     good = pyjwt.encode({"sub": "operator", "exp": NOW + 60}, es_key, "ES256", {"kid": "es"})
     assert rx.receive(signed(), {"Authorization": f"Bearer {good}"}).accepted
     wrong_key = pyjwt.encode({"sub": "operator", "exp": NOW + 60}, es_key, "ES256", {"kid": "ed"})
@@ -325,9 +325,9 @@ def sdk_registry(pair: Any, compat: bool) -> KeyRegistry:
 
 def test_sdk_messages_parse_and_verify_only_in_compat_mode(clock: ManualClock) -> None:
     raw, pair = sdk_message()
-    strict = Receiver(SecurityConfig(), sdk_registry(pair, False), None, None, clock)
+    strict = fresh_receiver(SecurityConfig(), sdk_registry(pair, False), None, None, clock)
     assert strict.receive(raw).code == "SIGNATURE_INVALID"
-    compat = Receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
+    compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
     out = compat.receive(raw)
     assert out.accepted and out.signer is not None and out.signer.subset
     assert compat.receive(raw).code == "REPLAY_DETECTED"
@@ -336,7 +336,7 @@ def test_sdk_messages_parse_and_verify_only_in_compat_mode(clock: ManualClock) -
 @pytest.mark.parametrize("field", [{"qos": 1}, {"scope": "control"}])
 def test_compat_mode_refuses_unsigned_policy_fields(clock: ManualClock, field: Any) -> None:
     raw, pair = sdk_message(**field)
-    compat = Receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
+    compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
     assert compat.receive(raw).code == "SCOPE_DENIED"
 
 
@@ -344,7 +344,7 @@ def test_compat_mode_tampered_unsigned_field_is_refused(clock: ManualClock) -> N
     raw, pair = sdk_message()
     body = json.loads(raw)
     body["type"], body["safety_event"] = 6, "ESTOP"  # not covered by the SDK signature
-    compat = Receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
+    compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
     assert compat.receive(json.dumps(body).encode()).code == "SCOPE_DENIED"
 
 
@@ -418,7 +418,7 @@ FIELDS = st.sampled_from(
     ["msg_id", "timestamp", "timestamp_ms", "cmd", "target", "rcan", "rcan_version", "type",
      "safety_event", "params", "sig", "scope", "qos", "sender", "jwt", "extra"]
 )  # fmt: skip
-FUZZ_RX = Receiver(SecurityConfig(), registry(), None, None, ManualClock(wall=NOW))
+FUZZ_RX = fresh_receiver(SecurityConfig(), registry(), None, None, ManualClock(wall=NOW))
 
 
 def _check_outcome(out: Outcome) -> None:

@@ -62,8 +62,12 @@ class CacheVsModel(RuleBasedStateMachine):
             verdict = self.cache.commit(mid, ts, kind[0], kind[1])
         except ReplayAttackError as exc:
             if expected in {"accept", "accept-warn"}:
-                # Only the fail-closed watermark may refuse what the model accepts.
-                assert exc.detail == "watermark", (expected, exc)
+                # Only the fail-closed rules may refuse what the model accepts: the restart
+                # fence (a new process) and the watermark / saturation (forgetting).
+                if exc.detail == "restart_fence":
+                    assert ts <= self.cache.store.status()["fence"] + SKEW
+                    return
+                assert exc.detail in {"watermark", "saturated"}, (expected, exc)
                 assert (
                     self.cache.store.status()["evictions"] > 0
                     or self.stepped_back

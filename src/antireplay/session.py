@@ -75,6 +75,7 @@ from antireplay.errors import (
     UnknownSessionError,
 )
 from antireplay.replay import ReplayCache
+from antireplay.stores.memory import MemoryStore
 
 VERSION = 1
 HS1_MAGIC, HS2_MAGIC, FRAME_MAGIC = 0xA1, 0xA2, 0xA5
@@ -306,7 +307,12 @@ class Responder:
         self.max_sessions = max_sessions
         self._key_hash = hashlib.sha256(kem_key.public_key().public_bytes_raw()).digest()
         self._seq = sequence if sequence is not None else NonceCounter(1)
-        self._seen_hs1 = ReplayCache(HANDSHAKE_WINDOW_S, 100_000, 5.0, clock)
+        # No restart fence: a replayed HS1 can never yield the keys of the session it
+        # opens (the responder's fresh nonce and sequence enter the transcript), so after
+        # a restart it costs one session slot, while a fence would refuse every
+        # initiator for skew seconds.
+        hs1_store = MemoryStore(max_entries=100_000, clock=clock, restart_fence=False)
+        self._seen_hs1 = ReplayCache(HANDSHAKE_WINDOW_S, 100_000, 5.0, clock, store=hs1_store)
         self._sessions: dict[int, Session] = {}
         self._lock = threading.Lock()
 

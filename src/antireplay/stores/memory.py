@@ -57,11 +57,13 @@ class MemoryStore:
     persistent: Final = False
     backend: Final = "memory"
 
-    def __init__(self, *, max_entries: int = 10_000, clock: Clock | None = None) -> None:
+    def __init__(
+        self, *, max_entries: int = 10_000, clock: Clock | None = None, restart_fence: bool = True
+    ) -> None:
         if isinstance(max_entries, bool) or not isinstance(max_entries, int) or max_entries < 1:
             raise ValueError("max_entries must be a positive integer")
         self.max_entries: Final = max_entries
-        self._fence: float = resolve(clock).wall()
+        self._fence: float = resolve(clock).wall() if restart_fence else NEVER
         self._watermark: float = NEVER
         self._expiry: dict[str, float] = {}  # msg_id -> expiry of its entry
         # slot key -> {msg_id: None}.  Dicts of str and None hold no containers, so the
