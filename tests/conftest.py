@@ -20,6 +20,7 @@ from tests.redis_server import RedisServer
 
 ROOT = Path(__file__).resolve().parent.parent
 
+
 def _fresh_cache(*args: Any, **kwargs: Any) -> ReplayCache:
     """A ReplayCache whose ManualClock is moved past its restart fence (start + skew + window).
 

@@ -3,6 +3,7 @@ a standalone server (optionally persistent, optionally a replica) and a 3-node c
 
 from __future__ import annotations
 
+import contextlib
 import shutil
 import socket
 import subprocess
@@ -83,10 +84,14 @@ class RedisServer:
     def start(self) -> None:
         args = [self.binary, "--port", str(self.port), "--bind", "127.0.0.1", "--save", ""]
         args += ["--dir", str(self.directory), "--dbfilename", "dump.rdb"]
-        args += ["--appendonly", "yes", "--appendfsync", "always"] if self.persistent else [
-            "--appendonly",
-            "no",
-        ]
+        args += (
+            ["--appendonly", "yes", "--appendfsync", "always"]
+            if self.persistent
+            else [
+                "--appendonly",
+                "no",
+            ]
+        )
         args += list(self.extra)
         self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         _wait_ping(self.port)
@@ -208,7 +213,5 @@ class Forwarder:
             pass
         finally:
             for sock in (src, dst):
-                try:
+                with contextlib.suppress(OSError):
                     sock.close()
-                except OSError:
-                    pass

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import threading
+import time
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from pathlib import Path
@@ -222,9 +223,11 @@ def test_two_replicas_on_one_redis(tmp_path: Path, redis_url: str) -> None:
     b_cfg = write_demo_config(b_dir, store=shared)
     # Both replicas trust the same operator key.
     (b_dir / "operator.pub.pem").write_bytes((a_dir / "operator.pub.pem").read_bytes())
-    # An existing deployment: the shared Redis already holds antireplay's sentinel, so no
-    # data-loss fence applies (a brand-new or wiped Redis would fence for one skew period).
-    RedisStore(shared).lookup("warm-up")
+    # An existing deployment: the first contact with a new (or wiped) Redis raises the
+    # shared fence to now; messages stamped after fence + skew pass.
+    fence = RedisStore(shared).verify().fence
+    while time.time() <= fence + 5.0:  # a condition on the real clock, not a guess
+        time.sleep(0.05)
     a, b = GatewayProcess(a_cfg), GatewayProcess(b_cfg)
     a.start()
     b.start()

@@ -13,6 +13,8 @@ import pytest
 import antireplay
 from antireplay import _native
 
+ROOT = Path(__file__).resolve().parent.parent
+
 
 def test_installed_build_is_the_compiled_one_unless_pure_was_requested() -> None:
     # CI installs with the build's defaults, so a compiler failure or a stale
@@ -59,13 +61,24 @@ def test_extension_only_install_is_used(tmp_path: Path) -> None:
 
 def test_pure_environment_switch_in_a_real_process() -> None:
     code = (
-        "import antireplay, time\n"
-        "cache = antireplay.ReplayCache()\n"
-        "cache.check('m1', time.time())\n"
-        "print(antireplay.WINDOW_BUILD, antireplay.window.__file__.endswith('.py'))\n"
+        "import antireplay, antireplay._native as n, sys\n"
+        "hot = [sys.modules[m].__file__ for m in n.HOT]\n"
+        "print(antireplay.WINDOW_BUILD, all(f.endswith('.py') for f in hot))\n"
     )
     env = {**os.environ, _native.PURE_ENV: "1"}
     out = subprocess.run(
         [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
     )
     assert out.stdout.split() == ["source", "True"]
+
+
+def test_window_and_store_tests_pass_on_the_pure_python_build() -> None:
+    """The compiled and the source builds must not drift: run the same tests on the source."""
+    tests = ["tests/test_window.py", "tests/test_window_model.py"]
+    env = {**os.environ, _native.PURE_ENV: "1"}
+    out = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *tests],
+        env=env, cwd=ROOT, capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stdout[-3000:]
+    assert " passed" in out.stdout and "skipped" not in out.stdout

@@ -70,7 +70,9 @@ def clock() -> ManualClock:
 
 @pytest.fixture
 def receiver(tmp_path: Path, clock: ManualClock) -> Receiver:
-    return fresh_receiver(SecurityConfig(), registry(), None, AuditLog(tmp_path / "audit.db"), clock)
+    return fresh_receiver(
+        SecurityConfig(), registry(), None, AuditLog(tmp_path / "audit.db"), clock
+    )
 
 
 def codes(outcome: Outcome) -> tuple[bool, int, str | None]:

@@ -12,7 +12,7 @@ import shutil
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -593,5 +593,3 @@ def test_open_store_specs(tmp_path: Path) -> None:
     for bad in ("", "sqlite:", "postgres://x", "memroy"):
         with pytest.raises(ConfigError):
             open_store(bad)
-
-

@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -39,6 +40,7 @@ def purge(cache: ReplayCache) -> int:
 
 def watermark(cache: ReplayCache) -> float:
     return memory(cache).watermark()
+
 
 SAFETY = MessageType.SAFETY
 
@@ -371,7 +373,7 @@ def test_bad_constructor_values_raise_config_error(
     impl: Callable[..., ReplayCache], kwargs: dict[str, object], key: str
 ) -> None:
     with pytest.raises(ConfigError) as err:
-        impl(**kwargs)  # type: ignore[arg-type]
+        impl(**kwargs)
     assert key in err.value.key
 
 

@@ -43,7 +43,6 @@ class Model:
 
 
 class CacheVsModel(RuleBasedStateMachine):
-
     def __init__(self) -> None:
         super().__init__()
         self.clock = ManualClock(wall=1_800_000_000.0)

@@ -77,7 +77,7 @@ def origin_of(name: str) -> Path:
 
 
 def load_source(name: str) -> ModuleType:
-    """Execute hot module ``name`` from its ``.py`` (the pure-Python build), whatever is installed."""
+    """Execute hot module ``name`` from its ``.py`` (the pure build), whatever is installed."""
     parent, _, child = name.rpartition(".")
     importlib.import_module(parent)
     spec = importlib.util.spec_from_file_location(name, source_of(name))

@@ -123,7 +123,9 @@ def run_window_demo() -> list[StepResult]:
             _answer(lambda: cache.commit("e-old", now - 11, safety, estop)),
         ),
         StepResult(
-            "operator: RESUME", ACCEPTED, _answer(lambda: cache.commit("r-1", now, safety, "RESUME"))
+            "operator: RESUME",
+            ACCEPTED,
+            _answer(lambda: cache.commit("r-1", now, safety, "RESUME")),
         ),
         StepResult(
             "attacker: replay RESUME",

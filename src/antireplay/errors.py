@@ -246,7 +246,9 @@ class StateFileError(AntiReplayError):
 
     def __init__(self, path: str, problem: str, *, recovery: str | None = None) -> None:
         recovery = recovery or f"antireplay state repair {path}"
-        super().__init__(f"state file {path}: {problem}; refusing to start. Recover with: {recovery}")
+        super().__init__(
+            f"state file {path}: {problem}; refusing to start. Recover with: {recovery}"
+        )
         self.recovery = recovery
         self.path = path
         self.problem = problem

@@ -58,8 +58,8 @@ from antireplay.errors import (
     VersionIncompatibleError,
 )
 from antireplay.messages import MessageType
-from antireplay.stores import ReplayStore
 from antireplay.replay import ReplayCache
+from antireplay.stores import ReplayStore
 from antireplay.window import is_estop
 
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})

@@ -10,10 +10,12 @@ embedder uses directly:
 * :meth:`ReplayCache.check` plans the message (shape, staleness, future), reads
   the store's entry with ``lookup`` and judges it.  It records nothing, so a
   receiver runs it before any cryptography and throws replays away cheaply.
-* :meth:`ReplayCache.commit` plans again on a fresh ``now``, performs the
-  store's one atomic ``commit`` (which also notices data loss) and judges what
-  it returned.  Run it only after the message authenticated; of two racers on
-  one msg_id exactly one is admitted.
+* :meth:`ReplayCache.commit` plans again on a fresh ``now``, refuses what the
+  store's last known fence and watermark already refuse (so a refused message
+  does not spend its msg_id), performs the store's one atomic ``commit``
+  (which also notices data loss) and judges what it returned.  Run it only
+  after the message authenticated; of two racers on one msg_id exactly one is
+  admitted.
 
 No lock is held here: the store's commit is the only atomic step.  A store that
 cannot be reached fails closed (``STATE_UNAVAILABLE``, 503) for everything
@@ -42,7 +44,7 @@ from antireplay.errors import ConfigError, ReplayAttackError, StateUnavailableEr
 from antireplay.messages import MessageType
 from antireplay.stores import ReplayStore
 from antireplay.stores.memory import MemoryStore
-from antireplay.window import Verdict, Window
+from antireplay.window import NEVER, Seen, Verdict, Window
 
 _STATE_UNAVAILABLE = "STATE_UNAVAILABLE"
 
@@ -126,7 +128,11 @@ class ReplayCache:
             plan = policy.plan(mid, ts, msg_type, event, now)
             try:
                 if commit:
-                    seen = self.store.commit(plan.msg_id, plan.expires_at, now, plan.estop)
+                    # Refuse what the known fence or watermark already refuses *before*
+                    # recording it: a refused message must not spend its msg_id.
+                    store = self.store
+                    policy.judge(plan, Seen(NEVER, store.watermark(), store.fence()), now)
+                    seen = store.commit(plan.msg_id, plan.expires_at, now, plan.estop)
                 else:
                     seen = self.store.lookup(plan.msg_id)
             except StateUnavailableError:

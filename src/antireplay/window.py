@@ -118,7 +118,7 @@ class Seen:
 
     __slots__ = ("expiry", "fence", "full", "lost", "recorded", "watermark")
 
-    def __init__(
+    def __init__(  # noqa: PLR0917 - a value object, built positionally on the hot path
         self,
         expiry: float,
         watermark: float,
@@ -151,7 +151,7 @@ class Verdict:
 
     __slots__ = ("estop", "expires_at", "msg_id", "timestamp", "warning", "window_s")
 
-    def __init__(
+    def __init__(  # noqa: PLR0917 - a value object, built positionally on the hot path
         self,
         msg_id: str,
         timestamp: float,

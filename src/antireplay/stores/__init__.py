@@ -63,6 +63,12 @@ class ReplayStore(Protocol):
 
     def lookup(self, key: str) -> Seen: ...
 
+    def fence(self) -> float:
+        """The fence as last known to this process (no I/O)."""
+
+    def watermark(self) -> float:
+        """The watermark as last known to this process (no I/O)."""
+
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen: ...
 
     def advance(self, key: str, value: int) -> bool: ...

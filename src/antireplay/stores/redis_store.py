@@ -38,6 +38,7 @@ Theory of operation
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import Callable
 from typing import Any, Final, TypeVar
@@ -136,10 +137,9 @@ class RedisStore:
         self._watermark = NEVER
         self._policy_checked = False
         self.data_loss_events = 0
-        try:
+        # Redis down at start: the policy is checked on the first call that reaches it.
+        with contextlib.suppress(redis.ConnectionError, redis.TimeoutError):
             self._check_policy()
-        except (redis.ConnectionError, redis.TimeoutError):
-            pass  # Redis is down at start: checked on the first call that reaches it
 
     def fence(self) -> float:
         return self._fence
@@ -163,7 +163,9 @@ class RedisStore:
     def verify(self) -> Seen:
         """Run the identity check alone (start-up, readiness probes)."""
         args = ["", repr(self._clock.wall()), self._skew, "0", _FLOOR]
-        return self._seen(self._call(lambda: self._commit(keys=[self._meta, self._meta], args=args)))
+        return self._seen(
+            self._call(lambda: self._commit(keys=[self._meta, self._meta], args=args))
+        )
 
     def _seen(self, reply: list[Any]) -> Seen:
         recorded, cur, fence, watermark, lost = reply

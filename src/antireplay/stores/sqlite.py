@@ -100,7 +100,7 @@ class Witness:
         self.path = path
         self._fd: int | None = None
 
-    def read(self) -> tuple[str, int] | None | bool:
+    def read(self) -> tuple[str, int] | bool | None:
         """``(deployment, generation)``, ``None`` if absent, ``False`` if unreadable."""
         try:
             raw = self.path.read_bytes()
@@ -259,7 +259,7 @@ class SqliteStore:
                 purged = db.execute(_PURGE_SELECT, (now, PURGE_BATCH)).fetchall()
                 if purged:
                     db.executemany("DELETE FROM seen WHERE key = ?", [(k,) for k, _ in purged])
-                    watermark = max(watermark, max(e for _, e in purged))
+                    watermark = max(watermark, *(e for _, e in purged))
                 found = db.execute("SELECT expires FROM seen WHERE key = ?", (key,)).fetchone()
                 seen = NEVER if found is None else float(found[0])
                 recorded = not seen >= now
@@ -326,8 +326,8 @@ class SqliteStore:
             raise StateUnavailableError(f"sqlite witness {self.witness.path}: {exc}") from None
 
 
-def _loss_reason(
-    meta: tuple[Any, ...] | None, witness: tuple[str, int] | None | bool, has_state: bool
+def _loss_reason(  # noqa: PLR0911 - one answer per row of the table in the docstring
+    meta: tuple[Any, ...] | None, witness: tuple[str, int] | bool | None, has_state: bool
 ) -> str | None:
     """Why the database may have lost state (None: it provably has not)."""
     if meta is None:
