@@ -37,9 +37,9 @@ from antireplay.stores.sqlite import SqliteStore
 from benchmarks._timing import Batch, interleaved_ns_per_op, rate
 
 LIVE = 10_000
-REPEATS = 7
+REPEATS = 11
 #: Operations per timed batch: a synced SQLite commit costs milliseconds, Redis ~0.1 ms.
-BATCH = {"sqlite": 30, "redis": 1_000, "memory": 20_000}
+BATCH = {"sqlite": 40, "redis": 1_000, "memory": 20_000}
 #: The memory store's bound: room for every timed commit (``bench_window`` times a full one).
 CAPACITY = LIVE + BATCH["memory"] * REPEATS + 10
 
