@@ -1,9 +1,11 @@
-"""Run every benchmark: ``python -m benchmarks`` (or ``antireplay bench``)."""
+"""Run the benchmarks: ``python -m benchmarks`` (or ``antireplay bench``) runs them all,
+``python -m benchmarks NAME...`` the named ones (``window`` or ``bench_window``)."""
 
 from __future__ import annotations
 
 import importlib
 import pkgutil
+import sys
 
 import benchmarks
 
@@ -13,8 +15,21 @@ MODULES = sorted(
 )
 
 
-def main() -> None:
-    for name in MODULES:
+def selected(names: list[str]) -> list[str]:
+    """The modules ``names`` ask for (all when empty); an unknown name exits with the list."""
+    if not names:
+        return MODULES
+    wanted = [n if n.startswith("bench_") else f"bench_{n}" for n in names]
+    unknown = [n for n in wanted if n not in MODULES]
+    if unknown:
+        raise SystemExit(
+            f"unknown benchmark {', '.join(unknown)}; choose from {', '.join(MODULES)}"
+        )
+    return wanted
+
+
+def main(names: list[str] | None = None) -> None:
+    for name in selected(sys.argv[1:] if names is None else names):
         print(f"\n== {name} ==", flush=True)
         importlib.import_module(f"benchmarks.{name}").main()
 
