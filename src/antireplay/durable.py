@@ -84,8 +84,11 @@ def _seal(kind: str, generation: int, data: dict[str, Any]) -> bytes:
     return _canonical(body) + b"\n"
 
 
-def atomic_write(path: Path, content: bytes) -> None:
-    """Temp file + fsync + rename + directory fsync."""
+def atomic_write(path: Path, content: bytes, *, sync_dir: bool = True) -> None:
+    """Temp file + fsync + rename + directory fsync.
+
+    ``sync_dir=False`` skips the directory fsync, for files where losing the rename in a
+    power cut (the old content comes back, complete) is safe, such as a head checkpoint."""
     directory = path.parent
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     try:
@@ -98,6 +101,8 @@ def atomic_write(path: Path, content: bytes) -> None:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+    if not sync_dir:
+        return
     dir_fd = os.open(directory, os.O_RDONLY)
     try:
         os.fsync(dir_fd)
