@@ -42,7 +42,7 @@ def test_intact_trail_is_proven_to_its_head(db: Path) -> None:
     report = verify(db)
     assert report.ok and report.records == 5 and report.checkpoint_rows == 5
     assert report.lines() == [
-        "chain intact to row 5",
+        "chain intact to row 5 (5 records)",
         "head checkpoint matches row 5 (MAC verified)",
     ]
     assert db.with_name("audit.db.key").stat().st_mode & 0o777 == 0o600
@@ -196,3 +196,18 @@ def test_cli_reanchor_refuses_a_broken_chain(db: Path) -> None:
     sql(db, "UPDATE audit SET sender = 'x' WHERE seq = 2")
     result = CliRunner().invoke(main, ["audit", "reanchor", str(db)])
     assert result.exit_code == 2 and "cannot re-anchor" in " ".join(result.output.split())
+
+
+def test_cli_proxy_refuses_a_garbage_audit_file_naming_it(tmp_path: Path) -> None:
+    key, audit = tmp_path / "key.hex", tmp_path / "audit.db"
+    key.write_text("00" * 32)
+    audit.write_bytes(b"\x13\x37" * 500)
+    result = CliRunner().invoke(main, [
+        "mavlink-proxy", "--listen", "udp:127.0.0.1:9", "--forward", "udp:127.0.0.1:9",
+        "--key-file", str(key), "--store", f"sqlite:{tmp_path / 'mav.db'}",
+        "--audit", str(audit),
+    ])  # fmt: skip
+    assert result.exit_code == 2
+    said = " ".join(result.output.split())
+    assert f"audit file {audit}: not an SQLite database" in said and "Traceback" not in said
+    assert not (tmp_path / "mav.db").exists()  # refused before anything was opened

@@ -458,7 +458,7 @@ class ChainReport:
     def lines(self) -> list[str]:
         """What was proven and what was not, one fact per line."""
         out = [
-            f"chain intact to row {self.records}"
+            f"chain intact to row {self.records} ({self.records} records)"
             if self.chain_ok
             else f"chain broken at row {self.broken_at}: {self.reason}"
         ]

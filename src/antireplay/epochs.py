@@ -402,6 +402,9 @@ class EpochVerifier:
                     if epoch <= self._floor:
                         raise EpochReplayError("epoch below the verifier's floor")
                 rotated_from = self._predecessors[kind].get(prefix)
+                if rotated_from is not None:
+                    self.rotations += 1
+                    self.warnings[WarningCode.EPOCH_SENDER_ROTATED] += 1
                 state = table[prefix] = _PrefixState(-1)
                 self._predecessors[kind][successor_prefix(prefix)] = prefix
             elif epoch <= state.last:
@@ -421,9 +424,7 @@ class EpochVerifier:
 
     def _rotated(self, accepted: Announcement, previous: bytes) -> Announcement:
         """A sender left a stream that ran ahead of its clock: accept, count, log, audit."""
-        code = WarningCode.EPOCH_SENDER_ROTATED
-        self.rotations += 1
-        self.warnings[code] += 1
+        code = WarningCode.EPOCH_SENDER_ROTATED  # counted under the lock in open()
         log.warning(
             "sender rotated from nonce_prefix %s to %s (its clock ran ahead, then was corrected)",
             previous.hex(),
