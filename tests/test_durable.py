@@ -10,7 +10,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
+from antireplay.cli import main
 from antireplay.counters import NonceCounter
 from antireplay.durable import DurableState, repair
 from antireplay.epochs import EpochSigner, EpochVerifier
@@ -213,6 +215,9 @@ def test_second_process_on_one_state_file_is_refused(tmp_path: Path, kind: str) 
         assert str(path) in probe.stderr
         with pytest.raises(StateFileError, match="in use"):  # nor in this process
             repair(path, kind)
+        refused = CliRunner().invoke(main, ["state", "repair", str(path)])
+        assert refused.exit_code == 2  # no reseed under a live owner
+        assert "in use by another owner" in " ".join(refused.output.split())
     finally:
         first.communicate("", timeout=30)  # the owner exits; the kernel drops its lock
     assert first.returncode == 0

@@ -15,12 +15,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from click.testing import CliRunner
 
 os.environ["MAVLINK20"] = "1"  # pymavlink's mavutil speaks MAVLink 1 unless told otherwise
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
+from antireplay.cli import _signing_key, main
 from antireplay.demo import free_port
 from antireplay.errors import (
     AuthenticationError,
@@ -529,3 +531,29 @@ def test_cli_proxy_restart_then_old_captures_dropped(tmp_path: Path) -> None:
         vehicle.close()
         gcs.close()
         raw.close()
+
+
+def test_signing_key_file_forms(tmp_path: Path) -> None:
+    raw = tmp_path / "raw.key"
+    raw.write_bytes(b"\n" + bytes(range(1, 31)) + b" ")  # a raw key may start/end with whitespace
+    assert _signing_key(raw) == b"\n" + bytes(range(1, 31)) + b" "
+    hexed = tmp_path / "hex.key"
+    hexed.write_text(KEY.hex() + "\n")
+    assert _signing_key(hexed) == KEY
+
+
+@pytest.mark.parametrize("content", [None, b"", b"zz" * 32, b"\xff" * 64, b"0" * 63])
+def test_cli_proxy_refuses_a_bad_key_file_naming_it(tmp_path: Path, content: bytes | None) -> None:
+    key = tmp_path / "link.key"
+    if content is None:
+        key.mkdir()  # a directory where the key should be
+    else:
+        key.write_bytes(content)
+    result = CliRunner().invoke(main, [
+        "mavlink-proxy", "--listen", "udp:127.0.0.1:9", "--forward", "udp:127.0.0.1:9",
+        "--key-file", str(key), "--audit", str(tmp_path / "audit.db"),
+    ])  # fmt: skip
+    assert result.exit_code == 2
+    said = " ".join(result.output.split())
+    assert str(key) in said and "Traceback" not in said
+    assert not (tmp_path / "audit.db").exists()

@@ -339,7 +339,11 @@ def state_repair(path: Path, kind: str | None) -> None:
     if kind is None:
         _fail(f"cannot tell what {path} holds; pass --kind")
         return
-    reseeded = repair(path, kind)
+    try:
+        reseeded = repair(path, kind)
+    except StateFileError as exc:  # e.g. the file's owner is still running
+        _fail(str(exc))
+        return
     console.print(f"[green]repaired {path} ({kind})[/green]")
     console.print_json(data=reseeded)
 
@@ -353,15 +357,21 @@ def _udp(spec: str) -> tuple[str, int]:
 
 
 def _signing_key(path: Path) -> bytes:
-    raw = path.read_bytes().strip()
-    if len(raw) == 64:
+    """The link key: exactly 32 raw bytes (taken as they are: a raw key may begin or end
+    with a whitespace byte), or 64 hex characters with optional surrounding whitespace."""
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise click.BadParameter(f"{path}: unreadable ({exc.strerror})") from None
+    if len(raw) == 32:
+        return raw
+    text = raw.strip()
+    if len(text) == 64:
         try:
-            return bytes.fromhex(raw.decode())
+            return bytes.fromhex(text.decode("ascii"))
         except ValueError:
             pass
-    if len(raw) != 32:
-        raise click.BadParameter(f"{path}: a 32-byte key, raw or as 64 hex characters")
-    return raw
+    raise click.BadParameter(f"{path}: not a MAVLink signing key (32 raw bytes or 64 hex digits)")
 
 
 @main.command("mavlink-proxy")
