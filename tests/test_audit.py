@@ -129,11 +129,18 @@ def test_missing_or_damaged_key_is_refused(db: Path) -> None:
     assert verify(db).head == "no-key" and not verify(db).ok
 
 
-def test_trail_from_before_anchoring_is_anchored_on_first_open(db: Path) -> None:
+def test_trail_without_key_and_checkpoint_waits_for_an_operator(db: Path) -> None:
+    """Made before anchoring, or both files deleted to hide a truncation: never silently."""
     db.with_name("audit.db.head").unlink()
     db.with_name("audit.db.key").unlink()
-    AuditLog(db).close()
+    sql(db, "DELETE FROM audit WHERE seq > 3")
+    with pytest.raises(AuditFileError, match="has 3 rows but no head checkpoint or key"):
+        AuditLog(db)
+    assert not db.with_name("audit.db.key").exists()
+    result = CliRunner().invoke(main, ["audit", "reanchor", str(db)])
+    assert result.exit_code == 0 and "re-anchored" in result.output
     assert verify(db).ok
+    AuditLog(db).close()
 
 
 @pytest.mark.parametrize(

@@ -40,8 +40,10 @@ since its checkpoint, a deleted checkpoint or key, or a damaged key raises
 :class:`~antireplay.errors.AuditFileError`, which names the file and the
 recovery (``antireplay audit verify PATH`` to see what is provable, then
 ``antireplay audit reanchor PATH`` to accept the current chain as the new
-head, or moving the files aside to start a new trail).  A database created
-before anchoring existed is anchored at its current head on first open.
+head, or moving the files aside to start a new trail).  Only an *empty* trail
+is anchored automatically; a trail with rows and neither key nor checkpoint
+(made before anchoring existed, or both files deleted) waits for an operator's
+``antireplay audit reanchor PATH``.
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ import os
 import re
 import secrets
 import sqlite3
+import tempfile
 import threading
 from dataclasses import dataclass
 from pathlib import Path
@@ -172,18 +175,22 @@ class HeadAnchor:
         return key
 
     def create_key(self) -> bytes:
-        """Make the key (0600) on first use; a concurrent creator's key wins."""
+        """Make the key (0600) on first use: written whole to a temporary file, then linked
+        into place, so nobody ever reads a half-written key; a concurrent creator's key wins."""
         key = secrets.token_bytes(32)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.key_path.name}.", dir=self.key_path.parent)
         try:
-            fd = os.open(self.key_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
+            with os.fdopen(fd, "wb") as handle:  # mkstemp files are 0600
+                handle.write(key.hex().encode() + b"\n")
+                handle.flush()
+                os.fsync(handle.fileno())
+            os.link(tmp, self.key_path)
         except FileExistsError:
             existing = self.load_key()
             assert existing is not None
             return existing
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(key.hex().encode() + b"\n")
-            handle.flush()
-            os.fsync(handle.fileno())
+        finally:
+            os.unlink(tmp)
         return key
 
     @staticmethod
@@ -332,9 +339,14 @@ class AuditLog:
                     str(self.anchor.key_path), "missing while the head checkpoint exists",
                     recovery=_recovery(self.path),
                 )  # fmt: skip
-            key = self.anchor.create_key()
             if seq:
-                log.warning("audit trail %s anchored at its current head (row %d)", self.path, seq)
+                raise AuditFileError(
+                    str(self.path),
+                    f"has {seq} rows but no head checkpoint or key (made before anchoring, "
+                    "or both deleted): cannot prove the newest rows were not deleted",
+                    recovery=_recovery(self.path),
+                )
+            key = self.anchor.create_key()
         elif checkpoint is None:
             if seq:
                 raise AuditFileError(
@@ -535,7 +547,8 @@ def reanchor(
 ) -> ChainReport:
     """Accept the current, intact chain as the new head (after an operator checked it).
 
-    Creates a new key when the old one is gone.  Refuses a broken chain."""
+    Creates a new key when the old one is gone (a damaged or exposed key is replaced,
+    never reused).  Refuses a broken chain."""
     path = Path(path)
     anchor = HeadAnchor(path, Path(head_key) if head_key else None,
                         Path(head_path) if head_path else None)  # fmt: skip
