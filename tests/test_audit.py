@@ -11,6 +11,7 @@ from click.testing import CliRunner
 from antireplay.audit import GENESIS, AuditLog, _digest, reanchor, verify
 from antireplay.cli import main
 from antireplay.errors import AuditFileError
+from antireplay.gateway import build_receiver, embedded_default
 
 
 def trail(path: Path, rows: int) -> None:
@@ -218,3 +219,11 @@ def test_cli_proxy_refuses_a_garbage_audit_file_naming_it(tmp_path: Path) -> Non
     said = " ".join(result.output.split())
     assert f"audit file {audit}: not an SQLite database" in said and "Traceback" not in said
     assert not (tmp_path / "mav.db").exists()  # refused before anything was opened
+
+
+def test_gateway_startup_on_a_garbage_audit_file_names_it(tmp_path: Path) -> None:
+    config = embedded_default(tmp_path)
+    Path(config.audit).write_bytes(b"PK\x03\x04" + bytes(500))  # a zip where the trail was
+    with pytest.raises(AuditFileError) as err:
+        build_receiver(config)
+    assert f"audit file {config.audit}: not an SQLite database" in str(err.value)

@@ -475,6 +475,19 @@ def test_reflected_vehicle_frame_is_dropped_with_a_typed_code(bind_system_id: bo
         rig.close()
 
 
+def test_ground_frame_echoed_by_the_vehicle_side_is_dropped() -> None:
+    """Radios and routers that echo: a ground frame coming back never reaches the ground."""
+    rig = Rig()
+    try:
+        captured = rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        rig.vehicle.write(captured)  # the vehicle side sends the ground station's frame back
+        assert rig.rejected() == ("outbound", "WRONG_DIRECTION")
+        assert rig.proxy.stats.forwarded["outbound"] == 0
+    finally:
+        rig.close()
+
+
 def test_cli_proxy_restart_then_old_captures_dropped(tmp_path: Path) -> None:
     key_file = tmp_path / "key.hex"
     key_file.write_text(KEY.hex())
