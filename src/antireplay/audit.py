@@ -146,25 +146,29 @@ class HeadAnchor:
         self.key_path = Path(key_path) if key_path else db.with_name(db.name + ".key")
         self.path = Path(head_path) if head_path else db.with_name(db.name + ".head")
 
-    def load_key(self) -> bytes | None:
-        """The head key, ``None`` if there is none yet; a damaged or exposed key refuses."""
+    def _read(self, path: Path) -> bytes | None:
+        """A file's bytes, ``None`` if it does not exist; anything else unreadable refuses."""
         try:
-            fd = os.open(self.key_path, os.O_RDONLY | os.O_CLOEXEC)
+            return path.read_bytes()
         except FileNotFoundError:
             return None
         except OSError as exc:
             raise AuditFileError(
-                str(self.key_path), f"unreadable ({exc.strerror})", recovery=_recovery(self.db)
+                str(path), f"unreadable ({exc.strerror})", recovery=_recovery(self.db)
             ) from None
-        with os.fdopen(fd, "rb") as handle:
-            if os.fstat(handle.fileno()).st_mode & 0o077:
-                raise AuditFileError(
-                    str(self.key_path), "readable by other users",
-                    recovery=f"chmod 600 {self.key_path}",
-                )  # fmt: skip
-            raw = handle.read(200).strip()
+
+    def load_key(self) -> bytes | None:
+        """The head key, ``None`` if there is none yet; a damaged or exposed key refuses."""
+        raw = self._read(self.key_path)
+        if raw is None:
+            return None
+        if self.key_path.stat().st_mode & 0o077:
+            raise AuditFileError(
+                str(self.key_path), "readable by other users",
+                recovery=f"chmod 600 {self.key_path}",
+            )  # fmt: skip
         try:
-            key = bytes.fromhex(raw.decode("ascii"))
+            key = bytes.fromhex(raw.strip().decode("ascii"))
         except (UnicodeDecodeError, ValueError):
             key = b""
         if len(key) != 32:
@@ -211,14 +215,9 @@ class HeadAnchor:
         """The checkpoint (``None`` if missing); a garbage or forged checkpoint refuses.
 
         Without a key the MAC cannot be checked and the checkpoint is returned unproven."""
-        try:
-            raw = self.path.read_bytes()
-        except FileNotFoundError:
+        raw = self._read(self.path)
+        if raw is None:
             return None
-        except OSError as exc:
-            raise AuditFileError(
-                str(self.path), f"unreadable ({exc.strerror})", recovery=_recovery(self.db)
-            ) from None
         try:
             body = json.loads(raw)
             ok = isinstance(body, dict) and body.get("format") == HEAD_FORMAT
