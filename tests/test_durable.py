@@ -233,3 +233,13 @@ def test_second_owner_in_one_process_is_refused_until_closed(tmp_path: Path) -> 
         NonceCounter.persistent(path)
     first.close()
     assert NonceCounter.persistent(path).next() == 5
+
+
+def test_second_epoch_verifier_on_one_state_file_is_refused(tmp_path: Path) -> None:
+    """Two verifiers on one file would each overwrite what the other accepted."""
+    path = tmp_path / "v.state"
+    first = EpochVerifier(b"k" * 32, state_file=path)
+    with pytest.raises(StateFileError, match="in use by another owner"):
+        EpochVerifier(b"k" * 32, state_file=path)
+    first.close()
+    EpochVerifier(b"k" * 32, state_file=path).close()
