@@ -68,6 +68,7 @@ def test_state_repair_reseeds_a_corrupt_counter(tmp_path: Path) -> None:
     path = tmp_path / "c.state"
     counter = NonceCounter.persistent(path, lease=4)
     used = [counter.next() for _ in range(9)]
+    counter.close()
     raw = path.read_bytes()
     path.write_bytes(raw.replace(b'"ceiling":12', b'"ceiling":13'))
     try:

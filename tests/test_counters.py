@@ -109,6 +109,7 @@ def test_persistent_counter_resumes_above_ceiling(tmp_path: Path) -> None:
     path = tmp_path / "ctr.state"
     first = NonceCounter.persistent(path, lease=50)
     used = [first.next() for _ in range(7)]
+    first.close()
     second = NonceCounter.persistent(path, lease=50)  # as after a crash: 43 leased values skipped
     assert second.next() > max(used)
     assert second.next() == 52

@@ -2,14 +2,22 @@
 
 from __future__ import annotations
 
+import os
 import shutil
+import subprocess
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
+from antireplay.cli import main
 from antireplay.counters import NonceCounter
 from antireplay.durable import DurableState, repair
+from antireplay.epochs import EpochSigner, EpochVerifier
 from antireplay.errors import StateFileError
+from tests.conftest import ROOT
 
 
 def make(tmp_path: Path, gens: int = 1) -> DurableState:
@@ -92,8 +100,9 @@ def test_persistent_counter_refuses_corrupt_file_then_repair_reseeds_above(tmp_p
     path = tmp_path / "ctr.state"
     counter = NonceCounter.persistent(path, lease=10)
     used = [counter.next() for _ in range(25)]
+    counter.close()
     path.write_bytes(path.read_bytes()[:10])
-    with pytest.raises(StateFileError):
+    with pytest.raises(StateFileError, match="corrupt or truncated"):
         NonceCounter.persistent(path)
     reseeded = repair(path, "nonce-counter", now_ns=5_000)
     assert reseeded == {"ceiling": 5_000}
@@ -105,6 +114,7 @@ def test_repair_keeps_salvaged_ceiling_when_above_clock(tmp_path: Path) -> None:
     path = tmp_path / "ctr.state"
     counter = NonceCounter.persistent(path, lease=1_000)
     counter.next()
+    counter.close()
     path.with_name(path.name + ".gen").unlink()
     assert repair(path, "nonce-counter", now_ns=10) == {"ceiling": 1_000}
     assert NonceCounter.persistent(path).next() == 1_001
@@ -113,3 +123,123 @@ def test_repair_keeps_salvaged_ceiling_when_above_clock(tmp_path: Path) -> None:
 def test_repair_of_unknown_kind_is_an_error(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="unknown state kind"):
         repair(tmp_path / "x", "nope")
+
+
+# --- wrong-typed content behind a valid checksum ------------------------------------------------
+
+
+def forge(path: Path, kind: str, data: dict[str, object]) -> None:
+    """A state file whose checksum and witness are valid but whose data has the wrong shape."""
+    state = DurableState(path, kind=kind)
+    state.save(data)
+
+
+@pytest.mark.parametrize(
+    ("kind", "data"),
+    [
+        ("nonce-counter", {"ceiling": "12"}),
+        ("nonce-counter", {"ceiling": True}),
+        ("nonce-counter", {"ceiling": -4}),
+        ("nonce-counter", {}),
+        ("epoch-signer", {"ceiling": 5, "prefix": "zz" * 8}),
+        ("epoch-signer", {"ceiling": 5, "prefix": 7}),
+        ("epoch-signer", {"ceiling": [], "prefix": "00" * 8}),
+        ("epoch-signer", {"ceiling": 5, "prefix": "00" * 8, "rotations": "1"}),
+        ("epoch-verifier", {"floor": "0"}),
+        ("epoch-verifier", {"floor": 0, "announcement": []}),
+        ("epoch-verifier", {"floor": 0, "announcement": {"xyz": 1}}),
+        ("epoch-verifier", {"floor": 0, "ping": {"00" * 8: None}}),
+    ],
+)
+def test_wrong_typed_content_is_refused_naming_file_and_repair(
+    tmp_path: Path, kind: str, data: dict[str, object]
+) -> None:
+    path = tmp_path / "x.state"
+    forge(path, kind, data)
+    owners: dict[str, Callable[[], object]] = {
+        "nonce-counter": lambda: NonceCounter.persistent(path),
+        "epoch-signer": lambda: EpochSigner(b"k" * 32, state_file=path),
+        "epoch-verifier": lambda: EpochVerifier(b"k" * 32, state_file=path),
+    }
+    with pytest.raises(StateFileError) as err:
+        owners[kind]()
+    message = str(err.value)
+    assert "invalid content" in message
+    assert str(path) in message and f"antireplay state repair {path}" in message
+    repair(path, kind, now_ns=1_000)  # the refused owner gave its lock back
+    owners[kind]()
+
+
+# --- one owner per file -------------------------------------------------------------------------
+
+
+def hold(path: Path, kind: str) -> subprocess.Popen[str]:
+    """A real second process that opens the state file as its owner and waits on stdin."""
+    code = (
+        "import sys; from antireplay.counters import NonceCounter; "
+        "from antireplay.epochs import EpochSigner; p = sys.argv[1]; "
+        "o = NonceCounter.persistent(p) if sys.argv[2] == 'nonce-counter' "
+        "else EpochSigner(b'k' * 32, state_file=p); "
+        "print(o.next() if sys.argv[2] == 'nonce-counter' else o.next_epoch(), flush=True); "
+        "sys.stdin.read()"
+    )
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(path), kind],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    if not proc.stdout.readline():
+        assert proc.stderr is not None
+        pytest.fail(f"the owner process did not start: {proc.stderr.read()}")
+    return proc
+
+
+@pytest.mark.parametrize("kind", ["nonce-counter", "epoch-signer"])
+def test_second_process_on_one_state_file_is_refused(tmp_path: Path, kind: str) -> None:
+    path = tmp_path / "shared.state"
+    first = hold(path, kind)
+    try:
+        probe = subprocess.run(
+            [sys.executable, "-c", (
+                "import sys; from antireplay.counters import NonceCounter; "
+                "from antireplay.epochs import EpochSigner; p = sys.argv[1]; "
+                "NonceCounter.persistent(p) if sys.argv[2] == 'nonce-counter' "
+                "else EpochSigner(b'k' * 32, state_file=p)"
+            ), str(path), kind],
+            capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(ROOT / "src")),
+            timeout=60, check=False,
+        )  # fmt: skip
+        assert probe.returncode != 0
+        assert "StateFileError" in probe.stderr and "in use by another owner" in probe.stderr
+        assert str(path) in probe.stderr
+        with pytest.raises(StateFileError, match="in use"):  # nor in this process
+            repair(path, kind)
+        refused = CliRunner().invoke(main, ["state", "repair", str(path)])
+        assert refused.exit_code == 2  # no reseed under a live owner
+        assert "in use by another owner" in " ".join(refused.output.split())
+    finally:
+        first.communicate("", timeout=30)  # the owner exits; the kernel drops its lock
+    assert first.returncode == 0
+    second = hold(path, kind)  # now the file can be owned again
+    second.communicate("", timeout=30)
+
+
+def test_second_owner_in_one_process_is_refused_until_closed(tmp_path: Path) -> None:
+    path = tmp_path / "c.state"
+    first = NonceCounter.persistent(path, lease=4)
+    first.next()
+    with pytest.raises(StateFileError, match="in use by another owner"):
+        NonceCounter.persistent(path)
+    first.close()
+    assert NonceCounter.persistent(path).next() == 5
+
+
+def test_second_epoch_verifier_on_one_state_file_is_refused(tmp_path: Path) -> None:
+    """Two verifiers on one file would each overwrite what the other accepted."""
+    path = tmp_path / "v.state"
+    first = EpochVerifier(b"k" * 32, state_file=path)
+    with pytest.raises(StateFileError, match="in use by another owner"):
+        EpochVerifier(b"k" * 32, state_file=path)
+    first.close()
+    EpochVerifier(b"k" * 32, state_file=path).close()

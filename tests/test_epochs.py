@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from antireplay import ManualClock
+from antireplay.audit import AuditLog
 from antireplay.durable import repair
 from antireplay.epochs import (
     Announcement,
@@ -20,6 +21,7 @@ from antireplay.epochs import (
     EpochVerifier,
     Kind,
     prefix_for_service,
+    successor_prefix,
 )
 from antireplay.errors import (
     AuthenticationError,
@@ -130,12 +132,118 @@ def test_max_age_rejects_old_capture_from_unknown_sender(clock: ManualClock) -> 
 
 
 def test_wall_clock_step_back_does_not_regress(clock: ManualClock) -> None:
-    signer = EpochSigner(PSK, clock=clock)
+    """A step back within the forward bound keeps the stream: ``last + 1`` wins."""
+    signer = EpochSigner(PSK, clock=clock, max_forward_s=60)
     before = [signer.next_epoch() for _ in range(3)]
-    clock.step_wall(-3_600)
+    clock.step_wall(-59)
     after = [signer.next_epoch() for _ in range(3)]
     assert before + after == sorted(set(before + after))
     assert after[0] == before[-1] + 1
+    assert signer.rotations == 0
+
+
+def test_forward_glitch_rotates_instead_of_locking_out(
+    clock: ManualClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    """One seal an hour ahead, then NTP corrects: the next seal is accepted at once."""
+    signer = EpochSigner(PSK, clock=clock, max_forward_s=30)
+    verifier = EpochVerifier(PSK, clock=clock, max_forward_s=30, max_age_s=30)
+    old_prefix = signer.nonce_prefix
+    before = signer.seal(b"before")
+    verifier.open(before)
+    clock.step_wall(3_600)
+    glitched = signer.seal(b"glitch")
+    clock.step_wall(-3_600)  # NTP corrects the clock
+    with pytest.raises(EpochTooFarAheadError):
+        verifier.open(glitched)
+    clock.advance(1)  # one second later, not an hour
+    after = verifier.open(signer.seal(b"after"))
+    assert after.nonce_prefix == successor_prefix(old_prefix) != old_prefix
+    assert after.warning == "EPOCH_SENDER_ROTATED"
+    assert verifier.rotations == 1 and verifier.warnings["EPOCH_SENDER_ROTATED"] == 1
+    assert verifier.forward_rejections == 1
+    assert "rotated from nonce_prefix" in caplog.text
+    verifier.open(signer.seal(b"and on"))  # the new stream continues; no more warnings
+    assert verifier.rotations == 1
+    with pytest.raises(EpochReplayError):  # the old stream keeps its replay protection
+        verifier.open(before)
+
+
+def test_epochs_never_repeat_within_a_prefix_across_glitches(clock: ManualClock) -> None:
+    signer = EpochSigner(PSK, clock=clock, max_forward_s=5)
+    used: dict[bytes, list[int]] = {}
+    for step in (0, 100, -100, 0, 7, -7, 3, -3, 1_000, -1_000, 0):
+        clock.step_wall(step)
+        for _ in range(3):
+            prefix, epoch = signer._next()
+            used.setdefault(prefix, []).append(epoch)
+    for epochs in used.values():
+        assert epochs == sorted(set(epochs))
+    assert signer.rotations == 3  # the 100 s, 7 s and 1,000 s glitches; not the 3 s one
+
+
+def test_glitch_persisted_in_the_state_file_is_recovered_after_restart(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """The glitched ceiling reached the state file; the restarted sender rotates at once."""
+    path = tmp_path / "signer.state"
+    verifier = EpochVerifier(PSK, clock=clock, max_forward_s=30)
+    signer = EpochSigner(PSK, service_name="svc", state_file=path, clock=clock, max_forward_s=30)
+    verifier.open(signer.seal(b"before"))
+    clock.step_wall(3_600)
+    signer.seal(b"glitch")  # ceiling one hour ahead, durably saved
+    signer.close()  # the host restarts; NTP corrects the clock
+    clock.step_wall(-3_600)
+    restarted = EpochSigner(PSK, service_name="svc", state_file=path, clock=clock, max_forward_s=30)
+    got = verifier.open(restarted.seal(b"after restart"))
+    assert got.warning == "EPOCH_SENDER_ROTATED"
+    assert got.nonce_prefix == successor_prefix(prefix_for_service("svc"))
+    restarted.close()
+    again = EpochSigner(PSK, service_name="svc", state_file=path, clock=clock, max_forward_s=30)
+    assert again.nonce_prefix == got.nonce_prefix and again.rotations == 1
+    assert again.next_epoch() > got.epoch  # the rotated stream resumes above its ceiling
+    again.close()
+    sealed = EpochSigner(
+        PSK, service_name="svc", state_file=path, clock=clock, max_forward_s=30
+    ).seal(b"x")
+    verifier.open(sealed)
+
+
+def test_rotation_is_audited(tmp_path: Path, clock: ManualClock) -> None:
+    audit = AuditLog(tmp_path / "audit.db")
+    signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
+    verifier = EpochVerifier(PSK, clock=clock, max_forward_s=10, audit=audit)
+    verifier.open(signer.seal(b"a"))
+    clock.step_wall(120)
+    glitched = signer.seal(b"b")
+    clock.step_wall(-120)
+    with pytest.raises(EpochTooFarAheadError):
+        verifier.open(glitched)
+    verifier.open(signer.seal(b"c"))
+    rows = [(r.outcome, r.code, r.warning) for r in audit.tail(5)]
+    assert rows == [
+        ("rejected", "EPOCH_TOO_FAR_AHEAD", None),
+        ("accepted", None, "EPOCH_SENDER_ROTATED"),
+    ]
+    audit.close()
+
+
+def test_rotation_recognised_by_a_restarted_verifier(tmp_path: Path, clock: ManualClock) -> None:
+    path = tmp_path / "verifier.state"
+    signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
+    verifier = EpochVerifier(PSK, clock=clock, state_file=path)
+    verifier.open(signer.seal(b"a"))
+    verifier.close()
+    clock.step_wall(60)
+    signer.seal(b"lost")
+    clock.step_wall(-60)
+    restarted = EpochVerifier(PSK, clock=clock, state_file=path)
+    assert restarted.open(signer.seal(b"b")).warning == "EPOCH_SENDER_ROTATED"
+
+
+def test_signer_bound_must_exceed_its_reservation() -> None:
+    with pytest.raises(ValueError, match="reserve_s"):
+        EpochSigner(PSK, reserve_s=5, max_forward_s=5)
 
 
 def test_pings_use_a_separate_key(clock: ManualClock) -> None:
@@ -194,6 +302,7 @@ def test_sender_restart_with_state_file_keeps_increasing(tmp_path: Path) -> None
     path = tmp_path / "signer.state"
     a = EpochSigner(PSK, service_name="svc", state_file=path, clock=frozen)
     emitted = [a.next_epoch() for _ in range(10)]
+    a.close()
     b = EpochSigner(PSK, service_name="svc", state_file=path, clock=frozen)  # "host reboot"
     assert b.next_epoch() > max(emitted)
     assert b.nonce_prefix == a.nonce_prefix
@@ -203,7 +312,10 @@ def test_random_prefix_is_kept_across_restart(tmp_path: Path, clock: ManualClock
     path = tmp_path / "signer.state"
     a = EpochSigner(PSK, state_file=path, clock=clock)
     a.seal(b"x")
-    assert EpochSigner(PSK, state_file=path, clock=clock).nonce_prefix == a.nonce_prefix
+    a.close()
+    b = EpochSigner(PSK, state_file=path, clock=clock)
+    assert b.nonce_prefix == a.nonce_prefix
+    b.close()
     with pytest.raises(StateFileError, match="another nonce_prefix"):
         EpochSigner(PSK, state_file=path, clock=clock, nonce_prefix=b"\0" * 8)
 
@@ -230,6 +342,7 @@ def test_verifier_restart_rejects_everything_old(tmp_path: Path, clock: ManualCl
     verifier = EpochVerifier(PSK, state_file=path, clock=clock)
     for sealed in sent[::2]:
         verifier.open(sealed)  # accept 0, 2, 4; 1 and 3 are superseded
+    verifier.close()
     restarted = EpochVerifier(PSK, state_file=path, clock=clock)
     for sealed in sent:
         with pytest.raises(EpochReplayError):
@@ -250,6 +363,7 @@ def test_damaged_verifier_state_refuses_start_until_repaired(
     clock.advance(1)
     newer = signer.seal(b"newer")
     verifier.open(newer)
+    verifier.close()
     raw = path.read_bytes()
     if damage == "corrupt":
         path.write_bytes(raw.replace(b'"floor"', b'"floar"'))
@@ -273,6 +387,7 @@ def test_damaged_signer_state_refused_then_repaired_above(tmp_path: Path) -> Non
     frozen = ManualClock(wall=1_000.0)
     signer = EpochSigner(PSK, state_file=path, clock=frozen, reserve_s=5)
     emitted = [signer.next_epoch() for _ in range(3)]
+    signer.close()
     path.write_bytes(b"\0" * 20)
     with pytest.raises(StateFileError):
         EpochSigner(PSK, state_file=path, clock=frozen)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import queue
 import random
 import signal
 import socket
@@ -14,12 +15,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from click.testing import CliRunner
 
 os.environ["MAVLINK20"] = "1"  # pymavlink's mavutil speaks MAVLink 1 unless told otherwise
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
+from antireplay.cli import _signing_key, main
 from antireplay.demo import free_port
 from antireplay.errors import (
     AuthenticationError,
@@ -28,6 +31,7 @@ from antireplay.errors import (
     MessageFromFutureError,
     MessageStaleError,
     NonceExhaustedError,
+    WrongDirectionError,
 )
 from antireplay.mavlink import (
     MAV_EPOCH,
@@ -226,16 +230,28 @@ def test_sign_frame_is_accepted_by_guard_and_pymavlink(clock: ManualClock) -> No
 class Rig:
     """GCS (pymavlink, signing) -> proxy -> vehicle (pymavlink, observing everything)."""
 
-    def __init__(self, system_id: int = 1) -> None:
+    def __init__(
+        self,
+        system_id: int = 1,
+        *,
+        bind_system_id: bool = True,
+        allow_unsigned: frozenset[int] = frozenset(),
+    ) -> None:
         vport = free_port()
         self.vehicle = mavutil.mavlink_connection(
             f"udpin:127.0.0.1:{vport}", source_system=system_id, source_component=1
         )
+        self.rejections: queue.Queue[tuple[str, str]] = queue.Queue()
         self.proxy = MavlinkProxy(
             ("127.0.0.1", 0),
             ("127.0.0.1", vport),
-            MavlinkGuard(KEY, system_id=system_id),
+            MavlinkGuard(
+                KEY,
+                system_id=system_id if bind_system_id else None,
+                allow_unsigned=allow_unsigned,
+            ),
             MavlinkGuard(KEY),
+            lambda direction, exc, _raw: self.rejections.put((direction, str(exc.code))),
         )
         self.proxy.start()
         host, port = self.proxy.address
@@ -262,6 +278,13 @@ class Rig:
             seen.append(float(msg.param1))
             if msg.param1 == sentinel:
                 return seen
+
+    def rejected(self) -> tuple[str, str]:
+        """The next rejection the proxy reported (direction, code); the proxy calls back."""
+        try:
+            return self.rejections.get(timeout=10)
+        except queue.Empty:
+            pytest.fail("the proxy reported no rejection")
 
     def close(self) -> None:
         self.proxy.stop()
@@ -351,6 +374,120 @@ def test_round_trip_both_directions_with_signing_everywhere() -> None:
         rig.close()
 
 
+def any_id(_mav: object, _msgid: int) -> bool:
+    """pymavlink's hook: the vehicle takes unsigned frames (the proxy's allow-list decides)."""
+    return True
+
+
+def unsigned_heartbeat(sysid: int) -> bytes:
+    plain = dialect.MAVLink(_Sink(), srcSystem=sysid, srcComponent=1)
+    plain.heartbeat_send(6, 8, 0, 0, 0)
+    return bytes(plain.file.frames[-1])
+
+
+def forged_command() -> bytes:
+    forger = dialect.MAVLink(_Sink(), srcSystem=255, srcComponent=190)
+    forger.signing.secret_key = bytes(32)  # not the link key
+    forger.signing.sign_outgoing = True
+    forger.signing.link_id = 1
+    forger.signing.timestamp = mav_time(ManualClock(time.time()))
+    forger.command_long_send(1, 1, 400, 0, 9.0, 0, 0, 0, 0, 0, 0)
+    return bytes(forger.file.frames[-1])
+
+
+@pytest.mark.parametrize("attack", ["garbage", "forged", "replayed", "unsigned-allow-listed"])
+def test_unauthenticated_datagram_cannot_steal_telemetry(attack: str) -> None:
+    """One datagram from an attacker's address must not move the ground peer."""
+    rig = Rig(allow_unsigned=frozenset({0}))  # HEARTBEAT may come unsigned
+    try:
+        rig.vehicle.setup_signing(
+            KEY, sign_outgoing=True, link_id=7, allow_unsigned_callback=any_id
+        )
+        captured = rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        gcs_address = ("127.0.0.1", rig.gcs.port.getsockname()[1])
+        assert rig.proxy.peer == gcs_address
+        if attack == "unsigned-allow-listed":
+            rig.inject(unsigned_heartbeat(sysid=200))
+            got = rig.vehicle.recv_match(type="HEARTBEAT", blocking=True, timeout=10)
+            assert got is not None and got.get_srcSystem() == 200  # forwarded, by policy
+        else:
+            datagram = {"garbage": b"hello", "forged": forged_command(), "replayed": captured}
+            rig.inject(datagram[attack])
+            code = {"garbage": "INVALID_FRAME", "forged": "SIGNATURE_INVALID"}
+            assert rig.rejected() == ("inbound", code.get(attack, "COUNTER_REPLAYED"))
+        assert rig.proxy.peer == gcs_address
+        rig.vehicle.mav.heartbeat_send(2, 3, 0, 0, 4)  # telemetry, signed by the vehicle
+        reply = rig.gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=10)
+        assert reply is not None and reply.get_srcSystem() == 1
+        rig.raw.setblocking(False)
+        with pytest.raises(BlockingIOError):
+            rig.raw.recv(65_535)  # the attacker received nothing
+    finally:
+        rig.close()
+
+
+def test_no_telemetry_before_a_ground_station_authenticated() -> None:
+    rig = Rig(allow_unsigned=frozenset({0}))
+    try:
+        rig.vehicle.setup_signing(
+            KEY, sign_outgoing=True, link_id=7, allow_unsigned_callback=any_id
+        )
+        rig.inject(unsigned_heartbeat(sysid=200))  # an unsigned frame teaches no peer
+        assert rig.vehicle.recv_match(type="HEARTBEAT", blocking=True, timeout=10) is not None
+        assert rig.proxy.peer is None
+        rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        assert rig.proxy.peer == ("127.0.0.1", rig.gcs.port.getsockname()[1])
+    finally:
+        rig.close()
+
+
+def test_guard_refuses_its_own_vehicle_as_a_source(clock: ManualClock) -> None:
+    guard = MavlinkGuard(KEY, clock=clock, system_id=1, allow_unsigned=frozenset({0}))
+    mav, sink = encoder(sysid=1)  # a frame the vehicle itself signed
+    mav.heartbeat_send(2, 3, 0, 0, 4)
+    with pytest.raises(WrongDirectionError):
+        guard.check(sink.frames[-1])
+    with pytest.raises(WrongDirectionError):
+        guard.check(unsigned_heartbeat(sysid=1))
+    assert len(guard) == 0  # nothing stamped in the stream table
+    guard.check(command_frame(*encoder(sysid=255)))
+
+
+@pytest.mark.parametrize("bind_system_id", [True, False])
+def test_reflected_vehicle_frame_is_dropped_with_a_typed_code(bind_system_id: bool) -> None:
+    """A signed frame the vehicle sent, sent back to the listen port, never reaches it."""
+    rig = Rig(bind_system_id=bind_system_id)
+    try:
+        rig.vehicle.setup_signing(KEY, sign_outgoing=True, link_id=7)
+        rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        rig.vehicle.mav.command_long_send(255, 190, 400, 0, 7.0, 0, 0, 0, 0, 0, 0)
+        reply = rig.gcs.recv_match(type="COMMAND_LONG", blocking=True, timeout=10)
+        assert reply is not None and reply.get_srcSystem() == 1
+        rig.inject(bytes(reply.get_msgbuf()))  # reflected to the ground side
+        assert rig.rejected() == ("inbound", "WRONG_DIRECTION")
+        rig.send_command(2.0)
+        assert rig.commands_until(2.0) == [2.0]  # the reflected 7.0 never arrived
+        assert rig.proxy.stats.forwarded["inbound"] == 2
+    finally:
+        rig.close()
+
+
+def test_ground_frame_echoed_by_the_vehicle_side_is_dropped() -> None:
+    """Radios and routers that echo: a ground frame coming back never reaches the ground."""
+    rig = Rig()
+    try:
+        captured = rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        rig.vehicle.write(captured)  # the vehicle side sends the ground station's frame back
+        assert rig.rejected() == ("outbound", "WRONG_DIRECTION")
+        assert rig.proxy.stats.forwarded["outbound"] == 0
+    finally:
+        rig.close()
+
+
 def test_cli_proxy_restart_then_old_captures_dropped(tmp_path: Path) -> None:
     key_file = tmp_path / "key.hex"
     key_file.write_text(KEY.hex())
@@ -407,3 +544,29 @@ def test_cli_proxy_restart_then_old_captures_dropped(tmp_path: Path) -> None:
         vehicle.close()
         gcs.close()
         raw.close()
+
+
+def test_signing_key_file_forms(tmp_path: Path) -> None:
+    raw = tmp_path / "raw.key"
+    raw.write_bytes(b"\n" + bytes(range(1, 31)) + b" ")  # a raw key may start/end with whitespace
+    assert _signing_key(raw) == b"\n" + bytes(range(1, 31)) + b" "
+    hexed = tmp_path / "hex.key"
+    hexed.write_text(KEY.hex() + "\n")
+    assert _signing_key(hexed) == KEY
+
+
+@pytest.mark.parametrize("content", [None, b"", b"zz" * 32, b"\xff" * 64, b"0" * 63])
+def test_cli_proxy_refuses_a_bad_key_file_naming_it(tmp_path: Path, content: bytes | None) -> None:
+    key = tmp_path / "link.key"
+    if content is None:
+        key.mkdir()  # a directory where the key should be
+    else:
+        key.write_bytes(content)
+    result = CliRunner().invoke(main, [
+        "mavlink-proxy", "--listen", "udp:127.0.0.1:9", "--forward", "udp:127.0.0.1:9",
+        "--key-file", str(key), "--audit", str(tmp_path / "audit.db"),
+    ])  # fmt: skip
+    assert result.exit_code == 2
+    said = " ".join(result.output.split())
+    assert str(key) in said and "Traceback" not in said
+    assert not (tmp_path / "audit.db").exists()

@@ -15,20 +15,57 @@ first row chains from 64 zeros.  :func:`verify` recomputes the chain and
 reports the first broken link, so an edited, deleted or reordered row is
 detected.  Writes use WAL with ``synchronous=FULL``: ``append`` returns after
 the record is durable, so a crash never loses a committed record.
+
+**The head is anchored outside the database.**  The chain alone cannot show
+that its newest rows were deleted, and whoever can write the database can
+recompute a whole new chain.  So, like a transparency log's signed tree head,
+the head ``(rows, last hash)`` is MACed (HMAC-SHA256) with a key that is not in
+the database and checkpointed to a file outside it (:class:`HeadAnchor`):
+``PATH.key`` (32 random bytes as hex, mode 0600, created on first use; or a
+configured path, ideally somewhere the database's writers cannot read) and
+``PATH.head`` (written with :func:`antireplay.durable.atomic_write`).  The
+checkpoint is written after every commit (one MAC and one small durable write);
+it names the last row, so a group-committing writer writes it once per batch.
+``verify`` then proves: the chain links up to row N; the checkpoint's MAC is
+genuine and row ``rows`` still has the checkpointed hash (no truncation, no
+rewrite without the key); rows after the checkpoint (a crash between commit
+and checkpoint, or rows appended by someone without the key) are counted and
+reported as not covered.  It cannot prove anything against someone who holds
+the key, nor against a rollback of the database *and* the head file together
+to an older genuine pair (publish the head elsewhere for that).
+
+**Refuse, never guess.**  Opening a file that is not an SQLite database, an
+SQLite database that is not an audit trail, a database truncated or rewritten
+since its checkpoint, a deleted checkpoint or key, or a damaged key raises
+:class:`~antireplay.errors.AuditFileError`, which names the file and the
+recovery (``antireplay audit verify PATH`` to see what is provable, then
+``antireplay audit reanchor PATH`` to accept the current chain as the new
+head, or moving the files aside to start a new trail).  Only an *empty* trail
+is anchored automatically; a trail with rows and neither key nor checkpoint
+(made before anchoring existed, or both files deleted) waits for an operator's
+``antireplay audit reanchor PATH``.
 """
 
 from __future__ import annotations
 
 import hashlib
+import hmac
 import json
+import logging
+import os
 import re
+import secrets
 import sqlite3
+import tempfile
 import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from antireplay.errors import StateUnavailableError
+from antireplay.durable import atomic_write
+from antireplay.errors import AuditFileError, StateUnavailableError
+
+log = logging.getLogger("antireplay.audit")
 
 GENESIS = "0" * 64
 _SAFE = re.compile(r"[A-Za-z0-9._:@/-]{1,64}")
@@ -61,6 +98,10 @@ _FIELDS = (
 _COLUMNS = ",".join(_FIELDS)  # constants only: no user input ever reaches SQL text
 _TAIL = f"SELECT {_COLUMNS} FROM audit ORDER BY seq DESC LIMIT ?"  # noqa: S608
 _ALL = f"SELECT {_COLUMNS}, prev_hash, hash FROM audit ORDER BY seq"  # noqa: S608
+_EXPECTED_COLUMNS = [*_FIELDS, "prev_hash", "hash"]
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+HEAD_FORMAT = "antireplay-audit-head"
+HEAD_VERSION = 1
 
 
 def sanitize(value: object) -> str | None:
@@ -76,6 +117,177 @@ def sanitize(value: object) -> str | None:
 def _digest(prev: str, row: dict[str, Any]) -> str:
     body = json.dumps(row, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256((prev + body).encode()).hexdigest()
+
+
+def _recovery(path: Path) -> str:
+    return f"antireplay audit verify {path}, then antireplay audit reanchor {path}"
+
+
+def _aside(path: Path) -> str:
+    return (
+        f"move {path} (and {path}.head) aside, keep them as evidence, and start a new trail; "
+        "or give the path of an audit trail"
+    )
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A MAC-verified chain head read from the checkpoint file."""
+
+    rows: int
+    hash: str
+
+
+class HeadAnchor:
+    """The chain head, MACed with a key kept outside the database, checkpointed outside it."""
+
+    def __init__(self, db: Path, key_path: Path | None = None, head_path: Path | None = None):
+        self.db = db
+        self.key_path = Path(key_path) if key_path else db.with_name(db.name + ".key")
+        self.path = Path(head_path) if head_path else db.with_name(db.name + ".head")
+
+    def _read(self, path: Path) -> bytes | None:
+        """A file's bytes, ``None`` if it does not exist; anything else unreadable refuses."""
+        try:
+            return path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise AuditFileError(
+                str(path), f"unreadable ({exc.strerror})", recovery=_recovery(self.db)
+            ) from None
+
+    def load_key(self) -> bytes | None:
+        """The head key, ``None`` if there is none yet; a damaged or exposed key refuses."""
+        raw = self._read(self.key_path)
+        if raw is None:
+            return None
+        if self.key_path.stat().st_mode & 0o077:
+            raise AuditFileError(
+                str(self.key_path), "readable by other users",
+                recovery=f"chmod 600 {self.key_path}",
+            )  # fmt: skip
+        try:
+            key = bytes.fromhex(raw.strip().decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            key = b""
+        if len(key) != 32:
+            raise AuditFileError(
+                str(self.key_path), "not an audit head key (64 hex characters)",
+                recovery=_recovery(self.db),
+            )  # fmt: skip
+        return key
+
+    def create_key(self) -> bytes:
+        """Make the key (0600) on first use: written whole to a temporary file, then linked
+        into place, so nobody ever reads a half-written key; a concurrent creator's key wins."""
+        key = secrets.token_bytes(32)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.key_path.name}.", dir=self.key_path.parent)
+        try:
+            with os.fdopen(fd, "wb") as handle:  # mkstemp files are 0600
+                handle.write(key.hex().encode() + b"\n")
+                handle.flush()
+                os.fsync(handle.fileno())
+            os.link(tmp, self.key_path)
+        except FileExistsError:
+            existing = self.load_key()
+            assert existing is not None
+            return existing
+        finally:
+            os.unlink(tmp)
+        return key
+
+    @staticmethod
+    def mac(key: bytes, rows: int, head: str) -> str:
+        return hmac.new(
+            key, f"antireplay/v1 audit head|{rows}|{head}".encode(), "sha256"
+        ).hexdigest()
+
+    def write(self, key: bytes, rows: int, head: str) -> None:
+        """Durably checkpoint the head (once per commit or commit batch)."""
+        body = {"format": HEAD_FORMAT, "version": HEAD_VERSION, "rows": rows, "hash": head,
+                "mac": self.mac(key, rows, head)}  # fmt: skip
+        # An older checkpoint after a power cut only under-claims (rows after it are reported),
+        # so the directory fsync is skipped; the file's own fsync keeps it whole.
+        atomic_write(self.path, json.dumps(body, sort_keys=True).encode() + b"\n", sync_dir=False)
+
+    def read(self, key: bytes | None) -> Checkpoint | None:
+        """The checkpoint (``None`` if missing); a garbage or forged checkpoint refuses.
+
+        Without a key the MAC cannot be checked and the checkpoint is returned unproven."""
+        raw = self._read(self.path)
+        if raw is None:
+            return None
+        try:
+            body = json.loads(raw)
+            ok = isinstance(body, dict) and body.get("format") == HEAD_FORMAT
+            rows, head, mac = (body["rows"], body["hash"], body["mac"]) if ok else (0, "", "")
+        except (ValueError, UnicodeDecodeError, KeyError):
+            ok = False
+        if not (ok and type(rows) is int and rows >= 0 and isinstance(head, str)
+                and isinstance(mac, str)):  # fmt: skip
+            raise AuditFileError(
+                str(self.path), "not an audit head checkpoint (corrupt or truncated)",
+                recovery=_recovery(self.db),
+            )  # fmt: skip
+        if key is not None and not hmac.compare_digest(mac, self.mac(key, rows, head)):
+            raise AuditFileError(
+                str(self.path), "head MAC does not verify (forged, or written with another key)",
+                recovery=_recovery(self.db),
+            )  # fmt: skip
+        return Checkpoint(rows, head)
+
+
+def _connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
+    """Open an audit trail, refusing anything that is not one (never creating a table in it)."""
+    try:
+        with path.open("rb") as handle:
+            magic = handle.read(len(_SQLITE_MAGIC))
+    except FileNotFoundError:
+        magic = b""
+        if read_only:
+            raise AuditFileError(str(path), "does not exist", recovery=_aside(path)) from None
+    except OSError as exc:
+        raise AuditFileError(
+            str(path), f"unreadable ({exc.strerror})", recovery=_aside(path)
+        ) from None
+    if magic and magic != _SQLITE_MAGIC:
+        raise AuditFileError(str(path), "not an SQLite database", recovery=_aside(path))
+    try:
+        if read_only:
+            db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, check_same_thread=False)
+        else:
+            db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+        try:
+            tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            if "audit" in tables:
+                columns = [r[1] for r in db.execute("PRAGMA table_info(audit)")]
+                if columns != _EXPECTED_COLUMNS:
+                    raise AuditFileError(
+                        str(path), "has an audit table of another shape", recovery=_aside(path)
+                    )
+            elif tables or read_only:
+                raise AuditFileError(
+                    str(path), "is an SQLite database but not an audit trail",
+                    recovery=_aside(path),
+                )  # fmt: skip
+            if not read_only:
+                db.execute("PRAGMA journal_mode=WAL")
+                db.execute("PRAGMA synchronous=FULL")
+                db.executescript(_SCHEMA)
+        except BaseException:
+            db.close()
+            raise
+    except sqlite3.DatabaseError as exc:
+        raise AuditFileError(
+            str(path), f"not a usable SQLite database ({exc})", recovery=_aside(path)
+        ) from None
+    return db
+
+
+def _last(db: sqlite3.Connection) -> tuple[int, str]:
+    row = db.execute("SELECT seq, hash FROM audit ORDER BY seq DESC LIMIT 1").fetchone()
+    return (0, GENESIS) if row is None else (int(row[0]), str(row[1]))
 
 
 @dataclass(frozen=True)
@@ -94,16 +306,60 @@ class Record:
 
 
 class AuditLog:
-    """Append-only, hash-chained audit trail in one SQLite file."""
+    """Append-only, hash-chained audit trail in one SQLite file, head anchored outside it."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        head_key: str | Path | None = None,
+        head_path: str | Path | None = None,
+    ) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")
-        self._db.executescript(_SCHEMA)
+        self.anchor = HeadAnchor(self.path, Path(head_key) if head_key else None,
+                                 Path(head_path) if head_path else None)  # fmt: skip
+        self._db = _connect(self.path, read_only=False)
         self._lock = threading.Lock()
+        try:
+            self._key = self._open_anchor()
+        except BaseException:
+            self._db.close()
+            raise
+
+    def _open_anchor(self) -> bytes:
+        """Check the database against its checkpoint before appending anything."""
+        key = self.anchor.load_key()
+        checkpoint = self.anchor.read(key)
+        seq, head = _last(self._db)
+        if key is None:
+            if checkpoint is not None:
+                raise AuditFileError(
+                    str(self.anchor.key_path), "missing while the head checkpoint exists",
+                    recovery=_recovery(self.path),
+                )  # fmt: skip
+            if seq:
+                raise AuditFileError(
+                    str(self.path),
+                    f"has {seq} rows but no head checkpoint or key (made before anchoring, "
+                    "or both deleted): cannot prove the newest rows were not deleted",
+                    recovery=_recovery(self.path),
+                )
+            key = self.anchor.create_key()
+        elif checkpoint is None:
+            if seq:
+                raise AuditFileError(
+                    str(self.anchor.path),
+                    "missing: cannot prove the newest rows of the trail were not deleted",
+                    recovery=_recovery(self.path),
+                )
+        else:
+            problem = _compare(self._db, checkpoint)
+            if problem is not None:
+                raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
+        if checkpoint is None or checkpoint.rows != seq:
+            self.anchor.write(key, seq, head)
+        return key
 
     def append(
         self,
@@ -148,14 +404,16 @@ class AuditLog:
                 ).fetchone()
                 seq, prev = (1, GENESIS) if last is None else (last[0] + 1, last[1])
                 row = {"seq": seq, **fields}
+                digest = _digest(prev, row)
                 db.execute(
                     "INSERT INTO audit VALUES (?,?,?,?,?,?,?,?,?,?,?)",
-                    (*(row[f] for f in _FIELDS), prev, _digest(prev, row)),
+                    (*(row[f] for f in _FIELDS), prev, digest),
                 )
                 db.execute("COMMIT")
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
+            self.anchor.write(self._key, seq, digest)  # once per commit (or per batch)
             return seq
 
     def tail(self, n: int = 20) -> list[Record]:
@@ -175,35 +433,140 @@ class AuditLog:
             self._db.close()
 
 
+def _compare(db: sqlite3.Connection, checkpoint: Checkpoint) -> str | None:
+    """Why the database disagrees with a genuine checkpoint, or ``None``."""
+    if checkpoint.rows == 0:
+        return None
+    row = db.execute("SELECT hash FROM audit WHERE seq = ?", (checkpoint.rows,)).fetchone()
+    if row is None:
+        return f"truncated: the head checkpoint covers {checkpoint.rows} rows, they are gone"
+    if row[0] != checkpoint.hash:
+        return f"rewritten: row {checkpoint.rows} no longer has the checkpointed hash"
+    return None
+
+
 @dataclass(frozen=True)
 class ChainReport:
-    """Result of :func:`verify`: how many records, and the first broken link if any."""
+    """Result of :func:`verify`: what the chain and the head checkpoint prove."""
 
     records: int
     broken_at: int | None
     reason: str | None
+    #: "match", "missing" (no checkpoint), "no-key" (MAC not checkable), or the mismatch.
+    head: str = "match"
+    checkpoint_rows: int | None = None
+    after_checkpoint: int = 0
+
+    @property
+    def chain_ok(self) -> bool:
+        return self.broken_at is None
 
     @property
     def ok(self) -> bool:
-        return self.broken_at is None
+        """The chain links and a genuine checkpoint matches it (no truncation, no rewrite)."""
+        return self.broken_at is None and self.head == "match"
+
+    def lines(self) -> list[str]:
+        """What was proven and what was not, one fact per line."""
+        out = [
+            f"chain intact to row {self.records} ({self.records} records)"
+            if self.chain_ok
+            else f"chain broken at row {self.broken_at}: {self.reason}"
+        ]
+        if self.head == "match":
+            out.append(f"head checkpoint matches row {self.checkpoint_rows} (MAC verified)")
+            if self.after_checkpoint:
+                out.append(
+                    f"rows after the last checkpoint: {self.after_checkpoint} "
+                    "(not covered by the head MAC: a crash before the checkpoint, or appended "
+                    "without the key)"
+                )
+        elif self.head == "missing":
+            out.append("head checkpoint missing: cannot prove the newest rows were not deleted")
+        elif self.head == "no-key":
+            out.append("head key missing: the checkpoint's MAC cannot be checked")
+        else:
+            out.append(f"head checkpoint does not match: {self.head}")
+        return out
 
 
-def verify(path: str | Path) -> ChainReport:
-    """Recompute the hash chain; report the first record that does not link."""
-    db = sqlite3.connect(f"file:{Path(path)}?mode=ro", uri=True)
+def verify(
+    path: str | Path, *, head_key: str | Path | None = None, head_path: str | Path | None = None
+) -> ChainReport:
+    """Recompute the hash chain and check it against the head checkpoint (read-only).
+
+    A file that is not an audit trail raises ``AuditFileError``; a missing, damaged or
+    forged checkpoint or key is *reported* in ``head`` (the report says what is provable)."""
+    path = Path(path)
+    anchor = HeadAnchor(path, Path(head_key) if head_key else None,
+                        Path(head_path) if head_path else None)  # fmt: skip
+    db = _connect(path, read_only=True)
     try:
-        cursor = db.execute(_ALL)
-        prev, expected_seq, count = GENESIS, 1, 0
-        for values in cursor:
-            count += 1
-            row = dict(zip(_FIELDS, values[:9], strict=True))
-            if row["seq"] != expected_seq:
-                return ChainReport(count, expected_seq, "record missing or reordered")
-            if values[9] != prev:
-                return ChainReport(count, row["seq"], "prev_hash does not link")
-            if values[10] != _digest(prev, row):
-                return ChainReport(count, row["seq"], "record contents changed")
-            prev, expected_seq = values[10], expected_seq + 1
-        return ChainReport(count, None, None)
+        chain = _walk(db)
+        try:
+            key = anchor.load_key()
+            checkpoint = anchor.read(key)
+        except AuditFileError as exc:
+            return ChainReport(*chain, head=f"{exc.path}: {exc.problem}")
+        if checkpoint is None:
+            return ChainReport(*chain, head="missing")
+        if key is None:
+            return ChainReport(*chain, head="no-key", checkpoint_rows=checkpoint.rows)
+        problem = _compare(db, checkpoint)
+    except sqlite3.DatabaseError as exc:
+        raise AuditFileError(
+            str(path), f"unreadable audit trail ({exc})", recovery=_aside(path)
+        ) from None
     finally:
         db.close()
+    if problem is not None:
+        return ChainReport(*chain, head=problem, checkpoint_rows=checkpoint.rows)
+    after = max(0, chain[0] - checkpoint.rows)
+    return ChainReport(*chain, checkpoint_rows=checkpoint.rows, after_checkpoint=after)
+
+
+def _walk(db: sqlite3.Connection) -> tuple[int, int | None, str | None]:
+    """(records, first broken row, reason) from recomputing every link."""
+    prev, expected_seq, count = GENESIS, 1, 0
+    for values in db.execute(_ALL):
+        count += 1
+        row = dict(zip(_FIELDS, values[:9], strict=True))
+        if row["seq"] != expected_seq:
+            return count, expected_seq, "record missing or reordered"
+        if values[9] != prev:
+            return count, row["seq"], "prev_hash does not link"
+        if values[10] != _digest(prev, row):
+            return count, row["seq"], "record contents changed"
+        prev, expected_seq = values[10], expected_seq + 1
+    return count, None, None
+
+
+def reanchor(
+    path: str | Path, *, head_key: str | Path | None = None, head_path: str | Path | None = None
+) -> ChainReport:
+    """Accept the current, intact chain as the new head (after an operator checked it).
+
+    Creates a new key when the old one is gone (a damaged or exposed key is replaced,
+    never reused).  Refuses a broken chain."""
+    path = Path(path)
+    anchor = HeadAnchor(path, Path(head_key) if head_key else None,
+                        Path(head_path) if head_path else None)  # fmt: skip
+    try:
+        key = anchor.load_key()
+    except AuditFileError:
+        key = None
+        anchor.key_path.unlink()  # a damaged key is replaced, never reused
+    key = key if key is not None else anchor.create_key()
+    db = _connect(path, read_only=True)
+    try:
+        chain = _walk(db)
+        if chain[1] is not None:
+            raise AuditFileError(
+                str(path), f"chain broken at row {chain[1]}: {chain[2]}; cannot re-anchor",
+                recovery=_aside(path),
+            )  # fmt: skip
+        seq, head = _last(db)
+    finally:
+        db.close()
+    anchor.write(key, seq, head)
+    return ChainReport(*chain, checkpoint_rows=seq)

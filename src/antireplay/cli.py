@@ -20,13 +20,13 @@ from rich.progress import Progress
 from rich.table import Table
 
 from antireplay import counters, epochs
-from antireplay.audit import AuditLog, verify
+from antireplay.audit import AuditLog, reanchor, verify
 from antireplay.auth import PrivateKey, sign_envelope, write_key_pair
 from antireplay.clock import SystemClock
 from antireplay.config import AppConfig
 from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.durable import read_kind, repair
-from antireplay.errors import ConfigError, ReplayAttackError
+from antireplay.errors import ConfigError, ReplayAttackError, StateFileError
 from antireplay.pipeline import TokenBucket
 
 console = Console()
@@ -217,15 +217,45 @@ def audit() -> None:
     """The hash-chained audit trail."""
 
 
+_HEAD_KEY = click.option(
+    "--head-key", type=click.Path(path_type=Path), default=None, help="Default: PATH.key"
+)
+_HEAD_FILE = click.option(
+    "--head", "head_file", type=click.Path(path_type=Path), default=None, help="Default: PATH.head"
+)
+
+
 @audit.command("verify")
 @click.argument("path", type=click.Path(exists=True, path_type=Path))
-def audit_verify(path: Path) -> None:
-    """Check the hash chain; report the first broken link."""
-    report = verify(path)
-    if report.ok:
-        console.print(f"[green]chain intact: {report.records} records[/green]")
+@_HEAD_KEY
+@_HEAD_FILE
+def audit_verify(path: Path, head_key: Path | None, head_file: Path | None) -> None:
+    """Check the hash chain and the head checkpoint; say what is proven and what is not.
+
+    Exits 1 on a broken chain, truncation, rewrite or a missing/forged checkpoint."""
+    try:
+        report = verify(path, head_key=head_key, head_path=head_file)
+    except StateFileError as exc:
+        _fail(str(exc))
         return
-    _fail(f"chain broken at record {report.broken_at}: {report.reason}", 1)
+    for line in report.lines():
+        console.print(line, markup=False, highlight=False)
+    if not report.ok:
+        sys.exit(1)
+
+
+@audit.command("reanchor")
+@click.argument("path", type=click.Path(exists=True, path_type=Path))
+@_HEAD_KEY
+@_HEAD_FILE
+def audit_reanchor(path: Path, head_key: Path | None, head_file: Path | None) -> None:
+    """Accept the current intact chain as the new head (after checking it with verify)."""
+    try:
+        report = reanchor(path, head_key=head_key, head_path=head_file)
+    except StateFileError as exc:
+        _fail(str(exc))
+        return
+    console.print(f"re-anchored {path} at row {report.checkpoint_rows}", markup=False)
 
 
 @audit.command("tail")
@@ -309,7 +339,11 @@ def state_repair(path: Path, kind: str | None) -> None:
     if kind is None:
         _fail(f"cannot tell what {path} holds; pass --kind")
         return
-    reseeded = repair(path, kind)
+    try:
+        reseeded = repair(path, kind)
+    except StateFileError as exc:  # e.g. the file's owner is still running
+        _fail(str(exc))
+        return
     console.print(f"[green]repaired {path} ({kind})[/green]")
     console.print_json(data=reseeded)
 
@@ -323,22 +357,34 @@ def _udp(spec: str) -> tuple[str, int]:
 
 
 def _signing_key(path: Path) -> bytes:
-    raw = path.read_bytes().strip()
-    if len(raw) == 64:
+    """The link key: exactly 32 raw bytes (taken as they are: a raw key may begin or end
+    with a whitespace byte), or 64 hex characters with optional surrounding whitespace."""
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise click.BadParameter(f"{path}: unreadable ({exc.strerror})") from None
+    if len(raw) == 32:
+        return raw
+    text = raw.strip()
+    if len(text) == 64:
         try:
-            return bytes.fromhex(raw.decode())
+            return bytes.fromhex(text.decode("ascii"))
         except ValueError:
             pass
-    if len(raw) != 32:
-        raise click.BadParameter(f"{path}: a 32-byte key, raw or as 64 hex characters")
-    return raw
+    raise click.BadParameter(f"{path}: not a MAVLink signing key (32 raw bytes or 64 hex digits)")
 
 
 @main.command("mavlink-proxy")
 @click.option("--listen", required=True, help="udp:HOST:PORT the ground station talks to")
 @click.option("--forward", required=True, help="udp:HOST:PORT of the vehicle (or SITL)")
 @click.option("--key-file", required=True, type=click.Path(exists=True, path_type=Path))
-@click.option("--system-id", type=int, default=None, help="This vehicle's system id (binding).")
+@click.option(
+    "--system-id",
+    type=int,
+    default=None,
+    help="This vehicle's system id: frames addressed elsewhere, and frames from it reflected "
+    "back to the listen port, are refused.",
+)
 @click.option("--store", "store_spec", default="sqlite:.antireplay/mavlink.db", show_default=True)
 @click.option("--audit", "audit_path", default=".antireplay/mavlink-audit.db", show_default=True)
 @click.option("--metrics-port", type=int, default=None, help="Serve Prometheus metrics here.")
@@ -362,8 +408,12 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
     from antireplay.stores import open_store  # noqa: PLC0415
 
     key = _signing_key(key_file)
+    try:
+        audit_log = AuditLog(audit_path)
+    except StateFileError as exc:
+        _fail(str(exc))
+        return
     store = open_store(store_spec)
-    audit_log = AuditLog(audit_path)
     common: dict[str, Any] = {
         "store": store, "allow_unsigned": frozenset(allow_unsigned),
         "reorder_window": reorder_window,

@@ -13,7 +13,9 @@ receiver accepts each number at most once.  Four small types, one job each:
   persisting a reserved ceiling through :mod:`antireplay.durable` once per
   ``lease`` values: after a crash it resumes above everything it could have
   handed out.  It never reads the clock, so a wall-clock step cannot make it
-  repeat.
+  repeat.  The file has one owner: a second process (or object) opening it is
+  refused while the first holds its lock (see :mod:`antireplay.durable`), since
+  two owners would hand out the same values.
 * :class:`NonceTracker` (receiver, in-order links): accepts only
   ``n > last_accepted``.
 * :class:`CounterWindow` (receiver, lossy/reordering links): the RFC 6479
@@ -46,7 +48,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from antireplay.durable import DurableState, register_repair
+from antireplay.durable import DurableState, as_int, register_repair
 from antireplay.errors import (
     CounterLimitError,
     CounterReplayError,
@@ -91,14 +93,20 @@ class NonceCounter:
         """A counter that resumes above every value it could have handed out before a crash."""
         if lease < 1:
             raise ValueError("lease must be >= 1")
-        state = DurableState(Path(path), kind="nonce-counter")
-        data = state.load()
-        ceiling = int(data["ceiling"]) if data is not None else 0
+        state = DurableState(Path(path), kind="nonce-counter", exclusive=True)
+        stored: int | None = state.load(lambda data: as_int(data["ceiling"], "ceiling"))
+        ceiling = 0 if stored is None else stored
         if ceiling + 1 >= limit:
+            state.release()
             raise NonceExhaustedError(f"persisted counter at {ceiling} has reached its limit")
         counter = cls(ceiling + 1, limit=limit)
         counter._state, counter._lease, counter._ceiling = state, lease, ceiling
         return counter
+
+    def close(self) -> None:
+        """Give up the state file (its lock); a later owner resumes above the ceiling."""
+        if self._state is not None:
+            self._state.release()
 
     @property
     def peek(self) -> int:

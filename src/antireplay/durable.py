@@ -24,23 +24,38 @@ state files.
   bound the damage.
 * **Refuse, never reset.** Any problem raises
   :class:`~antireplay.errors.StateFileError`, which names the file and the
-  recovery command, ``antireplay state repair PATH``.  Repair (:func:`repair`)
-  salvages what it can and asks the owning module's *reseeder* for a value
-  safely above anything that could have been used.
+  recovery command, ``antireplay state repair PATH``.  That includes a file
+  whose checksum is fine but whose content has the wrong shape (an owner
+  parses it with :meth:`DurableState.load` and ``parse``; whatever the parser
+  raises becomes the same typed error).  Repair (:func:`repair`) salvages what
+  it can and asks the owning module's *reseeder* for a value safely above
+  anything that could have been used.
+* **One owner.** Two writers on one sender file hand out the same values, so an
+  owner opens its file with ``exclusive=True``: an OS lock (``flock``) on
+  ``PATH.lock`` is taken before the file is read and held for the owner's
+  lifetime (until :meth:`DurableState.release` or garbage collection; the
+  kernel drops it when the process dies, so ``kill -9`` never leaves a stale
+  lock).  A second process, or a second object in the same process, is
+  refused with a ``StateFileError`` saying the file is in use.  ``repair``
+  takes the same lock, so a live file is never reseeded under its owner.  The
+  lock file is never deleted (deleting it would let two owners lock two
+  different inodes).
 """
 
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import json
 import os
 import tempfile
 import threading
 import time
+import weakref
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from antireplay.errors import StateFileError
 
@@ -50,6 +65,7 @@ VERSION = 1
 #: kind -> reseed(salvaged data or None, now_ns) -> safe new data.  Filled by owning modules.
 Reseeder = Callable[[dict[str, Any] | None, int], dict[str, Any]]
 REPAIRERS: dict[str, Reseeder] = {}
+T = TypeVar("T")
 
 
 def register_repair(kind: str, reseed: Reseeder) -> None:
@@ -68,8 +84,11 @@ def _seal(kind: str, generation: int, data: dict[str, Any]) -> bytes:
     return _canonical(body) + b"\n"
 
 
-def atomic_write(path: Path, content: bytes) -> None:
-    """Temp file + fsync + rename + directory fsync."""
+def atomic_write(path: Path, content: bytes, *, sync_dir: bool = True) -> None:
+    """Temp file + fsync + rename + directory fsync.
+
+    ``sync_dir=False`` skips the directory fsync, for files where losing the rename in a
+    power cut (the old content comes back, complete) is safe, such as a head checkpoint."""
     directory = path.parent
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=directory)
     try:
@@ -82,6 +101,8 @@ def atomic_write(path: Path, content: bytes) -> None:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+    if not sync_dir:
+        return
     dir_fd = os.open(directory, os.O_RDONLY)
     try:
         os.fsync(dir_fd)
@@ -89,16 +110,65 @@ def atomic_write(path: Path, content: bytes) -> None:
         os.close(dir_fd)
 
 
+def as_int(value: object, name: str) -> int:
+    """A non-negative JSON integer (not a bool, not a string), else ``TypeError``."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise TypeError(f"{name} must be a non-negative integer, got {value!r:.40}")
+    return value
+
+
+def as_hex(value: object, name: str, size: int) -> bytes:
+    """``size`` bytes written as hex, else ``TypeError``."""
+    if not isinstance(value, str) or len(value) != 2 * size:
+        raise TypeError(f"{name} must be {2 * size} hex characters, got {value!r:.40}")
+    try:
+        return bytes.fromhex(value)
+    except ValueError:
+        raise TypeError(f"{name} must be {2 * size} hex characters, got {value!r:.40}") from None
+
+
 class DurableState:
     """A small JSON state file with checksum, generation and rollback witness."""
 
-    def __init__(self, path: Path, *, kind: str) -> None:
+    def __init__(self, path: Path, *, kind: str, exclusive: bool = False) -> None:
         self.path = Path(path)
         self.witness = self.path.with_name(self.path.name + ".gen")
+        self.lockfile = self.path.with_name(self.path.name + ".lock")
         self.kind = kind
+        self.exclusive = exclusive
         self.generation = 0
         self._lock = threading.Lock()
+        self._held: weakref.finalize[Any, Any] | None = None
         self.writes = 0
+
+    def acquire(self) -> None:
+        """Take the owner lock on ``PATH.lock`` (non-blocking) or raise ``StateFileError``."""
+        if self._held is not None and self._held.alive:
+            return
+        try:
+            fd = os.open(self.lockfile, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        except OSError as exc:
+            raise StateFileError(
+                str(self.path), f"cannot open its lock file ({exc.strerror})"
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise StateFileError(
+                str(self.path),
+                f"in use by another owner (lock {self.lockfile} is held)",
+                recovery="stop the other process using this file; each sender needs its own",
+            ) from None
+        except OSError:
+            os.close(fd)
+            raise
+        self._held = weakref.finalize(self, os.close, fd)
+
+    def release(self) -> None:
+        """Give the owner lock back (also done when this object is collected)."""
+        if self._held is not None:
+            self._held()
 
     def _read(self, path: Path) -> dict[str, Any]:
         """Parse and verify one file, or raise StateFileError."""
@@ -126,8 +196,25 @@ class DurableState:
             raise StateFileError(str(path), "invalid data")
         return body
 
-    def load(self) -> dict[str, Any] | None:
-        """The saved data, ``None`` for a fresh start, or StateFileError (never a silent reset)."""
+    def load(self, parse: Callable[[dict[str, Any]], T] | None = None) -> Any:
+        """The saved data (``parse``-d when given), ``None`` for a fresh start, or
+        StateFileError (never a silent reset).  With ``exclusive`` the owner lock is
+        taken first and given back if the file is refused."""
+        if self.exclusive:
+            self.acquire()
+        try:
+            data = self._load()
+            if data is None or parse is None:
+                return data
+            try:
+                return parse(data)
+            except (TypeError, ValueError, KeyError) as exc:
+                raise StateFileError(str(self.path), f"invalid content ({exc})") from None
+        except BaseException:
+            self.release()
+            raise
+
+    def _load(self) -> dict[str, Any] | None:
         with self._lock:
             has_main, has_witness = self.path.exists(), self.witness.exists()
             if not has_main and not has_witness:
@@ -155,6 +242,8 @@ class DurableState:
 
     def save(self, data: dict[str, Any]) -> None:
         """Durably replace the state; returns only once it would survive a power cut."""
+        if self.exclusive:
+            self.acquire()
         with self._lock:
             gen = self.generation + 1
             atomic_write(self.path, _seal(self.kind, gen, data))
@@ -185,11 +274,15 @@ def repair(path: Path, kind: str, *, now_ns: int | None = None) -> dict[str, Any
     """Reseed a damaged state file safely above anything that could have been used."""
     if kind not in REPAIRERS:
         raise ValueError(f"unknown state kind {kind!r}; known: {', '.join(sorted(REPAIRERS))}")
-    gen, data = salvage(path)
-    reseeded = REPAIRERS[kind](data, time.time_ns() if now_ns is None else now_ns)
-    state = DurableState(path, kind=kind)
-    state.generation = gen
-    state.save(reseeded)
+    state = DurableState(path, kind=kind, exclusive=True)
+    state.acquire()  # never reseed a file under a live owner
+    try:
+        gen, data = salvage(path)
+        reseeded = REPAIRERS[kind](data, time.time_ns() if now_ns is None else now_ns)
+        state.generation = gen
+        state.save(reseeded)
+    finally:
+        state.release()
     return reseeded
 
 

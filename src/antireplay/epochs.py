@@ -23,12 +23,49 @@ strictly increasing, and never below the current time.  Consequences:
   until the clock catches up); a step forwards makes them jump, which
   verifiers bound with ``max_forward_s``.
 
+**Forward glitches rotate the stream.**  If the clock jumps ahead for one seal
+and NTP then corrects it, ``last + 1`` stays far ahead and every verifier with
+``max_forward_s`` would refuse the sender until real time caught up (a
+one-second glitch, an hour's lockout).  So before each seal the signer compares
+its last epoch with the wall clock: when ``last`` is more than the signer's
+``max_forward_s`` ahead (set it at or below the verifiers' bound, and above
+``reserve_s``), it **rotates**: it moves to the successor prefix
+``SHA-256("antireplay/v1 rotate" | prefix)[:8]`` and starts that new stream at
+the current time.  No epoch is ever repeated or lowered *within a prefix* (the
+old prefix is simply never used again; a successor chain cannot cycle short of
+a hash collision), so the strict-increase invariant holds.  The lockout lasts
+only until the first seal after the clock is corrected.  The signer cannot tell
+a corrected forward glitch from a backward step of a clock that was right, so a
+backward step larger than the bound also rotates; the new stream then carries
+the current (possibly wrong) time and verifiers judge it against their own
+clocks with ``max_age_s``, exactly as they judge any sender whose clock is off.
+
+Verifiers alarm: an unknown prefix that is the successor of a known one is
+accepted as a new stream (it is above nothing; the floor and ``max_age_s``
+still apply) and answered with ``warning="EPOCH_SENDER_ROTATED"``, counted in
+``rotations``/``warnings``, logged, and audited when the verifier has an
+audit log; the glitched epoch itself was refused with ``EPOCH_TOO_FAR_AHEAD``
+(counted in ``forward_rejections``, also audited).
+
+**State file and rotation.**  The signer's state file records the current
+prefix, the prefix it started from (``base``: what ``nonce_prefix`` or
+``service_name`` must match at the next start) and the rotation count.  A
+rotation saves the new prefix and its first ceiling *before* the first epoch
+under it is emitted, so a crash never re-uses a prefix at a lower epoch.  A
+glitched ceiling that reached the file (the glitch was persisted, then the
+host restarted) is recovered the same way: the restored ``last`` is more than
+the bound ahead of the clock, so the first seal after the restart rotates.
+
 **Crash safety.**  With ``state_file`` the signer persists a reserved ceiling
 through :mod:`antireplay.durable` before emitting any epoch above the previous
 one, reserving ``reserve_s`` (default 1 s) of epochs at a time, so a busy
 sender fsyncs about once a second, not per message.  After a crash or a host
 reboot it starts above the ceiling, above anything it could have sent.  Choose
 ``max_forward_s`` at verifiers larger than ``reserve_s``.
+
+**One owner per state file.**  Signer and verifier state files are opened
+with an OS lock (:mod:`antireplay.durable`): a second process on the same file
+is refused, since two signers on one file would emit the same epochs.
 
 **Verifier order.**  Parse, constant-time tag check (HMAC is cheap), freshness
 (``max_age_s``, ``max_forward_s``), then ``epoch > last[prefix]``, then the
@@ -58,25 +95,30 @@ import logging
 import os
 import struct
 import threading
-from collections import deque
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from antireplay.clock import Clock, resolve
-from antireplay.durable import DurableState, register_repair
+from antireplay.durable import DurableState, as_hex, as_int, register_repair
 from antireplay.errors import (
     AuthenticationError,
+    Code,
     EpochReplayError,
     EpochTooFarAheadError,
     InvalidFrameError,
     MessageStaleError,
     StateFileError,
+    WarningCode,
 )
+
+if TYPE_CHECKING:
+    from antireplay.audit import AuditLog
 
 log = logging.getLogger("antireplay.epochs")
 
@@ -107,6 +149,8 @@ class Announcement:
     nonce_prefix: bytes
     epoch: int
     kind: Kind = Kind.ANNOUNCEMENT
+    #: Set when the sender is accepted but something must be reported (see WarningCode).
+    warning: str | None = None
 
 
 def derive_key(psk: bytes, kind: Kind) -> bytes:
@@ -122,6 +166,11 @@ def prefix_for_service(service_name: str) -> bytes:
     return hashlib.sha256(b"antireplay/v1 prefix" + service_name.encode()).digest()[:PREFIX_LEN]
 
 
+def successor_prefix(prefix: bytes) -> bytes:
+    """The prefix a signer rotates to after a forward clock glitch (public, deterministic)."""
+    return hashlib.sha256(b"antireplay/v1 rotate" + prefix).digest()[:PREFIX_LEN]
+
+
 def _tag(key: bytes, kind: Kind, prefix: bytes, epoch: int, payload: bytes) -> bytes:
     trailer = prefix + epoch.to_bytes(8, "big") + bytes([VERSION, kind])
     return hmac.digest(key, payload + trailer, "sha256")
@@ -129,6 +178,25 @@ def _tag(key: bytes, kind: Kind, prefix: bytes, epoch: int, payload: bytes) -> b
 
 def _wall_ns(clock: Clock) -> int:
     return int(clock.wall() * 1_000_000_000)
+
+
+@dataclass(frozen=True)
+class _SignerState:
+    prefix: bytes
+    base: bytes
+    ceiling: int
+    rotations: int
+
+
+def _parse_signer(data: dict[str, Any]) -> _SignerState:
+    prefix = as_hex(data["prefix"], "prefix", PREFIX_LEN)
+    base = as_hex(data.get("base", data["prefix"]), "base", PREFIX_LEN)
+    return _SignerState(
+        prefix,
+        base,
+        as_int(data["ceiling"], "ceiling"),
+        as_int(data.get("rotations", 0), "rotations"),
+    )
 
 
 class EpochSigner:
@@ -143,6 +211,7 @@ class EpochSigner:
         state_file: str | os.PathLike[str] | None = None,
         clock: Clock | None = None,
         reserve_s: float = 1.0,
+        max_forward_s: float = 60.0,
     ) -> None:
         if nonce_prefix is not None and service_name is not None:
             raise ValueError("give nonce_prefix or service_name, not both")
@@ -150,48 +219,90 @@ class EpochSigner:
             nonce_prefix = prefix_for_service(service_name)
         if nonce_prefix is not None and len(nonce_prefix) != PREFIX_LEN:
             raise ValueError(f"nonce_prefix must be {PREFIX_LEN} bytes")
+        if not max_forward_s > reserve_s:
+            raise ValueError("max_forward_s must exceed reserve_s (else every restart rotates)")
         self._keys = {k: derive_key(psk, k) for k in Kind}
         self._clock = resolve(clock)
         self._reserve_ns = int(reserve_s * 1_000_000_000)
+        self._max_forward_ns = int(max_forward_s * 1_000_000_000)
         self._lock = threading.Lock()
         self._last = 0
         self._ceiling = EPOCH_LIMIT
+        self.rotations = 0
         self._state: DurableState | None = None
+        stored: _SignerState | None = None
         if state_file is not None:
-            self._state = DurableState(Path(state_file), kind="epoch-signer")
-            data = self._state.load()
-            if data is not None:
-                stored = bytes.fromhex(str(data["prefix"]))
-                if nonce_prefix is not None and stored != nonce_prefix:
-                    raise StateFileError(str(state_file), "holds state for another nonce_prefix")
-                nonce_prefix, self._last = stored, int(data["ceiling"])
-            self._ceiling = self._last
-        self.nonce_prefix = nonce_prefix if nonce_prefix is not None else os.urandom(PREFIX_LEN)
+            self._state = DurableState(Path(state_file), kind="epoch-signer", exclusive=True)
+            wanted, path = nonce_prefix, str(state_file)
+
+            def parse(data: dict[str, Any]) -> _SignerState:
+                got = _parse_signer(data)
+                if wanted is not None and got.base != wanted:
+                    raise StateFileError(path, "holds state for another nonce_prefix")
+                return got
+
+            stored = self._state.load(parse)
+            self._ceiling = 0
+        if stored is not None:
+            self._last = self._ceiling = stored.ceiling
+            self.rotations = stored.rotations
+            self.nonce_prefix, self.base_prefix = stored.prefix, stored.base
+        else:
+            self.nonce_prefix = nonce_prefix if nonce_prefix is not None else os.urandom(PREFIX_LEN)
+            self.base_prefix = self.nonce_prefix
 
     @property
     def last_epoch(self) -> int:
         return self._last
 
+    def close(self) -> None:
+        """Give up the state file (its lock)."""
+        if self._state is not None:
+            self._state.release()
+
     def next_epoch(self) -> int:
         """Reserve and return the next epoch (persisting a new ceiling first if needed)."""
+        return self._next()[1]
+
+    def _next(self) -> tuple[bytes, int]:
+        """The (prefix, epoch) pair to seal with, taken together under the lock."""
         with self._lock:
-            epoch = max(self._last + 1, _wall_ns(self._clock))
+            now = _wall_ns(self._clock)
+            if self._last - now > self._max_forward_ns:
+                self._rotate(now)
+            epoch = max(self._last + 1, now)
             if epoch >= EPOCH_LIMIT:
                 raise EpochTooFarAheadError("epoch space exhausted")
             if self._state is not None and epoch > self._ceiling:
                 ceiling = min(epoch + self._reserve_ns, EPOCH_LIMIT - 1)
-                self._state.save({"ceiling": ceiling, "prefix": self.nonce_prefix.hex()})
+                self._state.save(
+                    {"ceiling": ceiling, "prefix": self.nonce_prefix.hex(),
+                     "base": self.base_prefix.hex(), "rotations": self.rotations}
+                )  # fmt: skip
                 self._ceiling = ceiling
             self._last = epoch
-            return epoch
+            return self.nonce_prefix, epoch
+
+    def _rotate(self, now: int) -> None:
+        """Leave a stream whose last epoch ran ahead of the clock (module docstring)."""
+        log.warning(
+            "epoch stream %s is %.1fs ahead of the clock (a forward glitch, now corrected?); "
+            "rotating to a new prefix",
+            self.nonce_prefix.hex(),
+            (self._last - now) / 1e9,
+        )
+        self.nonce_prefix = successor_prefix(self.nonce_prefix)
+        self.rotations += 1
+        self._last = 0
+        self._ceiling = 0  # forces the new prefix to be persisted before its first epoch
 
     def seal(self, payload: bytes, *, kind: Kind = Kind.ANNOUNCEMENT) -> bytes:
         """Seal one announcement (or, with ``kind=Kind.PING``, one binding ping)."""
         if len(payload) + MIN_LEN > MAX_LEN:
             raise ValueError("payload too large")
-        epoch = self.next_epoch()
-        head = _HEAD.pack(VERSION, kind, self.nonce_prefix, epoch)
-        return head + payload + _tag(self._keys[kind], kind, self.nonce_prefix, epoch, payload)
+        prefix, epoch = self._next()
+        head = _HEAD.pack(VERSION, kind, prefix, epoch)
+        return head + payload + _tag(self._keys[kind], kind, prefix, epoch, payload)
 
     def seal_ping(self, payload: bytes) -> bytes:
         """A binding ping: same discipline, separate key."""
@@ -218,29 +329,44 @@ class EpochVerifier:
         max_forward_s: float | None = None,
         clock: Clock | None = None,
         max_prefixes: int = 4096,
+        audit: AuditLog | None = None,
     ) -> None:
         self._keys = {k: derive_key(psk, k) for k in Kind}
         self._clock = resolve(clock)
         self.max_age_ns = None if max_age_s is None else int(max_age_s * 1e9)
         self.max_forward_ns = None if max_forward_s is None else int(max_forward_s * 1e9)
         self.max_prefixes = max_prefixes
+        self.audit = audit
         self._lock = threading.Lock()
         self._tables: dict[Kind, dict[bytes, _PrefixState]] = {k: {} for k in Kind}
+        #: successor_prefix(p) -> p for every known p: recognises a rotated sender.
+        self._predecessors: dict[Kind, dict[bytes, bytes]] = {k: {} for k in Kind}
         self._floor = 0
         self.prefix_collisions = 0
         self.forward_rejections = 0
+        self.rotations = 0
+        self.warnings: Counter[str] = Counter()
         self._state: DurableState | None = None
         if state_file is not None:
-            self._state = DurableState(Path(state_file), kind="epoch-verifier")
-            data = self._state.load()
-            if data is not None:
-                self._restore(data)
+            self._state = DurableState(Path(state_file), kind="epoch-verifier", exclusive=True)
+            self._state.load(self._restore)
+
+    def close(self) -> None:
+        """Give up the state file (its lock)."""
+        if self._state is not None:
+            self._state.release()
 
     def _restore(self, data: dict[str, Any]) -> None:
-        self._floor = int(data.get("floor", 0))
+        """Rebuild the tables from a state file; wrong-typed content raises TypeError."""
+        self._floor = as_int(data.get("floor", 0), "floor")
         for kind in Kind:
-            for prefix_hex, epoch in dict(data.get(kind.name.lower(), {})).items():
-                self._tables[kind][bytes.fromhex(prefix_hex)] = _PrefixState(int(epoch))
+            entries = data.get(kind.name.lower(), {})
+            if not isinstance(entries, dict):
+                raise TypeError(f"{kind.name.lower()} must be a table of prefix -> epoch")
+            for prefix_hex, epoch in entries.items():
+                prefix = as_hex(prefix_hex, "prefix", PREFIX_LEN)
+                self._tables[kind][prefix] = _PrefixState(as_int(epoch, "epoch"))
+                self._predecessors[kind][successor_prefix(prefix)] = prefix
 
     def _snapshot(self) -> dict[str, Any]:
         data: dict[str, Any] = {"floor": self._floor}
@@ -262,8 +388,9 @@ class EpochVerifier:
         expected = _tag(self._keys[kind], kind, prefix, epoch, payload)
         if not hmac.compare_digest(expected, tag):
             raise AuthenticationError("announcement tag does not verify")
-        self._check_time(epoch)
+        self._check_time(prefix, epoch)
         digest = hashlib.sha256(payload).digest()[:16]
+        rotated_from: bytes | None = None
         with self._lock:
             table = self._tables[kind]
             state = table.get(prefix)
@@ -271,10 +398,15 @@ class EpochVerifier:
                 if epoch <= self._floor:
                     raise EpochReplayError("epoch below the verifier's floor")
                 if len(table) >= self.max_prefixes:
-                    self._evict_oldest(table)
+                    self._evict_oldest(kind)
                     if epoch <= self._floor:
                         raise EpochReplayError("epoch below the verifier's floor")
+                rotated_from = self._predecessors[kind].get(prefix)
+                if rotated_from is not None:
+                    self.rotations += 1
+                    self.warnings[WarningCode.EPOCH_SENDER_ROTATED] += 1
                 state = table[prefix] = _PrefixState(-1)
+                self._predecessors[kind][successor_prefix(prefix)] = prefix
             elif epoch <= state.last:
                 self._judge_old(prefix, epoch, digest, state)
             previous = state.last
@@ -286,9 +418,33 @@ class EpochVerifier:
                 except OSError:
                     state.last = previous
                     raise
-        return Announcement(payload, prefix, epoch, kind)
+        if rotated_from is None:
+            return Announcement(payload, prefix, epoch, kind)
+        return self._rotated(Announcement(payload, prefix, epoch, kind), rotated_from)
 
-    def _check_time(self, epoch: int) -> None:
+    def _rotated(self, accepted: Announcement, previous: bytes) -> Announcement:
+        """A sender left a stream that ran ahead of its clock: accept, count, log, audit."""
+        code = WarningCode.EPOCH_SENDER_ROTATED  # counted under the lock in open()
+        log.warning(
+            "sender rotated from nonce_prefix %s to %s (its clock ran ahead, then was corrected)",
+            previous.hex(),
+            accepted.nonce_prefix.hex(),
+        )
+        self._audit("accepted", None, code, accepted.nonce_prefix, accepted.epoch)
+        return Announcement(accepted.payload, accepted.nonce_prefix, accepted.epoch,
+                            accepted.kind, str(code))  # fmt: skip
+
+    def _audit(
+        self, outcome: str, code: str | None, warning: str | None, prefix: bytes, epoch: int
+    ) -> None:
+        if self.audit is not None:
+            self.audit.append(
+                at=self._clock.wall(), outcome=outcome, code=code, warning=warning,
+                msg_type=None, sender=f"epoch:{prefix.hex()}", sender_verified=True,
+                msg_id=str(epoch),
+            )  # fmt: skip
+
+    def _check_time(self, prefix: bytes, epoch: int) -> None:
         if self.max_age_ns is None and self.max_forward_ns is None:
             return
         now = _wall_ns(self._clock)
@@ -297,6 +453,7 @@ class EpochVerifier:
         if self.max_forward_ns is not None and epoch > now + self.max_forward_ns:
             self.forward_rejections += 1
             log.warning("authentic epoch %d is %.1fs ahead; refused", epoch, (epoch - now) / 1e9)
+            self._audit("rejected", Code.EPOCH_TOO_FAR_AHEAD, None, prefix, epoch)
             raise EpochTooFarAheadError("authentic epoch jumped beyond max_forward_s")
 
     def _judge_old(self, prefix: bytes, epoch: int, digest: bytes, state: _PrefixState) -> None:
@@ -313,9 +470,11 @@ class EpochVerifier:
         )
         raise EpochReplayError("epoch not above last: nonce_prefix collision suspected")
 
-    def _evict_oldest(self, table: dict[bytes, _PrefixState]) -> None:
+    def _evict_oldest(self, kind: Kind) -> None:
+        table = self._tables[kind]
         oldest = min(table, key=lambda p: table[p].last)
         self._floor = max(self._floor, table.pop(oldest).last)
+        self._predecessors[kind].pop(successor_prefix(oldest), None)
 
 
 def _parse(sealed: bytes, kind: Kind) -> tuple[bytes, int, bytes, bytes]:
@@ -338,10 +497,18 @@ def _int_or(value: object, default: int) -> int:
 def _reseed_signer(data: dict[str, Any] | None, now_ns: int) -> dict[str, Any]:
     """Above the salvaged ceiling and above the current time; keep the prefix if readable."""
     data = data or {}
-    prefix = data.get("prefix")
-    if not (isinstance(prefix, str) and len(prefix) == 2 * PREFIX_LEN):
+    try:
+        prefix = as_hex(data.get("prefix"), "prefix", PREFIX_LEN).hex()
+    except TypeError:
         prefix = os.urandom(PREFIX_LEN).hex()
-    return {"ceiling": max(_int_or(data.get("ceiling"), 0), now_ns), "prefix": prefix}
+    try:
+        base = as_hex(data.get("base", prefix), "base", PREFIX_LEN).hex()
+    except TypeError:
+        base = prefix
+    return {
+        "ceiling": max(_int_or(data.get("ceiling"), 0), now_ns), "prefix": prefix,
+        "base": base, "rotations": _int_or(data.get("rotations"), 0),
+    }  # fmt: skip
 
 
 def _reseed_verifier(data: dict[str, Any] | None, now_ns: int) -> dict[str, Any]:

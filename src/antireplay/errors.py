@@ -44,6 +44,7 @@ class Code(StrEnum):
     SESSION_CLOSED = "SESSION_CLOSED"
     UNKNOWN_SESSION = "UNKNOWN_SESSION"
     STATE_UNAVAILABLE = "STATE_UNAVAILABLE"
+    WRONG_DIRECTION = "WRONG_DIRECTION"
 
 
 #: The one place where a code becomes an HTTP status.
@@ -67,7 +68,15 @@ HTTP_STATUS: dict[Code, int] = {
     Code.SESSION_CLOSED: 401,
     Code.UNKNOWN_SESSION: 401,
     Code.STATE_UNAVAILABLE: 503,
+    Code.WRONG_DIRECTION: 403,
 }
+
+
+class WarningCode(StrEnum):
+    """Stable codes of events that are accepted but must be counted, logged and audited."""
+
+    EPOCH_SENDER_ROTATED = "EPOCH_SENDER_ROTATED"
+
 
 #: COMMAND_NACK in the current canonical RCAN numbering; 31 was its number in RCAN v1.5/v1.6.
 NACK_TYPE_CURRENT = 18
@@ -221,6 +230,12 @@ class UnknownSessionError(ReplayAttackError):
     code = Code.UNKNOWN_SESSION
 
 
+class WrongDirectionError(ReplayAttackError):
+    """An authentic frame arrived from the wrong side of a link (a reflection)."""
+
+    code = Code.WRONG_DIRECTION
+
+
 class StateUnavailableError(ReplayAttackError):
     """The replay state store cannot be reached; fail closed."""
 
@@ -242,13 +257,21 @@ class NonceExhaustedError(AntiReplayError):
 
 
 class StateFileError(AntiReplayError):
-    """A crash-safe state file is corrupt, truncated or rolled back; refuse to start."""
+    """A state, key or audit file is unusable (corrupt, wrong-typed, foreign, truncated,
+    rolled back or in use); refuse to start, naming the file and the recovery command."""
+
+    what = "state file"
 
     def __init__(self, path: str, problem: str, *, recovery: str | None = None) -> None:
-        recovery = recovery or f"antireplay state repair {path}"
-        super().__init__(
-            f"state file {path}: {problem}; refusing to start. Recover with: {recovery}"
-        )
-        self.recovery = recovery
         self.path = path
         self.problem = problem
+        self.recovery = recovery if recovery is not None else f"antireplay state repair {path}"
+        super().__init__(
+            f"{self.what} {path}: {problem}; refusing to start. Recover with: {self.recovery}"
+        )
+
+
+class AuditFileError(StateFileError):
+    """The audit trail, its head checkpoint or its head key is unusable or was tampered with."""
+
+    what = "audit file"

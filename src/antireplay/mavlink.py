@@ -9,7 +9,10 @@ first 6 bytes of ``SHA-256(key | frame without those 6 bytes)``.
 
 1. **parse** strictly (v2 only, known incompat flags, exact length, CRC with
    the dialect's ``crc_extra`` when the message is known) -> ``INVALID_FRAME``;
-2. **unsigned** frames pass only if their message id is on the explicit
+2. **direction**: a frame whose *source* system is in ``refused_sources`` is
+   refused with ``WRONG_DIRECTION`` (see *Direction binding* below); a
+   guard built with ``system_id`` refuses that id as a source from the start;
+   **unsigned** frames pass only if their message id is on the explicit
    allow-list; a frame carrying the signed flag never falls back to it;
 3. **verify** the signature in constant time -> ``SIGNATURE_INVALID``.  Nothing
    before this point touches the stream table, so a forged frame with
@@ -32,6 +35,27 @@ first 6 bytes of ``SHA-256(key | frame without those 6 bytes)``.
 
 The stream table is bounded: when full, the least recently used stream is
 evicted and a fence rises to its last timestamp; new streams must be above it.
+
+Direction binding
+-----------------
+Both directions of a link share one key: ground stations (MAVProxy, QGC,
+pymavlink's ``setup_signing``) sign and verify with a single secret per link,
+so separate keys per direction would break every stock ground station.  The
+``link_id`` cannot carry the direction either: each sender picks its own
+(QGC uses its link number), so the proxy cannot pin it.  What does separate
+the directions is the **source system id** in the frame header, which the
+signature covers: the vehicle (and its components) send as the vehicle's
+system id, a ground station as its own (255 by default), and MAVLink requires
+them to differ on one network.  So a guard refuses, before any crypto, frames
+whose source system belongs to the other side: the vehicle's own id
+(``system_id``, when configured) and, in :class:`MavlinkProxy`, every source
+system id that has *authenticated* in the other direction (learned only from
+signed, accepted frames; an unsigned allow-listed frame teaches nothing, or a
+spoofed unsigned heartbeat could silence the real vehicle).  A signed vehicle
+frame reflected back to the listen port therefore gets ``WRONG_DIRECTION``,
+and stamps nothing in the inbound stream table.  Configure ``--system-id``:
+without it, a reflection is refused only once the vehicle has spoken through
+this proxy process.
 
 Sender side: :class:`TimestampSource` keeps a link's timestamp tied to real
 time (``max(last + 1, now)``) and raises :class:`NonceExhaustedError` at
@@ -63,6 +87,7 @@ from antireplay.errors import (
     MessageStaleError,
     NonceExhaustedError,
     ReplayAttackError,
+    WrongDirectionError,
 )
 from antireplay.stores import ReplayStore
 
@@ -200,6 +225,8 @@ class MavlinkGuard:
         self.new_stream_max_age = int(new_stream_max_age_s * UNITS_PER_S)
         self.max_forward = int(max_forward_s * UNITS_PER_S)
         self.prefix = store_prefix
+        #: Source system ids that belong to the other direction (module docstring).
+        self.refused_sources: set[int] = set() if system_id is None else {system_id}
         self._streams: OrderedDict[tuple[int, int, int], _Stream] = OrderedDict()
         self._fence = -1
         self._lock = threading.Lock()
@@ -211,6 +238,8 @@ class MavlinkGuard:
     def check(self, raw: bytes) -> MavVerdict:
         """Accept one frame or raise a typed :class:`ReplayAttackError`."""
         frame = parse_frame(raw)
+        if frame.sysid in self.refused_sources:
+            raise WrongDirectionError(f"system {frame.sysid} sends from the other side of the link")
         if not frame.signed:
             if frame.msgid not in self.allow_unsigned:
                 raise AuthenticationError(f"unsigned message {frame.msgid} not allow-listed")
@@ -322,8 +351,19 @@ class ProxyStats:
 
 class MavlinkProxy:
     """UDP proxy: frames from the ground side go to the vehicle only if ``inbound`` accepts
-    them; frames from the vehicle go back to the last ground address only if ``outbound``
-    accepts them.  ``on_reject`` receives each rejection (for audit and metrics)."""
+    them; frames from the vehicle go back to the ground peer only if ``outbound`` accepts
+    them.  ``on_reject`` receives each rejection (for audit and metrics).
+
+    The ground peer (where telemetry goes) is learned only from a datagram in which at
+    least one *signed* frame was accepted: garbage, forged or replayed frames, and
+    unsigned allow-listed frames (anyone can make those), never move it, so one spoofed
+    datagram cannot redirect the vehicle's telemetry.  Until a peer has authenticated,
+    telemetry is dropped and counted as ``outbound:NO_PEER``.  Residual: an attacker who
+    sees a ground frame before the proxy does can race it in from its own address; that
+    frame is authentic and fresh, so the peer follows it (UDP carries no authenticated
+    address; the same holds for every MAVLink endpoint).  Each side's authenticated
+    source systems are refused on the other side (module docstring: direction binding).
+    """
 
     def __init__(
         self,
@@ -351,6 +391,11 @@ class MavlinkProxy:
         host, port = self.ground.getsockname()[:2]
         return str(host), int(port)
 
+    @property
+    def peer(self) -> tuple[str, int] | None:
+        """Where telemetry goes: the last ground address that sent an authenticated frame."""
+        return self._peer
+
     def start(self) -> None:
         for target in (self._from_ground, self._from_vehicle):
             thread = threading.Thread(target=target, daemon=True)
@@ -364,22 +409,28 @@ class MavlinkProxy:
         for sock in (self.ground, self.vehicle):
             sock.close()
 
-    def _filter(self, direction: str, guard: MavlinkGuard, datagram: bytes) -> bytes:
-        out = bytearray()
+    def _filter(
+        self, direction: str, guard: MavlinkGuard, other: MavlinkGuard, datagram: bytes
+    ) -> tuple[bytes, bool]:
+        """The accepted frames, and whether any of them was signed (authenticated)."""
+        out, authenticated = bytearray(), False
         try:
             frames = split_frames(datagram)
         except ReplayAttackError as exc:
             self._reject(direction, exc, datagram)
-            return b""
+            return b"", False
         for raw in frames:
             try:
-                guard.check(raw)
+                verdict = guard.check(raw)
             except ReplayAttackError as exc:
                 self._reject(direction, exc, raw)
                 continue
+            if verdict.signed:
+                authenticated = True
+                other.refused_sources.add(verdict.stream[0])  # this side's system, from now on
             self.stats.forwarded[direction] += 1
             out += raw
-        return bytes(out)
+        return bytes(out), authenticated
 
     def _reject(self, direction: str, exc: ReplayAttackError, raw: bytes) -> None:
         self.stats.dropped[f"{direction}:{exc.code}"] += 1
@@ -394,8 +445,9 @@ class MavlinkProxy:
                 continue
             except OSError:
                 return
-            self._peer = peer
-            allowed = self._filter("inbound", self.inbound, datagram)
+            allowed, authenticated = self._filter("inbound", self.inbound, self.outbound, datagram)
+            if authenticated:
+                self._peer = peer
             if allowed:
                 try:
                     self.vehicle.send(allowed)
@@ -412,9 +464,14 @@ class MavlinkProxy:
                 continue  # the vehicle is not up yet: ICMP port unreachable
             except OSError:
                 return
-            allowed = self._filter("outbound", self.outbound, datagram)
-            if allowed and self._peer is not None:
-                try:
-                    self.ground.sendto(allowed, self._peer)
-                except OSError:
-                    self.stats.dropped["outbound:GROUND_UNREACHABLE"] += 1
+            allowed, _ = self._filter("outbound", self.outbound, self.inbound, datagram)
+            if not allowed:
+                continue
+            peer = self._peer
+            if peer is None:
+                self.stats.dropped["outbound:NO_PEER"] += 1
+                continue
+            try:
+                self.ground.sendto(allowed, peer)
+            except OSError:
+                self.stats.dropped["outbound:GROUND_UNREACHABLE"] += 1
