@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 import re
+import socket
 import threading
+import time
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from pathlib import Path
@@ -144,6 +146,92 @@ def test_transport_refusals(http: httpx.Client) -> None:
     reply = post(http, huge)
     assert reply.status_code == 413 and reply.json()["code"] == "INVALID_ENVELOPE"
     assert http.get("/healthz").json()["status"] == "ok"
+
+
+def _stamp(body: bytes) -> bytes:
+    return body.replace(b"NOW", str(int(time.time())).encode())
+
+
+HOSTILE_BODIES = {
+    "msg_id not UTF-8": b'{"msg_id":"a\xff","cmd":"x","target":"t","rcan":"3.2","timestamp":NOW}',
+    "cmd not UTF-8": b'{"msg_id":"a","cmd":"x\xc3","target":"t","rcan":"3.2","timestamp":NOW}',
+    "params not UTF-8": (
+        b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp":NOW,"params":{"k":"\xfe"}}'
+    ),
+    "sig.kid not UTF-8": (
+        b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp":NOW,'
+        b'"sig":{"alg":"ed25519","kid":"\xff","value":"AA"}}'
+    ),
+    "huge timestamp": b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp":'
+    + b"9" * 400
+    + b"}",
+    "huge timestamp_ms": b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp_ms":'
+    + b"9" * 400
+    + b"}",
+    "huge type": b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp":NOW,"type":'
+    + b"9" * 30
+    + b"}",
+}
+
+
+@pytest.mark.parametrize("name", sorted(HOSTILE_BODIES))
+def test_hostile_bytes_get_a_typed_4xx_never_500(http: httpx.Client, name: str) -> None:
+    reply = post(http, _stamp(HOSTILE_BODIES[name]))
+    assert reply.status_code == 400, reply.text
+    assert reply.json()["code"] in {"INVALID_ENVELOPE", "INVALID_TIMESTAMP"}
+
+
+def test_max_body_bytes_above_64k_is_the_limit_in_force(tmp_path: Path) -> None:
+    gw = GatewayProcess(write_demo_config(tmp_path, max_body_bytes=200_000))
+    gw.start()
+    try:
+        key = load_operator_key(tmp_path)
+        big = command(key, params={"blob": "a" * 100_000})
+        assert 100_000 < len(big) < 200_000
+        reply = httpx.post(f"{gw.url}/v1/messages", content=big, headers=JSON)
+        assert reply.status_code == 200, reply.text
+        over = command(key, params={"blob": "a" * 200_001})
+        reply = httpx.post(f"{gw.url}/v1/messages", content=over, headers=JSON)
+        assert (reply.status_code, reply.json()["code"]) == (413, "INVALID_ENVELOPE")
+    finally:
+        gw.stop()
+
+
+def _raw_exchange(url: str, request: bytes) -> tuple[bytes, bool]:
+    """Send raw bytes to the real server; return the reply and whether the server closed."""
+    host, port = url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as sock:
+        sock.sendall(request)
+        reply = b""
+        while True:
+            try:
+                chunk = sock.recv(65536)
+            except TimeoutError:
+                return reply, False  # still open after 10 s: not closed
+            if not chunk:
+                return reply, True
+            reply += chunk
+
+
+def test_content_length_with_transfer_encoding_is_refused_and_closed(
+    gateway: GatewayProcess, state: Path
+) -> None:
+    body = command(load_operator_key(state))
+    chunked = f"{len(body):x}\r\n".encode() + body + b"\r\n0\r\n\r\n"
+    request = (
+        b"POST /v1/messages HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        b"Content-Type: application/json\r\n"
+        + f"Content-Length: {len(chunked)}\r\n".encode()
+        + b"Transfer-Encoding: chunked\r\n\r\n"
+        + chunked
+    )
+    reply, closed = _raw_exchange(gateway.url, request)
+    head = reply.split(b"\r\n\r\n", 1)[0].lower()
+    assert head.startswith(b"http/1.1 400"), reply[:200]
+    assert b"\r\nconnection: close" in head
+    assert closed
+    # The message itself was never processed: sent properly, it is still accepted.
+    assert httpx.post(f"{gateway.url}/v1/messages", content=body, headers=JSON).status_code == 200
 
 
 @settings(max_examples=2_000, deadline=None, suppress_health_check=list(HealthCheck))

@@ -232,7 +232,8 @@ def sign_envelope(
     if alg not in ALGORITHMS or len(private) != len(ALGORITHMS[alg]):
         raise ValueError(f"unsupported algorithm {alg!r} for {len(private)} key(s)")
     unsigned = {k: v for k, v in message.items() if k != "sig"}
-    data = canonical_bytes(parse(json.dumps(unsigned).encode()))
+    raw = json.dumps(unsigned).encode()
+    data = canonical_bytes(parse(raw, max_bytes=len(raw)))  # the receiver enforces its own limit
     value = ".".join(b64encode(key.sign(data)) for key in private)
     return {**unsigned, "sig": {"alg": alg, "kid": kid, "value": value}}
 

@@ -15,6 +15,15 @@ field one of them ignored.  Exactly one of ``timestamp`` (Unix seconds) and
 present.  ``msg_id`` and the timestamp's *value* are judged by the window
 (``INVALID_MESSAGE_ID`` / ``INVALID_TIMESTAMP``), not here.
 
+Everything a peer controls gets a typed answer, never an exception: bytes
+that are not UTF-8 (JSON text must be, RFC 8259 §8.1) are ``INVALID_ENVELOPE``
+(msgspec itself raises a bare ``UnicodeDecodeError`` for them, inside ``sig``
+too); an integer timestamp beyond the 64-bit range is ``INVALID_TIMESTAMP``
+here, so the window is never handed a number it cannot convert to a float;
+and the integer fields (``type``, ``qos``, ``sequence_number``, ``loa``) are
+bounded in the schema, so no store or audit column meets an integer it
+cannot hold.
+
 Canonical form (what signatures cover): the envelope as decoded, **minus
 ``sig`` and ``jwt``**, encoded as JSON with keys sorted, no whitespace, UTF-8,
 and numbers as Python's shortest round-trip repr.  It covers every field that
@@ -31,15 +40,19 @@ different message than the one that was verified.
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Annotated, Any
 
 import msgspec
 
-from antireplay.errors import InvalidEnvelopeError
+from antireplay.errors import InvalidEnvelopeError, InvalidTimestampError
 from antireplay.messages import MessageType
 
 MAX_BYTES = 64 * 1024
 MAX_DEPTH = 16
+#: Integer timestamps (seconds or milliseconds) beyond this are refused before any conversion.
+MAX_INT_TIMESTAMP = 2**63 - 1
+#: Bounded integer fields: what a SQLite INTEGER (and any int64 upstream) can hold.
+Int64 = Annotated[int, msgspec.Meta(ge=-(2**63), le=2**63 - 1)]
 
 
 class Signature(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -60,7 +73,7 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
     rcan_version: str = ""
     timestamp: Any = None
     timestamp_ms: Any = None
-    type: int = int(MessageType.COMMAND)
+    type: Int64 = int(MessageType.COMMAND)
     safety_event: str | None = None
     params: dict[str, Any] = msgspec.field(default_factory=dict)
     sender: str | None = None
@@ -68,18 +81,18 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
     # Kept raw and decoded only at the signature step: a replay never pays for it.
     sig: msgspec.Raw = msgspec.field(default_factory=msgspec.Raw)
     key_id: str | None = None
-    qos: int = 0
+    qos: Int64 = 0
     jwt: str | None = None
     confidence: float | None = None
     sender_type: str | None = None
     cloud_provider: str | None = None
-    sequence_number: int | None = None
+    sequence_number: Int64 | None = None
     delegation_chain: list[Any] = msgspec.field(default_factory=list)
     group_id: str | None = None
     read_only: bool = False
     presence_verified: bool = False
     proximity_m: float | None = None
-    loa: int | None = None
+    loa: Int64 | None = None
     transport_encoding: str | None = None
     firmware_hash: str | None = None
     attestation_ref: str | None = None
@@ -92,6 +105,8 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
             return _SIG_DECODER.decode(self.sig)
         except msgspec.MsgspecError as exc:
             raise InvalidEnvelopeError(f"sig: {_short(str(exc))}") from None
+        except UnicodeDecodeError:
+            raise InvalidEnvelopeError("sig: not UTF-8") from None
 
     @property
     def seconds(self) -> object:
@@ -123,8 +138,13 @@ def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH)
         raise InvalidEnvelopeError(f"not JSON: {_short(str(exc))}") from None
     except RecursionError:
         raise InvalidEnvelopeError("nested too deeply") from None
+    except UnicodeDecodeError:
+        raise InvalidEnvelopeError("not UTF-8") from None
     if (env.timestamp is None) == (env.timestamp_ms is None):
         raise InvalidEnvelopeError("exactly one of timestamp and timestamp_ms is required")
+    for stamp in (env.timestamp, env.timestamp_ms):
+        if type(stamp) is int and not -MAX_INT_TIMESTAMP <= stamp <= MAX_INT_TIMESTAMP:
+            raise InvalidTimestampError("timestamp out of range")
     deep = _nested(env.params) or bool(env.delegation_chain)
     if deep and max(_depth(env.params), _depth(env.delegation_chain)) > max_depth:
         raise InvalidEnvelopeError(f"nested deeper than {max_depth} levels")
