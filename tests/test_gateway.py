@@ -10,12 +10,16 @@ import time
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import httpx
 import pytest
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import mldsa
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from rcan import RCANMessage
+from rcan.signing import MLDSAKeyPair, sign_message
 
 from antireplay.audit import AuditLog, verify
 from antireplay.demo import (
@@ -27,6 +31,7 @@ from antireplay.demo import (
     state_rows,
     write_demo_config,
 )
+from antireplay.envelope import SDK_SIGNED_FIELDS
 from antireplay.stores.redis_store import RedisStore
 
 
@@ -295,6 +300,59 @@ def test_http_upstream_and_upstream_failure(tmp_path: Path) -> None:
     finally:
         good.stop()
         bad.stop()
+        robot.shutdown()
+
+
+class _RecordingRobot(BaseHTTPRequestHandler):
+    """An upstream that keeps every envelope it is handed."""
+
+    received: ClassVar[list[dict[str, Any]]] = []
+
+    def do_POST(self) -> None:
+        length = int(self.headers["content-length"])
+        self.received.append(json.loads(self.rfile.read(length)))
+        self.send_response(200)
+        self.send_header("content-type", "application/json")
+        self.send_header("content-length", "2")
+        self.end_headers()
+        self.wfile.write(b"{}")
+
+    def log_message(self, *args: Any) -> None:
+        """Quiet."""
+
+
+def test_sdk_compat_mitm_field_never_reaches_upstream(tmp_path: Path) -> None:
+    pair = MLDSAKeyPair.generate()
+    public = mldsa.MLDSA65PublicKey.from_public_bytes(pair.public_key)
+    (tmp_path / "sdk.pub.pem").write_bytes(
+        public.public_bytes(
+            serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+        )
+    )
+    robot = HTTPServer(("127.0.0.1", 0), _RecordingRobot)
+    threading.Thread(target=robot.serve_forever, daemon=True).start()
+    sdk_key = {"kid": pair.key_id, "owner": "operator", "alg": "ml-dsa-65",
+               "public_keys": [str(tmp_path / "sdk.pub.pem")], "scopes": ["control"]}  # fmt: skip
+    config = write_demo_config(
+        tmp_path, sdk_compat=True, keys=[sdk_key], upstream=f"http://127.0.0.1:{robot.server_port}/"
+    )
+    gw = GatewayProcess(config)
+    gw.start()
+    try:
+        msg = RCANMessage(cmd="move_forward", params={"distance_m": 1.0},
+                          target="rcan://registry.rcan.dev/acme/arm/v2/unit-001")  # fmt: skip
+        genuine = sign_message(msg, pair).to_dict()
+        for field, value in (("loa", 3), ("presence_verified", True), ("read_only", True)):
+            forged = json.dumps({**genuine, field: value}).encode()
+            reply = httpx.post(f"{gw.url}/v1/messages", content=forged, headers=JSON)
+            assert (reply.status_code, reply.json()["code"]) == (403, "SCOPE_DENIED")
+        assert _RecordingRobot.received == []
+        reply = httpx.post(f"{gw.url}/v1/messages", content=json.dumps(genuine), headers=JSON)
+        assert reply.status_code == 200, reply.text
+        (seen,) = _RecordingRobot.received
+        assert set(seen) == {*SDK_SIGNED_FIELDS, "rcan_version", "sig"}
+    finally:
+        gw.stop()
         robot.shutdown()
 
 

@@ -33,8 +33,20 @@ Duplicate JSON keys resolve to the last one; the gateway forwards the
 canonical re-encoding, never the raw bytes, so no downstream parser sees a
 different message than the one that was verified.
 
-``sdk_signed_bytes`` reproduces the official SDK's subset
-(``rcan, msg_id, timestamp, cmd, target, params``) for the compatibility mode.
+``sdk_signed_bytes`` reproduces the official SDK's subset for the
+compatibility mode.  In rcan 3.7.0, ``rcan.signing.sign_message`` signs
+``_canonical_message_bytes``: exactly ``rcan, msg_id, timestamp, cmd, target,
+params`` (sorted-key JSON, ``target`` as a string) and nothing else
+(:data:`SDK_SIGNED_FIELDS`).  Everything else ``RCANMessage.to_dict`` can emit
+is unsigned: ``rcan_version, confidence, sender, scope, sender_type,
+cloud_provider, key_id, qos, sequence_number, delegation_chain, group_id,
+read_only, presence_verified, proximity_m, loa, transport_encoding,
+firmware_hash, attestation_ref`` (and our ``type``, ``safety_event``,
+``timestamp_ms``).  :func:`unsigned_policy_fields` names those a message sets; the
+pipeline refuses such a message, so in compatibility mode only signed content
+is authorized and forwarded.  ``rcan_version`` is the one exception: the SDK
+always emits it as a mirror of ``rcan``, so it passes when empty or equal to
+the signed ``rcan`` (then it says nothing unsigned).
 """
 
 from __future__ import annotations
@@ -180,8 +192,17 @@ def canonical_bytes(env: Envelope) -> bytes:
 
 
 def encode(env: Envelope) -> bytes:
-    """The envelope as forwarded upstream (what was verified, with its signature)."""
-    return _ENCODER.encode(env)
+    """The envelope as forwarded upstream (what was verified, with its signature).
+
+    ``sig`` is re-encoded from its decoded form, never copied raw: duplicate keys,
+    odd whitespace or bytes no downstream parser expects stay at the gateway.
+    """
+    sig = env.signature()
+    if sig is None:
+        body = msgspec.to_builtins(env, builtin_types=(msgspec.Raw,))
+        body.pop("sig", None)
+        return _ENCODER.encode(body)
+    return _ENCODER.encode(msgspec.structs.replace(env, sig=msgspec.Raw(_ENCODER.encode(sig))))
 
 
 def sdk_signed_bytes(env: Envelope) -> bytes:
@@ -197,13 +218,23 @@ def sdk_signed_bytes(env: Envelope) -> bytes:
     return json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()
 
 
-#: Fields the SDK does not sign; in compatibility mode a message using any of them is refused.
-SDK_UNSIGNED_POLICY_FIELDS = ("type", "safety_event", "scope", "qos", "sender", "timestamp_ms")
+#: What the rcan 3.7.0 SDK signature covers (``rcan.signing._canonical_message_bytes``).
+SDK_SIGNED_FIELDS = frozenset({"rcan", "msg_id", "timestamp", "cmd", "target", "params"})
+#: Authenticated on their own (``sig`` is the signature; a ``jwt`` is verified separately).
+_SELF_AUTHENTICATED = frozenset({"sig", "jwt"})
+_DEFAULTS = Envelope(msg_id="", cmd="", target="", timestamp=0)
 
 
 def unsigned_policy_fields(env: Envelope) -> list[str]:
-    """Policy-relevant fields set on an envelope that the SDK's signature does not cover."""
-    defaults = Envelope(msg_id="", cmd="", target="", timestamp=0)
-    return [
-        name for name in SDK_UNSIGNED_POLICY_FIELDS if getattr(env, name) != getattr(defaults, name)
-    ]
+    """Fields set on ``env`` that the SDK's signature does not cover (module docstring)."""
+    unsigned = []
+    for name in env.__struct_fields__:
+        if name in SDK_SIGNED_FIELDS or name in _SELF_AUTHENTICATED:
+            continue
+        value = getattr(env, name)
+        if name == "rcan_version":
+            if value not in ("", env.rcan):
+                unsigned.append(name)
+        elif value != getattr(_DEFAULTS, name):
+            unsigned.append(name)
+    return unsigned
