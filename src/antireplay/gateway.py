@@ -219,7 +219,7 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
         if ctype != "application/json":
             return _refuse(415, "content-type must be application/json")
         declared = request.headers.get("content-length")
-        if declared is not None and not declared.isdigit():
+        if declared is not None and not (declared.isascii() and declared.isdigit()):
             return _refuse(400, "invalid content-length")
         if declared is not None and int(declared) > limit:
             return _refuse(413, f"body larger than {limit} bytes")
