@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import sqlite3
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -215,7 +216,7 @@ def test_config_check_runs_every_check_serve_runs(tmp_path: Path) -> None:
     state.mkdir()
     write_demo_config(state)
     good = yaml.safe_load((state / "antireplay.yaml").read_text())
-    bad_cases = {
+    bad_cases: dict[str, tuple[dict[str, Any], str]] = {
         "missing key file": ({"keys": [{**good["keys"][0], "public_keys": ["gone.pem"]}]},
                              "gone.pem"),
         "unknown store": ({"store": "bogus:x"}, "bogus:x"),
