@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import json
 import re
+import signal
 import socket
 import threading
 import time
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, HTTPServer
+from http.server import BaseHTTPRequestHandler, HTTPServer, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -386,21 +387,77 @@ def test_two_replicas_on_one_redis(tmp_path: Path, redis_url: str) -> None:
         b.stop()
 
 
-def test_sigterm_loses_no_audit_record(tmp_path: Path) -> None:
-    gw = GatewayProcess(write_demo_config(tmp_path))
+class _HeldRobot(BaseHTTPRequestHandler):
+    """An upstream that holds every request until the test releases it."""
+
+    arrived: ClassVar[threading.Semaphore] = threading.Semaphore(0)
+    release: ClassVar[threading.Event] = threading.Event()
+
+    def do_POST(self) -> None:
+        self.rfile.read(int(self.headers["content-length"]))
+        self.arrived.release()
+        self.release.wait(timeout=60)
+        self.send_response(200)
+        self.send_header("content-type", "application/json")
+        self.send_header("content-length", "2")
+        self.end_headers()
+        self.wfile.write(b"{}")
+
+    def log_message(self, *args: Any) -> None:
+        """Quiet."""
+
+
+def _refuses_connections(url: str) -> bool:
+    host, port = url.removeprefix("http://").split(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=1).close()
+    except OSError:
+        return True
+    return False
+
+
+def test_sigterm_with_requests_in_flight_answers_them_and_loses_no_record(
+    tmp_path: Path,
+) -> None:
+    """SIGTERM arrives while N requests are inside the gateway (held by the upstream)."""
+    in_flight = 8
+    robot = ThreadingHTTPServer(("127.0.0.1", 0), _HeldRobot)
+    threading.Thread(target=robot.serve_forever, daemon=True).start()
+    gw = GatewayProcess(
+        write_demo_config(tmp_path, upstream=f"http://127.0.0.1:{robot.server_port}/")
+    )
     gw.start()
     key = load_operator_key(tmp_path)
-    answered = 0
+    replies: list[int] = []
+
+    def client() -> None:
+        raw = command(key)
+        replies.append(httpx.post(f"{gw.url}/v1/messages", content=raw, headers=JSON).status_code)
+
+    threads = [threading.Thread(target=client) for _ in range(in_flight)]
     try:
-        with httpx.Client(base_url=gw.url, timeout=10) as client:
-            for _ in range(40):
-                raw = command(key)
-                answered += (
-                    client.post("/v1/messages", content=raw, headers=JSON).status_code == 200
-                )
+        for thread in threads:
+            thread.start()
+        for _ in range(in_flight):  # every request is now inside the gateway, awaiting upstream
+            if not _HeldRobot.arrived.acquire(timeout=30):
+                pytest.fail("requests did not reach the upstream")
+        assert gw.proc is not None
+        gw.proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        while not _refuses_connections(gw.url):  # shutdown has begun: the listener is closed
+            if time.monotonic() > deadline or gw.proc.poll() is not None:
+                pytest.fail("gateway did not start a graceful shutdown")
+        assert replies == []  # still in flight when the signal was handled
+        _HeldRobot.release.set()
+        for thread in threads:
+            thread.join(timeout=30)
+        # uvicorn re-raises the signal once it has shut down gracefully
+        assert gw.proc.wait(timeout=30) in (0, -signal.SIGTERM)
     finally:
-        gw.stop()  # SIGTERM: graceful shutdown
+        _HeldRobot.release.set()
+        gw.stop()
+        robot.shutdown()
+    assert replies == [200] * in_flight
     records = AuditLog(tmp_path / "audit.db").tail(1000)
-    assert answered == 40
-    assert sum(r.outcome == "accepted" for r in records) == answered
+    assert sum(r.outcome == "accepted" for r in records) == in_flight
     assert verify(tmp_path / "audit.db").ok

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import base64
 import json
 import math
 import sqlite3
-import time
 import uuid
 from pathlib import Path
 from typing import Any
@@ -21,8 +19,9 @@ from rcan.signing import MLDSAKeyPair, _canonical_message_bytes, sign_message
 
 from antireplay import ManualClock, SecurityConfig
 from antireplay.audit import AuditLog, verify
-from antireplay.auth import JwtVerifier, KeyRegistry, sign_envelope
+from antireplay.auth import JwtVerifier, KeyRegistry, b64decode, b64encode, sign_envelope
 from antireplay.envelope import SDK_SIGNED_FIELDS, encode
+from antireplay.errors import AuthenticationError
 from antireplay.pipeline import Outcome, Receiver
 from tests.conftest import race
 
@@ -508,9 +507,15 @@ def test_fuzz_envelopes_only_typed_rejections(body: dict[str, Any], base: bool) 
     _check_outcome(FUZZ_RX.receive(raw))
 
 
-def test_b64_helper_round_trip() -> None:
-    assert base64.urlsafe_b64decode("AA==") == b"\0"
-    assert time.time() > 0
+@pytest.mark.parametrize("value", ["a", "abcde", "\u00e9\u00e9\u00e9\u00e9", "AA=A"])
+def test_b64_helper_turns_garbage_into_signature_invalid(receiver: Receiver, value: str) -> None:
+    """Our base64url helper: padding optional, garbage a typed SIGNATURE_INVALID (401)."""
+    assert b64decode(b64encode(b"\0\xff\xfe")) == b"\0\xff\xfe"  # unpadded, url alphabet
+    with pytest.raises(AuthenticationError):
+        b64decode(value)
+    body = json.loads(signed())
+    body["sig"]["value"] = value
+    assert codes(receiver.receive(json.dumps(body).encode())) == (False, 401, "SIGNATURE_INVALID")
 
 
 def test_exact_copy_memo_and_its_limits(receiver: Receiver, clock: ManualClock) -> None:
