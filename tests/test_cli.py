@@ -177,18 +177,18 @@ def test_mavlink_proxy_bad_inputs(tmp_path: Path) -> None:
     busy.bind(("127.0.0.1", 0))
     port = busy.getsockname()[1]
     base = ["mavlink-proxy", "--forward", "udp:127.0.0.1:9", "--key-file", str(key),
-            "--audit", str(tmp_path / "audit.db")]  # fmt: skip
+            "--audit", str(tmp_path / "audit.db"), "--store", "memory"]  # fmt: skip
     listen = ["--listen", f"udp:127.0.0.1:{port}"]
     try:
         one_line_error(run(main, [*base, *listen, "--store", "bogus:x"]), "--store", "bogus:x")
-        line = one_line_error(run(main, [*base, *listen, "--store", "memory"]), str(port))
+        line = one_line_error(run(main, [*base, *listen]), str(port))
         assert "in use" in line
     finally:
         busy.close()
     one_line_error(run(main, [*base, "--listen", "udp:127.0.0.1:70000"]), "70000", "0..65535")
     one_line_error(run(main, [*base, "--listen", "tcp:x"]), "tcp:x", "udp:HOST:PORT")
     audit = garbage(tmp_path / "audit.db")
-    args = [*base, "--listen", "udp:127.0.0.1:0", "--store", "memory", "--audit", str(audit)]
+    args = [*base, "--listen", "udp:127.0.0.1:0", "--audit", str(audit)]
     one_line_error(run(main, args), "audit.db", "not an antireplay audit trail")
 
 
