@@ -34,6 +34,7 @@ from antireplay.demo import (
 )
 from antireplay.envelope import SDK_SIGNED_FIELDS
 from antireplay.stores.redis_store import RedisStore
+from tests.fuzz.targets import http_app
 
 
 @pytest.fixture(scope="module")
@@ -238,6 +239,25 @@ def test_content_length_with_transfer_encoding_is_refused_and_closed(
     assert closed
     # The message itself was never processed: sent properly, it is still accepted.
     assert httpx.post(f"{gateway.url}/v1/messages", content=body, headers=JSON).status_code == 200
+
+
+@pytest.mark.parametrize(
+    "declared",
+    ["9" * 5000, "2920\u00b97", "0" * 30 + "2"],
+    ids=["5000 digits", "superscript digit", "leading zeros"],
+)
+def test_content_length_values_get_typed_answers(gateway: GatewayProcess, declared: str) -> None:
+    """Found by fuzzing the app (int() of 5000 digits and of '¹' raised): never a 500."""
+    status, reply = http_app().request(
+        [(b"content-type", b"application/json"), (b"content-length", declared.encode())], b"{}"
+    )
+    assert 400 <= status < 500 and json.loads(reply)["code"] == "INVALID_ENVELOPE"
+    request = (
+        b"POST /v1/messages HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        + b"Content-Length: " + declared.encode() + b"\r\nConnection: close\r\n\r\n{}"
+    )  # fmt: skip
+    raw_reply, _ = _raw_exchange(gateway.url, request)
+    assert re.match(rb"HTTP/1.1 4\d\d ", raw_reply), raw_reply[:200]
 
 
 @settings(max_examples=2_000, deadline=None, suppress_health_check=list(HealthCheck))

@@ -221,7 +221,8 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
         declared = request.headers.get("content-length")
         if declared is not None and not (declared.isascii() and declared.isdigit()):
             return _refuse(400, "invalid content-length")
-        if declared is not None and int(declared) > limit:
+        digits = declared.lstrip("0") if declared is not None else ""
+        if len(digits) > len(str(limit)) or (digits and int(digits) > limit):
             return _refuse(413, f"body larger than {limit} bytes")
         body = bytearray()
         try:

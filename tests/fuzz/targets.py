@@ -181,7 +181,7 @@ class _Http:
 
 
 @cache
-def _http() -> _Http:
+def http_app() -> _Http:
     return _Http()
 
 
@@ -194,7 +194,7 @@ def http_request(data: bytes) -> tuple[list[tuple[bytes, bytes]], bytes]:
     if flags & 0x08:
         headers.append((b"content-length", str(len(body)).encode()))
     if flags & 0x10:
-        headers.append((b"content-length", raw_header[:20] or b"x"))
+        headers.append((b"content-length", raw_header or b"x"))
     if flags & 0x20:
         headers.append((b"transfer-encoding", b"chunked"))
     if flags & 0x40:
@@ -207,7 +207,7 @@ def http_request(data: bytes) -> tuple[list[tuple[bytes, bytes]], bytes]:
 def check_http(data: bytes) -> None:
     """The gateway answers every request with 200 or a 4xx carrying a NACK code."""
     headers, body = http_request(data)
-    status, answer = _http().request(headers, body)
+    status, answer = http_app().request(headers, body)
     assert 200 <= status < 500, (status, answer[:200])
     if status != 200:
         assert json.loads(answer)["code"] in TYPED
