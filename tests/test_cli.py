@@ -234,3 +234,11 @@ def test_config_check_runs_every_check_serve_runs(tmp_path: Path) -> None:
     ok = tmp_path / "ok.yaml"
     ok.write_text(yaml.safe_dump(good))
     assert run(main, ["config", "check", str(ok)]).exit_code == 0
+
+
+def test_usage_errors_are_one_line_and_help_still_shows() -> None:
+    run = CliRunner().invoke
+    one_line_error(run(main, ["no-such-command"]), "no-such-command")
+    bare = run(main, [])
+    assert "Usage: " in bare.output and "Commands:" in bare.output and "error" not in bare.output
+    assert run(main, ["--help"]).exit_code == 0
