@@ -170,6 +170,7 @@ def test_sign_bad_inputs(tmp_path: Path) -> None:
 
 
 def test_mavlink_proxy_bad_inputs(tmp_path: Path) -> None:
+    """Every case listens on a busy port, so none can hang serving if its check broke."""
     run = CliRunner().invoke
     key = tmp_path / "link.key"
     key.write_bytes(bytes(range(32)))
@@ -177,19 +178,19 @@ def test_mavlink_proxy_bad_inputs(tmp_path: Path) -> None:
     busy.bind(("127.0.0.1", 0))
     port = busy.getsockname()[1]
     base = ["mavlink-proxy", "--forward", "udp:127.0.0.1:9", "--key-file", str(key),
-            "--audit", str(tmp_path / "audit.db"), "--store", "memory"]  # fmt: skip
-    listen = ["--listen", f"udp:127.0.0.1:{port}"]
+            "--audit", str(tmp_path / "audit.db"), "--store", "memory",
+            "--listen", f"udp:127.0.0.1:{port}"]  # fmt: skip
     try:
-        one_line_error(run(main, [*base, *listen, "--store", "bogus:x"]), "--store", "bogus:x")
-        line = one_line_error(run(main, [*base, *listen]), str(port))
+        one_line_error(run(main, [*base, "--store", "bogus:x"]), "--store", "bogus:x")
+        foreign = garbage(tmp_path / "foreign-audit.db")
+        line = one_line_error(run(main, [*base, "--audit", str(foreign)]), "foreign-audit.db")
+        assert "not an antireplay audit trail" in line
+        one_line_error(run(main, [*base, "--forward", "udp:127.0.0.1:70000"]), "70000", "0..65535")
+        one_line_error(run(main, [*base, "--forward", "tcp:x"]), "tcp:x", "udp:HOST:PORT")
+        line = one_line_error(run(main, base), str(port))
         assert "in use" in line
     finally:
         busy.close()
-    one_line_error(run(main, [*base, "--listen", "udp:127.0.0.1:70000"]), "70000", "0..65535")
-    one_line_error(run(main, [*base, "--listen", "tcp:x"]), "tcp:x", "udp:HOST:PORT")
-    audit = garbage(tmp_path / "audit.db")
-    args = [*base, "--listen", "udp:127.0.0.1:0", "--audit", str(audit)]
-    one_line_error(run(main, args), "audit.db", "not an antireplay audit trail")
 
 
 @pytest.mark.parametrize("command", ["tail", "verify"])
