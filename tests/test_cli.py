@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import socket
+import sqlite3
 from pathlib import Path
+from typing import Any
 
 import pytest
+import yaml
 from benchmarks.__main__ import MODULES
-from click.testing import CliRunner
+from click.testing import CliRunner, Result
+from cryptography.hazmat.primitives.asymmetric import ed25519
 
+from antireplay.auth import write_key_pair
 from antireplay.cli import main
 from antireplay.counters import NonceCounter
 from antireplay.demo import GatewayProcess, write_demo_config
@@ -105,3 +111,136 @@ def test_bench_outside_a_checkout_says_so(tmp_path: Path, monkeypatch: pytest.Mo
     result = CliRunner().invoke(main, ["bench"])
     assert result.exit_code == 2
     assert "source checkout" in result.output
+
+
+# --- ordinary mistakes: one line on stderr, exit 2, no traceback ---------------------------------
+
+
+def one_line_error(result: Result, *needles: str) -> str:
+    """The mistake is one unwrapped stderr line naming the input; nothing on stdout."""
+    assert result.exit_code == 2, (result.exit_code, result.output)
+    assert isinstance(result.exception, SystemExit), result.exception
+    assert result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("antireplay: error: ")
+    assert "Traceback" not in result.stderr
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    return lines[0]
+
+
+def garbage(path: Path) -> Path:
+    path.write_bytes(b"this is not an SQLite database at all\n" * 40)
+    return path
+
+
+def table_names(path: Path) -> list[str]:
+    db = sqlite3.connect(path)
+    try:
+        return [row[0] for row in db.execute("SELECT name FROM sqlite_master")]
+    finally:
+        db.close()
+
+
+def test_serve_bad_inputs(tmp_path: Path) -> None:
+    run = CliRunner().invoke
+    one_line_error(run(main, ["serve", "--port", "70000"]), "--port", "70000", "0<=x<=65535")
+    one_line_error(run(main, ["serve", "--port", "http"]), "--port", "http")
+    state = tmp_path / "state"
+    state.mkdir()
+    garbage(state / "audit.db")
+    line = one_line_error(run(main, ["serve", "--state-dir", str(state)]), "audit.db")
+    assert len(line) > 80  # long, and still one line: never hard-wrapped
+
+
+def test_sign_bad_inputs(tmp_path: Path) -> None:
+    run = CliRunner().invoke
+    base = ["sign", "--kid", "op", "--cmd", "c", "--target", "t"]
+    one_line_error(run(main, [*base, "--key", str(tmp_path / "missing.pem")]), "--key", "missing")
+    not_pem = tmp_path / "not.pem"
+    not_pem.write_text("hello")
+    one_line_error(run(main, [*base, "--key", str(not_pem)]), "--key", "not.pem", "PEM")
+    write_key_pair(ed25519.Ed25519PrivateKey.generate(), tmp_path / "k.pem", tmp_path / "p.pem")
+    bad_json = tmp_path / "m.json"
+    bad_json.write_text("{not json")
+    args = [*base, "--key", str(tmp_path / "k.pem"), "--json", str(bad_json)]
+    one_line_error(run(main, args), "--json", "m.json", "not JSON")
+    bad_json.write_text("[1, 2]")
+    one_line_error(run(main, args), "--json", "JSON object")
+
+
+def test_mavlink_proxy_bad_inputs(tmp_path: Path) -> None:
+    """Every case listens on a busy port, so none can hang serving if its check broke."""
+    run = CliRunner().invoke
+    key = tmp_path / "link.key"
+    key.write_bytes(bytes(range(32)))
+    busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    busy.bind(("127.0.0.1", 0))
+    port = busy.getsockname()[1]
+    base = ["mavlink-proxy", "--forward", "udp:127.0.0.1:9", "--key-file", str(key),
+            "--audit", str(tmp_path / "audit.db"), "--store", "memory",
+            "--listen", f"udp:127.0.0.1:{port}"]  # fmt: skip
+    try:
+        one_line_error(run(main, [*base, "--store", "bogus:x"]), "--store", "bogus:x")
+        foreign = garbage(tmp_path / "foreign-audit.db")
+        line = one_line_error(run(main, [*base, "--audit", str(foreign)]), "foreign-audit.db")
+        assert "not an antireplay audit trail" in line
+        one_line_error(run(main, [*base, "--forward", "udp:127.0.0.1:70000"]), "70000", "0..65535")
+        one_line_error(run(main, [*base, "--forward", "tcp:x"]), "tcp:x", "udp:HOST:PORT")
+        line = one_line_error(run(main, base), str(port))
+        assert "in use" in line
+    finally:
+        busy.close()
+
+
+@pytest.mark.parametrize("command", ["tail", "verify"])
+def test_audit_commands_refuse_files_that_are_not_audit_trails(
+    tmp_path: Path, command: str
+) -> None:
+    run = CliRunner().invoke
+    junk = garbage(tmp_path / "junk.db")
+    one_line_error(run(main, ["audit", command, str(junk)]), "junk.db", "not an SQLite database")
+    other = tmp_path / "other.db"
+    db = sqlite3.connect(other)
+    db.execute("CREATE TABLE notes (x)")
+    db.commit()
+    db.close()
+    one_line_error(run(main, ["audit", command, str(other)]), "other.db", "without an audit table")
+    assert table_names(other) == ["notes"]  # nothing was created in someone else's file
+    one_line_error(run(main, ["audit", command, str(tmp_path / "none.db")]), "none.db")
+
+
+def test_config_check_runs_every_check_serve_runs(tmp_path: Path) -> None:
+    """Each configuration ``serve`` refuses, ``config check`` refuses with the same line."""
+    run = CliRunner().invoke
+    state = tmp_path / "s"
+    state.mkdir()
+    write_demo_config(state)
+    good = yaml.safe_load((state / "antireplay.yaml").read_text())
+    bad_cases: dict[str, tuple[dict[str, Any], str]] = {
+        "missing key file": ({"keys": [{**good["keys"][0], "public_keys": ["gone.pem"]}]},
+                             "gone.pem"),
+        "unknown store": ({"store": "bogus:x"}, "bogus:x"),
+        "unopenable store": ({"store": f"sqlite:{garbage(tmp_path / 'st.db')}"}, "st.db"),
+        "unimportable upstream": ({"upstream": "no_such_module_x:robot"}, "no_such_module_x"),
+        "foreign audit file": ({"audit": str(garbage(tmp_path / 'a.db'))}, "a.db"),
+        "missing jwt key": ({"jwt": {"keys": {"j": "gone-jwt.pem"}}}, "gone-jwt.pem"),
+    }  # fmt: skip
+    for name, (override, needle) in bad_cases.items():
+        path = tmp_path / f"{name.replace(' ', '-')}.yaml"
+        path.write_text(yaml.safe_dump({**good, **override}))
+        checked = one_line_error(run(main, ["config", "check", str(path)]), needle)
+        served = one_line_error(run(main, ["serve", "--config", str(path), "--port", "1"]), needle)
+        assert checked == served, name
+    ok = tmp_path / "ok.yaml"
+    ok.write_text(yaml.safe_dump(good))
+    assert run(main, ["config", "check", str(ok)]).exit_code == 0
+
+
+def test_usage_errors_are_one_line_and_help_still_shows() -> None:
+    run = CliRunner().invoke
+    one_line_error(run(main, ["no-such-command"]), "no-such-command")
+    bare = run(main, [])
+    assert "Usage: " in bare.output and "Commands:" in bare.output and "error" not in bare.output
+    assert run(main, ["--help"]).exit_code == 0

@@ -4,17 +4,23 @@ from __future__ import annotations
 
 import json
 import re
+import signal
+import socket
 import threading
 import time
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, HTTPServer
+from http.server import BaseHTTPRequestHandler, HTTPServer, ThreadingHTTPServer
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import httpx
 import pytest
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import mldsa
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from rcan import RCANMessage
+from rcan.signing import MLDSAKeyPair, sign_message
 
 from antireplay.audit import AuditLog, verify
 from antireplay.demo import (
@@ -26,7 +32,9 @@ from antireplay.demo import (
     state_rows,
     write_demo_config,
 )
+from antireplay.envelope import SDK_SIGNED_FIELDS
 from antireplay.stores.redis_store import RedisStore
+from tests.fuzz.targets import http_app
 
 
 @pytest.fixture(scope="module")
@@ -147,6 +155,111 @@ def test_transport_refusals(http: httpx.Client) -> None:
     assert http.get("/healthz").json()["status"] == "ok"
 
 
+def _stamp(body: bytes) -> bytes:
+    return body.replace(b"NOW", str(int(time.time())).encode())
+
+
+HOSTILE_BODIES = {
+    "msg_id not UTF-8": b'{"msg_id":"a\xff","cmd":"x","target":"t","rcan":"3.2","timestamp":NOW}',
+    "cmd not UTF-8": b'{"msg_id":"a","cmd":"x\xc3","target":"t","rcan":"3.2","timestamp":NOW}',
+    "params not UTF-8": (
+        b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp":NOW,"params":{"k":"\xfe"}}'
+    ),
+    "sig.kid not UTF-8": (
+        b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp":NOW,'
+        b'"sig":{"alg":"ed25519","kid":"\xff","value":"AA"}}'
+    ),
+    "huge timestamp": b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp":'
+    + b"9" * 400
+    + b"}",
+    "huge timestamp_ms": b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp_ms":'
+    + b"9" * 400
+    + b"}",
+    "huge type": b'{"msg_id":"a","cmd":"x","target":"t","rcan":"3.2","timestamp":NOW,"type":'
+    + b"9" * 30
+    + b"}",
+}
+
+
+@pytest.mark.parametrize("name", sorted(HOSTILE_BODIES))
+def test_hostile_bytes_get_a_typed_4xx_never_500(http: httpx.Client, name: str) -> None:
+    reply = post(http, _stamp(HOSTILE_BODIES[name]))
+    assert reply.status_code == 400, reply.text
+    assert reply.json()["code"] in {"INVALID_ENVELOPE", "INVALID_TIMESTAMP"}
+
+
+def test_max_body_bytes_above_64k_is_the_limit_in_force(tmp_path: Path) -> None:
+    gw = GatewayProcess(write_demo_config(tmp_path, max_body_bytes=200_000))
+    gw.start()
+    try:
+        key = load_operator_key(tmp_path)
+        big = command(key, params={"blob": "a" * 100_000})
+        assert 100_000 < len(big) < 200_000
+        reply = httpx.post(f"{gw.url}/v1/messages", content=big, headers=JSON)
+        assert reply.status_code == 200, reply.text
+        over = command(key, params={"blob": "a" * 200_001})
+        reply = httpx.post(f"{gw.url}/v1/messages", content=over, headers=JSON)
+        assert (reply.status_code, reply.json()["code"]) == (413, "INVALID_ENVELOPE")
+    finally:
+        gw.stop()
+
+
+def _raw_exchange(url: str, request: bytes) -> tuple[bytes, bool]:
+    """Send raw bytes to the real server; return the reply and whether the server closed."""
+    host, port = url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as sock:
+        sock.sendall(request)
+        reply = b""
+        while True:
+            try:
+                chunk = sock.recv(65536)
+            except TimeoutError:
+                return reply, False  # still open after 10 s: not closed
+            if not chunk:
+                return reply, True
+            reply += chunk
+
+
+def test_content_length_with_transfer_encoding_is_refused_and_closed(
+    gateway: GatewayProcess, state: Path
+) -> None:
+    body = command(load_operator_key(state))
+    chunked = f"{len(body):x}\r\n".encode() + body + b"\r\n0\r\n\r\n"
+    request = (
+        b"POST /v1/messages HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        b"Content-Type: application/json\r\n"
+        + f"Content-Length: {len(chunked)}\r\n".encode()
+        + b"Transfer-Encoding: chunked\r\n\r\n"
+        + chunked
+    )
+    reply, closed = _raw_exchange(gateway.url, request)
+    head = reply.split(b"\r\n\r\n", 1)[0].lower()
+    assert head.startswith(b"http/1.1 400"), reply[:200]
+    assert b"\r\nconnection: close" in head
+    assert closed
+    # The message itself was never processed: sent properly, it is still accepted.
+    assert httpx.post(f"{gateway.url}/v1/messages", content=body, headers=JSON).status_code == 200
+
+
+@pytest.mark.parametrize(
+    "declared",
+    ["9" * 5000, "2920\u00b97", "0" * 30 + "2"],
+    ids=["5000 digits", "superscript digit", "leading zeros"],
+)
+def test_content_length_values_get_typed_answers(gateway: GatewayProcess, declared: str) -> None:
+    """Found by fuzzing the app (int() of 5000 digits and of '¹' raised): never a 500."""
+    status, reply = http_app().request(
+        [(b"content-type", b"application/json"), (b"content-length", declared.encode())], b"{}"
+    )
+    assert 400 <= status < 500 and json.loads(reply)["code"] == "INVALID_ENVELOPE"
+    request = (
+        b"POST /v1/messages HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        + b"Content-Length: " + declared.encode() + b"\r\nConnection: close\r\n\r\n{}"
+    )  # fmt: skip
+    raw_reply, _ = _raw_exchange(gateway.url, request)
+    assert re.match(rb"HTTP/1.1 4\d\d ", raw_reply), raw_reply[:200]
+
+
 @settings(max_examples=2_000, deadline=None, suppress_health_check=list(HealthCheck))
 @given(
     body=st.one_of(
@@ -211,6 +324,59 @@ def test_http_upstream_and_upstream_failure(tmp_path: Path) -> None:
         robot.shutdown()
 
 
+class _RecordingRobot(BaseHTTPRequestHandler):
+    """An upstream that keeps every envelope it is handed."""
+
+    received: ClassVar[list[dict[str, Any]]] = []
+
+    def do_POST(self) -> None:
+        length = int(self.headers["content-length"])
+        self.received.append(json.loads(self.rfile.read(length)))
+        self.send_response(200)
+        self.send_header("content-type", "application/json")
+        self.send_header("content-length", "2")
+        self.end_headers()
+        self.wfile.write(b"{}")
+
+    def log_message(self, *args: Any) -> None:
+        """Quiet."""
+
+
+def test_sdk_compat_mitm_field_never_reaches_upstream(tmp_path: Path) -> None:
+    pair = MLDSAKeyPair.generate()
+    public = mldsa.MLDSA65PublicKey.from_public_bytes(pair.public_key)
+    (tmp_path / "sdk.pub.pem").write_bytes(
+        public.public_bytes(
+            serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+        )
+    )
+    robot = HTTPServer(("127.0.0.1", 0), _RecordingRobot)
+    threading.Thread(target=robot.serve_forever, daemon=True).start()
+    sdk_key = {"kid": pair.key_id, "owner": "operator", "alg": "ml-dsa-65",
+               "public_keys": [str(tmp_path / "sdk.pub.pem")], "scopes": ["control"]}  # fmt: skip
+    config = write_demo_config(
+        tmp_path, sdk_compat=True, keys=[sdk_key], upstream=f"http://127.0.0.1:{robot.server_port}/"
+    )
+    gw = GatewayProcess(config)
+    gw.start()
+    try:
+        msg = RCANMessage(cmd="move_forward", params={"distance_m": 1.0},
+                          target="rcan://registry.rcan.dev/acme/arm/v2/unit-001")  # fmt: skip
+        genuine = sign_message(msg, pair).to_dict()
+        for field, value in (("loa", 3), ("presence_verified", True), ("read_only", True)):
+            forged = json.dumps({**genuine, field: value}).encode()
+            reply = httpx.post(f"{gw.url}/v1/messages", content=forged, headers=JSON)
+            assert (reply.status_code, reply.json()["code"]) == (403, "SCOPE_DENIED")
+        assert _RecordingRobot.received == []
+        reply = httpx.post(f"{gw.url}/v1/messages", content=json.dumps(genuine), headers=JSON)
+        assert reply.status_code == 200, reply.text
+        (seen,) = _RecordingRobot.received
+        assert set(seen) == {*SDK_SIGNED_FIELDS, "rcan_version", "sig"}
+    finally:
+        gw.stop()
+        robot.shutdown()
+
+
 # --- two replicas on one Redis -------------------------------------------------------------------
 
 
@@ -243,21 +409,77 @@ def test_two_replicas_on_one_redis(tmp_path: Path, redis_url: str) -> None:
         b.stop()
 
 
-def test_sigterm_loses_no_audit_record(tmp_path: Path) -> None:
-    gw = GatewayProcess(write_demo_config(tmp_path))
+class _HeldRobot(BaseHTTPRequestHandler):
+    """An upstream that holds every request until the test releases it."""
+
+    arrived: ClassVar[threading.Semaphore] = threading.Semaphore(0)
+    release: ClassVar[threading.Event] = threading.Event()
+
+    def do_POST(self) -> None:
+        self.rfile.read(int(self.headers["content-length"]))
+        self.arrived.release()
+        self.release.wait(timeout=60)
+        self.send_response(200)
+        self.send_header("content-type", "application/json")
+        self.send_header("content-length", "2")
+        self.end_headers()
+        self.wfile.write(b"{}")
+
+    def log_message(self, *args: Any) -> None:
+        """Quiet."""
+
+
+def _refuses_connections(url: str) -> bool:
+    host, port = url.removeprefix("http://").split(":")
+    try:
+        socket.create_connection((host, int(port)), timeout=1).close()
+    except OSError:
+        return True
+    return False
+
+
+def test_sigterm_with_requests_in_flight_answers_them_and_loses_no_record(
+    tmp_path: Path,
+) -> None:
+    """SIGTERM arrives while N requests are inside the gateway (held by the upstream)."""
+    in_flight = 8
+    robot = ThreadingHTTPServer(("127.0.0.1", 0), _HeldRobot)
+    threading.Thread(target=robot.serve_forever, daemon=True).start()
+    gw = GatewayProcess(
+        write_demo_config(tmp_path, upstream=f"http://127.0.0.1:{robot.server_port}/")
+    )
     gw.start()
     key = load_operator_key(tmp_path)
-    answered = 0
+    replies: list[int] = []
+
+    def client() -> None:
+        raw = command(key)
+        replies.append(httpx.post(f"{gw.url}/v1/messages", content=raw, headers=JSON).status_code)
+
+    threads = [threading.Thread(target=client) for _ in range(in_flight)]
     try:
-        with httpx.Client(base_url=gw.url, timeout=10) as client:
-            for _ in range(40):
-                raw = command(key)
-                answered += (
-                    client.post("/v1/messages", content=raw, headers=JSON).status_code == 200
-                )
+        for thread in threads:
+            thread.start()
+        for _ in range(in_flight):  # every request is now inside the gateway, awaiting upstream
+            if not _HeldRobot.arrived.acquire(timeout=30):
+                pytest.fail("requests did not reach the upstream")
+        assert gw.proc is not None
+        gw.proc.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        while not _refuses_connections(gw.url):  # shutdown has begun: the listener is closed
+            if time.monotonic() > deadline or gw.proc.poll() is not None:
+                pytest.fail("gateway did not start a graceful shutdown")
+        assert replies == []  # still in flight when the signal was handled
+        _HeldRobot.release.set()
+        for thread in threads:
+            thread.join(timeout=30)
+        # uvicorn re-raises the signal once it has shut down gracefully
+        assert gw.proc.wait(timeout=30) in (0, -signal.SIGTERM)
     finally:
-        gw.stop()  # SIGTERM: graceful shutdown
+        _HeldRobot.release.set()
+        gw.stop()
+        robot.shutdown()
+    assert replies == [200] * in_flight
     records = AuditLog(tmp_path / "audit.db").tail(1000)
-    assert answered == 40
-    assert sum(r.outcome == "accepted" for r in records) == answered
+    assert sum(r.outcome == "accepted" for r in records) == in_flight
     assert verify(tmp_path / "audit.db").ok

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import base64
 import json
+import math
 import sqlite3
-import time
 import uuid
 from pathlib import Path
 from typing import Any
@@ -16,11 +15,13 @@ from cryptography.hazmat.primitives.asymmetric import ec, ed25519, mldsa
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rcan import RCANMessage
-from rcan.signing import MLDSAKeyPair, sign_message
+from rcan.signing import MLDSAKeyPair, _canonical_message_bytes, sign_message
 
 from antireplay import ManualClock, SecurityConfig
 from antireplay.audit import AuditLog, verify
-from antireplay.auth import JwtVerifier, KeyRegistry, sign_envelope
+from antireplay.auth import JwtVerifier, KeyRegistry, b64decode, b64encode, sign_envelope
+from antireplay.envelope import SDK_SIGNED_FIELDS, encode
+from antireplay.errors import AuthenticationError
 from antireplay.pipeline import Outcome, Receiver
 from tests.conftest import fresh_receiver, race
 
@@ -257,6 +258,21 @@ def token(**claims: Any) -> str:
     return pyjwt.encode(body, JWT_KEY, algorithm="EdDSA", headers={"kid": "jwt-1"})
 
 
+@pytest.mark.parametrize(
+    "claims",
+    [
+        {"exp": math.nan}, {"exp": math.inf}, {"exp": 10**400}, {"exp": True},
+        {"nbf": math.nan}, {"nbf": -math.inf}, {"nbf": -(10**400)}, {"nbf": False},
+    ],
+    ids=lambda claims: "-".join(f"{k}={v!r}"[:24] for k, v in claims.items()),
+)  # fmt: skip
+def test_jwt_time_claims_must_be_finite_numbers(
+    jwt_receiver: Receiver, claims: dict[str, Any]
+) -> None:
+    out = jwt_receiver.receive(signed(), {"Authorization": f"Bearer {token(**claims)}"})
+    assert (out.code, out.status) == ("AUTH_FAILED", 401)
+
+
 @pytest.fixture
 def jwt_receiver(clock: ManualClock) -> Receiver:
     verifier = JwtVerifier(
@@ -340,6 +356,53 @@ def test_compat_mode_refuses_unsigned_policy_fields(clock: ManualClock, field: A
     raw, pair = sdk_message(**field)
     compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
     assert compat.receive(raw).code == "SCOPE_DENIED"
+
+
+def test_sdk_signed_fields_are_what_the_sdk_signs() -> None:
+    """Ask the installed SDK which attributes its canonical bytes read: exactly ours."""
+    probe = RCANMessage(cmd="c", target="rcan://registry.rcan.dev/acme/arm/v2/unit-001")
+    covered = set(json.loads(_canonical_message_bytes(probe)))
+    assert covered == SDK_SIGNED_FIELDS
+    # Changing any other field leaves the SDK's signed bytes unchanged: they are unsigned.
+    before = _canonical_message_bytes(probe)
+    for name, value in MITM_FIELDS.items():
+        setattr(probe, name, value)
+    assert _canonical_message_bytes(probe) == before
+
+
+#: Each field a man in the middle may add to a genuine SDK-signed message.
+MITM_FIELDS: dict[str, Any] = {
+    "loa": 3, "presence_verified": True, "read_only": True,
+    "delegation_chain": [{"issuer": "root", "scope": "*"}], "rcan_version": "3.9",
+    "confidence": 0.9, "sender": "admin", "scope": "safety", "sender_type": "human",
+    "cloud_provider": "x", "key_id": "other", "qos": 2, "sequence_number": 7,
+    "group_id": "fleet", "proximity_m": 0.5, "transport_encoding": "cbor",
+    "firmware_hash": "ab" * 32, "attestation_ref": "https://x/sbom", "type": 6,
+    "safety_event": "ESTOP",
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", sorted(MITM_FIELDS))
+def test_compat_mode_refuses_every_field_the_sdk_does_not_sign(
+    clock: ManualClock, name: str
+) -> None:
+    raw, pair = sdk_message()
+    compat = Receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
+    body = {**json.loads(raw), name: MITM_FIELDS[name]}
+    out = compat.receive(json.dumps(body).encode())
+    assert (out.code, out.status) == ("SCOPE_DENIED", 403)
+    assert name in (out.reason or "")
+    assert compat.receive(raw).accepted  # the genuine message was not spent by the forgery
+
+
+def test_compat_mode_forwards_exactly_the_signed_fields(clock: ManualClock) -> None:
+    raw, pair = sdk_message()
+    compat = Receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
+    out = compat.receive(raw)
+    assert out.accepted and out.envelope is not None
+    forwarded = json.loads(encode(out.envelope))
+    assert set(forwarded) == {*SDK_SIGNED_FIELDS, "rcan_version", "sig"}
+    assert forwarded["rcan_version"] == forwarded["rcan"]
 
 
 def test_compat_mode_tampered_unsigned_field_is_refused(clock: ManualClock) -> None:
@@ -446,9 +509,15 @@ def test_fuzz_envelopes_only_typed_rejections(body: dict[str, Any], base: bool) 
     _check_outcome(FUZZ_RX.receive(raw))
 
 
-def test_b64_helper_round_trip() -> None:
-    assert base64.urlsafe_b64decode("AA==") == b"\0"
-    assert time.time() > 0
+@pytest.mark.parametrize("value", ["a", "abcde", "\u00e9\u00e9\u00e9\u00e9", "AA=A"])
+def test_b64_helper_turns_garbage_into_signature_invalid(receiver: Receiver, value: str) -> None:
+    """Our base64url helper: padding optional, garbage a typed SIGNATURE_INVALID (401)."""
+    assert b64decode(b64encode(b"\0\xff\xfe")) == b"\0\xff\xfe"  # unpadded, url alphabet
+    with pytest.raises(AuthenticationError):
+        b64decode(value)
+    body = json.loads(signed())
+    body["sig"]["value"] = value
+    assert codes(receiver.receive(json.dumps(body).encode())) == (False, 401, "SIGNATURE_INVALID")
 
 
 def test_exact_copy_memo_and_its_limits(receiver: Receiver, clock: ManualClock) -> None:

@@ -16,7 +16,9 @@ Compatibility mode (off by default): a ``ml-dsa-65`` signature made by the
 official RCAN SDK covers only ``rcan, msg_id, timestamp, cmd, target, params``.
 With ``sdk_compat=True`` such a signature is accepted, but the result is
 marked ``subset=True`` and the pipeline refuses the message if it sets any
-policy field the SDK does not sign (type, safety_event, scope, qos, sender).
+field the SDK does not sign (everything but ``rcan, msg_id, timestamp, cmd,
+target, params``; see :func:`~antireplay.envelope.unsigned_policy_fields`), so
+nothing unsigned is authorized or forwarded.
 
 Every call that does cryptography increments ``verifications`` (and
 :class:`JwtVerifier` ``decodes``), so tests can prove that a replay or a stale
@@ -25,8 +27,9 @@ message was thrown away before any of it.
 JWTs (PyJWT): from ``Authorization: Bearer`` or the envelope's ``jwt`` field;
 EdDSA and ES256 always, HS256 only when a shared secret is configured.
 ``exp`` and ``nbf`` are enforced with the receiver's :class:`Clock` (not the
-library's), ``aud`` and ``iss`` by PyJWT; ``sub`` must equal the signing key's
-owner.
+library's) and must be finite numbers (``NaN``, ``Infinity``, ``true`` or an
+integer beyond a float's range is ``AUTH_FAILED``), ``aud`` and ``iss`` by
+PyJWT; ``sub`` must equal the signing key's owner.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ from __future__ import annotations
 import base64
 import binascii
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -207,14 +211,33 @@ class JwtVerifier:
         except jwt.PyJWTError as exc:
             raise AuthFailedError(f"invalid token: {type(exc).__name__}") from None
         now = resolve(self.clock).wall()
-        exp, nbf = claims.get("exp"), claims.get("nbf")
-        if not isinstance(exp, int | float) or now > exp + self.leeway_s:
+        exp = _time_claim(claims, "exp")
+        if exp is None or now > exp + self.leeway_s:
             raise AuthFailedError("token expired")
-        if nbf is not None and (not isinstance(nbf, int | float) or now < nbf - self.leeway_s):
-            raise AuthFailedError("token not yet valid")
+        if "nbf" in claims:
+            nbf = _time_claim(claims, "nbf")
+            if nbf is None or now < nbf - self.leeway_s:
+                raise AuthFailedError("token not yet valid")
         if claims.get("sub") != expected_subject:
             raise AuthFailedError("token subject does not own the signing key")
         return claims
+
+
+def _time_claim(claims: dict[str, Any], name: str) -> float | None:
+    """A NumericDate as finite float seconds, else None (refused by the caller).
+
+    JSON from PyJWT may carry ``NaN``/``Infinity`` (Python's json accepts them) or an
+    integer too large for a float: ``NaN`` compares false with everything, so an
+    unchecked ``exp: NaN`` would never expire, and a huge integer would raise.
+    """
+    value = claims.get(name)
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    try:
+        seconds = float(value)
+    except OverflowError:
+        return None
+    return seconds if math.isfinite(seconds) else None
 
 
 PrivateKey = ed25519.Ed25519PrivateKey | mldsa.MLDSA65PrivateKey | mldsa.MLDSA87PrivateKey
@@ -232,7 +255,8 @@ def sign_envelope(
     if alg not in ALGORITHMS or len(private) != len(ALGORITHMS[alg]):
         raise ValueError(f"unsupported algorithm {alg!r} for {len(private)} key(s)")
     unsigned = {k: v for k, v in message.items() if k != "sig"}
-    data = canonical_bytes(parse(json.dumps(unsigned).encode()))
+    raw = json.dumps(unsigned).encode()
+    data = canonical_bytes(parse(raw, max_bytes=len(raw)))  # the receiver enforces its own limit
     value = ".".join(b64encode(key.sign(data)) for key in private)
     return {**unsigned, "sig": {"alg": alg, "kid": kid, "value": value}}
 

@@ -1,15 +1,24 @@
-"""The ``antireplay`` command line (click + rich): a thin adapter over the library."""
+"""The ``antireplay`` command line (click + rich): a thin adapter over the library.
+
+Errors are for people: an ordinary mistake (a bad option value, a missing or
+foreign file, a busy port, a configuration ``serve`` would refuse) is one line
+on stderr, ``antireplay: error: <what> (<what is allowed>)``, never wrapped,
+with exit status 2, and never a traceback.  :class:`_Cli` gives click's own
+usage errors that shape too.  ``config check`` runs the same :func:`preflight`
+as ``serve``, so a configuration that passes the check starts.
+"""
 
 from __future__ import annotations
 
 import json
+import sqlite3
 import subprocess
 import sys
 import threading
 import time
 import uuid
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import click
 import httpx
@@ -21,12 +30,12 @@ from rich.table import Table
 
 from antireplay import counters, epochs
 from antireplay.audit import AuditLog, reanchor, verify
-from antireplay.auth import PrivateKey, sign_envelope, write_key_pair
+from antireplay.auth import PrivateKey, load_public_key, sign_envelope, write_key_pair
 from antireplay.clock import SystemClock
 from antireplay.config import AppConfig
 from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.durable import read_kind, repair
-from antireplay.errors import ConfigError, ReplayAttackError, StateFileError
+from antireplay.errors import AntiReplayError, ConfigError, ReplayAttackError, StateFileError
 from antireplay.pipeline import TokenBucket
 
 console = Console()
@@ -39,14 +48,34 @@ KEY_TYPES: dict[str, Any] = {
 }
 
 
-@click.group()
+class _Cli(click.Group):
+    """click's usage errors as one unwrapped line on stderr (status 2), like ours."""
+
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        kwargs["standalone_mode"] = False
+        try:
+            code = super().main(*args, **kwargs)
+        except click.exceptions.NoArgsIsHelpError as exc:
+            exc.show()  # a bare group prints its help, as click does
+            sys.exit(exc.exit_code)
+        except click.ClickException as exc:
+            _fail(exc.format_message(), exc.exit_code)
+        except click.Abort:
+            _fail("aborted", 1)
+        except (OSError, AntiReplayError) as exc:  # a file or port the command could not use
+            _fail(str(exc))
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+@click.group(cls=_Cli)
 @click.version_option(package_name="antireplay")
 def main() -> None:
     """Stop captured robot and drone commands from working twice."""
 
 
-def _fail(message: str, code: int = 2) -> None:
-    console.print(f"[red]{message}[/red]")
+def _fail(message: str, code: int = 2) -> NoReturn:
+    """One line on stderr, never wrapped (newlines in a message are flattened)."""
+    click.echo("antireplay: error: " + " ".join(message.split()), err=True)
     sys.exit(code)
 
 
@@ -57,13 +86,67 @@ def _load_config(path: Path | None, state_dir: Path) -> AppConfig:
         return AppConfig.from_yaml(path) if path is not None else embedded_default(state_dir)
     except ConfigError as exc:
         _fail(str(exc))
-        raise
+    except OSError as exc:
+        _fail(f"state directory {state_dir}: {exc.strerror or exc}")
+
+
+def _audit_problem(path: Path) -> str | None:
+    """Why ``path`` is not an antireplay audit trail (read only: nothing is created)."""
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    except sqlite3.Error as exc:
+        return f"cannot open it ({exc})"
+    try:
+        columns = {row[1] for row in db.execute("PRAGMA table_info(audit)")}
+    except sqlite3.DatabaseError as exc:
+        return f"not an SQLite database ({exc})"
+    finally:
+        db.close()
+    if not columns:
+        return "an SQLite database without an audit table"
+    missing = {"seq", "at", "outcome", "prev_hash", "hash"} - columns
+    return f"its audit table lacks {', '.join(sorted(missing))}" if missing else None
+
+
+def _check_audit_file(path: Path, remedy: str) -> None:
+    problem = _audit_problem(path) if path.exists() else None
+    if problem is not None:
+        _fail(f"{path} is not an antireplay audit trail: {problem}; {remedy}")
+
+
+_OPEN_ONLY_AUDIT = "audit verify and audit tail read only audit trails that antireplay wrote"
+_MOVE_ASIDE = "move it aside (a new trail is started) or configure another path"
+
+
+def preflight(config: AppConfig) -> None:
+    """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
+    from antireplay.gateway import build_registry, resolve_upstream  # noqa: PLC0415
+    from antireplay.stores import open_store  # noqa: PLC0415
+
+    try:
+        build_registry(config)
+        for kid, pem in config.jwt.keys.items():
+            try:
+                load_public_key(Path(pem).read_bytes())
+            except (OSError, ValueError) as exc:
+                allowed = f"a readable PEM public key ({exc})"
+                raise ConfigError(f"jwt.keys.{kid}", pem, allowed) from None
+        resolve_upstream(config.upstream, config.upstream_timeout_s)
+    except ConfigError as exc:
+        _fail(str(exc))
+    _check_audit_file(Path(config.audit), f"audit: {_MOVE_ASIDE}")
+    try:
+        open_store(config.store).close()
+    except ConfigError as exc:
+        _fail(str(exc))
+    except Exception as exc:  # any backend's own failure, named with its spec
+        _fail(f"store {config.store}: cannot open it ({type(exc).__name__}: {exc})")
 
 
 @main.command()
 @click.option("--config", "config_path", type=click.Path(path_type=Path), default=None)
 @click.option("--host", default="127.0.0.1", show_default=True)
-@click.option("--port", default=8080, show_default=True, type=int)
+@click.option("--port", default=8080, show_default=True, type=click.IntRange(0, 65535))
 @click.option("--state-dir", default=Path(".antireplay"), type=click.Path(path_type=Path))
 def serve(config_path: Path | None, host: str, port: int, state_dir: Path) -> None:
     """Run the HTTP gateway (embedded default without --config)."""
@@ -72,10 +155,13 @@ def serve(config_path: Path | None, host: str, port: int, state_dir: Path) -> No
     from antireplay.gateway import create_app  # noqa: PLC0415
 
     config = _load_config(config_path, state_dir)
+    preflight(config)
     try:
         app = create_app(config)
     except ConfigError as exc:
         _fail(str(exc))
+    except sqlite3.DatabaseError as exc:
+        _fail(f"{config.audit} or {config.store}: {exc}")
     uvicorn.run(app, host=host, port=port, log_level="warning", timeout_graceful_shutdown=10)
 
 
@@ -128,16 +214,24 @@ def keygen(alg: str, out: Path) -> None:
 def _private_key(paths: tuple[Path, ...]) -> PrivateKey | tuple[PrivateKey, ...]:
     keys = []
     for path in paths:
-        key = serialization.load_pem_private_key(path.read_bytes(), None)
+        try:
+            key = serialization.load_pem_private_key(path.read_bytes(), None)
+        except (ValueError, TypeError) as exc:
+            _fail(f"--key {path}: not an unencrypted PEM private key ({exc})")
         if not isinstance(key, PrivateKey):
-            _fail(f"{path}: unsupported key type {type(key).__name__}")
-            raise SystemExit(2)
+            _fail(f"--key {path}: unsupported key type {type(key).__name__}")
         keys.append(key)
     return keys[0] if len(keys) == 1 else tuple(keys)
 
 
 @main.command()
-@click.option("--key", "key_paths", multiple=True, required=True, type=click.Path(path_type=Path))
+@click.option(
+    "--key",
+    "key_paths",
+    multiple=True,
+    required=True,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+)
 @click.option("--kid", required=True)
 @click.option("--alg", default="ed25519", show_default=True)
 @click.option("--json", "json_file", type=click.File("r"), help="Base message (JSON file or -).")
@@ -162,7 +256,12 @@ def sign(  # noqa: PLR0917 - one option per envelope field
     scope: str | None,
 ) -> None:
     """Build and sign an envelope (fresh msg_id and timestamp unless given); print it."""
-    body: dict[str, Any] = json.load(json_file) if json_file is not None else {}
+    try:
+        body: Any = json.load(json_file) if json_file is not None else {}
+    except ValueError as exc:
+        _fail(f"--json {json_file.name}: not JSON ({exc})")
+    if not isinstance(body, dict):
+        _fail(f"--json {json_file.name}: a JSON object is needed, got {type(body).__name__}")
     body.setdefault("rcan", "3.2")
     body.setdefault("rcan_version", "3.2")
     body.setdefault("msg_id", str(uuid.uuid4()))
@@ -233,11 +332,11 @@ def audit_verify(path: Path, head_key: Path | None, head_file: Path | None) -> N
     """Check the hash chain and the head checkpoint; say what is proven and what is not.
 
     Exits 1 on a broken chain, truncation, rewrite or a missing/forged checkpoint."""
+    _check_audit_file(path, _OPEN_ONLY_AUDIT)
     try:
         report = verify(path, head_key=head_key, head_path=head_file)
     except StateFileError as exc:
         _fail(str(exc))
-        return
     for line in report.lines():
         console.print(line, markup=False, highlight=False)
     if not report.ok:
@@ -260,9 +359,10 @@ def audit_reanchor(path: Path, head_key: Path | None, head_file: Path | None) ->
 
 @audit.command("tail")
 @click.argument("path", type=click.Path(exists=True, path_type=Path))
-@click.option("-n", "count", default=20, show_default=True)
+@click.option("-n", "count", default=20, show_default=True, type=click.IntRange(min=0))
 def audit_tail(path: Path, count: int) -> None:
     """Print the most recent records."""
+    _check_audit_file(path, _OPEN_ONLY_AUDIT)
     table = Table(title=str(path))
     for column in ("seq", "time (UTC)", "outcome", "code", "warning", "type", "sender", "msg_id"):
         table.add_column(column)
@@ -282,11 +382,12 @@ def config() -> None:
 @config.command("check")
 @click.argument("path", type=click.Path(path_type=Path))
 def config_check(path: Path) -> None:
-    """Validate a YAML config with the same errors as the library."""
+    """Validate a YAML config: everything ``serve`` checks (keys, store, audit, upstream)."""
     try:
         cfg = AppConfig.from_yaml(path)
     except ConfigError as exc:
         _fail(str(exc))
+    preflight(cfg)
     console.print_json(data=cfg.model_dump())
 
 
@@ -351,8 +452,8 @@ def state_repair(path: Path, kind: str | None) -> None:
 def _udp(spec: str) -> tuple[str, int]:
     scheme, _, rest = spec.partition(":")
     host, _, port = rest.rpartition(":")
-    if scheme != "udp" or not host or not port.isdigit():
-        raise click.BadParameter(f"{spec!r}: expected udp:HOST:PORT")
+    if scheme != "udp" or not host or not (port.isascii() and port.isdigit()) or int(port) > 65535:
+        raise click.BadParameter(f"{spec!r}: expected udp:HOST:PORT with PORT 0..65535")
     return host, int(port)
 
 
@@ -409,11 +510,14 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
 
     key = _signing_key(key_file)
     try:
+        store = open_store(store_spec)
+    except ConfigError as exc:
+        raise click.BadParameter(f"{store_spec!r}: {exc.allowed}", param_hint="'--store'") from None
+    _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")
+    try:
         audit_log = AuditLog(audit_path)
     except StateFileError as exc:
         _fail(str(exc))
-        return
-    store = open_store(store_spec)
     common: dict[str, Any] = {
         "store": store, "allow_unsigned": frozenset(allow_unsigned),
         "reorder_window": reorder_window,
@@ -431,7 +535,10 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
             msg_type=None, sender=sender, sender_verified=False, msg_id=None,
         )  # fmt: skip
 
-    proxy = MavlinkProxy(_udp(listen), _udp(forward), inbound, outbound, audit_reject)
+    try:
+        proxy = MavlinkProxy(_udp(listen), _udp(forward), inbound, outbound, audit_reject)
+    except OSError as exc:
+        _fail(f"--listen {listen} / --forward {forward}: {exc.strerror or exc}")
     if metrics_port is not None:
         _serve_proxy_metrics(proxy, metrics_port)
     done = threading.Event()

@@ -15,6 +15,15 @@ field one of them ignored.  Exactly one of ``timestamp`` (Unix seconds) and
 present.  ``msg_id`` and the timestamp's *value* are judged by the window
 (``INVALID_MESSAGE_ID`` / ``INVALID_TIMESTAMP``), not here.
 
+Everything a peer controls gets a typed answer, never an exception: bytes
+that are not UTF-8 (JSON text must be, RFC 8259 §8.1) are ``INVALID_ENVELOPE``
+(msgspec itself raises a bare ``UnicodeDecodeError`` for them, inside ``sig``
+too); an integer timestamp beyond the 64-bit range is ``INVALID_TIMESTAMP``
+here, so the window is never handed a number it cannot convert to a float;
+and the integer fields (``type``, ``qos``, ``sequence_number``, ``loa``) are
+bounded in the schema, so no store or audit column meets an integer it
+cannot hold.
+
 Canonical form (what signatures cover): the envelope as decoded, **minus
 ``sig`` and ``jwt``**, encoded as JSON with keys sorted, no whitespace, UTF-8,
 and numbers as Python's shortest round-trip repr.  It covers every field that
@@ -24,22 +33,38 @@ Duplicate JSON keys resolve to the last one; the gateway forwards the
 canonical re-encoding, never the raw bytes, so no downstream parser sees a
 different message than the one that was verified.
 
-``sdk_signed_bytes`` reproduces the official SDK's subset
-(``rcan, msg_id, timestamp, cmd, target, params``) for the compatibility mode.
+``sdk_signed_bytes`` reproduces the official SDK's subset for the
+compatibility mode.  In rcan 3.7.0, ``rcan.signing.sign_message`` signs
+``_canonical_message_bytes``: exactly ``rcan, msg_id, timestamp, cmd, target,
+params`` (sorted-key JSON, ``target`` as a string) and nothing else
+(:data:`SDK_SIGNED_FIELDS`).  Everything else ``RCANMessage.to_dict`` can emit
+is unsigned: ``rcan_version, confidence, sender, scope, sender_type,
+cloud_provider, key_id, qos, sequence_number, delegation_chain, group_id,
+read_only, presence_verified, proximity_m, loa, transport_encoding,
+firmware_hash, attestation_ref`` (and our ``type``, ``safety_event``,
+``timestamp_ms``).  :func:`unsigned_policy_fields` names those a message sets; the
+pipeline refuses such a message, so in compatibility mode only signed content
+is authorized and forwarded.  ``rcan_version`` is the one exception: the SDK
+always emits it as a mirror of ``rcan``, so it passes when empty or equal to
+the signed ``rcan`` (then it says nothing unsigned).
 """
 
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Annotated, Any
 
 import msgspec
 
-from antireplay.errors import InvalidEnvelopeError
+from antireplay.errors import InvalidEnvelopeError, InvalidTimestampError
 from antireplay.messages import MessageType
 
 MAX_BYTES = 64 * 1024
 MAX_DEPTH = 16
+#: Integer timestamps (seconds or milliseconds) beyond this are refused before any conversion.
+MAX_INT_TIMESTAMP = 2**63 - 1
+#: Bounded integer fields: what a SQLite INTEGER (and any int64 upstream) can hold.
+Int64 = Annotated[int, msgspec.Meta(ge=-(2**63), le=2**63 - 1)]
 
 
 class Signature(msgspec.Struct, forbid_unknown_fields=True, frozen=True):
@@ -60,7 +85,7 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
     rcan_version: str = ""
     timestamp: Any = None
     timestamp_ms: Any = None
-    type: int = int(MessageType.COMMAND)
+    type: Int64 = int(MessageType.COMMAND)
     safety_event: str | None = None
     params: dict[str, Any] = msgspec.field(default_factory=dict)
     sender: str | None = None
@@ -68,18 +93,18 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
     # Kept raw and decoded only at the signature step: a replay never pays for it.
     sig: msgspec.Raw = msgspec.field(default_factory=msgspec.Raw)
     key_id: str | None = None
-    qos: int = 0
+    qos: Int64 = 0
     jwt: str | None = None
     confidence: float | None = None
     sender_type: str | None = None
     cloud_provider: str | None = None
-    sequence_number: int | None = None
+    sequence_number: Int64 | None = None
     delegation_chain: list[Any] = msgspec.field(default_factory=list)
     group_id: str | None = None
     read_only: bool = False
     presence_verified: bool = False
     proximity_m: float | None = None
-    loa: int | None = None
+    loa: Int64 | None = None
     transport_encoding: str | None = None
     firmware_hash: str | None = None
     attestation_ref: str | None = None
@@ -92,6 +117,8 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
             return _SIG_DECODER.decode(self.sig)
         except msgspec.MsgspecError as exc:
             raise InvalidEnvelopeError(f"sig: {_short(str(exc))}") from None
+        except UnicodeDecodeError:
+            raise InvalidEnvelopeError("sig: not UTF-8") from None
 
     @property
     def seconds(self) -> object:
@@ -123,8 +150,13 @@ def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH)
         raise InvalidEnvelopeError(f"not JSON: {_short(str(exc))}") from None
     except RecursionError:
         raise InvalidEnvelopeError("nested too deeply") from None
+    except UnicodeDecodeError:
+        raise InvalidEnvelopeError("not UTF-8") from None
     if (env.timestamp is None) == (env.timestamp_ms is None):
         raise InvalidEnvelopeError("exactly one of timestamp and timestamp_ms is required")
+    for stamp in (env.timestamp, env.timestamp_ms):
+        if type(stamp) is int and not -MAX_INT_TIMESTAMP <= stamp <= MAX_INT_TIMESTAMP:
+            raise InvalidTimestampError("timestamp out of range")
     deep = _nested(env.params) or bool(env.delegation_chain)
     if deep and max(_depth(env.params), _depth(env.delegation_chain)) > max_depth:
         raise InvalidEnvelopeError(f"nested deeper than {max_depth} levels")
@@ -160,8 +192,17 @@ def canonical_bytes(env: Envelope) -> bytes:
 
 
 def encode(env: Envelope) -> bytes:
-    """The envelope as forwarded upstream (what was verified, with its signature)."""
-    return _ENCODER.encode(env)
+    """The envelope as forwarded upstream (what was verified, with its signature).
+
+    ``sig`` is re-encoded from its decoded form, never copied raw: duplicate keys,
+    odd whitespace or bytes no downstream parser expects stay at the gateway.
+    """
+    sig = env.signature()
+    if sig is None:
+        body = msgspec.to_builtins(env, builtin_types=(msgspec.Raw,))
+        body.pop("sig", None)
+        return _ENCODER.encode(body)
+    return _ENCODER.encode(msgspec.structs.replace(env, sig=msgspec.Raw(_ENCODER.encode(sig))))
 
 
 def sdk_signed_bytes(env: Envelope) -> bytes:
@@ -177,13 +218,23 @@ def sdk_signed_bytes(env: Envelope) -> bytes:
     return json.dumps(payload, sort_keys=True, separators=(",", ":")).encode()
 
 
-#: Fields the SDK does not sign; in compatibility mode a message using any of them is refused.
-SDK_UNSIGNED_POLICY_FIELDS = ("type", "safety_event", "scope", "qos", "sender", "timestamp_ms")
+#: What the rcan 3.7.0 SDK signature covers (``rcan.signing._canonical_message_bytes``).
+SDK_SIGNED_FIELDS = frozenset({"rcan", "msg_id", "timestamp", "cmd", "target", "params"})
+#: Authenticated on their own (``sig`` is the signature; a ``jwt`` is verified separately).
+_SELF_AUTHENTICATED = frozenset({"sig", "jwt"})
+_DEFAULTS = Envelope(msg_id="", cmd="", target="", timestamp=0)
 
 
 def unsigned_policy_fields(env: Envelope) -> list[str]:
-    """Policy-relevant fields set on an envelope that the SDK's signature does not cover."""
-    defaults = Envelope(msg_id="", cmd="", target="", timestamp=0)
-    return [
-        name for name in SDK_UNSIGNED_POLICY_FIELDS if getattr(env, name) != getattr(defaults, name)
-    ]
+    """Fields set on ``env`` that the SDK's signature does not cover (module docstring)."""
+    unsigned = []
+    for name in env.__struct_fields__:
+        if name in SDK_SIGNED_FIELDS or name in _SELF_AUTHENTICATED:
+            continue
+        value = getattr(env, name)
+        if name == "rcan_version":
+            if value not in ("", env.rcan):
+                unsigned.append(name)
+        elif value != getattr(_DEFAULTS, name):
+            unsigned.append(name)
+    return unsigned

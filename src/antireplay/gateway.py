@@ -6,7 +6,13 @@ forwards the accepted message upstream (the canonical re-encoding, never the
 raw bytes) and answers with the upstream's result, or answers with the
 COMMAND_NACK and its HTTP status.  ``GET /healthz`` and ``GET /metrics``
 (Prometheus) complete it.  No rule lives here: every decision is the
-pipeline's.  Every audit record is committed (fsync) before the response is
+pipeline's, except transport framing: a request that carries both
+``Content-Length`` and ``Transfer-Encoding`` is refused with 400 and the
+connection closed (RFC 9112 §6.1), on every route, because a proxy in front
+that honours the other header would see a different request boundary (the
+request-smuggling shape).  h11 (uvicorn's default) hands both headers to the
+app and frames by ``Transfer-Encoding``; httptools refuses such requests
+itself.  Every audit record is committed (fsync) before the response is
 sent, so a graceful or abrupt shutdown loses no answered message's record.
 
 With no configuration the gateway runs on the embedded default: SQLite state
@@ -32,9 +38,11 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
+from starlette.middleware import Middleware
 from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
+from starlette.types import ASGIApp, Receive, Scope, Send
 
 from antireplay.audit import AuditLog
 from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key, write_key_pair
@@ -111,6 +119,7 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
         jwt=verifier,
         jwt_required=config.jwt.required,
         versions=frozenset(config.versions),
+        max_bytes=config.max_body_bytes,
     )
 
 
@@ -214,6 +223,25 @@ class StateCollector(Collector):
         yield fence
 
 
+class RefuseAmbiguousFraming:
+    """ASGI middleware: both Content-Length and Transfer-Encoding -> 400 and close (RFC 9112)."""
+
+    def __init__(self, app: ASGIApp, nack_type: int = 18) -> None:
+        self.app = app
+        self.nack_type = nack_type
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            names = {name.lower() for name, _ in scope["headers"]}
+            if b"content-length" in names and b"transfer-encoding" in names:
+                reason = "both Content-Length and Transfer-Encoding (RFC 9112 section 6.1)"
+                nack = InvalidEnvelopeError(reason).to_nack(None, nack_type=self.nack_type)
+                refusal = JSONResponse(nack, status_code=400, headers={"connection": "close"})
+                await refusal(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+
 def _nack(outcome: Outcome) -> JSONResponse:
     return JSONResponse(outcome.nack, status_code=outcome.status)
 
@@ -236,9 +264,10 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
         if ctype != "application/json":
             return _refuse(415, "content-type must be application/json")
         declared = request.headers.get("content-length")
-        if declared is not None and not declared.isdigit():
+        if declared is not None and not (declared.isascii() and declared.isdigit()):
             return _refuse(400, "invalid content-length")
-        if declared is not None and int(declared) > limit:
+        digits = declared.lstrip("0") if declared is not None else ""
+        if len(digits) > len(str(limit)) or (digits and int(digits) > limit):
             return _refuse(413, f"body larger than {limit} bytes")
         body = bytearray()
         try:
@@ -286,6 +315,7 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
             Route("/metrics", metrics_endpoint, methods=["GET"]),
         ],
         lifespan=lifespan,
+        middleware=[Middleware(RefuseAmbiguousFraming, nack_type=config.security.nack_type)],
     )
     app.state.receiver = receiver
     app.state.metrics = metrics

@@ -47,7 +47,7 @@ from antireplay.audit import AuditLog, sanitize
 from antireplay.auth import JwtVerifier, KeyRegistry, Signer
 from antireplay.clock import Clock, resolve
 from antireplay.config import SecurityConfig
-from antireplay.envelope import Envelope, parse, unsigned_policy_fields
+from antireplay.envelope import MAX_BYTES, Envelope, parse, unsigned_policy_fields
 from antireplay.errors import (
     AuthFailedError,
     Code,
@@ -126,8 +126,10 @@ class Receiver:
         jwt_required: bool = False,
         versions: frozenset[str] = frozenset({"3"}),
         invalid_audit_per_s: float = 10.0,
+        max_bytes: int = MAX_BYTES,
     ) -> None:
         self.config = config
+        self.max_bytes = max_bytes  # the gateway passes its max_body_bytes: one limit in force
         self.keys = keys
         self.audit = audit
         self.clock = resolve(clock)
@@ -151,7 +153,7 @@ class Receiver:
         if copy is not None and copy.length == len(raw) and copy.expires_at >= self.clock.wall():
             return self._reject_copy(copy)
         try:
-            env = parse(raw)
+            env = parse(raw, max_bytes=self.max_bytes)
             self._check_version(env)
             self.cache.check(env.msg_id, env.seconds, env.type, env.safety_event)
             self._check_jwt(env, headers or {})

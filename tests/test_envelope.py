@@ -1,0 +1,54 @@
+"""The envelope parser: every hostile byte string is a typed error, never an exception."""
+
+from __future__ import annotations
+
+import json
+
+import msgspec
+import pytest
+
+from antireplay.envelope import MAX_INT_TIMESTAMP, encode, parse
+from antireplay.errors import InvalidEnvelopeError, InvalidTimestampError
+
+BASE = b'{"msg_id":"m","cmd":"c","target":"t","rcan":"3.2",'
+
+
+@pytest.mark.parametrize(
+    "tail",
+    [b'"timestamp":1,"params":{"k":"\xff"}}', b'"timestamp":1,"cmd":"\xc3"}',
+     b'"timestamp":1,"params":{"\xfe":1}}'],
+)  # fmt: skip
+def test_bytes_that_are_not_utf8_are_invalid_envelope(tail: bytes) -> None:
+    with pytest.raises(InvalidEnvelopeError, match="not UTF-8"):
+        parse(BASE + tail)
+
+
+def test_sig_that_is_not_utf8_is_invalid_envelope_when_read() -> None:
+    env = parse(BASE + b'"timestamp":1,"sig":{"alg":"ed25519","kid":"\xff","value":"AA"}}')
+    with pytest.raises(InvalidEnvelopeError, match="sig: not UTF-8"):
+        env.signature()
+
+
+@pytest.mark.parametrize("field", [b"timestamp", b"timestamp_ms"])
+def test_integer_timestamps_beyond_64_bits_are_invalid_timestamp(field: bytes) -> None:
+    at_limit = parse(BASE + b'"' + field + b'":' + str(MAX_INT_TIMESTAMP).encode() + b"}")
+    assert at_limit.seconds is not None  # converts: the window judges its value
+    for huge in (MAX_INT_TIMESTAMP + 1, -MAX_INT_TIMESTAMP - 1, 10**400):
+        with pytest.raises(InvalidTimestampError, match="out of range"):
+            parse(BASE + b'"' + field + b'":' + str(huge).encode() + b"}")
+
+
+@pytest.mark.parametrize("field", ["type", "qos", "sequence_number", "loa"])
+def test_integer_fields_fit_64_bits(field: str) -> None:
+    parse(BASE + f'"timestamp":1,"{field}":{2**63 - 1}}}'.encode())
+    with pytest.raises(InvalidEnvelopeError, match="schema"):
+        parse(BASE + f'"timestamp":1,"{field}":{2**63}}}'.encode())
+
+
+def test_forwarded_sig_is_re_encoded_not_copied() -> None:
+    """Duplicate keys and odd spacing inside ``sig`` never reach the upstream."""
+    raw = BASE + b'"timestamp":1,"sig":{ "alg":"ed25519","kid":"k","value":"BAD","value":"AA"}}'
+    forwarded = encode(parse(raw))
+    assert forwarded.count(b'"value"') == 1
+    assert json.loads(forwarded)["sig"] == {"alg": "ed25519", "kid": "k", "value": "AA"}
+    assert msgspec.json.decode(forwarded)["sig"]["value"] == "AA"
