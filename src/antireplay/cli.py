@@ -24,6 +24,7 @@ from antireplay.audit import AuditLog, verify
 from antireplay.auth import PrivateKey, sign_envelope, write_key_pair
 from antireplay.clock import SystemClock
 from antireplay.config import AppConfig
+from antireplay.dds.cli import dds
 from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.durable import read_kind, repair
 from antireplay.errors import ConfigError, ReplayAttackError
@@ -43,6 +44,9 @@ KEY_TYPES: dict[str, Any] = {
 @click.version_option(package_name="antireplay")
 def main() -> None:
     """Stop captured robot and drone commands from working twice."""
+
+
+main.add_command(dds)
 
 
 def _fail(message: str, code: int = 2) -> None:
