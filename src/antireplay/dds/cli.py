@@ -83,7 +83,7 @@ def read(config_path: Path, topic: str | None, count: int, timeout_s: float) -> 
     while not stop.is_set() and (count == 0 or seen < count):
         if deadline is not None and time.monotonic() >= deadline:
             break
-        for verdict in reader.poll(0.1):
+        for verdict in reader.poll(0.1)[: count - seen if count else None]:
             click.echo(verdict.line())
             seen += 1
     summary = ", ".join(f"{k}={v}" for k, v in sorted(reader.counts.items()))

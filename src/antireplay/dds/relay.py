@@ -15,13 +15,16 @@ resumes above everything it announced before.
 Two relays must never share a service name: their announcements would share
 one prefix and one would look like a replay of the other.  The relay watches
 its own egress topic with a separate in-memory verifier: an *authentic* sample
-under its own prefix with an epoch it never emitted can only come from a twin.
+under its own prefix that it never emitted (it remembers the digests of its
+last samples, and each relay process stamps a random ``relay_id`` into what it
+announces) can only come from a twin.
 It is reported (error log, :attr:`AnnouncementRelay.twins`, the audit trail),
 and subscribers' verifiers count it as a prefix collision as well.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import struct
@@ -34,7 +37,8 @@ from cyclonedds.domain import DomainParticipant
 from antireplay.audit import AuditLog
 from antireplay.clock import Clock, resolve
 from antireplay.dds.ping import PingListener
-from antireplay.dds.topics import SealedReader, SealedWriter, Verdict, claim
+from antireplay.dds.topics import SealedReader, SealedWriter, Verdict
+from antireplay.dds.wire import SealedSample
 from antireplay.errors import InvalidFrameError, StateUnavailableError
 
 log = logging.getLogger("antireplay.dds.relay")
@@ -43,26 +47,31 @@ ANNOUNCE_TOPIC = "antireplay/announce"
 RELAYED_TOPIC = "antireplay/relayed"
 #: Epochs the relay remembers having emitted, to tell its own samples from a twin's.
 EMITTED_MEMORY = 4096
-_ORIGIN = struct.Struct(">8sQ")
+_ORIGIN = struct.Struct(">8sQ8s")
 
 
 @dataclass(frozen=True)
 class RelayedAnnouncement:
-    """What the relay re-announces: who announced, at which epoch, and what."""
+    """What the relay re-announces: who announced, at which epoch, and what.
+
+    ``relay_id`` is random per relay process: two relays sharing a service name
+    (and a clock) can never emit byte-identical samples, so a twin always shows.
+    """
 
     origin_prefix: bytes
     origin_epoch: int
+    relay_id: bytes
     payload: bytes
 
     def encode(self) -> bytes:
-        return _ORIGIN.pack(self.origin_prefix, self.origin_epoch) + self.payload
+        return _ORIGIN.pack(self.origin_prefix, self.origin_epoch, self.relay_id) + self.payload
 
     @classmethod
     def decode(cls, data: bytes) -> RelayedAnnouncement:
         if len(data) < _ORIGIN.size:
             raise InvalidFrameError("relayed announcement shorter than its origin header")
-        prefix, epoch = _ORIGIN.unpack_from(data)
-        return cls(prefix, epoch, data[_ORIGIN.size :])
+        prefix, epoch, relay_id = _ORIGIN.unpack_from(data)
+        return cls(prefix, epoch, relay_id, data[_ORIGIN.size :])
 
 
 @dataclass(frozen=True)
@@ -122,7 +131,8 @@ class AnnouncementRelay:
             clock=self._clock,
         )
         self._watch = SealedReader(participant, egress, psk, clock=self._clock)
-        self._emitted: deque[int] = deque(maxlen=EMITTED_MEMORY)
+        self.relay_id = os.urandom(8)
+        self._emitted: deque[bytes] = deque(maxlen=EMITTED_MEMORY)
         self.relayed = 0
         self.twins: list[TwinReport] = []
         self.counts: Counter[str] = Counter()
@@ -133,8 +143,8 @@ class AnnouncementRelay:
         for verdict in verdicts:
             if verdict.accepted:
                 self._relay(verdict)
-        for seen in self._watch.take():
-            self._check_twin(seen)
+        for sample, seen in self._watch.take_judged():
+            self._check_twin(sample, seen)
         if self.ping is not None:
             self.ping.drain()
         return verdicts
@@ -146,18 +156,21 @@ class AnnouncementRelay:
 
     def _relay(self, verdict: Verdict) -> None:
         assert verdict.nonce_prefix is not None and verdict.epoch is not None
-        body = RelayedAnnouncement(verdict.nonce_prefix, verdict.epoch, verdict.value)
+        body = RelayedAnnouncement(
+            verdict.nonce_prefix, verdict.epoch, self.relay_id, verdict.value
+        )
         sample = self.egress.seal(body.encode(), instance=verdict.instance)
-        self._emitted.append(claim(bytes(sample.sealed))[1])
+        self._emitted.append(_digest(sample))
         self.egress.publish(sample)
         self.relayed += 1
 
-    def _check_twin(self, seen: Verdict) -> None:
+    def _check_twin(self, sample: SealedSample, seen: Verdict) -> None:
+        """An authentic sample under our prefix that we did not emit comes from a twin."""
         if seen.nonce_prefix != self.egress.nonce_prefix or not seen.authentic:
             return
-        assert seen.epoch is not None
-        if seen.epoch in self._emitted:
+        if _digest(sample) in self._emitted:
             return
+        assert seen.epoch is not None
         report = TwinReport(self.service_name, seen.nonce_prefix, seen.epoch)
         self.twins.append(report)
         self.counts["duplicate_service_name"] += 1
@@ -181,3 +194,7 @@ class AnnouncementRelay:
         except StateUnavailableError:
             self.counts["audit_unavailable"] += 1
             log.error("audit trail unavailable; the twin report was not recorded")
+
+
+def _digest(sample: SealedSample) -> bytes:
+    return hashlib.sha256(bytes(sample.sealed)).digest()[:16]

@@ -301,8 +301,12 @@ class SealedReader:
 
     def take(self, limit: int = 256) -> list[Verdict]:
         """Judge every sample waiting (up to ``limit``)."""
+        return [verdict for _, verdict in self.take_judged(limit)]
+
+    def take_judged(self, limit: int = 256) -> list[tuple[SealedSample, Verdict]]:
+        """Like :meth:`take`, keeping each wire sample beside its verdict."""
         samples = self._reader.take(N=limit)
-        return [self.judge(s) for s in samples if isinstance(s, SealedSample)]
+        return [(s, self.judge(s)) for s in samples if isinstance(s, SealedSample)]
 
     def wait(self, timeout_s: float) -> None:
         """Block until data may be waiting, or ``timeout_s``."""
