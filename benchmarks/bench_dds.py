@@ -17,6 +17,7 @@ import statistics
 import time
 from collections.abc import Callable
 
+from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -33,7 +34,7 @@ BATCH, SINGLES, ROUNDS = 2_000, 200, 5
 class Plain:
     """The baseline: the same wire type, no seal, no verification."""
 
-    def __init__(self, participant: object) -> None:
+    def __init__(self, participant: DomainParticipant) -> None:
         qos = default_qos(BATCH)
         topic = Topic(participant, "bench/plain", SealedSample, qos=qos)
         self.writer = DataWriter(participant, topic, qos=qos)
@@ -47,7 +48,7 @@ class Plain:
 
 
 class Sealed:
-    def __init__(self, participant: object) -> None:
+    def __init__(self, participant: DomainParticipant) -> None:
         qos = default_qos(BATCH)
         self.reader = SealedReader(participant, "bench/sealed", PSK, qos=qos)
         self.writer = SealedWriter(participant, "bench/sealed", PSK, qos=qos)
@@ -91,7 +92,7 @@ def latency_us(side: Plain | Sealed) -> float:
 
 def main() -> None:
     participant = join_domain(random.randrange(150, 230))
-    sides = {"plain": Plain(participant), "sealed": Sealed(participant)}
+    sides: dict[str, Plain | Sealed] = {"plain": Plain(participant), "sealed": Sealed(participant)}
     rates: dict[str, list[float]] = {name: [] for name in sides}
     lat: dict[str, list[float]] = {name: [] for name in sides}
     for _ in range(ROUNDS):
