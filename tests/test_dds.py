@@ -409,3 +409,30 @@ def test_cli_reader_prints_verdicts_across_processes(tmp_path: Path) -> None:
     ]  # fmt: skip
     assert "'move 1'" not in lines[2] and "verdicts: accepted=2, replayed=2" in err
     assert len(json.loads((tmp_path / "cap.jsonl").read_text().splitlines()[0])["sealed"]) > 0
+
+
+def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:
+    psk = os.urandom(32)
+    (tmp_path / "fleet.psk").write_text(psk.hex())
+    domain_id = next(_IDS)
+    config = tmp_path / "dds.yaml"
+    config.write_text(
+        f"dds:\n  domain_id: {domain_id}\n  psk_file: {tmp_path / 'fleet.psk'}\n"
+        f"  relay: {{service_name: cds-1, signer_state: {tmp_path / 's.state'},"
+        f" verifier_state: {tmp_path / 'v.state'}}}\n"
+    )
+    relay = _antireplay("relay", "--config", str(config), "--duration", "15")
+    try:
+        participant = join_domain(domain_id)
+        subscriber = SealedReader(participant, "antireplay/relayed", psk)
+        announcer = SealedWriter(participant, "antireplay/announce", psk)
+        until(lambda: announcer.matched_readers() >= 1 and subscriber.matched_writers() >= 1, 20)
+        announcer.write(b"participant guid=02", instance="02")
+        (verdict,) = collect(subscriber, 1, 20)
+        assert verdict.accepted and verdict.nonce_prefix != announcer.nonce_prefix
+        assert RelayedAnnouncement.decode(verdict.value).payload == b"participant guid=02"
+    finally:
+        relay.terminate()
+        out, err = relay.communicate(timeout=30)
+    assert relay.returncode == 0, err
+    assert out.startswith("ACCEPTED instance='02'") and "relayed 1; twins reported 0" in err
