@@ -33,6 +33,7 @@ from antireplay.audit import AuditLog, reanchor, verify
 from antireplay.auth import PrivateKey, load_public_key, sign_envelope, write_key_pair
 from antireplay.clock import SystemClock
 from antireplay.config import AppConfig
+from antireplay.dds.cli import dds
 from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.durable import read_kind, repair
 from antireplay.errors import AntiReplayError, ConfigError, ReplayAttackError, StateFileError
@@ -71,6 +72,9 @@ class _Cli(click.Group):
 @click.version_option(package_name="antireplay")
 def main() -> None:
     """Stop captured robot and drone commands from working twice."""
+
+
+main.add_command(dds)
 
 
 def _fail(message: str, code: int = 2) -> NoReturn:

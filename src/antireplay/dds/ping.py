@@ -1,0 +1,133 @@
+"""Binding pings: small UDP control datagrams, sealed with the ping key, check then commit.
+
+Theory of operation
+-------------------
+A participant tells a relay "I am reachable here" with a binding ping: an
+:mod:`antireplay.epochs` frame of kind ``PING`` (its own HKDF key, so a ping
+is never taken for an announcement nor the reverse) sent over UDP.  The
+listener's order: datagram size (cheap, before any crypto), then
+:meth:`EpochVerifier.open_ping` (MAC, freshness, ``epoch > last``, commit),
+and only then does it learn the sender's address for that prefix.  A replayed
+or forged ping from an attacker's address is refused with a typed verdict and
+changes nothing: no address is learned from unauthenticated traffic.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from collections import Counter
+
+from antireplay.audit import AuditLog
+from antireplay.clock import Clock, resolve
+from antireplay.dds.topics import Verdict, audit_refusal, open_judged
+from antireplay.epochs import MIN_LEN, EpochSigner, EpochVerifier, Kind
+from antireplay.errors import Code
+
+#: A binding ping is small; anything larger is dropped before any crypto.
+MAX_PING = 1024
+
+
+class PingSender:
+    """Seals binding pings and sends them over UDP (from 127.0.0.1 by default)."""
+
+    def __init__(
+        self,
+        psk: bytes,
+        *,
+        nonce_prefix: bytes | None = None,
+        state_file: str | os.PathLike[str] | None = None,
+        clock: Clock | None = None,
+        bind: tuple[str, int] = ("127.0.0.1", 0),
+    ) -> None:
+        self.signer = EpochSigner(
+            psk, nonce_prefix=nonce_prefix, state_file=state_file, clock=clock
+        )
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(bind)
+
+    @property
+    def address(self) -> tuple[str, int]:
+        host, port = self.sock.getsockname()
+        return str(host), int(port)
+
+    def ping(self, target: tuple[str, int], payload: bytes = b"") -> bytes:
+        """Seal and send one ping; returns the datagram (what an attacker could capture)."""
+        datagram = self.signer.seal_ping(payload)
+        self.sock.sendto(datagram, target)
+        return datagram
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class PingListener:
+    """Receives binding pings; learns a peer's address only from an authentic, fresh one."""
+
+    def __init__(
+        self,
+        psk: bytes,
+        *,
+        bind: tuple[str, int] = ("127.0.0.1", 0),
+        state_file: str | os.PathLike[str] | None = None,
+        clock: Clock | None = None,
+        max_age_s: float | None = None,
+        max_forward_s: float | None = None,
+        audit: AuditLog | None = None,
+    ) -> None:
+        self._clock = resolve(clock)
+        self.verifier = EpochVerifier(
+            psk,
+            state_file=state_file,
+            max_age_s=max_age_s,
+            max_forward_s=max_forward_s,
+            clock=self._clock,
+        )
+        self.audit = audit
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(bind)
+        self.peers: dict[bytes, tuple[str, int]] = {}
+        self.counts: Counter[str] = Counter()
+
+    @property
+    def address(self) -> tuple[str, int]:
+        host, port = self.sock.getsockname()
+        return str(host), int(port)
+
+    def judge(self, datagram: bytes, source: tuple[str, int]) -> Verdict:
+        """Check, authenticate, commit one ping; ``instance`` is the source address."""
+        where = f"{source[0]}:{source[1]}"
+        if not MIN_LEN <= len(datagram) <= MAX_PING:
+            verdict = Verdict("malformed", Code.INVALID_FRAME, "bad ping length", where)
+        else:
+            opened = open_judged(self.verifier, datagram, Kind.PING, where)
+            if isinstance(opened, Verdict):
+                verdict = opened
+            else:
+                self.peers[opened.nonce_prefix] = source
+                verdict = Verdict(
+                    "accepted", None, "", where, opened.nonce_prefix, opened.epoch, opened.payload
+                )
+        self.counts[verdict.outcome] += 1
+        if not verdict.accepted and self.audit is not None:
+            audit_refusal(self.audit, self._clock, verdict, "dds ping", self.counts)
+        return verdict
+
+    def receive(self, timeout_s: float) -> Verdict | None:
+        """Judge the next datagram, or None if none came within ``timeout_s``."""
+        self.sock.settimeout(timeout_s)
+        try:
+            datagram, source = self.sock.recvfrom(MAX_PING + 1)
+        except (TimeoutError, BlockingIOError):
+            return None
+        return self.judge(datagram, (str(source[0]), int(source[1])))
+
+    def drain(self) -> list[Verdict]:
+        """Judge every datagram already waiting, without blocking."""
+        verdicts = []
+        while (verdict := self.receive(0.0)) is not None:
+            verdicts.append(verdict)
+        return verdicts
+
+    def close(self) -> None:
+        self.sock.close()

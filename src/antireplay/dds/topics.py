@@ -1,0 +1,381 @@
+"""Sealed topics: every DDS sample carries its sender's nonce prefix, epoch and HMAC.
+
+Theory of operation
+-------------------
+On the wire a sealed topic has one DDS type, :class:`SealedSample`: the
+instance key (a DDS key field, so keyed instances work as usual) and the bytes
+of an :mod:`antireplay.epochs` announcement whose payload is ::
+
+    instance_len u16 | instance utf-8 | data
+
+``data`` is the application's sample (raw bytes, or an IDL struct serialized
+to CDR).  The HMAC key of a topic is
+``HKDF(psk, info="antireplay/v1 dds topic" | len|topic name | len|type name)``,
+so a sample captured on one topic fails the MAC on any other topic or type,
+and the instance key is inside the MAC, so a sample cannot move to another
+instance either (the DDS key field is only a routing copy, compared first).
+
+A reader judges each sample in the house order: size and shape, the claimed
+instance against the DDS key field (no crypto, no state), then
+:meth:`EpochVerifier.open` (MAC, freshness, ``epoch > last[prefix]``, commit,
+persisted with ``state_file`` before it returns).  Only then is the data
+decoded and handed over.  Everything else becomes a :class:`Verdict` with a
+stable :class:`~antireplay.errors.Code` and an ``outcome`` word that is
+counted in :attr:`SealedReader.counts` and, with an audit log, appended to the
+hash-chained audit trail.  Several writers share a topic: each has its own
+prefix (random, or restored from its state file), and the verifier keeps one
+epoch per prefix.  A writer restarted with its state file resumes above every
+epoch it could have used; one whose state file vanished while its witness
+remains refuses to start (:class:`~antireplay.errors.StateFileError` names
+the file).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import struct
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+from cryptography.hazmat.primitives import hashes
+from cryptography.hazmat.primitives.kdf.hkdf import HKDF
+from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct
+from cyclonedds.pub import DataWriter
+from cyclonedds.qos import Policy, Qos
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from cyclonedds.util import duration
+
+from antireplay.audit import AuditLog
+from antireplay.clock import Clock, resolve
+from antireplay.dds.wire import SealedSample
+from antireplay.epochs import (
+    MAX_LEN,
+    MIN_LEN,
+    TAG_LEN,
+    Announcement,
+    EpochSigner,
+    EpochVerifier,
+    Kind,
+)
+from antireplay.errors import (
+    AuthenticationError,
+    Code,
+    EpochReplayError,
+    EpochTooFarAheadError,
+    InvalidFrameError,
+    MessageStaleError,
+    ReplayAttackError,
+    StateUnavailableError,
+)
+
+log = logging.getLogger("antireplay.dds")
+
+#: The documented announcement head (version, kind, nonce prefix, epoch), read before any crypto.
+_CLAIM = struct.Struct(">BB8sQ")
+_ILEN = struct.Struct(">H")
+MAX_INSTANCE = 256
+#: Type name bound in the MAC for topics whose samples are raw bytes.
+RAW = "octets"
+
+
+def default_qos(depth: int = 256) -> Qos:
+    """Reliable, keep-last ``depth`` per instance: a sealed topic's defaults."""
+    return Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(depth))
+
+
+def topic_key(psk: bytes, topic: str, type_name: str) -> bytes:
+    """The per-topic MAC secret: binds the topic name and type name."""
+    if not isinstance(psk, bytes) or len(psk) < 16:
+        raise ValueError("psk must be at least 16 bytes")
+    info = b"antireplay/v1 dds topic"
+    for part in (topic.encode(), type_name.encode()):
+        info += _ILEN.pack(len(part)) + part
+    return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(psk)
+
+
+def type_name_of(data_type: type[IdlStruct] | None) -> str:
+    return RAW if data_type is None else str(data_type.__idl_typename__)
+
+
+def _inner(instance: str, data: bytes) -> bytes:
+    raw = instance.encode()
+    if len(raw) > MAX_INSTANCE:
+        raise ValueError(f"instance key longer than {MAX_INSTANCE} bytes")
+    return _ILEN.pack(len(raw)) + raw + data
+
+
+def _topic(participant: DomainParticipant, name: str, qos: Qos) -> Topic[SealedSample]:
+    return Topic(participant, name, SealedSample, qos=qos)
+
+
+class SealedWriter:
+    """A DDS writer whose every sample is sealed with a strictly increasing epoch."""
+
+    def __init__(
+        self,
+        participant: DomainParticipant,
+        topic: str,
+        psk: bytes,
+        *,
+        data_type: type[IdlStruct] | None = None,
+        nonce_prefix: bytes | None = None,
+        service_name: str | None = None,
+        state_file: str | os.PathLike[str] | None = None,
+        clock: Clock | None = None,
+        reserve_s: float = 1.0,
+        qos: Qos | None = None,
+    ) -> None:
+        self.topic_name, self.data_type = topic, data_type
+        self.signer = EpochSigner(
+            topic_key(psk, topic, type_name_of(data_type)),
+            nonce_prefix=nonce_prefix,
+            service_name=service_name,
+            state_file=state_file,
+            clock=clock,
+            reserve_s=reserve_s,
+        )
+        qos = qos or default_qos()
+        self._writer = DataWriter(participant, _topic(participant, topic, qos), qos=qos)
+
+    @property
+    def nonce_prefix(self) -> bytes:
+        return self.signer.nonce_prefix
+
+    def seal(self, value: bytes | IdlStruct, *, instance: str = "") -> SealedSample:
+        """The sealed sample for ``value`` (not yet written): each call takes a new epoch."""
+        data = value if isinstance(value, bytes) else value.serialize()
+        return SealedSample(instance=instance, sealed=self.signer.seal(_inner(instance, data)))
+
+    def write(self, value: bytes | IdlStruct, *, instance: str = "") -> SealedSample:
+        """Seal and publish one sample; returns what went on the wire."""
+        sample = self.seal(value, instance=instance)
+        self._writer.write(sample)
+        return sample
+
+    def publish(self, sample: SealedSample) -> None:
+        """Publish an already sealed sample (a relay's or a test's own)."""
+        self._writer.write(sample)
+
+    def flush(self, timeout_s: float = 2.0) -> bool:
+        """Wait until matched readers acknowledged everything written (reliable QoS)."""
+        return bool(self._writer.wait_for_acks(duration(seconds=timeout_s)))
+
+    def matched_readers(self) -> int:
+        return len(self._writer.get_matched_subscriptions())
+
+    def wait_for_readers(self, count: int = 1, timeout_s: float = 10.0) -> bool:
+        """Bounded wait until ``count`` readers matched (DDS drops samples nobody matched)."""
+        deadline = time.monotonic() + timeout_s
+        while self.matched_readers() < count:
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The judgment of one received sample; only ``accepted`` ones carry ``value``."""
+
+    outcome: str
+    code: Code | None
+    reason: str
+    instance: str
+    nonce_prefix: bytes | None = None
+    epoch: int | None = None
+    value: Any = None
+
+    @property
+    def accepted(self) -> bool:
+        return self.code is None
+
+    @property
+    def authentic(self) -> bool:
+        """True when the MAC verified (accepted, or refused only for freshness or order)."""
+        return self.outcome in {"accepted", "replayed", "prefix_collision", "stale", "ahead"}
+
+    def line(self) -> str:
+        """One printable line (what ``antireplay dds read`` prints)."""
+        who = "-" if self.nonce_prefix is None else self.nonce_prefix.hex()
+        head = "ACCEPTED" if self.accepted else f"REFUSED {self.code} {self.outcome}"
+        shown = self.value if self.accepted else self.reason
+        return f"{head} instance={self.instance!r} prefix={who} epoch={self.epoch} {shown!r}"
+
+
+#: Rejection class -> the outcome word counted and audited (prefix collisions are told apart).
+_OUTCOMES: dict[type[ReplayAttackError], str] = {
+    InvalidFrameError: "malformed",
+    AuthenticationError: "forged",
+    MessageStaleError: "stale",
+    EpochTooFarAheadError: "ahead",
+    EpochReplayError: "replayed",
+}
+
+
+class SealedReader:
+    """A DDS reader that hands over only authentic, fresh samples and judges the rest."""
+
+    def __init__(
+        self,
+        participant: DomainParticipant,
+        topic: str,
+        psk: bytes,
+        *,
+        data_type: type[IdlStruct] | None = None,
+        state_file: str | os.PathLike[str] | None = None,
+        clock: Clock | None = None,
+        max_age_s: float | None = None,
+        max_forward_s: float | None = None,
+        audit: AuditLog | None = None,
+        qos: Qos | None = None,
+    ) -> None:
+        self.topic_name, self.data_type = topic, data_type
+        self._clock = resolve(clock)
+        self.verifier = EpochVerifier(
+            topic_key(psk, topic, type_name_of(data_type)),
+            state_file=state_file,
+            max_age_s=max_age_s,
+            max_forward_s=max_forward_s,
+            clock=self._clock,
+        )
+        self.audit = audit
+        self.counts: Counter[str] = Counter()
+        self._lock = threading.Lock()
+        qos = qos or default_qos()
+        self._reader = DataReader(participant, _topic(participant, topic, qos), qos=qos)
+        self._waitset = WaitSet(participant)
+        self._waitset.attach(
+            ReadCondition(self._reader, ViewState.Any | InstanceState.Any | SampleState.NotRead)
+        )
+
+    def matched_writers(self) -> int:
+        return len(self._reader.get_matched_publications())
+
+    def judge(self, sample: SealedSample) -> Verdict:
+        """Check, authenticate, commit one sample; never raises for hostile input."""
+        with self._lock:
+            verdict = self._judge(sample)
+        self.counts[verdict.outcome] += 1
+        if not verdict.accepted:
+            log.debug("refused sample on %s: %s", self.topic_name, verdict.line())
+            if self.audit is not None:
+                audit_refusal(
+                    self.audit, self._clock, verdict, f"dds {self.topic_name}", self.counts
+                )
+        return verdict
+
+    def _judge(self, sample: SealedSample) -> Verdict:
+        instance = sample.instance if isinstance(sample.instance, str) else ""
+        sealed = bytes(sample.sealed)
+        if not MIN_LEN + _ILEN.size <= len(sealed) <= MAX_LEN:
+            return Verdict("malformed", Code.INVALID_FRAME, "bad sealed length", instance)
+        prefix, epoch = claim(sealed)
+        claimed = _claimed_instance(sealed)
+        if claimed != instance:
+            return Verdict(
+                "wrong_instance",
+                Code.INVALID_FRAME,
+                "instance key does not match the sealed one",
+                instance,
+                prefix,
+                epoch,
+            )
+        opened = open_judged(self.verifier, sealed, Kind.ANNOUNCEMENT, instance)
+        if isinstance(opened, Verdict):
+            return opened
+        data = opened.payload[_ILEN.size + len(instance.encode()) :]
+        if self.data_type is None:
+            return Verdict("accepted", None, "", instance, prefix, epoch, data)
+        try:
+            value = self.data_type.deserialize(data)
+        except Exception:  # an authentic sender's undecodable sample: refused, not raised
+            return Verdict("malformed", Code.INVALID_FRAME, "undecodable data", instance)
+        return Verdict("accepted", None, "", instance, prefix, epoch, value)
+
+    def take(self, limit: int = 256) -> list[Verdict]:
+        """Judge every sample waiting (up to ``limit``)."""
+        return [verdict for _, verdict in self.take_judged(limit)]
+
+    def take_judged(self, limit: int = 256) -> list[tuple[SealedSample, Verdict]]:
+        """Like :meth:`take`, keeping each wire sample beside its verdict."""
+        samples = self._reader.take(N=limit)
+        return [(s, self.judge(s)) for s in samples if isinstance(s, SealedSample)]
+
+    def wait(self, timeout_s: float) -> None:
+        """Block until data may be waiting, or ``timeout_s``."""
+        self._waitset.wait(duration(seconds=timeout_s))
+
+    def poll(self, timeout_s: float = 0.1) -> list[Verdict]:
+        """Wait up to ``timeout_s`` for data, then judge what arrived."""
+        verdicts = self.take()
+        if not verdicts:
+            self.wait(timeout_s)
+            verdicts = self.take()
+        return verdicts
+
+
+def audit_refusal(
+    audit: AuditLog, clock: Clock, verdict: Verdict, where: str, counts: Counter[str]
+) -> None:
+    """Append one refusal to the audit trail (sender = claimed prefix; never the payload)."""
+    try:
+        audit.append(
+            at=clock.wall(),
+            outcome="rejected",
+            code=str(verdict.code),
+            warning=f"{where}: {verdict.outcome}",
+            msg_type=None,
+            sender=None if verdict.nonce_prefix is None else verdict.nonce_prefix.hex(),
+            sender_verified=verdict.authentic,
+            msg_id=None if verdict.epoch is None else str(verdict.epoch),
+        )
+    except StateUnavailableError:
+        counts["audit_unavailable"] += 1
+        log.error("audit trail unavailable; a %s refusal was not recorded", where)
+
+
+def claim(sealed: bytes) -> tuple[bytes, int]:
+    """The (nonce prefix, epoch) a sealed announcement claims; authenticated by nobody yet."""
+    _, _, prefix, epoch = _CLAIM.unpack_from(sealed)
+    return prefix, epoch
+
+
+def open_judged(
+    verifier: EpochVerifier, sealed: bytes, kind: Kind, instance: str
+) -> Announcement | Verdict:
+    """``verifier.open`` with every refusal turned into a typed :class:`Verdict`."""
+    prefix, epoch = claim(sealed)
+    collisions = verifier.prefix_collisions
+    try:
+        return verifier.open(sealed, kind=kind)
+    except ReplayAttackError as exc:
+        outcome = _OUTCOMES.get(type(exc), "refused")
+        if verifier.prefix_collisions != collisions:
+            outcome = "prefix_collision"
+        return Verdict(outcome, exc.code, exc.reason, instance, prefix, epoch)
+    except OSError as exc:  # the accepted epoch could not be persisted: fail closed
+        reason = f"verifier state not persisted: {exc.strerror or exc}"
+        return Verdict("state_unavailable", Code.STATE_UNAVAILABLE, reason, instance)
+
+
+def _claimed_instance(sealed: bytes) -> str | None:
+    """The instance key inside the (not yet verified) payload, or None if unreadable."""
+    start = _CLAIM.size
+    (size,) = _ILEN.unpack_from(sealed, start)
+    raw = sealed[start + _ILEN.size : start + _ILEN.size + size]
+    if len(raw) != size or start + _ILEN.size + size > len(sealed) - TAG_LEN:
+        return None
+    try:
+        return raw.decode()
+    except UnicodeDecodeError:
+        return None
+
+
+__all__ = ["SealedReader", "SealedSample", "SealedWriter", "Verdict", "claim", "topic_key"]
