@@ -50,9 +50,9 @@ from antireplay.errors import Code
 from antireplay.gateway import DEMO_KID, create_app, embedded_default
 from antireplay.mavlink import MavlinkGuard, parse_frame, split_frames
 from antireplay.pipeline import Receiver
+from antireplay.replay import ReplayCache
 from antireplay.session import Initiator, Responder, parse_frame_head
 from antireplay.stores.memory import MemoryStore
-from antireplay.replay import ReplayCache
 
 NOW = 1_800_000_000.0
 #: Fixed keys, so the seed corpus stays valid from one run to the next.
