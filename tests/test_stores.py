@@ -39,9 +39,10 @@ from tests.conftest import kill9_runs, run_threads
 from tests.helpers import store_worker
 from tests.redis_server import Forwarder, RedisCluster, RedisServer
 from tests.test_mavlink import KEY, command_frame, encoder
+from tests.test_mavlink import NOW as MAV_NOW
 
 BACKENDS = ["memory", "sqlite", "redis", "redis-cluster"]
-NOW = 1_800_000_000.0
+NOW = 2_000_000_000.0  # 2033: after any Redis server's real time in these tests
 #: Stores in these tests start this long before NOW, so their start-up fence is long past.
 STARTED = NOW - 400
 
@@ -166,7 +167,7 @@ def test_two_replicas_sharing_a_store_reject_each_others_replays(store: ReplaySt
 
 
 def test_two_mavlink_guards_sharing_a_store_accept_a_frame_once(store: ReplayStore) -> None:
-    clock = ManualClock(wall=NOW)
+    clock = ManualClock(wall=MAV_NOW)  # the time the MAVLink encoder stamps with
     guards = [MavlinkGuard(KEY, store=store, clock=clock) for _ in range(2)]
     frame = command_frame(*encoder())
     guards[0].check(frame)
@@ -492,6 +493,45 @@ def test_redis_entry_lifetime_does_not_depend_on_a_fast_replica_clock(redis_url:
     ttl_s = redis.Redis.from_url(redis_url).pttl(store.msg_key("cmd")) / 1000
     # It lives until its expiry on the server's (true) clock, plus skew: not 3 s less.
     assert ttl_s >= expiry - server_now + 4
+
+
+class SteppedClock:
+    """The real clock plus an NTP-style step on the wall face (Redis TTLs run on real time)."""
+
+    def __init__(self) -> None:
+        self.step = 0.0
+
+    def wall(self) -> float:
+        return time.time() + self.step
+
+    def monotonic(self) -> float:
+        return time.monotonic()
+
+
+def test_redis_replica_clock_stepping_back_never_reaccepts_a_copy_redis_dropped(
+    redis_url: str,
+) -> None:
+    """Redis drops a key once its TTL ran out, on real time; a replica whose wall clock then
+    steps back further than skew_s would see the message as fresh again.  The script's
+    watermark (server time - skew_s) refuses it."""
+    clock = SteppedClock()
+    store = RedisStore(redis_url, prefix=f"t-{uuid.uuid4().hex}:", clock=clock, skew_s=0.5)
+    fence = store.verify().fence
+    cache = ReplayCache(5, 1000, 0.5, clock, safety_window_s=1, store=store)
+    deadline = time.monotonic() + 10
+    while clock.wall() <= fence + 0.5 and time.monotonic() < deadline:
+        time.sleep(0.02)  # past the new deployment's fence (a condition, not a guess)
+    ts = clock.wall()
+    cache.commit("resume", ts, MessageType.SAFETY, "RESUME")  # window 1 s: TTL ~1.5 s
+    clock.step = -1.0  # NTP steps this replica's wall clock back by more than skew_s
+    client = redis.Redis.from_url(redis_url)
+    while client.exists(store.msg_key("resume")) and time.monotonic() < deadline:
+        time.sleep(0.02)  # Redis drops the key when its TTL runs out (real time)
+    assert not client.exists(store.msg_key("resume"))
+    assert clock.wall() - ts <= 1.0 and ts <= clock.wall() + 0.5  # fresh on the stepped clock
+    with pytest.raises(MessageStaleError) as err:
+        cache.commit("resume", ts, MessageType.SAFETY, "RESUME")
+    assert err.value.detail == "watermark"
 
 
 def test_redis_down_fails_closed_but_estop_passes_and_recovery(tmp_path: Path) -> None:

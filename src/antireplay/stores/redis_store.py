@@ -25,9 +25,14 @@ Theory of operation
   fail closed (``STATE_UNAVAILABLE``).
 * **Entry lifetimes do not depend on one replica's clock.**  An entry's TTL is
   ``expiry - min(caller's now, server time) + skew_s``: a replica whose clock
-  runs ahead (within ``skew_s``) cannot shorten it, nor can a server clock
-  that runs ahead.  An entry that exists but has expired on the caller's
-  clock is replaced atomically.
+  runs ahead cannot shorten it, nor can a server clock that runs ahead, so an
+  entry lives until at least ``expiry + skew_s`` on the server's clock.  Hence
+  the **watermark** the script returns is ``server time - skew_s``: every
+  entry expiring after it is still there.  For a replica whose clock agrees
+  with the server's within ``skew_s`` it refuses nothing the freshness test
+  would accept; for one whose wall clock stepped back further, it refuses the
+  messages whose entries Redis may already have dropped.  An entry that exists
+  but has expired on the caller's clock is replaced atomically.
 * **Redis Cluster**: ``redis+cluster://HOST:PORT`` uses redis-py's cluster
   client.  Keys are ``<prefix>{<hash tag>}:…``: the hash tag puts a
   deployment's keys in one slot, so the script never crosses slots and the
@@ -71,6 +76,12 @@ if meta[1] ~= run then
   redis.call('HINCRBY', KEYS[1], 'losses', 1)
   lost = 1
 end
+-- A key lives until server time >= its expiry + skew (see the TTL below), so at server
+-- time S every entry expiring after S - skew is still here: that is our watermark.  It
+-- refuses nothing for a caller whose clock agrees with the server's within skew, and
+-- covers a caller whose wall clock stepped back further than that.
+local floor = server_now - tonumber(ARGV[3])
+if tonumber(wm) < floor then wm = string.format('%.6f', floor) end
 if ARGV[1] == '' then return {0, false, fence, wm, lost} end
 local expiry = tonumber(ARGV[1])
 local ttl = math.ceil((expiry - math.min(now, server_now) + tonumber(ARGV[3])) * 1000) + 1
