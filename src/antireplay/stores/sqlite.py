@@ -4,8 +4,11 @@ Theory of operation
 -------------------
 WAL journal with ``synchronous=FULL``: a ``commit`` returns only after its
 transaction is durable, so a message accepted before a crash is still
-remembered after it.  Several processes may share one file; SQLite's write lock
-(``BEGIN IMMEDIATE``) makes ``commit`` and ``advance`` atomic across them.
+remembered after it.  Commits are **group-committed**
+(:mod:`antireplay.groupcommit`): concurrent callers' records share one
+transaction, one WAL fsync and one witness write, each caller answered once its
+own record is durable.  Several processes may share one file; SQLite's write
+lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
 
 * **Entries live to their own expiry; early removal raises the watermark.**
   Each commit purges at most ``PURGE_BATCH`` rows whose expiry is below the
@@ -54,12 +57,13 @@ import struct
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Final, TypeVar
 
 from antireplay.clock import Clock, resolve
 from antireplay.errors import StateFileError, StateUnavailableError
+from antireplay.groupcommit import GroupCommitter
 from antireplay.stores import _codec
 from antireplay.window import NEVER, Seen
 
@@ -83,6 +87,8 @@ _ADVANCE = """
 INSERT INTO counters (key, value) VALUES (?, ?)
 ON CONFLICT (key) DO UPDATE SET value = excluded.value WHERE excluded.value > counters.value
 """
+#: One queued commit: key, expires_at, now, force.
+_Op = tuple[str, float, float, bool]
 _FLOOR = -1e300  # SQLite REAL has no -inf literal that round-trips everywhere: "nothing yet"
 
 
@@ -151,6 +157,9 @@ class SqliteStore:
         self.data_loss_events = 0
         self.loss_reason: str | None = None
         self._run(self._verify)
+        self._committer: GroupCommitter[_Op, Seen] = GroupCommitter(
+            self._commit_batch, name=f"antireplay-state:{self.path.name}"
+        )
 
     def _open(self, timeout_s: float) -> sqlite3.Connection:
         """Connect and set up; processes opening one new file at once may briefly collide.
@@ -247,33 +256,46 @@ class SqliteStore:
             return self._run(query)
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
-        """One transaction: bounded purge (raising the watermark), record, meta + witness."""
+        """Queue the record for the next group commit; return once it is durable."""
+        return self._committer.submit((key, expires_at, now, force))
 
-        def tx() -> Seen:
+    def _commit_batch(self, ops: Sequence[_Op]) -> list[Seen]:
+        """One transaction for a batch: bounded purge (raising the watermark), each record
+        in order (racers on one key: one winner), meta + witness once, one COMMIT."""
+
+        def tx() -> list[Seen]:
             db = self._db
             db.execute("BEGIN IMMEDIATE")
             try:
                 generation, watermark, fence, losses = db.execute(
                     "SELECT generation, watermark, fence, data_loss_events FROM meta"
                 ).fetchone()
-                purged = db.execute(_PURGE_SELECT, (now, PURGE_BATCH)).fetchall()
+                now = min(op[2] for op in ops)  # no caller's entry is purged early
+                purged = db.execute(_PURGE_SELECT, (now, PURGE_BATCH + 2 * len(ops))).fetchall()
                 if purged:
                     db.executemany("DELETE FROM seen WHERE key = ?", [(k,) for k, _ in purged])
                     watermark = max(watermark, *(e for _, e in purged))
-                found = db.execute("SELECT expires FROM seen WHERE key = ?", (key,)).fetchone()
-                seen = NEVER if found is None else float(found[0])
-                recorded = not seen >= now
-                if recorded or (force and seen < expires_at):
-                    db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (key, expires_at))
+                results = [self._record(db, op) for op in ops]
                 self._store_meta(generation + 1, watermark, fence, losses)
                 db.execute("COMMIT")
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
-            return Seen(seen, self._watermark, self._fence, recorded)
+            wm, fence_now = self._watermark, self._fence
+            return [Seen(seen, wm, fence_now, recorded) for seen, recorded in results]
 
         with self._lock:
             return self._run(tx)
+
+    @staticmethod
+    def _record(db: sqlite3.Connection, op: _Op) -> tuple[float, bool]:
+        key, expires_at, now, force = op
+        found = db.execute("SELECT expires FROM seen WHERE key = ?", (key,)).fetchone()
+        seen = NEVER if found is None else float(found[0])
+        recorded = not seen >= now
+        if recorded or (force and seen < expires_at):
+            db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (key, expires_at))
+        return seen, recorded
 
     def advance(self, key: str, value: int) -> bool:
         encoded = _codec.encode(value)
@@ -303,6 +325,7 @@ class SqliteStore:
         }
 
     def close(self) -> None:
+        self._committer.close()
         with self._lock:
             self._db.close()
             self.witness.close()
