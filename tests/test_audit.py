@@ -217,7 +217,7 @@ def test_cli_proxy_refuses_a_garbage_audit_file_naming_it(tmp_path: Path) -> Non
     ])  # fmt: skip
     assert result.exit_code == 2
     said = " ".join(result.output.split())
-    assert f"audit file {audit}: not an SQLite database" in said and "Traceback" not in said
+    assert str(audit) in said and "not an SQLite database" in said and "Traceback" not in said
     assert not (tmp_path / "mav.db").exists()  # refused before anything was opened
 
 

@@ -210,6 +210,7 @@ def test_writer_restarted_with_its_state_file_is_accepted(
         first.write(f"before #{n}".encode(), instance="arm")
     assert all(v.accepted for v in collect(reader, 3))
     prefix = first.nonce_prefix
+    first.close()  # the process stops
     # the same host, the clock not moved on: only the state file keeps epochs above the old ones
     second = SealedWriter(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
     assert second.nonce_prefix == prefix
@@ -228,6 +229,7 @@ def test_writer_whose_state_file_is_missing_is_refused_naming_the_file(
     until(lambda: first.matched_readers() >= 1)
     first.write(b"before", instance="arm")
     assert collect(reader, 1)[0].accepted
+    first.close()  # the process stops
     state.unlink()  # the witness stays: the loss is visible
     with pytest.raises(StateFileError) as refused:
         SealedWriter(
@@ -254,7 +256,7 @@ def test_reader_restarted_with_its_state_file_still_refuses_old_samples(
     until(lambda: writer.matched_readers() >= 1)
     captured = [writer.write(f"cmd {n}".encode(), instance="arm") for n in range(3)]
     assert all(v.accepted for v in collect(first, 3))
-    del first
+    first.close()  # the process stops
     restarted = SealedReader(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
     forgetful = SealedReader(peer(participant), TOPIC, PSK, clock=clock)  # the contrast
     rogue = rogue_writer(participant)
@@ -313,6 +315,7 @@ def test_relay_resumes_above_its_epochs_after_a_restart(
     announcer.write(b"first", instance="p")
     pump_until(relay, lambda: relay.relayed == 1)
     before = collect(subscriber, 1)[0]
+    relay.close()  # the process stops
     restarted = relay_at(peer(participant), tmp_path, "cds-1", clock, "a")
     until(lambda: announcer.matched_readers() >= 1 and restarted.egress.matched_readers() >= 1)
     announcer.write(b"second", instance="p")

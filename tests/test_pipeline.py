@@ -387,7 +387,7 @@ def test_compat_mode_refuses_every_field_the_sdk_does_not_sign(
     clock: ManualClock, name: str
 ) -> None:
     raw, pair = sdk_message()
-    compat = Receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
+    compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
     body = {**json.loads(raw), name: MITM_FIELDS[name]}
     out = compat.receive(json.dumps(body).encode())
     assert (out.code, out.status) == ("SCOPE_DENIED", 403)
@@ -397,7 +397,7 @@ def test_compat_mode_refuses_every_field_the_sdk_does_not_sign(
 
 def test_compat_mode_forwards_exactly_the_signed_fields(clock: ManualClock) -> None:
     raw, pair = sdk_message()
-    compat = Receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
+    compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
     out = compat.receive(raw)
     assert out.accepted and out.envelope is not None
     forwarded = json.loads(encode(out.envelope))

@@ -513,13 +513,15 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
     from antireplay.stores import open_store  # noqa: PLC0415
 
     key = _signing_key(key_file)
+    _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")  # before opening anything
+    try:
+        audit_log = AuditLog(audit_path)
+    except StateFileError as exc:
+        _fail(str(exc))
     try:
         store = open_store(store_spec)
     except ConfigError as exc:
         raise click.BadParameter(f"{store_spec!r}: {exc.allowed}", param_hint="'--store'") from None
-    _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")
-    try:
-        audit_log = AuditLog(audit_path)
     except StateFileError as exc:
         _fail(str(exc))
     common: dict[str, Any] = {

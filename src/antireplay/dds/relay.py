@@ -137,6 +137,11 @@ class AnnouncementRelay:
         self.twins: list[TwinReport] = []
         self.counts: Counter[str] = Counter()
 
+    def close(self) -> None:
+        """Release the relay's state files (owner locks), as a stopping process does."""
+        for part in (self.ingress, self.egress, self._watch):
+            part.close()
+
     def pump(self, timeout_s: float = 0.1) -> list[Verdict]:
         """One round: judge waiting announcements, relay the accepted, look for a twin."""
         verdicts = self.ingress.poll(timeout_s)

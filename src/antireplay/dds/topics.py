@@ -170,6 +170,10 @@ class SealedWriter:
     def matched_readers(self) -> int:
         return len(self._writer.get_matched_subscriptions())
 
+    def close(self) -> None:
+        """Release the signer's state file (its owner lock), as a stopping process does."""
+        self.signer.close()
+
     def wait_for_readers(self, count: int = 1, timeout_s: float = 10.0) -> bool:
         """Bounded wait until ``count`` readers matched (DDS drops samples nobody matched)."""
         deadline = time.monotonic() + timeout_s
@@ -257,6 +261,10 @@ class SealedReader:
 
     def matched_writers(self) -> int:
         return len(self._reader.get_matched_publications())
+
+    def close(self) -> None:
+        """Release the verifier's state file (its owner lock), as a stopping process does."""
+        self.verifier.close()
 
     def judge(self, sample: SealedSample) -> Verdict:
         """Check, authenticate, commit one sample; never raises for hostile input."""
