@@ -9,7 +9,9 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -23,6 +25,7 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
 from antireplay.cli import _signing_key, main
+from antireplay.clock import SystemClock
 from antireplay.demo import free_port
 from antireplay.errors import (
     AuthenticationError,
@@ -31,6 +34,7 @@ from antireplay.errors import (
     MessageFromFutureError,
     MessageStaleError,
     NonceExhaustedError,
+    StateUnavailableError,
     WrongDirectionError,
 )
 from antireplay.mavlink import (
@@ -184,21 +188,175 @@ def test_eviction_fences_old_streams(clock: ManualClock) -> None:
         guard.check(frames[0])
 
 
-def test_store_makes_a_restarted_guard_reject_old_captures(
+class CountingStore:
+    """A store wrapper that counts writes (``advance``) and tells frame-path ones apart."""
+
+    def __init__(self, inner: SqliteStore) -> None:
+        self.inner = inner
+        self.writes: list[str] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def advance(self, key: str, value: int) -> bool:
+        self.writes.append(key)
+        return self.inner.advance(key, value)
+
+
+def frames_at(clock: ManualClock, offsets_s: list[float], link_id: int = 1) -> list[bytes]:
+    """Signed COMMAND_LONG frames stamped ``offset`` seconds from the clock's now."""
+    mav, sink = encoder(link_id=link_id)
+    out = []
+    for offset in offsets_s:
+        mav.signing.timestamp = mav_time(clock) + int(offset * UNITS_PER_S)
+        out.append(command_frame(mav, sink))
+    return out
+
+
+def test_restart_fence_refuses_every_capture_after_a_crash(
     tmp_path: Path, clock: ManualClock
 ) -> None:
-    store = SqliteStore(tmp_path / "mav.db")
-    mav, sink = encoder(ts=mav_time(clock) - 59 * UNITS_PER_S)
-    old = command_frame(mav, sink)
-    mav.signing.timestamp = mav_time(clock) - 5 * UNITS_PER_S
-    recent = command_frame(mav, sink)
-    MavlinkGuard(KEY, clock=clock, store=store).check(old)
-    MavlinkGuard(KEY, clock=clock, store=store).check(recent)
+    guard = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
+    captures = frames_at(clock, [-59, -5, 0]) + frames_at(clock, [-1, 0], link_id=2)
+    for frame in captures:
+        guard.check(frame)
+    clock.advance(0.5)  # kill -9: no stop(), nothing flushed, the lease is still held
     restarted = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
-    for frame in (old, recent):
-        with pytest.raises(CounterReplayError):
+    with pytest.raises(StateUnavailableError):  # the crashed run's lease has not run out
+        restarted.check(frames_at(clock, [0], link_id=3)[0])
+    clock.advance(2)
+    for frame in captures:
+        with pytest.raises((MessageStaleError, CounterReplayError)) as refused:
             restarted.check(frame)
-    restarted.check(command_frame(mav, sink))
+        assert "restart fence" in str(refused.value)
+    assert restarted.check(frames_at(clock, [0])[0]).signed  # the honest sender goes on
+
+
+def test_honest_sender_continues_right_after_a_clean_restart(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    guard = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
+    guard.start()
+    captures = frames_at(clock, [-0.2, -0.1, 0])
+    for frame in captures:
+        guard.check(frame)
+    guard.stop()  # flushes, releases the lease at the stop time
+    restarted = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
+    restarted.start(wait_s=0)  # no waiting: the lease was released
+    try:
+        for frame in captures:
+            with pytest.raises((MessageStaleError, CounterReplayError)):
+                restarted.check(frame)
+        mav, sink = encoder()
+        mav.signing.timestamp = mav_time(clock) + 1  # the very next 10 µs tick
+        assert restarted.check(command_frame(mav, sink)).signed
+    finally:
+        restarted.stop()
+
+
+def test_sender_that_ran_ahead_raises_the_fence(tmp_path: Path, clock: ManualClock) -> None:
+    store = CountingStore(SqliteStore(tmp_path / "mav.db"))
+    guard = MavlinkGuard(KEY, clock=clock, store=store)
+    ahead = frames_at(clock, [30, 30.5], link_id=7)
+    for frame in ahead:
+        guard.check(frame)
+    assert store.writes.count("mav:ahead") == 2  # written before each frame that exceeded it
+    clock.advance(3)  # crash, and the lease runs out
+    restarted = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
+    with pytest.raises(MessageStaleError):
+        restarted.check(ahead[1])
+    with pytest.raises(MessageStaleError):  # a new stream, as far ahead as the fence allows
+        restarted.check(frames_at(clock, [25], link_id=8)[0])
+    assert restarted.restart_fence >= mav_time(clock) + 28 * UNITS_PER_S
+    assert restarted.check(frames_at(clock, [31], link_id=9)[0]).signed
+
+
+def test_persistence_stays_off_the_frame_path_under_a_burst(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """5,000 frames over 5 s on 3 streams, the flusher's tick once a second: the frame path
+    writes once (the lease claim), the flusher at most streams + lease per tick."""
+    store = CountingStore(SqliteStore(tmp_path / "mav.db"))
+    guard = MavlinkGuard(KEY, clock=clock, store=store)
+    senders = [encoder(link_id=link) for link in range(3)]
+    frame_path = 0
+    for i in range(5_000):
+        mav, sink = senders[i % 3]
+        mav.signing.timestamp = mav_time(clock)
+        before = len(store.writes)
+        guard.check(command_frame(mav, sink))
+        frame_path += len(store.writes) - before
+        clock.advance(0.001)
+        if i % 1_000 == 999:
+            guard.flush()
+    assert frame_path == 1
+    assert len(store.writes) <= 1 + 5 * (3 + 1)
+    assert guard.counts["frame_path_renewals"] == 0
+
+
+def test_a_late_flusher_makes_the_frame_path_renew_the_lease(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    store = CountingStore(SqliteStore(tmp_path / "mav.db"))
+    guard = MavlinkGuard(KEY, clock=clock, store=store)
+    mav, sink = encoder()
+    for _ in range(5_000):  # 5 s and no flusher at all: the lease is renewed before it lapses
+        mav.signing.timestamp = mav_time(clock)
+        guard.check(command_frame(mav, sink))
+        clock.advance(0.001)
+    assert store.writes.count("mav:lease") <= 1 + 3
+    assert guard.counts["frame_path_renewals"] <= 3
+
+
+def test_second_guard_on_a_store_takes_over_only_behind_the_fence(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    first = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
+    second = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
+    mav, sink = encoder()
+    frame = command_frame(mav, sink)
+    first.check(frame)
+    with pytest.raises(StateUnavailableError):
+        second.check(frame)
+    clock.advance(3)  # the first guard stalls past its lease; the second takes over
+    with pytest.raises(MessageStaleError):
+        second.check(frame)
+    mav.signing.timestamp = mav_time(clock)
+    fresh = command_frame(mav, sink)
+    assert second.check(fresh).signed
+    with pytest.raises(StateUnavailableError):  # the stalled guard can never renew again
+        first.check(command_frame(mav, sink))
+
+
+def test_write_through_guards_share_a_store_and_accept_each_frame_once(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    guards = [
+        MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"), write_through=True)
+        for _ in range(2)
+    ]
+    mav, sink = encoder()
+    for i in range(6):
+        frame = command_frame(mav, sink)
+        guards[i % 2].check(frame)  # both active at once
+        with pytest.raises(CounterReplayError):
+            guards[(i + 1) % 2].check(frame)
+
+
+def test_store_data_loss_fences_by_the_forward_bound(tmp_path: Path, clock: ManualClock) -> None:
+    store = SqliteStore(tmp_path / "mav.db", clock=clock)
+    guard = MavlinkGuard(KEY, clock=clock, store=store)
+    ahead = frames_at(clock, [40])
+    guard.check(ahead[0])
+    guard.stop()
+    store.close()
+    for lost in tmp_path.glob("mav.db*"):
+        if not lost.name.endswith(".witness"):
+            lost.unlink()  # the lease and the ahead margin go with it; the witness stays
+    restarted = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db", clock=clock))
+    with pytest.raises(MessageStaleError):
+        restarted.check(ahead[0])
+    assert restarted.restart_fence >= mav_time(clock) + 60 * UNITS_PER_S
 
 
 def test_timestamp_source_tracks_time_and_refuses_wrap(clock: ManualClock) -> None:
@@ -488,64 +646,138 @@ def test_ground_frame_echoed_by_the_vehicle_side_is_dropped() -> None:
         rig.close()
 
 
-def test_cli_proxy_restart_then_old_captures_dropped(tmp_path: Path) -> None:
+class _UdpWriter:
+    """pymavlink's output file: each packed frame goes out as one datagram, and is kept."""
+
+    def __init__(self, to: tuple[str, int]) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.to = to
+        self.sent: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.sent.append(bytes(data))
+        self.sock.sendto(data, self.to)
+
+
+def _paced(count: int, hz: float, send: Any) -> None:
+    """Call ``send(i)`` ``count`` times at ``hz`` (a load generator's pacing, not a wait)."""
+    start = time.perf_counter()
+    for i in range(count):
+        delay = start + i / hz - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        send(i)
+
+
+def _dropped(metrics_port: int) -> dict[str, float]:
+    with urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10) as reply:
+        text = reply.read().decode()
+    found = {}
+    for line in text.splitlines():
+        if line.startswith("antireplay_mavlink_dropped_total{"):
+            labels, _, value = line.rpartition(" ")
+            found[labels.split('code="')[1].split('"')[0]] = float(value)
+    return found
+
+
+def _until_dropped(metrics_port: int, count: int) -> None:
+    """Poll the proxy's metrics until it has refused ``count`` frames (fail after 20 s)."""
+    deadline = time.monotonic() + 20
+    while sum(_dropped(metrics_port).values()) < count:
+        if time.monotonic() > deadline:
+            pytest.fail(f"the proxy judged fewer than {count} replays: {_dropped(metrics_port)}")
+        time.sleep(0.02)
+
+
+SENTINEL_MS = 4_000_000_000
+
+
+def test_cli_proxy_kill_9_at_1000_hz_then_every_capture_dropped(tmp_path: Path) -> None:
+    """A real proxy on its default SQLite store, signed ATTITUDE at 1,000 Hz from pymavlink,
+    SIGKILL mid-stream, restart, replay every capture: all dropped; the sender goes on."""
     key_file = tmp_path / "key.hex"
     key_file.write_text(KEY.hex())
-    vport, pport = free_port(), free_port()
-    vehicle = mavutil.mavlink_connection(f"udpin:127.0.0.1:{vport}", source_system=1)
+    vport, pport, mport = free_port(), free_port(), free_port()
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle.bind(("127.0.0.1", vport))
+    vehicle.settimeout(0.2)
+    received: list[bytes] = []
+    sentinel_seen, closing = threading.Event(), threading.Event()
+
+    def vehicle_loop() -> None:
+        while not closing.is_set():
+            try:
+                datagram = vehicle.recv(65_535)
+            except TimeoutError:
+                continue
+            received.append(datagram)
+            if int.from_bytes(datagram[10:14], "little") == SENTINEL_MS:
+                sentinel_seen.set()
+
     args = [
         sys.executable, "-m", "antireplay", "mavlink-proxy", "--listen", f"udp:127.0.0.1:{pport}",
         "--forward", f"udp:127.0.0.1:{vport}", "--key-file", str(key_file), "--system-id", "1",
         "--store", f"sqlite:{tmp_path / 'mav.db'}", "--audit", str(tmp_path / "audit.db"),
+        "--metrics-port", str(mport),
     ]  # fmt: skip
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
 
     def start() -> subprocess.Popen[bytes]:
         proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         assert proc.stdout is not None
-        assert b"mavlink-proxy" in proc.stdout.readline()  # listening
+        if b"mavlink-proxy" not in proc.stdout.readline():  # listening
+            pytest.fail(f"the proxy did not start: {proc.communicate()[1].decode()}")
         return proc
 
-    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{pport}", source_system=255)
-    raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    out = _UdpWriter(("127.0.0.1", pport))
+    gcs = dialect.MAVLink(out, srcSystem=255, srcComponent=190)
+    gcs.signing.secret_key, gcs.signing.sign_outgoing, gcs.signing.link_id = KEY, True, 1
+    wall = SystemClock()
 
-    def command(param1: float) -> bytes:
-        msg = gcs.mav.command_long_encode(1, 1, 400, 0, param1, 0, 0, 0, 0, 0, 0)
-        gcs.mav.send(msg)
-        return bytes(msg.get_msgbuf())
+    def send(time_boot_ms: int) -> None:
+        """Wall-anchored, as the spec asks (pymavlink alone only adds 1 per frame)."""
+        gcs.signing.timestamp = max(gcs.signing.timestamp, mav_time(wall))
+        gcs.attitude_send(time_boot_ms, 0.1, 0.2, 0.3, 0.0, 0.0, 0.0)
 
-    def until(sentinel: float) -> list[float]:
-        seen: list[float] = []
-        while not seen or seen[-1] != sentinel:
-            msg = vehicle.recv_match(type="COMMAND_LONG", blocking=True, timeout=10)
-            assert msg is not None, seen
-            seen.append(float(msg.param1))
-        return seen
-
+    receiver = threading.Thread(target=vehicle_loop)
+    receiver.start()
     proxy = start()
-    # Stamped once the proxy listens, 30 s inside the 60 s new-stream rule: no startup time
-    # or scheduling delay short of half a minute can push the first capture past that rule.
-    now = mav_time(ManualClock(time.time()))
-    gcs.setup_signing(KEY, sign_outgoing=True, link_id=1, initial_timestamp=now - 30 * UNITS_PER_S)
     try:
-        old = command(30.0)  # captured 30 s ago
-        gcs.mav.signing.timestamp = now - 5 * UNITS_PER_S
-        recent = command(5.0)  # captured 5 s ago
-        assert until(5.0) == [30.0, 5.0]
-        proxy.send_signal(signal.SIGKILL)
+
+        def attitude(i: int) -> None:
+            send(i + 1)
+            if i == 1_500:
+                proxy.send_signal(signal.SIGKILL)  # mid-stream
+
+        _paced(2_000, 1_000, attitude)
         proxy.wait()
+        forwarded_before = len(received)
+        assert forwarded_before >= 1_000, forwarded_before  # the stream was flowing
+        captures = list(out.sent)
         proxy = start()
-        raw.sendto(old, ("127.0.0.1", pport))
-        raw.sendto(recent, ("127.0.0.1", pport))
-        gcs.mav.signing.timestamp = now
-        command(1.0)
-        assert until(1.0) == [1.0]
+        raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for batch in range(0, len(captures), 100):  # each batch judged before the next one
+            size = min(100, len(captures) - batch)
+            _paced(size, 1_000, lambda i, at=batch: raw.sendto(captures[at + i], out.to))
+            _until_dropped(mport, batch + size)
+        raw.close()
+        _paced(50, 1_000, lambda i: send(10_000 + i))
+        send(SENTINEL_MS)
+        if not sentinel_seen.wait(10):
+            pytest.fail("the honest sender's frames never passed the restarted proxy")
+        after = received[forwarded_before:]
+        assert not set(after) & set(captures)  # not one capture got through
+        assert len(after) == 51  # every fresh frame did
+        dropped = _dropped(mport)
+        assert sum(dropped.values()) == len(captures), dropped
+        assert set(dropped) <= {"MESSAGE_STALE", "COUNTER_REPLAYED"}, dropped
     finally:
         proxy.terminate()
         proxy.wait()
+        closing.set()
+        receiver.join()
         vehicle.close()
-        gcs.close()
-        raw.close()
+        out.sock.close()
 
 
 def test_signing_key_file_forms(tmp_path: Path) -> None:

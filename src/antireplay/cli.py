@@ -495,6 +495,13 @@ def _signing_key(path: Path) -> bytes:
 @click.option("--metrics-port", type=int, default=None, help="Serve Prometheus metrics here.")
 @click.option("--allow-unsigned", multiple=True, type=int, help="Message id allowed unsigned.")
 @click.option("--reorder-window", type=int, default=0, show_default=True)
+@click.option(
+    "--write-through",
+    is_flag=True,
+    help="Write every accepted timestamp to the store before forwarding (several proxies "
+    "active at once on one store); default: persist every second behind a lease and a "
+    "restart fence.",
+)
 def mavlink_proxy(  # noqa: PLR0917 - one option per knob
     listen: str,
     forward: str,
@@ -505,6 +512,7 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
     metrics_port: int | None,
     allow_unsigned: tuple[int, ...],
     reorder_window: int,
+    write_through: bool,
 ) -> None:
     """Forward only MAVLink v2 frames the guard accepts, both directions."""
     import signal  # noqa: PLC0415
@@ -526,7 +534,7 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
         _fail(str(exc))
     common: dict[str, Any] = {
         "store": store, "allow_unsigned": frozenset(allow_unsigned),
-        "reorder_window": reorder_window,
+        "reorder_window": reorder_window, "write_through": write_through,
     }  # fmt: skip
     inbound = MavlinkGuard(key, system_id=system_id, store_prefix="mav-in", **common)
     outbound = MavlinkGuard(key, store_prefix="mav-out", **common)
@@ -550,7 +558,10 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     signal.signal(signal.SIGINT, lambda *_: done.set())
-    proxy.start()
+    try:
+        proxy.start()  # claims each guard's lease, waiting out a crashed run's (seconds)
+    except ReplayAttackError as exc:
+        _fail(f"--store {store_spec}: {exc}")
     console.print(f"[green]mavlink-proxy {listen} -> {forward} (system id {system_id})[/green]")
     done.wait()
     proxy.stop()
