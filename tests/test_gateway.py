@@ -483,3 +483,31 @@ def test_sigterm_with_requests_in_flight_answers_them_and_loses_no_record(
     records = AuditLog(tmp_path / "audit.db").tail(1000)
     assert sum(r.outcome == "accepted" for r in records) == in_flight
     assert verify(tmp_path / "audit.db").ok
+
+
+def test_lost_sqlite_state_is_fenced_logged_and_audited_on_the_real_cli(tmp_path: Path) -> None:
+    """kill -9, then the state database vanishes (its witness stays): the restarted gateway
+    says so on stderr, audits STATE_LOST, and refuses the captured command."""
+    gw = GatewayProcess(write_demo_config(tmp_path))
+    gw.start()
+    key = load_operator_key(tmp_path)
+    raw = command(key)
+    assert httpx.post(f"{gw.url}/v1/messages", content=raw, headers=JSON).status_code == 200
+    assert gw.proc is not None
+    gw.proc.kill()
+    gw.proc.wait()
+    gw.proc = None
+    for victim in tmp_path.glob("state.db*"):  # `rm state.db*`
+        victim.unlink()
+    gw.start()
+    try:
+        replay = httpx.post(f"{gw.url}/v1/messages", content=raw, headers=JSON)
+        assert replay.status_code == 408 and replay.json()["detail"] == "restart_fence"
+        assert 'antireplay_state_data_loss_total{backend="sqlite"} 1.0' in httpx.get(
+            f"{gw.url}/metrics"
+        ).text
+    finally:
+        gw.stop()
+    assert gw.stderr_text is not None and "replay state" in gw.stderr_text
+    codes = [r.code for r in AuditLog(tmp_path / "audit.db").tail(50)]
+    assert "STATE_LOST" in codes

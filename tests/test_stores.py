@@ -30,7 +30,7 @@ from antireplay import (
 )
 from antireplay.auth import sign_envelope
 from antireplay.errors import ConfigError, StateFileError, StateUnavailableError
-from antireplay.mavlink import MavlinkGuard
+from antireplay.mavlink import MavlinkGuard, mav_time
 from antireplay.stores import ReplayStore, open_store
 from antireplay.stores.memory import MemoryStore
 from antireplay.stores.redis_store import RedisStore
@@ -39,7 +39,6 @@ from tests.conftest import kill9_runs, run_threads
 from tests.helpers import store_worker
 from tests.redis_server import Forwarder, RedisCluster, RedisServer
 from tests.test_mavlink import KEY, command_frame, encoder
-from tests.test_mavlink import NOW as MAV_NOW
 
 BACKENDS = ["memory", "sqlite", "redis", "redis-cluster"]
 NOW = 2_000_000_000.0  # 2033: after any Redis server's real time in these tests
@@ -167,9 +166,9 @@ def test_two_replicas_sharing_a_store_reject_each_others_replays(store: ReplaySt
 
 
 def test_two_mavlink_guards_sharing_a_store_accept_a_frame_once(store: ReplayStore) -> None:
-    clock = ManualClock(wall=MAV_NOW)  # the time the MAVLink encoder stamps with
+    clock = ManualClock(wall=NOW)
     guards = [MavlinkGuard(KEY, store=store, clock=clock) for _ in range(2)]
-    frame = command_frame(*encoder())
+    frame = command_frame(*encoder(ts=mav_time(clock)))
     guards[0].check(frame)
     with pytest.raises(ReplayAttackError):
         guards[1].check(frame)  # its own table has never seen the stream: the store has
@@ -335,7 +334,7 @@ def test_sqlite_lost_witness_is_fenced(tmp_path: Path) -> None:
     store, cache = _sqlite_session(tmp_path / "state.db", clock)
     cache.commit("cmd", NOW - 1)
     store.close()
-    (tmp_path / "state.db.witness").unlink()
+    (tmp_path / ".state.db.witness").unlink()
     store, cache = _sqlite_session(tmp_path / "state.db", clock)
     _assert_fenced(cache, "cmd", NOW - 1)
 
@@ -354,11 +353,72 @@ def test_sqlite_fence_persists_across_a_further_restart(tmp_path: Path) -> None:
     store, cache = _sqlite_session(db, clock)
     cache.commit("cmd", NOW - 1)
     store.close()
-    (tmp_path / "state.db.witness").unlink()
+    (tmp_path / ".state.db.witness").unlink()
     _sqlite_session(db, clock)[0].close()  # fenced, then a clean stop
     store, cache = _sqlite_session(db, clock)
     assert store.loss_reason is None
     _assert_fenced(cache, "cmd", NOW - 1)
+
+
+def test_sqlite_rm_glob_of_the_database_keeps_the_witness_and_is_fenced(tmp_path: Path) -> None:
+    clock, db = ManualClock(wall=NOW), tmp_path / "state.db"
+    store, cache = _sqlite_session(db, clock)
+    cache.commit("cmd", NOW - 1)
+    store.close()
+    for victim in tmp_path.glob("state.db*"):  # what `rm state.db*` removes
+        victim.unlink()
+    store, cache = _sqlite_session(db, clock)
+    _assert_fenced(cache, "cmd", NOW - 1)
+
+
+def test_sqlite_loss_fence_is_no_lower_than_the_last_commit_time(tmp_path: Path) -> None:
+    clock, db = ManualClock(wall=NOW), tmp_path / "state.db"
+    store, cache = _sqlite_session(db, clock)
+    cache.commit("cmd", NOW - 1)
+    store.close()
+    db.unlink()
+    clock.step_wall(-20)  # the clock stepped back across the restart
+    store, cache = _sqlite_session(db, clock)
+    clock.advance(16)  # "cmd" is fresh again on this clock, and after fence + skew of now
+    _assert_fenced(cache, "cmd", NOW - 1)
+
+
+def test_sqlite_live_restore_under_a_running_store_is_fenced(tmp_path: Path) -> None:
+    import sqlite3  # noqa: PLC0415 - SQLite's own backup API, as an operator would use it
+
+    clock, db = ManualClock(wall=NOW), tmp_path / "state.db"
+    store, cache = _sqlite_session(db, clock)
+    cache.commit("early", NOW - 3)
+    backup = sqlite3.connect(":memory:")
+    sqlite3.connect(db).backup(backup)
+    cache.commit("m6", NOW - 2)
+    cache.commit("m7", NOW - 1)
+    backup.backup(sqlite3.connect(db))  # restored in place, under the running store
+    _assert_fenced(cache, "m7", NOW - 1)
+    assert store.status()["data_loss_events"] == 1
+    store.close()
+    store, cache = _sqlite_session(db, clock)
+    _assert_fenced(cache, "m6", NOW - 2)
+
+
+def test_sqlite_corrupted_while_running_answers_503_and_estop_still_passes(
+    tmp_path: Path,
+) -> None:
+    clock, db = ManualClock(wall=NOW), tmp_path / "state.db"
+    store, cache = _sqlite_session(db, clock)
+    for i in range(200):
+        cache.commit(f"fill-{i}", NOW - 1)
+    store.close()
+    _, cache = _sqlite_session(db, clock)
+    raw = bytearray(db.read_bytes())
+    raw[100:4096] = b"\xff" * (4096 - 100)
+    for page in range(1, len(raw) // 4096):
+        raw[page * 4096 : page * 4096 + 64] = b"\xa5" * 64
+    db.write_bytes(bytes(raw))
+    with pytest.raises(StateUnavailableError) as err:
+        cache.commit("cmd", NOW)
+    assert str(db) in err.value.reason
+    assert cache.commit("estop", NOW, MessageType.SAFETY, "ESTOP").warning == "STATE_UNAVAILABLE"
 
 
 # --- Redis: restart, restore, flush, failover, eviction, clock skew -----------------------------
@@ -482,6 +542,33 @@ def test_redis_that_may_evict_our_keys_is_refused(tmp_path: Path) -> None:
             open_store(server.url)
     finally:
         server.stop()
+
+
+def test_redis_eviction_policy_changed_at_run_time_fails_closed(tmp_path: Path) -> None:
+    server = RedisServer(tmp_path)
+    server.start()
+    try:
+        clock = ManualClock(wall=NOW)
+        (cache,) = _replicas(server.url, 1, clock)
+        _fresh_deployment(cache, clock)
+        cache.commit("arm-1", clock.wall())
+        server.client().config_set("maxmemory-policy", "volatile-ttl")
+        with pytest.raises(StateUnavailableError, match="noeviction"):
+            cache.commit("arm-2", clock.wall())
+        with pytest.raises(StateUnavailableError, match="noeviction"):
+            cache.store.advance("mav:1:1:1", 5)
+    finally:
+        server.stop()
+
+
+def test_redis_flush_is_noticed_by_a_counter_advance(redis_url: str) -> None:
+    prefix = f"t-{uuid.uuid4().hex}:"
+    store = RedisStore(redis_url, prefix=prefix, clock=ManualClock(wall=STARTED))
+    store.verify()
+    assert store.advance("mav:1:1:1", 5)
+    redis.Redis.from_url(redis_url).delete(f"{prefix}{{antireplay}}:meta")  # flushed
+    store.advance("mav:1:1:1", 6)
+    assert store.data_loss_events == 2  # the first contact, then the loss
 
 
 def test_redis_entry_lifetime_does_not_depend_on_a_fast_replica_clock(redis_url: str) -> None:

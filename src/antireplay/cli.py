@@ -140,7 +140,12 @@ def preflight(config: AppConfig) -> None:
         _fail(str(exc))
     _check_audit_file(Path(config.audit), f"audit: {_MOVE_ASIDE}")
     try:
-        open_store(config.store).close()
+        if config.store.startswith("sqlite:"):
+            from antireplay.stores.sqlite import check_readable  # noqa: PLC0415
+
+            check_readable(config.store[len("sqlite:") :])  # read-only: nothing used up
+        else:
+            open_store(config.store).close()
     except ConfigError as exc:
         _fail(str(exc))
     except Exception as exc:  # any backend's own failure, named with its spec

@@ -154,6 +154,7 @@ class GatewayProcess:
     config: Path
     port: int = field(default_factory=free_port)
     proc: subprocess.Popen[bytes] | None = None
+    stderr_text: str | None = None
 
     @property
     def url(self) -> str:
@@ -176,9 +177,11 @@ class GatewayProcess:
         raise RuntimeError("gateway did not become healthy")
 
     def stop(self) -> None:
+        """Graceful stop (uvicorn finishes in-flight requests); keeps what it said on stderr."""
         if self.proc is not None:
-            self.proc.terminate()  # graceful: uvicorn finishes in-flight requests
-            self.proc.wait(timeout=30)
+            self.proc.terminate()
+            _, err = self.proc.communicate(timeout=30)
+            self.stderr_text = err.decode(errors="replace") if err else ""
             self.proc = None
 
 

@@ -22,6 +22,7 @@ and audit under ``./.antireplay/`` and a generated demo key pair
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import os
@@ -110,6 +111,8 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
         max_entries=config.security.msg_id_cache_size,
         skew_s=config.security.skew_s,
     )
+    with contextlib.suppress(StateUnavailableError):  # down now: noticed on the first commit
+        store.verify()  # loss detection at boot, not on the first command
     return Receiver(
         config.security,
         build_registry(config),

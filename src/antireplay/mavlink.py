@@ -420,8 +420,8 @@ class MavlinkGuard:
                 )
             ahead = store.current(self._ahead_key) or 0
             fence = until + ahead if generation else -1
-            lost = store.fence()
-            if store.persistent and lost != NEVER:
+            lost = store.verify().fence  # a new process (memory), a lost file, a flushed Redis
+            if lost != NEVER:
                 fence = max(fence, int((lost - MAV_EPOCH) * UNITS_PER_S) + self.max_forward)
             claimed = generation + (1 if generation % 2 == 0 else 2)
             if not self._write_lease(claimed, now + self._lease_len):

@@ -135,15 +135,15 @@ class Receiver:
         self.clock = resolve(clock)
         self.cache = ReplayCache.from_config(config, self.clock, store)
         self.cache.on_loss = self._audit_loss
-        reason = getattr(self.cache.store, "loss_reason", None)
-        if reason is not None:  # noticed while the store opened (a lost or rolled-back file)
-            self._audit_loss(str(reason))
         self.jwt = jwt
         self.jwt_required = jwt_required
         self.versions = versions
         self.stats = Stats()
         self._copies: dict[int, _Copy] = {}
         self._bucket = TokenBucket(invalid_audit_per_s, self.clock)
+        reason = getattr(self.cache.store, "loss_reason", None)
+        if reason is not None:  # noticed while the store opened (a lost or rolled-back file)
+            self._audit_loss(str(reason))
 
     def receive(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Outcome:
         """Run the §8.3 steps; never raises for anything a peer can send."""

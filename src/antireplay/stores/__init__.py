@@ -15,7 +15,9 @@ code the tests and benchmarks exercise:
   extends a live entry instead.  Two racers for one key: exactly one gets
   ``recorded``.  Data-loss detection runs *in the same atomic operation*.
 * ``advance(key, value) -> bool`` / ``current(key)``: compare-and-advance for
-  high-water counters (MAVLink stream timestamps).
+  high-water counters (MAVLink stream state), with the same loss detection.
+* ``verify() -> Seen``: run the loss detection now (start-up; a MAVLink guard
+  taking its lease), returning the fence and watermark.
 * ``status()``: figures for ``/metrics`` (entries, watermark, fence,
   evictions, data-loss events).
 
@@ -70,6 +72,9 @@ class ReplayStore(Protocol):
         """The watermark as last known to this process (no I/O)."""
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen: ...
+
+    def verify(self) -> Seen:
+        """Run this backend's loss detection now; the fence and watermark it finds."""
 
     def advance(self, key: str, value: int) -> bool: ...
 

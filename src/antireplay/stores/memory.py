@@ -90,6 +90,10 @@ class MemoryStore:
     def watermark(self) -> float:
         return self._watermark
 
+    def verify(self) -> Seen:
+        """Nothing to detect in process memory: the fence is the start."""
+        return Seen(NEVER, self._watermark, self._fence)
+
     def lookup(self, key: str) -> Seen:
         expiry = self._expiry.get(key)
         return Seen(NEVER if expiry is None else expiry, self._watermark, self._fence)

@@ -19,10 +19,12 @@ Theory of operation
   not just the first to notice.  A restart that lost nothing (AOF with
   ``appendfsync always``) is fenced too: one cannot tell it from one that lost
   something, and a fence only costs ``skew_s`` seconds of refusals.
-* **Eviction is refused at start.**  A ``maxmemory-policy`` other than
-  ``noeviction`` could silently drop our keys, so :class:`RedisStore` refuses
-  such a server (``ConfigError``); a full Redis then answers errors, which
-  fail closed (``STATE_UNAVAILABLE``).
+* **Eviction is refused, at start and on every operation.**  A
+  ``maxmemory-policy`` other than ``noeviction`` could silently drop our keys,
+  so :class:`RedisStore` refuses such a server at start (``ConfigError``) and
+  every script checks the policy again (``STATE_UNAVAILABLE`` if someone
+  changed it at run time); a full Redis then answers errors, which fail
+  closed.  ``advance`` (MAVLink stream state) runs the same checks.
 * **Entry lifetimes do not depend on one replica's clock.**  An entry's TTL is
   ``expiry - min(caller's now, server time) + skew_s``: a replica whose clock
   runs ahead cannot shorten it, nor can a server clock that runs ahead, so an
@@ -62,13 +64,18 @@ log = logging.getLogger("antireplay.stores.redis")
 #: "No fence / nothing forgotten" in Redis (Lua's tonumber does not read "-inf").
 _FLOOR: Final = "-1e18"
 
-_COMMIT = """
-local run = string.match(redis.call('INFO', 'server'), 'run_id:(%w+)')
+_SCRIPT = """
+-- ARGV: 1 mode (commit | advance | verify), 2 now, 3 skew, 4 floor ("nothing yet"),
+--       5 expiry or counter value, 6 force.  KEYS: 1 meta, 2 the entry or counter.
+local info = redis.call('INFO', 'server', 'memory')
+local run = string.match(info, 'run_id:(%w+)')
+local policy = string.match(info, 'maxmemory_policy:([%w-]+)')
+if policy ~= 'noeviction' then return {-1, policy or '?', '', '', 0} end
 local t = redis.call('TIME')
 local server_now = tonumber(t[1]) + tonumber(t[2]) / 1000000
 local now = tonumber(ARGV[2])
 local meta = redis.call('HMGET', KEYS[1], 'run', 'fence', 'wm')
-local fence, wm, lost = meta[2] or ARGV[5], meta[3] or ARGV[5], 0
+local fence, wm, lost = meta[2] or ARGV[4], meta[3] or ARGV[4], 0
 if meta[1] ~= run then
   local f = math.max(tonumber(fence), now, server_now)
   fence = string.format('%.6f', f + 0.000001)
@@ -82,26 +89,24 @@ end
 -- covers a caller whose wall clock stepped back further than that.
 local floor = server_now - tonumber(ARGV[3])
 if tonumber(wm) < floor then wm = string.format('%.6f', floor) end
-if ARGV[1] == '' then return {0, false, fence, wm, lost} end
-local expiry = tonumber(ARGV[1])
+if ARGV[1] == 'verify' then return {0, false, fence, wm, lost} end
+local cur = redis.call('GET', KEYS[2])
+if ARGV[1] == 'advance' then
+  if cur and cur >= ARGV[5] then return {0, cur, fence, wm, lost} end
+  redis.call('SET', KEYS[2], ARGV[5])
+  return {1, cur or false, fence, wm, lost}
+end
+local expiry = tonumber(ARGV[5])
 local ttl = math.ceil((expiry - math.min(now, server_now) + tonumber(ARGV[3])) * 1000) + 1
 if ttl < 1 then ttl = 1 end
-local cur = redis.call('GET', KEYS[2])
 if cur and tonumber(cur) >= now then
-  if ARGV[4] == '1' and expiry > tonumber(cur) then
-    redis.call('SET', KEYS[2], ARGV[1], 'PX', ttl)
+  if ARGV[6] == '1' and expiry > tonumber(cur) then
+    redis.call('SET', KEYS[2], ARGV[5], 'PX', ttl)
   end
   return {0, cur, fence, wm, lost}
 end
-redis.call('SET', KEYS[2], ARGV[1], 'PX', ttl)
+redis.call('SET', KEYS[2], ARGV[5], 'PX', ttl)
 return {1, cur or false, fence, wm, lost}
-"""
-
-_ADVANCE = """
-local cur = redis.call('GET', KEYS[1])
-if cur and cur >= ARGV[1] then return 0 end
-redis.call('SET', KEYS[1], ARGV[1])
-return 1
 """
 
 Client = redis.Redis | redis.cluster.RedisCluster
@@ -140,14 +145,14 @@ class RedisStore:
             self._redis = redis.Redis.from_url(url, **options)
         self._base = f"{prefix}{{{hash_tag}}}:"
         self._meta = f"{self._base}meta"
-        self._commit = self._redis.register_script(_COMMIT)
-        self._advance = self._redis.register_script(_ADVANCE)
+        self._script = self._redis.register_script(_SCRIPT)
         self._clock = resolve(clock)
         self._skew = repr(float(skew_s))
         self._fence = NEVER
         self._watermark = NEVER
         self._policy_checked = False
         self.data_loss_events = 0
+        self.loss_reason: str | None = None
         # Redis down at start: the policy is checked on the first call that reaches it.
         with contextlib.suppress(redis.ConnectionError, redis.TimeoutError):
             self._check_policy()
@@ -167,16 +172,22 @@ class RedisStore:
         return Seen(NEVER if value is None else float(value), self._watermark, self._fence)
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
-        args = [repr(expires_at), repr(now), self._skew, "1" if force else "0", _FLOOR]
-        reply = self._call(lambda: self._commit(keys=[self._meta, self.msg_key(key)], args=args))
-        return self._seen(reply)
+        return self._run("commit", self.msg_key(key), now, repr(expires_at), force)
 
     def verify(self) -> Seen:
-        """Run the identity check alone (start-up, readiness probes)."""
-        args = ["", repr(self._clock.wall()), self._skew, "0", _FLOOR]
-        return self._seen(
-            self._call(lambda: self._commit(keys=[self._meta, self._meta], args=args))
-        )
+        """Run the loss and eviction checks alone (start-up, a guard taking its lease)."""
+        return self._run("verify", self._meta, self._clock.wall(), "", False)
+
+    def _run(self, mode: str, key: str, now: float, value: str, force: bool) -> Seen:
+        args = [mode, repr(now), self._skew, _FLOOR, value, "1" if force else "0"]
+        reply = self._call(lambda: self._script(keys=[self._meta, key], args=args))
+        if reply[0] == -1:
+            policy = reply[1].decode() if isinstance(reply[1], bytes) else str(reply[1])
+            raise StateUnavailableError(
+                f"redis {self.url} has maxmemory-policy {policy}, which can silently evict "
+                "replay state; set it to noeviction"
+            )
+        return self._seen(reply)
 
     def _seen(self, reply: list[Any]) -> Seen:
         recorded, cur, fence, watermark, lost = reply
@@ -184,20 +195,22 @@ class RedisStore:
         self._watermark = _floor(float(watermark))
         if lost:
             self.data_loss_events += 1
+            self.loss_reason = "redis lost or replaced our replay state"
             log.warning(
                 "redis %s lost or replaced our replay state (restart, failover, flush or "
                 "restore); fence raised to %s",
                 self.url,
                 fence,
             )
-        expiry = NEVER if cur is None else float(cur)
+        expiry = NEVER if cur is None or len(cur) == _codec.WIDTH else float(cur)
         return Seen(expiry, self._watermark, self._fence, bool(recorded), False, bool(lost))
 
     def advance(self, key: str, value: int) -> bool:
-        encoded = _codec.encode(value)
-        return bool(
-            self._call(lambda: self._advance(keys=[f"{self._base}c:{key}"], args=[encoded]))
+        """Compare-and-advance, with the same loss and eviction checks as a commit."""
+        seen = self._run(
+            "advance", f"{self._base}c:{key}", self._clock.wall(), _codec.encode(value), False
         )
+        return seen.recorded
 
     def current(self, key: str) -> int | None:
         value = self._call(lambda: self._redis.get(f"{self._base}c:{key}"))

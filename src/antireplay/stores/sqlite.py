@@ -18,8 +18,12 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
   the clock steps back.
 * **A lost, truncated, replaced or rolled-back file is detected.**  Beside the
   database lives a small **witness** file (``<db>.witness``): a deployment id
-  and a generation, rewritten in place and ``fdatasync``-ed inside every write
-  transaction, before its COMMIT.  The database's ``meta`` row carries the
+  and a generation (plus the highest wall time of any commit), rewritten in
+  place and ``fdatasync``-ed inside every write transaction, before its COMMIT.
+  Its name is hidden (``.state.db.witness``) so that ``rm state.db*`` does not
+  take it along.  While running, a database whose generation falls below the
+  one this process last wrote was rolled back under it (a live restore): also
+  a fence.  The database's ``meta`` row carries the
   same two values.  At open:
 
   ==========================================  =====================================
@@ -36,7 +40,8 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
                                               move it aside; the next start fences)
   ==========================================  =====================================
 
-  A fence is the wall time at which the loss was noticed, persisted in
+  A fence is the wall time at which the loss was noticed (no lower than the
+  witness's highest commit time, in case the clock stepped back), persisted in
   ``meta``; the window refuses anything stamped at or before ``fence + skew``,
   which covers every message the lost state could have held, and counts it
   (``data_loss_events``).  A crash between the witness write and the COMMIT
@@ -44,13 +49,15 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
   alarm that fails closed, never a silent loss).
 
 Deleting the database *and* its witness is indistinguishable from a new
-deployment; that is the documented way to reset (``antireplay state reset``
-does it and raises a fence).
+deployment; that is the documented way to reset.  Corruption found while
+running answers ``STATE_UNAVAILABLE`` (503; a fresh ESTOP still passes) and
+names the file and the recovery.
 """
 
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 import sqlite3
 import struct
@@ -68,6 +75,7 @@ from antireplay.stores import _codec
 from antireplay.window import NEVER, Seen
 
 T = TypeVar("T")
+log = logging.getLogger("antireplay.stores.sqlite")
 PURGE_BATCH: Final = 32
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS seen (key TEXT PRIMARY KEY, expires REAL NOT NULL) WITHOUT ROWID;
@@ -93,21 +101,23 @@ _FLOOR = -1e300  # SQLite REAL has no -inf literal that round-trips everywhere: 
 
 
 class Witness:
-    """The small file beside the database: deployment id and generation, checksummed.
+    """The small file beside the database: deployment id, generation and the highest wall
+    time of any commit, checksummed (a fence after a loss starts no lower than that, even
+    if the wall clock stepped back across the restart).
 
     It is rewritten in place (one ``pwrite`` of 64 bytes, well inside one disk
     sector, then ``fdatasync``); a torn or foreign file reads as ``None``.
     """
 
-    MAGIC: Final = b"ARWITN01"
-    _LAYOUT: Final = struct.Struct("<8s16sQ")
+    MAGIC: Final = b"ARWITN02"
+    _LAYOUT: Final = struct.Struct("<8s16sQd")
 
     def __init__(self, path: Path) -> None:
         self.path = path
         self._fd: int | None = None
 
-    def read(self) -> tuple[str, int] | bool | None:
-        """``(deployment, generation)``, ``None`` if absent, ``False`` if unreadable."""
+    def read(self) -> tuple[str, int, float] | bool | None:
+        """``(deployment, generation, wall)``, ``None`` if absent, ``False`` if unreadable."""
         try:
             raw = self.path.read_bytes()
         except FileNotFoundError:
@@ -117,13 +127,13 @@ class Witness:
         size = self._LAYOUT.size
         if len(raw) < size + 16 or hashlib.sha256(raw[:size]).digest()[:16] != raw[size:][:16]:
             return False
-        magic, deployment, generation = self._LAYOUT.unpack_from(raw)
+        magic, deployment, generation, wall = self._LAYOUT.unpack_from(raw)
         if magic != self.MAGIC:
             return False
-        return uuid.UUID(bytes=deployment).hex, generation
+        return uuid.UUID(bytes=deployment).hex, generation, wall
 
-    def write(self, deployment: str, generation: int) -> None:
-        body = self._LAYOUT.pack(self.MAGIC, uuid.UUID(hex=deployment).bytes, generation)
+    def write(self, deployment: str, generation: int, wall: float) -> None:
+        body = self._LAYOUT.pack(self.MAGIC, uuid.UUID(hex=deployment).bytes, generation, wall)
         record = (body + hashlib.sha256(body).digest()[:16]).ljust(64, b"\0")
         if self._fd is None:
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
@@ -147,16 +157,22 @@ class SqliteStore:
     ) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.witness = Witness(self.path.with_name(self.path.name + ".witness"))
+        # A hidden name on purpose: ``rm state.db*`` must not take the witness with it.
+        self.witness = Witness(self.path.with_name(f".{self.path.name}.witness"))
         self._clock = resolve(clock)
         self._lock = threading.Lock()
         self._db = self._open(timeout_s)
         self._deployment = ""
+        self._generation = 0
+        self._wall_hw = _FLOOR
+        self._opened = False
+        self._lost_pending = False
         self._watermark = NEVER
         self._fence = NEVER
         self.data_loss_events = 0
         self.loss_reason: str | None = None
         self._run(self._verify)
+        self._opened = True
         self._committer: GroupCommitter[_Op, Seen] = GroupCommitter(
             self._commit_batch, name=f"antireplay-state:{self.path.name}"
         )
@@ -211,10 +227,12 @@ class SqliteStore:
                 deployment, generation, watermark, fence, losses = row
             if isinstance(found, tuple):
                 generation = max(generation, found[1])
+                self._wall_hw = max(self._wall_hw, found[2])
             if reason is not None:
-                fence = max(fence, self._clock.wall())
+                fence = max(fence, self._clock.wall(), self._wall_hw)
                 losses += 1
                 self.loss_reason = reason
+                log.warning("replay state %s: %s; fence raised to %s", self.path, reason, fence)
             self._deployment = deployment
             self._store_meta(generation + 1, watermark, fence, losses)
             db.execute("COMMIT")
@@ -228,7 +246,9 @@ class SqliteStore:
             "INSERT OR REPLACE INTO meta VALUES (1, ?, ?, ?, ?, ?)",
             (self._deployment, generation, watermark, fence, losses),
         )
-        self.witness.write(self._deployment, generation)
+        self._wall_hw = max(self._wall_hw, self._clock.wall())
+        self.witness.write(self._deployment, generation, self._wall_hw)
+        self._generation = generation
         self._watermark = NEVER if watermark <= _FLOOR else watermark
         self._fence = NEVER if fence <= _FLOOR else fence
         self.data_loss_events = losses
@@ -267,9 +287,7 @@ class SqliteStore:
             db = self._db
             db.execute("BEGIN IMMEDIATE")
             try:
-                generation, watermark, fence, losses = db.execute(
-                    "SELECT generation, watermark, fence, data_loss_events FROM meta"
-                ).fetchone()
+                generation, watermark, fence, losses = self._meta_checked(db)
                 now = min(op[2] for op in ops)  # no caller's entry is purged early
                 purged = db.execute(_PURGE_SELECT, (now, PURGE_BATCH + 2 * len(ops))).fetchall()
                 if purged:
@@ -281,8 +299,48 @@ class SqliteStore:
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
-            wm, fence_now = self._watermark, self._fence
-            return [Seen(seen, wm, fence_now, recorded) for seen, recorded in results]
+            wm, fence_now, lost = self._watermark, self._fence, self._lost_pending
+            self._lost_pending = False
+            return [
+                Seen(seen, wm, fence_now, recorded, False, lost and i == 0)
+                for i, (seen, recorded) in enumerate(results)
+            ]
+
+        with self._lock:
+            return self._run(tx)
+
+    def _meta_checked(self, db: sqlite3.Connection) -> tuple[int, float, float, int]:
+        """The meta row, fenced first if the database went back under this process."""
+        row = db.execute(
+            "SELECT generation, watermark, fence, data_loss_events FROM meta"
+        ).fetchone()
+        if row is None or row[0] < self._generation:
+            reason = "database rolled back or replaced while running (a live restore?)"
+            fence = max(self._clock.wall(), self._wall_hw)
+            losses = (row[3] if row is not None else self.data_loss_events) + 1
+            log.warning("replay state %s: %s; fence raised to %s", self.path, reason, fence)
+            self.loss_reason = reason
+            self._lost_pending = True
+            generation = max(self._generation, row[0] if row is not None else 0)
+            watermark = row[1] if row is not None else _FLOOR
+            return generation, watermark, max(fence, row[2] if row is not None else fence), losses
+        generation, watermark, fence, losses = row
+        return int(generation), float(watermark), float(fence), int(losses)
+
+    def verify(self) -> Seen:
+        """Re-read the shared meta row (fence, watermark), checking for a live rollback."""
+
+        def tx() -> Seen:
+            db = self._db
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                generation, watermark, fence, losses = self._meta_checked(db)
+                self._store_meta(generation + 1, watermark, fence, losses)
+                db.execute("COMMIT")
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            return Seen(NEVER, self._watermark, self._fence)
 
         with self._lock:
             return self._run(tx)
@@ -298,10 +356,22 @@ class SqliteStore:
         return seen, recorded
 
     def advance(self, key: str, value: int) -> bool:
+        """Compare-and-advance a counter; like a commit, it moves the generation and witness
+        (so a restored copy of the counters is noticed too)."""
         encoded = _codec.encode(value)
 
         def tx() -> bool:
-            return self._db.execute(_ADVANCE, (key, encoded)).rowcount == 1
+            db = self._db
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                generation, watermark, fence, losses = self._meta_checked(db)
+                advanced = db.execute(_ADVANCE, (key, encoded)).rowcount == 1
+                self._store_meta(generation + 1, watermark, fence, losses)
+                db.execute("COMMIT")
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            return advanced
 
         with self._lock:
             return self._run(tx)
@@ -343,14 +413,39 @@ class SqliteStore:
             return op()
         except sqlite3.DatabaseError as exc:
             if "malformed" in str(exc) or "not a database" in str(exc):
-                raise self._unreadable(exc) from None
+                if not self._opened:
+                    raise self._unreadable(exc) from None
+                raise StateUnavailableError(  # while running: 503, never a traceback
+                    f"{self._unreadable(exc)}"
+                ) from None
             raise StateUnavailableError(f"sqlite {self.path}: {exc}") from None
         except OSError as exc:
             raise StateUnavailableError(f"sqlite witness {self.witness.path}: {exc}") from None
 
 
+def check_readable(path: str | Path) -> None:
+    """Refuse a file that is not a readable database, without writing anything (so a
+    ``config check`` never uses up the loss detection of the store's next real open)."""
+    path = Path(path)
+    if not path.exists():
+        return
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        try:
+            db.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        finally:
+            db.close()
+    except sqlite3.Error as exc:
+        raise StateFileError(
+            str(path),
+            f"not a readable replay-state database ({exc})",
+            recovery=f"mv {path} {path}.corrupt (the next start re-creates it behind a restart "
+            "fence)",
+        ) from None
+
+
 def _loss_reason(  # noqa: PLR0911 - one answer per row of the table in the docstring
-    meta: tuple[Any, ...] | None, witness: tuple[str, int] | bool | None, has_state: bool
+    meta: tuple[Any, ...] | None, witness: tuple[str, int, float] | bool | None, has_state: bool
 ) -> str | None:
     """Why the database may have lost state (None: it provably has not)."""
     if meta is None:
