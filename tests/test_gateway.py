@@ -503,9 +503,10 @@ def test_lost_sqlite_state_is_fenced_logged_and_audited_on_the_real_cli(tmp_path
     try:
         replay = httpx.post(f"{gw.url}/v1/messages", content=raw, headers=JSON)
         assert replay.status_code == 408 and replay.json()["detail"] == "restart_fence"
-        assert 'antireplay_state_data_loss_total{backend="sqlite"} 1.0' in httpx.get(
-            f"{gw.url}/metrics"
-        ).text
+        assert (
+            'antireplay_state_data_loss_total{backend="sqlite"} 1.0'
+            in httpx.get(f"{gw.url}/metrics").text
+        )
     finally:
         gw.stop()
     assert gw.stderr_text is not None and "replay state" in gw.stderr_text
