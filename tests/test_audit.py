@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from antireplay.audit import GENESIS, AuditLog, _digest, reanchor, verify
 from antireplay.cli import main
-from antireplay.errors import AuditFileError
+from antireplay.errors import AuditFileError, StateUnavailableError
 from antireplay.gateway import build_receiver, embedded_default
 
 
@@ -227,3 +227,42 @@ def test_gateway_startup_on_a_garbage_audit_file_names_it(tmp_path: Path) -> Non
     with pytest.raises(AuditFileError) as err:
         build_receiver(config)
     assert f"audit file {config.audit}: not an SQLite database" in str(err.value)
+
+
+def _append(log: AuditLog, mid: str) -> int:
+    return log.append(
+        at=1_800_000_100.0, outcome="accepted", code=None, warning=None, msg_type=1,
+        sender="op", sender_verified=True, msg_id=mid,
+    )  # fmt: skip
+
+
+def test_rows_deleted_under_a_running_writer_are_never_adopted(db: Path) -> None:
+    log = AuditLog(db)
+    _append(log, "m5")
+    sql(db, "DELETE FROM audit WHERE seq > 3")  # someone truncates the live trail
+    with pytest.raises(StateUnavailableError, match="truncated"):
+        _append(log, "m6")  # the accept that needs this row is refused, not audited silently
+    log.close()
+    assert not verify(db).ok  # and the evidence stays: the checkpoint still says 6 rows
+
+
+def test_a_second_writer_extending_the_chain_is_fine(db: Path) -> None:
+    one, two = AuditLog(db), AuditLog(db)
+    _append(one, "a")
+    _append(two, "b")
+    _append(one, "c")
+    one.close()
+    two.close()
+    assert verify(db).ok and verify(db).records == 8
+
+
+def test_cli_tail_never_writes_the_trail(db: Path) -> None:
+    """tail must not adopt uncovered rows (someone's forged appends) into a new checkpoint."""
+    head = db.with_name("audit.db.head")
+    saved = head.read_bytes()
+    trail(db, 1)
+    head.write_bytes(saved)  # one row the checkpoint does not cover
+    result = CliRunner().invoke(main, ["audit", "tail", str(db)])
+    assert result.exit_code == 0, result.output
+    assert head.read_bytes() == saved
+    assert verify(db).after_checkpoint == 1

@@ -332,6 +332,7 @@ class AuditLog:
         except BaseException:
             self._db.close()
             raise
+        self._rows, self._head = _last(self._db)  # what this writer knows the chain to be
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
         )
@@ -399,7 +400,7 @@ class AuditLog:
         }
         try:
             return self._committer.submit(row)
-        except (sqlite3.Error, OSError, RuntimeError) as exc:
+        except (sqlite3.Error, OSError, RuntimeError, AuditFileError) as exc:
             raise StateUnavailableError(f"audit trail unavailable: {exc}") from None
 
     def _write_batch(self, batch: Sequence[dict[str, Any]]) -> list[int]:
@@ -408,6 +409,13 @@ class AuditLog:
             db = self._db
             db.execute("BEGIN IMMEDIATE")
             try:
+                # Rows deleted or rewritten under a running writer must not be adopted by
+                # its next checkpoint: the chain must still hold what this writer wrote
+                # (another writer may have extended it).
+                problem = _compare(db, Checkpoint(self._rows, self._head))
+                if problem is not None:
+                    log.error("audit trail %s %s; refusing to append", self.path, problem)
+                    raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
                 last = db.execute(
                     "SELECT seq, hash FROM audit ORDER BY seq DESC LIMIT 1"
                 ).fetchone()
@@ -427,16 +435,13 @@ class AuditLog:
             except BaseException:
                 db.execute("ROLLBACK")
                 raise
+            self._rows, self._head = seq, prev
             self.anchor.write(self._key, seq, prev)  # once per batch
             return seqs
 
     def tail(self, n: int = 20) -> list[Record]:
         with self._lock:
-            rows = self._db.execute(_TAIL, (n,)).fetchall()
-        return [
-            Record(r[0], r[1], r[2], r[3], r[4], r[5], r[6], bool(r[7]), r[8])
-            for r in reversed(rows)
-        ]
+            return _records(self._db.execute(_TAIL, (n,)).fetchall())
 
     def count(self) -> int:
         with self._lock:
@@ -447,6 +452,21 @@ class AuditLog:
         self._committer.close()
         with self._lock:
             self._db.close()
+
+
+def _records(rows: list[Any]) -> list[Record]:
+    return [
+        Record(r[0], r[1], r[2], r[3], r[4], r[5], r[6], bool(r[7]), r[8]) for r in reversed(rows)
+    ]
+
+
+def tail(path: str | Path, n: int = 20) -> list[Record]:
+    """The newest ``n`` records, read-only: reading never writes a checkpoint or a key."""
+    db = _connect(Path(path), read_only=True)
+    try:
+        return _records(db.execute(_TAIL, (n,)).fetchall())
+    finally:
+        db.close()
 
 
 def _compare(db: sqlite3.Connection, checkpoint: Checkpoint) -> str | None:

@@ -30,6 +30,7 @@ from rich.table import Table
 
 from antireplay import counters, epochs
 from antireplay.audit import AuditLog, reanchor, verify
+from antireplay.audit import tail as audit_tail_records
 from antireplay.auth import PrivateKey, load_public_key, sign_envelope, write_key_pair
 from antireplay.clock import SystemClock
 from antireplay.config import AppConfig
@@ -375,7 +376,11 @@ def audit_tail(path: Path, count: int) -> None:
     table = Table(title=str(path))
     for column in ("seq", "time (UTC)", "outcome", "code", "warning", "type", "sender", "msg_id"):
         table.add_column(column)
-    for r in AuditLog(path).tail(count):
+    try:
+        records = audit_tail_records(path, count)  # read-only: tail never writes the trail
+    except StateFileError as exc:
+        _fail(str(exc))
+    for r in records:
         when = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(r.at))
         sender = f"{r.sender}" + ("" if r.sender_verified else " (claimed)")
         row = (r.seq, when, r.outcome, r.code, r.warning, r.msg_type, sender, r.msg_id)
