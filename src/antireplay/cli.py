@@ -34,6 +34,7 @@ from antireplay.audit import tail as audit_tail_records
 from antireplay.auth import PrivateKey, load_public_key, sign_envelope, write_key_pair
 from antireplay.clock import SystemClock
 from antireplay.config import AppConfig
+from antireplay.counters import DEFAULT_WINDOW
 from antireplay.dds.cli import dds
 from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.durable import read_kind, repair
@@ -348,7 +349,7 @@ def audit_verify(path: Path, head_key: Path | None, head_file: Path | None) -> N
     except StateFileError as exc:
         _fail(str(exc))
     for line in report.lines():
-        console.print(line, markup=False, highlight=False)
+        click.echo(line)  # never wrapped: scripts and operators grep these lines
     if not report.ok:
         sys.exit(1)
 
@@ -495,16 +496,32 @@ def _signing_key(path: Path) -> bytes:
 @click.option("--key-file", required=True, type=click.Path(exists=True, path_type=Path))
 @click.option(
     "--system-id",
-    type=int,
+    type=click.IntRange(1, 255),
     default=None,
     help="This vehicle's system id: frames addressed elsewhere, and frames from it reflected "
     "back to the listen port, are refused.",
 )
 @click.option("--store", "store_spec", default="sqlite:.antireplay/mavlink.db", show_default=True)
 @click.option("--audit", "audit_path", default=".antireplay/mavlink-audit.db", show_default=True)
-@click.option("--metrics-port", type=int, default=None, help="Serve Prometheus metrics here.")
-@click.option("--allow-unsigned", multiple=True, type=int, help="Message id allowed unsigned.")
-@click.option("--reorder-window", type=int, default=0, show_default=True)
+@click.option(
+    "--metrics-port",
+    type=click.IntRange(0, 65535),
+    default=None,
+    help="Serve Prometheus metrics here.",
+)
+@click.option(
+    "--allow-unsigned",
+    multiple=True,
+    type=click.IntRange(0, 2**24 - 1),
+    help="Message id allowed unsigned.",
+)
+@click.option(
+    "--reorder-window",
+    type=click.IntRange(0, DEFAULT_WINDOW),
+    default=0,
+    show_default=True,
+    help="Accept out-of-order timestamps within this many (0: strictly increasing).",
+)
 @click.option(
     "--write-through",
     is_flag=True,

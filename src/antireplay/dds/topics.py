@@ -90,14 +90,20 @@ def default_qos(depth: int = 256) -> Qos:
     return Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(depth))
 
 
-def topic_key(psk: bytes, topic: str, type_name: str) -> bytes:
-    """The per-topic MAC secret: binds the topic name and type name."""
+def topic_key(psk: bytes, topic: str, type_name: str, domain_id: int = 0) -> bytes:
+    """The per-topic MAC secret: binds the domain id, the topic name and the type name, so a
+    sample captured on one domain (one robot's ROS_DOMAIN_ID) fails the MAC on another."""
     if not isinstance(psk, bytes) or len(psk) < 16:
         raise ValueError("psk must be at least 16 bytes")
     info = b"antireplay/v1 dds topic"
-    for part in (topic.encode(), type_name.encode()):
+    for part in (str(domain_id).encode(), topic.encode(), type_name.encode()):
         info += _ILEN.pack(len(part)) + part
     return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(psk)
+
+
+def _domain_of(participant: Any) -> int:
+    domain = getattr(participant, "domain_id", 0)
+    return int(domain) if isinstance(domain, int) else 0
 
 
 def type_name_of(data_type: type[IdlStruct] | None) -> str:
@@ -134,7 +140,7 @@ class SealedWriter:
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
         self.signer = EpochSigner(
-            topic_key(psk, topic, type_name_of(data_type)),
+            topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
             nonce_prefix=nonce_prefix,
             service_name=service_name,
             state_file=state_file,
@@ -243,7 +249,7 @@ class SealedReader:
         self.topic_name, self.data_type = topic, data_type
         self._clock = resolve(clock)
         self.verifier = EpochVerifier(
-            topic_key(psk, topic, type_name_of(data_type)),
+            topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
             state_file=state_file,
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
