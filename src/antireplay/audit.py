@@ -447,6 +447,11 @@ class AuditLog:
         with self._lock:
             return int(self._db.execute("SELECT count(*) FROM audit").fetchone()[0])
 
+    @property
+    def group_commit(self) -> GroupCommitter[Any, Any]:
+        """The writer that batches this file's commits (its counters feed /metrics)."""
+        return self._committer
+
     def close(self) -> None:
         """Write what is queued, then close."""
         self._committer.close()

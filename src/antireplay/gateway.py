@@ -51,6 +51,7 @@ from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig, KeyConfig
 from antireplay.envelope import encode
 from antireplay.errors import ConfigError, InvalidEnvelopeError, StateUnavailableError
+from antireplay.groupcommit import GroupCommitter
 from antireplay.pipeline import Outcome, Receiver
 from antireplay.stores import open_store
 
@@ -224,6 +225,19 @@ class StateCollector(Collector):
         )
         fence.add_metric([], cache.refusals["restart_fence"])
         yield fence
+        batches = CounterMetricFamily(
+            "antireplay_group_commit_batches", "Durable commits (one fsync each)", labels=["log"]
+        )
+        operations = CounterMetricFamily(
+            "antireplay_group_commit_operations", "Records in those commits", labels=["log"]
+        )
+        for name, owner in (("state", cache.store), ("audit", self.receiver.audit)):
+            committer = getattr(owner, "group_commit", None)
+            if isinstance(committer, GroupCommitter):
+                batches.add_metric([name], committer.batches)
+                operations.add_metric([name], committer.operations)
+        yield batches
+        yield operations
 
 
 class RefuseAmbiguousFraming:

@@ -394,6 +394,11 @@ class SqliteStore:
             "data_loss_events": float(self.data_loss_events),
         }
 
+    @property
+    def group_commit(self) -> GroupCommitter[Any, Any]:
+        """The writer that batches this file's commits (its counters feed /metrics)."""
+        return self._committer
+
     def close(self) -> None:
         self._committer.close()
         with self._lock:
