@@ -62,15 +62,17 @@ class GroupCommitter(Generic[Op, R]):
         self.batches = 0
         self.operations = 0
         self._closed = False
+        self._gate = threading.Lock()
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
 
     def submit(self, op: Op) -> R:
         """Queue ``op`` and wait until it is durable; its result, or the batch's error."""
-        if self._closed:
-            raise RuntimeError("group committer closed")
         slot: _Slot[Op, R] = _Slot(op)
-        self._queue.put(slot)
+        with self._gate:  # a slot queued before close()'s sentinel is always committed
+            if self._closed:
+                raise RuntimeError("group committer closed")
+            self._queue.put(slot)
         slot.done.wait()
         if slot.error is not None:
             raise slot.error
@@ -78,10 +80,12 @@ class GroupCommitter(Generic[Op, R]):
 
     def close(self) -> None:
         """Finish what is queued, then stop the writer."""
-        if not self._closed:
+        with self._gate:
+            if self._closed:
+                return
             self._closed = True
             self._queue.put(None)
-            self._thread.join(timeout=30)
+        self._thread.join(timeout=30)
 
     def _loop(self) -> None:
         while True:
