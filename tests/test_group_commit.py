@@ -29,7 +29,7 @@ from typing import Any
 import httpx
 import pytest
 
-from antireplay.audit import verify
+from antireplay.audit import AuditLog, verify
 from antireplay.demo import JSON, GatewayProcess, command, load_operator_key, write_demo_config
 from antireplay.groupcommit import GroupCommitter
 from antireplay.stores.sqlite import SqliteStore
@@ -261,6 +261,38 @@ def test_sqlite_store_racers_get_one_winner_per_key_in_few_fsyncs(tmp_path: Path
     assert operations == n_threads * len(keys)
     assert witness_writes == batches  # one durable write per batch, not per commit
     assert batches * 4 <= operations, f"{batches} batches for {operations} commits"
+
+
+def test_audit_racers_get_distinct_seqs_one_chain_and_few_checkpoints(tmp_path: Path) -> None:
+    audit = AuditLog(tmp_path / "audit.db")
+    n_threads, per_thread = 16, 50
+    barrier = threading.Barrier(n_threads)
+    seqs: list[int] = []
+    lock = threading.Lock()
+
+    def racer(thread: int) -> None:
+        barrier.wait()
+        for i in range(per_thread):
+            seq = audit.append(
+                at=time.time(), outcome="rejected", code="REPLAY_DETECTED", warning=None,
+                msg_type=1, sender="operator", sender_verified=True, msg_id=f"m-{thread}-{i}",
+            )  # fmt: skip
+            with lock:
+                seqs.append(seq)
+
+    threads = [threading.Thread(target=racer, args=(i,)) for i in range(n_threads)]
+    try:
+        for thread in threads:
+            thread.start()
+        _join(threads)
+        batches, operations = audit._committer.batches, audit._committer.operations
+    finally:
+        audit.close()
+    assert sorted(seqs) == list(range(1, n_threads * per_thread + 1))  # each caller its own row
+    report = verify(tmp_path / "audit.db")
+    assert report.ok and report.after_checkpoint == 0, report.lines()
+    assert operations == n_threads * per_thread
+    assert batches * 4 <= operations, f"{batches} batches (fsyncs) for {operations} rows"
 
 
 # --- kill -9 under concurrent load, restart, replay everything ----------------------------------
