@@ -27,6 +27,7 @@ What is measured, and why this way:
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -117,11 +118,20 @@ class Run:
     p99_ms: float
     requests: int
     non_2xx: int
+    #: Server CPU (all threads, user + system) per request: what a busy neighbour cannot skew.
+    cpu_ms: float
 
 
-def wrk(
-    url: str, script: Path, bodies: Path, connections: int, seconds: int, *, stop: int = 0
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU of process ``pid`` so far (every thread), from /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def wrk(  # noqa: PLR0917 - the load and its target
+    url: str, pid: int, script: Path, bodies: Path, connections: int, seconds: int, stop: int = 0
 ) -> Run:
+    cpu = cpu_seconds(pid)
     args = ["wrk", "-t1", f"-c{connections}", f"-d{seconds}s", "-s", str(script), url]
     env = {**os.environ, **({"WRK_STOP_AFTER": "1"} if stop else {})}
     out = subprocess.run(
@@ -130,6 +140,7 @@ def wrk(
     line = next((ln for ln in out.splitlines() if ln.startswith("WRK ")), None)
     if line is None:
         raise SystemExit(f"wrk printed no summary:\n{out}")
+    cpu = cpu_seconds(pid) - cpu
     data = json.loads(line[4:])
     if data["socket_errors"]:
         raise SystemExit(f"{url}: {data['socket_errors']} socket errors under wrk")
@@ -140,7 +151,16 @@ def wrk(
         data["p99_us"] / 1e3,
         data["requests"],
         data["status_errors"],
+        cpu * 1e3 / max(data["requests"], 1),
     )
+
+
+@dataclass(frozen=True)
+class Server:
+    """A server under test: where it listens and the process whose CPU is counted."""
+
+    url: str
+    pid: int
 
 
 def wait_healthy(url: str, proc: subprocess.Popen[bytes], path: str) -> None:
@@ -209,24 +229,25 @@ def batch_counters(url: str) -> dict[str, float]:
 
 
 def measure(
-    work: Path, bare_url: str, gateway_url: str, key: ed25519.Ed25519PrivateKey
+    work: Path, bare: Server, gateway: Server, key: ed25519.Ed25519PrivateKey
 ) -> dict[tuple[str, int, str], list[Run]]:
     """Interleaved rounds of every (path, connections, server) case."""
+    servers = (bare, gateway)
     script = write_lines(work / "bodies.lua", [WRK_SCRIPT])
     captured = envelope(key)
-    first = httpx.post(gateway_url + "/v1/messages", content=captured, headers=_JSON)
+    first = httpx.post(gateway.url + "/v1/messages", content=captured, headers=_JSON)
     if first.status_code != 200:
         raise SystemExit(f"gateway refused the command to be replayed: {first.text}")
     replay = write_lines(work / "replay.txt", [captured])
-    for url in (bare_url, gateway_url):  # warm-up: imports, caches, connection setup
-        wrk(url, script, replay, 32, 1)
+    for target in servers:  # warm-up: imports, caches, connection setup
+        wrk(target.url, target.pid, script, replay, 32, 1)
     runs: dict[tuple[str, int, str], list[Run]] = {}
     for _ in range(ROUNDS):
         for connections in CONNECTIONS:
             fresh = write_lines(work / "fresh.txt", [envelope(key) for _ in range(FRESH_PER_RUN)])
             for path, bodies in (("fresh", fresh), ("replay", replay)):
-                for server, url in (("bare", bare_url), ("gateway", gateway_url)):
-                    run = wrk(url, script, bodies, connections, SECONDS)
+                for server, target in zip(("bare", "gateway"), servers, strict=True):
+                    run = wrk(target.url, target.pid, script, bodies, connections, SECONDS)
                     expected_errors = (
                         run.requests if server == "gateway" and path == "replay" else 0
                     )
@@ -243,7 +264,11 @@ def measure(
 def report(runs: dict[tuple[str, int, str], list[Run]]) -> float:
     """Print medians and ratios; returns the replay rate at 32 connections."""
     print(f"wrk, 1 thread, keep-alive, loopback, {SECONDS} s per run, median of {ROUNDS} rounds")
-    head = f"{'case':<22} {'server':<8} {'req/s':>8} {'p50 ms':>8} {'p99 ms':>8} {'ratio':>7}"
+    http = "httptools" if importlib.util.find_spec("httptools") else "h11"
+    loop = "uvloop" if importlib.util.find_spec("uvloop") else "asyncio"
+    print(f"uvicorn {uvicorn.__version__} picks: http={http}, loop={loop} (both servers)")
+    head = f"{'case':<14} {'server':<8} {'req/s':>7} {'p50 ms':>7} {'p99 ms':>7} {'ratio':>6}"
+    head += f" {'CPU ms/req':>10}"
     print(head)
     replay_rate = 0.0
     for path in ("fresh", "replay"):
@@ -255,6 +280,7 @@ def report(runs: dict[tuple[str, int, str], list[Run]]) -> float:
                 rps = statistics.median(r.rps for r in rs)
                 p50 = statistics.median(r.p50_ms for r in rs)
                 p99 = statistics.median(r.p99_ms for r in rs)
+                cpu = statistics.median(r.cpu_ms for r in rs)
                 verdict = ""
                 if server == "gateway" and connections == max(CONNECTIONS):
                     ok = rps / base >= TARGETS[path] and p99 <= P99_TARGET_MS
@@ -264,10 +290,19 @@ def report(runs: dict[tuple[str, int, str], list[Run]]) -> float:
                         replay_rate = rps
                 case = f"{path} c={connections}"
                 print(
-                    f"{case:<22} {server:<8} {rps:>8.0f} {p50:>8.2f} {p99:>8.2f}"
-                    f" {rps / base:>6.2f}x{verdict}"
+                    f"{case:<14} {server:<8} {rps:>7.0f} {p50:>7.2f} {p99:>7.1f}"
+                    f" {rps / base:>5.2f}x {cpu:>10.2f}{verdict}"
                 )
     return replay_rate
+
+
+#: Which file an fsync made durable, by the name strace -y shows (longest pattern first).
+FSYNC_FILES = (
+    ("audit WAL", "audit.db-wal"),
+    ("audit head checkpoint", ".audit.db.head"),
+    ("state WAL", "state.db-wal"),
+    ("state witness", ".state.db.witness"),
+)
 
 
 def fsync_flood(work: Path, replay_rate: float) -> None:
@@ -278,8 +313,9 @@ def fsync_flood(work: Path, replay_rate: float) -> None:
     state, log = work / "flood-state", work / "fsync.log"
     port = free_port()
     url = f"http://127.0.0.1:{port}"
-    trace = ["strace", "-f", "--seccomp-bpf", "-qq", "-ttt", "-o", str(log)]
+    trace = ["strace", "-f", "--seccomp-bpf", "-qq", "-y", "-ttt", "-o", str(log)]
     tracer = serve_gateway(state, port, [*trace, "-e", "trace=fsync,fdatasync"])
+    (child,) = Path(f"/proc/{tracer.pid}/task/{tracer.pid}/children").read_text().split()
     try:
         captured = envelope(signer(state))
         httpx.post(url + "/v1/messages", content=captured, headers=_JSON).raise_for_status()
@@ -289,23 +325,28 @@ def fsync_flood(work: Path, replay_rate: float) -> None:
         batches_before = batch_counters(url)
         seconds = max(3, int(FLOOD / max(replay_rate, 1.0) * 2) + 1)
         started = time.time()
-        run = wrk(url, script, bodies, 32, seconds, stop=FLOOD)
+        run = wrk(url, int(child), script, bodies, 32, seconds, stop=FLOOD)
         ended = time.time()
         rows = audited(state / "audit.db", "REPLAY_DETECTED") - rows_before
         batches = {k: v - batches_before.get(k, 0.0) for k, v in batch_counters(url).items()}
     finally:
-        children = Path(f"/proc/{tracer.pid}/task/{tracer.pid}/children").read_text().split()
-        for child in children:
-            os.kill(int(child), signal.SIGTERM)
+        os.kill(int(child), signal.SIGTERM)
         tracer.wait(timeout=60)
-    call = re.compile(r"^\d+ (\d+\.\d+) (fsync|fdatasync)\(")
-    stamps = [float(m[1]) for ln in log.read_text().splitlines() if (m := call.match(ln))]
-    fsyncs = sum(started <= t <= ended for t in stamps)
+    call = re.compile(r"^\d+\s+(\d+\.\d+) (?:fsync|fdatasync)\(\d+<([^>]*)>")
+    calls = [m for ln in log.read_text().splitlines() if (m := call.match(ln))]
+    during = [m[2] for m in calls if started <= float(m[1]) <= ended]
+    split = {
+        label: sum(Path(f).name.startswith(pattern) for f in during)
+        for label, pattern in FSYNC_FILES
+    }
+    split["other"] = len(during) - sum(split.values())
     print(
         f"replay flood, c=32: {run.requests} answered ({run.non_2xx} refused), {rows} audited as"
-        f" REPLAY_DETECTED, {fsyncs} fsync/fdatasync calls"
-        f" = {fsyncs * FLOOD / max(rows, 1):.0f} per {FLOOD:,} replays (target: a few hundred)"
+        f" REPLAY_DETECTED, {len(during)} fsync/fdatasync calls"
+        f" = {len(during) * FLOOD / max(rows, 1):.0f} per {FLOOD:,} replays"
+        f" (target: a few hundred); server CPU {run.cpu_ms:.2f} ms per request"
     )
+    print("  by file: " + ", ".join(f"{k} {v}" for k, v in split.items() if v))
     if rows < run.non_2xx:
         print(f"  MISSED: {run.non_2xx - rows} refused replays have no audit row")
     print(
@@ -343,8 +384,8 @@ def main() -> None:
             try:
                 runs = measure(
                     work,
-                    f"http://127.0.0.1:{bare_port}",
-                    f"http://127.0.0.1:{gateway_port}",
+                    Server(f"http://127.0.0.1:{bare_port}", bare.pid),
+                    Server(f"http://127.0.0.1:{gateway_port}", gateway.pid),
                     signer(work / "state"),
                 )
             finally:
