@@ -17,6 +17,8 @@ What is measured, and why this way:
   Replays: one captured command, accepted once, sent again and again (409).
 * Rounds are interleaved (bare, gateway, bare, ... for every case) and the
   figures are medians over rounds, so a noisy neighbour hits both sides alike.
+  ``CPU ms/req`` is the server process's user + system CPU (all threads, from
+  /proc) per answered request: the figure a busy shared machine skews least.
 * Fsyncs of a replay flood: 10,000 replays at 32 connections against a gateway
   started under ``strace -f --seccomp-bpf`` (only fsync/fdatasync are trapped, so
   the tracing costs little), counted between the flood's start and end, and the
