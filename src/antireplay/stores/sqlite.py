@@ -173,6 +173,10 @@ class SqliteStore:
         self.loss_reason: str | None = None
         self._run(self._verify)
         self._opened = True
+        # Reads (the pre-crypto check, metrics) use their own connection: WAL lets them run
+        # beside the writer, so no lookup ever waits behind a group commit's fsyncs.
+        self._reader = sqlite3.connect(self.path, timeout=timeout_s, check_same_thread=False)
+        self._read_lock = threading.Lock()
         self._committer: GroupCommitter[_Op, Seen] = GroupCommitter(
             self._commit_batch, name=f"antireplay-state:{self.path.name}"
         )
@@ -261,7 +265,7 @@ class SqliteStore:
 
     def lookup(self, key: str) -> Seen:
         def query() -> Seen:
-            row = self._db.execute(
+            row = self._reader.execute(
                 "SELECT (SELECT expires FROM seen WHERE key = ?), watermark, fence FROM meta",
                 (key,),
             ).fetchone()
@@ -272,7 +276,7 @@ class SqliteStore:
                 NEVER if fence <= _FLOOR else float(fence),
             )
 
-        with self._lock:
+        with self._read_lock:
             return self._run(query)
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
@@ -401,16 +405,18 @@ class SqliteStore:
 
     def close(self) -> None:
         self._committer.close()
+        with self._read_lock:
+            self._reader.close()
         with self._lock:
             self._db.close()
             self.witness.close()
 
     def _fetch(self, sql: str, params: tuple[object, ...]) -> tuple[Any, ...] | None:
         def query() -> tuple[Any, ...] | None:
-            row: tuple[Any, ...] | None = self._db.execute(sql, params).fetchone()
+            row: tuple[Any, ...] | None = self._reader.execute(sql, params).fetchone()
             return row
 
-        with self._lock:
+        with self._read_lock:
             return self._run(query)
 
     def _run(self, op: Callable[[], T]) -> T:
