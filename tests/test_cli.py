@@ -14,6 +14,7 @@ from click.testing import CliRunner, Result
 from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay.auth import write_key_pair
+from antireplay.audit import AuditLog
 from antireplay.cli import main
 from antireplay.counters import NonceCounter
 from antireplay.demo import GatewayProcess, write_demo_config
@@ -211,6 +212,18 @@ def test_audit_commands_refuse_files_that_are_not_audit_trails(
     one_line_error(run(main, ["audit", command, str(tmp_path / "none.db")]), "none.db")
 
 
+def headless(path: Path) -> Path:
+    """An audit trail with rows whose head checkpoint was deleted."""
+    log = AuditLog(path)
+    log.append(
+        at=1_800_000_000.0, outcome="accepted", code=None, warning=None, msg_type=1,
+        sender="op", sender_verified=True, msg_id="m1",
+    )  # fmt: skip
+    log.close()
+    path.with_name(path.name + ".head").unlink()
+    return path
+
+
 def test_config_check_runs_every_check_serve_runs(tmp_path: Path) -> None:
     """Each configuration ``serve`` refuses, ``config check`` refuses with the same line."""
     run = CliRunner().invoke
@@ -226,6 +239,9 @@ def test_config_check_runs_every_check_serve_runs(tmp_path: Path) -> None:
         "unimportable upstream": ({"upstream": "no_such_module_x:robot"}, "no_such_module_x"),
         "foreign audit file": ({"audit": str(garbage(tmp_path / 'a.db'))}, "a.db"),
         "missing jwt key": ({"jwt": {"keys": {"j": "gone-jwt.pem"}}}, "gone-jwt.pem"),
+        "trail without its head checkpoint": ({"audit": str(headless(tmp_path / "h.db"))},
+                                              "h.db"),
+        "audit in an uncreatable directory": ({"audit": "/proc/nope/a.db"}, "/proc/nope"),
     }  # fmt: skip
     for name, (override, needle) in bad_cases.items():
         path = tmp_path / f"{name.replace(' ', '-')}.yaml"

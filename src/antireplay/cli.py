@@ -124,6 +124,25 @@ _OPEN_ONLY_AUDIT = "audit verify and audit tail read only audit trails that anti
 _MOVE_ASIDE = "move it aside (a new trail is started) or configure another path"
 
 
+def _check_audit_anchor(path: Path) -> None:
+    """What opening the trail would refuse, found read-only (nothing written, nothing adopted)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _fail(f"audit {path}: cannot create its directory ({exc.strerror or exc})")
+    if not path.exists():
+        return
+    try:
+        report = verify(path)
+    except StateFileError as exc:
+        _fail(str(exc))
+    if report.records and report.head != "match":
+        _fail(
+            f"audit {path}: head checkpoint {report.head}; see `antireplay audit verify {path}`, "
+            f"then `antireplay audit reanchor {path}` or move the trail aside"
+        )
+
+
 def preflight(config: AppConfig) -> None:
     """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
     from antireplay.gateway import build_registry, resolve_upstream  # noqa: PLC0415
@@ -141,6 +160,7 @@ def preflight(config: AppConfig) -> None:
     except ConfigError as exc:
         _fail(str(exc))
     _check_audit_file(Path(config.audit), f"audit: {_MOVE_ASIDE}")
+    _check_audit_anchor(Path(config.audit))
     try:
         if config.store.startswith("sqlite:"):
             from antireplay.stores.sqlite import check_readable  # noqa: PLC0415
