@@ -13,8 +13,8 @@ from benchmarks.__main__ import MODULES
 from click.testing import CliRunner, Result
 from cryptography.hazmat.primitives.asymmetric import ed25519
 
-from antireplay.auth import write_key_pair
 from antireplay.audit import AuditLog
+from antireplay.auth import write_key_pair
 from antireplay.cli import main
 from antireplay.counters import NonceCounter
 from antireplay.demo import GatewayProcess, write_demo_config
