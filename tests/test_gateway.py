@@ -23,6 +23,7 @@ from rcan import RCANMessage
 from rcan.signing import MLDSAKeyPair, sign_message
 
 from antireplay.audit import AuditLog, verify
+from antireplay.audit import tail as audit_tail
 from antireplay.demo import (
     JSON,
     GatewayProcess,
@@ -34,6 +35,7 @@ from antireplay.demo import (
 )
 from antireplay.envelope import SDK_SIGNED_FIELDS
 from antireplay.stores.redis_store import RedisStore
+from tests.conftest import run_threads
 from tests.fuzz.targets import http_app
 
 
@@ -512,3 +514,25 @@ def test_lost_sqlite_state_is_fenced_logged_and_audited_on_the_real_cli(tmp_path
     assert gw.stderr_text is not None and "replay state" in gw.stderr_text
     codes = [r.code for r in AuditLog(tmp_path / "audit.db").tail(50)]
     assert "STATE_LOST" in codes
+
+
+def test_concurrent_exact_replays_are_each_audited_before_their_answer(
+    gateway: GatewayProcess, state: Path
+) -> None:
+    """The byte-identical shortcut runs on the event loop and awaits its group-committed audit
+    row: every 409 a client holds already has its durable row."""
+    raw = command(load_operator_key(state))
+    with httpx.Client(base_url=gateway.url, timeout=10) as http:
+        assert post(http, raw).status_code == 200
+        before = sum(r.code == "REPLAY_DETECTED" for r in audit_tail(state / "audit.db", 500))
+        answers: list[int] = []
+
+        def replay(_: int) -> None:
+            with httpx.Client(base_url=gateway.url, timeout=10) as own:
+                answers.append(post(own, raw).status_code)
+
+        run_threads(16, replay)
+        rows = audit_tail(state / "audit.db", 500)
+    assert answers == [409] * 16
+    assert sum(r.code == "REPLAY_DETECTED" for r in rows) - before == 16
+    assert verify(state / "audit.db").chain_ok

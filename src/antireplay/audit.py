@@ -63,6 +63,7 @@ import sqlite3
 import tempfile
 import threading
 from collections.abc import Sequence
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -388,6 +389,28 @@ class AuditLog:
         Raises ``STATE_UNAVAILABLE`` when the record cannot be made durable (disk full,
         closed database): callers must not act on a message they could not audit.
         """
+        try:
+            return self.append_later(
+                at=at, outcome=outcome, code=code, warning=warning, msg_type=msg_type,
+                sender=sender, sender_verified=sender_verified, msg_id=msg_id,
+            ).result()  # fmt: skip
+        except (sqlite3.Error, OSError, RuntimeError, AuditFileError) as exc:
+            raise StateUnavailableError(f"audit trail unavailable: {exc}") from None
+
+    def append_later(
+        self,
+        *,
+        at: float,
+        outcome: str,
+        code: str | None,
+        warning: str | None,
+        msg_type: int | None,
+        sender: object,
+        sender_verified: bool,
+        msg_id: object,
+    ) -> Future[int]:
+        """Queue one record for the next group commit; the future completes once it is
+        durable (an event loop awaits it before answering, holding no thread)."""
         row: dict[str, Any] = {
             "at": at,
             "outcome": outcome,
@@ -398,10 +421,7 @@ class AuditLog:
             "sender_verified": int(sender_verified),
             "msg_id": sanitize(msg_id),
         }
-        try:
-            return self._committer.submit(row)
-        except (sqlite3.Error, OSError, RuntimeError, AuditFileError) as exc:
-            raise StateUnavailableError(f"audit trail unavailable: {exc}") from None
+        return self._committer.enqueue(row)
 
     def _write_batch(self, batch: Sequence[dict[str, Any]]) -> list[int]:
         """Chain and commit a group of rows in one write transaction; one head checkpoint."""

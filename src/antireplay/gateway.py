@@ -22,12 +22,14 @@ and audit under ``./.antireplay/`` and a generated demo key pair
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import importlib
 import json
 import os
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from concurrent.futures import Future
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
@@ -259,6 +261,16 @@ class RefuseAmbiguousFraming:
         await self.app(scope, receive, send)
 
 
+async def _audited(receiver: Receiver, outcome: Outcome, pending: Future[int] | None) -> Outcome:
+    """Wait, without a thread, until the outcome's audit row is durable (answers wait for it)."""
+    if pending is not None:
+        try:
+            await asyncio.wrap_future(pending)
+        except Exception:  # the rejection stands; it could not be recorded
+            receiver.stats.audit_failures += 1
+    return outcome
+
+
 def _nack(outcome: Outcome) -> JSONResponse:
     return JSONResponse(outcome.nack, status_code=outcome.status)
 
@@ -295,7 +307,13 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
         except ClientDisconnect:
             return _refuse(400, "client disconnected")
         started = ticker.monotonic()
-        outcome = await run_in_threadpool(receiver.receive, bytes(body), dict(request.headers))
+        raw = bytes(body)
+        known = receiver.reject_known_copy(raw)  # on the loop: no parse, no thread hop
+        if known is not None:
+            outcome = await _audited(receiver, *known)
+            metrics.observe(outcome, ticker.monotonic() - started)
+            return _nack(outcome)
+        outcome = await run_in_threadpool(receiver.receive, raw, dict(request.headers))
         metrics.observe(outcome, ticker.monotonic() - started)
         if not outcome.accepted:
             return _nack(outcome)

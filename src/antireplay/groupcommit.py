@@ -9,7 +9,8 @@ audited, into an fsync flood.  Databases answer this with group commit, and so
 do we, in exactly one place: :class:`GroupCommitter`.
 
 * Callers :meth:`~GroupCommitter.submit` an operation and block until *their*
-  operation is durable (or failed).  A single writer thread takes the first
+  operation is durable (or failed); an event loop :meth:`~GroupCommitter.enqueue`-s
+  it and awaits the future instead, holding no thread.  A single writer thread takes the first
   waiting operation, drains whatever else has queued up meanwhile (at most
   ``max_batch``), and hands the batch to the owner's ``run_batch``, which
   executes it in one transaction with one commit and returns one result per
@@ -32,6 +33,7 @@ from __future__ import annotations
 import queue
 import threading
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from typing import Generic, TypeVar
 
 Op = TypeVar("Op")
@@ -39,15 +41,13 @@ R = TypeVar("R")
 
 
 class _Slot(Generic[Op, R]):
-    """One caller's operation and, once the batch is durable, its result or error."""
+    """One caller's operation and the future its result or error is delivered to."""
 
-    __slots__ = ("done", "error", "op", "result")
+    __slots__ = ("future", "op")
 
     def __init__(self, op: Op) -> None:
         self.op = op
-        self.done = threading.Event()
-        self.result: R | None = None
-        self.error: BaseException | None = None
+        self.future: Future[R] = Future()
 
 
 class GroupCommitter(Generic[Op, R]):
@@ -68,15 +68,17 @@ class GroupCommitter(Generic[Op, R]):
 
     def submit(self, op: Op) -> R:
         """Queue ``op`` and wait until it is durable; its result, or the batch's error."""
+        return self.enqueue(op).result()
+
+    def enqueue(self, op: Op) -> Future[R]:
+        """Queue ``op`` without waiting: an event loop awaits the future
+        (``asyncio.wrap_future``) instead of blocking a thread."""
         slot: _Slot[Op, R] = _Slot(op)
         with self._gate:  # a slot queued before close()'s sentinel is always committed
             if self._closed:
                 raise RuntimeError("group committer closed")
             self._queue.put(slot)
-        slot.done.wait()
-        if slot.error is not None:
-            raise slot.error
-        return slot.result  # type: ignore[return-value]  # set whenever error is None
+        return slot.future
 
     def close(self) -> None:
         """Finish what is queued, then stop the writer."""
@@ -114,11 +116,9 @@ class GroupCommitter(Generic[Op, R]):
                 raise RuntimeError("run_batch returned a result count unlike its batch")
         except BaseException as exc:  # every caller of a failed batch gets its error
             for slot in batch:
-                slot.error = exc
-                slot.done.set()
+                slot.future.set_exception(exc)
             return
         self.batches += 1
         self.operations += len(batch)
         for slot, result in zip(batch, results, strict=True):
-            slot.result = result
-            slot.done.set()
+            slot.future.set_result(result)

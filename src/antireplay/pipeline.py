@@ -40,6 +40,7 @@ from __future__ import annotations
 import threading
 from collections import Counter
 from collections.abc import Mapping
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -149,8 +150,8 @@ class Receiver:
         """Run the §8.3 steps; never raises for anything a peer can send."""
         env: Envelope | None = None
         signer: Signer | None = None
-        copy = self._copies.get(hash(raw)) if type(raw) is bytes else None
-        if copy is not None and copy.length == len(raw) and copy.expires_at >= self.clock.wall():
+        copy = self._known_copy(raw)
+        if copy is not None:
             return self._reject_copy(copy)
         try:
             env = parse(raw, max_bytes=self.max_bytes)
@@ -193,9 +194,34 @@ class Receiver:
             del copies[next(iter(copies))]
         copies[hash(raw)] = _Copy(len(raw), expires_at, sanitize(env.msg_id), env.type, env.sender)
 
+    def _known_copy(self, raw: bytes) -> _Copy | None:
+        copy = self._copies.get(hash(raw)) if type(raw) is bytes else None
+        if copy is not None and copy.length == len(raw) and copy.expires_at >= self.clock.wall():
+            return copy
+        return None
+
     def _reject_copy(self, copy: _Copy) -> Outcome:
         exc = ReplayDetectedError("an identical message was already accepted")
         return self._reject(exc, None, None, copy=copy)
+
+    def reject_known_copy(self, raw: bytes) -> tuple[Outcome, Future[int] | None] | None:
+        """Step 0 without blocking: a byte-identical copy of an accepted message is refused
+        with no parsing, no lock and no I/O; its audit row is queued for the next group
+        commit and the caller awaits the returned future before answering (an event loop
+        does, holding no thread).  ``None``: not a known copy, run :meth:`receive`."""
+        copy = self._known_copy(raw)
+        if copy is None:
+            return None
+        exc = ReplayDetectedError("an identical message was already accepted")
+        outcome = self._outcome(exc, None, None, copy)
+        self.stats.rejected[exc.code] += 1
+        if self.audit is None:
+            return outcome, None
+        try:
+            return outcome, self.audit.append_later(**self._audit_fields(outcome, None, None, copy))
+        except RuntimeError:  # the audit trail is closing: the rejection stands, unrecorded
+            self.stats.audit_failures += 1
+            return outcome, None
 
     def _check_version(self, env: Envelope) -> None:
         version = env.rcan_version or env.rcan
@@ -240,8 +266,26 @@ class Receiver:
         copy: _Copy | None = None,
     ) -> Outcome:
         """The NACK outcome for ``exc``; ``copy`` describes a memo hit (no envelope parsed)."""
+        outcome = self._outcome(exc, env, signer, copy)
+        self.stats.rejected[exc.code] += 1
+        if exc.code in SHAPE_ERRORS and not self._bucket.take():
+            self.stats.unaudited += 1
+            return outcome
+        try:
+            self._audit(outcome, env, signer, copy)
+        except StateUnavailableError:
+            self.stats.audit_failures += 1  # the rejection stands; it could not be recorded
+        return outcome
+
+    def _outcome(
+        self,
+        exc: ReplayAttackError,
+        env: Envelope | None,
+        signer: Signer | None,
+        copy: _Copy | None,
+    ) -> Outcome:
         msg_id = copy.msg_id if copy is not None else sanitize(env.msg_id) if env else None
-        outcome = Outcome(
+        return Outcome(
             False,
             exc.http_status,
             str(exc.code),
@@ -252,15 +296,6 @@ class Receiver:
             error=exc,
             nack_type=self.config.nack_type,
         )
-        self.stats.rejected[exc.code] += 1
-        if exc.code in SHAPE_ERRORS and not self._bucket.take():
-            self.stats.unaudited += 1
-            return outcome
-        try:
-            self._audit(outcome, env, signer, copy)
-        except StateUnavailableError:
-            self.stats.audit_failures += 1  # the rejection stands; it could not be recorded
-        return outcome
 
     def _audit_loss(self, reason: str) -> None:
         """A store noticed it may have forgotten accepted messages: fenced, and on the record."""
@@ -284,17 +319,26 @@ class Receiver:
     ) -> None:
         if self.audit is None:
             return
+        self.audit.append(**self._audit_fields(outcome, env, signer, copy))
+
+    def _audit_fields(
+        self,
+        outcome: Outcome,
+        env: Envelope | None,
+        signer: Signer | None,
+        copy: _Copy | None,
+    ) -> dict[str, Any]:
         source = copy if copy is not None else env  # both carry ``type`` and ``sender``
-        self.audit.append(
-            at=self.clock.wall(),
-            outcome="accepted" if outcome.accepted else "rejected",
-            code=outcome.code,
-            warning=outcome.warning or (outcome.error.detail if outcome.error else None),
-            msg_type=source.type if source is not None else None,
-            sender=signer.owner if signer else source.sender if source is not None else None,
-            sender_verified=signer is not None,
-            msg_id=outcome.msg_id,
-        )
+        return {
+            "at": self.clock.wall(),
+            "outcome": "accepted" if outcome.accepted else "rejected",
+            "code": outcome.code,
+            "warning": outcome.warning or (outcome.error.detail if outcome.error else None),
+            "msg_type": source.type if source is not None else None,
+            "sender": signer.owner if signer else source.sender if source is not None else None,
+            "sender_verified": signer is not None,
+            "msg_id": outcome.msg_id,
+        }
 
 
 def _bearer(headers: Mapping[str, str]) -> str | None:
