@@ -439,3 +439,19 @@ def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:
         out, err = relay.communicate(timeout=30)
     assert relay.returncode == 0, err
     assert out.startswith("ACCEPTED instance='02'") and "relayed 1; twins reported 0" in err
+
+
+def test_writer_on_the_readers_forward_bound_recovers_from_a_short_glitch(
+    participant: Any, clock: ManualClock
+) -> None:
+    """A 30 s forward glitch: with the readers' 5 s bound the writer rotates its prefix at
+    once; with the signer's own 60 s default it would be refused until real time caught up."""
+    reader = SealedReader(participant, TOPIC, PSK, clock=clock, max_age_s=30, max_forward_s=5)
+    writer = SealedWriter(participant, TOPIC, PSK, clock=clock, max_forward_s=5)
+    until(lambda: writer.matched_readers() >= 1)
+    clock.step_wall(30)
+    writer.seal(b"during the glitch", instance="a")  # never delivered: NTP corrects the clock
+    clock.step_wall(-30)
+    writer.write(b"after the glitch", instance="a")
+    (verdict,) = collect(reader, 1)
+    assert verdict.accepted and verdict.value == b"after the glitch"

@@ -117,6 +117,7 @@ def write(  # noqa: PLR0917 - one option per knob
             topic or cfg.writer.topic,
             cfg.psk(),
             state_file=cfg.writer.state_file,
+            max_forward_s=cfg.max_forward_s,
         )
     except (AntiReplayError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None

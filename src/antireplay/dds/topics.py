@@ -136,9 +136,14 @@ class SealedWriter:
         state_file: str | os.PathLike[str] | None = None,
         clock: Clock | None = None,
         reserve_s: float = 1.0,
+        max_forward_s: float | None = None,
         qos: Qos | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
+        # max_forward_s: the readers' bound, so a forward clock glitch the readers would
+        # refuse makes this writer rotate its prefix instead of locking itself out
+        # (None: readers set no bound; the signer keeps its own default).
+        bound = {} if max_forward_s is None else {"max_forward_s": max_forward_s}
         self.signer = EpochSigner(
             topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
             nonce_prefix=nonce_prefix,
@@ -146,6 +151,7 @@ class SealedWriter:
             state_file=state_file,
             clock=clock,
             reserve_s=reserve_s,
+            **bound,
         )
         qos = qos or default_qos()
         self._writer = DataWriter(participant, _topic(participant, topic, qos), qos=qos)
