@@ -150,10 +150,10 @@ class RedisStore:
         self._skew = repr(float(skew_s))
         self._fence = NEVER
         self._watermark = NEVER
-        self._policy_checked = False
         self.data_loss_events = 0
         self.loss_reason: str | None = None
-        # Redis down at start: the policy is checked on the first call that reaches it.
+        # Refuse to start on an evicting Redis; if it is down now, every script checks the
+        # policy again on the first call that reaches it.
         with contextlib.suppress(redis.ConnectionError, redis.TimeoutError):
             self._check_policy()
 
@@ -241,17 +241,12 @@ class RedisStore:
                     f"a Redis with maxmemory-policy noeviction (this one has {policy}, which "
                     "can silently evict replay state)",
                 )
-        self._policy_checked = True
 
     def _call(self, op: Callable[[], T]) -> T:
         try:
-            if not self._policy_checked:
-                self._check_policy()
             return op()
         except (redis.ConnectionError, redis.TimeoutError) as exc:
             raise StateUnavailableError(f"redis unreachable: {exc}") from None
-        except ConfigError as exc:  # an evicting Redis found after start: fail closed
-            raise StateUnavailableError(str(exc)) from None
         except redis.RedisError as exc:
             raise StateUnavailableError(f"redis error: {exc}") from None
 
