@@ -9,6 +9,8 @@ import socket
 import subprocess
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -215,3 +217,32 @@ class Forwarder:
             for sock in (src, dst):
                 with contextlib.suppress(OSError):
                     sock.close()
+
+
+@contextmanager
+def primary_and_replica(directory: Path) -> Iterator[tuple[RedisServer, RedisServer, Forwarder]]:
+    """A primary and its replica, with a moving address (``Forwarder``) on the primary."""
+    (directory / "p").mkdir()
+    (directory / "r").mkdir()
+    primary, replica = RedisServer(directory / "p"), RedisServer(directory / "r")
+    primary.start()
+    replica.start()
+    vip = Forwarder(primary.port)
+    try:
+        replica.client().replicaof("127.0.0.1", primary.port)
+        yield primary, replica, vip
+    finally:
+        vip.close()
+        replica.stop()
+        primary.stop()
+
+
+def wait_replicated(primary: RedisServer, replica: RedisServer) -> None:
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline:
+        offset = primary.client().info("replication")["master_repl_offset"]
+        info = replica.client().info("replication")
+        if info.get("master_link_status") == "up" and info.get("slave_repl_offset") == offset:
+            return
+        time.sleep(0.02)
+    raise AssertionError("the replica did not catch up")

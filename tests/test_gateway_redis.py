@@ -21,8 +21,7 @@ import pytest
 
 from antireplay.audit import AuditLog, Record
 from antireplay.demo import JSON, GatewayProcess, command, load_operator_key, write_demo_config
-from tests.redis_server import Forwarder, RedisServer
-from tests.test_stores import _wait_replicated
+from tests.redis_server import RedisServer, primary_and_replica, wait_replicated
 
 #: A short skew keeps the fence a fresh deployment (or a loss) raises short.
 SKEW_S = 1
@@ -154,18 +153,11 @@ def test_redis_restart_from_an_older_snapshot_never_reaccepts(tmp_path: Path) ->
 
 
 def test_promoted_replica_that_missed_the_last_write_never_reaccepts(tmp_path: Path) -> None:
-    (tmp_path / "p").mkdir()
-    (tmp_path / "r").mkdir()
-    primary, replica = RedisServer(tmp_path / "p"), RedisServer(tmp_path / "r")
-    primary.start()
-    replica.start()
-    vip = Forwarder(primary.port)
-    try:
-        replica.client().replicaof("127.0.0.1", primary.port)
+    with primary_and_replica(tmp_path) as (primary, replica, vip):
         with two_gateways(tmp_path, vip.url) as (a, b):
             accepted_fresh(a, tmp_path / "a")
             accepted_fresh(b, tmp_path / "a")
-            _wait_replicated(primary, replica)
+            wait_replicated(primary, replica)
             replica.client().replicaof("no", "one")  # the link breaks: the replica misses ...
             captured = command(load_operator_key(tmp_path / "a"))
             assert post(a, captured).status_code == 200  # ... this write
@@ -177,7 +169,3 @@ def test_promoted_replica_that_missed_the_last_write_never_reaccepts(tmp_path: P
             assert data_losses(b) == losses_before + 1
             accepted_fresh(b, tmp_path / "a")
         assert_on_the_record(tmp_path / "b" / "audit.db", json.loads(captured)["msg_id"])
-    finally:
-        vip.close()
-        replica.stop()
-        primary.stop()

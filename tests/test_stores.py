@@ -37,7 +37,7 @@ from antireplay.stores.redis_store import RedisStore
 from antireplay.stores.sqlite import SqliteStore
 from tests.conftest import kill9_runs, run_threads
 from tests.helpers import store_worker
-from tests.redis_server import Forwarder, RedisCluster, RedisServer
+from tests.redis_server import RedisCluster, RedisServer, primary_and_replica, wait_replicated
 from tests.test_mavlink import KEY, command_frame, encoder
 
 BACKENDS = ["memory", "sqlite", "redis", "redis-cluster"]
@@ -475,19 +475,12 @@ def test_redis_restart_from_an_older_snapshot_is_fenced(tmp_path: Path) -> None:
 
 
 def test_redis_promoted_replica_that_missed_the_last_write_is_fenced(tmp_path: Path) -> None:
-    (tmp_path / "p").mkdir()
-    (tmp_path / "r").mkdir()
-    primary, replica = RedisServer(tmp_path / "p"), RedisServer(tmp_path / "r")
-    primary.start()
-    replica.start()
-    vip = Forwarder(primary.port)
-    try:
-        replica.client().replicaof("127.0.0.1", primary.port)
+    with primary_and_replica(tmp_path) as (primary, replica, vip):
         clock = ManualClock(wall=NOW)
         a, b = _replicas(vip.url, 2, clock)
         _fresh_deployment(a, clock)
         a.commit("synced", clock.wall())
-        _wait_replicated(primary, replica)
+        wait_replicated(primary, replica)
         replica.client().replicaof("no", "one")  # the link breaks: the replica misses ...
         captured = clock.wall()
         a.commit("cmd", captured)  # ... this write
@@ -502,21 +495,6 @@ def test_redis_promoted_replica_that_missed_the_last_write_is_fenced(tmp_path: P
         _assert_fenced(a, "cmd", captured)
         # the first contact with the new deployment, then the failover
         assert sum(c.store.status()["data_loss_events"] for c in (a, b)) == 2
-    finally:
-        vip.close()
-        replica.stop()
-        primary.stop()
-
-
-def _wait_replicated(primary: RedisServer, replica: RedisServer) -> None:
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline:
-        offset = primary.client().info("replication")["master_repl_offset"]
-        info = replica.client().info("replication")
-        if info.get("master_link_status") == "up" and info.get("slave_repl_offset") == offset:
-            return
-        time.sleep(0.02)
-    raise AssertionError("the replica did not catch up")
 
 
 def test_redis_cluster_flush_of_the_owning_node_is_fenced(cluster_url: str) -> None:
