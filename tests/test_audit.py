@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sqlite3
 from pathlib import Path
 
@@ -10,6 +11,7 @@ from click.testing import CliRunner
 
 from antireplay.audit import GENESIS, AuditLog, _digest, reanchor, verify
 from antireplay.cli import main
+from antireplay.clock import ManualClock
 from antireplay.errors import AuditFileError, StateUnavailableError
 from antireplay.gateway import build_receiver, embedded_default
 
@@ -254,6 +256,71 @@ def test_a_second_writer_extending_the_chain_is_fine(db: Path) -> None:
     one.close()
     two.close()
     assert verify(db).ok and verify(db).records == 8
+
+
+def _head_syncs(monkeypatch: pytest.MonkeyPatch) -> list[str]:
+    """Record which files ``os.fdatasync`` makes durable (the head's cadence)."""
+    synced: list[str] = []
+    real = os.fdatasync
+
+    def counting(fd: int) -> None:
+        synced.append(Path(os.readlink(f"/proc/self/fd/{fd}")).name)
+        real(fd)
+
+    monkeypatch.setattr(os, "fdatasync", counting)
+    return synced
+
+
+def test_head_is_rewritten_every_batch_but_fsynced_on_its_cadence(
+    db: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    clock = ManualClock()
+    synced = _head_syncs(monkeypatch)
+    log = AuditLog(db, head_sync_s=1.0, clock=clock)
+    for i in range(4):
+        _append(log, f"n{i}")
+    assert synced == []  # four batches, no head fsync yet
+    # ...but each batch rewrote the head: a kill -9 now leaves it covering every answered row
+    report = verify(db)
+    assert report.ok and report.checkpoint_rows == 9 and report.after_checkpoint == 0
+    clock.advance(1.0)
+    _append(log, "n4")
+    assert synced == ["audit.db.head"]
+    _append(log, "n5")
+    log.close()  # the last, unsynced head is made durable on close
+    assert synced == ["audit.db.head", "audit.db.head"]
+    assert verify(db).ok and verify(db).checkpoint_rows == 11
+
+
+def test_rollback_below_an_unsynced_head_is_still_detected(db: Path) -> None:
+    """The cadence only delays the head's fsync: the head a crashed writer left still
+    refuses a database rolled back below it."""
+    log = AuditLog(db, head_sync_s=3600.0, clock=ManualClock())
+    for i in range(3):
+        _append(log, f"n{i}")
+    # the writer dies here (no close, as under kill -9); the database goes back two rows
+    sql(db, "DELETE FROM audit WHERE seq > 6")
+    report = verify(db)
+    assert report.chain_ok and not report.ok and "truncated" in report.head
+    with pytest.raises(AuditFileError, match="truncated"):
+        AuditLog(db)
+    log.close()
+
+
+def test_a_power_cut_brings_back_an_older_head_that_only_under_claims(db: Path) -> None:
+    """An un-fsynced head lost in a power cut leaves the last synced one: rows after it are
+    reported as not covered, never as proven, and a truncation below it is still refused."""
+    head = db.with_name("audit.db.head")
+    synced = head.read_bytes()
+    log = AuditLog(db, head_sync_s=3600.0, clock=ManualClock())
+    for i in range(3):
+        _append(log, f"n{i}")
+    log.close()
+    head.write_bytes(synced)  # what the disk held after the cut: the head fsynced at 5 rows
+    report = verify(db)
+    assert report.ok and report.checkpoint_rows == 5 and report.after_checkpoint == 3
+    sql(db, "DELETE FROM audit WHERE seq > 4")
+    assert "truncated" in verify(db).head
 
 
 def test_cli_tail_never_writes_the_trail(db: Path) -> None:
