@@ -10,6 +10,7 @@ recorded, and the audit chain verifies.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import queue
@@ -29,6 +30,7 @@ from typing import Any
 import httpx
 import pytest
 
+from antireplay import groupcommit
 from antireplay.audit import AuditLog, verify
 from antireplay.demo import JSON, GatewayProcess, command, load_operator_key, write_demo_config
 from antireplay.groupcommit import GroupCommitter
@@ -142,6 +144,44 @@ def test_a_failed_batch_raises_in_every_caller_and_the_next_batch_works() -> Non
         committer.close()
     assert writer.batches == [[-1], writer.batches[1], [99]]
     assert (committer.batches, committer.operations) == (2, 2)  # the failed one not counted
+
+
+def test_event_loop_waiters_get_their_results_in_one_call_per_batch() -> None:
+    """enqueue_async: no thread held while waiting, and the writer wakes the loop once per
+    batch, not once per waiter; a failed batch fails every waiter of it."""
+    writer = HeldWriter()
+    committer: GroupCommitter[int, tuple[int, int]] = GroupCommitter(writer, name="t-loop")
+    wakeups: list[int] = []
+
+    async def scenario() -> tuple[list[Any], list[Any]]:
+        loop = asyncio.get_running_loop()
+        real = loop.call_soon_threadsafe
+
+        def counting(callback: Any, *args: Any) -> Any:
+            if callback is groupcommit._deliver:
+                wakeups.append(len(args[0]))
+            return real(callback, *args)
+
+        loop.call_soon_threadsafe = counting  # type: ignore[method-assign,assignment]
+        first = _hold_first_batch(writer, committer)
+        waiters = [committer.enqueue_async(op) for op in range(16)]
+        writer.release.set()
+        results = await asyncio.gather(*waiters, return_exceptions=True)
+        writer.fail_if = lambda ops: True
+        failed = await asyncio.gather(
+            *(committer.enqueue_async(op) for op in (100, 101)), return_exceptions=True
+        )
+        await asyncio.to_thread(_join, [first])
+        return results, failed
+
+    try:
+        results, failed = asyncio.run(scenario())
+    finally:
+        committer.close()
+    assert writer.batches[:2] == [[-1], list(range(16))]
+    assert results == [(op, op) for op in range(16)]
+    assert wakeups[0] == 16  # sixteen waiters, one call into the loop
+    assert all(isinstance(f, ValueError) for f in failed)
 
 
 def test_close_finishes_what_is_queued_then_refuses() -> None:

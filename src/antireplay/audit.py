@@ -63,6 +63,7 @@ is anchored automatically; a trail with rows and neither key nor checkpoint
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import hmac
 import json
@@ -431,10 +432,12 @@ class AuditLog:
         closed database): callers must not act on a message they could not audit.
         """
         try:
-            return self.append_later(
+            future = self.append_later(
                 at=at, outcome=outcome, code=code, warning=warning, msg_type=msg_type,
                 sender=sender, sender_verified=sender_verified, msg_id=msg_id,
-            ).result()  # fmt: skip
+            )  # fmt: skip
+            assert isinstance(future, Future)
+            return future.result()
         except (sqlite3.Error, OSError, RuntimeError, AuditFileError) as exc:
             raise StateUnavailableError(f"audit trail unavailable: {exc}") from None
 
@@ -449,9 +452,11 @@ class AuditLog:
         sender: object,
         sender_verified: bool,
         msg_id: object,
-    ) -> Future[int]:
+        on_loop: bool = False,
+    ) -> Future[int] | asyncio.Future[int]:
         """Queue one record for the next group commit; the future completes once it is
-        durable (an event loop awaits it before answering, holding no thread)."""
+        durable (``on_loop``: an asyncio future of the running loop, which awaits it before
+        answering, holding no thread)."""
         row: dict[str, Any] = {
             "at": at,
             "outcome": outcome,
@@ -462,6 +467,8 @@ class AuditLog:
             "sender_verified": int(sender_verified),
             "msg_id": sanitize(msg_id),
         }
+        if on_loop:
+            return self._committer.enqueue_async(row)
         return self._committer.enqueue(row)
 
     def _write_batch(self, batch: Sequence[dict[str, Any]]) -> list[int]:

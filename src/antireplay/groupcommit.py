@@ -9,12 +9,14 @@ audited, into an fsync flood.  Databases answer this with group commit, and so
 do we, in exactly one place: :class:`GroupCommitter`.
 
 * Callers :meth:`~GroupCommitter.submit` an operation and block until *their*
-  operation is durable (or failed); an event loop :meth:`~GroupCommitter.enqueue`-s
-  it and awaits the future instead, holding no thread.  A single writer thread takes the first
-  waiting operation, drains whatever else has queued up meanwhile (at most
-  ``max_batch``), and hands the batch to the owner's ``run_batch``, which
-  executes it in one transaction with one commit and returns one result per
-  operation, in order.  Only then are the callers woken.
+  operation is durable (or failed), or :meth:`~GroupCommitter.enqueue` it and
+  keep its future; an event loop calls :meth:`~GroupCommitter.enqueue_async`
+  and awaits an asyncio future instead, holding no thread: the writer resolves
+  every such waiter of a batch with one call into their loop, not one each.
+  A single writer thread takes the first waiting operation, drains whatever
+  else has queued up meanwhile (at most ``max_batch``), and hands the batch to
+  the owner's ``run_batch``, which executes it in one transaction with one
+  commit and returns one result per operation, in order.  Only then are the callers woken.
 * Operations in a batch run sequentially inside that transaction, so two
   racers on one key still get exactly one winner; the batch is atomic, so a
   ``kill -9`` at any moment leaves either the whole batch durable (its callers
@@ -30,11 +32,13 @@ Used by :class:`~antireplay.stores.sqlite.SqliteStore` (seen-set commits) and
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import queue
 import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future
-from typing import Generic, TypeVar
+from typing import Generic, TypeVar, cast
 
 Op = TypeVar("Op")
 R = TypeVar("R")
@@ -45,9 +49,22 @@ class _Slot(Generic[Op, R]):
 
     __slots__ = ("future", "op")
 
-    def __init__(self, op: Op) -> None:
+    def __init__(self, op: Op, future: Future[R] | asyncio.Future[R]) -> None:
         self.op = op
-        self.future: Future[R] = Future()
+        self.future = future
+
+
+def _deliver(
+    waiters: list[tuple[asyncio.Future[R], R | None]], error: BaseException | None
+) -> None:
+    """On the waiters' loop: one batch's results (or its error) into their futures."""
+    for waiter, result in waiters:
+        if waiter.done():  # cancelled: its caller went away
+            continue
+        if error is None:
+            waiter.set_result(cast(R, result))
+        else:
+            waiter.set_exception(error)
 
 
 class GroupCommitter(Generic[Op, R]):
@@ -73,12 +90,21 @@ class GroupCommitter(Generic[Op, R]):
     def enqueue(self, op: Op) -> Future[R]:
         """Queue ``op`` without waiting: an event loop awaits the future
         (``asyncio.wrap_future``) instead of blocking a thread."""
-        slot: _Slot[Op, R] = _Slot(op)
+        future: Future[R] = Future()
+        self._put(_Slot(op, future))
+        return future
+
+    def enqueue_async(self, op: Op) -> asyncio.Future[R]:
+        """Queue ``op`` from a running event loop; await the result (no thread held)."""
+        waiter: asyncio.Future[R] = asyncio.get_running_loop().create_future()
+        self._put(_Slot(op, waiter))
+        return waiter
+
+    def _put(self, slot: _Slot[Op, R]) -> None:
         with self._gate:  # a slot queued before close()'s sentinel is always committed
             if self._closed:
                 raise RuntimeError("group committer closed")
             self._queue.put(slot)
-        return slot.future
 
     def close(self) -> None:
         """Finish what is queued, then stop the writer."""
@@ -110,15 +136,27 @@ class GroupCommitter(Generic[Op, R]):
                 return
 
     def _commit(self, batch: list[_Slot[Op, R]]) -> None:
+        error: BaseException | None = None
+        results: list[R | None]
         try:
-            results = self._run_batch([slot.op for slot in batch])
+            results = list(self._run_batch([slot.op for slot in batch]))
             if len(results) != len(batch):
                 raise RuntimeError("run_batch returned a result count unlike its batch")
         except BaseException as exc:  # every caller of a failed batch gets its error
-            for slot in batch:
-                slot.future.set_exception(exc)
-            return
-        self.batches += 1
-        self.operations += len(batch)
+            error, results = exc, [None] * len(batch)
+        else:
+            self.batches += 1
+            self.operations += len(batch)
+        loops: dict[asyncio.AbstractEventLoop, list[tuple[asyncio.Future[R], R | None]]] = {}
         for slot, result in zip(batch, results, strict=True):
-            slot.future.set_result(result)
+            future = slot.future
+            if isinstance(future, Future):
+                if error is None:
+                    future.set_result(cast(R, result))
+                else:
+                    future.set_exception(error)
+            else:
+                loops.setdefault(future.get_loop(), []).append((future, result))
+        for loop, waiters in loops.items():
+            with contextlib.suppress(RuntimeError):  # a closed loop has nobody left to answer
+                loop.call_soon_threadsafe(_deliver, waiters, error)

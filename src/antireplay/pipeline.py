@@ -33,10 +33,18 @@ of ``receive``.  The audit trail always gets accepted messages and every
 rejection from step 2 on; malformed input (step 1 and bad msg_id/timestamp
 shapes) is audited at most ``invalid_audit_per_s`` times a second so a flood of
 garbage cannot turn into a flood of fsyncs (it is still counted in ``stats``).
+
+No answer goes out before its audit row is durable.  :meth:`Receiver.receive`
+is :meth:`~Receiver.receive_later` (every step, the audit row *queued* for the
+trail's next group commit) followed by :meth:`~Receiver.settle` once that row
+is durable; an event loop runs the two halves itself and awaits the row in
+between without holding a thread.  An accepted message whose row cannot be
+made durable is refused (``STATE_UNAVAILABLE``) at ``settle``.
 """
 
 from __future__ import annotations
 
+import asyncio
 import threading
 from collections import Counter
 from collections.abc import Mapping
@@ -87,6 +95,30 @@ class Outcome:
         if self.error is None:
             return None
         return self.error.to_nack(self.msg_id, nack_type=self.nack_type)
+
+
+@dataclass(slots=True)
+class Pending:
+    """An outcome whose audit row may not be durable yet; :meth:`Receiver.settle` answers."""
+
+    outcome: Outcome
+    #: The queued audit row (``None``: nothing to wait for: no trail, or not audited);
+    #: an asyncio future when an event loop queued it (:meth:`Receiver.reject_known_copy`).
+    audit: Future[int] | asyncio.Future[int] | None = None
+    #: An accepted body and its expiry, remembered as a known copy once audited.
+    memo: tuple[bytes, float] | None = None
+
+
+def _wait(audit: Future[int] | asyncio.Future[int] | None) -> BaseException | None:
+    """Block until the audit row is durable: ``None``, or why it could not be made so."""
+    if audit is None:
+        return None
+    assert isinstance(audit, Future), "a row queued by an event loop is awaited there"
+    try:
+        audit.result()
+    except Exception as exc:  # any failure to record is the answer
+        return exc
+    return None
 
 
 @dataclass(frozen=True, slots=True)
@@ -148,6 +180,13 @@ class Receiver:
 
     def receive(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Outcome:
         """Run the §8.3 steps; never raises for anything a peer can send."""
+        pending = self.receive_later(raw, headers)
+        return self.settle(pending, _wait(pending.audit))
+
+    def receive_later(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Pending:
+        """Every step through the commit; the outcome's audit row is queued for the next
+        group commit, not awaited.  Answer with :meth:`settle` once ``Pending.audit`` is
+        done (an event loop awaits it holding no thread; :meth:`receive` blocks on it)."""
         env: Envelope | None = None
         signer: Signer | None = None
         copy = self._known_copy(raw)
@@ -167,21 +206,32 @@ class Receiver:
             True, 200, warning=verdict.warning, msg_id=sanitize(env.msg_id), envelope=env,
             signer=signer,
         )  # fmt: skip
-        try:
-            self._audit(outcome, env, signer)
-        except StateUnavailableError as exc:
-            # Nothing accepted may be missing from the audit trail: refuse to act on it.
-            # Its msg_id is spent; the sender resends with a new one once the disk is back.
+        memo = verdict.warning is None and not is_estop(env.type, env.safety_event)
+        return self._queue_audit(Pending(outcome, memo=(raw, verdict.expires_at) if memo else None))
+
+    def settle(self, pending: Pending, failure: BaseException | None) -> Outcome:
+        """The answer, once the outcome's audit row is durable (``failure`` is ``None``) or
+        could not be made durable.  Only an accepted message whose row failed blocks (its
+        refusal is audited in turn): run that case off the event loop."""
+        outcome = pending.outcome
+        if failure is not None:
             self.stats.audit_failures += 1
-            return self._reject(exc, env, signer)
-        self.stats.accepted += 1
-        if verdict.warning:
-            self.stats.warnings[verdict.warning] += 1
-        elif not is_estop(env.type, env.safety_event):
-            self._remember_copy(raw, env, verdict.expires_at)
+            if outcome.accepted:
+                # Nothing accepted may be missing from the audit trail: refuse to act on it.
+                # Its msg_id is spent; the sender resends with a new one once the disk is back.
+                exc = StateUnavailableError(f"audit trail unavailable: {failure}")
+                refusal = self._reject(exc, outcome.envelope, outcome.signer)
+                return self.settle(refusal, _wait(refusal.audit))
+            return outcome  # the rejection stands; it could not be recorded
+        if outcome.accepted:
+            self.stats.accepted += 1
+            if outcome.warning:
+                self.stats.warnings[outcome.warning] += 1
+            elif pending.memo is not None and outcome.envelope is not None:
+                self._remember_copy(*pending.memo, outcome.envelope)
         return outcome
 
-    def _remember_copy(self, raw: bytes, env: Envelope, expires_at: float) -> None:
+    def _remember_copy(self, raw: bytes, expires_at: float, env: Envelope) -> None:
         """Memo of accepted bodies: a byte-identical copy is a replay, known before parsing.
 
         Only authenticated, accepted, non-ESTOP messages enter it (a fresh duplicate ESTOP
@@ -191,7 +241,7 @@ class Receiver:
         """
         copies = self._copies
         if len(copies) >= self.config.msg_id_cache_size:
-            del copies[next(iter(copies))]
+            copies.pop(next(iter(copies)), None)
         copies[hash(raw)] = _Copy(len(raw), expires_at, sanitize(env.msg_id), env.type, env.sender)
 
     def _known_copy(self, raw: bytes) -> _Copy | None:
@@ -200,28 +250,20 @@ class Receiver:
             return copy
         return None
 
-    def _reject_copy(self, copy: _Copy) -> Outcome:
+    def _reject_copy(self, copy: _Copy) -> Pending:
         exc = ReplayDetectedError("an identical message was already accepted")
         return self._reject(exc, None, None, copy=copy)
 
-    def reject_known_copy(self, raw: bytes) -> tuple[Outcome, Future[int] | None] | None:
+    def reject_known_copy(self, raw: bytes) -> Pending | None:
         """Step 0 without blocking: a byte-identical copy of an accepted message is refused
         with no parsing, no lock and no I/O; its audit row is queued for the next group
-        commit and the caller awaits the returned future before answering (an event loop
-        does, holding no thread).  ``None``: not a known copy, run :meth:`receive`."""
+        commit (answer with :meth:`settle` once ``Pending.audit`` is done).  ``None``: not
+        a known copy, run :meth:`receive_later`."""
         copy = self._known_copy(raw)
         if copy is None:
             return None
         exc = ReplayDetectedError("an identical message was already accepted")
-        outcome = self._outcome(exc, None, None, copy)
-        self.stats.rejected[exc.code] += 1
-        if self.audit is None:
-            return outcome, None
-        try:
-            return outcome, self.audit.append_later(**self._audit_fields(outcome, None, None, copy))
-        except RuntimeError:  # the audit trail is closing: the rejection stands, unrecorded
-            self.stats.audit_failures += 1
-            return outcome, None
+        return self._reject(exc, None, None, copy=copy, on_loop=True)
 
     def _check_version(self, env: Envelope) -> None:
         version = env.rcan_version or env.rcan
@@ -264,18 +306,15 @@ class Receiver:
         signer: Signer | None,
         *,
         copy: _Copy | None = None,
-    ) -> Outcome:
+        on_loop: bool = False,
+    ) -> Pending:
         """The NACK outcome for ``exc``; ``copy`` describes a memo hit (no envelope parsed)."""
         outcome = self._outcome(exc, env, signer, copy)
         self.stats.rejected[exc.code] += 1
         if exc.code in SHAPE_ERRORS and not self._bucket.take():
             self.stats.unaudited += 1
-            return outcome
-        try:
-            self._audit(outcome, env, signer, copy)
-        except StateUnavailableError:
-            self.stats.audit_failures += 1  # the rejection stands; it could not be recorded
-        return outcome
+            return Pending(outcome)
+        return self._queue_audit(Pending(outcome), copy, on_loop=on_loop)
 
     def _outcome(
         self,
@@ -310,16 +349,21 @@ class Receiver:
         except StateUnavailableError:
             self.stats.audit_failures += 1
 
-    def _audit(
-        self,
-        outcome: Outcome,
-        env: Envelope | None,
-        signer: Signer | None,
-        copy: _Copy | None = None,
-    ) -> None:
-        if self.audit is None:
-            return
-        self.audit.append(**self._audit_fields(outcome, env, signer, copy))
+    def _queue_audit(
+        self, pending: Pending, copy: _Copy | None = None, *, on_loop: bool = False
+    ) -> Pending:
+        """Queue the outcome's audit row (``on_loop``: awaited by the running event loop);
+        a trail that is closing fails the row at once."""
+        if self.audit is not None:
+            outcome = pending.outcome
+            fields = self._audit_fields(outcome, outcome.envelope, outcome.signer, copy)
+            try:
+                pending.audit = self.audit.append_later(**fields, on_loop=on_loop)
+            except RuntimeError as exc:
+                failed: Future[int] = Future()
+                failed.set_exception(exc)
+                pending.audit = failed
+        return pending
 
     def _audit_fields(
         self,
