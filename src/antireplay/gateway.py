@@ -27,9 +27,10 @@ import contextlib
 import importlib
 import json
 import os
+import queue
+import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any
@@ -300,7 +301,7 @@ async def _answer(send: Send, status: int, content: object, *, close: bool = Fal
     await send({"type": "http.response.body", "body": body})
 
 
-async def _settle(receiver: Receiver, workers: ThreadPoolExecutor, pending: Pending) -> Outcome:
+async def _settle(receiver: Receiver, workers: Workers, pending: Pending) -> Outcome:
     """Wait, without a thread, until the outcome's audit row is durable, then settle it."""
     failure: BaseException | None = None
     audit = pending.audit
@@ -310,8 +311,8 @@ async def _settle(receiver: Receiver, workers: ThreadPoolExecutor, pending: Pend
         except Exception as exc:  # settle() turns any failure into the answer
             failure = exc
     if failure is not None and pending.outcome.accepted:  # its refusal is audited: blocks
-        loop = asyncio.get_running_loop()
-        return await loop.run_in_executor(workers, receiver.settle, pending, failure)
+        outcome: Outcome = await workers(receiver.settle, pending, failure)
+        return outcome
     return receiver.settle(pending, failure)
 
 
@@ -352,6 +353,59 @@ async def _body(receive: Receive, limit: int) -> bytes | int:
             return b"".join(chunks)
 
 
+class Workers:
+    """The threads that parse, read the store and check signatures for the event loop.
+
+    A few suffice: nobody waits for a commit in them (the loop awaits those), and the
+    signature check releases the GIL; a crowd of threads would only fight over it.  A
+    result goes back as one ``call_soon_threadsafe`` into the caller's asyncio future,
+    without ``concurrent.futures`` in between (its per-call futures and locks cost the
+    loop more than the hand-off itself)."""
+
+    def __init__(self, count: int) -> None:
+        self._queue: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+        self._threads = [
+            threading.Thread(target=self._serve, name=f"antireplay-receive-{i}", daemon=True)
+            for i in range(count)
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def __call__(self, fn: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+        loop = asyncio.get_running_loop()
+        future = loop.create_future()
+        self._queue.put((loop, future, fn, args))
+        return future
+
+    def _serve(self) -> None:
+        while (job := self._queue.get()) is not None:
+            loop, future, fn, args = job
+            try:
+                result, error = fn(*args), None
+            except BaseException as exc:  # delivered to the awaiting request, raised there
+                result, error = None, exc
+            with contextlib.suppress(RuntimeError):  # a closed loop has nobody left to answer
+                loop.call_soon_threadsafe(_resolve, future, result, error)
+
+    def shutdown(self) -> None:
+        for _ in self._threads:
+            self._queue.put(None)
+        for thread in self._threads:
+            thread.join(timeout=30)
+
+
+_Job = tuple[asyncio.AbstractEventLoop, "asyncio.Future[Any]", Callable[..., Any], tuple[Any, ...]]
+
+
+def _resolve(future: asyncio.Future[Any], result: Any, error: BaseException | None) -> None:
+    if future.done():  # cancelled: the client went away
+        return
+    if error is None:
+        future.set_result(result)
+    else:
+        future.set_exception(error)
+
+
 def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     """The gateway application for ``config``."""
     receiver = build_receiver(config, clock)
@@ -360,8 +414,7 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     limit = config.max_body_bytes
     ticker = resolve(None)
     nack_type = config.security.nack_type
-    # Parsing, the store's lookup and commit and the signature run here; the audit wait does not.
-    workers = ThreadPoolExecutor(max_workers=64, thread_name_prefix="antireplay-receive")
+    workers = Workers(4)
 
     async def refuse(send: Send, status: int, reason: str) -> None:
         """Transport-level refusals: the same NACK as the pipeline's, with the configured type."""
@@ -379,11 +432,8 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
         if not isinstance(raw, bytes):
             return await refuse(send, 400, "client disconnected")
         started = ticker.monotonic()
-        pending = receiver.reject_known_copy(raw)  # on the loop: no parse, no thread hop
-        if pending is None:
-            headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
-            loop = asyncio.get_running_loop()
-            pending = await loop.run_in_executor(workers, receiver.receive_later, raw, headers)
+        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
+        pending = await receiver.receive_async(raw, headers, workers)
         outcome = await _settle(receiver, workers, pending)
         metrics.observe(outcome, ticker.monotonic() - started)
         if not outcome.accepted:
@@ -414,7 +464,7 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     @asynccontextmanager
     async def lifespan(_: Starlette) -> AsyncIterator[None]:
         yield
-        workers.shutdown(wait=True)
+        workers.shutdown()
         if receiver.audit is not None:
             receiver.audit.close()
 

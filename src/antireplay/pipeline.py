@@ -47,7 +47,7 @@ from __future__ import annotations
 import asyncio
 import threading
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
@@ -69,7 +69,7 @@ from antireplay.errors import (
 from antireplay.messages import MessageType
 from antireplay.replay import ReplayCache
 from antireplay.stores import ReplayStore
-from antireplay.window import is_estop
+from antireplay.window import Seen, Verdict, is_estop
 
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
 
@@ -107,6 +107,14 @@ class Pending:
     audit: Future[int] | asyncio.Future[int] | None = None
     #: An accepted body and its expiry, remembered as a known copy once audited.
     memo: tuple[bytes, float] | None = None
+
+
+#: Runs ``fn(*args)`` in a thread; the event loop awaits the result.
+Offload = Callable[..., Awaitable[Any]]
+
+
+def _default_offload(fn: Callable[..., Any], *args: Any) -> Awaitable[Any]:
+    return asyncio.get_running_loop().run_in_executor(None, fn, *args)
 
 
 def _wait(audit: Future[int] | asyncio.Future[int] | None) -> BaseException | None:
@@ -186,12 +194,61 @@ class Receiver:
     def receive_later(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Pending:
         """Every step through the commit; the outcome's audit row is queued for the next
         group commit, not awaited.  Answer with :meth:`settle` once ``Pending.audit`` is
-        done (an event loop awaits it holding no thread; :meth:`receive` blocks on it)."""
-        env: Envelope | None = None
-        signer: Signer | None = None
+        done (:meth:`receive` blocks on it)."""
         copy = self._known_copy(raw)
         if copy is not None:
             return self._reject_copy(copy)
+        env, signer, error = self._authenticate(raw, headers)
+        if error is not None:
+            return self._reject(error, env, signer)
+        assert env is not None and signer is not None
+        try:
+            verdict = self.cache.commit(env.msg_id, env.seconds, env.type, env.safety_event)
+        except ReplayAttackError as exc:
+            return self._reject(exc, env, signer)
+        return self._accept(raw, env, signer, verdict)
+
+    async def receive_async(
+        self, raw: bytes, headers: Mapping[str, str] | None = None, offload: Offload | None = None
+    ) -> Pending:
+        """:meth:`receive_later` for an event loop, holding a thread only while there is work
+        for one: a byte-identical copy is refused on the loop; parsing, the pre-crypto check
+        (a store read) and the signature run in a thread (``offload(fn, *args)``, default
+        the loop's executor); a group-committing store's commit (``commit_async``) and
+        every audit row are awaited on the loop."""
+        pending = self.reject_known_copy(raw)
+        if pending is not None:
+            return pending
+        run = offload or _default_offload
+        env, signer, error = await run(self._authenticate, raw, headers)
+        if error is not None:
+            return self._reject(error, env, signer, on_loop=True)
+        assert env is not None and signer is not None
+        cache = self.cache
+        try:
+            plan, now = cache.begin_commit(env.msg_id, env.seconds, env.type, env.safety_event)
+            args = (plan.msg_id, plan.expires_at, now, plan.estop)
+            seen: Seen | StateUnavailableError
+            try:
+                commit_async = getattr(cache.store, "commit_async", None)
+                if commit_async is not None:
+                    seen = await commit_async(*args)
+                else:
+                    seen = await run(cache.store.commit, *args)
+            except StateUnavailableError as exc:
+                seen = exc
+            verdict = cache.finish_commit(plan, now, seen)
+        except ReplayAttackError as exc:
+            return self._reject(exc, env, signer, on_loop=True)
+        return self._accept(raw, env, signer, verdict, on_loop=True)
+
+    def _authenticate(
+        self, raw: bytes, headers: Mapping[str, str] | None
+    ) -> tuple[Envelope | None, Signer | None, ReplayAttackError | None]:
+        """Steps 1-6: parse, version, the replay check (records nothing), JWT, signature,
+        scopes.  The envelope and signer found so far, and the refusal if any."""
+        env: Envelope | None = None
+        signer: Signer | None = None
         try:
             env = parse(raw, max_bytes=self.max_bytes)
             self._check_version(env)
@@ -199,15 +256,20 @@ class Receiver:
             self._check_jwt(env, headers or {})
             signer = self.keys.verify(env)
             self._authorize(env, signer)
-            verdict = self.cache.commit(env.msg_id, env.seconds, env.type, env.safety_event)
         except ReplayAttackError as exc:
-            return self._reject(exc, env, signer)
+            return env, signer, exc
+        return env, signer, None
+
+    def _accept(
+        self, raw: bytes, env: Envelope, signer: Signer, verdict: Verdict, *, on_loop: bool = False
+    ) -> Pending:
         outcome = Outcome(
             True, 200, warning=verdict.warning, msg_id=sanitize(env.msg_id), envelope=env,
             signer=signer,
         )  # fmt: skip
         memo = verdict.warning is None and not is_estop(env.type, env.safety_event)
-        return self._queue_audit(Pending(outcome, memo=(raw, verdict.expires_at) if memo else None))
+        pending = Pending(outcome, memo=(raw, verdict.expires_at) if memo else None)
+        return self._queue_audit(pending, on_loop=on_loop)
 
     def settle(self, pending: Pending, failure: BaseException | None) -> Outcome:
         """The answer, once the outcome's audit row is durable (``failure`` is ``None``) or

@@ -107,7 +107,18 @@ class ReplayCache:
         safety_event: str | None = None,
     ) -> Verdict:
         """Apply every rule to what the store holds now; record nothing."""
-        return self._run(msg_id, timestamp, msg_type, safety_event, False)
+        now = self.clock.wall()
+        try:
+            plan = self.policy.plan(msg_id, timestamp, msg_type, safety_event, now)
+            seen: Seen | StateUnavailableError
+            try:
+                seen = self.store.lookup(plan.msg_id)
+            except StateUnavailableError as exc:
+                seen = exc
+            return self._judge(plan, now, seen)
+        except ReplayAttackError as exc:
+            self.refusals[exc.detail or exc.code] += 1
+            raise
 
     def commit(
         self,
@@ -117,40 +128,62 @@ class ReplayCache:
         safety_event: str | None = None,
     ) -> Verdict:
         """Apply every rule and atomically record the msg_id (after authentication)."""
-        return self._run(msg_id, timestamp, msg_type, safety_event, True)
-
-    def _run(
-        self, mid: object, ts: object, msg_type: int, event: str | None, commit: bool
-    ) -> Verdict:
-        policy = self.policy
-        now = self.clock.wall()
+        plan, now = self.begin_commit(msg_id, timestamp, msg_type, safety_event)
+        seen: Seen | StateUnavailableError
         try:
-            plan = policy.plan(mid, ts, msg_type, event, now)
-            try:
-                if commit:
-                    # Refuse what the known fence or watermark already refuses *before*
-                    # recording it: a refused message must not spend its msg_id.
-                    store = self.store
-                    policy.judge(plan, Seen(NEVER, store.watermark(), store.fence()), now)
-                    seen = store.commit(plan.msg_id, plan.expires_at, now, plan.estop)
-                else:
-                    seen = self.store.lookup(plan.msg_id)
-            except StateUnavailableError:
-                if plan.estop:
-                    return Verdict(
-                        plan.msg_id,
-                        plan.timestamp,
-                        plan.window_s,
-                        plan.expires_at,
-                        _STATE_UNAVAILABLE,
-                        True,
-                    )
-                raise
-            if seen.lost:
-                self.losses += 1
-                if self.on_loss is not None:
-                    self.on_loss(f"{self.store.backend} lost or replaced its state; fence raised")
-            return policy.judge(plan, seen, now)
+            seen = self.store.commit(plan.msg_id, plan.expires_at, now, plan.estop)
+        except StateUnavailableError as exc:
+            seen = exc
+        return self.finish_commit(plan, now, seen)
+
+    def begin_commit(
+        self,
+        msg_id: object,
+        timestamp: object,
+        msg_type: int = MessageType.COMMAND,
+        safety_event: str | None = None,
+    ) -> tuple[Verdict, float]:
+        """:meth:`commit` up to the store's: the plan on a fresh ``now`` (both returned, for
+        the store's ``commit(plan.msg_id, plan.expires_at, now, plan.estop)`` and
+        :meth:`finish_commit`), refusing what the known fence or watermark already refuses
+        *before* recording it: a refused message must not spend its msg_id.  An event loop
+        awaits the store's commit between the halves instead of blocking on it."""
+        now = self.clock.wall()
+        policy = self.policy
+        try:
+            plan = policy.plan(msg_id, timestamp, msg_type, safety_event, now)
+            store = self.store
+            policy.judge(plan, Seen(NEVER, store.watermark(), store.fence()), now)
         except ReplayAttackError as exc:
             self.refusals[exc.detail or exc.code] += 1
             raise
+        return plan, now
+
+    def finish_commit(
+        self, plan: Verdict, now: float, seen: Seen | StateUnavailableError
+    ) -> Verdict:
+        """:meth:`commit` after the store's: judge what its atomic commit returned, or the
+        error it raised."""
+        try:
+            return self._judge(plan, now, seen)
+        except ReplayAttackError as exc:
+            self.refusals[exc.detail or exc.code] += 1
+            raise
+
+    def _judge(self, plan: Verdict, now: float, seen: Seen | StateUnavailableError) -> Verdict:
+        if isinstance(seen, StateUnavailableError):
+            if plan.estop:  # safety beats the replay check's availability
+                return Verdict(
+                    plan.msg_id,
+                    plan.timestamp,
+                    plan.window_s,
+                    plan.expires_at,
+                    _STATE_UNAVAILABLE,
+                    True,
+                )
+            raise seen
+        if seen.lost:
+            self.losses += 1
+            if self.on_loss is not None:
+                self.on_loss(f"{self.store.backend} lost or replaced its state; fence raised")
+        return self.policy.judge(plan, seen, now)

@@ -56,6 +56,7 @@ names the file and the recovery.
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import logging
 import os
@@ -282,6 +283,12 @@ class SqliteStore:
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         """Queue the record for the next group commit; return once it is durable."""
         return self._committer.submit((key, expires_at, now, force))
+
+    def commit_async(
+        self, key: str, expires_at: float, now: float, force: bool = False
+    ) -> asyncio.Future[Seen]:
+        """:meth:`commit` from a running event loop: await the result, holding no thread."""
+        return self._committer.enqueue_async((key, expires_at, now, force))
 
     def _commit_batch(self, ops: Sequence[_Op]) -> list[Seen]:
         """One transaction for a batch: bounded purge (raising the watermark), each record
