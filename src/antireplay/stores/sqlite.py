@@ -60,6 +60,7 @@ import asyncio
 import hashlib
 import logging
 import os
+import queue
 import sqlite3
 import struct
 import threading
@@ -174,10 +175,11 @@ class SqliteStore:
         self.loss_reason: str | None = None
         self._run(self._verify)
         self._opened = True
-        # Reads (the pre-crypto check, metrics) use their own connection: WAL lets them run
-        # beside the writer, so no lookup ever waits behind a group commit's fsyncs.
-        self._reader = sqlite3.connect(self.path, timeout=timeout_s, check_same_thread=False)
-        self._read_lock = threading.Lock()
+        # Reads (the pre-crypto check, metrics) use their own connections: WAL lets them run
+        # beside the writer, so no lookup ever waits behind a group commit's fsyncs, and one
+        # connection per concurrent reader lets lookups in several threads run side by side.
+        self._timeout_s = timeout_s
+        self._readers: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
         self._committer: GroupCommitter[_Op, Seen] = GroupCommitter(
             self._commit_batch, name=f"antireplay-state:{self.path.name}"
         )
@@ -265,8 +267,8 @@ class SqliteStore:
         return self._watermark
 
     def lookup(self, key: str) -> Seen:
-        def query() -> Seen:
-            row = self._reader.execute(
+        def query(db: sqlite3.Connection) -> Seen:
+            row = db.execute(
                 "SELECT (SELECT expires FROM seen WHERE key = ?), watermark, fence FROM meta",
                 (key,),
             ).fetchone()
@@ -277,8 +279,20 @@ class SqliteStore:
                 NEVER if fence <= _FLOOR else float(fence),
             )
 
-        with self._read_lock:
-            return self._run(query)
+        return self._read(query)
+
+    def _read(self, query: Callable[[sqlite3.Connection], T]) -> T:
+        """Run ``query`` on an idle reader connection (a new one if all are busy)."""
+        try:
+            db = self._readers.get_nowait()
+        except queue.Empty:
+            db = self._run(
+                lambda: sqlite3.connect(self.path, timeout=self._timeout_s, check_same_thread=False)
+            )
+        try:
+            return self._run(lambda: query(db))
+        finally:
+            self._readers.put(db)
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         """Queue the record for the next group commit; return once it is durable."""
@@ -412,19 +426,21 @@ class SqliteStore:
 
     def close(self) -> None:
         self._committer.close()
-        with self._read_lock:
-            self._reader.close()
+        while True:
+            try:
+                self._readers.get_nowait().close()
+            except queue.Empty:
+                break
         with self._lock:
             self._db.close()
             self.witness.close()
 
     def _fetch(self, sql: str, params: tuple[object, ...]) -> tuple[Any, ...] | None:
-        def query() -> tuple[Any, ...] | None:
-            row: tuple[Any, ...] | None = self._reader.execute(sql, params).fetchone()
+        def query(db: sqlite3.Connection) -> tuple[Any, ...] | None:
+            row: tuple[Any, ...] | None = db.execute(sql, params).fetchone()
             return row
 
-        with self._read_lock:
-            return self._run(query)
+        return self._read(query)
 
     def _run(self, op: Callable[[], T]) -> T:
         try:
