@@ -28,14 +28,18 @@ from antireplay.cli import _signing_key, main
 from antireplay.clock import SystemClock
 from antireplay.demo import free_port
 from antireplay.errors import (
-    AuthenticationError,
-    CounterReplayError,
+    CounterReplayedError as CounterReplayError,
+)
+from antireplay.errors import (
     InvalidFrameError,
     MessageFromFutureError,
     MessageStaleError,
     NonceExhaustedError,
     StateUnavailableError,
     WrongDirectionError,
+)
+from antireplay.errors import (
+    SignatureInvalidError as AuthenticationError,
 )
 from antireplay.mavlink import (
     TS_LIMIT,

@@ -21,7 +21,7 @@ from antireplay import ManualClock, SecurityConfig
 from antireplay.audit import AuditLog, verify
 from antireplay.auth import JwtVerifier, KeyRegistry, b64decode, b64encode, sign_envelope
 from antireplay.envelope import SDK_SIGNED_FIELDS, encode
-from antireplay.errors import AuthenticationError
+from antireplay.errors import SignatureInvalidError
 from antireplay.pipeline import Outcome, Receiver
 from tests.conftest import fresh_receiver, race
 
@@ -146,7 +146,7 @@ def test_steps_reject_in_order(receiver: Receiver) -> None:
         (signed(msg_id=""), "INVALID_MESSAGE_ID"),
         (signed(timestamp="nan"), "INVALID_TIMESTAMP"),
         (signed(timestamp=NOW + 60), "MESSAGE_FROM_FUTURE"),
-        (json.dumps(message()).encode(), "SIGNATURE_INVALID"),
+        (json.dumps(message()).encode(), "SIGNATURE_REQUIRED"),
         (signed("viewer", VIEWER), "SCOPE_DENIED"),
     ]
     for raw, code in cases:
@@ -513,7 +513,7 @@ def test_fuzz_envelopes_only_typed_rejections(body: dict[str, Any], base: bool) 
 def test_b64_helper_turns_garbage_into_signature_invalid(receiver: Receiver, value: str) -> None:
     """Our base64url helper: padding optional, garbage a typed SIGNATURE_INVALID (401)."""
     assert b64decode(b64encode(b"\0\xff\xfe")) == b"\0\xff\xfe"  # unpadded, url alphabet
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         b64decode(value)
     body = json.loads(signed())
     body["sig"]["value"] = value

@@ -123,8 +123,9 @@ from pymavlink.generator.mavcrc import x25crc
 from antireplay.clock import Clock, resolve
 from antireplay.counters import CounterWindow
 from antireplay.errors import (
-    AuthenticationError,
-    CounterReplayError,
+    CounterReplayedError as CounterReplayError,
+)
+from antireplay.errors import (
     InvalidFrameError,
     MessageFromFutureError,
     MessageStaleError,
@@ -132,6 +133,9 @@ from antireplay.errors import (
     ReplayAttackError,
     StateUnavailableError,
     WrongDirectionError,
+)
+from antireplay.errors import (
+    SignatureInvalidError as AuthenticationError,
 )
 from antireplay.stores import ReplayStore
 from antireplay.window import NEVER

@@ -23,9 +23,14 @@ class _Block(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
+#: The replay store specs a reader accepts (:func:`antireplay.stores.open_store`).
+STORE_SPEC = r"^(memory|sqlite:.+|rediss?://.+|unix://.+|redis\+cluster://.+)$"
+
+
 class ReaderConfig(_Block):
     topic: str = Field(default="antireplay/commands", min_length=1, max_length=256)
-    state_file: str | None = None
+    #: ``memory`` fences at start (module docstring of antireplay.dds.topics).
+    store: str = Field(default="memory", pattern=STORE_SPEC)
 
 
 class WriterConfig(_Block):
@@ -36,7 +41,7 @@ class WriterConfig(_Block):
 class RelayConfig(_Block):
     service_name: str = Field(min_length=1, max_length=128)
     signer_state: str
-    verifier_state: str
+    verifier_store: str = Field(pattern=STORE_SPEC)
     ping_listen: str | None = None  # host:port, UDP
 
 
@@ -46,8 +51,9 @@ class DdsConfig(_Block):
     domain_id: int = Field(default=0, ge=0, le=MAX_DOMAIN_ID)
     loopback_only: bool = True
     psk_file: str
-    max_age_s: float | None = Field(default=30.0, gt=0, le=86_400)
-    max_forward_s: float | None = Field(default=5.0, gt=0, le=3_600)
+    #: Required bounds (null is an error, never "unbounded").
+    max_age_s: float = Field(default=30.0, gt=0, le=86_400)
+    max_forward_s: float = Field(default=5.0, gt=0, le=3_600)
     audit: str | None = None
     reader: ReaderConfig = Field(default_factory=ReaderConfig)
     writer: WriterConfig = Field(default_factory=WriterConfig)

@@ -6,8 +6,9 @@ A participant tells a relay "I am reachable here" with a binding ping: an
 :mod:`antireplay.epochs` frame of kind ``PING`` (its own HKDF key, so a ping
 is never taken for an announcement nor the reverse) sent over UDP.  The
 listener's order: datagram size (cheap, before any crypto), then
-:meth:`EpochVerifier.open_ping` (MAC, freshness, ``epoch > last``, commit),
-and only then does it learn the sender's address for that prefix.  A replayed
+:meth:`EpochVerifier.open_ping` (MAC, freshness, the start fence and
+``epoch > last``, then the commit on its store), and only then does it learn
+the sender's address for that prefix.  A replayed
 or forged ping from an attacker's address is refused with a typed verdict and
 changes nothing: no address is learned from unauthenticated traffic.
 """
@@ -23,6 +24,7 @@ from antireplay.clock import Clock, resolve
 from antireplay.dds.topics import Verdict, audit_refusal, open_judged
 from antireplay.epochs import MIN_LEN, EpochSigner, EpochVerifier, Kind
 from antireplay.errors import Code
+from antireplay.stores import ReplayStore
 
 #: A binding ping is small; anything larger is dropped before any crypto.
 MAX_PING = 1024
@@ -69,16 +71,17 @@ class PingListener:
         psk: bytes,
         *,
         bind: tuple[str, int] = ("127.0.0.1", 0),
-        state_file: str | os.PathLike[str] | None = None,
+        store: ReplayStore | str = "memory",
         clock: Clock | None = None,
-        max_age_s: float | None = None,
-        max_forward_s: float | None = None,
+        max_age_s: float = 30.0,
+        max_forward_s: float = 5.0,
         audit: AuditLog | None = None,
     ) -> None:
         self._clock = resolve(clock)
         self.verifier = EpochVerifier(
             psk,
-            state_file=state_file,
+            store=store,
+            namespace="dds:ping",
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
             clock=self._clock,

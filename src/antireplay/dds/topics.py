@@ -17,9 +17,19 @@ instance either (the DDS key field is only a routing copy, compared first).
 
 A reader judges each sample in the house order: size and shape, the claimed
 instance against the DDS key field (no crypto, no state), then
-:meth:`EpochVerifier.open` (MAC, freshness, ``epoch > last[prefix]``, commit,
-persisted with ``state_file`` before it returns).  Only then is the data
-decoded and handed over.  Everything else becomes a :class:`Verdict` with a
+:meth:`EpochVerifier.open` (MAC, freshness, ``epoch > last[prefix]``, then the
+commit: one ``advance`` on the reader's replay store, durable before it
+returns with a ``sqlite:`` or Redis store).  Only then is the data decoded and
+handed over.
+
+**Start fence.**  A reader refuses every sample sealed before it started
+(plus ``max_forward_s``, the furthest ahead a writer may run) unless its store
+proves otherwise: the default ``memory`` store cannot know what a previous
+process accepted, so it fences at its construction, exactly as the replay
+cache does; a ``sqlite:PATH`` store that survived the restart sets no fence
+(and raises one when it finds it lost data).  An age bound is required
+(``max_age_s``): a reader that never heard of a writer still refuses a capture
+older than that.  Everything else becomes a :class:`Verdict` with a
 stable :class:`~antireplay.errors.Code` and an ``outcome`` word that is
 counted in :attr:`SealedReader.counts` and, with an audit log, appended to the
 hash-chained audit trail.  Several writers share a topic: each has its own
@@ -65,15 +75,16 @@ from antireplay.epochs import (
     Kind,
 )
 from antireplay.errors import (
-    AuthenticationError,
     Code,
-    EpochReplayError,
+    EpochReplayedError,
     EpochTooFarAheadError,
     InvalidFrameError,
     MessageStaleError,
     ReplayAttackError,
+    SignatureInvalidError,
     StateUnavailableError,
 )
+from antireplay.stores import ReplayStore
 
 log = logging.getLogger("antireplay.dds")
 
@@ -228,10 +239,11 @@ class Verdict:
 #: Rejection class -> the outcome word counted and audited (prefix collisions are told apart).
 _OUTCOMES: dict[type[ReplayAttackError], str] = {
     InvalidFrameError: "malformed",
-    AuthenticationError: "forged",
+    SignatureInvalidError: "forged",
     MessageStaleError: "stale",
     EpochTooFarAheadError: "ahead",
-    EpochReplayError: "replayed",
+    EpochReplayedError: "replayed",
+    StateUnavailableError: "state_unavailable",
 }
 
 
@@ -245,18 +257,20 @@ class SealedReader:
         psk: bytes,
         *,
         data_type: type[IdlStruct] | None = None,
-        state_file: str | os.PathLike[str] | None = None,
+        store: ReplayStore | str = "memory",
         clock: Clock | None = None,
-        max_age_s: float | None = None,
-        max_forward_s: float | None = None,
+        max_age_s: float = 30.0,
+        max_forward_s: float = 5.0,
         audit: AuditLog | None = None,
         qos: Qos | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
         self._clock = resolve(clock)
+        type_name, domain = type_name_of(data_type), _domain_of(participant)
         self.verifier = EpochVerifier(
-            topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
-            state_file=state_file,
+            topic_key(psk, topic, type_name, domain),
+            store=store,
+            namespace=f"dds:{domain}:{topic}:{type_name}",
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
             clock=self._clock,
@@ -275,7 +289,7 @@ class SealedReader:
         return len(self._reader.get_matched_publications())
 
     def close(self) -> None:
-        """Release the verifier's state file (its owner lock), as a stopping process does."""
+        """Close the verifier's store if the reader opened it, as a stopping process does."""
         self.verifier.close()
 
     def judge(self, sample: SealedSample) -> Verdict:
@@ -380,7 +394,7 @@ def open_judged(
         if verifier.prefix_collisions != collisions:
             outcome = "prefix_collision"
         return Verdict(outcome, exc.code, exc.reason, instance, prefix, epoch)
-    except OSError as exc:  # the accepted epoch could not be persisted: fail closed
+    except OSError as exc:  # the store could not persist the epoch: fail closed
         reason = f"verifier state not persisted: {exc.strerror or exc}"
         return Verdict("state_unavailable", Code.STATE_UNAVAILABLE, reason, instance)
 
