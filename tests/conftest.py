@@ -10,7 +10,7 @@ import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import pytest
 
@@ -19,6 +19,7 @@ from antireplay.pipeline import Receiver
 from tests.redis_server import RedisServer
 
 ROOT = Path(__file__).resolve().parent.parent
+T = TypeVar("T")
 
 
 def _fresh_cache(*args: Any, **kwargs: Any) -> ReplayCache:
@@ -48,6 +49,17 @@ def fresh_receiver(*args: Any, **kwargs: Any) -> Receiver:
     clock.step_wall(-STARTED_BEFORE_S)
     try:
         return Receiver(*args, **kwargs)
+    finally:
+        clock.step_wall(STARTED_BEFORE_S)
+
+
+def started_before(clock: ManualClock, build: Callable[[], T]) -> T:
+    """``build()`` on ``clock`` stepped ``STARTED_BEFORE_S`` back: an epoch verifier or DDS
+    reader whose in-memory store (and start fence) began long before the test's "now"
+    (the fence has its own tests)."""
+    clock.step_wall(-STARTED_BEFORE_S)
+    try:
+        return build()
     finally:
         clock.step_wall(STARTED_BEFORE_S)
 

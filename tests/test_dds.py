@@ -23,7 +23,9 @@ import pytest
 
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
-from antireplay.errors import Code, StateFileError
+from antireplay.dds.config import DdsConfig
+from antireplay.errors import Code, ConfigError, StateFileError
+from tests.conftest import started_before
 
 try:
     from antireplay.dds.domain import join_domain
@@ -75,7 +77,9 @@ def collect(reader: SealedReader, count: int, timeout_s: float = 10.0) -> list[V
 def pair(
     participant: Any, clock: ManualClock, **reader_opts: Any
 ) -> tuple[SealedWriter, SealedReader]:
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock, **reader_opts)
+    reader = started_before(
+        clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock, **reader_opts)
+    )
     writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
     until(lambda: writer.matched_readers() >= 1)
     return writer, reader
@@ -97,7 +101,7 @@ def flipped(sample: SealedSample, index: int) -> SealedSample:
 def test_round_trip_keyed_instances_and_several_writers(
     participant: Any, clock: ManualClock
 ) -> None:
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock)
+    reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     writers = [SealedWriter(peer(participant), TOPIC, PSK, clock=clock) for _ in range(2)]
     for writer in writers:
         until(lambda w=writer: w.matched_readers() >= 1)  # type: ignore[misc]
@@ -172,8 +176,12 @@ def test_sample_replayed_onto_another_topic_is_refused(
     participant: Any, clock: ManualClock
 ) -> None:
     cmd_writer = SealedWriter(participant, "robot/cmd", PSK, clock=clock)
-    other_reader = SealedReader(participant, "robot/cmd_vel", PSK, clock=clock)
-    cmd_reader = SealedReader(participant, "robot/cmd", PSK, clock=clock)
+    other_reader = started_before(
+        clock, lambda: SealedReader(participant, "robot/cmd_vel", PSK, clock=clock)
+    )
+    cmd_reader = started_before(
+        clock, lambda: SealedReader(participant, "robot/cmd", PSK, clock=clock)
+    )
     until(lambda: cmd_writer.matched_readers() >= 1)
     captured = cmd_writer.write(b"RESUME", instance="arm")
     assert collect(cmd_reader, 1)[0].accepted
@@ -203,7 +211,7 @@ def test_writer_restarted_with_its_state_file_is_accepted(
     participant: Any, clock: ManualClock, tmp_path: Path
 ) -> None:
     state = tmp_path / "writer.state"
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock)
+    reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     first = SealedWriter(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
     until(lambda: first.matched_readers() >= 1)
     for n in range(3):
@@ -224,7 +232,7 @@ def test_writer_whose_state_file_is_missing_is_refused_naming_the_file(
     participant: Any, clock: ManualClock, tmp_path: Path
 ) -> None:
     state = tmp_path / "writer.state"
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock)
+    reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     first = SealedWriter(participant, TOPIC, PSK, clock=clock, state_file=state, service_name="arm")
     until(lambda: first.matched_readers() >= 1)
     first.write(b"before", instance="arm")
@@ -250,21 +258,32 @@ def test_writer_whose_state_file_is_missing_is_refused_naming_the_file(
 def test_reader_restarted_with_its_state_file_still_refuses_old_samples(
     participant: Any, clock: ManualClock, tmp_path: Path
 ) -> None:
-    state = tmp_path / "reader.state"
+    state = f"sqlite:{tmp_path / 'reader.db'}"
     writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
-    first = SealedReader(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
+    first = started_before(
+        clock, lambda: SealedReader(peer(participant), TOPIC, PSK, clock=clock, store=state)
+    )
     until(lambda: writer.matched_readers() >= 1)
     captured = [writer.write(f"cmd {n}".encode(), instance="arm") for n in range(3)]
     assert all(v.accepted for v in collect(first, 3))
     first.close()  # the process stops
-    restarted = SealedReader(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
-    forgetful = SealedReader(peer(participant), TOPIC, PSK, clock=clock)  # the contrast
+    restarted = started_before(
+        clock, lambda: SealedReader(peer(participant), TOPIC, PSK, clock=clock, store=state)
+    )
+    # Issue 18: a reader without persistent state fences at its start, so it refuses the
+    # captures too (it cannot know what a previous process accepted)
+    forgetful = SealedReader(peer(participant), TOPIC, PSK, clock=clock)
     rogue = rogue_writer(participant)
     until(lambda: restarted.matched_writers() >= 2 and forgetful.matched_writers() >= 2)
     for sample in captured:
         rogue.publish(sample)
     assert [v.code for v in collect(restarted, 3)] == [Code.EPOCH_REPLAYED] * 3
-    assert all(v.accepted for v in collect(forgetful, 3))
+    assert [(v.code, v.outcome) for v in collect(forgetful, 3)] == [
+        (Code.MESSAGE_STALE, "stale")
+    ] * 3
+    clock.advance(5.001)  # past the start fence (max_forward_s): new samples pass
+    writer.write(b"fresh", instance="arm")
+    assert collect(forgetful, 1)[0].accepted
 
 
 def pump_until(relay: AnnouncementRelay, condition: Callable[[], bool]) -> None:
@@ -275,13 +294,16 @@ def pump_until(relay: AnnouncementRelay, condition: Callable[[], bool]) -> None:
 def relay_at(
     participant: Any, tmp_path: Path, name: str, clock: ManualClock, tag: str
 ) -> AnnouncementRelay:
-    return AnnouncementRelay(
-        participant,
-        PSK,
-        service_name=name,
-        signer_state=tmp_path / f"{tag}-signer.state",
-        verifier_state=tmp_path / f"{tag}-verifier.state",
-        clock=clock,
+    return started_before(
+        clock,
+        lambda: AnnouncementRelay(
+            participant,
+            PSK,
+            service_name=name,
+            signer_state=tmp_path / f"{tag}-signer.state",
+            verifier_store=f"sqlite:{tmp_path / f'{tag}-verifier.db'}",
+            clock=clock,
+        ),
     )
 
 
@@ -290,7 +312,9 @@ def test_relay_reannounces_authentic_announcements_only(
 ) -> None:
     relay = relay_at(participant, tmp_path, "cds-1", clock, "a")
     announcer = SealedWriter(peer(participant), "antireplay/announce", PSK, clock=clock)
-    subscriber = SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
+    subscriber = started_before(
+        clock, lambda: SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
+    )
     until(lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 2)
     sealed = announcer.write(b"participant guid=01 locator=udpv4://127.0.0.1:7410", instance="01")
     pump_until(relay, lambda: relay.relayed == 1)
@@ -308,7 +332,9 @@ def test_relay_reannounces_authentic_announcements_only(
 def test_relay_resumes_above_its_epochs_after_a_restart(
     participant: Any, clock: ManualClock, tmp_path: Path
 ) -> None:
-    subscriber = SealedReader(participant, "antireplay/relayed", PSK, clock=clock)
+    subscriber = started_before(
+        clock, lambda: SealedReader(participant, "antireplay/relayed", PSK, clock=clock)
+    )
     announcer = SealedWriter(participant, "antireplay/announce", PSK, clock=clock)
     relay = relay_at(peer(participant), tmp_path, "cds-1", clock, "a")
     until(lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 1)
@@ -332,7 +358,9 @@ def test_two_relays_with_one_service_name_are_reported(
     one = relay_at(participant, tmp_path, "cds-1", clock, "one")
     one.audit = audit
     two = relay_at(peer(participant), tmp_path, "cds-1", clock, "two")
-    subscriber = SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
+    subscriber = started_before(
+        clock, lambda: SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
+    )
     announcer = SealedWriter(peer(participant), "antireplay/announce", PSK, clock=clock)
     until(lambda: announcer.matched_readers() >= 2 and one.egress.matched_readers() >= 3)
     for n in range(3):
@@ -352,7 +380,9 @@ def test_two_relays_with_one_service_name_are_reported(
 def test_binding_ping_learns_an_address_only_from_an_authentic_fresh_ping(
     clock: ManualClock,
 ) -> None:
-    listener = PingListener(PSK, clock=clock, max_age_s=30, max_forward_s=5)
+    listener = started_before(
+        clock, lambda: PingListener(PSK, clock=clock, max_age_s=30, max_forward_s=5)
+    )
     sender = PingSender(PSK, clock=clock)
     attacker = PingSender(os.urandom(32), clock=clock)
     try:
@@ -391,7 +421,7 @@ def test_cli_reader_prints_verdicts_across_processes(tmp_path: Path) -> None:
     config = tmp_path / "dds.yaml"
     config.write_text(
         f"dds:\n  domain_id: {next(_IDS)}\n  psk_file: {tmp_path / 'fleet.psk'}\n"
-        f"  reader: {{topic: robot/cmd, state_file: {tmp_path / 'reader.state'}}}\n"
+        f"  reader: {{topic: robot/cmd, store: 'sqlite:{tmp_path / 'reader.db'}'}}\n"
         f"  writer: {{topic: robot/cmd, state_file: {tmp_path / 'writer.state'}}}\n"
     )
     cfg = ["--config", str(config)]
@@ -422,12 +452,15 @@ def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:
     config.write_text(
         f"dds:\n  domain_id: {domain_id}\n  psk_file: {tmp_path / 'fleet.psk'}\n"
         f"  relay: {{service_name: cds-1, signer_state: {tmp_path / 's.state'},"
-        f" verifier_state: {tmp_path / 'v.state'}}}\n"
+        f" verifier_store: 'sqlite:{tmp_path / 'v.db'}'}}\n"
     )
     relay = _antireplay("relay", "--config", str(config), "--duration", "15")
     try:
         participant = join_domain(domain_id)
-        subscriber = SealedReader(participant, "antireplay/relayed", psk)
+        # a new sqlite store proves nobody accepted anything before: no start fence
+        subscriber = SealedReader(
+            participant, "antireplay/relayed", psk, store=f"sqlite:{tmp_path / 'sub.db'}"
+        )
         announcer = SealedWriter(participant, "antireplay/announce", psk)
         until(lambda: announcer.matched_readers() >= 1 and subscriber.matched_writers() >= 1, 20)
         announcer.write(b"participant guid=02", instance="02")
@@ -446,7 +479,10 @@ def test_writer_on_the_readers_forward_bound_recovers_from_a_short_glitch(
 ) -> None:
     """A 30 s forward glitch: with the readers' 5 s bound the writer rotates its prefix at
     once; with the signer's own 60 s default it would be refused until real time caught up."""
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock, max_age_s=30, max_forward_s=5)
+    reader = started_before(
+        clock,
+        lambda: SealedReader(participant, TOPIC, PSK, clock=clock, max_age_s=30, max_forward_s=5),
+    )
     writer = SealedWriter(participant, TOPIC, PSK, clock=clock, max_forward_s=5)
     until(lambda: writer.matched_readers() >= 1)
     clock.step_wall(30)
@@ -455,3 +491,15 @@ def test_writer_on_the_readers_forward_bound_recovers_from_a_short_glitch(
     writer.write(b"after the glitch", instance="a")
     (verdict,) = collect(reader, 1)
     assert verdict.accepted and verdict.value == b"after the glitch"
+
+
+@pytest.mark.parametrize("key", ["max_age_s", "max_forward_s"])
+def test_config_requires_the_freshness_bounds(key: str) -> None:
+    """Issue 18: ``null`` is an error naming the field, never "unbounded" nor a clamp."""
+    with pytest.raises(ConfigError, match=rf"dds\.{key}"):
+        DdsConfig.from_mapping({"psk_file": "k", key: None})
+
+
+def test_config_store_spec_is_validated() -> None:
+    with pytest.raises(ConfigError, match=r"dds\.reader\.store"):
+        DdsConfig.from_mapping({"psk_file": "k", "reader": {"store": "/tmp/reader.state"}})

@@ -8,16 +8,17 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from antireplay import ManualClock
-from antireplay.counters import NonceCounter
+from antireplay.counters import FENCE, NonceCounter
 from antireplay.errors import (
-    AuthenticationError,
-    CounterReplayError,
+    CounterReplayedError,
     InvalidFrameError,
     MessageStaleError,
     NonceExhaustedError,
     ReplayAttackError,
     ReplayDetectedError,
     SessionClosedError,
+    SignatureInvalidError,
+    UnknownSenderError,
     UnknownSessionError,
 )
 from antireplay.session import (
@@ -59,7 +60,7 @@ def test_signed_command_frames(clock: ManualClock) -> None:
     gcs_side, _, _ = connect(gcs, robot)
     frame = gcs_side.seal(b"ARM", Purpose.COMMAND)
     assert robot.open(frame).purpose is Purpose.COMMAND
-    with pytest.raises(CounterReplayError):
+    with pytest.raises(CounterReplayedError):
         robot.open(frame)
 
 
@@ -68,7 +69,7 @@ def test_replay_within_session_rejected(clock: ManualClock) -> None:
     gcs_side, _, _ = connect(gcs, robot)
     frame = gcs_side.seal(b"ARM")
     robot.open(frame)
-    with pytest.raises(CounterReplayError):
+    with pytest.raises(CounterReplayedError):
         robot.open(frame)
 
 
@@ -78,7 +79,7 @@ def test_reordered_frames_accepted_once_each(clock: ManualClock) -> None:
     order = [3, 0, 1, 9, 2, 8, 4, 7, 5, 6]
     assert [robot_side.open(frames[i]).counter for i in order] == order
     for f in frames:
-        with pytest.raises(CounterReplayError):
+        with pytest.raises(CounterReplayedError):
             robot_side.open(f)
 
 
@@ -87,7 +88,7 @@ def test_forged_far_future_counter_changes_no_state(clock: ManualClock) -> None:
     real = gcs_side.seal(b"hello")
     forged = bytearray(real)
     forged[20:28] = (2**63).to_bytes(8, "big")  # counter field, tag left as is
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         robot_side.open(bytes(forged))
     assert robot_side._recv[Purpose.DATA].last == 0
     assert robot_side.open(real).counter == 0
@@ -100,10 +101,10 @@ def test_cross_session_replay_rejected(clock: ManualClock) -> None:
     second, _, _ = connect(gcs, robot)
     captured = first.seal(b"ARM")
     moved = captured[:4] + second.session_id + captured[20:]  # re-address to the new session
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         robot.open(moved)
     robot.open(captured)  # the original still works once in its own session
-    with pytest.raises(CounterReplayError):
+    with pytest.raises(CounterReplayedError):
         robot.open(captured)
 
 
@@ -114,7 +115,7 @@ def test_wrong_direction_and_purpose_fail(clock: ManualClock) -> None:
         gcs_side.open(frame)  # reflected back to its sender
     swapped = bytearray(frame)
     swapped[2] = int(Purpose.COMMAND)
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         robot_side.open(bytes(swapped))
 
 
@@ -139,7 +140,7 @@ def test_forged_handshake_leaves_no_state(clock: ManualClock) -> None:
     gcs, robot = pair(clock)
     hs1 = bytearray(gcs.start(ROBOT_KEM.public_key()))
     hs1[-1] ^= 1
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         robot.accept_handshake(bytes(hs1))
     hs1[-1] ^= 1
     robot.accept_handshake(bytes(hs1))  # the genuine one still opens (no poisoning)
@@ -148,7 +149,7 @@ def test_forged_handshake_leaves_no_state(clock: ManualClock) -> None:
 def test_unknown_initiator_and_other_responder_rejected(clock: ManualClock) -> None:
     stranger = Initiator("intruder", mldsa.MLDSA87PrivateKey.generate(), clock)
     _, robot = pair(clock)
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(UnknownSenderError):
         robot.accept_handshake(stranger.start(ROBOT_KEM.public_key()))
     gcs, _ = pair(clock)
     other_robot = mlkem.MLKEM1024PrivateKey.generate()
@@ -161,17 +162,40 @@ def test_tampered_hs2_rejected(clock: ManualClock) -> None:
     hs1 = gcs.start(ROBOT_KEM.public_key())
     _, hs2 = robot.accept_handshake(hs1)
     bad = hs2[:-1] + bytes([hs2[-1] ^ 1])
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         gcs.finish(hs1, bad)
 
 
-def test_evicted_session_gets_session_closed(clock: ManualClock) -> None:
+def test_evicted_session_is_the_fence_event(clock: ManualClock) -> None:
     gcs, robot = pair(clock, max_sessions=2)
     first, _, _ = connect(gcs, robot)
     connect(gcs, robot)
     connect(gcs, robot)  # evicts the first (oldest) session with its keys
-    with pytest.raises(SessionClosedError):
+    assert len(robot) == 2
+    with pytest.raises(MessageStaleError) as refused:
         robot.open(first.seal(b"late"))
+    assert refused.value.detail == FENCE
+
+
+def test_closed_session_gets_session_closed(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    gcs_side, robot_side, _ = connect(gcs, robot)
+    robot.close(robot_side)
+    with pytest.raises(SessionClosedError):
+        robot.open(gcs_side.seal(b"after the rekey"))
+
+
+def test_check_records_nothing(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    gcs_side, robot_side, _ = connect(gcs, robot)
+    frame = gcs_side.seal(b"x")
+    robot.check(frame)
+    robot.check(frame)
+    robot_side.check(frame)
+    assert robot_side._recv[Purpose.DATA].last == 0
+    robot.open(frame)
+    with pytest.raises(CounterReplayedError):
+        robot.check(frame)
 
 
 def test_unknown_session_rejected(clock: ManualClock) -> None:
