@@ -15,7 +15,9 @@ for a named discovery service (two instances must never share a name; the
 verifier reports it when they do).  Test vectors: ``tests/vectors/epochs.json``.
 
 **Epochs are wall-anchored nanoseconds.**  ``epoch = max(last + 1, wall_ns)``:
-strictly increasing, and never below the current time.  Consequences:
+strictly increasing, and never below the current time.  The signer takes them
+from the one sender source, a wall-anchored
+:class:`~antireplay.counters.NonceCounter`.  Consequences:
 
 * a verifier that has never heard of a sender can still refuse an
   announcement older than ``max_age_s`` (a capture from yesterday);
@@ -41,7 +43,7 @@ the current (possibly wrong) time and verifiers judge it against their own
 clocks with ``max_age_s``, exactly as they judge any sender whose clock is off.
 
 Verifiers alarm: an unknown prefix that is the successor of a known one is
-accepted as a new stream (it is above nothing; the floor and ``max_age_s``
+accepted as a new stream (it is above nothing; the fences and ``max_age_s``
 still apply) and answered with ``warning="EPOCH_SENDER_ROTATED"``, counted in
 ``rotations``/``warnings``, logged, and audited when the verifier has an
 audit log; the glitched epoch itself was refused with ``EPOCH_TOO_FAR_AHEAD``
@@ -61,22 +63,41 @@ through :mod:`antireplay.durable` before emitting any epoch above the previous
 one, reserving ``reserve_s`` (default 1 s) of epochs at a time, so a busy
 sender fsyncs about once a second, not per message.  After a crash or a host
 reboot it starts above the ceiling, above anything it could have sent.  Choose
-``max_forward_s`` at verifiers larger than ``reserve_s``.
+``max_forward_s`` at verifiers larger than ``reserve_s``.  The state file has
+one owner (an OS lock, :mod:`antireplay.durable`): two signers on one file
+would emit the same epochs.  Running out of epochs (``2**64`` ns, the year
+2554) is the signer's own :class:`~antireplay.errors.NonceExhaustedError`.
 
-**One owner per state file.**  Signer and verifier state files are opened
-with an OS lock (:mod:`antireplay.durable`): a second process on the same file
-is refused, since two signers on one file would emit the same epochs.
+**The verifier keeps its state in a replay store** (:mod:`antireplay.stores`:
+``memory``, ``sqlite:PATH``, Redis), the contract every receiver shares.  Each
+accepted epoch is **one** ``advance`` of the key ``NAMESPACE:KIND:PREFIX``
+(compare-and-advance, atomic on every backend, durable before ``open``
+returns with SQLite or Redis), so a restarted verifier, or another one on the
+same store, refuses everything accepted or superseded.  A prefix's first
+accept also advances ``NAMESPACE:KIND:after:SUCCESSOR`` to the prefix, which
+is how a rotated sender is recognised, even by a restarted verifier.
 
-**Verifier order.**  Parse, constant-time tag check (HMAC is cheap), freshness
-(``max_age_s``, ``max_forward_s``), then ``epoch > last[prefix]``, then the
-commit under a lock.  A bad tag changes no state; an authentic epoch too far
-ahead is refused and counted (``forward_rejections``) instead of locking the
-sender out.  Callers renew a participant's lease only with the returned
-:class:`Announcement`: a replayed old announcement raises and renews nothing.
-With ``state_file`` every accepted epoch is persisted before ``open`` returns,
-so a restarted verifier rejects everything it had accepted or superseded.
-The prefix table is bounded: evicting the prefix with the oldest epoch raises a
-``floor``, and unknown prefixes must be above it.
+**Two phases.**  :meth:`EpochVerifier.check` records and counts nothing: shape,
+freshness, fences and order, the MAC aside.  :meth:`EpochVerifier.open` is the
+recipe: parse, constant-time tag check, the same checks, then the commit under
+a lock.  The tag comes first in ``open`` (HMAC is cheap) because what an
+*authentic* far-ahead or old epoch means (a clock glitch, a second sender on a
+prefix) is counted and audited; a bad tag changes no state.  An authentic
+epoch too far ahead is refused and counted (``forward_rejections``) instead
+of locking the sender out.  Callers renew a participant's lease only with the
+returned :class:`Announcement`: a replayed old announcement raises and renews
+nothing.
+
+**Fences.**  The in-memory prefix table (recent digests, the last epoch) is a
+bounded :class:`~antireplay.counters.FencedTable`: evicting the prefix with
+the oldest epoch raises its fence (persisted as ``NAMESPACE:KIND:floor``), and
+an unknown prefix at or below it is refused with ``MESSAGE_STALE``
+(``detail="fence"``).  The store's own fence (a memory store's start, a lost
+SQLite file, a restarted Redis) plus ``max_forward_s``, the furthest ahead any
+sender may run, is the **restart fence**: epochs at or below it may have been
+accepted by state that is gone, and are refused (``detail="restart_fence"``).
+So a verifier without persistent state refuses everything sealed before it
+started, and ``max_forward_s`` is required (default 60 s).
 
 **Prefix collisions.**  An *authentic* announcement with an epoch at or below
 ``last[prefix]`` (but within 60 s of it) that is not one the verifier accepted
