@@ -92,7 +92,7 @@ def test_state_repair_needs_kind_for_unreadable_file(tmp_path: Path) -> None:
     path = tmp_path / "x.state"
     path.write_bytes(b"\0\0\0")
     assert CliRunner().invoke(main, ["state", "repair", str(path)]).exit_code == 2
-    result = CliRunner().invoke(main, ["state", "repair", str(path), "--kind", "epoch-verifier"])
+    result = CliRunner().invoke(main, ["state", "repair", str(path), "--kind", "epoch-signer"])
     assert result.exit_code == 0, result.output
 
 

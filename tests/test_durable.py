@@ -121,7 +121,7 @@ def test_repair_keeps_salvaged_ceiling_when_above_clock(tmp_path: Path) -> None:
 
 
 def test_repair_of_unknown_kind_is_an_error(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="unknown state kind"):
+    with pytest.raises(StateFileError, match="unknown state kind"):
         repair(tmp_path / "x", "nope")
 
 
