@@ -121,7 +121,7 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
@@ -331,14 +331,15 @@ class EpochSigner:
 
 @dataclass
 class _Recent:
-    """What the verifier remembers of a live prefix beyond its mark (collision judgement)."""
+    """What the verifier remembers of a live prefix beyond its mark: its store key, and the
+    last (epoch, digest) pairs for the collision judgement."""
 
+    key: str
     pairs: deque[tuple[int, bytes]] = field(default_factory=lambda: deque(maxlen=RECENT_PER_PREFIX))
 
 
-@dataclass(frozen=True)
-class _Claim:
-    """A parsed sealed frame: what it claims, not yet judged."""
+class _Claim(NamedTuple):
+    """A parsed sealed frame: what it claims, not yet judged (a tuple: built per frame)."""
 
     kind: Kind
     prefix: bytes
@@ -386,6 +387,7 @@ class EpochVerifier:
         self.forward_rejections = 0
         self.rotations = 0
         self.warnings: Counter[WarningCode] = Counter()
+        self._fence_seen, self._restart_ns = -math.inf, -1
         self.store.verify()  # loss detection now: a lost store raises its fence
         for kind, table in self._tables.items():
             table.raise_fence(self.store.current(self._key(kind, "floor")) or -1)
@@ -407,7 +409,10 @@ class EpochVerifier:
         lost (or by a previous process, for the memory store): the store's fence plus
         ``max_forward_s``, the furthest ahead any sender could have been.  -1: none."""
         fence = self.store.fence()
-        return -1 if fence == -math.inf else int((fence + self.max_forward_s) * 1e9)
+        if fence != self._fence_seen:  # rare: computed once per fence the store reports
+            self._fence_seen = fence
+            self._restart_ns = int((fence + self.max_forward_s) * 1e9)
+        return self._restart_ns
 
     def last(self, prefix: bytes, kind: Kind = Kind.ANNOUNCEMENT) -> int | None:
         """The last epoch committed from ``prefix`` (None if unknown)."""
@@ -447,10 +452,10 @@ class EpochVerifier:
         kind, prefix, epoch = claim.kind, claim.prefix, claim.epoch
         table = self._tables[kind]
         fence, new = table.fence, prefix not in table
-        entry = table.commit(prefix, epoch, _Recent)
+        entry = table.commit(prefix, epoch, lambda: _Recent(self._key(kind, prefix.hex())))
         if table.fence != fence:
             self.store.advance(self._key(kind, "floor"), table.fence)
-        if not self.store.advance(self._key(kind, prefix.hex()), epoch):
+        if not self.store.advance(entry.key, epoch):
             raise EpochReplayedError(f"epoch {epoch} already committed to the shared state")
         if epoch <= self.restart_fence():  # the advance itself noticed lost state
             raise MessageStaleError("the verifier's store lost state", detail="restart_fence")
