@@ -15,13 +15,13 @@ field one of them ignored.  Exactly one of ``timestamp`` (Unix seconds) and
 present.  ``msg_id`` and the timestamp's *value* are judged by the window
 (``INVALID_MESSAGE_ID`` / ``INVALID_TIMESTAMP``), not here.
 
-Everything a peer controls gets a typed answer, never an exception: bytes
-that are not UTF-8 (JSON text must be, RFC 8259 §8.1) are ``INVALID_ENVELOPE``
-(whatever msgspec's version raises for them, inside ``sig`` too); an integer timestamp beyond the 64-bit range is ``INVALID_TIMESTAMP``
-here, so the window is never handed a number it cannot convert to a float;
-and the integer fields (``type``, ``qos``, ``sequence_number``, ``loa``) are
-bounded in the schema, so no store or audit column meets an integer it
-cannot hold.
+Everything a peer controls gets a typed answer, never an exception: bytes that
+are not UTF-8 (JSON text must be, RFC 8259 §8.1) are ``INVALID_ENVELOPE``
+(whatever msgspec's version raises for them, inside ``sig`` too); an integer
+timestamp beyond the 64-bit range is ``INVALID_TIMESTAMP`` here, so the window
+is never handed a number it cannot convert to a float; and the integer fields
+(``type``, ``qos``, ``sequence_number``, ``loa``) are bounded in the schema, so
+no store or audit column meets an integer it cannot hold.
 
 Canonical form (what signatures cover): the envelope as decoded, **minus
 ``sig`` and ``jwt``**, encoded as JSON with keys sorted, no whitespace, UTF-8,
