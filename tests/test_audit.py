@@ -11,7 +11,8 @@ from click.testing import CliRunner
 from antireplay.audit import GENESIS, AuditLog, _digest, reanchor, verify
 from antireplay.cli import main
 from antireplay.errors import AuditFileError, StateUnavailableError
-from antireplay.gateway import build_receiver, embedded_default
+from antireplay.gateway import embedded_default
+from antireplay.wiring import build_receiver
 
 
 def trail(path: Path, rows: int) -> None:
