@@ -26,7 +26,6 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from antireplay import ManualClock
 from antireplay.cli import _signing_key, main
 from antireplay.clock import SystemClock
-from antireplay.demo import free_port
 from antireplay.errors import (
     AuthenticationError,
     CounterReplayError,
@@ -48,6 +47,7 @@ from antireplay.mavlink import (
 )
 from antireplay.stores.sqlite import SqliteStore
 from tests.conftest import ROOT
+from tests.harness import free_port
 
 KEY = bytes(range(32))
 NOW = 1_800_000_000.0
