@@ -25,10 +25,10 @@ import time
 from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
+from tests.harness import free_port
 
 from antireplay import ManualClock
 from antireplay.clock import SystemClock
-from antireplay.demo import free_port
 from antireplay.errors import CounterReplayError
 from antireplay.mavlink import MavlinkGuard, mav_time
 from benchmarks._timing import per_op_ns, rate, rejected
