@@ -25,11 +25,11 @@ import time
 from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
+from tests.harness import free_port
 
 from antireplay import ManualClock
 from antireplay.clock import SystemClock
-from antireplay.demo import free_port
-from antireplay.errors import CounterReplayedError as CounterReplayError
+from antireplay.errors import CounterReplayedError
 from antireplay.mavlink import MavlinkGuard, mav_time
 from benchmarks._timing import per_op_ns, rate, rejected
 
@@ -171,7 +171,7 @@ def guard_rows() -> None:
     accept_ns = per_op_ns(lambda: guard.check(next(it)), N)
     replayed = batch[0]
 
-    replay_ns = per_op_ns(rejected(lambda: guard.check(replayed), CounterReplayError), N)
+    replay_ns = per_op_ns(rejected(lambda: guard.check(replayed), CounterReplayedError), N)
     receiver = dialect.MAVLink(_Sink(), srcSystem=1, srcComponent=1)
     receiver.signing.secret_key = KEY
     receiver.signing.timestamp = mav_time(clock)

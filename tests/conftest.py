@@ -14,8 +14,10 @@ from typing import Any, TypeVar
 
 import pytest
 
-from antireplay import ManualClock, ReplayAttackError, ReplayCache
+from antireplay import ManualClock, ReplayAttackError, ReplayCache, SecurityConfig
+from antireplay.audit import AuditLog
 from antireplay.pipeline import Receiver
+from tests.envelopes import NOW, registry
 from tests.redis_server import RedisServer
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -73,7 +75,15 @@ def impl() -> Callable[..., ReplayCache]:
 
 @pytest.fixture
 def clock() -> ManualClock:
-    return ManualClock(wall=1_800_000_000.0)
+    return ManualClock(wall=NOW)
+
+
+@pytest.fixture
+def receiver(tmp_path: Path, clock: ManualClock) -> Receiver:
+    """A Receiver trusting :func:`tests.envelopes.registry`, auditing to ``tmp_path``."""
+    return fresh_receiver(
+        SecurityConfig(), registry(), None, AuditLog(tmp_path / "audit.db"), clock
+    )
 
 
 def run_threads(threads_n: int, work: Callable[[int], object]) -> None:

@@ -17,9 +17,10 @@ from antireplay.audit import AuditLog
 from antireplay.auth import write_key_pair
 from antireplay.cli import main
 from antireplay.counters import NonceCounter
-from antireplay.demo import GatewayProcess, write_demo_config
+from antireplay.demo import write_demo_config
 from antireplay.errors import StateFileError
 from tests.conftest import ROOT
+from tests.harness import GatewayProcess
 
 
 @pytest.mark.parametrize("args", [["demo", "--in-process"], ["demo"]])

@@ -37,8 +37,8 @@ from antireplay.stores.redis_store import RedisStore
 from antireplay.stores.sqlite import SqliteStore
 from tests.conftest import kill9_runs, run_threads
 from tests.helpers import store_worker
+from tests.mavlink_frames import KEY, command_frame, encoder
 from tests.redis_server import RedisCluster, RedisServer, primary_and_replica, wait_replicated
-from tests.test_mavlink import KEY, command_frame, encoder
 
 BACKENDS = ["memory", "sqlite", "redis", "redis-cluster"]
 NOW = 2_000_000_000.0  # 2033: after any Redis server's real time in these tests

@@ -32,14 +32,12 @@ from antireplay import counters, epochs
 from antireplay.audit import AuditLog, reanchor, verify
 from antireplay.audit import tail as audit_tail_records
 from antireplay.auth import PrivateKey, load_public_key, sign_envelope, write_key_pair
-from antireplay.clock import SystemClock
 from antireplay.config import AppConfig
 from antireplay.counters import DEFAULT_WINDOW
 from antireplay.dds.cli import dds
 from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.durable import read_kind, repair
 from antireplay.errors import AntiReplayError, ConfigError, ReplayAttackError, StateFileError
-from antireplay.pipeline import TokenBucket
 
 console = Console()
 #: Importing these registers their state reseeders for ``state repair``.
@@ -145,8 +143,9 @@ def _check_audit_anchor(path: Path) -> None:
 
 def preflight(config: AppConfig) -> None:
     """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
-    from antireplay.gateway import build_registry, resolve_upstream  # noqa: PLC0415
+    from antireplay.gateway import resolve_upstream  # noqa: PLC0415
     from antireplay.stores import open_store  # noqa: PLC0415
+    from antireplay.wiring import build_registry  # noqa: PLC0415
 
     try:
         build_registry(config)
@@ -564,8 +563,8 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
     """Forward only MAVLink v2 frames the guard accepts, both directions."""
     import signal  # noqa: PLC0415
 
-    from antireplay.mavlink import MavlinkGuard, MavlinkProxy  # noqa: PLC0415
     from antireplay.stores import open_store  # noqa: PLC0415
+    from antireplay.wiring import build_mavlink_proxy, serve_proxy_metrics  # noqa: PLC0415
 
     key = _signing_key(key_file)
     _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")  # before opening anything
@@ -579,29 +578,16 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
         raise click.BadParameter(f"{store_spec!r}: {exc.allowed}", param_hint="'--store'") from None
     except StateFileError as exc:
         _fail(str(exc))
-    common: dict[str, Any] = {
-        "store": store, "allow_unsigned": frozenset(allow_unsigned),
-        "reorder_window": reorder_window, "write_through": write_through,
-    }  # fmt: skip
-    inbound = MavlinkGuard(key, system_id=system_id, store_prefix="mav-in", **common)
-    outbound = MavlinkGuard(key, store_prefix="mav-out", **common)
-    bucket = TokenBucket(50.0, SystemClock())
-
-    def audit_reject(direction: str, exc: ReplayAttackError, raw: bytes) -> None:
-        if not bucket.take():
-            return
-        sender = f"mav:{raw[5]}/{raw[6]}" if len(raw) > 6 else None
-        audit_log.append(
-            at=time.time(), outcome="rejected", code=str(exc.code), warning=direction,
-            msg_type=None, sender=sender, sender_verified=False, msg_id=None,
-        )  # fmt: skip
-
     try:
-        proxy = MavlinkProxy(_udp(listen), _udp(forward), inbound, outbound, audit_reject)
+        proxy = build_mavlink_proxy(
+            _udp(listen), _udp(forward), key, store, audit_log, system_id=system_id,
+            allow_unsigned=frozenset(allow_unsigned), reorder_window=reorder_window,
+            write_through=write_through,
+        )  # fmt: skip
     except OSError as exc:
         _fail(f"--listen {listen} / --forward {forward}: {exc.strerror or exc}")
     if metrics_port is not None:
-        _serve_proxy_metrics(proxy, metrics_port)
+        serve_proxy_metrics(proxy, metrics_port)
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     signal.signal(signal.SIGINT, lambda *_: done.set())
@@ -614,27 +600,3 @@ def mavlink_proxy(  # noqa: PLR0917 - one option per knob
     proxy.stop()
     audit_log.close()
     store.close()
-
-
-def _serve_proxy_metrics(proxy: Any, port: int) -> None:
-    from prometheus_client import REGISTRY, start_http_server  # noqa: PLC0415
-    from prometheus_client.core import CounterMetricFamily  # noqa: PLC0415
-
-    class ProxyCollector:
-        def collect(self) -> Any:
-            forwarded = CounterMetricFamily(
-                "antireplay_mavlink_forwarded", "Frames forwarded", labels=["direction"]
-            )
-            for direction, n in proxy.stats.forwarded.items():
-                forwarded.add_metric([direction], n)
-            dropped = CounterMetricFamily(
-                "antireplay_mavlink_dropped", "Frames dropped", labels=["direction", "code"]
-            )
-            for label, n in proxy.stats.dropped.items():
-                direction, _, code = label.partition(":")
-                dropped.add_metric([direction, code], n)
-            yield forwarded
-            yield dropped
-
-    REGISTRY.register(ProxyCollector())
-    start_http_server(port, addr="127.0.0.1")

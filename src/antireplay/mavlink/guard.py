@@ -1,10 +1,8 @@
-"""MAVLink v2 signing guard, sender helper and UDP proxy (pymavlink's gaps closed).
+"""MAVLink v2 signing guard: verify, bind to this vehicle, timestamp rules, commit.
 
 Theory of operation
 -------------------
-A signed MAVLink v2 frame ends with a 13-byte trailer: ``link_id`` (1 byte), a
-48-bit timestamp (10 µs units since 2015-01-01 UTC, little-endian) and the
-first 6 bytes of ``SHA-256(key | frame without those 6 bytes)``.
+The frame format and the strict parse are :mod:`antireplay.mavlink.codec`'s.
 :meth:`MavlinkGuard.check` judges one frame, in this order:
 
 1. **parse** strictly (v2 only, known incompat flags, exact length, CRC with
@@ -90,7 +88,8 @@ signature covers: the vehicle (and its components) send as the vehicle's
 system id, a ground station as its own (255 by default), and MAVLink requires
 them to differ on one network.  So a guard refuses, before any crypto, frames
 whose source system belongs to the other side: the vehicle's own id
-(``system_id``, when configured) and, in :class:`MavlinkProxy`, every source
+(``system_id``, when configured) and, in
+:class:`~antireplay.mavlink.proxy.MavlinkProxy`, every source
 system id that has *authenticated* in the other direction (learned only from
 signed, accepted frames; an unsigned allow-listed frame teaches nothing, or a
 spoofed unsigned heartbeat could silence the real vehicle).  A signed vehicle
@@ -98,27 +97,16 @@ frame reflected back to the listen port therefore gets ``WRONG_DIRECTION``,
 and stamps nothing in the inbound stream table.  Configure ``--system-id``:
 without it, a reflection is refused only once the vehicle has spoken through
 this proxy process.
-
-Sender side: :class:`TimestampSource` keeps a link's timestamp tied to real
-time (``max(last + 1, now)``) and raises :class:`NonceExhaustedError` at
-``2**48`` instead of truncating; :func:`sign_frame` signs a v2 frame with it.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
-import socket
-import struct
 import threading
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
-
-from pymavlink.dialects.v20 import ardupilotmega as dialect
-from pymavlink.generator.mavcrc import x25crc
+from dataclasses import dataclass
 
 from antireplay.clock import Clock, resolve
 from antireplay.counters import CounterWindow
@@ -126,10 +114,8 @@ from antireplay.errors import (
     CounterReplayedError as CounterReplayError,
 )
 from antireplay.errors import (
-    InvalidFrameError,
     MessageFromFutureError,
     MessageStaleError,
-    NonceExhaustedError,
     ReplayAttackError,
     StateUnavailableError,
     WrongDirectionError,
@@ -137,98 +123,21 @@ from antireplay.errors import (
 from antireplay.errors import (
     SignatureInvalidError as AuthenticationError,
 )
+from antireplay.mavlink.codec import (
+    MAV_EPOCH,
+    TS_LIMIT,
+    UNITS_PER_S,
+    Frame,
+    mav_time,
+    parse_frame,
+    target_system,
+)
 from antireplay.stores import ReplayStore
 from antireplay.window import NEVER
 
-STX_V2 = 0xFD
-SIGNED = 0x01
-HEADER = 10
-SIG_LEN = 13
-MAV_EPOCH = 1_420_070_400  # 2015-01-01T00:00:00Z
-TS_LIMIT = 2**48
-UNITS_PER_S = 100_000
 _MS = UNITS_PER_S // 1000  # the lease's expiry is stored in milliseconds
 _GENERATION = 2**42  # lease value = generation * 2**42 + expiry (ms): 139 years of expiry
 _AHEAD_STEP = UNITS_PER_S // 10  # the persisted ahead margin grows by 0.1 s steps
-_HEAD = struct.Struct("<BBBBBBBHB")  # stx len incompat compat seq sys comp msgid(lo16) msgid(hi8)
-
-
-def mav_time(clock: Clock) -> int:
-    """The wall clock in MAVLink signing units (10 µs since 2015-01-01)."""
-    return int((clock.wall() - MAV_EPOCH) * UNITS_PER_S)
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One parsed MAVLink v2 frame."""
-
-    raw: bytes
-    sysid: int
-    compid: int
-    msgid: int
-    payload: bytes
-    signed: bool
-    link_id: int = 0
-    timestamp: int = 0
-
-    @property
-    def stream(self) -> tuple[int, int, int]:
-        return (self.sysid, self.compid, self.link_id)
-
-
-def split_frames(datagram: bytes) -> list[bytes]:
-    """Cut a datagram into v2 frames; anything malformed raises ``INVALID_FRAME``."""
-    frames, at = [], 0
-    while at < len(datagram):
-        if datagram[at] != STX_V2:
-            raise InvalidFrameError("not a MAVLink v2 frame (v1 frames cannot be signed)")
-        if len(datagram) - at < HEADER + 2:
-            raise InvalidFrameError("truncated header")
-        length, incompat = datagram[at + 1], datagram[at + 2]
-        total = HEADER + length + 2 + (SIG_LEN if incompat & SIGNED else 0)
-        if len(datagram) - at < total:
-            raise InvalidFrameError("truncated frame")
-        frames.append(bytes(datagram[at : at + total]))
-        at += total
-    if not frames:
-        raise InvalidFrameError("empty datagram")
-    return frames
-
-
-def parse_frame(raw: bytes) -> Frame:
-    """Strictly parse one v2 frame (length, flags, CRC for known messages)."""
-    if len(raw) < HEADER + 2 or raw[0] != STX_V2:
-        raise InvalidFrameError("not a MAVLink v2 frame")
-    _, length, incompat, _, _, sysid, compid, lo, hi = _HEAD.unpack_from(raw)
-    if incompat & ~SIGNED:
-        raise InvalidFrameError("unknown incompatibility flags")
-    signed = bool(incompat & SIGNED)
-    if len(raw) != HEADER + length + 2 + (SIG_LEN if signed else 0):
-        raise InvalidFrameError("frame length does not match its header")
-    msgid = lo | hi << 16
-    payload = raw[HEADER : HEADER + length]
-    spec = dialect.mavlink_map.get(msgid)
-    if spec is not None:
-        crc = x25crc(raw[1 : HEADER + length])
-        crc.accumulate(bytes([spec.crc_extra]))
-        if crc.crc != int.from_bytes(raw[HEADER + length : HEADER + length + 2], "little"):
-            raise InvalidFrameError("CRC mismatch")
-    if not signed:
-        return Frame(raw, sysid, compid, msgid, payload, False)
-    trailer = raw[-SIG_LEN:]
-    timestamp = int.from_bytes(trailer[1:7], "little")
-    return Frame(raw, sysid, compid, msgid, payload, True, trailer[0], timestamp)
-
-
-def target_system(frame: Frame) -> int | None:
-    """The frame's ``target_system`` field, if its message (known to the dialect) has one."""
-    spec = dialect.mavlink_map.get(frame.msgid)
-    if spec is None or "target_system" not in spec.ordered_fieldnames:
-        return None
-    size = spec.unpacker.size
-    payload = frame.payload[:size].ljust(size, b"\0")  # v2 trims trailing zero bytes
-    values = spec.unpacker.unpack(payload)
-    return int(values[spec.ordered_fieldnames.index("target_system")])
 
 
 @dataclass(frozen=True)
@@ -539,181 +448,3 @@ class MavlinkGuard:
 
     def _store_key(self, key: tuple[int, int, int]) -> str:
         return f"{self.prefix}:{key[0]}:{key[1]}:{key[2]}"
-
-
-class TimestampSource:
-    """A sender's link timestamp tied to real time; never wraps past 2**48."""
-
-    def __init__(self, clock: Clock | None = None, last: int = 0) -> None:
-        self.clock = resolve(clock)
-        self._last = last
-        self._lock = threading.Lock()
-
-    def next(self) -> int:
-        with self._lock:
-            ts = max(self._last + 1, mav_time(self.clock))
-            if ts >= TS_LIMIT:
-                raise NonceExhaustedError("MAVLink timestamp reached 2**48; rekey the link")
-            self._last = ts
-            return ts
-
-
-def sign_frame(frame: bytes, key: bytes, link_id: int, timestamps: TimestampSource) -> bytes:
-    """Sign an unsigned v2 frame of a message known to the dialect."""
-    parsed = parse_frame(frame)
-    if parsed.signed:
-        raise ValueError("frame is already signed")
-    spec = dialect.mavlink_map.get(parsed.msgid)
-    if spec is None:
-        raise ValueError(f"message {parsed.msgid} is not in the dialect")
-    head = bytearray(frame[:HEADER])
-    head[2] |= SIGNED
-    body = bytes(head) + parsed.payload
-    crc = x25crc(body[1:])
-    crc.accumulate(bytes([spec.crc_extra]))
-    checksum: int = crc.crc
-    signed = body + checksum.to_bytes(2, "little")
-    signed += bytes([link_id]) + timestamps.next().to_bytes(6, "little")
-    return signed + hashlib.sha256(key + signed).digest()[:6]
-
-
-@dataclass
-class ProxyStats:
-    """What the proxy did, per direction."""
-
-    forwarded: Counter[str] = field(default_factory=Counter)
-    dropped: Counter[str] = field(default_factory=Counter)
-
-
-class MavlinkProxy:
-    """UDP proxy: frames from the ground side go to the vehicle only if ``inbound`` accepts
-    them; frames from the vehicle go back to the ground peer only if ``outbound`` accepts
-    them.  ``on_reject`` receives each rejection (for audit and metrics).
-
-    The ground peer (where telemetry goes) is learned only from a datagram in which at
-    least one *signed* frame was accepted: garbage, forged or replayed frames, and
-    unsigned allow-listed frames (anyone can make those), never move it, so one spoofed
-    datagram cannot redirect the vehicle's telemetry.  Until a peer has authenticated,
-    telemetry is dropped and counted as ``outbound:NO_PEER``.  Residual: an attacker who
-    sees a ground frame before the proxy does can race it in from its own address; that
-    frame is authentic and fresh, so the peer follows it (UDP carries no authenticated
-    address; the same holds for every MAVLink endpoint).  Each side's authenticated
-    source systems are refused on the other side (module docstring: direction binding).
-    """
-
-    def __init__(
-        self,
-        listen: tuple[str, int],
-        forward: tuple[str, int],
-        inbound: MavlinkGuard,
-        outbound: MavlinkGuard,
-        on_reject: Callable[[str, ReplayAttackError, bytes], Any] | None = None,
-    ) -> None:
-        self.ground = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.ground.bind(listen)
-        self.vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.vehicle.connect(forward)
-        for sock in (self.ground, self.vehicle):
-            sock.settimeout(0.2)  # lets the loops notice stop() promptly
-        self.inbound, self.outbound = inbound, outbound
-        self.on_reject = on_reject
-        self.stats = ProxyStats()
-        self._peer: tuple[str, int] | None = None
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
-
-    @property
-    def address(self) -> tuple[str, int]:
-        host, port = self.ground.getsockname()[:2]
-        return str(host), int(port)
-
-    @property
-    def peer(self) -> tuple[str, int] | None:
-        """Where telemetry goes: the last ground address that sent an authenticated frame."""
-        return self._peer
-
-    def start(self) -> None:
-        """Start both guards (lease, flusher), then the two forwarding loops."""
-        self.inbound.start()
-        self.outbound.start()
-        for target in (self._from_ground, self._from_vehicle):
-            thread = threading.Thread(target=target, daemon=True)
-            thread.start()
-            self._threads.append(thread)
-
-    def stop(self) -> None:
-        """Stop forwarding, then flush both guards and release their leases."""
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(timeout=5)
-        for sock in (self.ground, self.vehicle):
-            sock.close()
-        self.inbound.stop()
-        self.outbound.stop()
-
-    def _filter(
-        self, direction: str, guard: MavlinkGuard, other: MavlinkGuard, datagram: bytes
-    ) -> tuple[bytes, bool]:
-        """The accepted frames, and whether any of them was signed (authenticated)."""
-        out, authenticated = bytearray(), False
-        try:
-            frames = split_frames(datagram)
-        except ReplayAttackError as exc:
-            self._reject(direction, exc, datagram)
-            return b"", False
-        for raw in frames:
-            try:
-                verdict = guard.check(raw)
-            except ReplayAttackError as exc:
-                self._reject(direction, exc, raw)
-                continue
-            if verdict.signed:
-                authenticated = True
-                other.refused_sources.add(verdict.stream[0])  # this side's system, from now on
-            self.stats.forwarded[direction] += 1
-            out += raw
-        return bytes(out), authenticated
-
-    def _reject(self, direction: str, exc: ReplayAttackError, raw: bytes) -> None:
-        self.stats.dropped[f"{direction}:{exc.code}"] += 1
-        if self.on_reject is not None:
-            self.on_reject(direction, exc, raw)
-
-    def _from_ground(self) -> None:
-        while not self._stop.is_set():
-            try:
-                datagram, peer = self.ground.recvfrom(65_535)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            allowed, authenticated = self._filter("inbound", self.inbound, self.outbound, datagram)
-            if authenticated:
-                self._peer = peer
-            if allowed:
-                try:
-                    self.vehicle.send(allowed)
-                except OSError:
-                    self.stats.dropped["inbound:VEHICLE_UNREACHABLE"] += 1
-
-    def _from_vehicle(self) -> None:
-        while not self._stop.is_set():
-            try:
-                datagram = self.vehicle.recv(65_535)
-            except TimeoutError:
-                continue
-            except (ConnectionRefusedError, ConnectionResetError):
-                continue  # the vehicle is not up yet: ICMP port unreachable
-            except OSError:
-                return
-            allowed, _ = self._filter("outbound", self.outbound, self.inbound, datagram)
-            if not allowed:
-                continue
-            peer = self._peer
-            if peer is None:
-                self.stats.dropped["outbound:NO_PEER"] += 1
-                continue
-            try:
-                self.ground.sendto(allowed, peer)
-            except OSError:
-                self.stats.dropped["outbound:GROUND_UNREACHABLE"] += 1
