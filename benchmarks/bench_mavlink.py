@@ -168,10 +168,10 @@ def guard_rows() -> None:
     batch = frames(N * 7, mav_time(clock))
     guard = MavlinkGuard(KEY, clock=clock, system_id=1)
     it = iter(batch)
-    accept_ns = per_op_ns(lambda: guard.check(next(it)), N)
+    accept_ns = per_op_ns(lambda: guard.open(next(it)), N)
     replayed = batch[0]
 
-    replay_ns = per_op_ns(rejected(lambda: guard.check(replayed), CounterReplayedError), N)
+    replay_ns = per_op_ns(rejected(lambda: guard.open(replayed), CounterReplayedError), N)
     receiver = dialect.MAVLink(_Sink(), srcSystem=1, srcComponent=1)
     receiver.signing.secret_key = KEY
     receiver.signing.timestamp = mav_time(clock)

@@ -6,8 +6,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
-from antireplay.errors import InvalidFrameError, NonceExhaustedError
-from antireplay.errors import SignatureInvalidError as AuthenticationError
+from antireplay.errors import InvalidFrameError, NonceExhaustedError, SignatureInvalidError
 from antireplay.mavlink import TS_LIMIT, MavlinkGuard, TimestampSource, mav_time, sign_frame
 from tests.mavlink_frames import KEY, Sink
 
@@ -17,7 +16,7 @@ from tests.mavlink_frames import KEY, Sink
 )
 def test_malformed_frames_are_typed(clock: ManualClock, bad: bytes) -> None:
     with pytest.raises(InvalidFrameError):
-        MavlinkGuard(KEY, clock=clock).check(bad)
+        MavlinkGuard(KEY, clock=clock).open(bad)
 
 
 def test_timestamp_source_tracks_time_and_refuses_wrap(clock: ManualClock) -> None:
@@ -34,10 +33,10 @@ def test_sign_frame_is_accepted_by_guard_and_pymavlink(clock: ManualClock) -> No
     plain = dialect.MAVLink(Sink(), srcSystem=255, srcComponent=190)
     plain.command_long_send(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)
     signed = sign_frame(plain.file.frames[-1], KEY, 4, TimestampSource(clock))
-    assert MavlinkGuard(KEY, clock=clock).check(signed).stream == (255, 190, 4)
+    assert MavlinkGuard(KEY, clock=clock).open(signed).stream == (255, 190, 4)
     receiver = dialect.MAVLink(Sink())
     receiver.signing.secret_key = KEY
     receiver.signing.timestamp = mav_time(clock)
     assert receiver.check_signature(bytearray(signed), 255, 190)
-    with pytest.raises(AuthenticationError):  # the signature binds the key: another one fails
-        MavlinkGuard(bytes(reversed(KEY)), clock=clock).check(signed)
+    with pytest.raises(SignatureInvalidError):  # the signature binds the key: another one fails
+        MavlinkGuard(bytes(reversed(KEY)), clock=clock).open(signed)

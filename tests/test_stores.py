@@ -169,9 +169,9 @@ def test_two_mavlink_guards_sharing_a_store_accept_a_frame_once(store: ReplaySto
     clock = ManualClock(wall=NOW)
     guards = [MavlinkGuard(KEY, store=store, clock=clock) for _ in range(2)]
     frame = command_frame(*encoder(ts=mav_time(clock)))
-    guards[0].check(frame)
+    guards[0].open(frame)
     with pytest.raises(ReplayAttackError):
-        guards[1].check(frame)  # its own table has never seen the stream: the store has
+        guards[1].open(frame)  # its own table has never seen the stream: the store has
 
 
 # --- clock steps --------------------------------------------------------------------------------

@@ -28,12 +28,12 @@ def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(
     first, last = records[0], records[-1]
     assert first.at == clock.wall() - 2 / MAVLINK_AUDIT_PER_S
     assert (first.sender, first.sender_verified, first.code) == (
-        "mav:255/190",
+        "mav:inbound:255/190",
         False,
         "INVALID_FRAME",
     )
-    assert (first.outcome, first.warning) == ("rejected", "inbound")
-    assert (last.sender, last.warning) == (None, "outbound")
+    assert (first.outcome, first.warning) == ("rejected", None)
+    assert (last.sender, last.warning) == ("mav:outbound", None)
 
 
 def test_mavlink_proxy_guards_bind_only_inbound_to_the_vehicle(tmp_path: Path) -> None:

@@ -465,7 +465,7 @@ def state() -> None:
 @click.argument("path", type=click.Path(path_type=Path))
 @click.option(
     "--kind",
-    type=click.Choice(["nonce-counter", "epoch-signer", "epoch-verifier"]),
+    type=click.Choice(["nonce-counter", "epoch-signer"]),
     help="State kind; read from the file when it is still legible.",
 )
 def state_repair(path: Path, kind: str | None) -> None:

@@ -239,13 +239,12 @@ class CounterWindow:
     def commit(self, c: int) -> None:
         """Record ``c`` (after authentication); a racing duplicate gets the error ``check``
         would now give."""
-        if not self.accept(c):
+        if not self._record(c):
             self.check(c)
             raise CounterReplayedError(f"counter {c} already accepted")
 
-    def accept(self, c: int) -> bool:
-        """Transitional (the MAVLink guard's spelling until it adopts :meth:`commit`):
-        record ``c``; True iff it was fresh."""
+    def _record(self, c: int) -> bool:
+        """Set ``c``'s bit under the lock; True iff it was fresh and in range."""
         if not 0 <= c < self.limit:
             return False
         with self._lock:

@@ -17,8 +17,8 @@ object on them.
   options on an opened store and audit trail: an inbound guard (bound to
   ``system_id``) and an outbound guard on their own store prefixes (``mav-in``,
   ``mav-out``), and the rejection auditor (:func:`mavlink_auditor`), which records
-  each dropped frame with the source its header claims (unverified, so
-  ``sender_verified`` is false), rate-limited so that a flood of garbage cannot
+  each dropped frame with its direction and the source its header claims
+  (``mav:inbound:255/190``; unverified, so ``sender_verified`` is false), rate-limited so that a flood of garbage cannot
   grow the trail without bound.  :func:`serve_proxy_metrics` exposes the proxy's
   counters to Prometheus.
 
@@ -111,10 +111,11 @@ def mavlink_auditor(audit: AuditLog, clock: Clock | None = None) -> Rejection:
         if not bucket.take():
             return
         source = claimed_source(raw)
-        sender = None if source is None else f"mav:{source[0]}/{source[1]}"
+        claimed = "" if source is None else f":{source[0]}/{source[1]}"
         audit.append(
-            at=clock.wall(), outcome="rejected", code=str(exc.code), warning=direction,
-            msg_type=None, sender=sender, sender_verified=False, msg_id=None,
+            at=clock.wall(), outcome="rejected", code=str(exc.code), warning=None,
+            msg_type=None, sender=f"mav:{direction}{claimed}", sender_verified=False,
+            msg_id=None,
         )  # fmt: skip
 
     return audit_reject

@@ -3,7 +3,9 @@
 Theory of operation
 -------------------
 The frame format and the strict parse are :mod:`antireplay.mavlink.codec`'s.
-:meth:`MavlinkGuard.check` judges one frame, in this order:
+Two phases, as everywhere: :meth:`MavlinkGuard.check` records nothing,
+:meth:`MavlinkGuard.open` is the recipe (check, authenticate, commit).  A frame
+is judged in this order:
 
 1. **parse** strictly (v2 only, known incompat flags, exact length, CRC with
    the dialect's ``crc_extra`` when the message is known) -> ``INVALID_FRAME``;
@@ -11,25 +13,35 @@ The frame format and the strict parse are :mod:`antireplay.mavlink.codec`'s.
    refused with ``WRONG_DIRECTION`` (see *Direction binding* below); a
    guard built with ``system_id`` refuses that id as a source from the start;
    **unsigned** frames pass only if their message id is on the explicit
-   allow-list; a frame carrying the signed flag never falls back to it;
-3. **verify** the signature in constant time -> ``SIGNATURE_INVALID``.  Nothing
+   allow-list (else ``SIGNATURE_REQUIRED``); a frame carrying the signed flag
+   never falls back to it;
+3. **timestamp rules**, reading only memory: any timestamp more than
+   ``max_forward_s`` ahead of the receiver's wall clock is
+   ``MESSAGE_FROM_FUTURE``; at or below the restart fence ``MESSAGE_STALE``; a
+   held stream ``(system, component, link)`` needs ``ts > last`` (or, with
+   ``reorder_window``, a fresh counter in an RFC 6479
+   :class:`~antireplay.counters.CounterWindow`) -> ``COUNTER_REPLAYED``; a
+   stream the table does not hold must be above the table's eviction fence
+   (``MESSAGE_STALE``, ``detail="fence"``).  So a replay costs no HMAC.  This
+   is :meth:`~MavlinkGuard.check`;
+4. **verify** the signature in constant time -> ``SIGNATURE_INVALID``.  Nothing
    before this point touches the stream table, so a forged frame with
    timestamp ``2**48 - 1`` changes nothing (pymavlink records it first and is
    jammed until restart), and forged frames cannot grow the table;
-4. **bind** to this vehicle: with ``system_id`` set, a frame whose
-   ``target_system`` is another vehicle is refused (0 = broadcast passes);
-5. **timestamp rules** per stream ``(system, component, link)``:
-   a known stream needs ``ts > last`` (or, with ``reorder_window``, a fresh
-   counter in an RFC 6479 :class:`~antireplay.counters.CounterWindow`);
-   a *new* stream's first timestamp must be within ``new_stream_max_age_s``
-   (60 s) of the **receiver's wall clock** (pymavlink compares it with its own
-   counter, which a restart resets) and above the eviction fence; any
-   timestamp more than ``max_forward_s`` ahead of the wall clock is refused;
-6. **commit** under a lock: the stream's state advances in memory; with a
+5. **bind** to this vehicle: with ``system_id`` set, a frame whose
+   ``target_system`` is another vehicle is ``WRONG_TARGET`` (0 = broadcast
+   passes);
+6. **commit** under a lock: step 3 again on a fresh clock; a *new* stream reads
+   its persisted high-water from the store (a floor) and, without one, its
+   first timestamp must be within ``new_stream_max_age_s`` (60 s) of the
+   **receiver's wall clock** (pymavlink compares it with its own counter, which
+   a restart resets); then the stream's state advances in memory, and with a
    store it is persisted off the frame path (*Persistence* below).
 
-The stream table is bounded: when full, the least recently used stream is
-evicted and a fence rises to its last timestamp; new streams must be above it.
+The stream table is a :class:`~antireplay.counters.FencedTable`: bounded; when
+full, the stream with the lowest high-water is evicted and the fence rises to
+it; a stream the table does not hold must come back above the fence, even when
+the store holds a (possibly older, not yet flushed) high-water for it.
 
 Persistence: a periodic flush and a restart fence, not an fsync per frame
 ------------------------------------------------------------------------
@@ -105,23 +117,21 @@ import hashlib
 import hmac
 import threading
 import time
-from collections import Counter, OrderedDict
+from collections import Counter
 from dataclasses import dataclass
 
 from antireplay.clock import Clock, resolve
-from antireplay.counters import CounterWindow
+from antireplay.counters import CounterWindow, FencedTable
 from antireplay.errors import (
-    CounterReplayedError as CounterReplayError,
-)
-from antireplay.errors import (
+    CounterReplayedError,
     MessageFromFutureError,
     MessageStaleError,
     ReplayAttackError,
+    SignatureInvalidError,
+    SignatureRequiredError,
     StateUnavailableError,
     WrongDirectionError,
-)
-from antireplay.errors import (
-    SignatureInvalidError as AuthenticationError,
+    WrongTargetError,
 )
 from antireplay.mavlink.codec import (
     MAV_EPOCH,
@@ -152,13 +162,15 @@ class MavVerdict:
 
 @dataclass
 class _Stream:
-    last: int
+    """A stream's entry beside its high-water mark in the table (the mark is ``last``)."""
+
     floor: int = -1  # restored from a store: everything at or below was (or may have been) seen
     window: CounterWindow | None = None
 
 
 class MavlinkGuard:
-    """Judges MAVLink v2 frames: verify, bind, timestamp rules, commit (module docstring).
+    """Judges MAVLink v2 frames: :meth:`check` records nothing, :meth:`open` checks,
+    verifies, binds and commits (module docstring).
 
     With a store, call :meth:`start` before the first frame (it claims the lease and
     starts the flusher; a first frame claims lazily otherwise) and :meth:`stop` after
@@ -202,8 +214,7 @@ class MavlinkGuard:
         self._lease_skew = int(lease_skew_s * UNITS_PER_S)
         #: Source system ids that belong to the other direction (module docstring).
         self.refused_sources: set[int] = set() if system_id is None else {system_id}
-        self._streams: OrderedDict[tuple[int, int, int], _Stream] = OrderedDict()
-        self._fence = -1
+        self._streams: FencedTable[tuple[int, int, int], _Stream] = FencedTable(max_streams)
         self._lock = threading.Lock()
         self.counts: Counter[str] = Counter()
         # Periodic persistence (module docstring): all MAVLink units except the generation.
@@ -225,25 +236,39 @@ class MavlinkGuard:
         """Whether this guard persists periodically behind a lease (module docstring)."""
         return self.store is not None and not self.write_through
 
-    def check(self, raw: bytes) -> MavVerdict:
-        """Accept one frame or raise a typed :class:`ReplayAttackError`."""
+    def check(self, raw: bytes) -> Frame:
+        """Records nothing: parse, direction, allow-list and every stream rule a replay
+        fails, before any cryptography (steps 1, 2 and 5 without the store)."""
         frame = parse_frame(raw)
         if frame.sysid in self.refused_sources:
             raise WrongDirectionError(f"system {frame.sysid} sends from the other side of the link")
         if not frame.signed:
             if frame.msgid not in self.allow_unsigned:
-                raise AuthenticationError(f"unsigned message {frame.msgid} not allow-listed")
+                raise SignatureRequiredError(f"unsigned message {frame.msgid} not allow-listed")
+            return frame
+        now = mav_time(self.clock)
+        stream = self._judge(frame.stream, frame.timestamp, now)
+        if (
+            stream is None
+            and self.store is None
+            and frame.timestamp < now - self.new_stream_max_age
+        ):
+            raise MessageStaleError(self._too_old(frame.timestamp, now))
+        return frame
+
+    def open(self, raw: bytes) -> MavVerdict:
+        """Check, verify the signature, bind, commit: accept one frame or raise a typed
+        :class:`ReplayAttackError`.  Of two racers on one timestamp exactly one passes."""
+        frame = self.check(raw)
+        if not frame.signed:
             self._bind(frame)
             return MavVerdict(frame.stream, frame.msgid, 0, False)
         expected = hashlib.sha256(self._key + raw[:-6]).digest()[:6]
         if not hmac.compare_digest(expected, raw[-6:]):
-            raise AuthenticationError("MAVLink signature does not verify")
+            raise SignatureInvalidError("MAVLink signature does not verify")
         self._bind(frame)
-        now = mav_time(self.clock)
-        if frame.timestamp > now + self.max_forward:
-            raise MessageFromFutureError("timestamp too far ahead of the receiver's clock")
         with self._lock:
-            self._commit(frame, now)
+            self._commit(frame, mav_time(self.clock))
         return MavVerdict(frame.stream, frame.msgid, frame.timestamp, True)
 
     # --- lifecycle: lease, flusher ---------------------------------------------------------
@@ -383,35 +408,60 @@ class MavlinkGuard:
             return
         target = target_system(frame)
         if target not in (None, 0, self.system_id):
-            raise AuthenticationError(f"frame addressed to system {target}, not this vehicle")
+            raise WrongTargetError(f"frame addressed to system {target}, not this vehicle")
+
+    def _judge(self, key: tuple[int, int, int], ts: int, now: int) -> _Stream | None:
+        """Records nothing: the rules a held stream's timestamp, or a new stream's, must
+        pass; the stream's entry, or None for a stream the table does not hold."""
+        if ts > now + self.max_forward:
+            raise MessageFromFutureError(
+                f"timestamp {(ts - now) / UNITS_PER_S:.1f} s ahead of the receiver's clock"
+            )
+        if ts <= self.restart_fence:
+            raise MessageStaleError(
+                "timestamp at or below the restart fence (the previous run may have accepted it)"
+            )
+        stream = self._streams.check(key, ts)
+        if stream is None:
+            return None
+        last = self._streams.mark(key)
+        assert last is not None
+        if ts <= stream.floor:
+            raise CounterReplayedError("timestamp not newer than the persisted stream state")
+        if stream.window is None:
+            if ts <= last:
+                raise CounterReplayedError(
+                    f"timestamp {(last - ts) / UNITS_PER_S:.3f} s behind the stream's last"
+                )
+        else:
+            stream.window.check(ts)
+        return stream
+
+    def _too_old(self, ts: int, now: int) -> str:
+        limit = self.new_stream_max_age / UNITS_PER_S
+        return f"new stream's timestamp {(now - ts) / UNITS_PER_S:.1f} s behind (limit {limit:g} s)"
 
     def _commit(self, frame: Frame, now: int) -> None:
         key, ts = frame.stream, frame.timestamp
         periodic = self.periodic
         if periodic and not self._generation:
             self._acquire(now)  # no start(): the first frame claims the lease
-        stream = self._streams.get(key)
+        stream = self._judge(key, ts, now)
         if stream is None:
             stream = self._open_stream(key, ts, now)
-        if ts <= stream.floor:
-            raise CounterReplayError("timestamp not newer than the persisted stream state")
-        if stream.window is None:
-            if ts <= stream.last:
-                raise CounterReplayError("timestamp not newer than the stream's last")
-        else:
-            stream.window.check(ts)
-            if not stream.window.accept(ts):
-                raise CounterReplayError("timestamp already seen in the reorder window")
         if periodic:
             self._before_accept(ts, now)
-            self._dirty[self._store_key(key)] = max(ts, stream.last)
         elif self.store is not None and not self.store.advance(self._store_key(key), ts):
             # Another guard on the same store (a second proxy, a restarted one still
             # running) already took this timestamp or a later one: this copy is a replay.
-            raise CounterReplayError("timestamp already committed to the shared stream state")
-        stream.last = max(stream.last, ts)
-        self._streams[key] = stream
-        self._streams.move_to_end(key)
+            raise CounterReplayedError("timestamp already committed to the shared stream state")
+        self._streams.commit(key, ts, lambda: stream)
+        if stream.window is not None:
+            stream.window.commit(ts)
+        if periodic:
+            last = self._streams.mark(key)
+            assert last is not None
+            self._dirty[self._store_key(key)] = last
 
     def _before_accept(self, ts: int, now: int) -> None:
         """What must be durable before a frame is accepted: a live lease, the ahead margin."""
@@ -427,23 +477,18 @@ class MavlinkGuard:
         self._high = max(self._high, now)
 
     def _open_stream(self, key: tuple[int, int, int], ts: int, now: int) -> _Stream:
+        """A stream the table does not hold: its persisted high-water (if any) becomes its
+        floor; without one, its first timestamp must be recent.  The table's eviction
+        fence applies either way (a stream evicted before its last flush may have a
+        persisted value below what this process accepted)."""
         stored = self.store.current(self._store_key(key)) if self.store is not None else None
-        if ts <= self.restart_fence:
-            raise MessageStaleError(
-                "timestamp at or below the restart fence (the previous run may have accepted it)"
-            )
-        if stored is None:
-            if ts < now - self.new_stream_max_age:
-                raise MessageStaleError("new stream's timestamp is more than 60 s behind")
-            if ts <= self._fence:
-                raise MessageStaleError("new stream below the eviction fence")
-        seen = -1 if stored is None else stored
-        stream = _Stream(last=seen, floor=seen)
+        if stored is None and ts < now - self.new_stream_max_age:
+            raise MessageStaleError(self._too_old(ts, now))
+        stream = _Stream(floor=-1 if stored is None else stored)
+        if ts <= stream.floor:
+            raise CounterReplayedError("timestamp not newer than the persisted stream state")
         if self.reorder_window:
             stream.window = CounterWindow(self.reorder_window, limit=TS_LIMIT)
-        if len(self._streams) >= self.max_streams:
-            _, evicted = self._streams.popitem(last=False)
-            self._fence = max(self._fence, evicted.last)
         return stream
 
     def _store_key(self, key: tuple[int, int, int]) -> str:

@@ -114,7 +114,7 @@ class MavlinkProxy:
             return b"", False
         for raw in frames:
             try:
-                verdict = guard.check(raw)
+                verdict = guard.open(raw)
             except ReplayAttackError as exc:
                 self._reject(direction, exc, raw)
                 continue
