@@ -19,8 +19,8 @@ object on them.
   ``mav-out``), and the rejection auditor (:func:`mavlink_auditor`), which records
   each dropped frame with its direction and the source its header claims
   (``mav:inbound:255/190``; unverified, so ``sender_verified`` is false),
-  rate-limited so that a flood of garbage cannot grow the trail without bound.  :func:`serve_proxy_metrics` exposes the proxy's
-  counters to Prometheus.
+  rate-limited so that a flood of garbage cannot grow the trail without bound.
+  :func:`serve_proxy_metrics` exposes the proxy's counters to Prometheus.
 
 The MAVLink stack is imported only when a proxy is built, so the gateway does not
 load the MAVLink dialect.
