@@ -11,7 +11,8 @@ The frame format and the strict parse are :mod:`antireplay.mavlink.codec`'s.
    refused with ``WRONG_DIRECTION`` (see *Direction binding* below); a
    guard built with ``system_id`` refuses that id as a source from the start;
    **unsigned** frames pass only if their message id is on the explicit
-   allow-list; a frame carrying the signed flag never falls back to it;
+   allow-list, MAVLink v1 frames only if it is also on ``allow_v1``; a frame
+   carrying the signed flag never falls back to it;
 3. **verify** the signature in constant time -> ``SIGNATURE_INVALID``.  Nothing
    before this point touches the stream table, so a forged frame with
    timestamp ``2**48 - 1`` changes nothing (pymavlink records it first and is
@@ -144,6 +145,7 @@ class MavVerdict:
     msgid: int
     timestamp: int
     signed: bool
+    frame: Frame  # the parsed frame, so that an adapter routes without parsing it again
 
 
 @dataclass
@@ -169,6 +171,7 @@ class MavlinkGuard:
         clock: Clock | None = None,
         system_id: int | None = None,
         allow_unsigned: frozenset[int] = frozenset(),
+        allow_v1: frozenset[int] = frozenset(),
         max_streams: int = 256,
         reorder_window: int = 0,
         new_stream_max_age_s: float = 60.0,
@@ -187,6 +190,7 @@ class MavlinkGuard:
         self.clock = resolve(clock)
         self.system_id = system_id
         self.allow_unsigned = allow_unsigned
+        self.allow_v1 = allow_v1 & allow_unsigned
         self.max_streams = max_streams
         self.reorder_window = reorder_window
         self.new_stream_max_age = int(new_stream_max_age_s * UNITS_PER_S)
@@ -225,22 +229,29 @@ class MavlinkGuard:
         """Accept one frame or raise a typed :class:`ReplayAttackError`."""
         frame = parse_frame(raw)
         if frame.sysid in self.refused_sources:
-            raise WrongDirectionError(f"system {frame.sysid} sends from the other side of the link")
+            raise WrongDirectionError(
+                f"wrong link: system {frame.sysid} sends from the other side of the link"
+            )
         if not frame.signed:
             if frame.msgid not in self.allow_unsigned:
                 raise AuthenticationError(f"unsigned message {frame.msgid} not allow-listed")
+            if frame.version == 1 and frame.msgid not in self.allow_v1:
+                raise AuthenticationError(f"MAVLink v1 message {frame.msgid} not allow-listed")
             self._bind(frame)
-            return MavVerdict(frame.stream, frame.msgid, 0, False)
+            return MavVerdict(frame.stream, frame.msgid, 0, False, frame)
         expected = hashlib.sha256(self._key + raw[:-6]).digest()[:6]
         if not hmac.compare_digest(expected, raw[-6:]):
             raise AuthenticationError("MAVLink signature does not verify")
         self._bind(frame)
         now = mav_time(self.clock)
         if frame.timestamp > now + self.max_forward:
-            raise MessageFromFutureError("timestamp too far ahead of the receiver's clock")
+            raise MessageFromFutureError(
+                f"timestamp {_s(frame.timestamp - now)} s ahead of the receiver's clock "
+                f"(limit {_s(self.max_forward)} s)"
+            )
         with self._lock:
             self._commit(frame, now)
-        return MavVerdict(frame.stream, frame.msgid, frame.timestamp, True)
+        return MavVerdict(frame.stream, frame.msgid, frame.timestamp, True, frame)
 
     # --- lifecycle: lease, flusher ---------------------------------------------------------
 
@@ -390,10 +401,14 @@ class MavlinkGuard:
         if stream is None:
             stream = self._open_stream(key, ts, now)
         if ts <= stream.floor:
-            raise CounterReplayError("timestamp not newer than the persisted stream state")
+            raise CounterReplayError(
+                f"old timestamp: {_s(stream.floor - ts)} s behind the persisted stream state"
+            )
         if stream.window is None:
             if ts <= stream.last:
-                raise CounterReplayError("timestamp not newer than the stream's last")
+                raise CounterReplayError(
+                    f"old timestamp: {_s(stream.last - ts)} s behind the stream's last"
+                )
         else:
             stream.window.check(ts)
             if not stream.window.accept(ts):
@@ -426,13 +441,19 @@ class MavlinkGuard:
         stored = self.store.current(self._store_key(key)) if self.store is not None else None
         if ts <= self.restart_fence:
             raise MessageStaleError(
-                "timestamp at or below the restart fence (the previous run may have accepted it)"
+                f"old timestamp: {_s(self.restart_fence - ts)} s below the restart fence "
+                "(the previous run may have accepted it)"
             )
         if stored is None:
             if ts < now - self.new_stream_max_age:
-                raise MessageStaleError("new stream's timestamp is more than 60 s behind")
+                raise MessageStaleError(
+                    f"old timestamp: new stream {_s(now - ts)} s behind the receiver's clock "
+                    f"(limit {_s(self.new_stream_max_age)} s)"
+                )
             if ts <= self._fence:
-                raise MessageStaleError("new stream below the eviction fence")
+                raise MessageStaleError(
+                    f"old timestamp: new stream {_s(self._fence - ts)} s below the eviction fence"
+                )
         seen = -1 if stored is None else stored
         stream = _Stream(last=seen, floor=seen)
         if self.reorder_window:
@@ -444,3 +465,8 @@ class MavlinkGuard:
 
     def _store_key(self, key: tuple[int, int, int]) -> str:
         return f"{self.prefix}:{key[0]}:{key[1]}:{key[2]}"
+
+
+def _s(units: int) -> str:
+    """MAVLink units as seconds, for a refusal's reason (the gap an operator asks about)."""
+    return f"{units / UNITS_PER_S:.2f}"
