@@ -43,7 +43,8 @@ link's receivers; a targeted frame goes where its target was seen (the
 component where known, else every link that saw the system); a targeted frame
 for a system nobody announced goes to the vehicle links (the configured side),
 or, from the vehicle, is dropped as ``NO_ROUTE``.  A frame with no receiver at
-all is dropped as ``NO_PEER``.  A source system that authenticated on one side
+all is dropped as ``NO_PEER`` (counted, not reported: telemetry before a ground
+station authenticated is normal).  A source system that authenticated on one side
 is refused on the other (*Direction binding* in :mod:`antireplay.mavlink.guard`).
 
 Bounded work: the route table holds ``max_routes`` systems, per-stream counters
@@ -221,18 +222,19 @@ class MavlinkRouter:
             try:
                 verdict = self._judge(link, raw)
             except ReplayAttackError as exc:
-                self._refuse(direction, link, exc.code, str(exc), raw)
+                self._refuse(direction, link, exc.code, exc.reason, raw)
                 continue
             with self._lock:
                 self._account(link, peer, verdict)
                 self.stats.forwarded[direction] += 1
                 targets = self._destinations(link, verdict.frame)
             if not targets:
-                broadcast = not target(verdict.frame)[0]
-                reason = "no receiver has authenticated yet" if broadcast else "target never seen"
-                self._refuse(direction, link, "NO_PEER" if broadcast else "NO_ROUTE", reason, raw)
+                if target(verdict.frame)[0]:
+                    self._refuse(direction, link, "NO_ROUTE", "target never seen", raw)
+                else:  # telemetry before any receiver authenticated: counted, not logged
+                    self.stats.dropped[f"{direction}:NO_PEER"] += 1
             for where, to in targets:
-                self._send(where, to, verdict.frame, raw)
+                self._send(where, to, verdict.frame)
 
     def _judge(self, link: Link, raw: bytes) -> MavVerdict:
         """The one guard verdict on ``raw`` (module docstring); raises ReplayAttackError."""
@@ -306,13 +308,14 @@ class MavlinkRouter:
             for to in _receivers(link)
         ]
 
-    def _send(self, link: Link, to: Peer | None, frame: Frame, raw: bytes) -> None:
-        data = raw
+    def _send(self, link: Link, to: Peer | None, frame: Frame) -> None:
+        """Write the judged frame (signed again where ``link`` has a key of its own)."""
+        data = frame.raw
         if frame.signed and link.key is not None and link.key != self.vehicle_key:
             try:
                 data = self._sign(frame, link.key)
             except ReplayAttackError as exc:
-                self._refuse(OUTBOUND, link, exc.code, str(exc), raw)
+                self._refuse(OUTBOUND, link, exc.code, exc.reason, frame.raw)
                 return
         if not link.transport.send(data, to):
             self.stats.dropped[f"{link.role}:UNREACHABLE"] += 1
