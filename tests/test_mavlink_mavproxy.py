@@ -125,24 +125,12 @@ def mavproxy(home: Path, master: str, out: str) -> subprocess.Popen[bytes]:
         pytest.fail(f"MAVProxy is not installed ({script}): pip install -e '.[dev]'")
     (home / ".mavproxy").mkdir(parents=True, exist_ok=True)
     (home / ".mavproxy" / "signing.keys").write_text(f"{master} {PASSPHRASE}\n")
+    args = [
+        "--master", master, "--out", out, "--daemon", "--non-interactive", "--no-state",
+        "--default-modules", "signing", "--source-system", "255", "--source-component", "190",
+    ]  # fmt: skip
     return subprocess.Popen(
-        [
-            sys.executable,
-            str(script),
-            "--master",
-            master,
-            "--out",
-            out,
-            "--daemon",
-            "--non-interactive",
-            "--no-state",
-            "--default-modules",
-            "signing",
-            "--source-system",
-            "255",
-            "--source-component",
-            "190",
-        ],  # fmt: skip
+        [sys.executable, str(script), *args],
         env=dict(os.environ, HOME=str(home)),
         cwd=home,
         stdin=subprocess.DEVNULL,

@@ -89,8 +89,8 @@ class Rig:
     @property
     def peer(self) -> tuple[str, int] | None:
         """The ground peer that authenticated last (where telemetry goes)."""
-        peers = list(self.ground.peers)
-        return peers[-1] if peers else None  # type: ignore[return-value] - a udpin address
+        peers = [peer for peer in self.ground.peers if isinstance(peer, tuple)]
+        return peers[-1] if peers else None
 
     def inject(self, raw: bytes) -> None:
         self.raw.sendto(raw, self.address)

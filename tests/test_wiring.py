@@ -45,7 +45,8 @@ def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(
     assert (first.outcome, first.warning) == ("rejected", "inbound")
     assert (last.sender, last.warning) == (None, "outbound")
     assert caplog.messages[-1] == (
-        "refused outbound frame on /dev/ttyACM0,57600: INVALID_FRAME: x (10 more refusals not logged)"
+        "refused outbound frame on /dev/ttyACM0,57600: INVALID_FRAME: x "
+        "(10 more refusals not logged)"
     )
 
 

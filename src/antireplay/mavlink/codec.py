@@ -13,7 +13,8 @@ A MAVLink v1 frame (``0xFE``) parses too, as an unsigned frame with
 ``version == 1`` (v1 cannot be signed; the guard takes it only where listed).
 :class:`FrameReader` cuts a byte stream (serial, TCP) into frames the way
 flight-stack parsers do: it skips bytes until a start marker, waits for the
-whole frame, and on a CRC mismatch drops one byte and resynchronises; it never
+whole frame (a v2 header with unknown incompat flags is a false start at once),
+and on a CRC mismatch drops one byte and resynchronises; it never
 buffers more than one frame, so a flood of garbage costs linear work and no
 memory.  Parsing decides nothing else: verifying the signature and judging the
 timestamp are the guard's (:mod:`antireplay.mavlink.guard`).  :func:`target`
@@ -137,6 +138,10 @@ class FrameReader:
             if start:
                 self.skipped += start
                 del buffer[:start]
+                continue
+            if buffer[0] == STX_V2 and len(buffer) >= 3 and buffer[2] & ~SIGNED:
+                self.skipped += 1  # unknown incompat flags: a false start, known at once
+                del buffer[:1]
                 continue
             length = frame_length(buffer)
             if length is None or len(buffer) < length:
