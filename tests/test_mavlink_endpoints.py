@@ -25,7 +25,7 @@ from antireplay.mavlink import (
     parse_endpoint,
     passphrase_key,
 )
-from tests.harness import free_port
+from tests.harness import free_port, until
 from tests.mavlink_frames import KEY
 from tests.test_mavlink_codec import v1_radio_status
 
@@ -60,14 +60,6 @@ def test_connection_strings(text: str, kind: str, host: str, port: int) -> None:
 def test_bad_connection_strings_say_what_was_expected(text: str) -> None:
     with pytest.raises(ValueError, match=r"expected|baud"):
         parse_endpoint(text)
-
-
-def until(what: str, done: Callable[[], object], timeout: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not done():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.01)
 
 
 class Net:

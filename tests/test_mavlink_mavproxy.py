@@ -15,7 +15,6 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 import tty
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -32,21 +31,12 @@ from antireplay.clock import SystemClock
 from antireplay.mavlink import MavlinkRouter, Refusal, Role, mav_time, passphrase_key
 from antireplay.stores.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
-from tests.harness import free_port
+from tests.harness import free_port, until
 
 PASSPHRASE = "correct-horse-battery-staple"
 KEY = passphrase_key(PASSPHRASE)
 ARM = 400  # MAV_CMD_COMPONENT_ARM_DISARM
 TOOL_SYSTEM = 200
-
-
-def until(what: str, done: Callable[[], object], timeout: float = 30.0) -> None:
-    """Poll ``done`` until it is truthy; fail naming ``what`` after ``timeout`` seconds."""
-    deadline = time.monotonic() + timeout
-    while not done():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out waiting for {what}")
-        time.sleep(0.01)
 
 
 class PtyVehicle:

@@ -103,6 +103,15 @@ class Transport:
 
     def send(self, data: bytes, peer: Peer | None) -> bool:
         """Write ``data`` to ``peer``; False (and counted) if it could not be written."""
+        try:
+            self._write(data, peer)
+        except OSError:
+            self.errors["send"] += 1
+            return False
+        return True
+
+    def _write(self, data: bytes, peer: Peer | None) -> None:
+        """Write ``data`` to ``peer`` or raise OSError."""
         raise NotImplementedError
 
     def close(self) -> None:
@@ -142,16 +151,11 @@ class UdpTransport(Transport):
         host, port = self.sock.getsockname()[:2]
         return str(host), int(port)
 
-    def send(self, data: bytes, peer: Peer | None) -> bool:
-        try:
-            if isinstance(peer, tuple):
-                self.sock.sendto(data, peer)
-            else:
-                self.sock.send(data)
-        except OSError:
-            self.errors["send"] += 1
-            return False
-        return True
+    def _write(self, data: bytes, peer: Peer | None) -> None:
+        if isinstance(peer, tuple):
+            self.sock.sendto(data, peer)
+        else:
+            self.sock.send(data)
 
     def close(self) -> None:
         super().close()
@@ -182,17 +186,11 @@ class TcpClientTransport(Transport):
         self._sock: socket.socket | None = None
         self._lock = threading.Lock()
 
-    def send(self, data: bytes, peer: Peer | None) -> bool:
+    def _write(self, data: bytes, peer: Peer | None) -> None:
         with self._lock:
-            sock = self._sock
-            try:
-                if sock is None:
-                    raise OSError("not connected")
-                sock.sendall(data)
-            except OSError:
-                self.errors["send"] += 1
-                return False
-        return True
+            if self._sock is None:
+                raise OSError("not connected")
+            self._sock.sendall(data)
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -229,16 +227,11 @@ class TcpServerTransport(Transport):
         host, port = self.server.getsockname()[:2]
         return str(host), int(port)
 
-    def send(self, data: bytes, peer: Peer | None) -> bool:
+    def _write(self, data: bytes, peer: Peer | None) -> None:
         client = self._clients.get(peer) if isinstance(peer, int) else None
-        try:
-            if client is None:
-                raise OSError("client gone")
-            client.sendall(data)
-        except OSError:
-            self.errors["send"] += 1
-            return False
-        return True
+        if client is None:
+            raise OSError("client gone")
+        client.sendall(data)
 
     def close(self) -> None:
         super().close()
@@ -288,16 +281,11 @@ class SerialTransport(Transport):
             raise
         self._lock = threading.Lock()
 
-    def send(self, data: bytes, peer: Peer | None) -> bool:
+    def _write(self, data: bytes, peer: Peer | None) -> None:
         view = memoryview(data)
         with self._lock:
-            try:
-                while view:
-                    view = view[os.write(self.fd, view) :]
-            except OSError:
-                self.errors["send"] += 1
-                return False
-        return True
+            while view:
+                view = view[os.write(self.fd, view) :]
 
     def close(self) -> None:
         super().close()
