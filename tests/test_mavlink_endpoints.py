@@ -71,18 +71,19 @@ class Net:
         ground_key: bytes = KEY,
         from_vehicle: frozenset[int] = frozenset(),
         v1: frozenset[int] = frozenset(),
+        vehicle_over: str = "udp",
     ) -> None:
         vport = free_port()
         self.vehicle = mavutil.mavlink_connection(
-            f"udpin:127.0.0.1:{vport}", source_system=1, source_component=1
+            f"{vehicle_over}in:127.0.0.1:{vport}", source_system=1, source_component=1
         )
+        to_vehicle = f"{vehicle_over}{'out' if vehicle_over == 'udp' else ''}:127.0.0.1:{vport}"
         self.vehicle.setup_signing(KEY, sign_outgoing=True, link_id=7)
         self.refused: list[Refusal] = []
         keys = {KEY, ground_key}
         self.ground = Link(open_transport(parse_endpoint(ground)), Role.GROUND, ground_key)
-        vehicle = Link(
-            open_transport(parse_endpoint(f"udpout:127.0.0.1:{vport}")), Role.VEHICLE, KEY
-        )
+        vehicle = Link(open_transport(parse_endpoint(to_vehicle)), Role.VEHICLE, KEY)
+
         self.router = MavlinkRouter(
             [vehicle, self.ground],
             {key: MavlinkGuard(key, system_id=1) for key in keys},
@@ -198,6 +199,30 @@ def test_targeted_frame_from_the_vehicle_to_an_unknown_system_is_no_route() -> N
         until("the command refused", lambda: net.refused)
         assert (net.refused[0].code, net.refused[0].reason) == ("NO_ROUTE", "target never seen")
         assert str(net.refused[0]).startswith("refused outbound frame on udpout:127.0.0.1:")
+    finally:
+        gcs.close()
+        net.close()
+
+
+def test_vehicle_over_tcp_as_sitl_offers_it() -> None:
+    """The vehicle as a TCP server (SITL's tcp:5760), the router connecting to it."""
+    net = Net("udpin:127.0.0.1:0", vehicle_over="tcp")
+    gcs = mavutil.mavlink_connection(
+        f"udpout:127.0.0.1:{net.port}", source_system=255, source_component=190
+    )
+    try:
+        gcs.setup_signing(KEY, sign_outgoing=True, link_id=2)
+        got: list[Any] = []
+
+        def command_at_vehicle() -> bool:
+            gcs.mav.command_long_send(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # until connected
+            msg = net.vehicle.recv_match(type="COMMAND_LONG", blocking=True, timeout=0.2)
+            got.extend([msg] if msg is not None else [])
+            return bool(got)
+
+        until("a command over the router's TCP connection", command_at_vehicle)
+        assert got[0].get_signed() and got[0].get_srcSystem() == 255
+        net.vehicle_sends(lambda mav: mav.heartbeat_send(2, 3, 0, 0, 4), heartbeat_from(gcs, 1))
     finally:
         gcs.close()
         net.close()

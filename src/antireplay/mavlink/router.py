@@ -187,10 +187,6 @@ class MavlinkRouter:
         for guard in self._guards():
             guard.stop()
 
-    def link(self, name: str) -> Link:
-        """The link of the endpoint written ``name``."""
-        return next(link for link in self.links if link.name == name)
-
     def routes(self) -> dict[tuple[int, int], str]:
         """The learned routes: ``(system, component)`` to the link's name."""
         with self._lock:
@@ -237,19 +233,16 @@ class MavlinkRouter:
                 self._send(where, to, verdict.frame)
 
     def _judge(self, link: Link, raw: bytes) -> MavVerdict:
-        """The one guard verdict on ``raw`` (module docstring); raises ReplayAttackError."""
+        """The guard's verdict on ``raw`` (module docstring); raises ReplayAttackError."""
         if link.role is Role.VEHICLE:
             return self.outbound.check(raw)
-        if link.role is Role.TRUSTED:
-            unsigned_v2 = raw[0] == STX_V2 and not raw[2] & SIGNED
-            return self.inbound[self.vehicle_key].check(
-                self._sign(raw, self.vehicle_key) if unsigned_v2 else raw
-            )
-        assert link.key is not None  # a ground link has a key (constructor)
-        verdict = self.inbound[link.key].check(raw)
-        if link.key == self.vehicle_key or not verdict.signed:
-            return verdict
-        return self.inbound[self.vehicle_key].check(self._sign(verdict.frame, self.vehicle_key))
+        key = self.vehicle_key if link.key is None else link.key  # None: a trusted link
+        if link.role is Role.TRUSTED and raw[0] == STX_V2 and not raw[2] & SIGNED:
+            raw = self._sign(raw, key)  # an unsigned v2 frame from a trusted tool
+        verdict = self.inbound[key].check(raw)
+        if key != self.vehicle_key and verdict.signed:  # a ground link with its own key
+            return self.inbound[self.vehicle_key].check(self._sign(verdict.frame, self.vehicle_key))
+        return verdict
 
     def _sign(self, frame: bytes | Frame, key: bytes) -> bytes:
         """``frame`` signed by the router with ``key``; a frame it cannot sign is refused."""
@@ -318,7 +311,8 @@ class MavlinkRouter:
                 self._refuse(OUTBOUND, link, exc.code, exc.reason, frame.raw)
                 return
         if not link.transport.send(data, to):
-            self.stats.dropped[f"{link.role}:UNREACHABLE"] += 1
+            direction = INBOUND if link.role is Role.VEHICLE else OUTBOUND
+            self.stats.dropped[f"{direction}:UNREACHABLE"] += 1
 
     def _refuse(self, direction: str, link: Link, code: str, reason: str, raw: bytes) -> None:
         self.stats.dropped[f"{direction}:{code}"] += 1
