@@ -733,7 +733,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     write_through: bool,
 ) -> None:
     """Route MAVLink between vehicle, trusted and ground endpoints; forward only what the
-    guards accept (also installed as ``mavlink-proxy``)."""
+    guards accept (also answers to its first name, mavlink-proxy)."""
     import logging  # noqa: PLC0415
     import signal  # noqa: PLC0415
 

@@ -71,7 +71,7 @@ next odd generation with ``advance`` (atomic on every backend), releases the nex
 even one, so a guard whose lease was taken over can never renew it again; a second
 guard on the same prefix refuses frames with ``STATE_UNAVAILABLE`` while the first
 holds the lease, and takes over behind the fence once it expired (active/standby
-proxies on one Redis work this way).  Deployments that want several guards
+routers on one Redis work this way).  Deployments that want several guards
 *active at once* on one prefix pass ``write_through=True``: every accepted
 timestamp is then written through (``advance``) before the frame is forwarded, and
 a refused ``advance`` is a replay, at one store write per frame.  All guards on one
@@ -83,21 +83,21 @@ Both directions of a link share one key: ground stations (MAVProxy, QGC,
 pymavlink's ``setup_signing``) sign and verify with a single secret per link,
 so separate keys per direction would break every stock ground station.  The
 ``link_id`` cannot carry the direction either: each sender picks its own
-(QGC uses its link number), so the proxy cannot pin it.  What does separate
+(QGC uses its link number), so the router cannot pin it.  What does separate
 the directions is the **source system id** in the frame header, which the
 signature covers: the vehicle (and its components) send as the vehicle's
 system id, a ground station as its own (255 by default), and MAVLink requires
 them to differ on one network.  So a guard refuses, before any crypto, frames
 whose source system belongs to the other side: the vehicle's own id
 (``system_id``, when configured) and, in
-:class:`~antireplay.mavlink.proxy.MavlinkProxy`, every source
+:class:`~antireplay.mavlink.router.MavlinkRouter`, every source
 system id that has *authenticated* in the other direction (learned only from
 signed, accepted frames; an unsigned allow-listed frame teaches nothing, or a
 spoofed unsigned heartbeat could silence the real vehicle).  A signed vehicle
-frame reflected back to the listen port therefore gets ``WRONG_DIRECTION``,
+frame reflected back from a ground link therefore gets ``WRONG_DIRECTION``,
 and stamps nothing in the inbound stream table.  Configure ``--system-id``:
 without it, a reflection is refused only once the vehicle has spoken through
-this proxy process.
+this router process.
 """
 
 from __future__ import annotations
@@ -417,7 +417,7 @@ class MavlinkGuard:
             self._before_accept(ts, now)
             self._dirty[self._store_key(key)] = max(ts, stream.last)
         elif self.store is not None and not self.store.advance(self._store_key(key), ts):
-            # Another guard on the same store (a second proxy, a restarted one still
+            # Another guard on the same store (a second router, a restarted one still
             # running) already took this timestamp or a later one: this copy is a replay.
             raise CounterReplayError("timestamp already committed to the shared stream state")
         stream.last = max(stream.last, ts)
