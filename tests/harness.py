@@ -3,7 +3,8 @@
 The package keeps only what ``antireplay demo`` runs
 (:func:`antireplay.demo.start_gateway` and :func:`~antireplay.demo.stop_gateway`);
 what tests need beyond it (a restartable process that remembers what it said on
-stderr, ports for other servers, the SQLite seen-set read directly) lives here.
+stderr, ports for other servers, the SQLite seen-set read directly, polling for an
+event under a deadline) lives here.
 """
 
 from __future__ import annotations
@@ -11,10 +12,24 @@ from __future__ import annotations
 import socket
 import sqlite3
 import subprocess
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import pytest
+
 from antireplay.demo import start_gateway, stop_gateway
+
+
+def until(what: str, done: Callable[[], object], timeout: float = 30.0) -> None:
+    """Poll ``done`` until it is truthy (an event the test brings about, under a deadline,
+    never a timing guess); fail naming ``what`` after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while not done():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}")
+        time.sleep(0.005)
 
 
 def free_port() -> int:

@@ -72,6 +72,21 @@ def test_new_stream_rule_uses_the_wall_clock(clock: ManualClock) -> None:
     guard.open(command_frame(*encoder(link_id=2, ts=mav_time(clock) - 59 * UNITS_PER_S)))
 
 
+def test_refusals_say_the_gap_in_seconds(clock: ManualClock) -> None:
+    """What an operator asks when "signing does not work": how old, how far ahead."""
+    guard = MavlinkGuard(KEY, clock=clock, new_stream_max_age_s=30, max_forward_s=5)
+    with pytest.raises(MessageStaleError, match=r"new stream 45\.00 s behind .*limit 30\.00 s"):
+        guard.open(command_frame(*encoder(ts=mav_time(clock) - 45 * UNITS_PER_S)))
+    with pytest.raises(MessageFromFutureError, match=r"7\.50 s ahead .*limit 5\.00 s"):
+        guard.open(command_frame(*encoder(ts=mav_time(clock) + 750_000)))
+    mav, sink = encoder(ts=mav_time(clock))
+    late = command_frame(mav, sink)
+    mav.signing.timestamp += 2 * UNITS_PER_S
+    guard.open(command_frame(mav, sink))
+    with pytest.raises(CounterReplayedError, match=r"old timestamp: 2\.00 s behind the stream"):
+        guard.open(late)
+
+
 def test_forward_jump_bound(clock: ManualClock) -> None:
     guard = MavlinkGuard(KEY, clock=clock)
     with pytest.raises(MessageFromFutureError):

@@ -1,27 +1,37 @@
-"""The wiring: what a configuration or the proxy's options turn into."""
+"""The wiring: what a configuration or the router's options turn into."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
+
+import pytest
 
 from antireplay.audit import AuditLog
 from antireplay.clock import ManualClock
-from antireplay.errors import InvalidFrameError
+from antireplay.mavlink import Refusal, Role, passphrase_key
 from antireplay.stores.memory import MemoryStore
-from antireplay.wiring import MAVLINK_AUDIT_PER_S, build_mavlink_proxy, mavlink_auditor
+from antireplay.wiring import (
+    MAVLINK_AUDIT_PER_S,
+    Allowed,
+    RouterOptions,
+    build_mavlink_router,
+    mavlink_auditor,
+)
 
 
 def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(
-    tmp_path: Path,
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     log = AuditLog(tmp_path / "audit.db")
     clock = ManualClock()
     audit = mavlink_auditor(log, clock)
     frame = bytes([0xFD, 9, 0, 0, 0, 255, 190]) + bytes(14)
     for _ in range(int(MAVLINK_AUDIT_PER_S) + 10):
-        audit("inbound", InvalidFrameError("x"), frame)
+        audit(Refusal("inbound", "udpin:0.0.0.0:14550", "INVALID_FRAME", "x", frame))
     clock.advance(2 / MAVLINK_AUDIT_PER_S)  # a token back (and a spare for rounding)
-    audit("outbound", InvalidFrameError("x"), b"\xfd\x00")
+    with caplog.at_level(logging.WARNING, logger="antireplay.mavlink"):
+        audit(Refusal("outbound", "/dev/ttyACM0,57600", "INVALID_FRAME", "x", b"\xfd\x00"))
     records = log.tail(1_000)
     log.close()
     assert len(records) == MAVLINK_AUDIT_PER_S + 1
@@ -34,22 +44,52 @@ def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(
     )
     assert (first.outcome, first.warning) == ("rejected", None)
     assert (last.sender, last.warning) == ("mav:outbound", None)
+    assert caplog.messages[-1] == (
+        "refused outbound frame on /dev/ttyACM0,57600: INVALID_FRAME: x "
+        "(10 more refusals not logged)"
+    )
 
 
-def test_mavlink_proxy_guards_bind_only_inbound_to_the_vehicle(tmp_path: Path) -> None:
+def test_mavlink_router_guards_per_key_and_direction(tmp_path: Path) -> None:
     log = AuditLog(tmp_path / "audit.db")
-    proxy = build_mavlink_proxy(
-        ("127.0.0.1", 0), ("127.0.0.1", 9), bytes(32), MemoryStore(), log, system_id=7,
-        allow_unsigned=frozenset({0}), reorder_window=16, write_through=True,
+    vehicle_key, radio_key = bytes(32), passphrase_key("radio link")
+    options = RouterOptions(
+        system_id=7, to_vehicle=Allowed(frozenset({0, 109}), frozenset({109})),
+        from_vehicle=Allowed(frozenset({109})), reorder_window=16, write_through=True,
+        max_forward_s=5.0, new_stream_max_age_s=300.0,
     )  # fmt: skip
+    router = build_mavlink_router(
+        [
+            (Role.VEHICLE, "udpout:127.0.0.1:9", vehicle_key),
+            (Role.GROUND, "udpin:127.0.0.1:0", vehicle_key),
+            (Role.GROUND, "udp:127.0.0.1:0", radio_key),
+            (Role.TRUSTED, "udpin:127.0.0.1:0", None),
+        ],
+        MemoryStore(),
+        log,
+        options,
+    )
     try:
-        inbound, outbound = proxy.inbound, proxy.outbound
-        assert (inbound.prefix, outbound.prefix) == ("mav-in", "mav-out")
-        assert (inbound.system_id, outbound.system_id) == (7, None)
-        for guard in (inbound, outbound):
-            assert guard.allow_unsigned == frozenset({0}) and guard.reorder_window == 16
-            assert guard.write_through and guard.store is inbound.store
+        inbound, radio, outbound = (
+            router.inbound[vehicle_key],
+            router.inbound[radio_key],
+            router.outbound,
+        )
+        assert inbound.prefix == "mav-in" and outbound.prefix == "mav-out"
+        assert radio.prefix.startswith("mav-in-") and radio_key.hex()[:8] not in radio.prefix
+        assert (inbound.system_id, radio.system_id, outbound.system_id) == (7, 7, None)
+        assert inbound.allow_unsigned == frozenset({0, 109}) and inbound.allow_v1 == frozenset(
+            {109}
+        )
+        assert outbound.allow_unsigned == frozenset({109}) and outbound.allow_v1 == frozenset()
+        for guard in (inbound, radio, outbound):
+            assert guard.reorder_window == 16 and guard.write_through
+            assert guard.max_forward == 5 * 100_000 and guard.new_stream_max_age == 300 * 100_000
+        assert set(router.signers) == {vehicle_key, radio_key}
+        assert [link.role for link in router.links] == [
+            Role.VEHICLE, Role.GROUND, Role.GROUND, Role.TRUSTED,
+        ]  # fmt: skip
     finally:
-        proxy.ground.close()
-        proxy.vehicle.close()
+        for link in router.links:
+            link.transport.close()
         log.close()

@@ -13,8 +13,8 @@ is judged in this order:
    refused with ``WRONG_DIRECTION`` (see *Direction binding* below); a
    guard built with ``system_id`` refuses that id as a source from the start;
    **unsigned** frames pass only if their message id is on the explicit
-   allow-list (else ``SIGNATURE_REQUIRED``); a frame carrying the signed flag
-   never falls back to it;
+   allow-list (else ``SIGNATURE_REQUIRED``), MAVLink v1 frames only if it is
+   also on ``allow_v1``; a frame carrying the signed flag never falls back to it;
 3. **timestamp rules**, reading only memory: any timestamp more than
    ``max_forward_s`` ahead of the receiver's wall clock is
    ``MESSAGE_FROM_FUTURE``; at or below the restart fence ``MESSAGE_STALE``; a
@@ -82,7 +82,7 @@ next odd generation with ``advance`` (atomic on every backend), releases the nex
 even one, so a guard whose lease was taken over can never renew it again; a second
 guard on the same prefix refuses frames with ``STATE_UNAVAILABLE`` while the first
 holds the lease, and takes over behind the fence once it expired (active/standby
-proxies on one Redis work this way).  Deployments that want several guards
+routers on one Redis work this way).  Deployments that want several guards
 *active at once* on one prefix pass ``write_through=True``: every accepted
 timestamp is then written through (``advance``) before the frame is forwarded, and
 a refused ``advance`` is a replay, at one store write per frame.  All guards on one
@@ -94,21 +94,21 @@ Both directions of a link share one key: ground stations (MAVProxy, QGC,
 pymavlink's ``setup_signing``) sign and verify with a single secret per link,
 so separate keys per direction would break every stock ground station.  The
 ``link_id`` cannot carry the direction either: each sender picks its own
-(QGC uses its link number), so the proxy cannot pin it.  What does separate
+(QGC uses its link number), so the router cannot pin it.  What does separate
 the directions is the **source system id** in the frame header, which the
 signature covers: the vehicle (and its components) send as the vehicle's
 system id, a ground station as its own (255 by default), and MAVLink requires
 them to differ on one network.  So a guard refuses, before any crypto, frames
 whose source system belongs to the other side: the vehicle's own id
 (``system_id``, when configured) and, in
-:class:`~antireplay.mavlink.proxy.MavlinkProxy`, every source
+:class:`~antireplay.mavlink.router.MavlinkRouter`, every source
 system id that has *authenticated* in the other direction (learned only from
 signed, accepted frames; an unsigned allow-listed frame teaches nothing, or a
 spoofed unsigned heartbeat could silence the real vehicle).  A signed vehicle
-frame reflected back to the listen port therefore gets ``WRONG_DIRECTION``,
+frame reflected back from a ground link therefore gets ``WRONG_DIRECTION``,
 and stamps nothing in the inbound stream table.  Configure ``--system-id``:
 without it, a reflection is refused only once the vehicle has spoken through
-this proxy process.
+this router process.
 """
 
 from __future__ import annotations
@@ -158,6 +158,7 @@ class MavVerdict:
     msgid: int
     timestamp: int
     signed: bool
+    frame: Frame  # the parsed frame, so that an adapter routes without parsing it again
 
 
 @dataclass
@@ -185,6 +186,7 @@ class MavlinkGuard:
         clock: Clock | None = None,
         system_id: int | None = None,
         allow_unsigned: frozenset[int] = frozenset(),
+        allow_v1: frozenset[int] = frozenset(),
         max_streams: int = 256,
         reorder_window: int = 0,
         new_stream_max_age_s: float = 60.0,
@@ -203,6 +205,7 @@ class MavlinkGuard:
         self.clock = resolve(clock)
         self.system_id = system_id
         self.allow_unsigned = allow_unsigned
+        self.allow_v1 = allow_v1 & allow_unsigned
         self.max_streams = max_streams
         self.reorder_window = reorder_window
         self.new_stream_max_age = int(new_stream_max_age_s * UNITS_PER_S)
@@ -241,10 +244,14 @@ class MavlinkGuard:
         fails, before any cryptography (steps 1, 2 and 5 without the store)."""
         frame = parse_frame(raw)
         if frame.sysid in self.refused_sources:
-            raise WrongDirectionError(f"system {frame.sysid} sends from the other side of the link")
+            raise WrongDirectionError(
+                f"wrong link: system {frame.sysid} sends from the other side of the link"
+            )
         if not frame.signed:
             if frame.msgid not in self.allow_unsigned:
                 raise SignatureRequiredError(f"unsigned message {frame.msgid} not allow-listed")
+            if frame.version == 1 and frame.msgid not in self.allow_v1:
+                raise SignatureRequiredError(f"MAVLink v1 message {frame.msgid} not allow-listed")
             return frame
         now = mav_time(self.clock)
         stream = self._judge(frame.stream, frame.timestamp, now)
@@ -262,14 +269,14 @@ class MavlinkGuard:
         frame = self.check(raw)
         if not frame.signed:
             self._bind(frame)
-            return MavVerdict(frame.stream, frame.msgid, 0, False)
+            return MavVerdict(frame.stream, frame.msgid, 0, False, frame)
         expected = hashlib.sha256(self._key + raw[:-6]).digest()[:6]
         if not hmac.compare_digest(expected, raw[-6:]):
             raise SignatureInvalidError("MAVLink signature does not verify")
         self._bind(frame)
         with self._lock:
             self._commit(frame, mav_time(self.clock))
-        return MavVerdict(frame.stream, frame.msgid, frame.timestamp, True)
+        return MavVerdict(frame.stream, frame.msgid, frame.timestamp, True, frame)
 
     # --- lifecycle: lease, flusher ---------------------------------------------------------
 
@@ -415,11 +422,13 @@ class MavlinkGuard:
         pass; the stream's entry, or None for a stream the table does not hold."""
         if ts > now + self.max_forward:
             raise MessageFromFutureError(
-                f"timestamp {(ts - now) / UNITS_PER_S:.1f} s ahead of the receiver's clock"
+                f"timestamp {_s(ts - now)} s ahead of the receiver's clock "
+                f"(limit {_s(self.max_forward)} s)"
             )
         if ts <= self.restart_fence:
             raise MessageStaleError(
-                "timestamp at or below the restart fence (the previous run may have accepted it)"
+                f"old timestamp: {_s(self.restart_fence - ts)} s below the restart fence "
+                "(the previous run may have accepted it)"
             )
         stream = self._streams.check(key, ts)
         if stream is None:
@@ -427,19 +436,23 @@ class MavlinkGuard:
         last = self._streams.mark(key)
         assert last is not None
         if ts <= stream.floor:
-            raise CounterReplayedError("timestamp not newer than the persisted stream state")
+            raise CounterReplayedError(
+                f"old timestamp: {_s(stream.floor - ts)} s behind the persisted stream state"
+            )
         if stream.window is None:
             if ts <= last:
                 raise CounterReplayedError(
-                    f"timestamp {(last - ts) / UNITS_PER_S:.3f} s behind the stream's last"
+                    f"old timestamp: {_s(last - ts)} s behind the stream's last"
                 )
         else:
             stream.window.check(ts)
         return stream
 
     def _too_old(self, ts: int, now: int) -> str:
-        limit = self.new_stream_max_age / UNITS_PER_S
-        return f"new stream's timestamp {(now - ts) / UNITS_PER_S:.1f} s behind (limit {limit:g} s)"
+        return (
+            f"old timestamp: new stream {_s(now - ts)} s behind the receiver's clock "
+            f"(limit {_s(self.new_stream_max_age)} s)"
+        )
 
     def _commit(self, frame: Frame, now: int) -> None:
         key, ts = frame.stream, frame.timestamp
@@ -452,7 +465,7 @@ class MavlinkGuard:
         if periodic:
             self._before_accept(ts, now)
         elif self.store is not None and not self.store.advance(self._store_key(key), ts):
-            # Another guard on the same store (a second proxy, a restarted one still
+            # Another guard on the same store (a second router, a restarted one still
             # running) already took this timestamp or a later one: this copy is a replay.
             raise CounterReplayedError("timestamp already committed to the shared stream state")
         self._streams.commit(key, ts, lambda: stream)
@@ -486,10 +499,17 @@ class MavlinkGuard:
             raise MessageStaleError(self._too_old(ts, now))
         stream = _Stream(floor=-1 if stored is None else stored)
         if ts <= stream.floor:
-            raise CounterReplayedError("timestamp not newer than the persisted stream state")
+            raise CounterReplayedError(
+                f"old timestamp: {_s(stream.floor - ts)} s behind the persisted stream state"
+            )
         if self.reorder_window:
             stream.window = CounterWindow(self.reorder_window, limit=TS_LIMIT)
         return stream
 
     def _store_key(self, key: tuple[int, int, int]) -> str:
         return f"{self.prefix}:{key[0]}:{key[1]}:{key[2]}"
+
+
+def _s(units: int) -> str:
+    """MAVLink units as seconds, for a refusal's reason (the gap an operator asks about)."""
+    return f"{units / UNITS_PER_S:.2f}"
