@@ -256,8 +256,8 @@ def test_mavproxy_ground_station_pty_vehicle_and_an_unsigning_tool(setup: Setup)
     for raw in injected:
         setup.inject(raw)
     until("both injected frames refused", lambda: len(setup.refusals_of(injected)) == 2)
-    codes = [r.code for r in setup.refusals_of(injected)]
-    assert codes == ["SIGNATURE_INVALID", "SIGNATURE_REQUIRED"]
+    refused = [r.code for r in setup.refusals_of(injected)]
+    assert refused == ["SIGNATURE_INVALID", "SIGNATURE_REQUIRED"]
     systems = {system for system, _ in router.routes()}
     assert {1, 255, TOOL_SYSTEM} <= systems and not {77, 78} & systems
     assert not any(m.get_srcSystem() in {77, 78} for m in vehicle.received)
