@@ -161,8 +161,11 @@ def test_thousand_forged_streams_through_the_router(rig: Rig) -> None:
         forger.command_long_send(1, 1, 400, 0, 9.0, 0, 0, 0, 0, 0, 0)
         rig.inject(forger.file.frames[-1])
         if i % 100 == 99:  # paced: a loaded box must not lose datagrams in the socket buffer
-            judged = i + 1
-            until("forgeries judged", lambda: sum(rig.router.stats.dropped.values()) >= judged)
+
+            def judged(n: int = i + 1) -> bool:
+                return sum(rig.router.stats.dropped.values()) >= n
+
+            until("forgeries judged", judged)
     rig.send_command(2.0)
     assert rig.commands_until(2.0) == [2.0]
     assert len(rig.inbound) == before
