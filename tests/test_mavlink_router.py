@@ -26,6 +26,7 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from antireplay import ManualClock
 from antireplay.cli import _signing_key, main
 from antireplay.clock import SystemClock
+from antireplay.errors import StateUnavailableError
 from antireplay.mavlink import (
     TS_LIMIT,
     Link,
@@ -460,3 +461,15 @@ def test_cli_proxy_refuses_a_bad_key_file_naming_it(tmp_path: Path, content: byt
     said = " ".join(result.output.split())
     assert str(key) in said and "Traceback" not in said
     assert not (tmp_path / "audit.db").exists()
+
+
+def test_an_audit_trail_that_is_down_does_not_stop_the_forwarding(rig: Rig) -> None:
+    def audit_down(refusal: Refusal) -> None:
+        raise StateUnavailableError("audit trail: disk full")
+
+    rig.router.on_reject = audit_down
+    rig.inject(b"hello")
+    rig.send_command(4.0)
+    assert rig.commands_until(4.0) == [4.0]  # the receiving thread is alive
+    assert rig.router.stats.unaudited == 1
+    assert rig.router.stats.dropped["inbound:INVALID_FRAME"] == 1

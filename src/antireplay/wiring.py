@@ -251,9 +251,15 @@ def serve_router_metrics(router: MavlinkRouter, port: int) -> None:
             )
             for (endpoint, system, component, link_id), n in list(stats.streams.items()):
                 streams.add_metric([endpoint, str(system), str(component), str(link_id)], n)
+            unaudited = CounterMetricFamily(
+                "antireplay_mavlink_refusals_unaudited",
+                "Refused frames the audit trail could not record (it was down)",
+            )
+            unaudited.add_metric([], stats.unaudited)
             yield forwarded
             yield dropped
             yield streams
+            yield unaudited
 
     REGISTRY.register(RouterCollector())
     start_http_server(port, addr="127.0.0.1")

@@ -63,7 +63,13 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
-from antireplay.errors import Code, InvalidFrameError, NonceExhaustedError, ReplayAttackError
+from antireplay.errors import (
+    AntiReplayError,
+    Code,
+    InvalidFrameError,
+    NonceExhaustedError,
+    ReplayAttackError,
+)
 from antireplay.mavlink.codec import (
     SIGNED,
     STX_V2,
@@ -126,6 +132,8 @@ class RouterStats:
 
     forwarded: Counter[str] = field(default_factory=Counter)
     dropped: Counter[str] = field(default_factory=Counter)  # "direction:CODE"
+    #: Refusals the handler could not record (the audit trail is down): still dropped.
+    unaudited: int = 0
     #: Accepted frames per stream ``(link name, system, component, link id)``, bounded.
     streams: OrderedDict[tuple[str, int, int, int], int] = field(default_factory=OrderedDict)
 
@@ -316,8 +324,12 @@ class MavlinkRouter:
 
     def _refuse(self, direction: str, link: Link, code: str, reason: str, raw: bytes) -> None:
         self.stats.dropped[f"{direction}:{code}"] += 1
-        if self.on_reject is not None:
+        if self.on_reject is None:
+            return
+        try:
             self.on_reject(Refusal(direction, link.name, str(code), reason, raw))
+        except AntiReplayError:  # an audit trail that is down must not stop the forwarding
+            self.stats.unaudited += 1
 
 
 def _receivers(link: Link) -> Iterable[Peer | None]:
