@@ -477,13 +477,11 @@ def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:
 def test_writer_on_the_readers_forward_bound_recovers_from_a_short_glitch(
     participant: Any, clock: ManualClock
 ) -> None:
-    """A 30 s forward glitch: with the readers' 5 s bound the writer rotates its prefix at
-    once; with the signer's own 60 s default it would be refused until real time caught up."""
-    reader = started_before(
-        clock,
-        lambda: SealedReader(participant, TOPIC, PSK, clock=clock, max_age_s=30, max_forward_s=5),
-    )
-    writer = SealedWriter(participant, TOPIC, PSK, clock=clock, max_forward_s=5)
+    """A 30 s forward glitch: on the readers' 5 s bound (both sides' default) the writer
+    rotates its prefix at once; with the signer's own 60 s default it would be refused
+    until real time caught up (review finding 4)."""
+    reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
+    writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
     until(lambda: writer.matched_readers() >= 1)
     clock.step_wall(30)
     writer.seal(b"during the glitch", instance="a")  # never delivered: NTP corrects the clock
@@ -491,6 +489,45 @@ def test_writer_on_the_readers_forward_bound_recovers_from_a_short_glitch(
     writer.write(b"after the glitch", instance="a")
     (verdict,) = collect(reader, 1)
     assert verdict.accepted and verdict.value == b"after the glitch"
+
+
+@pytest.mark.parametrize("case", [(None, 30, 1), (10.0, 7, 0)])
+def test_relay_egress_signs_on_the_subscribers_forward_bound(
+    participant: Any, tmp_path: Path, clock: ManualClock, case: tuple[float | None, int, int]
+) -> None:
+    """The relay's egress signer gets the readers' ``max_forward_s`` (its default, or the
+    configured one): after a corrected forward glitch subscribers accept it at once."""
+    bound, glitch_s, rotations = case
+    options = {} if bound is None else {"max_forward_s": bound}
+    relay = started_before(clock, lambda: AnnouncementRelay(
+        participant, PSK, service_name="cds-1", signer_state=tmp_path / "signer.state",
+        verifier_store=f"sqlite:{tmp_path / 'verifier.db'}", clock=clock, **options,
+    ))  # fmt: skip
+    subscriber = started_before(clock, lambda: SealedReader(
+        peer(participant), "antireplay/relayed", PSK, clock=clock, **options
+    ))  # fmt: skip
+    clock.step_wall(glitch_s)
+    relay.egress.seal(b"during the glitch")  # never delivered: NTP corrects the clock
+    clock.step_wall(-glitch_s)
+    clock.advance(1)
+    verdict = subscriber.judge(relay.egress.seal(b"after the glitch"))
+    assert verdict.accepted, verdict.line()
+    assert relay.egress.signer.rotations == rotations
+    relay.close()
+
+
+def test_ping_sender_signs_on_the_listeners_forward_bound(clock: ManualClock) -> None:
+    listener = started_before(clock, lambda: PingListener(PSK, clock=clock))
+    sender = PingSender(PSK, clock=clock)
+    try:
+        clock.step_wall(30)
+        sender.signer.seal_ping(b"during the glitch")
+        clock.step_wall(-30)
+        verdict = listener.judge(sender.signer.seal_ping(b"after"), sender.address)
+        assert verdict.accepted, verdict.line()
+    finally:
+        listener.close()
+        sender.close()
 
 
 @pytest.mark.parametrize("key", ["max_age_s", "max_forward_s"])

@@ -17,6 +17,10 @@ from antireplay.config import load_yaml
 from antireplay.errors import ConfigError
 
 MAX_DOMAIN_ID = 232  # Cyclone's port arithmetic; antireplay.dds.domain checks the same
+#: The freshness bounds every DDS endpoint defaults to: readers and listeners refuse a sample
+#: older than ``MAX_AGE_S`` or sealed more than ``MAX_FORWARD_S`` ahead; writers rotate their
+#: prefix past the same ``MAX_FORWARD_S`` (a forward glitch the readers would refuse).
+MAX_AGE_S, MAX_FORWARD_S = 30.0, 5.0
 
 
 class _Block(BaseModel):
@@ -52,8 +56,8 @@ class DdsConfig(_Block):
     loopback_only: bool = True
     psk_file: str
     #: Required bounds (null is an error, never "unbounded").
-    max_age_s: float = Field(default=30.0, gt=0, le=86_400)
-    max_forward_s: float = Field(default=5.0, gt=0, le=3_600)
+    max_age_s: float = Field(default=MAX_AGE_S, gt=0, le=86_400)
+    max_forward_s: float = Field(default=MAX_FORWARD_S, gt=0, le=3_600)
     audit: str | None = None
     reader: ReaderConfig = Field(default_factory=ReaderConfig)
     writer: WriterConfig = Field(default_factory=WriterConfig)

@@ -21,6 +21,7 @@ from collections import Counter
 
 from antireplay.audit import AuditLog
 from antireplay.clock import Clock, resolve
+from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.topics import Verdict, audit_refusal, open_judged
 from antireplay.epochs import MIN_LEN, EpochSigner, EpochVerifier, Kind
 from antireplay.errors import Code
@@ -41,10 +42,10 @@ class PingSender:
         state_file: str | os.PathLike[str] | None = None,
         clock: Clock | None = None,
         bind: tuple[str, int] = ("127.0.0.1", 0),
+        max_forward_s: float = MAX_FORWARD_S,
     ) -> None:
-        self.signer = EpochSigner(
-            psk, nonce_prefix=nonce_prefix, state_file=state_file, clock=clock
-        )
+        self.signer = EpochSigner(psk, nonce_prefix=nonce_prefix, state_file=state_file,
+                                  clock=clock, max_forward_s=max_forward_s)  # fmt: skip
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(bind)
 
@@ -73,8 +74,8 @@ class PingListener:
         bind: tuple[str, int] = ("127.0.0.1", 0),
         store: ReplayStore | str = "memory",
         clock: Clock | None = None,
-        max_age_s: float = 30.0,
-        max_forward_s: float = 5.0,
+        max_age_s: float = MAX_AGE_S,
+        max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
     ) -> None:
         self._clock = resolve(clock)

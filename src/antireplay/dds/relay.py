@@ -38,6 +38,7 @@ from cyclonedds.domain import DomainParticipant
 
 from antireplay.audit import AuditLog
 from antireplay.clock import Clock, resolve
+from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.ping import PingListener
 from antireplay.dds.topics import SealedReader, SealedWriter, Verdict
 from antireplay.dds.wire import SealedSample
@@ -106,8 +107,8 @@ class AnnouncementRelay:
         ingress: str = ANNOUNCE_TOPIC,
         egress: str = RELAYED_TOPIC,
         clock: Clock | None = None,
-        max_age_s: float = 30.0,
-        max_forward_s: float = 5.0,
+        max_age_s: float = MAX_AGE_S,
+        max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
         ping: PingListener | None = None,
     ) -> None:
@@ -132,6 +133,7 @@ class AnnouncementRelay:
             service_name=service_name,
             state_file=signer_state,
             clock=self._clock,
+            max_forward_s=max_forward_s,  # the subscribers' bound: rotate, never be refused
         )
         self._watch = SealedReader(
             participant, egress, psk, clock=self._clock,

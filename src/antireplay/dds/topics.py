@@ -64,6 +64,7 @@ from cyclonedds.util import duration
 
 from antireplay.audit import AuditLog
 from antireplay.clock import Clock, resolve
+from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.wire import SealedSample
 from antireplay.epochs import (
     MAX_LEN,
@@ -147,14 +148,13 @@ class SealedWriter:
         state_file: str | os.PathLike[str] | None = None,
         clock: Clock | None = None,
         reserve_s: float = 1.0,
-        max_forward_s: float | None = None,
+        max_forward_s: float = MAX_FORWARD_S,
         qos: Qos | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
-        # max_forward_s: the readers' bound, so a forward clock glitch the readers would
-        # refuse makes this writer rotate its prefix instead of locking itself out
-        # (None: readers set no bound; the signer keeps its own default).
-        bound = {} if max_forward_s is None else {"max_forward_s": max_forward_s}
+        # max_forward_s: the readers' bound (their default unless configured), so a forward
+        # clock glitch the readers would refuse makes this writer rotate its prefix instead
+        # of being refused until real time catches up.
         self.signer = EpochSigner(
             topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
             nonce_prefix=nonce_prefix,
@@ -162,7 +162,7 @@ class SealedWriter:
             state_file=state_file,
             clock=clock,
             reserve_s=reserve_s,
-            **bound,
+            max_forward_s=max_forward_s,
         )
         qos = qos or default_qos()
         self._writer = DataWriter(participant, _topic(participant, topic, qos), qos=qos)
@@ -259,8 +259,8 @@ class SealedReader:
         data_type: type[IdlStruct] | None = None,
         store: ReplayStore | str = "memory",
         clock: Clock | None = None,
-        max_age_s: float = 30.0,
-        max_forward_s: float = 5.0,
+        max_age_s: float = MAX_AGE_S,
+        max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
         qos: Qos | None = None,
     ) -> None:
