@@ -28,10 +28,11 @@ from antireplay.errors import Code, ConfigError, StateFileError
 from tests.conftest import started_before
 
 try:
+    from antireplay.dds import relay as relay_module
     from antireplay.dds.domain import join_domain
     from antireplay.dds.ping import PingListener, PingSender
     from antireplay.dds.relay import AnnouncementRelay, RelayedAnnouncement
-    from antireplay.dds.topics import SealedReader, SealedWriter, Verdict
+    from antireplay.dds.topics import AUDIT_PER_S, SealedReader, SealedWriter, Verdict
     from antireplay.dds.wire import SealedSample
 except ImportError as exc:  # the dds extra is part of CI: missing means broken, not skipped
     pytest.fail(f"Cyclone DDS missing ({exc}): pip install -e '.[dev,dds]'", pytrace=False)
@@ -407,6 +408,74 @@ def test_binding_ping_learns_an_address_only_from_an_authentic_fresh_ping(
     finally:
         for endpoint in (listener, sender, attacker):
             endpoint.close()
+
+
+def test_ping_refusal_audits_are_rate_limited_but_all_counted(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """A garbage flood writes a bounded number of audit records (review finding 2); every
+    datagram is counted, and a replay's refusal still reaches the trail (its own budget)."""
+    audit = AuditLog(tmp_path / "audit.db")
+    listener = started_before(clock, lambda: PingListener(PSK, clock=clock, audit=audit))
+    sender = PingSender(PSK, clock=clock)
+    flood = 3 * int(AUDIT_PER_S)
+    try:
+        for _ in range(flood):  # the clock stands still: no budget comes back
+            listener.judge(os.urandom(60), ("192.0.2.1", 9))
+        ping = sender.signer.seal_ping(b"guid=01")
+        assert listener.judge(ping, sender.address).accepted
+        assert listener.judge(ping, ("192.0.2.1", 9)).outcome == "replayed"
+        refused = sum(n for k, n in listener.counts.items() if k not in {"accepted",
+                      "audit_rate_limited"})  # fmt: skip
+        assert refused == flood + 1
+        assert listener.counts["audit_rate_limited"] == flood - AUDIT_PER_S
+        assert audit.count() == AUDIT_PER_S + 1
+        assert audit.tail(1)[0].warning == "dds ping: replayed"
+    finally:
+        listener.close()
+        sender.close()
+        audit.close()
+
+
+def test_reader_refusal_audits_are_rate_limited(
+    participant: Any, tmp_path: Path, clock: ManualClock
+) -> None:
+    audit = AuditLog(tmp_path / "audit.db")
+    reader = started_before(
+        clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock, audit=audit)
+    )
+    for _ in range(2 * int(AUDIT_PER_S)):
+        reader.judge(SealedSample(instance="", sealed=os.urandom(100)))
+    assert sum(reader.counts[k] for k in ("malformed", "wrong_instance", "forged")) == 100
+    assert (audit.count(), reader.counts["audit_rate_limited"]) == (AUDIT_PER_S, AUDIT_PER_S)
+    audit.close()
+
+
+def test_relay_pump_judges_a_bounded_number_of_pings(
+    participant: Any, tmp_path: Path, clock: ManualClock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A ping flood cannot hold the relay's loop: each pump judges at most PINGS_PER_PUMP."""
+    monkeypatch.setattr(relay_module, "PINGS_PER_PUMP", 3)
+    listener = started_before(clock, lambda: PingListener(PSK, clock=clock))
+    relay = relay_at(participant, tmp_path, "cds-1", clock, "a")
+    relay.ping = listener
+    sender = PingSender(PSK, clock=clock)
+    try:
+        for _ in range(10):
+            sender.sock.sendto(b"garbage", listener.address)
+
+        def pumped_within_bound() -> bool:
+            before = listener.counts.total()
+            relay.pump(0.0)
+            assert listener.counts.total() - before <= 3
+            return listener.counts.total() >= 10
+
+        until(pumped_within_bound)
+        assert listener.counts["malformed"] == 10
+    finally:
+        relay.close()
+        listener.close()
+        sender.close()
 
 
 def _antireplay(*args: str, **kwargs: Any) -> subprocess.Popen[str]:

@@ -51,6 +51,8 @@ ANNOUNCE_TOPIC = "antireplay/announce"
 RELAYED_TOPIC = "antireplay/relayed"
 #: Epochs the relay remembers having emitted, to tell its own samples from a twin's.
 EMITTED_MEMORY = 4096
+#: Binding pings one :meth:`AnnouncementRelay.pump` judges at most.
+PINGS_PER_PUMP = 256
 _ORIGIN = struct.Struct(">8sQ8s")
 
 
@@ -151,7 +153,9 @@ class AnnouncementRelay:
             part.close()
 
     def pump(self, timeout_s: float = 0.1) -> list[Verdict]:
-        """One round: judge waiting announcements, relay the accepted, look for a twin."""
+        """One round: judge waiting announcements, relay the accepted, look for a twin,
+        judge at most ``PINGS_PER_PUMP`` waiting pings (a ping flood cannot stall the
+        announcements)."""
         verdicts = self.ingress.poll(timeout_s)
         for verdict in verdicts:
             if verdict.accepted:
@@ -159,7 +163,7 @@ class AnnouncementRelay:
         for sample, seen in self._watch.take_judged():
             self._check_twin(sample, seen)
         if self.ping is not None:
-            self.ping.drain()
+            self.ping.drain(PINGS_PER_PUMP)
         return verdicts
 
     def serve(self, stop: threading.Event, period_s: float = 0.1) -> None:
