@@ -567,7 +567,7 @@ def test_relay_egress_signs_on_the_subscribers_forward_bound(
     """The relay's egress signer gets the readers' ``max_forward_s`` (its default, or the
     configured one): after a corrected forward glitch subscribers accept it at once."""
     bound, glitch_s, rotations = case
-    options = {} if bound is None else {"max_forward_s": bound}
+    options: dict[str, Any] = {} if bound is None else {"max_forward_s": bound}
     relay = started_before(clock, lambda: AnnouncementRelay(
         participant, PSK, service_name="cds-1", signer_state=tmp_path / "signer.state",
         verifier_store=f"sqlite:{tmp_path / 'verifier.db'}", clock=clock, **options,

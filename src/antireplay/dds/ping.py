@@ -136,7 +136,7 @@ class PingListener:
         """Judge the datagrams already waiting, at most ``limit``, without blocking: a
         flood cannot hold the caller's thread (the rest wait in the socket buffer, and
         the kernel drops what does not fit)."""
-        verdicts = []
+        verdicts: list[Verdict] = []
         while len(verdicts) < limit and (verdict := self.receive(0.0)) is not None:
             verdicts.append(verdict)
         return verdicts
