@@ -609,3 +609,51 @@ def test_config_requires_the_freshness_bounds(key: str) -> None:
 def test_config_store_spec_is_validated() -> None:
     with pytest.raises(ConfigError, match=r"dds\.reader\.store"):
         DdsConfig.from_mapping({"psk_file": "k", "reader": {"store": "/tmp/reader.state"}})
+
+
+@pytest.mark.parametrize(
+    ("block", "key", "named"),
+    [
+        ({"relay": {"service_name": "cds", "signer_state": "s", "verifier_state": "sqlite:v"}},
+         "dds.relay.verifier_state", "renamed to dds.relay.verifier_store"),
+        ({"reader": {"state_file": "r.state"}}, "dds.reader.state_file",
+         "renamed to dds.reader.store"),
+    ],
+)  # fmt: skip
+def test_config_names_a_renamed_key(block: dict[str, Any], key: str, named: str) -> None:
+    """Review finding 9: an obsolete key is reported by name with its new name, not as a
+    "Field required" on the new one."""
+    with pytest.raises(ConfigError) as refused:
+        DdsConfig.from_mapping({"psk_file": "k", **block})
+    assert refused.value.key == key
+    assert named in str(refused.value)
+
+
+def test_config_reports_every_wrong_key() -> None:
+    with pytest.raises(ConfigError) as refused:
+        DdsConfig.from_mapping({"max_age_s": -1, "reader": {"topic": ""}})
+    assert refused.value.key == "dds.psk_file"
+    assert "required" in str(refused.value)
+    assert "dds.max_age_s=-1.0" in str(refused.value) and "dds.reader.topic=''" in str(
+        refused.value
+    )
+
+
+def test_config_nan_bound_is_not_a_number() -> None:
+    with pytest.raises(ConfigError, match="not a number") as refused:
+        DdsConfig.from_mapping({"psk_file": "k", "max_age_s": float("nan")})
+    assert refused.value.key == "dds.max_age_s"
+    assert "86400" in refused.value.allowed and "should be less" not in str(refused.value)
+
+
+@pytest.mark.parametrize("spec", ["sqlite: ", "sqlite:", "sqlite:\t"])
+def test_config_blank_sqlite_path_is_refused(spec: str) -> None:
+    with pytest.raises(ConfigError, match="non-blank path") as refused:
+        DdsConfig.from_mapping({"psk_file": "k", "reader": {"store": spec}})
+    assert refused.value.key == "dds.reader.store"
+
+
+def test_config_forward_bound_leaves_room_for_the_writers_reservation() -> None:
+    with pytest.raises(ConfigError, match="reserve 1 s") as refused:
+        DdsConfig.from_mapping({"psk_file": "k", "max_forward_s": 1})
+    assert refused.value.key == "dds.max_forward_s"
