@@ -253,6 +253,17 @@ def test_rotation_recognised_by_a_restarted_verifier(tmp_path: Path, clock: Manu
     restarted.close()
 
 
+def rotated(clock: ManualClock, signer: EpochSigner, verifier: EpochVerifier) -> None:
+    """One epoch accepted, then the signer's clock 30 s ahead for one seal and back: its
+    next epoch starts the successor prefix, and the verifier reports the rotation."""
+    verifier.open(signer.seal(b"a"))
+    clock.step_wall(30)
+    signer.seal(b"glitched, never delivered")
+    clock.step_wall(-30)
+    clock.advance(1)
+    assert verifier.open(signer.seal(b"b")).warning == "EPOCH_SENDER_ROTATED"
+
+
 def test_rotation_is_reported_once_not_after_each_restart(
     tmp_path: Path, clock: ManualClock
 ) -> None:
@@ -261,12 +272,7 @@ def test_rotation_is_reported_once_not_after_each_restart(
     path = f"sqlite:{tmp_path / 'verifier.db'}"
     signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
     verifier = EpochVerifier(PSK, clock=clock, store=path)
-    verifier.open(signer.seal(b"a"))
-    clock.step_wall(30)
-    signer.seal(b"glitched, never delivered")
-    clock.step_wall(-30)
-    clock.advance(1)
-    assert verifier.open(signer.seal(b"b")).warning == "EPOCH_SENDER_ROTATED"
+    rotated(clock, signer, verifier)
     verifier.close()
     for _ in range(2):
         clock.advance(1)
@@ -280,12 +286,7 @@ def test_rotation_is_not_reported_again_after_eviction(clock: ManualClock) -> No
     """A rotated prefix evicted from the table and admitted again is not a new rotation."""
     verifier = verifier_on(clock, max_prefixes=1, max_forward_s=10)
     signer, other = EpochSigner(PSK, clock=clock, max_forward_s=10), EpochSigner(PSK, clock=clock)
-    verifier.open(signer.seal(b"a"))
-    clock.step_wall(30)
-    signer.seal(b"glitched, never delivered")
-    clock.step_wall(-30)
-    clock.advance(1)
-    assert verifier.open(signer.seal(b"b")).warning == "EPOCH_SENDER_ROTATED"
+    rotated(clock, signer, verifier)
     clock.advance(1)
     verifier.open(other.seal(b"x"))  # evicts the rotated prefix
     clock.advance(1)
