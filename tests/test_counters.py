@@ -314,11 +314,22 @@ def test_fenced_table_marks_never_go_down_and_entries_persist() -> None:
     assert (table.mark("a"), table.get("a")) == (9, [1])
 
 
-def test_fenced_table_newcomer_below_the_fence_after_eviction_is_refused() -> None:
-    table: FencedTable[str, list[int]] = FencedTable(1)
-    table.commit("a", 50, list)
-    with pytest.raises(MessageStaleError, match="eviction fence 50"):
-        table.commit("b", 40, list)  # evicting "a" raised the fence above the newcomer
+def test_fenced_table_refused_newcomer_evicts_nothing() -> None:
+    """A full table refuses a newcomer at or below its lowest mark *before* evicting:
+    the live key stays, the fence stays (review finding 5)."""
+    table: FencedTable[str, list[int]] = FencedTable(2)
+    table.commit("a", 100, list)
+    table.commit("b", 200, list)
+    assert table.check("c", 50) is None  # above the fence: check leaves the scan to commit
+    for value in (50, 100):
+        with pytest.raises(MessageStaleError, match=r"lowest mark of a full table \(100\)") as no:
+            table.commit("c", value, list)
+        assert no.value.detail == FENCE
+    assert ("a" in table, "c" in table, table.fence, len(table), table.evictions) == (
+        True, False, -1, 2, 0,
+    )  # fmt: skip
+    table.commit("c", 101, list)  # above the lowest mark: now "a" goes, the fence rises
+    assert ("a" in table, table.fence, table.evictions) == (False, 100, 1)
 
 
 def test_fenced_table_discard_keeps_the_fence() -> None:

@@ -253,6 +253,74 @@ def test_rotation_recognised_by_a_restarted_verifier(tmp_path: Path, clock: Manu
     restarted.close()
 
 
+def rotated(clock: ManualClock, signer: EpochSigner, verifier: EpochVerifier) -> None:
+    """One epoch accepted, then the signer's clock 30 s ahead for one seal and back: its
+    next epoch starts the successor prefix, and the verifier reports the rotation."""
+    verifier.open(signer.seal(b"a"))
+    clock.step_wall(30)
+    signer.seal(b"glitched, never delivered")
+    clock.step_wall(-30)
+    clock.advance(1)
+    assert verifier.open(signer.seal(b"b")).warning == "EPOCH_SENDER_ROTATED"
+
+
+def test_rotation_is_reported_once_not_after_each_restart(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """A verifier restarted on its store does not report a rotation it already reported
+    (review finding 6): the warning is for the new prefix's first epoch in the store."""
+    path = f"sqlite:{tmp_path / 'verifier.db'}"
+    signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
+    verifier = EpochVerifier(PSK, clock=clock, store=path)
+    rotated(clock, signer, verifier)
+    verifier.close()
+    for _ in range(2):
+        clock.advance(1)
+        restarted = EpochVerifier(PSK, clock=clock, store=path)
+        assert restarted.open(signer.seal(b"c")).warning is None
+        assert (restarted.rotations, sum(restarted.warnings.values())) == (0, 0)
+        restarted.close()
+
+
+def test_rotation_is_not_reported_again_after_eviction(clock: ManualClock) -> None:
+    """A rotated prefix evicted from the table and admitted again is not a new rotation."""
+    verifier = verifier_on(clock, max_prefixes=1, max_forward_s=10)
+    signer, other = EpochSigner(PSK, clock=clock, max_forward_s=10), EpochSigner(PSK, clock=clock)
+    rotated(clock, signer, verifier)
+    clock.advance(1)
+    verifier.open(other.seal(b"x"))  # evicts the rotated prefix
+    clock.advance(1)
+    assert verifier.open(signer.seal(b"c")).warning is None  # admitted again, above the fence
+    assert verifier.rotations == 1
+
+
+def test_refused_new_prefix_evicts_no_live_sender(tmp_path: Path, clock: ManualClock) -> None:
+    """An authentic new prefix at or below the lowest held epoch of a full table is refused
+    and changes nothing: the live senders stay, no fence rises (review finding 5)."""
+    verifier = EpochVerifier(PSK, clock=clock, store=f"sqlite:{tmp_path / 'v.db'}",
+                             max_prefixes=2)  # fmt: skip
+    a, b = EpochSigner(PSK, clock=clock), EpochSigner(PSK, clock=clock)
+    behind = ManualClock(wall=clock.wall() - 0.001)  # a sender 1 ms behind the others
+    lagging = EpochSigner(PSK, clock=behind)
+    verifier.open(a.seal(b"a"))
+    verifier.open(b.seal(b"b"))
+    late = lagging.seal(b"c")
+    verifier.check(late)  # above the fence; the full-table test is the commit's
+    with pytest.raises(MessageStaleError, match="lowest mark") as refused:
+        verifier.open(late)
+    assert refused.value.detail == "fence"
+    table = verifier._tables[Kind.ANNOUNCEMENT]
+    assert (a.nonce_prefix in table, b.nonce_prefix in table) == (True, True)
+    assert (table.fence, table.evictions) == (-1, 0)
+    assert verifier.store.current("epoch:announcement:floor") is None
+    clock.advance(1)
+    behind.advance(1)
+    verifier.open(lagging.seal(b"d"))  # later, above the lowest mark: now one is evicted...
+    assert table.evictions == 1
+    assert verifier.store.current("epoch:announcement:floor") == table.fence  # ...persisted
+    verifier.close()
+
+
 def test_signer_bound_must_exceed_its_reservation() -> None:
     with pytest.raises(ValueError, match="reserve_s"):
         EpochSigner(PSK, reserve_s=5, max_forward_s=5)

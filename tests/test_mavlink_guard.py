@@ -138,6 +138,23 @@ def test_eviction_fences_old_streams(clock: ManualClock) -> None:
         guard.open(frames[0])
 
 
+def test_refused_new_stream_evicts_no_live_stream(clock: ManualClock) -> None:
+    """A new stream at or below the lowest held timestamp of a full table is refused and
+    evicts nothing: a live stream keeps its reorder window (review finding 5)."""
+    now = mav_time(clock)
+    guard = MavlinkGuard(KEY, clock=clock, max_streams=2, reorder_window=1_000)
+    a, b = encoder(sysid=200, ts=now + 100), encoder(sysid=201, ts=now + 200)
+    late = command_frame(*a)  # now + 101: arrives after a's next frame
+    guard.open(command_frame(*a))
+    guard.open(command_frame(*b))
+    behind = command_frame(*encoder(sysid=202, ts=now + 50))  # a GCS 0.5 ms behind
+    with pytest.raises(MessageStaleError, match="lowest mark") as refused:
+        guard.open(behind)
+    assert refused.value.detail == "fence"
+    assert len(guard) == 2
+    assert guard.open(late).signed  # still inside a's window: a was not evicted
+
+
 def test_guard_refuses_its_own_vehicle_as_a_source(clock: ManualClock) -> None:
     guard = MavlinkGuard(KEY, clock=clock, system_id=1, allow_unsigned=frozenset({0}))
     mav, sink = encoder(sysid=1)  # a frame the vehicle itself signed

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from antireplay import ManualClock
-from antireplay.counters import FENCE, NonceCounter
+from antireplay.counters import NonceCounter
 from antireplay.errors import (
     CounterReplayedError,
     InvalidFrameError,
@@ -20,6 +20,7 @@ from antireplay.errors import (
     SignatureInvalidError,
     UnknownSenderError,
     UnknownSessionError,
+    WrongDirectionError,
 )
 from antireplay.session import (
     REKEY_AFTER,
@@ -109,10 +110,13 @@ def test_cross_session_replay_rejected(clock: ManualClock) -> None:
 
 
 def test_wrong_direction_and_purpose_fail(clock: ManualClock) -> None:
-    gcs_side, robot_side, _ = connect(*pair(clock))
+    gcs, robot = pair(clock)
+    gcs_side, robot_side, _ = connect(gcs, robot)
     frame = gcs_side.seal(b"x" * 5_000)
-    with pytest.raises(InvalidFrameError, match="direction"):
+    with pytest.raises(WrongDirectionError):  # MAVLink's code for the same event
         gcs_side.open(frame)  # reflected back to its sender
+    with pytest.raises(WrongDirectionError):
+        robot.open(robot_side.seal(b"r2i"))  # the responder's own frame, reflected at it
     swapped = bytearray(frame)
     swapped[2] = int(Purpose.COMMAND)
     with pytest.raises(SignatureInvalidError):
@@ -166,23 +170,28 @@ def test_tampered_hs2_rejected(clock: ManualClock) -> None:
         gcs.finish(hs1, bad)
 
 
-def test_evicted_session_is_the_fence_event(clock: ManualClock) -> None:
+def test_evicted_session_gets_session_closed(clock: ManualClock) -> None:
     gcs, robot = pair(clock, max_sessions=2)
     first, _, _ = connect(gcs, robot)
     connect(gcs, robot)
     connect(gcs, robot)  # evicts the first (oldest) session with its keys
     assert len(robot) == 2
-    with pytest.raises(MessageStaleError) as refused:
-        robot.open(first.seal(b"late"))
-    assert refused.value.detail == FENCE
-
-
-def test_closed_session_gets_session_closed(clock: ManualClock) -> None:
-    gcs, robot = pair(clock)
-    gcs_side, robot_side, _ = connect(gcs, robot)
-    robot.close(robot_side)
     with pytest.raises(SessionClosedError):
-        robot.open(gcs_side.seal(b"after the rekey"))
+        robot.open(first.seal(b"late"))
+
+
+def test_closed_session_gets_session_closed_whatever_happens_later(clock: ManualClock) -> None:
+    """One event, one code: later evictions of other sessions do not turn a closed
+    session's frames into another code (review finding 7b)."""
+    gcs, robot = pair(clock, max_sessions=2)
+    connect(gcs, robot)
+    gcs_side, robot_side, _ = connect(gcs, robot)
+    frame = gcs_side.seal(b"after the rekey")
+    robot.close(robot_side)
+    for _ in range(4):  # each new session (after the table fills) evicts the oldest
+        with pytest.raises(SessionClosedError):
+            robot.open(frame)
+        connect(gcs, robot)
 
 
 def test_check_records_nothing(clock: ManualClock) -> None:

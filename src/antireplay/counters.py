@@ -6,10 +6,10 @@ A counter needs no clock synchronisation: the sender numbers its frames and the
 receiver accepts each number at most once.  Three small types, one job each;
 every receiver policy in antireplay is built from them:
 
-* :class:`NonceCounter` (sender): **the one sender source** (session counters and
-  sequences, epochs in :mod:`antireplay.epochs`, MAVLink timestamps).
-  ``next()`` hands out unique, strictly increasing values under any number of
-  threads and **never wraps**: at ``limit`` (default ``2**64 - 2**13 - 1``,
+* :class:`NonceCounter` (sender): the sender source of session counters and
+  sequences and of epochs (:mod:`antireplay.epochs`).  ``next()`` hands out
+  unique, strictly increasing values under any number of threads and **never
+  wraps**: at ``limit`` (default ``2**64 - 2**13 - 1``,
   which leaves room for a window of 8,128 below ``2**64``) it raises
   :class:`~antireplay.errors.NonceExhaustedError`.  With an ``anchor`` (a
   function returning the current wall time in the value's unit) each value is
@@ -30,15 +30,18 @@ every receiver policy in antireplay is built from them:
   valid on a fresh window.
 * :class:`FencedTable` (receiver, many streams): a bounded table of per-key
   high-water marks (a MAVLink stream's last timestamp, an epoch prefix's last
-  epoch, a session's sequence) whose evictions raise a **fence**.  When the
-  table is full, the key with the **lowest** mark is evicted and the fence
-  rises to that mark; a key the table does not hold is admitted only above
-  the fence, so forgetting a key never re-opens a replay under it.  A key
-  refused at the fence gets ``MESSAGE_STALE`` with ``detail="fence"``, the one
+  epoch, a session's sequence) whose evictions raise a **fence**.  A key the
+  table does not hold is admitted only above the fence, so forgetting a key
+  never re-opens a replay under it.  When the table is full, a newcomer is
+  admitted only above the **lowest** mark too: then, and only then, the key
+  with the lowest mark is evicted and the fence rises to that mark.  So a
+  refused newcomer evicts nothing (it cannot push out a live key, nor raise
+  the fence), and the fence never rises above an admitted key.  A newcomer
+  refused either way gets ``MESSAGE_STALE`` with ``detail="fence"``, the one
   code of that event everywhere; a sender that is refused there starts a new
-  stream (a new prefix, a new handshake) or waits until its wall-anchored
-  values pass the fence.  Per-key order (strictly above the mark, or within a
-  window) stays with the policy that owns the table.
+  stream (a new prefix) or waits until its wall-anchored values pass the
+  fence.  Per-key order (strictly above the mark, or within a window) stays
+  with the policy that owns the table.
 
 Two phases, one vocabulary (every receiver in antireplay):
 ``check`` raises the typed reason a value would be refused and **records
@@ -49,9 +52,10 @@ loser gets the same typed error ``check`` would give.  ``open`` (sessions,
 epochs, the pipeline's ``receive``) is the recipe: check, authenticate, commit.
 
 Locking: :class:`NonceCounter` and :class:`CounterWindow` lock themselves; a
-:class:`FencedTable` does not (its owner serializes, as WireGuard's replay
-filter does), because every owner already holds a lock around the
-check-and-commit of a key.
+:class:`FencedTable` does not (its owner serializes its commits, as
+WireGuard's replay filter does): every owner holds a lock around ``commit``,
+which re-checks the key under it, while ``check`` may read without the lock
+(whatever it read, ``commit`` judges again).
 """
 
 from __future__ import annotations
@@ -308,24 +312,32 @@ class FencedTable(Generic[K, E]):
 
     def check(self, key: K, value: int) -> E | None:
         """Records nothing.  The key's entry; for a key the table does not hold, None, and
-        ``value`` must be above the fence (else ``MESSAGE_STALE``, ``detail="fence"``)."""
+        ``value`` must be above the fence (else ``MESSAGE_STALE``, ``detail="fence"``).
+        The full-table test against the lowest mark is :meth:`commit`'s alone: it scans
+        the table, which only an authenticated newcomer may cost (and ``check`` may run
+        without the owner's lock, while a commit changes the table)."""
         entry = self._entries.get(key)
         if entry is None and value <= self._fence:
-            self._refuse(value)
+            self._refuse(value, self._fence, "the eviction fence")
         return entry
 
     def commit(self, key: K, value: int, new: Callable[[], E]) -> E:
         """Raise ``key``'s mark to ``value`` (never lowers it).  A key the table does not
-        hold is admitted with entry ``new()`` only above the fence, evicting the key with
-        the lowest mark first when the table is full."""
+        hold is admitted with entry ``new()`` only above the fence and, when the table is
+        full, above the lowest mark; only then is that lowest key evicted and the fence
+        raised to its mark.  A refused newcomer changes nothing."""
         entry = self._entries.get(key)
         if entry is None:
             if value <= self._fence:
-                self._refuse(value)
+                self._refuse(value, self._fence, "the eviction fence")
             if len(self._marks) >= self.max_keys:
-                self._evict_lowest()
-                if value <= self._fence:
-                    self._refuse(value)
+                marks = self._marks
+                lowest = min(marks, key=marks.__getitem__)
+                if value <= marks[lowest]:
+                    self._refuse(value, marks[lowest], "the lowest mark of a full table")
+                self._fence = max(self._fence, marks.pop(lowest))
+                del self._entries[lowest]
+                self.evictions += 1
             entry = self._entries[key] = new()
             self._marks[key] = value
         elif value > self._marks[key]:
@@ -338,17 +350,9 @@ class FencedTable(Generic[K, E]):
         self._marks.pop(key, None)
         return self._entries.pop(key, None)
 
-    def _evict_lowest(self) -> None:
-        marks = self._marks
-        oldest = min(marks, key=marks.__getitem__)
-        self._fence = max(self._fence, marks.pop(oldest))
-        del self._entries[oldest]
-        self.evictions += 1
-
-    def _refuse(self, value: int) -> None:
+    def _refuse(self, value: int, floor: int, what: str) -> None:
         raise MessageStaleError(
-            f"new {self.what} at {value}, at or below the eviction fence {self._fence}",
-            detail=FENCE,
+            f"new {self.what} at {value}, at or below {what} ({floor})", detail=FENCE
         )
 
 

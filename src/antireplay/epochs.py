@@ -47,7 +47,11 @@ accepted as a new stream (it is above nothing; the fences and ``max_age_s``
 still apply) and answered with ``warning="EPOCH_SENDER_ROTATED"``, counted in
 ``rotations``/``warnings``, logged, and audited when the verifier has an
 audit log; the glitched epoch itself was refused with ``EPOCH_TOO_FAR_AHEAD``
-(counted in ``forward_rejections``, also audited).
+(counted in ``forward_rejections``, also audited).  A rotation is reported
+once, when the store holds no epoch for the new prefix yet: a verifier
+restarted on the same store, or one that evicted the prefix and admits it
+again, does not report it again (two verifiers racing on a shared store for
+the new prefix's first epochs may both report it).
 
 **State file and rotation.**  The signer's state file records the current
 prefix, the prefix it started from (``base``: what ``nonce_prefix`` or
@@ -97,7 +101,10 @@ SQLite file, a restarted Redis) plus ``max_forward_s``, the furthest ahead any
 sender may run, is the **restart fence**: epochs at or below it may have been
 accepted by state that is gone, and are refused (``detail="restart_fence"``).
 So a verifier without persistent state refuses everything sealed before it
-started, and ``max_forward_s`` is required (default 60 s).
+started.  ``max_forward_s`` is always in force (a positive, finite number of
+seconds; default 60 s, the signer's default, while DDS readers default to 5 s);
+``max_age_s`` defaults to None here (no age bound: a never-seen sender is
+judged by the fences alone), and DDS readers always set it (default 30 s).
 
 **Prefix collisions.**  An *authentic* announcement with an epoch at or below
 ``last[prefix]`` (but within 60 s of it) that is not one the verifier accepted
@@ -441,14 +448,15 @@ class EpochVerifier:
         self._check_time(claim, authentic=True)
         digest = hashlib.sha256(claim.payload).digest()[:16]
         with self._lock:
-            self._check_order(claim, digest, authentic=True)
-            rotated_from = self._commit(claim, digest)
+            unseen = self._check_order(claim, digest, authentic=True)
+            rotated_from = self._commit(claim, digest, unseen)
         accepted = Announcement(claim.payload, claim.prefix, claim.epoch, kind)
         return accepted if rotated_from is None else self._rotated(accepted, rotated_from)
 
-    def _commit(self, claim: _Claim, digest: bytes) -> bytes | None:
+    def _commit(self, claim: _Claim, digest: bytes, unseen: bool) -> bytes | None:
         """Record the epoch (caller holds the lock and has checked it): one store
-        ``advance``; a new prefix also learns whether it succeeds a known one."""
+        ``advance``; a prefix new to the table leaves its successor's marker, and one
+        ``unseen`` by the store too learns whether it succeeds a known one."""
         kind, prefix, epoch = claim.kind, claim.prefix, claim.epoch
         table = self._tables[kind]
         fence, new = table.fence, prefix not in table
@@ -465,6 +473,8 @@ class EpochVerifier:
         self.store.advance(
             self._key(kind, "after:" + successor_prefix(prefix).hex()), int.from_bytes(prefix)
         )
+        if not unseen:  # the store knew this prefix: any rotation to it was reported then
+            return None
         before = self.store.current(self._key(kind, "after:" + prefix.hex()))
         if before is None:
             return None
@@ -511,19 +521,20 @@ class EpochVerifier:
                 detail="restart_fence",
             )
 
-    def _check_order(self, claim: _Claim, digest: bytes, *, authentic: bool) -> None:
-        """``epoch > last[prefix]`` (caller holds the lock); records nothing."""
+    def _check_order(self, claim: _Claim, digest: bytes, *, authentic: bool) -> bool:
+        """``epoch > last[prefix]`` (caller holds the lock); records nothing.  True when
+        the store holds no epoch for the prefix (its first accept anywhere)."""
         table, epoch = self._tables[claim.kind], claim.epoch
         recent = table.check(claim.prefix, epoch)
         if recent is None:
             stored = self.store.current(self._key(claim.kind, claim.prefix.hex()))
             if stored is not None and epoch <= stored:
                 raise EpochReplayedError(f"epoch {epoch} is not above {stored}")
-            return
+            return stored is None
         last = table.mark(claim.prefix)
         assert last is not None
         if epoch > last:
-            return
+            return False
         if authentic:
             self._judge_old(claim.prefix, epoch, digest, last, recent)
         raise EpochReplayedError(f"epoch {epoch} is not above {last}")

@@ -11,18 +11,21 @@ message is stale because the bounded cache had to forget older entries).
 
 One code per event, one exception per code, named after it (``Code.X_Y`` is
 raised as ``XYError``).  In particular, "the key is new to a bounded table and
-at or below the fence its evictions raised" is one event everywhere (a MAVLink
-stream, an epoch prefix, a session): ``MESSAGE_STALE`` with ``detail="fence"``
-(see :class:`~antireplay.counters.FencedTable`); the store's restart fence is
-``detail="restart_fence"``.  Events that are accepted but must be counted,
+at or below the fence its evictions raised (or, the table full, its lowest
+mark)" is one event everywhere (a MAVLink stream, an epoch prefix):
+``MESSAGE_STALE`` with ``detail="fence"`` (see
+:class:`~antireplay.counters.FencedTable`); the store's restart fence is
+``detail="restart_fence"``.  A session frame never brings a new key (only a
+handshake does): a frame for a session the responder no longer holds, closed
+or evicted, is ``SESSION_CLOSED``.  A frame from the wrong side of a link is
+``WRONG_DIRECTION`` (MAVLink and sessions alike).  Events that are accepted but must be counted,
 logged and audited are :class:`WarningCode` values, never bare strings.
 
 Rejections of a *message* derive from :class:`ReplayAttackError` (the name the
 RCAN SDK uses for this family), so ``except ReplayAttackError`` catches every
 verdict that should be answered with a COMMAND_NACK.  Operator mistakes
-(:class:`ConfigError`) and a sender's own exhaustion (:class:`NonceExhaustedError`,
-raised by :class:`~antireplay.counters.NonceCounter` for nonces, epochs and
-timestamps alike) are separate: they are not answers to a peer.
+(:class:`ConfigError`) and a sender's own exhaustion (:class:`NonceExhaustedError`)
+are separate: they are not answers to a peer.
 """
 
 from __future__ import annotations
@@ -242,7 +245,8 @@ class UnknownSenderError(ReplayAttackError):
 
 
 class WrongTargetError(ReplayAttackError):
-    """An authentic message is addressed to another receiver (another vehicle)."""
+    """A message is addressed to another receiver (another vehicle).  A signed frame is
+    bound only after its signature verified; an allow-listed unsigned one is not authentic."""
 
     code = Code.WRONG_TARGET
 
@@ -284,9 +288,8 @@ class EpochTooFarAheadError(ReplayAttackError):
 
 
 class SessionClosedError(ReplayAttackError):
-    """The frame's session was closed (after a rekey); only a new handshake helps.
-
-    An *evicted* session is the fence event: ``MESSAGE_STALE``, ``detail="fence"``."""
+    """The frame's session was issued but is no longer held (closed after a rekey, or
+    evicted), its keys gone with it; only a new handshake helps."""
 
     code = Code.SESSION_CLOSED
 
@@ -298,7 +301,9 @@ class UnknownSessionError(ReplayAttackError):
 
 
 class WrongDirectionError(ReplayAttackError):
-    """An authentic frame arrived from the wrong side of a link (a reflection)."""
+    """A frame claims to come from the wrong side of a link (a reflection).  Checked
+    before any signature, so the claim itself is not authenticated; the frame is only
+    dropped."""
 
     code = Code.WRONG_DIRECTION
 

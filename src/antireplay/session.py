@@ -50,10 +50,14 @@ frames in either direction, long before the hard limit where ``seal`` raises
 keeps its sessions in a :class:`~antireplay.counters.FencedTable` of at most
 ``max_sessions``, keyed and marked by sequence; the oldest sequence is evicted
 *with its keys*, so none of its frames can ever verify again (eviction forces a
-new session rather than re-opening a window), and the fence rises to it: a
-frame for an evicted session gets ``MESSAGE_STALE`` (``detail="fence"``), the
-fence event everywhere; one for a session closed after a rekey gets
-``SESSION_CLOSED``, and one for a sequence never issued ``UNKNOWN_SESSION``.
+new session rather than re-opening a window).  A frame never brings a new key
+to that table (only a handshake does), so its fence plays no part in routing:
+a frame for a session the responder issued but no longer holds, closed after
+a rekey or evicted, gets ``SESSION_CLOSED`` (one event, one code, whatever
+happened to other sessions since; the answer is a new handshake), one for a
+sequence never issued ``UNKNOWN_SESSION``, and a frame sent in this side's
+own direction (reflected back at its sender) ``WRONG_DIRECTION``, as in
+MAVLink; all three before any cryptography.
 """
 
 from __future__ import annotations
@@ -79,6 +83,7 @@ from antireplay.errors import (
     SignatureInvalidError,
     UnknownSenderError,
     UnknownSessionError,
+    WrongDirectionError,
 )
 from antireplay.replay import ReplayCache
 from antireplay.stores.memory import MemoryStore
@@ -204,7 +209,7 @@ class Session:
         if sid != self.session_id:
             raise UnknownSessionError("frame belongs to another session")
         if direction is self.role:
-            raise InvalidFrameError("frame travels in the wrong direction")
+            raise WrongDirectionError("frame travels in this side's own direction (reflected)")
         if len(frame) < _FRAME_HEAD.size + (MAC_LEN if purpose is Purpose.DATA else SIG_LEN):
             raise InvalidFrameError("frame too short for its tag")
         self._recv[purpose].check(counter)
@@ -386,16 +391,17 @@ class Responder:
         return peer_id, digest, ts_ms / 1000, hs1[:-SIG_LEN], hs1[-SIG_LEN:], kem_ct
 
     def _route(self, head: tuple[Purpose, Direction, bytes, int]) -> Session:
-        """The frame's live session; records nothing.  Evicted: the fence event; closed
-        after a rekey: ``SESSION_CLOSED``; never issued: ``UNKNOWN_SESSION``."""
+        """The frame's live session; records nothing and reads without the lock (the
+        session's window commit is the re-check).  Issued but no longer held (closed
+        after a rekey, or evicted): ``SESSION_CLOSED``; never issued: ``UNKNOWN_SESSION``."""
         sid = head[2]
         seq = int.from_bytes(sid[:8], "big")
-        session = self._sessions.check(seq, seq)
-        if session is None or session.session_id != sid:
-            if session is None and seq < self._seq.peek:
-                raise SessionClosedError("session was closed; handshake again")
-            raise UnknownSessionError("no such session")
-        return session
+        session = self._sessions.get(seq)
+        if session is not None and session.session_id == sid:
+            return session
+        if session is None and seq < self._seq.peek:
+            raise SessionClosedError("session closed or evicted, its keys gone; handshake again")
+        raise UnknownSessionError("no such session")
 
     def check(self, frame: bytes) -> None:
         """Route and check a frame, its tag aside; records nothing."""

@@ -38,6 +38,7 @@ from cyclonedds.domain import DomainParticipant
 
 from antireplay.audit import AuditLog
 from antireplay.clock import Clock, resolve
+from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.ping import PingListener
 from antireplay.dds.topics import SealedReader, SealedWriter, Verdict
 from antireplay.dds.wire import SealedSample
@@ -50,6 +51,8 @@ ANNOUNCE_TOPIC = "antireplay/announce"
 RELAYED_TOPIC = "antireplay/relayed"
 #: Epochs the relay remembers having emitted, to tell its own samples from a twin's.
 EMITTED_MEMORY = 4096
+#: Binding pings one :meth:`AnnouncementRelay.pump` judges at most.
+PINGS_PER_PUMP = 256
 _ORIGIN = struct.Struct(">8sQ8s")
 
 
@@ -106,8 +109,8 @@ class AnnouncementRelay:
         ingress: str = ANNOUNCE_TOPIC,
         egress: str = RELAYED_TOPIC,
         clock: Clock | None = None,
-        max_age_s: float = 30.0,
-        max_forward_s: float = 5.0,
+        max_age_s: float = MAX_AGE_S,
+        max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
         ping: PingListener | None = None,
     ) -> None:
@@ -132,6 +135,7 @@ class AnnouncementRelay:
             service_name=service_name,
             state_file=signer_state,
             clock=self._clock,
+            max_forward_s=max_forward_s,  # the subscribers' bound: rotate, never be refused
         )
         self._watch = SealedReader(
             participant, egress, psk, clock=self._clock,
@@ -149,7 +153,9 @@ class AnnouncementRelay:
             part.close()
 
     def pump(self, timeout_s: float = 0.1) -> list[Verdict]:
-        """One round: judge waiting announcements, relay the accepted, look for a twin."""
+        """One round: judge waiting announcements, relay the accepted, look for a twin,
+        judge at most ``PINGS_PER_PUMP`` waiting pings (a ping flood cannot stall the
+        announcements)."""
         verdicts = self.ingress.poll(timeout_s)
         for verdict in verdicts:
             if verdict.accepted:
@@ -157,7 +163,7 @@ class AnnouncementRelay:
         for sample, seen in self._watch.take_judged():
             self._check_twin(sample, seen)
         if self.ping is not None:
-            self.ping.drain()
+            self.ping.drain(PINGS_PER_PUMP)
         return verdicts
 
     def serve(self, stop: threading.Event, period_s: float = 0.1) -> None:
