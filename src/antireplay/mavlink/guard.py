@@ -38,10 +38,13 @@ is judged in this order:
    a restart resets); then the stream's state advances in memory, and with a
    store it is persisted off the frame path (*Persistence* below).
 
-The stream table is a :class:`~antireplay.counters.FencedTable`: bounded; when
-full, the stream with the lowest high-water is evicted and the fence rises to
-it; a stream the table does not hold must come back above the fence, even when
-the store holds a (possibly older, not yet flushed) high-water for it.
+The stream table is a :class:`~antireplay.counters.FencedTable`: bounded; a
+full table admits a new stream (at step 6; :meth:`~MavlinkGuard.check` tests
+only the fence) only above its lowest high-water, and only then evicts that
+stream and raises the fence to it; a new stream at or below it is refused
+(``MESSAGE_STALE``, ``detail="fence"``) and evicts nothing.  A stream the table
+does not hold must come back above the fence, even when the store holds a
+(possibly older, not yet flushed) high-water for it.
 
 Persistence: a periodic flush and a restart fence, not an fsync per frame
 ------------------------------------------------------------------------
@@ -241,7 +244,7 @@ class MavlinkGuard:
 
     def check(self, raw: bytes) -> Frame:
         """Records nothing: parse, direction, allow-list and every stream rule a replay
-        fails, before any cryptography (steps 1, 2 and 5 without the store)."""
+        fails, before any cryptography (steps 1 to 3 of the module docstring)."""
         frame = parse_frame(raw)
         if frame.sysid in self.refused_sources:
             raise WrongDirectionError(
