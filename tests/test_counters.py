@@ -118,11 +118,10 @@ def test_anchored_persistent_counter_resumes_above_its_ceiling_and_the_wall(
 def test_restart_persists_the_new_binding_before_its_first_value(tmp_path: Path) -> None:
     counter = NonceCounter.persistent(tmp_path / "ctr.state", lease=1_000)
     counter.next()
-    assert counter._state is not None
-    writes = counter._state.writes
+    writes = counter.reservations
     counter.restart()
     assert counter.next() == 1
-    assert counter._state.writes == writes + 1
+    assert counter.reservations == writes + 1
 
 
 def test_counter_from_time_is_above_time_ns() -> None:
@@ -135,8 +134,7 @@ def test_persistent_counter_writes_once_per_lease(tmp_path: Path) -> None:
     counter = NonceCounter.persistent(path, lease=100)
     values = [counter.next() for _ in range(1_000)]
     assert values == list(range(1, 1_001))
-    assert counter._state is not None
-    assert counter._state.writes == 10
+    assert counter.reservations == 10
 
 
 def test_persistent_counter_resumes_above_ceiling(tmp_path: Path) -> None:

@@ -113,7 +113,7 @@ def test_durable_timestamp_source_never_repeats_across_restarts(
     store = SqliteStore(tmp_path / "sign.db")
     first = TimestampSource(clock, store=store, store_key="sign")
     handed = [first.next() for _ in range(1_000)]
-    assert store.current("sign") == max(handed) - 999 + UNITS_PER_S  # one write per second
+    assert store.current("sign") == max(handed) - 999 + UNITS_PER_S - 1  # one write per second
     clock.step_wall(-30)  # the wall clock steps back (NTP) across a restart
     again = TimestampSource(clock, store=store, store_key="sign")
     assert again.next() > max(handed)

@@ -6,8 +6,10 @@ A counter needs no clock synchronisation: the sender numbers its frames and the
 receiver accepts each number at most once.  Three small types, one job each;
 every receiver policy in antireplay is built from them:
 
-* :class:`NonceCounter` (sender): the sender source of session counters and
-  sequences and of epochs (:mod:`antireplay.epochs`).  ``next()`` hands out
+* :class:`NonceCounter` (sender): **the one sender source**: session counters
+  and sequences, epochs (:mod:`antireplay.epochs`) and MAVLink signing
+  timestamps (:class:`antireplay.mavlink.codec.TimestampSource` is a
+  ``NonceCounter`` anchored to MAVLink time).  ``next()`` hands out
   unique, strictly increasing values under any number of threads and **never
   wraps**: at ``limit`` (default ``2**64 - 2**13 - 1``,
   which leaves room for a window of 8,128 below ``2**64``) it raises
@@ -21,7 +23,9 @@ every receiver policy in antireplay is built from them:
   ``lease`` values: after a crash it resumes above everything it could have
   handed out.  The file has one owner: a second process (or object) opening
   it is refused while the first holds its lock, since two owners would hand
-  out the same values.
+  out the same values.  Where the ceiling lives is a :class:`Ceiling`: a
+  state file (:class:`FileCeiling`) or a replay store's ``advance``
+  (:class:`StoreCeiling`, whose co-owners of one key claim disjoint ranges).
 * :class:`CounterWindow` (receiver, lossy/reordering links): the RFC 6479
   sliding bitmap, as WireGuard implements it.  A counter ``c`` is accepted
   once iff ``0 <= c < limit`` and ``last - c <= size``.  The bitmap is a ring
@@ -65,7 +69,7 @@ import threading
 import time
 from collections.abc import Callable, Hashable
 from pathlib import Path
-from typing import Any, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 from antireplay.durable import DurableState, as_int, register_repair
 from antireplay.errors import (
@@ -76,6 +80,9 @@ from antireplay.errors import (
     MessageStaleError,
     NonceExhaustedError,
 )
+
+if TYPE_CHECKING:
+    from antireplay.stores import ReplayStore
 
 #: Sender limit: below 2**64 with room for a full window (WireGuard uses 2**64 - 2**4 - 1).
 COUNTER_LIMIT = 2**64 - 2**13 - 1
@@ -92,6 +99,49 @@ Record = Callable[[int], dict[str, Any]]
 
 def _ceiling_record(ceiling: int) -> dict[str, Any]:
     return {"ceiling": ceiling}
+
+
+class Ceiling(Protocol):
+    """Where a :class:`NonceCounter` persists the ceiling it reserves ahead of its values."""
+
+    def claim(self, value: int, span: int) -> int:
+        """Durably reserve ``[v, v + span)`` for some ``v >= value`` before ``v`` is handed
+        out, and return ``v`` (above ``value`` when a co-owner already reserved past it)."""
+        ...
+
+    def release(self) -> None:
+        """Give up ownership (a file lock); a later owner resumes above the ceiling."""
+        ...
+
+
+class FileCeiling:
+    """The ceiling in a crash-safe state file (:mod:`antireplay.durable`), one owner."""
+
+    def __init__(self, state: DurableState, record: Record = _ceiling_record) -> None:
+        self.state, self.record = state, record
+
+    def claim(self, value: int, span: int) -> int:
+        self.state.save(self.record(value + span - 1))
+        return value
+
+    def release(self) -> None:
+        self.state.release()
+
+
+class StoreCeiling:
+    """The ceiling in a replay store (``advance``, atomic on every backend): several owners
+    of one key get disjoint ranges, and a store that lost data is detected at open."""
+
+    def __init__(self, store: ReplayStore, key: str) -> None:
+        self.store, self.key = store, key
+
+    def claim(self, value: int, span: int) -> int:
+        while not self.store.advance(self.key, value + span - 1):
+            value = max(value, (self.store.current(self.key) or 0) + 1)
+        return value
+
+    def release(self) -> None:
+        """Nothing to give up: the store outlives its owners."""
 
 
 class NonceCounter:
@@ -111,10 +161,11 @@ class NonceCounter:
         self.limit = limit
         self._anchor = anchor
         self._lock = threading.Lock()
-        self._state: DurableState | None = None
-        self._record: Record = _ceiling_record
+        self._persist: Ceiling | None = None
         self._ceiling = limit
         self._lease = 0
+        #: Ceilings persisted so far (one per ``lease`` values): the write cost, observable.
+        self.reservations = 0
 
     @classmethod
     def from_time(cls, *, limit: int = COUNTER_LIMIT) -> NonceCounter:
@@ -152,21 +203,41 @@ class NonceCounter:
     ) -> NonceCounter:
         """A counter resuming above ``ceiling`` (loaded by the caller from ``state``), that
         saves ``record(ceiling)`` to ``state`` before handing out any value above it."""
+        return cls.on_ceiling(FileCeiling(state, record), ceiling, lease, limit=limit,
+                              anchor=anchor)  # fmt: skip
+
+    @classmethod
+    def on_ceiling(
+        cls,
+        persist: Ceiling,
+        ceiling: int,
+        lease: int,
+        *,
+        limit: int = COUNTER_LIMIT,
+        anchor: Callable[[], int] | None = None,
+    ) -> NonceCounter:
+        """A counter resuming above ``ceiling`` that claims ``lease`` values ahead from
+        ``persist`` before handing out any value above what it claimed."""
         if lease < 1:
-            state.release()
+            persist.release()
             raise ValueError("lease must be >= 1")
         if ceiling + 1 >= limit:
-            state.release()
+            persist.release()
             raise NonceExhaustedError(f"persisted counter at {ceiling} has reached its limit")
         counter = cls(ceiling + 1, limit=limit, anchor=anchor)
-        counter._state, counter._lease, counter._ceiling = state, lease, ceiling
-        counter._record = record
+        counter.attach(persist, lease)
         return counter
 
+    def attach(self, persist: Ceiling, lease: int) -> None:
+        """Persist from now on: claim ``lease`` values ahead from ``persist`` before handing
+        out any value above the last one claimed (nothing is claimed yet)."""
+        with self._lock:
+            self._persist, self._lease, self._ceiling = persist, lease, self._next - 1
+
     def close(self) -> None:
-        """Give up the state file (its lock); a later owner resumes above the ceiling."""
-        if self._state is not None:
-            self._state.release()
+        """Give up the persisted ceiling (a state file's lock); a later owner resumes above it."""
+        if self._persist is not None:
+            self._persist.release()
 
     @property
     def peek(self) -> int:
@@ -186,8 +257,8 @@ class NonceCounter:
                 value = max(value, self._anchor())
             if value >= self.limit:
                 raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
-            if self._state is not None and value > self._ceiling:
-                self._reserve(value)
+            if self._persist is not None and value > self._ceiling:
+                value = self._reserve(value)
             self._next = value + 1
             return value
 
@@ -197,15 +268,19 @@ class NonceCounter:
         bindings, never within one; with a state file the next value is persisted first."""
         with self._lock:
             self._next = start
-            if self._state is not None:
+            if self._persist is not None:
                 self._ceiling = start - 1
 
-    def _reserve(self, value: int) -> None:
-        """Persist a new ceiling *before* handing out any value under it."""
-        assert self._state is not None
-        ceiling = min(value + self._lease - 1, self.limit - 1)
-        self._state.save(self._record(ceiling))
-        self._ceiling = ceiling
+    def _reserve(self, value: int) -> int:
+        """Persist a new ceiling *before* handing out any value under it; the value to hand
+        out (a co-owner of a store's key may already have reserved past ``value``)."""
+        assert self._persist is not None
+        value = self._persist.claim(value, min(self._lease, self.limit - value))
+        self.reservations += 1
+        if value >= self.limit:
+            raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
+        self._ceiling = min(value + self._lease - 1, self.limit - 1)
+        return value
 
 
 class CounterWindow:

@@ -40,13 +40,13 @@ from __future__ import annotations
 
 import hashlib
 import struct
-import threading
 from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator.mavcrc import x25crc
 
 from antireplay.clock import Clock, resolve
+from antireplay.counters import NonceCounter, StoreCeiling
 from antireplay.errors import InvalidFrameError, NonceExhaustedError
 from antireplay.stores import ReplayStore
 from antireplay.window import NEVER
@@ -237,9 +237,10 @@ def passphrase_key(passphrase: str) -> bytes:
     return hashlib.sha256(passphrase.encode()).digest()
 
 
-class TimestampSource:
-    """A sender's link timestamp tied to real time; never wraps past 2**48; with a store,
-    never repeats across restarts (module docstring)."""
+class TimestampSource(NonceCounter):
+    """A sender's link timestamp: the project's one sender source
+    (:class:`~antireplay.counters.NonceCounter`) anchored to MAVLink time, never past
+    ``2**48``; with a store, never repeating across restarts (module docstring)."""
 
     def __init__(
         self,
@@ -250,34 +251,18 @@ class TimestampSource:
         store_key: str = "mav-sign",
         reserve_s: float = 1.0,
     ) -> None:
-        self.clock = resolve(clock)
-        self.store, self.store_key = store, store_key
-        self._reserve = int(reserve_s * UNITS_PER_S)
-        self._reserved = -1
+        self.clock = clock_ = resolve(clock)
+        reserve = int(reserve_s * UNITS_PER_S)
         if store is not None:
             last = max(last, store.current(store_key) or 0)
             lost = store.verify().fence
-            if lost != NEVER:
-                last = max(last, int((lost - MAV_EPOCH) * UNITS_PER_S) + self._reserve)
-        self._last = last
-        self._lock = threading.Lock()
-
-    def next(self) -> int:
-        with self._lock:
-            ts = max(self._last + 1, mav_time(self.clock))
-            if ts >= TS_LIMIT:
-                raise NonceExhaustedError("MAVLink timestamp reached 2**48; rekey the link")
-            if self.store is not None and ts > self._reserved:
-                ts = self._reserve_above(self.store, ts)
-            self._last = ts
-            return ts
-
-    def _reserve_above(self, store: ReplayStore, ts: int) -> int:
-        """Persist a ceiling above ``ts`` before handing ``ts`` out (caller holds the lock)."""
-        while not store.advance(self.store_key, ts + self._reserve):
-            ts = max(ts, (store.current(self.store_key) or 0) + 1)  # another signer went higher
-        self._reserved = ts + self._reserve
-        return ts
+            if lost != NEVER:  # the store forgot its ceiling: resume above what it could hold
+                last = max(last, int((lost - MAV_EPOCH) * UNITS_PER_S) + reserve)
+        if last + 1 >= TS_LIMIT:
+            raise NonceExhaustedError("MAVLink timestamp reached 2**48; rekey the link")
+        super().__init__(last + 1, limit=TS_LIMIT, anchor=lambda: mav_time(clock_))
+        if store is not None:
+            self.attach(StoreCeiling(store, store_key), reserve)
 
 
 def sign_frame(
