@@ -34,10 +34,13 @@ from antireplay.mavlink import (
     MavlinkRouter,
     Refusal,
     Role,
+    TimestampSource,
     mav_time,
     open_transport,
     parse_endpoint,
+    parse_frame,
 )
+from antireplay.mavlink.endpoints import Transport
 from tests.conftest import ROOT
 from tests.harness import free_port, until
 from tests.mavlink_frames import KEY, Sink, unsigned_heartbeat
@@ -473,3 +476,74 @@ def test_an_audit_trail_that_is_down_does_not_stop_the_forwarding(rig: Rig) -> N
     assert rig.commands_until(4.0) == [4.0]  # the receiving thread is alive
     assert rig.router.stats.unaudited == 1
     assert rig.router.stats.dropped["inbound:INVALID_FRAME"] == 1
+
+
+class FakeTransport(Transport):
+    """An in-process endpoint: frames are injected, writes are recorded."""
+
+    def __init__(self, text: str, *, fixed: bool = True) -> None:
+        super().__init__(parse_endpoint(text), fixed=fixed)
+        self.sent: list[tuple[bytes, Any]] = []
+        self._deliver: Any = None
+
+    def start(self, deliver: Any) -> None:
+        self._deliver = deliver
+
+    def _write(self, data: bytes, peer: Any) -> None:
+        self.sent.append((bytes(data), peer))
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def inject(self, raw: bytes, peer: Any = None) -> None:
+        self._deliver(self, peer, [raw], 0)
+
+
+def signed_sender(sysid: int, key: bytes, clock: ManualClock) -> tuple[Any, Sink]:
+    sink = Sink()
+    mav = dialect.MAVLink(sink, srcSystem=sysid, srcComponent=190)
+    mav.signing.secret_key, mav.signing.sign_outgoing = key, True
+    mav.signing.link_id, mav.signing.timestamp = 1, mav_time(clock)
+    return mav, sink
+
+
+def test_a_frame_the_router_signed_for_a_ground_link_cannot_be_reflected() -> None:
+    """Link B has its own key: the router signs what it forwards there afresh (link id
+    251).  An attacker on B who sends such a copy back gets WRONG_DIRECTION: it neither
+    reaches the vehicle twice nor steals the route of the station that sent it."""
+    clock, other_key = ManualClock(1_800_000_000.0), bytes(range(1, 33))
+    vehicle = FakeTransport("udpout:127.0.0.1:1")
+    a = FakeTransport("udpin:0.0.0.0:2", fixed=False)
+    b = FakeTransport("udpin:0.0.0.0:3", fixed=False)
+    router = MavlinkRouter(
+        [
+            Link(vehicle, Role.VEHICLE, KEY),
+            Link(a, Role.GROUND, KEY),
+            Link(b, Role.GROUND, other_key),
+        ],
+        {
+            KEY: MavlinkGuard(KEY, clock=clock, system_id=1),
+            other_key: MavlinkGuard(other_key, clock=clock, system_id=1),
+        },
+        MavlinkGuard(KEY, clock=clock),
+        signers={KEY: TimestampSource(clock), other_key: TimestampSource(clock)},
+    )
+    router.start()
+    station_b, sink_b = signed_sender(254, other_key, clock)
+    station_b.heartbeat_send(6, 8, 0, 0, 0)
+    b.inject(sink_b.frames[-1], ("10.0.0.2", 14550))  # B has a receiver from now on
+    station_a, sink_a = signed_sender(255, KEY, clock)
+    station_a.command_long_send(0, 0, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # ARM, broadcast
+    a.inject(sink_a.frames[-1], ("10.0.0.1", 14550))
+
+    def arms() -> list[bytes]:
+        return [d for d, _ in vehicle.sent if parse_frame(d).msgid == 76]
+
+    copies = [d for d, _ in b.sent if parse_frame(d).msgid == 76]
+    assert len(arms()) == 1 and len(copies) == 1
+    clock.advance(0.5)
+    b.inject(copies[0], ("6.6.6.6", 4444))
+    assert len(arms()) == 1
+    assert router.stats.dropped["inbound:WRONG_DIRECTION"] == 1
+    assert router.routes()[(255, 190)] == "udpin:0.0.0.0:2"
+    router.stop()

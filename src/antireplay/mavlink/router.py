@@ -17,14 +17,19 @@ A :class:`MavlinkRouter` joins any number of :class:`Link` s, each a transport
   restarts), then judged by the vehicle key's inbound guard like any frame.
 
 The router holds no replay rule: every frame goes through exactly one guard
-call (:meth:`~antireplay.mavlink.guard.MavlinkGuard.check`, two when a ground
+call (:meth:`~antireplay.mavlink.guard.MavlinkGuard.open`, two when a ground
 link has its own key: its guard, then the vehicle key's guard on the frame the
 router signed again), and whatever the guard refuses is a counted drop with its
 code and reason, handed to ``on_reject`` (:class:`Refusal`, one line that says
 why: bad signature, old timestamp and the gap in seconds, wrong link, not
 allow-listed).  Frames the router signs are committed in the vehicle key's
 inbound guard, so a capture of them replayed on a ground link that shares the
-vehicle key is a replay there too.
+vehicle key is a replay there too.  Frames the router signs for a ground link
+with a key of its own are not committed anywhere (they leave, they never came
+in), so a ground link refuses every frame carrying the router's
+``sign_link_id`` (``WRONG_DIRECTION``): otherwise a copy reflected back would
+be a new stream for that link's guard and reach the vehicle again.  Ground
+stations must therefore not sign with that link id (251 unless configured).
 
 **Keys per link.**  Frames travel in the vehicle key's form: a frame from a ground
 link with its own key is signed again with the vehicle key (and committed, as
@@ -69,6 +74,7 @@ from antireplay.errors import (
     InvalidFrameError,
     NonceExhaustedError,
     ReplayAttackError,
+    WrongDirectionError,
 )
 from antireplay.mavlink.codec import (
     SIGNED,
@@ -83,6 +89,8 @@ from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
 
 INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
+#: A v2 signature block: link id, 6-byte timestamp, 6-byte signature (the link id first).
+_SIGNATURE_LEN = 13
 Location = tuple["Link", Peer | None]
 
 
@@ -245,8 +253,18 @@ class MavlinkRouter:
         if link.role is Role.VEHICLE:
             return self.outbound.open(raw)
         key = self.vehicle_key if link.key is None else link.key  # None: a trusted link
-        if link.role is Role.TRUSTED and raw[0] == STX_V2 and not raw[2] & SIGNED:
+        signed_v2 = len(raw) > _SIGNATURE_LEN and raw[0] == STX_V2 and bool(raw[2] & SIGNED)
+        if link.role is Role.TRUSTED and raw[0] == STX_V2 and not signed_v2:
             raw = self._sign(raw, key)  # an unsigned v2 frame from a trusted tool
+        elif (
+            link.role is Role.GROUND
+            and signed_v2
+            and raw[-_SIGNATURE_LEN] == self.sign_link_id
+        ):
+            raise WrongDirectionError(
+                f"wrong link: a frame this router signed (link id {self.sign_link_id}) "
+                "came back from a ground link"
+            )
         verdict = self.inbound[key].open(raw)
         if key != self.vehicle_key and verdict.signed:  # a ground link with its own key
             return self.inbound[self.vehicle_key].open(self._sign(verdict.frame, self.vehicle_key))
