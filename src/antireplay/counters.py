@@ -25,7 +25,9 @@ every receiver policy in antireplay is built from them:
   it is refused while the first holds its lock, since two owners would hand
   out the same values.  Where the ceiling lives is a :class:`Ceiling`: a
   state file (:class:`FileCeiling`) or a replay store's ``advance``
-  (:class:`StoreCeiling`, whose co-owners of one key claim disjoint ranges).
+  (:class:`StoreCeiling`).  Either way a ceiling has **one owner**: a state
+  file is locked; a store key is not (the store contract has no
+  compare-and-set), so owners sharing a store use keys of their own.
 * :class:`CounterWindow` (receiver, lossy/reordering links): the RFC 6479
   sliding bitmap, as WireGuard implements it.  A counter ``c`` is accepted
   once iff ``0 <= c < limit`` and ``last - c <= size``.  The bitmap is a ring
@@ -129,15 +131,16 @@ class FileCeiling:
 
 
 class StoreCeiling:
-    """The ceiling in a replay store (``advance``, atomic on every backend): several owners
-    of one key get disjoint ranges, and a store that lost data is detected at open."""
+    """The ceiling in a replay store (``advance``, atomic on every backend), for one owner
+    per key; a store that lost data is detected by the owner when it opens."""
 
     def __init__(self, store: ReplayStore, key: str) -> None:
         self.store, self.key = store, key
 
     def claim(self, value: int, span: int) -> int:
+        value = max(value, (self.store.current(self.key) or 0) + 1)
         while not self.store.advance(self.key, value + span - 1):
-            value = max(value, (self.store.current(self.key) or 0) + 1)
+            value = max(value, (self.store.current(self.key) or 0) + 1)  # a stray co-owner
         return value
 
     def release(self) -> None:

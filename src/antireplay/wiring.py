@@ -166,7 +166,8 @@ def build_mavlink_router(
     Guards: ``mav-out`` judges the vehicle's frames; ``mav-in`` judges frames to the
     vehicle under the vehicle key, ``mav-in-<key fingerprint>`` those of a ground link
     with a key of its own; the router's signatures take their timestamps from
-    ``mav-sign-<fingerprint>`` (durable).  Opens every endpoint now: ValueError for a
+    ``mav-sign-<fingerprint>-<sign link id>`` (durable; two routers on one store sign
+    as different streams when their link ids differ).  Opens every endpoint now: ValueError for a
     bad connection string, OSError for one that cannot be opened (those already
     opened are closed again).
     """
@@ -202,7 +203,10 @@ def build_mavlink_router(
     }
     outbound = guard("mav-out", None, options.from_vehicle, vehicle_key)
     signers = {
-        key: TimestampSource(store=store, store_key=f"mav-sign-{_fingerprint(key)}") for key in keys
+        key: TimestampSource(
+            store=store, store_key=f"mav-sign-{_fingerprint(key)}-{options.sign_link_id}"
+        )
+        for key in keys
     }
     links: list[Link] = []
     try:

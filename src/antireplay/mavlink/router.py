@@ -256,11 +256,7 @@ class MavlinkRouter:
         signed_v2 = len(raw) > _SIGNATURE_LEN and raw[0] == STX_V2 and bool(raw[2] & SIGNED)
         if link.role is Role.TRUSTED and raw[0] == STX_V2 and not signed_v2:
             raw = self._sign(raw, key)  # an unsigned v2 frame from a trusted tool
-        elif (
-            link.role is Role.GROUND
-            and signed_v2
-            and raw[-_SIGNATURE_LEN] == self.sign_link_id
-        ):
+        elif link.role is Role.GROUND and signed_v2 and raw[-_SIGNATURE_LEN] == self.sign_link_id:
             raise WrongDirectionError(
                 f"wrong link: a frame this router signed (link id {self.sign_link_id}) "
                 "came back from a ground link"
