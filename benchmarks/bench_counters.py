@@ -10,18 +10,18 @@ import itertools
 
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 
-from antireplay.counters import CounterWindow, NonceTracker
-from antireplay.errors import CounterReplayError
+from antireplay.counters import CounterWindow, FencedTable
+from antireplay.errors import CounterReplayedError
 from antireplay.session import Initiator, Purpose, Responder
 from benchmarks._timing import per_op_ns, rate, rejected
 
 
 def main() -> None:
-    window, tracker = CounterWindow(), NonceTracker()
+    window, table = CounterWindow(), FencedTable[int, list[int]](1024)
     w_next, t_next = itertools.count(), itertools.count(1)
     rows = [
-        ("CounterWindow.accept", per_op_ns(lambda: window.accept(next(w_next)), 50_000)),
-        ("NonceTracker.accept", per_op_ns(lambda: tracker.accept(next(t_next)), 50_000)),
+        ("CounterWindow.commit", per_op_ns(lambda: window.commit(next(w_next)), 50_000)),
+        ("FencedTable.commit", per_op_ns(lambda: table.commit(1, next(t_next), list), 50_000)),
     ]
     gcs_key, kem = mldsa.MLDSA87PrivateKey.generate(), mlkem.MLKEM1024PrivateKey.generate()
     gcs = Initiator("gcs", gcs_key)
@@ -44,7 +44,7 @@ def main() -> None:
     replayed = gcs_side.seal(payload, Purpose.COMMAND)
     robot.open(replayed)
 
-    reject_ns = per_op_ns(rejected(lambda: robot.open(replayed), CounterReplayError), 20_000)
+    reject_ns = per_op_ns(rejected(lambda: robot.open(replayed), CounterReplayedError), 20_000)
     rows.append(("reject replayed command", reject_ns))
     for name, ns in rows:
         print(f"{name:<32} {ns:>10,.0f} ns {rate(ns)}")

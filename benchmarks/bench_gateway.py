@@ -53,9 +53,9 @@ from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
+from tests.harness import free_port
 
 from antireplay.auth import sign_envelope
-from antireplay.demo import free_port
 from antireplay.gateway import DEMO_KID
 
 ROUNDS = 3

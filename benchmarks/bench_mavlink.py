@@ -1,14 +1,20 @@
-"""The MAVLink proxy as users run it, beside a direct link, and the guard's per-frame cost.
+"""The MAVLink router as users run it, beside a direct link and MAVProxy, and the guard's cost.
 
 Run: ``python -m benchmarks.bench_mavlink``.
 
-1. **Link**: ``antireplay mavlink-proxy`` in its own process with its default store
-   (SQLite on disk under a temporary directory) and default audit log, fed signed
-   ATTITUDE frames from a pymavlink sender at 50, 200 and 1,000 Hz, beside a *direct
-   link* (a plain UDP relay process: receive, send, nothing else).  Printed per rate:
-   frames dropped and the p50/p99 one-way latency of each path, and what the proxy
-   adds.  Targets (issue 14): 0 dropped at 1,000 Hz, added p99 <= 2 ms.
-2. **Guard**: frames per second through ``MavlinkGuard.check`` beside pymavlink
+1. **Latency**: signed ATTITUDE frames from a pymavlink sender at 50, 200 and 1,000 Hz
+   through four paths to one receiver: a *direct link* (a plain UDP relay process:
+   receive, send, nothing else); ``antireplay mavlink-router`` in its own process with
+   its default store (SQLite on disk) and audit log, verifying on a ground endpoint;
+   the same router *signing on behalf* of a tool that sends unsigned frames to its
+   trusted endpoint; and MAVProxy (from PyPI, headless) forwarding the same frames from
+   its master to its ``--out``, signing on with the same passphrase key (it verifies
+   what it forwards).  Printed per rate: frames dropped, p50/p99 one-way latency, and
+   what each adds over the direct link.  Targets (issue 14): 0 dropped at 1,000 Hz,
+   added p99 <= 2 ms.
+2. **Throughput**: a burst of ``BURST`` frames sent as fast as the sender can through
+   each path: frames delivered and delivered frames per second.
+3. **Guard**: frames per second through ``MavlinkGuard.check`` beside pymavlink
    2.4.x ``MAVLink.parse_char`` with signing on, on the same signed frames.
 """
 
@@ -22,19 +28,22 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
+from tests.harness import free_port
 
 from antireplay import ManualClock
 from antireplay.clock import SystemClock
-from antireplay.demo import free_port
-from antireplay.errors import CounterReplayError
-from antireplay.mavlink import MavlinkGuard, mav_time
+from antireplay.errors import CounterReplayedError
+from antireplay.mavlink import MavlinkGuard, mav_time, passphrase_key
 from benchmarks._timing import per_op_ns, rate, rejected
 
-KEY = bytes(range(32))
+PASSPHRASE = "bench-passphrase"
+KEY = passphrase_key(PASSPHRASE)
 N = 5_000
+BURST = 5_000
 RATES = (50, 200, 1_000)
 SECONDS = 3.0
 RELAY = """
@@ -45,6 +54,9 @@ print("relay", flush=True)
 while True:
     s.sendto(s.recv(65535), ("127.0.0.1", forward))
 """
+
+
+Launch = Callable[[], subprocess.Popen[bytes]]
 
 
 class _Sink:
@@ -74,9 +86,11 @@ def frames(n: int, start: int) -> list[bytes]:
     return sink.frames
 
 
-def drive(port: int, vehicle: socket.socket, hz: int) -> tuple[int, list[float]]:
-    """Send ``hz * SECONDS`` signed ATTITUDE frames; (dropped, one-way latencies in ms)."""
-    count = int(hz * SECONDS)
+def drive(
+    port: int, vehicle: socket.socket, hz: float, count: int, signed: bool = True
+) -> tuple[int, list[float], float]:
+    """Send ``count`` ATTITUDE frames at ``hz`` (``inf``: as fast as possible), signed
+    or not; (dropped, one-way latencies in ms, delivered frames per second)."""
     sent: dict[int, float] = {}
     got: dict[int, float] = {}
 
@@ -87,13 +101,15 @@ def drive(port: int, vehicle: socket.socket, hz: int) -> tuple[int, list[float]]
                 data = vehicle.recv(65_535)
             except TimeoutError:
                 return
-            got[int.from_bytes(data[10:14], "little")] = time.perf_counter()
+            if data[7:10] == b"\x1e\x00\x00":  # ATTITUDE; a forwarder may add its own frames
+                got[int.from_bytes(data[10:14], "little")] = time.perf_counter()
 
     receiver = threading.Thread(target=receive)
     receiver.start()
     out = _Udp(("127.0.0.1", port))
     mav = dialect.MAVLink(out, srcSystem=255, srcComponent=190)
-    mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id = KEY, True, 1
+    if signed:
+        mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id = KEY, True, 1
     wall, start = SystemClock(), time.perf_counter()
     for i in range(1, count + 1):
         delay = start + i / hz - time.perf_counter()
@@ -104,63 +120,132 @@ def drive(port: int, vehicle: socket.socket, hz: int) -> tuple[int, list[float]]
         mav.attitude_send(i, 0.1, 0.2, 0.3, 0.0, 0.0, 0.0)
     receiver.join()
     out.sock.close()
-    return count - len(got), [(got[i] - sent[i]) * 1e3 for i in got]
+    span = max(got.values(), default=start) - start
+    return (
+        count - len(got),
+        [(got[i] - sent[i]) * 1e3 for i in got],
+        len(got) / span if span else 0.0,
+    )
 
 
 def pct(values: list[float], q: int) -> float:
     return statistics.quantiles(values, n=100)[q - 1] if len(values) > 1 else float("nan")
 
 
-def start(args: list[str], cwd: Path, ready: bytes) -> subprocess.Popen[bytes]:
+def start(
+    args: list[str], cwd: Path, ready: bytes | None, home: Path | None = None
+) -> subprocess.Popen[bytes]:
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1] / "src"))
-    proc = subprocess.Popen(args, cwd=cwd, env=env, stdout=subprocess.PIPE)
+    if home is not None:
+        env["HOME"] = str(home)
+    proc = subprocess.Popen(
+        args, cwd=cwd, env=env, stdout=subprocess.PIPE, stdin=subprocess.DEVNULL
+    )
     assert proc.stdout is not None
-    if ready not in proc.stdout.readline():
+    if ready is not None and ready not in proc.stdout.readline():
         raise SystemExit(f"{args[:4]} did not start")
     return proc
 
 
+def mavproxy(cwd: Path, master_port: int, vport: int) -> subprocess.Popen[bytes]:
+    """MAVProxy forwarding its master (signed with the passphrase key) to ``vport``."""
+    script = Path(sys.executable).parent / "mavproxy.py"
+    if not script.exists():
+        raise SystemExit("MAVProxy is not installed: pip install -e '.[dev]'")
+    master = f"udpin:127.0.0.1:{master_port}"
+    (cwd / ".mavproxy").mkdir(exist_ok=True)
+    (cwd / ".mavproxy" / "signing.keys").write_text(f"{master} {PASSPHRASE}\n")
+    args = [
+        sys.executable, str(script), "--master", master, "--out", f"udpout:127.0.0.1:{vport}",
+        "--daemon", "--non-interactive", "--no-state", "--default-modules", "signing",
+    ]  # fmt: skip
+    return start(args, cwd, None, home=cwd)
+
+
+def warm(port: int, vehicle: socket.socket, signed: bool) -> None:
+    """Send until the path delivers (MAVProxy takes seconds to start; a polled deadline)."""
+    deadline = time.monotonic() + 60
+    while drive(port, vehicle, 50, 10, signed)[0] == 10:
+        if time.monotonic() > deadline:
+            raise SystemExit(f"nothing came through port {port}")
+
+
 def link_rows() -> None:
+    """Each forwarder runs alone while it is measured (MAVProxy idling beside the router
+    would take CPU from it on a 2-core box)."""
     with tempfile.TemporaryDirectory() as tmp:
         cwd = Path(tmp)
-        (cwd / "key.hex").write_text(KEY.hex())
+        os.environ["MAV_PASSPHRASE"] = PASSPHRASE
         vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         vehicle.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
         vehicle.bind(("127.0.0.1", 0))
         vport = vehicle.getsockname()[1]
-        relay_port, proxy_port = free_port(), free_port()
-        relay = start([sys.executable, "-c", RELAY, str(relay_port), str(vport)], cwd, b"relay")
-        proxy = start(
-            [
-                sys.executable, "-m", "antireplay", "mavlink-proxy",
-                "--listen", f"udp:127.0.0.1:{proxy_port}", "--forward", f"udp:127.0.0.1:{vport}",
-                "--key-file", "key.hex", "--system-id", "1",
-            ],  # default --store (SQLite on disk) and --audit
-            cwd,
-            b"mavlink-proxy",
-        )  # fmt: skip
-        print(f"{'link':<44} {'Hz':>6} {'dropped':>8} {'p50 ms':>8} {'p99 ms':>8}")
+        port, trusted_port = free_port(), free_port()
+        router_args = [
+            sys.executable,
+            "-m",
+            "antireplay",
+            "mavlink-router",
+            "--ground",
+            f"udpin:127.0.0.1:{port}",
+            "--trusted",
+            f"udpin:127.0.0.1:{trusted_port}",
+            "--vehicle",
+            f"udpout:127.0.0.1:{vport}",
+            "--passphrase-env",
+            "MAV_PASSPHRASE",
+            "--system-id",
+            "1",
+        ]  # default --store (SQLite on disk) and --audit
+        forwarders: list[tuple[Launch, list[tuple[str, int, bool]]]] = [
+            (
+                lambda: start([sys.executable, "-c", RELAY, str(port), str(vport)], cwd, b"relay"),
+                [("direct link (plain UDP relay process)", port, True)],
+            ),
+            (
+                lambda: start(router_args, cwd, b"mavlink-router"),
+                [
+                    ("mavlink-router, verifying (SQLite store)", port, True),
+                    ("mavlink-router, signing on behalf", trusted_port, False),
+                ],
+            ),
+            (
+                lambda: mavproxy(cwd, port, vport),
+                [("MAVProxy 1.8 forwarding, signing on", port, True)],
+            ),
+        ]  # fmt: skip
+        latency: dict[str, dict[int, tuple[int, list[float]]]] = {}
+        burst: dict[str, tuple[int, float]] = {}
         try:
-            for hz in RATES:
-                direct_drop, direct = drive(relay_port, vehicle, hz)
-                proxy_drop, proxied = drive(proxy_port, vehicle, hz)
-                for name, dropped, lat in (
-                    ("direct link (plain UDP relay process)", direct_drop, direct),
-                    ("mavlink-proxy, default SQLite store", proxy_drop, proxied),
-                ):
-                    print(
-                        f"{name:<44} {hz:>6} {dropped:>8} {pct(lat, 50):>8.3f} {pct(lat, 99):>8.3f}"
-                    )
-                added50 = pct(proxied, 50) - pct(direct, 50)
-                added99 = pct(proxied, 99) - pct(direct, 99)
-                print(
-                    f"{'  added by the proxy':<44} {hz:>6} {'':>8} {added50:>8.3f} {added99:>8.3f}"
-                )
+            for launch, paths in forwarders:
+                proc = launch()
+                try:
+                    for name, to, signed in paths:
+                        warm(to, vehicle, signed)
+                        latency[name] = {}
+                        for hz in RATES:
+                            dropped, lat, _ = drive(to, vehicle, hz, int(hz * SECONDS), signed)
+                            latency[name][hz] = dropped, lat
+                        dropped, _, per_s = drive(to, vehicle, float("inf"), BURST, signed)
+                        burst[name] = BURST - dropped, per_s
+                finally:
+                    proc.terminate()
+                    proc.wait()
         finally:
-            for proc in (proxy, relay):
-                proc.terminate()
-                proc.wait()
             vehicle.close()
+        print(f"{'latency':<44} {'Hz':>6} {'dropped':>8} {'p50 ms':>8} {'p99 ms':>8}")
+        direct = next(iter(latency.values()))
+        for hz in RATES:
+            for name, rows in latency.items():
+                dropped, lat = rows[hz]
+                print(f"{name:<44} {hz:>6} {dropped:>8} {pct(lat, 50):>8.3f} {pct(lat, 99):>8.3f}")
+                if rows is not direct:
+                    base = direct[hz][1]
+                    added = pct(lat, 50) - pct(base, 50), pct(lat, 99) - pct(base, 99)
+                    print(f"{'  added':<44} {hz:>6} {'':>8} {added[0]:>8.3f} {added[1]:>8.3f}")
+        print(f"{f'throughput (burst of {BURST})':<44} {'got':>15} {'frames/s':>17}")
+        for name, (got, per_s) in burst.items():
+            print(f"{name:<44} {got:>15} {per_s:>17,.0f}")
 
 
 def guard_rows() -> None:
@@ -168,10 +253,10 @@ def guard_rows() -> None:
     batch = frames(N * 7, mav_time(clock))
     guard = MavlinkGuard(KEY, clock=clock, system_id=1)
     it = iter(batch)
-    accept_ns = per_op_ns(lambda: guard.check(next(it)), N)
+    accept_ns = per_op_ns(lambda: guard.open(next(it)), N)
     replayed = batch[0]
 
-    replay_ns = per_op_ns(rejected(lambda: guard.check(replayed), CounterReplayError), N)
+    replay_ns = per_op_ns(rejected(lambda: guard.open(replayed), CounterReplayedError), N)
     receiver = dialect.MAVLink(_Sink(), srcSystem=1, srcComponent=1)
     receiver.signing.secret_key = KEY
     receiver.signing.timestamp = mav_time(clock)

@@ -10,15 +10,18 @@ import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import pytest
 
-from antireplay import ManualClock, ReplayAttackError, ReplayCache
+from antireplay import ManualClock, ReplayAttackError, ReplayCache, SecurityConfig
+from antireplay.audit import AuditLog
 from antireplay.pipeline import Receiver
+from tests.envelopes import NOW, registry
 from tests.redis_server import RedisServer
 
 ROOT = Path(__file__).resolve().parent.parent
+T = TypeVar("T")
 
 
 def _fresh_cache(*args: Any, **kwargs: Any) -> ReplayCache:
@@ -52,6 +55,17 @@ def fresh_receiver(*args: Any, **kwargs: Any) -> Receiver:
         clock.step_wall(STARTED_BEFORE_S)
 
 
+def started_before(clock: ManualClock, build: Callable[[], T]) -> T:
+    """``build()`` on ``clock`` stepped ``STARTED_BEFORE_S`` back: an epoch verifier or DDS
+    reader whose in-memory store (and start fence) began long before the test's "now"
+    (the fence has its own tests)."""
+    clock.step_wall(-STARTED_BEFORE_S)
+    try:
+        return build()
+    finally:
+        clock.step_wall(STARTED_BEFORE_S)
+
+
 @pytest.fixture
 def impl() -> Callable[..., ReplayCache]:
     """Builds caches as tests need them.  The compiled build runs here; the pure-Python
@@ -61,7 +75,15 @@ def impl() -> Callable[..., ReplayCache]:
 
 @pytest.fixture
 def clock() -> ManualClock:
-    return ManualClock(wall=1_800_000_000.0)
+    return ManualClock(wall=NOW)
+
+
+@pytest.fixture
+def receiver(tmp_path: Path, clock: ManualClock) -> Receiver:
+    """A Receiver trusting :func:`tests.envelopes.registry`, auditing to ``tmp_path``."""
+    return fresh_receiver(
+        SecurityConfig(), registry(), None, AuditLog(tmp_path / "audit.db"), clock
+    )
 
 
 def run_threads(threads_n: int, work: Callable[[int], object]) -> None:

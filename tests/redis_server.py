@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import redis
 
-from antireplay.demo import free_port
+from tests.harness import free_port
 
 
 def _binary(name: str) -> str:

@@ -1,7 +1,9 @@
-"""The audit head anchored outside the database: truncation, rewrite, missing checkpoint, files."""
+"""The audit trail: its hash chain, its head anchored outside the database (truncation, rewrite,
+missing checkpoint), foreign files, and what the receive path writes to it."""
 
 from __future__ import annotations
 
+import json
 import os
 import sqlite3
 from pathlib import Path
@@ -13,7 +15,10 @@ from antireplay.audit import GENESIS, AuditLog, _digest, reanchor, verify
 from antireplay.cli import main
 from antireplay.clock import ManualClock
 from antireplay.errors import AuditFileError, StateUnavailableError
-from antireplay.gateway import build_receiver, embedded_default
+from antireplay.gateway import embedded_default
+from antireplay.pipeline import Receiver
+from antireplay.wiring import build_receiver
+from tests.envelopes import MARKER, NOW, message, signed
 
 
 def trail(path: Path, rows: int) -> None:
@@ -333,3 +338,51 @@ def test_cli_tail_never_writes_the_trail(db: Path) -> None:
     assert result.exit_code == 0, result.output
     assert head.read_bytes() == saved
     assert verify(db).after_checkpoint == 1
+
+
+# --- what the receive path writes ---------------------------------------------------------------
+
+
+def test_audit_chain_verifies_and_tamper_is_found(tmp_path: Path, receiver: Receiver) -> None:
+    raw = signed()
+    receiver.receive(raw)
+    receiver.receive(raw)
+    receiver.receive(signed(timestamp=NOW - 100))
+    receiver.receive(signed())
+    path = tmp_path / "audit.db"
+    report = verify(path)
+    assert report.ok and report.records == 4
+    db = sqlite3.connect(path)
+    db.execute("UPDATE audit SET code = 'OK' WHERE seq = 2")
+    db.commit()
+    db.close()
+    report = verify(path)
+    assert (report.ok, report.broken_at) == (False, 2)
+
+
+def test_audit_deleted_record_is_found(tmp_path: Path, receiver: Receiver) -> None:
+    for _ in range(3):
+        receiver.receive(signed())
+    db = sqlite3.connect(tmp_path / "audit.db")
+    db.execute("DELETE FROM audit WHERE seq = 2")
+    db.commit()
+    db.close()
+    assert verify(tmp_path / "audit.db").broken_at == 2
+
+
+def test_no_payload_ever_reaches_the_audit_database(tmp_path: Path, receiver: Receiver) -> None:
+    hostile_id = f"id\n2026-01-01 ACCEPTED admin {MARKER}"
+    raw = signed(msg_id=hostile_id[:100])
+    receiver.receive(raw)
+    receiver.receive(raw)
+    forged = {**message(), "sig": {"alg": "x", "kid": "k", "value": "y"}}
+    receiver.receive(json.dumps(forged).encode())
+    receiver.receive(signed(timestamp=NOW - 99, sender="claimed-bob"))
+    assert receiver.audit is not None
+    receiver.audit.close()
+    blob = b"".join(p.read_bytes() for p in tmp_path.iterdir() if p.name.startswith("audit.db"))
+    assert MARKER.encode() not in blob
+    assert b"\n2026-01-01" not in blob
+    records = AuditLog(tmp_path / "audit.db").tail()
+    assert all("\n" not in (r.msg_id or "") for r in records)
+    assert [r.sender_verified for r in records if r.sender == "claimed-bob"] == [False]

@@ -15,11 +15,14 @@ from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay.audit import AuditLog
 from antireplay.auth import write_key_pair
-from antireplay.cli import main
+from antireplay.cli import _allowed, _link_key, _signing_keys, main
 from antireplay.counters import NonceCounter
-from antireplay.demo import GatewayProcess, write_demo_config
+from antireplay.demo import write_demo_config
 from antireplay.errors import StateFileError
+from antireplay.mavlink import passphrase_key
+from antireplay.wiring import Allowed
 from tests.conftest import ROOT
+from tests.harness import GatewayProcess
 
 
 @pytest.mark.parametrize("args", [["demo", "--in-process"], ["demo"]])
@@ -92,7 +95,7 @@ def test_state_repair_needs_kind_for_unreadable_file(tmp_path: Path) -> None:
     path = tmp_path / "x.state"
     path.write_bytes(b"\0\0\0")
     assert CliRunner().invoke(main, ["state", "repair", str(path)]).exit_code == 2
-    result = CliRunner().invoke(main, ["state", "repair", str(path), "--kind", "epoch-verifier"])
+    result = CliRunner().invoke(main, ["state", "repair", str(path), "--kind", "epoch-signer"])
     assert result.exit_code == 0, result.output
 
 
@@ -193,6 +196,38 @@ def test_mavlink_proxy_bad_inputs(tmp_path: Path) -> None:
         assert "in use" in line
     finally:
         busy.close()
+
+
+def test_mavlink_router_key_and_allow_list_options(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Per-link passphrases in MAVProxy's signing.keys format, the default key from an
+    environment variable, per-direction allow-lists; mistakes are one line naming them."""
+    keys = tmp_path / "signing.keys"
+    keys.write_text("udpin:0.0.0.0:14550 ground-pass\n127.0.0.1:14560 radio-pass\nbad line here\n")
+    found = _signing_keys(keys)
+    assert _link_key("udpin:0.0.0.0:14550", found, None) == passphrase_key("ground-pass")
+    assert _link_key("udpout:127.0.0.1:14560", found, None) == passphrase_key("radio-pass")
+    assert _link_key("/dev/ttyACM0,57600", found, b"d" * 32) == b"d" * 32
+    to_vehicle, from_vehicle = _allowed(("RADIO_STATUS:v1", "to-vehicle:0", "from-vehicle:166"))
+    assert to_vehicle == Allowed(frozenset({109, 0}), frozenset({109}))
+    assert from_vehicle == Allowed(frozenset({109, 166}), frozenset({109}))
+    run = CliRunner().invoke
+    base = ["mavlink-router", "--audit", str(tmp_path / "audit.db"), "--store", "memory"]
+    one_line_error(run(main, [*base, "--ground", "udpin:127.0.0.1:0"]), "--vehicle")
+    vehicle = [*base, "--vehicle", "/dev/ttyACM0,57600"]
+    one_line_error(run(main, vehicle), "/dev/ttyACM0,57600", "no key")
+    monkeypatch.delenv("MAV_PASS", raising=False)
+    one_line_error(run(main, [*vehicle, "--passphrase-env", "MAV_PASS"]), "MAV_PASS")
+    monkeypatch.setenv("MAV_PASS", "pass")
+    keyed = [*vehicle, "--passphrase-env", "MAV_PASS"]
+    one_line_error(run(main, [*keyed, "--allow-unsigned", "NOPE"]), "NOPE", "RADIO_STATUS")
+    one_line_error(run(main, [*keyed, "--vehicle", "serial0"]), "serial0")
+    one_line_error(run(main, [*keyed, "--max-forward-s", "0"]), "--max-forward-s")
+    missing = str(tmp_path / "no-such-tty")
+    one_line_error(run(main, ["mavlink-router", "--audit", str(tmp_path / "audit.db"), "--store",
+                              "memory", "--vehicle", f"{missing},57600", "--passphrase-env",
+                              "MAV_PASS"]), missing)  # fmt: skip
 
 
 @pytest.mark.parametrize("command", ["tail", "verify"])

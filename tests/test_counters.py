@@ -1,4 +1,4 @@
-"""Sender counters, strict trackers, RFC 6479 windows (WireGuard vectors) and stream tables."""
+"""The sender source, RFC 6479 windows (WireGuard vectors) and fenced high-water tables."""
 
 from __future__ import annotations
 
@@ -14,19 +14,31 @@ from hypothesis import strategies as st
 from antireplay.counters import (
     COUNTER_LIMIT,
     DEFAULT_WINDOW,
+    FENCE,
     CounterWindow,
+    FencedTable,
     NonceCounter,
-    NonceTracker,
-    StreamTable,
 )
 from antireplay.errors import (
-    CounterLimitError,
-    CounterReplayError,
+    CounterExhaustedError,
+    CounterReplayedError,
     CounterTooOldError,
+    InvalidCounterError,
+    MessageStaleError,
     NonceExhaustedError,
-    SessionClosedError,
+    ReplayAttackError,
 )
 from tests.conftest import assert_never_reused, kill9_runs, race, run_threads
+
+
+def commits(window: CounterWindow, counter: int) -> bool:
+    """Whether ``window.commit`` records ``counter`` (a refusal is a typed error)."""
+    try:
+        window.commit(counter)
+    except ReplayAttackError:
+        return False
+    return True
+
 
 # --- the three CleitonQ properties, ported ----------------------------------------------------
 
@@ -40,36 +52,26 @@ def test_eight_threads_thousand_next_are_distinct() -> None:
     assert all(a < b for vs in values for a, b in itertools.pairwise(vs))
 
 
-def test_tracker_sequence_5_5_3_6() -> None:
-    tracker = NonceTracker()
-    assert [tracker.accept(n) for n in (5, 5, 3, 6)] == [True, False, False, True]
-    assert tracker.last_accepted == 6
+def test_window_sequence_5_5_3_6() -> None:
+    window = CounterWindow()
+    assert [commits(window, n) for n in (5, 5, 3, 6)] == [True, False, True, True]
+    assert window.last == 6
 
 
-def test_four_threads_offering_1_to_500_give_500_acceptances() -> None:
-    tracker = NonceTracker()
-    accepted: list[int] = []
+def test_four_threads_offering_1_to_500_give_500_commits() -> None:
+    window = CounterWindow()
+    committed: list[int] = []
     lock = threading.Lock()
 
     def offer(_: int) -> None:
         for n in range(1, 501):
-            if tracker.accept(n):
+            if commits(window, n):
                 with lock:
-                    accepted.append(n)
+                    committed.append(n)
 
     run_threads(4, offer)
-    assert len(accepted) == 500
-    assert sorted(accepted) == list(range(1, 501))
-    assert tracker.last_accepted == 500
-
-
-def test_tracker_check_does_not_mutate() -> None:
-    tracker = NonceTracker(last=10)
-    tracker.check(11)
-    tracker.check(11)
-    assert tracker.last_accepted == 10
-    with pytest.raises(CounterReplayError):
-        tracker.check(10)
+    assert sorted(committed) == list(range(1, 501))
+    assert window.last == 500
 
 
 # --- sender counter ---------------------------------------------------------------------------
@@ -91,6 +93,37 @@ def test_counter_rejects_bad_start() -> None:
             NonceCounter(start=bad)  # type: ignore[arg-type]
 
 
+def test_anchored_counter_follows_the_wall_and_never_repeats() -> None:
+    wall = [1_000]
+    counter = NonceCounter(anchor=lambda: wall[0])
+    assert counter.next() == 1_000  # tied to real time
+    assert counter.next() == 1_001  # the clock did not move: last + 1
+    wall[0] = 500  # the wall clock stepped back
+    assert counter.next() == 1_002
+    wall[0] = 5_000
+    assert counter.next() == 5_000
+
+
+def test_anchored_persistent_counter_resumes_above_its_ceiling_and_the_wall(
+    tmp_path: Path,
+) -> None:
+    path, wall = tmp_path / "ctr.state", [10_000]
+    first = NonceCounter.persistent(path, lease=100, anchor=lambda: wall[0])
+    assert first.next() == 10_000
+    first.close()
+    wall[0] = 0  # rebooted with a clock far behind
+    assert NonceCounter.persistent(path, anchor=lambda: wall[0]).next() == 10_100
+
+
+def test_restart_persists_the_new_binding_before_its_first_value(tmp_path: Path) -> None:
+    counter = NonceCounter.persistent(tmp_path / "ctr.state", lease=1_000)
+    counter.next()
+    writes = counter.reservations
+    counter.restart()
+    assert counter.next() == 1
+    assert counter.reservations == writes + 1
+
+
 def test_counter_from_time_is_above_time_ns() -> None:
     before = time.time_ns()
     assert NonceCounter.from_time().next() >= before
@@ -101,8 +134,7 @@ def test_persistent_counter_writes_once_per_lease(tmp_path: Path) -> None:
     counter = NonceCounter.persistent(path, lease=100)
     values = [counter.next() for _ in range(1_000)]
     assert values == list(range(1, 1_001))
-    assert counter._state is not None
-    assert counter._state.writes == 10
+    assert counter.reservations == 10
 
 
 def test_persistent_counter_resumes_above_ceiling(tmp_path: Path) -> None:
@@ -140,27 +172,27 @@ WG_VECTORS: list[tuple[int, bool]] = [
 def test_wireguard_vectors() -> None:
     window = CounterWindow(DEFAULT_WINDOW, limit=WG_LIMIT)
     for number, (counter, expected) in enumerate(WG_VECTORS, start=1):
-        assert window.accept(counter) is expected, f"vector {number}: {counter}"
+        assert commits(window, counter) is expected, f"vector {number}: {counter}"
 
 
-def test_wireguard_vectors_check_agrees_with_accept() -> None:
+def test_wireguard_vectors_check_agrees_with_commit() -> None:
     window = CounterWindow(DEFAULT_WINDOW, limit=WG_LIMIT)
     for counter, expected in WG_VECTORS:
         try:
             window.check(counter)
             predicted = True
-        except (CounterReplayError, CounterTooOldError, CounterLimitError):
+        except (CounterReplayedError, CounterTooOldError, CounterExhaustedError):
             predicted = False
         assert predicted is expected
-        assert window.accept(counter) is expected
+        assert commits(window, counter) is expected
 
 
 def _bulk(counters: list[int], tail: list[tuple[int, bool]]) -> None:
     window = CounterWindow(DEFAULT_WINDOW, limit=WG_LIMIT)
     for c in counters:
-        assert window.accept(c), c
+        window.commit(c)
     for c, expected in tail:
-        assert window.accept(c) is expected, c
+        assert commits(window, c) is expected, c
 
 
 W = DEFAULT_WINDOW
@@ -178,29 +210,33 @@ def test_wireguard_bulk_vectors() -> None:
 def test_counter_zero_valid_on_fresh_window() -> None:
     window = CounterWindow()
     window.check(0)
-    assert window.accept(0)
-    with pytest.raises(CounterReplayError):
+    window.commit(0)
+    with pytest.raises(CounterReplayedError):
         window.check(0)
+    with pytest.raises(CounterReplayedError):
+        window.commit(0)
 
 
 def test_reordering_within_window_accepted_once() -> None:
     window = CounterWindow()
     order = [5, 3, 4, 1, 2, 100, 50, 99]
-    assert all(window.accept(c) for c in order)
-    assert not any(window.accept(c) for c in order)
+    assert all(commits(window, c) for c in order)
+    assert not any(commits(window, c) for c in order)
 
 
 def test_check_is_typed_and_does_not_mutate() -> None:
     window = CounterWindow()
     window.check(10_000)
     assert window.last == 0
-    window.accept(10_000)
+    window.commit(10_000)
     with pytest.raises(CounterTooOldError):
         window.check(10_000 - DEFAULT_WINDOW - 1)
-    with pytest.raises(CounterLimitError):
+    with pytest.raises(CounterExhaustedError):
         window.check(COUNTER_LIMIT)
-    with pytest.raises(CounterLimitError):
+    with pytest.raises(InvalidCounterError):  # not the peer's exhaustion: a malformed value
         window.check(-1)
+    with pytest.raises(InvalidCounterError):
+        window.commit(-1)
 
 
 def test_window_race_has_one_winner() -> None:
@@ -209,7 +245,7 @@ def test_window_race_has_one_winner() -> None:
         wins: list[int] = []
 
         def offer(_: int, value: int = c, w: list[int] = wins) -> None:
-            if window.accept(value):
+            if commits(window, value):
                 w.append(value)
 
         run_threads(4, offer)
@@ -231,7 +267,7 @@ def test_property_each_counter_accepted_at_most_once(counters: list[int]) -> Non
     accepted: set[int] = set()
     for c in counters:
         last = window.last
-        if window.accept(c):
+        if commits(window, c):
             assert c not in accepted, "a counter was accepted twice"
             assert c < COUNTER_LIMIT
             assert c > last or last - c <= DEFAULT_WINDOW
@@ -240,40 +276,69 @@ def test_property_each_counter_accepted_at_most_once(counters: list[int]) -> Non
             assert c in accepted or c >= COUNTER_LIMIT or last - c > DEFAULT_WINDOW
 
 
-# --- stream tables ----------------------------------------------------------------------------
+# --- fenced high-water tables ---------------------------------------------------------------
 
 
-def test_stream_table_is_bounded_and_fences_evicted_streams() -> None:
-    table = StreamTable(max_streams=3)
-    for seq in (1, 2, 3):
-        table.accept("gcs", seq, 0)
-    table.accept("gcs", 4, 0)  # evicts seq 1, the oldest session
-    assert len(table) == 3
-    assert table.fence == 1
-    with pytest.raises(SessionClosedError):
-        table.check("gcs", 1, 0)  # the evicted stream's capture cannot come back
-    with pytest.raises(SessionClosedError):
-        table.accept("gcs", 1, 5)
-    with pytest.raises(CounterReplayError):
-        table.accept("gcs", 4, 0)
+def test_fenced_table_evicts_the_lowest_mark_and_raises_the_fence() -> None:
+    table: FencedTable[str, list[int]] = FencedTable(3)
+    for key, mark in (("a", 10), ("b", 30), ("c", 20)):
+        table.commit(key, mark, list)
+    table.commit("d", 40, list)  # full: "a" (mark 10) goes, the fence rises to 10
+    assert (len(table), table.fence, "a" in table, table.evictions) == (3, 10, False, 1)
+    with pytest.raises(MessageStaleError) as refused:
+        table.check("a", 10)  # the evicted key's old values cannot come back
+    assert refused.value.detail == FENCE
+    with pytest.raises(MessageStaleError):
+        table.commit("e", 5, list)
+    assert table.check("a", 11) is None  # above the fence: a new key may start
+    table.commit("e", 25, list)  # evicts "c" (20): the fence only rises
+    assert table.fence == 20
 
 
-def test_stream_check_creates_nothing() -> None:
-    table = StreamTable(max_streams=2)
-    table.check("gcs", 1, 10**18)
-    assert len(table) == 0
+def test_fenced_table_check_records_nothing() -> None:
+    table: FencedTable[str, list[int]] = FencedTable(1)
+    table.commit("a", 1, list)
+    assert table.check("b", 10**18) is None
+    assert (len(table), table.fence, table.mark("a")) == (1, -1, 1)
 
 
-def test_closed_stream_stays_closed() -> None:
-    table = StreamTable()
-    table.accept("gcs", 7, 0)
-    table.close("gcs", 7)
-    with pytest.raises(SessionClosedError):
-        table.accept("gcs", 7, 1)
+def test_fenced_table_marks_never_go_down_and_entries_persist() -> None:
+    table: FencedTable[str, list[int]] = FencedTable(2)
+    entry = table.commit("a", 5, list)
+    entry.append(1)
+    assert table.commit("a", 3, list) is entry
+    assert table.mark("a") == 5
+    table.commit("a", 9, list)
+    assert (table.mark("a"), table.get("a")) == (9, [1])
 
 
-def test_stream_accept_race_one_winner() -> None:
-    table = StreamTable()
+def test_fenced_table_refused_newcomer_evicts_nothing() -> None:
+    """A full table refuses a newcomer at or below its lowest mark *before* evicting:
+    the live key stays, the fence stays (review finding 5)."""
+    table: FencedTable[str, list[int]] = FencedTable(2)
+    table.commit("a", 100, list)
+    table.commit("b", 200, list)
+    assert table.check("c", 50) is None  # above the fence: check leaves the scan to commit
+    for value in (50, 100):
+        with pytest.raises(MessageStaleError, match=r"lowest mark of a full table \(100\)") as no:
+            table.commit("c", value, list)
+        assert no.value.detail == FENCE
+    assert ("a" in table, "c" in table, table.fence, len(table), table.evictions) == (
+        True, False, -1, 2, 0,
+    )  # fmt: skip
+    table.commit("c", 101, list)  # above the lowest mark: now "a" goes, the fence rises
+    assert ("a" in table, table.fence, table.evictions) == (False, 100, 1)
+
+
+def test_fenced_table_discard_keeps_the_fence() -> None:
+    table: FencedTable[int, list[int]] = FencedTable(2)
+    table.commit(1, 1, list)
+    assert table.discard(1) == []
+    assert (len(table), table.fence) == (0, -1)
+
+
+def test_window_commit_race_one_winner() -> None:
+    window = CounterWindow()
     for counter in range(50):
-        wins, losses = race(6, lambda c=counter: table.accept("gcs", 1, c))  # type: ignore[misc]
+        wins, losses = race(6, lambda c=counter: window.commit(c))  # type: ignore[misc]
         assert (wins, losses) == (1, 5)

@@ -23,13 +23,16 @@ import pytest
 
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
-from antireplay.errors import Code, StateFileError
+from antireplay.dds.config import DdsConfig
+from antireplay.errors import Code, ConfigError, StateFileError
+from tests.conftest import started_before
 
 try:
+    from antireplay.dds import relay as relay_module
     from antireplay.dds.domain import join_domain
     from antireplay.dds.ping import PingListener, PingSender
     from antireplay.dds.relay import AnnouncementRelay, RelayedAnnouncement
-    from antireplay.dds.topics import SealedReader, SealedWriter, Verdict
+    from antireplay.dds.topics import AUDIT_PER_S, SealedReader, SealedWriter, Verdict
     from antireplay.dds.wire import SealedSample
 except ImportError as exc:  # the dds extra is part of CI: missing means broken, not skipped
     pytest.fail(f"Cyclone DDS missing ({exc}): pip install -e '.[dev,dds]'", pytrace=False)
@@ -75,7 +78,9 @@ def collect(reader: SealedReader, count: int, timeout_s: float = 10.0) -> list[V
 def pair(
     participant: Any, clock: ManualClock, **reader_opts: Any
 ) -> tuple[SealedWriter, SealedReader]:
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock, **reader_opts)
+    reader = started_before(
+        clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock, **reader_opts)
+    )
     writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
     until(lambda: writer.matched_readers() >= 1)
     return writer, reader
@@ -97,7 +102,7 @@ def flipped(sample: SealedSample, index: int) -> SealedSample:
 def test_round_trip_keyed_instances_and_several_writers(
     participant: Any, clock: ManualClock
 ) -> None:
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock)
+    reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     writers = [SealedWriter(peer(participant), TOPIC, PSK, clock=clock) for _ in range(2)]
     for writer in writers:
         until(lambda w=writer: w.matched_readers() >= 1)  # type: ignore[misc]
@@ -172,8 +177,12 @@ def test_sample_replayed_onto_another_topic_is_refused(
     participant: Any, clock: ManualClock
 ) -> None:
     cmd_writer = SealedWriter(participant, "robot/cmd", PSK, clock=clock)
-    other_reader = SealedReader(participant, "robot/cmd_vel", PSK, clock=clock)
-    cmd_reader = SealedReader(participant, "robot/cmd", PSK, clock=clock)
+    other_reader = started_before(
+        clock, lambda: SealedReader(participant, "robot/cmd_vel", PSK, clock=clock)
+    )
+    cmd_reader = started_before(
+        clock, lambda: SealedReader(participant, "robot/cmd", PSK, clock=clock)
+    )
     until(lambda: cmd_writer.matched_readers() >= 1)
     captured = cmd_writer.write(b"RESUME", instance="arm")
     assert collect(cmd_reader, 1)[0].accepted
@@ -203,7 +212,7 @@ def test_writer_restarted_with_its_state_file_is_accepted(
     participant: Any, clock: ManualClock, tmp_path: Path
 ) -> None:
     state = tmp_path / "writer.state"
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock)
+    reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     first = SealedWriter(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
     until(lambda: first.matched_readers() >= 1)
     for n in range(3):
@@ -224,7 +233,7 @@ def test_writer_whose_state_file_is_missing_is_refused_naming_the_file(
     participant: Any, clock: ManualClock, tmp_path: Path
 ) -> None:
     state = tmp_path / "writer.state"
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock)
+    reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     first = SealedWriter(participant, TOPIC, PSK, clock=clock, state_file=state, service_name="arm")
     until(lambda: first.matched_readers() >= 1)
     first.write(b"before", instance="arm")
@@ -250,21 +259,32 @@ def test_writer_whose_state_file_is_missing_is_refused_naming_the_file(
 def test_reader_restarted_with_its_state_file_still_refuses_old_samples(
     participant: Any, clock: ManualClock, tmp_path: Path
 ) -> None:
-    state = tmp_path / "reader.state"
+    state = f"sqlite:{tmp_path / 'reader.db'}"
     writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
-    first = SealedReader(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
+    first = started_before(
+        clock, lambda: SealedReader(peer(participant), TOPIC, PSK, clock=clock, store=state)
+    )
     until(lambda: writer.matched_readers() >= 1)
     captured = [writer.write(f"cmd {n}".encode(), instance="arm") for n in range(3)]
     assert all(v.accepted for v in collect(first, 3))
     first.close()  # the process stops
-    restarted = SealedReader(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
-    forgetful = SealedReader(peer(participant), TOPIC, PSK, clock=clock)  # the contrast
+    restarted = started_before(
+        clock, lambda: SealedReader(peer(participant), TOPIC, PSK, clock=clock, store=state)
+    )
+    # Issue 18: a reader without persistent state fences at its start, so it refuses the
+    # captures too (it cannot know what a previous process accepted)
+    forgetful = SealedReader(peer(participant), TOPIC, PSK, clock=clock)
     rogue = rogue_writer(participant)
     until(lambda: restarted.matched_writers() >= 2 and forgetful.matched_writers() >= 2)
     for sample in captured:
         rogue.publish(sample)
     assert [v.code for v in collect(restarted, 3)] == [Code.EPOCH_REPLAYED] * 3
-    assert all(v.accepted for v in collect(forgetful, 3))
+    assert [(v.code, v.outcome) for v in collect(forgetful, 3)] == [
+        (Code.MESSAGE_STALE, "stale")
+    ] * 3
+    clock.advance(5.001)  # past the start fence (max_forward_s): new samples pass
+    writer.write(b"fresh", instance="arm")
+    assert collect(forgetful, 1)[0].accepted
 
 
 def pump_until(relay: AnnouncementRelay, condition: Callable[[], bool]) -> None:
@@ -275,13 +295,16 @@ def pump_until(relay: AnnouncementRelay, condition: Callable[[], bool]) -> None:
 def relay_at(
     participant: Any, tmp_path: Path, name: str, clock: ManualClock, tag: str
 ) -> AnnouncementRelay:
-    return AnnouncementRelay(
-        participant,
-        PSK,
-        service_name=name,
-        signer_state=tmp_path / f"{tag}-signer.state",
-        verifier_state=tmp_path / f"{tag}-verifier.state",
-        clock=clock,
+    return started_before(
+        clock,
+        lambda: AnnouncementRelay(
+            participant,
+            PSK,
+            service_name=name,
+            signer_state=tmp_path / f"{tag}-signer.state",
+            verifier_store=f"sqlite:{tmp_path / f'{tag}-verifier.db'}",
+            clock=clock,
+        ),
     )
 
 
@@ -290,7 +313,9 @@ def test_relay_reannounces_authentic_announcements_only(
 ) -> None:
     relay = relay_at(participant, tmp_path, "cds-1", clock, "a")
     announcer = SealedWriter(peer(participant), "antireplay/announce", PSK, clock=clock)
-    subscriber = SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
+    subscriber = started_before(
+        clock, lambda: SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
+    )
     until(lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 2)
     sealed = announcer.write(b"participant guid=01 locator=udpv4://127.0.0.1:7410", instance="01")
     pump_until(relay, lambda: relay.relayed == 1)
@@ -308,7 +333,9 @@ def test_relay_reannounces_authentic_announcements_only(
 def test_relay_resumes_above_its_epochs_after_a_restart(
     participant: Any, clock: ManualClock, tmp_path: Path
 ) -> None:
-    subscriber = SealedReader(participant, "antireplay/relayed", PSK, clock=clock)
+    subscriber = started_before(
+        clock, lambda: SealedReader(participant, "antireplay/relayed", PSK, clock=clock)
+    )
     announcer = SealedWriter(participant, "antireplay/announce", PSK, clock=clock)
     relay = relay_at(peer(participant), tmp_path, "cds-1", clock, "a")
     until(lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 1)
@@ -332,7 +359,9 @@ def test_two_relays_with_one_service_name_are_reported(
     one = relay_at(participant, tmp_path, "cds-1", clock, "one")
     one.audit = audit
     two = relay_at(peer(participant), tmp_path, "cds-1", clock, "two")
-    subscriber = SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
+    subscriber = started_before(
+        clock, lambda: SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
+    )
     announcer = SealedWriter(peer(participant), "antireplay/announce", PSK, clock=clock)
     until(lambda: announcer.matched_readers() >= 2 and one.egress.matched_readers() >= 3)
     for n in range(3):
@@ -352,7 +381,9 @@ def test_two_relays_with_one_service_name_are_reported(
 def test_binding_ping_learns_an_address_only_from_an_authentic_fresh_ping(
     clock: ManualClock,
 ) -> None:
-    listener = PingListener(PSK, clock=clock, max_age_s=30, max_forward_s=5)
+    listener = started_before(
+        clock, lambda: PingListener(PSK, clock=clock, max_age_s=30, max_forward_s=5)
+    )
     sender = PingSender(PSK, clock=clock)
     attacker = PingSender(os.urandom(32), clock=clock)
     try:
@@ -379,6 +410,74 @@ def test_binding_ping_learns_an_address_only_from_an_authentic_fresh_ping(
             endpoint.close()
 
 
+def test_ping_refusal_audits_are_rate_limited_but_all_counted(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """A garbage flood writes a bounded number of audit records (review finding 2); every
+    datagram is counted, and a replay's refusal still reaches the trail (its own budget)."""
+    audit = AuditLog(tmp_path / "audit.db")
+    listener = started_before(clock, lambda: PingListener(PSK, clock=clock, audit=audit))
+    sender = PingSender(PSK, clock=clock)
+    flood = 3 * int(AUDIT_PER_S)
+    try:
+        for _ in range(flood):  # the clock stands still: no budget comes back
+            listener.judge(os.urandom(60), ("192.0.2.1", 9))
+        ping = sender.signer.seal_ping(b"guid=01")
+        assert listener.judge(ping, sender.address).accepted
+        assert listener.judge(ping, ("192.0.2.1", 9)).outcome == "replayed"
+        refused = sum(n for k, n in listener.counts.items() if k not in {"accepted",
+                      "audit_rate_limited"})  # fmt: skip
+        assert refused == flood + 1
+        assert listener.counts["audit_rate_limited"] == flood - AUDIT_PER_S
+        assert audit.count() == AUDIT_PER_S + 1
+        assert audit.tail(1)[0].warning == "dds ping: replayed"
+    finally:
+        listener.close()
+        sender.close()
+        audit.close()
+
+
+def test_reader_refusal_audits_are_rate_limited(
+    participant: Any, tmp_path: Path, clock: ManualClock
+) -> None:
+    audit = AuditLog(tmp_path / "audit.db")
+    reader = started_before(
+        clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock, audit=audit)
+    )
+    for _ in range(2 * int(AUDIT_PER_S)):
+        reader.judge(SealedSample(instance="", sealed=os.urandom(100)))
+    assert sum(reader.counts[k] for k in ("malformed", "wrong_instance", "forged")) == 100
+    assert (audit.count(), reader.counts["audit_rate_limited"]) == (AUDIT_PER_S, AUDIT_PER_S)
+    audit.close()
+
+
+def test_relay_pump_judges_a_bounded_number_of_pings(
+    participant: Any, tmp_path: Path, clock: ManualClock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A ping flood cannot hold the relay's loop: each pump judges at most PINGS_PER_PUMP."""
+    monkeypatch.setattr(relay_module, "PINGS_PER_PUMP", 3)
+    listener = started_before(clock, lambda: PingListener(PSK, clock=clock))
+    relay = relay_at(participant, tmp_path, "cds-1", clock, "a")
+    relay.ping = listener
+    sender = PingSender(PSK, clock=clock)
+    try:
+        for _ in range(10):
+            sender.sock.sendto(b"garbage", listener.address)
+
+        def pumped_within_bound() -> bool:
+            before = listener.counts.total()
+            relay.pump(0.0)
+            assert listener.counts.total() - before <= 3
+            return listener.counts.total() >= 10
+
+        until(pumped_within_bound)
+        assert listener.counts["malformed"] == 10
+    finally:
+        relay.close()
+        listener.close()
+        sender.close()
+
+
 def _antireplay(*args: str, **kwargs: Any) -> subprocess.Popen[str]:
     command = [str(Path(sys.executable).with_name("antireplay")), "dds", *args]
     return subprocess.Popen(
@@ -391,7 +490,7 @@ def test_cli_reader_prints_verdicts_across_processes(tmp_path: Path) -> None:
     config = tmp_path / "dds.yaml"
     config.write_text(
         f"dds:\n  domain_id: {next(_IDS)}\n  psk_file: {tmp_path / 'fleet.psk'}\n"
-        f"  reader: {{topic: robot/cmd, state_file: {tmp_path / 'reader.state'}}}\n"
+        f"  reader: {{topic: robot/cmd, store: 'sqlite:{tmp_path / 'reader.db'}'}}\n"
         f"  writer: {{topic: robot/cmd, state_file: {tmp_path / 'writer.state'}}}\n"
     )
     cfg = ["--config", str(config)]
@@ -422,12 +521,15 @@ def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:
     config.write_text(
         f"dds:\n  domain_id: {domain_id}\n  psk_file: {tmp_path / 'fleet.psk'}\n"
         f"  relay: {{service_name: cds-1, signer_state: {tmp_path / 's.state'},"
-        f" verifier_state: {tmp_path / 'v.state'}}}\n"
+        f" verifier_store: 'sqlite:{tmp_path / 'v.db'}'}}\n"
     )
     relay = _antireplay("relay", "--config", str(config), "--duration", "15")
     try:
         participant = join_domain(domain_id)
-        subscriber = SealedReader(participant, "antireplay/relayed", psk)
+        # a new sqlite store proves nobody accepted anything before: no start fence
+        subscriber = SealedReader(
+            participant, "antireplay/relayed", psk, store=f"sqlite:{tmp_path / 'sub.db'}"
+        )
         announcer = SealedWriter(participant, "antireplay/announce", psk)
         until(lambda: announcer.matched_readers() >= 1 and subscriber.matched_writers() >= 1, 20)
         announcer.write(b"participant guid=02", instance="02")
@@ -444,10 +546,11 @@ def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:
 def test_writer_on_the_readers_forward_bound_recovers_from_a_short_glitch(
     participant: Any, clock: ManualClock
 ) -> None:
-    """A 30 s forward glitch: with the readers' 5 s bound the writer rotates its prefix at
-    once; with the signer's own 60 s default it would be refused until real time caught up."""
-    reader = SealedReader(participant, TOPIC, PSK, clock=clock, max_age_s=30, max_forward_s=5)
-    writer = SealedWriter(participant, TOPIC, PSK, clock=clock, max_forward_s=5)
+    """A 30 s forward glitch: on the readers' 5 s bound (both sides' default) the writer
+    rotates its prefix at once; with the signer's own 60 s default it would be refused
+    until real time caught up (review finding 4)."""
+    reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
+    writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
     until(lambda: writer.matched_readers() >= 1)
     clock.step_wall(30)
     writer.seal(b"during the glitch", instance="a")  # never delivered: NTP corrects the clock
@@ -455,3 +558,102 @@ def test_writer_on_the_readers_forward_bound_recovers_from_a_short_glitch(
     writer.write(b"after the glitch", instance="a")
     (verdict,) = collect(reader, 1)
     assert verdict.accepted and verdict.value == b"after the glitch"
+
+
+@pytest.mark.parametrize("case", [(None, 30, 1), (10.0, 7, 0)])
+def test_relay_egress_signs_on_the_subscribers_forward_bound(
+    participant: Any, tmp_path: Path, clock: ManualClock, case: tuple[float | None, int, int]
+) -> None:
+    """The relay's egress signer gets the readers' ``max_forward_s`` (its default, or the
+    configured one): after a corrected forward glitch subscribers accept it at once."""
+    bound, glitch_s, rotations = case
+    options: dict[str, Any] = {} if bound is None else {"max_forward_s": bound}
+    relay = started_before(clock, lambda: AnnouncementRelay(
+        participant, PSK, service_name="cds-1", signer_state=tmp_path / "signer.state",
+        verifier_store=f"sqlite:{tmp_path / 'verifier.db'}", clock=clock, **options,
+    ))  # fmt: skip
+    subscriber = started_before(clock, lambda: SealedReader(
+        peer(participant), "antireplay/relayed", PSK, clock=clock, **options
+    ))  # fmt: skip
+    clock.step_wall(glitch_s)
+    relay.egress.seal(b"during the glitch")  # never delivered: NTP corrects the clock
+    clock.step_wall(-glitch_s)
+    clock.advance(1)
+    verdict = subscriber.judge(relay.egress.seal(b"after the glitch"))
+    assert verdict.accepted, verdict.line()
+    assert relay.egress.signer.rotations == rotations
+    relay.close()
+
+
+def test_ping_sender_signs_on_the_listeners_forward_bound(clock: ManualClock) -> None:
+    listener = started_before(clock, lambda: PingListener(PSK, clock=clock))
+    sender = PingSender(PSK, clock=clock)
+    try:
+        clock.step_wall(30)
+        sender.signer.seal_ping(b"during the glitch")
+        clock.step_wall(-30)
+        verdict = listener.judge(sender.signer.seal_ping(b"after"), sender.address)
+        assert verdict.accepted, verdict.line()
+    finally:
+        listener.close()
+        sender.close()
+
+
+@pytest.mark.parametrize("key", ["max_age_s", "max_forward_s"])
+def test_config_requires_the_freshness_bounds(key: str) -> None:
+    """Issue 18: ``null`` is an error naming the field, never "unbounded" nor a clamp."""
+    with pytest.raises(ConfigError, match=rf"dds\.{key}"):
+        DdsConfig.from_mapping({"psk_file": "k", key: None})
+
+
+def test_config_store_spec_is_validated() -> None:
+    with pytest.raises(ConfigError, match=r"dds\.reader\.store"):
+        DdsConfig.from_mapping({"psk_file": "k", "reader": {"store": "/tmp/reader.state"}})
+
+
+@pytest.mark.parametrize(
+    ("block", "key", "named"),
+    [
+        ({"relay": {"service_name": "cds", "signer_state": "s", "verifier_state": "sqlite:v"}},
+         "dds.relay.verifier_state", "renamed to dds.relay.verifier_store"),
+        ({"reader": {"state_file": "r.state"}}, "dds.reader.state_file",
+         "renamed to dds.reader.store"),
+    ],
+)  # fmt: skip
+def test_config_names_a_renamed_key(block: dict[str, Any], key: str, named: str) -> None:
+    """Review finding 9: an obsolete key is reported by name with its new name, not as a
+    "Field required" on the new one."""
+    with pytest.raises(ConfigError) as refused:
+        DdsConfig.from_mapping({"psk_file": "k", **block})
+    assert refused.value.key == key
+    assert named in str(refused.value)
+
+
+def test_config_reports_every_wrong_key() -> None:
+    with pytest.raises(ConfigError) as refused:
+        DdsConfig.from_mapping({"max_age_s": -1, "reader": {"topic": ""}})
+    assert refused.value.key == "dds.psk_file"
+    assert "required" in str(refused.value)
+    assert "dds.max_age_s=-1.0" in str(refused.value) and "dds.reader.topic=''" in str(
+        refused.value
+    )
+
+
+def test_config_nan_bound_is_not_a_number() -> None:
+    with pytest.raises(ConfigError, match="not a number") as refused:
+        DdsConfig.from_mapping({"psk_file": "k", "max_age_s": float("nan")})
+    assert refused.value.key == "dds.max_age_s"
+    assert "86400" in refused.value.allowed and "should be less" not in str(refused.value)
+
+
+@pytest.mark.parametrize("spec", ["sqlite: ", "sqlite:", "sqlite:\t"])
+def test_config_blank_sqlite_path_is_refused(spec: str) -> None:
+    with pytest.raises(ConfigError, match="non-blank path") as refused:
+        DdsConfig.from_mapping({"psk_file": "k", "reader": {"store": spec}})
+    assert refused.value.key == "dds.reader.store"
+
+
+def test_config_forward_bound_leaves_room_for_the_writers_reservation() -> None:
+    with pytest.raises(ConfigError, match="reserve 1 s") as refused:
+        DdsConfig.from_mapping({"psk_file": "k", "max_forward_s": 1})
+    assert refused.value.key == "dds.max_forward_s"

@@ -15,7 +15,7 @@ from click.testing import CliRunner
 from antireplay.cli import main
 from antireplay.counters import NonceCounter
 from antireplay.durable import DurableState, repair
-from antireplay.epochs import EpochSigner, EpochVerifier
+from antireplay.epochs import EpochSigner
 from antireplay.errors import StateFileError
 from tests.conftest import ROOT
 
@@ -121,7 +121,7 @@ def test_repair_keeps_salvaged_ceiling_when_above_clock(tmp_path: Path) -> None:
 
 
 def test_repair_of_unknown_kind_is_an_error(tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="unknown state kind"):
+    with pytest.raises(StateFileError, match="unknown state kind"):
         repair(tmp_path / "x", "nope")
 
 
@@ -145,10 +145,6 @@ def forge(path: Path, kind: str, data: dict[str, object]) -> None:
         ("epoch-signer", {"ceiling": 5, "prefix": 7}),
         ("epoch-signer", {"ceiling": [], "prefix": "00" * 8}),
         ("epoch-signer", {"ceiling": 5, "prefix": "00" * 8, "rotations": "1"}),
-        ("epoch-verifier", {"floor": "0"}),
-        ("epoch-verifier", {"floor": 0, "announcement": []}),
-        ("epoch-verifier", {"floor": 0, "announcement": {"xyz": 1}}),
-        ("epoch-verifier", {"floor": 0, "ping": {"00" * 8: None}}),
     ],
 )
 def test_wrong_typed_content_is_refused_naming_file_and_repair(
@@ -159,7 +155,6 @@ def test_wrong_typed_content_is_refused_naming_file_and_repair(
     owners: dict[str, Callable[[], object]] = {
         "nonce-counter": lambda: NonceCounter.persistent(path),
         "epoch-signer": lambda: EpochSigner(b"k" * 32, state_file=path),
-        "epoch-verifier": lambda: EpochVerifier(b"k" * 32, state_file=path),
     }
     with pytest.raises(StateFileError) as err:
         owners[kind]()
@@ -233,13 +228,3 @@ def test_second_owner_in_one_process_is_refused_until_closed(tmp_path: Path) -> 
         NonceCounter.persistent(path)
     first.close()
     assert NonceCounter.persistent(path).next() == 5
-
-
-def test_second_epoch_verifier_on_one_state_file_is_refused(tmp_path: Path) -> None:
-    """Two verifiers on one file would each overwrite what the other accepted."""
-    path = tmp_path / "v.state"
-    first = EpochVerifier(b"k" * 32, state_file=path)
-    with pytest.raises(StateFileError, match="in use by another owner"):
-        EpochVerifier(b"k" * 32, state_file=path)
-    first.close()
-    EpochVerifier(b"k" * 32, state_file=path).close()

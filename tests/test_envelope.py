@@ -1,4 +1,5 @@
-"""The envelope parser: every hostile byte string is a typed error, never an exception."""
+"""The envelope: every hostile byte string is a typed error, never an exception; the RCAN
+SDK's signed subset is exactly what the SDK signs."""
 
 from __future__ import annotations
 
@@ -6,9 +7,12 @@ import json
 
 import msgspec
 import pytest
+from rcan import RCANMessage
+from rcan.signing import _canonical_message_bytes
 
-from antireplay.envelope import MAX_INT_TIMESTAMP, encode, parse
+from antireplay.envelope import MAX_INT_TIMESTAMP, SDK_SIGNED_FIELDS, encode, parse
 from antireplay.errors import InvalidEnvelopeError, InvalidTimestampError
+from tests.envelopes import MITM_FIELDS
 
 BASE = b'{"msg_id":"m","cmd":"c","target":"t","rcan":"3.2",'
 
@@ -52,3 +56,15 @@ def test_forwarded_sig_is_re_encoded_not_copied() -> None:
     assert forwarded.count(b'"value"') == 1
     assert json.loads(forwarded)["sig"] == {"alg": "ed25519", "kid": "k", "value": "AA"}
     assert msgspec.json.decode(forwarded)["sig"]["value"] == "AA"
+
+
+def test_sdk_signed_fields_are_what_the_sdk_signs() -> None:
+    """Ask the installed SDK which attributes its canonical bytes read: exactly ours."""
+    probe = RCANMessage(cmd="c", target="rcan://registry.rcan.dev/acme/arm/v2/unit-001")
+    covered = set(json.loads(_canonical_message_bytes(probe)))
+    assert covered == SDK_SIGNED_FIELDS
+    # Changing any other field leaves the SDK's signed bytes unchanged: they are unsigned.
+    before = _canonical_message_bytes(probe)
+    for name, value in MITM_FIELDS.items():
+        setattr(probe, name, value)
+    assert _canonical_message_bytes(probe) == before

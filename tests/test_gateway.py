@@ -24,19 +24,12 @@ from rcan.signing import MLDSAKeyPair, sign_message
 
 from antireplay.audit import AuditLog, verify
 from antireplay.audit import tail as audit_tail
-from antireplay.demo import (
-    JSON,
-    GatewayProcess,
-    command,
-    free_port,
-    load_operator_key,
-    state_rows,
-    write_demo_config,
-)
+from antireplay.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.envelope import SDK_SIGNED_FIELDS
 from antireplay.stores.redis_store import RedisStore
 from tests.conftest import run_threads
 from tests.fuzz.targets import http_app
+from tests.harness import GatewayProcess, free_port, state_rows
 
 
 @pytest.fixture(scope="module")

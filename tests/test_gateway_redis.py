@@ -20,7 +20,8 @@ import httpx
 import pytest
 
 from antireplay.audit import AuditLog, Record
-from antireplay.demo import JSON, GatewayProcess, command, load_operator_key, write_demo_config
+from antireplay.demo import JSON, command, load_operator_key, write_demo_config
+from tests.harness import GatewayProcess
 from tests.redis_server import RedisServer, primary_and_replica, wait_replicated
 
 #: A short skew keeps the fence a fresh deployment (or a loss) raises short.

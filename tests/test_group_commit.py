@@ -32,9 +32,10 @@ import pytest
 
 from antireplay import groupcommit
 from antireplay.audit import AuditLog, verify
-from antireplay.demo import JSON, GatewayProcess, command, load_operator_key, write_demo_config
+from antireplay.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.groupcommit import GroupCommitter
 from antireplay.stores.sqlite import SqliteStore
+from tests.harness import GatewayProcess
 
 WAIT_S = 30.0  # liveness bound only: a correct run never gets near it
 

@@ -10,15 +10,17 @@ from hypothesis import strategies as st
 from antireplay import ManualClock
 from antireplay.counters import NonceCounter
 from antireplay.errors import (
-    AuthenticationError,
-    CounterReplayError,
+    CounterReplayedError,
     InvalidFrameError,
     MessageStaleError,
     NonceExhaustedError,
     ReplayAttackError,
     ReplayDetectedError,
     SessionClosedError,
+    SignatureInvalidError,
+    UnknownSenderError,
     UnknownSessionError,
+    WrongDirectionError,
 )
 from antireplay.session import (
     REKEY_AFTER,
@@ -59,7 +61,7 @@ def test_signed_command_frames(clock: ManualClock) -> None:
     gcs_side, _, _ = connect(gcs, robot)
     frame = gcs_side.seal(b"ARM", Purpose.COMMAND)
     assert robot.open(frame).purpose is Purpose.COMMAND
-    with pytest.raises(CounterReplayError):
+    with pytest.raises(CounterReplayedError):
         robot.open(frame)
 
 
@@ -68,7 +70,7 @@ def test_replay_within_session_rejected(clock: ManualClock) -> None:
     gcs_side, _, _ = connect(gcs, robot)
     frame = gcs_side.seal(b"ARM")
     robot.open(frame)
-    with pytest.raises(CounterReplayError):
+    with pytest.raises(CounterReplayedError):
         robot.open(frame)
 
 
@@ -78,7 +80,7 @@ def test_reordered_frames_accepted_once_each(clock: ManualClock) -> None:
     order = [3, 0, 1, 9, 2, 8, 4, 7, 5, 6]
     assert [robot_side.open(frames[i]).counter for i in order] == order
     for f in frames:
-        with pytest.raises(CounterReplayError):
+        with pytest.raises(CounterReplayedError):
             robot_side.open(f)
 
 
@@ -87,7 +89,7 @@ def test_forged_far_future_counter_changes_no_state(clock: ManualClock) -> None:
     real = gcs_side.seal(b"hello")
     forged = bytearray(real)
     forged[20:28] = (2**63).to_bytes(8, "big")  # counter field, tag left as is
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         robot_side.open(bytes(forged))
     assert robot_side._recv[Purpose.DATA].last == 0
     assert robot_side.open(real).counter == 0
@@ -100,21 +102,24 @@ def test_cross_session_replay_rejected(clock: ManualClock) -> None:
     second, _, _ = connect(gcs, robot)
     captured = first.seal(b"ARM")
     moved = captured[:4] + second.session_id + captured[20:]  # re-address to the new session
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         robot.open(moved)
     robot.open(captured)  # the original still works once in its own session
-    with pytest.raises(CounterReplayError):
+    with pytest.raises(CounterReplayedError):
         robot.open(captured)
 
 
 def test_wrong_direction_and_purpose_fail(clock: ManualClock) -> None:
-    gcs_side, robot_side, _ = connect(*pair(clock))
+    gcs, robot = pair(clock)
+    gcs_side, robot_side, _ = connect(gcs, robot)
     frame = gcs_side.seal(b"x" * 5_000)
-    with pytest.raises(InvalidFrameError, match="direction"):
+    with pytest.raises(WrongDirectionError):  # MAVLink's code for the same event
         gcs_side.open(frame)  # reflected back to its sender
+    with pytest.raises(WrongDirectionError):
+        robot.open(robot_side.seal(b"r2i"))  # the responder's own frame, reflected at it
     swapped = bytearray(frame)
     swapped[2] = int(Purpose.COMMAND)
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         robot_side.open(bytes(swapped))
 
 
@@ -139,7 +144,7 @@ def test_forged_handshake_leaves_no_state(clock: ManualClock) -> None:
     gcs, robot = pair(clock)
     hs1 = bytearray(gcs.start(ROBOT_KEM.public_key()))
     hs1[-1] ^= 1
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         robot.accept_handshake(bytes(hs1))
     hs1[-1] ^= 1
     robot.accept_handshake(bytes(hs1))  # the genuine one still opens (no poisoning)
@@ -148,7 +153,7 @@ def test_forged_handshake_leaves_no_state(clock: ManualClock) -> None:
 def test_unknown_initiator_and_other_responder_rejected(clock: ManualClock) -> None:
     stranger = Initiator("intruder", mldsa.MLDSA87PrivateKey.generate(), clock)
     _, robot = pair(clock)
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(UnknownSenderError):
         robot.accept_handshake(stranger.start(ROBOT_KEM.public_key()))
     gcs, _ = pair(clock)
     other_robot = mlkem.MLKEM1024PrivateKey.generate()
@@ -161,7 +166,7 @@ def test_tampered_hs2_rejected(clock: ManualClock) -> None:
     hs1 = gcs.start(ROBOT_KEM.public_key())
     _, hs2 = robot.accept_handshake(hs1)
     bad = hs2[:-1] + bytes([hs2[-1] ^ 1])
-    with pytest.raises(AuthenticationError):
+    with pytest.raises(SignatureInvalidError):
         gcs.finish(hs1, bad)
 
 
@@ -170,8 +175,36 @@ def test_evicted_session_gets_session_closed(clock: ManualClock) -> None:
     first, _, _ = connect(gcs, robot)
     connect(gcs, robot)
     connect(gcs, robot)  # evicts the first (oldest) session with its keys
+    assert len(robot) == 2
     with pytest.raises(SessionClosedError):
         robot.open(first.seal(b"late"))
+
+
+def test_closed_session_gets_session_closed_whatever_happens_later(clock: ManualClock) -> None:
+    """One event, one code: later evictions of other sessions do not turn a closed
+    session's frames into another code (review finding 7b)."""
+    gcs, robot = pair(clock, max_sessions=2)
+    connect(gcs, robot)
+    gcs_side, robot_side, _ = connect(gcs, robot)
+    frame = gcs_side.seal(b"after the rekey")
+    robot.close(robot_side)
+    for _ in range(4):  # each new session (after the table fills) evicts the oldest
+        with pytest.raises(SessionClosedError):
+            robot.open(frame)
+        connect(gcs, robot)
+
+
+def test_check_records_nothing(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    gcs_side, robot_side, _ = connect(gcs, robot)
+    frame = gcs_side.seal(b"x")
+    robot.check(frame)
+    robot.check(frame)
+    robot_side.check(frame)
+    assert robot_side._recv[Purpose.DATA].last == 0
+    robot.open(frame)
+    with pytest.raises(CounterReplayedError):
+        robot.check(frame)
 
 
 def test_unknown_session_rejected(clock: ManualClock) -> None:

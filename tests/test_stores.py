@@ -37,8 +37,8 @@ from antireplay.stores.redis_store import RedisStore
 from antireplay.stores.sqlite import SqliteStore
 from tests.conftest import kill9_runs, run_threads
 from tests.helpers import store_worker
+from tests.mavlink_frames import KEY, command_frame, encoder
 from tests.redis_server import RedisCluster, RedisServer, primary_and_replica, wait_replicated
-from tests.test_mavlink import KEY, command_frame, encoder
 
 BACKENDS = ["memory", "sqlite", "redis", "redis-cluster"]
 NOW = 2_000_000_000.0  # 2033: after any Redis server's real time in these tests
@@ -169,9 +169,9 @@ def test_two_mavlink_guards_sharing_a_store_accept_a_frame_once(store: ReplaySto
     clock = ManualClock(wall=NOW)
     guards = [MavlinkGuard(KEY, store=store, clock=clock) for _ in range(2)]
     frame = command_frame(*encoder(ts=mav_time(clock)))
-    guards[0].check(frame)
+    guards[0].open(frame)
     with pytest.raises(ReplayAttackError):
-        guards[1].check(frame)  # its own table has never seen the stream: the store has
+        guards[1].open(frame)  # its own table has never seen the stream: the store has
 
 
 # --- clock steps --------------------------------------------------------------------------------

@@ -1,12 +1,42 @@
 """antireplay: stop captured, validly signed robot and drone commands from working twice.
 
-This module only re-exports the public API; each concept lives in its own module.
+Two layers, the way pyca/cryptography keeps its recipes apart from ``hazmat``:
+
+**Recipes** (use these): each runs the whole receive path in the fixed order,
+check (records nothing) → authenticate → commit (records), so nothing an
+unauthenticated message carries changes state.
+
+* :class:`Receiver` (:mod:`antireplay.pipeline`): RCAN envelopes over HTTP or
+  any transport: shape, freshness, msg_id, signature, scope, commit, audit.
+* :class:`MavlinkGuard` (:mod:`antireplay.mavlink`): signed MAVLink v2 frames.
+* :class:`Initiator` / :class:`Responder` (:mod:`antireplay.session`):
+  post-quantum sessions with counter windows.
+* :class:`EpochSigner` / :class:`EpochVerifier` (:mod:`antireplay.epochs`):
+  epoch-sealed announcements (DDS discovery style; :mod:`antireplay.dds` carries
+  them over Cyclone DDS).
+
+**Policies and primitives** (the lower layer: correct only when the caller
+authenticates between ``check`` and ``commit``): :class:`ReplayCache` (its
+``commit`` records whatever it is given), :class:`Window`, the counter
+primitives :class:`NonceCounter`, :class:`CounterWindow` and
+:class:`FencedTable`, and the stores (:func:`antireplay.stores.open_store`).
+
+Errors are data (:mod:`antireplay.errors`): every refusal is a
+:class:`ReplayAttackError` whose :class:`Code` decides the HTTP status and NACK.
+
+The recipes load on first use, so ``import antireplay`` stays light.
 ``WINDOW_BUILD`` says whether the compiled or the source build of the window runs.
 """
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
 
 from antireplay._native import IMPLEMENTATION as WINDOW_BUILD  # first: picks the window build
 from antireplay.clock import Clock, ManualClock, SystemClock
 from antireplay.config import SecurityConfig
+from antireplay.counters import CounterWindow, FencedTable, NonceCounter
 from antireplay.errors import (
     AntiReplayError,
     Code,
@@ -18,12 +48,29 @@ from antireplay.errors import (
     NonceExhaustedError,
     ReplayAttackError,
     ReplayDetectedError,
+    WarningCode,
 )
 from antireplay.messages import MessageType, SafetyEvent
 from antireplay.replay import ReplayCache
 from antireplay.window import Seen, Verdict, Window
 
+if TYPE_CHECKING:
+    from antireplay.epochs import EpochSigner, EpochVerifier
+    from antireplay.mavlink import MavlinkGuard
+    from antireplay.pipeline import Receiver
+    from antireplay.session import Initiator, Responder
+
 __version__ = "0.1.0"
+
+#: The recipes: name -> module, loaded on first use.
+_RECIPES = {
+    "Receiver": "antireplay.pipeline",
+    "MavlinkGuard": "antireplay.mavlink",
+    "Initiator": "antireplay.session",
+    "Responder": "antireplay.session",
+    "EpochSigner": "antireplay.epochs",
+    "EpochVerifier": "antireplay.epochs",
+}
 
 __all__ = [
     "WINDOW_BUILD",
@@ -31,21 +78,39 @@ __all__ = [
     "Clock",
     "Code",
     "ConfigError",
+    "CounterWindow",
+    "EpochSigner",
+    "EpochVerifier",
+    "FencedTable",
+    "Initiator",
     "InvalidMessageIdError",
     "InvalidTimestampError",
     "ManualClock",
+    "MavlinkGuard",
     "MessageFromFutureError",
     "MessageStaleError",
     "MessageType",
+    "NonceCounter",
     "NonceExhaustedError",
+    "Receiver",
     "ReplayAttackError",
     "ReplayCache",
     "ReplayDetectedError",
+    "Responder",
     "SafetyEvent",
     "SecurityConfig",
     "Seen",
     "SystemClock",
     "Verdict",
+    "WarningCode",
     "Window",
     "__version__",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """Load a recipe on first use."""
+    module = _RECIPES.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(module), name)

@@ -50,7 +50,12 @@ from cryptography.hazmat.primitives.asymmetric import ec, ed25519, mldsa
 
 from antireplay.clock import Clock, resolve
 from antireplay.envelope import Envelope, canonical_bytes, parse, sdk_signed_bytes
-from antireplay.errors import AuthenticationError, AuthFailedError
+from antireplay.errors import (
+    AuthFailedError,
+    SignatureInvalidError,
+    SignatureRequiredError,
+    UnknownSenderError,
+)
 
 PublicKey = ed25519.Ed25519PublicKey | mldsa.MLDSA65PublicKey | mldsa.MLDSA87PublicKey
 ALGORITHMS: dict[str, tuple[type, ...]] = {
@@ -87,7 +92,7 @@ def b64decode(value: str) -> bytes:
     try:
         return base64.urlsafe_b64decode(value + "=" * (-len(value) % 4))
     except (binascii.Error, ValueError):
-        raise AuthenticationError("signature is not base64url") from None
+        raise SignatureInvalidError("signature is not base64url") from None
 
 
 def b64encode(raw: bytes) -> str:
@@ -139,18 +144,19 @@ class KeyRegistry:
         return entry
 
     def verify(self, env: Envelope) -> Signer:
-        """Verify ``env.sig``; raises ``SIGNATURE_INVALID`` (401) on any failure."""
+        """Verify ``env.sig``; raises ``SIGNATURE_REQUIRED``, ``UNKNOWN_SENDER`` or
+        ``SIGNATURE_INVALID`` (all 401)."""
         sig = env.signature()
         if sig is None:
-            raise AuthenticationError("message is not signed")
+            raise SignatureRequiredError("message is not signed")
         entry = self.entries.get(sig.kid)
         if entry is None:
-            raise AuthenticationError("unknown signing key")
+            raise UnknownSenderError("unknown signing key")
         if sig.alg != entry.alg:
-            raise AuthenticationError("signature algorithm does not match the key")
+            raise SignatureInvalidError("signature algorithm does not match the key")
         parts = sig.value.split(".")
         if len(parts) != len(entry.public_keys):
-            raise AuthenticationError("wrong number of signature parts")
+            raise SignatureInvalidError("wrong number of signature parts")
         raw = [b64decode(p) for p in parts]
         self.verifications += 1
         data = canonical_bytes(env)
@@ -160,7 +166,7 @@ class KeyRegistry:
             self.verifications += 1
             if _check(entry.public_keys[0], raw[0], sdk_signed_bytes(env)):
                 return Signer(entry.kid, entry.owner, entry.scopes, subset=True)
-        raise AuthenticationError("signature does not verify")
+        raise SignatureInvalidError("signature does not verify")
 
 
 @dataclass

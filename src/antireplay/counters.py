@@ -1,43 +1,67 @@
-"""Counter-based freshness: sender counters, strict trackers, sliding windows, stream tables.
+"""Counter-based freshness: the sender source, sliding windows, fenced high-water tables.
 
 Theory of operation
 -------------------
 A counter needs no clock synchronisation: the sender numbers its frames and the
-receiver accepts each number at most once.  Four small types, one job each:
+receiver accepts each number at most once.  Three small types, one job each;
+every receiver policy in antireplay is built from them:
 
-* :class:`NonceCounter` (sender): ``next()`` hands out unique, strictly
-  increasing values under any number of threads and **never wraps**: at
-  ``limit`` (default ``2**64 - 2**13 - 1``, which leaves room for a window of
-  8,128 below ``2**64``) it raises :class:`NonceExhaustedError`, and
-  :meth:`NonceCounter.persistent` survives restarts and ``kill -9`` by
+* :class:`NonceCounter` (sender): **the one sender source**: session counters
+  and sequences, epochs (:mod:`antireplay.epochs`) and MAVLink signing
+  timestamps (:class:`antireplay.mavlink.codec.TimestampSource` is a
+  ``NonceCounter`` anchored to MAVLink time).  ``next()`` hands out
+  unique, strictly increasing values under any number of threads and **never
+  wraps**: at ``limit`` (default ``2**64 - 2**13 - 1``,
+  which leaves room for a window of 8,128 below ``2**64``) it raises
+  :class:`~antireplay.errors.NonceExhaustedError`.  With an ``anchor`` (a
+  function returning the current wall time in the value's unit) each value is
+  ``max(last + 1, anchor())``: tied to real time, so a verifier that never
+  heard of the sender can still bound its age, and a wall-clock step
+  backwards never makes it repeat (``last + 1`` wins).  With a state file
+  (:meth:`NonceCounter.persistent`) it survives restarts and ``kill -9`` by
   persisting a reserved ceiling through :mod:`antireplay.durable` once per
   ``lease`` values: after a crash it resumes above everything it could have
-  handed out.  It never reads the clock, so a wall-clock step cannot make it
-  repeat.  The file has one owner: a second process (or object) opening it is
-  refused while the first holds its lock (see :mod:`antireplay.durable`), since
-  two owners would hand out the same values.
-* :class:`NonceTracker` (receiver, in-order links): accepts only
-  ``n > last_accepted``.
+  handed out.  The file has one owner: a second process (or object) opening
+  it is refused while the first holds its lock, since two owners would hand
+  out the same values.  Where the ceiling lives is a :class:`Ceiling`: a
+  state file (:class:`FileCeiling`) or a replay store's ``advance``
+  (:class:`StoreCeiling`).  Either way a ceiling has **one owner**: a state
+  file is locked; a store key is not (the store contract has no
+  compare-and-set), so owners sharing a store use keys of their own.
 * :class:`CounterWindow` (receiver, lossy/reordering links): the RFC 6479
   sliding bitmap, as WireGuard implements it.  A counter ``c`` is accepted
-  once iff ``c < limit`` and ``last - c <= size``.  The bitmap is a ring of
-  64-bit words indexed by ``c >> 6``; moving forward clears only the words
+  once iff ``0 <= c < limit`` and ``last - c <= size``.  The bitmap is a ring
+  of 64-bit words indexed by ``c >> 6``; moving forward clears only the words
   skipped over, so each packet costs O(1) with no shifting.  Counter 0 is
   valid on a fresh window.
-* :class:`StreamTable`: one window per (sender, session sequence), bounded.
+* :class:`FencedTable` (receiver, many streams): a bounded table of per-key
+  high-water marks (a MAVLink stream's last timestamp, an epoch prefix's last
+  epoch, a session's sequence) whose evictions raise a **fence**.  A key the
+  table does not hold is admitted only above the fence, so forgetting a key
+  never re-opens a replay under it.  When the table is full, a newcomer is
+  admitted only above the **lowest** mark too: then, and only then, the key
+  with the lowest mark is evicted and the fence rises to that mark.  So a
+  refused newcomer evicts nothing (it cannot push out a live key, nor raise
+  the fence), and the fence never rises above an admitted key.  A newcomer
+  refused either way gets ``MESSAGE_STALE`` with ``detail="fence"``, the one
+  code of that event everywhere; a sender that is refused there starts a new
+  stream (a new prefix) or waits until its wall-anchored values pass the
+  fence.  Per-key order (strictly above the mark, or within a window) stays
+  with the policy that owns the table.
 
-Every receiver type offers ``check`` (non-mutating, raises a typed error) and
-``accept`` (the atomic commit, under a lock).  The caller runs ``check`` before
-any cryptography and ``accept`` only after the tag or signature verified, so a
-forged far-future counter cannot move the window (no jamming without the key).
+Two phases, one vocabulary (every receiver in antireplay):
+``check`` raises the typed reason a value would be refused and **records
+nothing**; ``commit`` records it and is run only after the tag or signature
+verified, so a forged far-future counter cannot move anything (no jamming
+without the key).  ``commit`` re-checks, so of two racers exactly one wins; the
+loser gets the same typed error ``check`` would give.  ``open`` (sessions,
+epochs, the pipeline's ``receive``) is the recipe: check, authenticate, commit.
 
-Stream eviction never re-opens replay.  Session sequences are assigned by the
-receiver in increasing order (see :mod:`antireplay.session`).  When the table
-is full, the stream with the **lowest** sequence (the oldest session) is
-evicted and a fence rises to its sequence; an unknown stream at or below the
-fence is refused with ``SESSION_CLOSED`` and must handshake again, which
-yields fresh keys and a fresh sequence.  The evicted stream's captured frames
-can therefore never be accepted again.
+Locking: :class:`NonceCounter` and :class:`CounterWindow` lock themselves; a
+:class:`FencedTable` does not (its owner serializes its commits, as
+WireGuard's replay filter does): every owner holds a lock around ``commit``,
+which re-checks the key under it, while ``check`` may read without the lock
+(whatever it read, ``commit`` judges again).
 """
 
 from __future__ import annotations
@@ -45,17 +69,22 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable, Hashable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 from antireplay.durable import DurableState, as_int, register_repair
 from antireplay.errors import (
-    CounterLimitError,
-    CounterReplayError,
+    CounterExhaustedError,
+    CounterReplayedError,
     CounterTooOldError,
+    InvalidCounterError,
+    MessageStaleError,
     NonceExhaustedError,
-    SessionClosedError,
 )
+
+if TYPE_CHECKING:
+    from antireplay.stores import ReplayStore
 
 #: Sender limit: below 2**64 with room for a full window (WireGuard uses 2**64 - 2**4 - 1).
 COUNTER_LIMIT = 2**64 - 2**13 - 1
@@ -63,20 +92,83 @@ WORD_BITS = 64
 RING_WORDS = 128
 #: The RFC 6479 window that a 128-word ring supports: one word is always being recycled.
 DEFAULT_WINDOW = (RING_WORDS - 1) * WORD_BITS  # 8128
+#: The ``detail`` of a key refused at a table's eviction fence.
+FENCE = "fence"
+
+#: Builds the state-file record for a reserved ceiling (its owner may add fields).
+Record = Callable[[int], dict[str, Any]]
+
+
+def _ceiling_record(ceiling: int) -> dict[str, Any]:
+    return {"ceiling": ceiling}
+
+
+class Ceiling(Protocol):
+    """Where a :class:`NonceCounter` persists the ceiling it reserves ahead of its values."""
+
+    def claim(self, value: int, span: int) -> int:
+        """Durably reserve ``[v, v + span)`` for some ``v >= value`` before ``v`` is handed
+        out, and return ``v`` (above ``value`` when a co-owner already reserved past it)."""
+        ...
+
+    def release(self) -> None:
+        """Give up ownership (a file lock); a later owner resumes above the ceiling."""
+        ...
+
+
+class FileCeiling:
+    """The ceiling in a crash-safe state file (:mod:`antireplay.durable`), one owner."""
+
+    def __init__(self, state: DurableState, record: Record = _ceiling_record) -> None:
+        self.state, self.record = state, record
+
+    def claim(self, value: int, span: int) -> int:
+        self.state.save(self.record(value + span - 1))
+        return value
+
+    def release(self) -> None:
+        self.state.release()
+
+
+class StoreCeiling:
+    """The ceiling in a replay store (``advance``, atomic on every backend), for one owner
+    per key; a store that lost data is detected by the owner when it opens."""
+
+    def __init__(self, store: ReplayStore, key: str) -> None:
+        self.store, self.key = store, key
+
+    def claim(self, value: int, span: int) -> int:
+        value = max(value, (self.store.current(self.key) or 0) + 1)
+        while not self.store.advance(self.key, value + span - 1):
+            value = max(value, (self.store.current(self.key) or 0) + 1)  # a stray co-owner
+        return value
+
+    def release(self) -> None:
+        """Nothing to give up: the store outlives its owners."""
 
 
 class NonceCounter:
-    """Thread-safe sender counter: unique, strictly increasing, never wraps."""
+    """The sender source: unique, strictly increasing, never wraps; optionally
+    wall-anchored and persisted (see the module docstring)."""
 
-    def __init__(self, start: int = 1, *, limit: int = COUNTER_LIMIT) -> None:
+    def __init__(
+        self,
+        start: int = 1,
+        *,
+        limit: int = COUNTER_LIMIT,
+        anchor: Callable[[], int] | None = None,
+    ) -> None:
         if isinstance(start, bool) or not isinstance(start, int) or not 0 <= start < limit:
             raise ValueError(f"start must be an int in [0, {limit}), got {start!r}")
         self._next = start
         self.limit = limit
+        self._anchor = anchor
         self._lock = threading.Lock()
-        self._state: DurableState | None = None
+        self._persist: Ceiling | None = None
         self._ceiling = limit
         self._lease = 0
+        #: Ceilings persisted so far (one per ``lease`` values): the write cost, observable.
+        self.reservations = 0
 
     @classmethod
     def from_time(cls, *, limit: int = COUNTER_LIMIT) -> NonceCounter:
@@ -88,73 +180,110 @@ class NonceCounter:
 
     @classmethod
     def persistent(
-        cls, path: str | os.PathLike[str], lease: int = 1024, *, limit: int = COUNTER_LIMIT
+        cls,
+        path: str | os.PathLike[str],
+        lease: int = 1024,
+        *,
+        limit: int = COUNTER_LIMIT,
+        anchor: Callable[[], int] | None = None,
     ) -> NonceCounter:
         """A counter that resumes above every value it could have handed out before a crash."""
-        if lease < 1:
-            raise ValueError("lease must be >= 1")
         state = DurableState(Path(path), kind="nonce-counter", exclusive=True)
         stored: int | None = state.load(lambda data: as_int(data["ceiling"], "ceiling"))
-        ceiling = 0 if stored is None else stored
+        return cls.on_state(state, 0 if stored is None else stored, lease, limit=limit,
+                            anchor=anchor)  # fmt: skip
+
+    @classmethod
+    def on_state(
+        cls,
+        state: DurableState,
+        ceiling: int,
+        lease: int,
+        *,
+        limit: int = COUNTER_LIMIT,
+        anchor: Callable[[], int] | None = None,
+        record: Record = _ceiling_record,
+    ) -> NonceCounter:
+        """A counter resuming above ``ceiling`` (loaded by the caller from ``state``), that
+        saves ``record(ceiling)`` to ``state`` before handing out any value above it."""
+        return cls.on_ceiling(FileCeiling(state, record), ceiling, lease, limit=limit,
+                              anchor=anchor)  # fmt: skip
+
+    @classmethod
+    def on_ceiling(
+        cls,
+        persist: Ceiling,
+        ceiling: int,
+        lease: int,
+        *,
+        limit: int = COUNTER_LIMIT,
+        anchor: Callable[[], int] | None = None,
+    ) -> NonceCounter:
+        """A counter resuming above ``ceiling`` that claims ``lease`` values ahead from
+        ``persist`` before handing out any value above what it claimed."""
+        if lease < 1:
+            persist.release()
+            raise ValueError("lease must be >= 1")
         if ceiling + 1 >= limit:
-            state.release()
+            persist.release()
             raise NonceExhaustedError(f"persisted counter at {ceiling} has reached its limit")
-        counter = cls(ceiling + 1, limit=limit)
-        counter._state, counter._lease, counter._ceiling = state, lease, ceiling
+        counter = cls(ceiling + 1, limit=limit, anchor=anchor)
+        counter.attach(persist, lease)
         return counter
 
+    def attach(self, persist: Ceiling, lease: int) -> None:
+        """Persist from now on: claim ``lease`` values ahead from ``persist`` before handing
+        out any value above the last one claimed (nothing is claimed yet)."""
+        with self._lock:
+            self._persist, self._lease, self._ceiling = persist, lease, self._next - 1
+
     def close(self) -> None:
-        """Give up the state file (its lock); a later owner resumes above the ceiling."""
-        if self._state is not None:
-            self._state.release()
+        """Give up the persisted ceiling (a state file's lock); a later owner resumes above it."""
+        if self._persist is not None:
+            self._persist.release()
 
     @property
     def peek(self) -> int:
-        """The value the next call to :meth:`next` would return."""
+        """The least value the next call to :meth:`next` can return (the anchor may add)."""
         return self._next
+
+    @property
+    def last(self) -> int:
+        """The last value handed out (``peek - 1``)."""
+        return self._next - 1
 
     def next(self) -> int:
         """Hand out the next value; raises :class:`NonceExhaustedError` at the limit."""
         with self._lock:
             value = self._next
+            if self._anchor is not None:
+                value = max(value, self._anchor())
             if value >= self.limit:
                 raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
-            if self._state is not None and value > self._ceiling:
-                self._reserve(value)
+            if self._persist is not None and value > self._ceiling:
+                value = self._reserve(value)
             self._next = value + 1
             return value
 
-    def _reserve(self, value: int) -> None:
-        """Persist a new ceiling *before* handing out any value under it."""
-        assert self._state is not None
-        ceiling = min(value + self._lease - 1, self.limit - 1)
-        self._state.save({"ceiling": ceiling})
-        self._ceiling = ceiling
-
-
-class NonceTracker:
-    """Receiver for in-order links: accepts only counters above the last accepted one."""
-
-    def __init__(self, last: int = 0) -> None:
-        self._last = last
-        self._lock = threading.Lock()
-
-    @property
-    def last_accepted(self) -> int:
-        return self._last
-
-    def check(self, n: int) -> None:
-        """Raise :class:`CounterReplayError` unless ``n`` is new; records nothing."""
-        if n <= self._last:
-            raise CounterReplayError(f"counter {n} is not above {self._last}")
-
-    def accept(self, n: int) -> bool:
-        """Commit ``n`` if it is above the last accepted; exactly one winner under races."""
+    def restart(self, start: int = 1) -> None:
+        """Start over at ``start`` for a **new binding** (the owner changed what the values
+        are bound to, e.g. an epoch signer's new prefix).  Values may repeat across
+        bindings, never within one; with a state file the next value is persisted first."""
         with self._lock:
-            if n <= self._last:
-                return False
-            self._last = n
-            return True
+            self._next = start
+            if self._persist is not None:
+                self._ceiling = start - 1
+
+    def _reserve(self, value: int) -> int:
+        """Persist a new ceiling *before* handing out any value under it; the value to hand
+        out (a co-owner of a store's key may already have reserved past ``value``)."""
+        assert self._persist is not None
+        value = self._persist.claim(value, min(self._lease, self.limit - value))
+        self.reservations += 1
+        if value >= self.limit:
+            raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
+        self._ceiling = min(value + self._lease - 1, self.limit - 1)
+        return value
 
 
 class CounterWindow:
@@ -173,22 +302,31 @@ class CounterWindow:
 
     @property
     def last(self) -> int:
-        """The highest counter accepted so far (0 on a fresh window)."""
+        """The highest counter committed so far (0 on a fresh window)."""
         return self._last
 
     def check(self, c: int) -> None:
-        """Raise the typed reason ``c`` would be refused; mutates nothing."""
-        if not 0 <= c < self.limit:
-            raise CounterLimitError(f"counter {c} outside [0, {self.limit})")
+        """Raise the typed reason ``c`` would be refused; records nothing."""
+        if c < 0:
+            raise InvalidCounterError(f"counter {c} is negative")
+        if c >= self.limit:
+            raise CounterExhaustedError(f"counter {c} at or above the limit {self.limit}; rekey")
         if c > self._last:
             return
         if self._last - c > self.size:
             raise CounterTooOldError(f"counter {c} is behind the window ending at {self._last}")
         if self._ring[(c >> 6) % RING_WORDS] >> (c & 63) & 1:
-            raise CounterReplayError(f"counter {c} already accepted")
+            raise CounterReplayedError(f"counter {c} already accepted")
 
-    def accept(self, c: int) -> bool:
-        """Commit ``c``; True iff it was fresh (so a racing duplicate gets False)."""
+    def commit(self, c: int) -> None:
+        """Record ``c`` (after authentication); a racing duplicate gets the error ``check``
+        would now give."""
+        if not self._record(c):
+            self.check(c)
+            raise CounterReplayedError(f"counter {c} already accepted")
+
+    def _record(self, c: int) -> bool:
+        """Set ``c``'s bit under the lock; True iff it was fresh and in range."""
         if not 0 <= c < self.limit:
             return False
         with self._lock:
@@ -206,72 +344,94 @@ class CounterWindow:
             ring[index] = old | bit
             return not old & bit
 
-    def snapshot(self) -> dict[str, Any]:
-        """Plain data for persistence (used by stores)."""
-        return {"last": self._last, "ring": list(self._ring)}
+
+K = TypeVar("K", bound=Hashable)
+E = TypeVar("E")
 
 
-class StreamTable:
-    """Bounded per-stream windows keyed by (sender, session sequence); see the module docstring."""
+class FencedTable(Generic[K, E]):
+    """A bounded table of per-key high-water marks (each with an owner's entry) whose
+    evictions raise a fence; see the module docstring.  Not locked: the owner serializes."""
 
-    def __init__(self, max_streams: int = 1024, window: int = DEFAULT_WINDOW) -> None:
-        if max_streams < 1:
-            raise ValueError("max_streams must be >= 1")
-        self.max_streams = max_streams
-        self.window = window
-        # None marks a closed stream (a tombstone) until the fence passes its sequence.
-        self._streams: dict[tuple[str, int], CounterWindow | None] = {}
-        self._fence = -1
-        self._lock = threading.Lock()
+    __slots__ = ("_entries", "_fence", "_marks", "evictions", "max_keys", "what")
+
+    def __init__(self, max_keys: int, *, fence: int = -1, what: str = "stream") -> None:
+        if isinstance(max_keys, bool) or not isinstance(max_keys, int) or max_keys < 1:
+            raise ValueError("max_keys must be a positive integer")
+        self.max_keys = max_keys
+        self.what = what
+        self._marks: dict[K, int] = {}
+        self._entries: dict[K, E] = {}
+        self._fence = fence
         self.evictions = 0
 
     @property
     def fence(self) -> int:
-        """Streams with a sequence at or below this, and not in the table, are closed."""
+        """Keys the table does not hold are admitted only with a value above this."""
         return self._fence
 
+    def raise_fence(self, value: int) -> None:
+        """Raise the fence (restored from persisted state, or a store's loss fence)."""
+        self._fence = max(self._fence, value)
+
     def __len__(self) -> int:
-        return len(self._streams)
+        return len(self._marks)
 
-    def check(self, sender: str, seq: int, counter: int) -> None:
-        """Cheap pre-crypto check; an unknown stream is judged as a fresh window."""
-        key = (sender, seq)
-        window = self._streams.get(key)
-        if window is None:
-            if seq <= self._fence or key in self._streams:
-                raise SessionClosedError(f"session {seq} was closed; handshake again")
-            if not 0 <= counter < COUNTER_LIMIT:
-                raise CounterLimitError(f"counter {counter} out of range")
-            return
-        window.check(counter)
+    def __contains__(self, key: object) -> bool:
+        return key in self._marks
 
-    def accept(self, sender: str, seq: int, counter: int) -> None:
-        """Commit after authentication; creates the stream, evicting the oldest if full."""
-        key = (sender, seq)
-        with self._lock:
-            window = self._streams.get(key)
-            if window is None:
-                if seq <= self._fence or key in self._streams:
-                    raise SessionClosedError(f"session {seq} was closed; handshake again")
-                if len(self._streams) >= self.max_streams:
-                    self._evict_oldest()
-                    if seq <= self._fence:
-                        raise SessionClosedError(f"session {seq} is older than every live one")
-                window = self._streams[key] = CounterWindow(self.window)
-        window.check(counter)
-        if not window.accept(counter):
-            raise CounterReplayError(f"counter {counter} already accepted")
+    def mark(self, key: K) -> int | None:
+        """The key's high-water mark, or None if the table does not hold it."""
+        return self._marks.get(key)
 
-    def close(self, sender: str, seq: int) -> None:
-        """Close a stream for good (after a rekey): later frames get ``SESSION_CLOSED``."""
-        with self._lock:
-            self._streams[(sender, seq)] = None
+    def get(self, key: K) -> E | None:
+        """The owner's entry for ``key``, or None."""
+        return self._entries.get(key)
 
-    def _evict_oldest(self) -> None:
-        oldest = min(self._streams, key=lambda k: k[1])
-        del self._streams[oldest]
-        self._fence = max(self._fence, oldest[1])
-        self.evictions += 1
+    def check(self, key: K, value: int) -> E | None:
+        """Records nothing.  The key's entry; for a key the table does not hold, None, and
+        ``value`` must be above the fence (else ``MESSAGE_STALE``, ``detail="fence"``).
+        The full-table test against the lowest mark is :meth:`commit`'s alone: it scans
+        the table, which only an authenticated newcomer may cost (and ``check`` may run
+        without the owner's lock, while a commit changes the table)."""
+        entry = self._entries.get(key)
+        if entry is None and value <= self._fence:
+            self._refuse(value, self._fence, "the eviction fence")
+        return entry
+
+    def commit(self, key: K, value: int, new: Callable[[], E]) -> E:
+        """Raise ``key``'s mark to ``value`` (never lowers it).  A key the table does not
+        hold is admitted with entry ``new()`` only above the fence and, when the table is
+        full, above the lowest mark; only then is that lowest key evicted and the fence
+        raised to its mark.  A refused newcomer changes nothing."""
+        entry = self._entries.get(key)
+        if entry is None:
+            if value <= self._fence:
+                self._refuse(value, self._fence, "the eviction fence")
+            if len(self._marks) >= self.max_keys:
+                marks = self._marks
+                lowest = min(marks, key=marks.__getitem__)
+                if value <= marks[lowest]:
+                    self._refuse(value, marks[lowest], "the lowest mark of a full table")
+                self._fence = max(self._fence, marks.pop(lowest))
+                del self._entries[lowest]
+                self.evictions += 1
+            entry = self._entries[key] = new()
+            self._marks[key] = value
+        elif value > self._marks[key]:
+            self._marks[key] = value
+        return entry
+
+    def discard(self, key: K) -> E | None:
+        """Drop ``key`` *without* raising the fence: only for keys whose values can never
+        verify again (a session whose keys are dropped with it)."""
+        self._marks.pop(key, None)
+        return self._entries.pop(key, None)
+
+    def _refuse(self, value: int, floor: int, what: str) -> None:
+        raise MessageStaleError(
+            f"new {self.what} at {value}, at or below {what} ({floor})", detail=FENCE
+        )
 
 
 def _reseed_counter(data: dict[str, Any] | None, now_ns: int) -> dict[str, Any]:

@@ -4,8 +4,10 @@ Each step states what the robot must answer and what it did answer; the demo
 fails (non-zero exit in the CLI) if any step differs.
 
 * :func:`run_gateway_demo` (``antireplay demo``) starts ``antireplay serve`` on a
-  free loopback port with a temporary state directory, plays operator and
-  attacker over HTTP, restarts the gateway, and checks the audit chain.
+  free loopback port with a temporary state directory (:func:`start_gateway`),
+  plays operator and attacker over HTTP, reads the replay state's size from the
+  gateway's ``/metrics`` (as an operator would), restarts the gateway, and checks
+  the audit chain.
 * :func:`run_window_demo` (``antireplay demo --in-process``) exercises the §8.3
   window alone with a :class:`ManualClock`: deterministic and instant.
 """
@@ -13,8 +15,8 @@ fails (non-zero exit in the CLI) if any step differs.
 from __future__ import annotations
 
 import json
+import re
 import socket
-import sqlite3
 import subprocess
 import sys
 import tempfile
@@ -22,7 +24,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -141,48 +143,35 @@ def robot(envelope: dict[str, Any]) -> dict[str, Any]:
     return {"executed": envelope.get("cmd"), "msg_id": envelope.get("msg_id")}
 
 
-def free_port() -> int:
+def _free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
 
 
-@dataclass
-class GatewayProcess:
-    """``antireplay serve`` as a real subprocess on loopback."""
+def start_gateway(config: Path, port: int, timeout_s: float = 30.0) -> subprocess.Popen[bytes]:
+    """Run ``antireplay serve --config CONFIG`` on loopback ``port``; return once it is healthy."""
+    args = [sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
+    args += ["--host", "127.0.0.1", "--port", str(port)]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            err = proc.stderr.read().decode() if proc.stderr else ""
+            raise RuntimeError(f"gateway exited early: {err[-2000:]}")
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
+                return proc
+        except httpx.HTTPError:
+            time.sleep(0.05)
+    raise RuntimeError("gateway did not become healthy")
 
-    config: Path
-    port: int = field(default_factory=free_port)
-    proc: subprocess.Popen[bytes] | None = None
-    stderr_text: str | None = None
 
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    def start(self, timeout_s: float = 30.0) -> None:
-        args = [sys.executable, "-m", "antireplay", "serve", "--config", str(self.config)]
-        args += ["--host", "127.0.0.1", "--port", str(self.port)]
-        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                err = self.proc.stderr.read().decode() if self.proc.stderr else ""
-                raise RuntimeError(f"gateway exited early: {err[-2000:]}")
-            try:
-                if httpx.get(f"{self.url}/healthz", timeout=1).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                time.sleep(0.05)
-        raise RuntimeError("gateway did not become healthy")
-
-    def stop(self) -> None:
-        """Graceful stop (uvicorn finishes in-flight requests); keeps what it said on stderr."""
-        if self.proc is not None:
-            self.proc.terminate()
-            _, err = self.proc.communicate(timeout=30)
-            self.stderr_text = err.decode(errors="replace") if err else ""
-            self.proc = None
+def stop_gateway(proc: subprocess.Popen[bytes]) -> str:
+    """Graceful stop (uvicorn finishes in-flight requests); what the gateway said on stderr."""
+    proc.terminate()
+    _, err = proc.communicate(timeout=30)
+    return err.decode(errors="replace") if err else ""
 
 
 def write_demo_config(state: Path, **overrides: Any) -> Path:
@@ -238,67 +227,68 @@ def answer(reply: httpx.Response) -> str:
     return f"{body.get('code')} ({reply.status_code})"
 
 
-def state_rows(state: Path) -> int:
-    db = sqlite3.connect(f"file:{state / 'state.db'}?mode=ro", uri=True)
-    try:
-        return int(db.execute("SELECT count(*) FROM seen").fetchone()[0])
-    finally:
-        db.close()
+def _entries(http: httpx.Client) -> int:
+    """The gateway's replay-state entries, as its ``/metrics`` reports them."""
+    found = re.search(
+        r"^antireplay_cache_entries\{[^}]*\} ([0-9.e+]+)$", http.get("/metrics").text, re.M
+    )
+    return int(float(found.group(1))) if found else 0
 
 
 @contextmanager
-def _gateway(config: Path) -> Iterator[GatewayProcess]:
-    gateway = GatewayProcess(config)
-    gateway.start()
+def _gateway(config: Path, port: int) -> Iterator[httpx.Client]:
+    """A gateway process on ``port`` and a client for it, stopped on exit."""
+    proc = start_gateway(config, port)
     try:
-        yield gateway
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10) as http:
+            yield http
     finally:
-        gateway.stop()
+        stop_gateway(proc)
 
 
 def run_gateway_demo(flood: int = 300) -> tuple[list[StepResult], ChainReport]:
     """Play operator and attacker against a real gateway; return the steps and audit check."""
     with tempfile.TemporaryDirectory(prefix="antireplay-demo-") as tmp:
         state = Path(tmp)
-        config = write_demo_config(state)
+        config, port = write_demo_config(state), _free_port()
         key = load_operator_key(state)
         results: list[StepResult] = []
-        with _gateway(config) as gw, httpx.Client(base_url=gw.url, timeout=10) as http:
 
-            def post(raw: bytes) -> httpx.Response:
-                return http.post("/v1/messages", content=raw, headers=JSON)
+        def post(http: httpx.Client, raw: bytes) -> httpx.Response:
+            return http.post("/v1/messages", content=raw, headers=JSON)
 
-            def step(name: str, expected: str, raw: bytes) -> None:
-                results.append(StepResult(name, expected, answer(post(raw))))
+        def step(http: httpx.Client, name: str, expected: str, raw: bytes) -> None:
+            results.append(StepResult(name, expected, answer(post(http, raw))))
 
+        with _gateway(config, port) as http:
             first = command(key)
-            step("operator: move_forward", ACCEPTED, first)
-            step("attacker: exact replay", "REPLAY_DETECTED (409)", first)
-            step("attacker: capture from 40 s ago", "MESSAGE_STALE (408)", command(key, 40))
+            step(http, "operator: move_forward", ACCEPTED, first)
+            step(http, "attacker: exact replay", "REPLAY_DETECTED (409)", first)
+            step(http, "attacker: capture from 40 s ago", "MESSAGE_STALE (408)", command(key, 40))
             genuine = json.loads(command(key))
             forged = {**genuine, "cmd": "arm_motors"}
-            step("attacker: forged msg with victim's msg_id", "SIGNATURE_INVALID (401)",
+            step(http, "attacker: forged msg with victim's msg_id", "SIGNATURE_INVALID (401)",
                  json.dumps(forged).encode())  # fmt: skip
-            step("operator: the genuine message", ACCEPTED, json.dumps(genuine).encode())
-            before = state_rows(state)
+            step(http, "operator: the genuine message", ACCEPTED, json.dumps(genuine).encode())
+            before = _entries(http)
             garbage = [
                 json.dumps({**json.loads(command(key)), "msg_id": f"flood-{i}", "cmd": "x"})
                 for i in range(flood)
             ]
-            refused = sum(post(g.encode()).status_code == 401 for g in garbage)
+            refused = sum(post(http, g.encode()).status_code == 401 for g in garbage)
             results.append(StepResult(
                 f"attacker: {flood} unique forged msgs (state rows {before} -> "
-                f"{state_rows(state)})", f"{flood} refused", f"{refused} refused",
+                f"{_entries(http)})", f"{flood} refused", f"{refused} refused",
             ))  # fmt: skip
-            step("attacker: replay after the flood", "REPLAY_DETECTED (409)", first)
+            step(http, "attacker: replay after the flood", "REPLAY_DETECTED (409)", first)
             estop = command(key, type=6, safety_event="ESTOP", cmd="estop")
-            step("operator: ESTOP", ACCEPTED, estop)
-            step("network: duplicate fresh ESTOP", f"{ACCEPTED}, warning REPLAY_DETECTED", estop)
+            step(http, "operator: ESTOP", ACCEPTED, estop)
+            step(http, "network: duplicate fresh ESTOP", f"{ACCEPTED}, warning REPLAY_DETECTED",
+                 estop)  # fmt: skip
             stale_estop = command(key, 11, type=6, safety_event="ESTOP", cmd="estop")
-            step("attacker: ESTOP from 11 s ago", "MESSAGE_STALE (408)", stale_estop)
-            gw.stop()
-            gw.start()
-            step("attacker: replay after gateway restart", "REPLAY_DETECTED (409)", first)
+            step(http, "attacker: ESTOP from 11 s ago", "MESSAGE_STALE (408)", stale_estop)
+        with _gateway(config, port) as http:  # the same gateway, restarted
+            step(http, "attacker: replay after gateway restart", "REPLAY_DETECTED (409)", first)
         return results, verify(state / "audit.db")
 
 

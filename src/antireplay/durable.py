@@ -272,8 +272,12 @@ def salvage(path: Path) -> tuple[int, dict[str, Any] | None]:
 
 def repair(path: Path, kind: str, *, now_ns: int | None = None) -> dict[str, Any]:
     """Reseed a damaged state file safely above anything that could have been used."""
-    if kind not in REPAIRERS:
-        raise ValueError(f"unknown state kind {kind!r}; known: {', '.join(sorted(REPAIRERS))}")
+    if kind not in REPAIRERS:  # e.g. an "epoch-verifier" file: verifiers now use a store
+        raise StateFileError(
+            str(path),
+            f"unknown state kind {kind!r}; known: {', '.join(sorted(REPAIRERS))}",
+            recovery=f"move {path} aside",
+        )
     state = DurableState(path, kind=kind, exclusive=True)
     state.acquire()  # never reseed a file under a live owner
     try:

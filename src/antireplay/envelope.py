@@ -15,14 +15,13 @@ field one of them ignored.  Exactly one of ``timestamp`` (Unix seconds) and
 present.  ``msg_id`` and the timestamp's *value* are judged by the window
 (``INVALID_MESSAGE_ID`` / ``INVALID_TIMESTAMP``), not here.
 
-Everything a peer controls gets a typed answer, never an exception: bytes
-that are not UTF-8 (JSON text must be, RFC 8259 §8.1) are ``INVALID_ENVELOPE``
-(msgspec itself raises a bare ``UnicodeDecodeError`` for them, inside ``sig``
-too); an integer timestamp beyond the 64-bit range is ``INVALID_TIMESTAMP``
-here, so the window is never handed a number it cannot convert to a float;
-and the integer fields (``type``, ``qos``, ``sequence_number``, ``loa``) are
-bounded in the schema, so no store or audit column meets an integer it
-cannot hold.
+Everything a peer controls gets a typed answer, never an exception: bytes that
+are not UTF-8 (JSON text must be, RFC 8259 §8.1) are ``INVALID_ENVELOPE``
+(whatever msgspec's version raises for them, inside ``sig`` too); an integer
+timestamp beyond the 64-bit range is ``INVALID_TIMESTAMP`` here, so the window
+is never handed a number it cannot convert to a float; and the integer fields
+(``type``, ``qos``, ``sequence_number``, ``loa``) are bounded in the schema, so
+no store or audit column meets an integer it cannot hold.
 
 Canonical form (what signatures cover): the envelope as decoded, **minus
 ``sig`` and ``jwt``**, encoded as JSON with keys sorted, no whitespace, UTF-8,
@@ -115,10 +114,10 @@ class Envelope(msgspec.Struct, forbid_unknown_fields=True, frozen=True, omit_def
             return None
         try:
             return _SIG_DECODER.decode(self.sig)
-        except msgspec.MsgspecError as exc:
+        except msgspec.ValidationError as exc:
             raise InvalidEnvelopeError(f"sig: {_short(str(exc))}") from None
-        except UnicodeDecodeError:
-            raise InvalidEnvelopeError("sig: not UTF-8") from None
+        except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+            raise InvalidEnvelopeError(f"sig: {_decode_failure(self.sig, exc)}") from None
 
     @property
     def seconds(self) -> object:
@@ -136,6 +135,19 @@ _SIG_DECODER = msgspec.json.Decoder(Signature)
 _ENCODER = msgspec.json.Encoder()
 
 
+def _decode_failure(raw: bytes | bytearray | memoryview, exc: Exception) -> str:
+    """One stable reason for bytes that are not UTF-8, whatever msgspec's version says.
+
+    msgspec up to 0.22 raised a bare ``UnicodeDecodeError``, 0.23 a ``DecodeError``
+    with its own wording; the UTF-8 test runs only on this failure path.
+    """
+    try:
+        bytes(raw).decode("utf-8")
+    except UnicodeDecodeError:
+        return "not UTF-8"
+    return f"not JSON: {_short(str(exc))}"
+
+
 def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH) -> Envelope:
     """Strictly decode one envelope; every failure is ``INVALID_ENVELOPE`` with a reason."""
     if not isinstance(raw, bytes | bytearray | memoryview):
@@ -146,12 +158,10 @@ def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH)
         env = _DECODER.decode(raw)
     except msgspec.ValidationError as exc:
         raise InvalidEnvelopeError(f"schema: {_short(str(exc))}") from None
-    except msgspec.DecodeError as exc:
-        raise InvalidEnvelopeError(f"not JSON: {_short(str(exc))}") from None
+    except (msgspec.DecodeError, UnicodeDecodeError) as exc:
+        raise InvalidEnvelopeError(_decode_failure(raw, exc)) from None
     except RecursionError:
         raise InvalidEnvelopeError("nested too deeply") from None
-    except UnicodeDecodeError:
-        raise InvalidEnvelopeError("not UTF-8") from None
     if (env.timestamp is None) == (env.timestamp_ms is None):
         raise InvalidEnvelopeError("exactly one of timestamp and timestamp_ms is required")
     for stamp in (env.timestamp, env.timestamp_ms):

@@ -9,10 +9,22 @@ mapping in :data:`HTTP_STATUS`.  Exceptions carry the code, a short human
 reason, and an optional machine ``detail`` (for example ``"watermark"`` when a
 message is stale because the bounded cache had to forget older entries).
 
+One code per event, one exception per code, named after it (``Code.X_Y`` is
+raised as ``XYError``).  In particular, "the key is new to a bounded table and
+at or below the fence its evictions raised (or, the table full, its lowest
+mark)" is one event everywhere (a MAVLink stream, an epoch prefix):
+``MESSAGE_STALE`` with ``detail="fence"`` (see
+:class:`~antireplay.counters.FencedTable`); the store's restart fence is
+``detail="restart_fence"``.  A session frame never brings a new key (only a
+handshake does): a frame for a session the responder no longer holds, closed
+or evicted, is ``SESSION_CLOSED``.  A frame from the wrong side of a link is
+``WRONG_DIRECTION`` (MAVLink and sessions alike).  Events that are accepted but must be counted,
+logged and audited are :class:`WarningCode` values, never bare strings.
+
 Rejections of a *message* derive from :class:`ReplayAttackError` (the name the
 RCAN SDK uses for this family), so ``except ReplayAttackError`` catches every
 verdict that should be answered with a COMMAND_NACK.  Operator mistakes
-(:class:`ConfigError`) and sender-side exhaustion (:class:`NonceExhaustedError`)
+(:class:`ConfigError`) and a sender's own exhaustion (:class:`NonceExhaustedError`)
 are separate: they are not answers to a peer.
 """
 
@@ -33,9 +45,15 @@ class Code(StrEnum):
     INVALID_ENVELOPE = "INVALID_ENVELOPE"
     INVALID_FRAME = "INVALID_FRAME"
     VERSION_INCOMPATIBLE = "VERSION_INCOMPATIBLE"
+    PAYLOAD_TOO_LARGE = "PAYLOAD_TOO_LARGE"
+    UNSUPPORTED_MEDIA_TYPE = "UNSUPPORTED_MEDIA_TYPE"
     AUTH_FAILED = "AUTH_FAILED"
     SIGNATURE_INVALID = "SIGNATURE_INVALID"
+    SIGNATURE_REQUIRED = "SIGNATURE_REQUIRED"
+    UNKNOWN_SENDER = "UNKNOWN_SENDER"
     SCOPE_DENIED = "SCOPE_DENIED"
+    WRONG_TARGET = "WRONG_TARGET"
+    INVALID_COUNTER = "INVALID_COUNTER"
     COUNTER_REPLAYED = "COUNTER_REPLAYED"
     COUNTER_TOO_OLD = "COUNTER_TOO_OLD"
     COUNTER_EXHAUSTED = "COUNTER_EXHAUSTED"
@@ -57,9 +75,15 @@ HTTP_STATUS: dict[Code, int] = {
     Code.INVALID_ENVELOPE: 400,
     Code.INVALID_FRAME: 400,
     Code.VERSION_INCOMPATIBLE: 426,
+    Code.PAYLOAD_TOO_LARGE: 413,
+    Code.UNSUPPORTED_MEDIA_TYPE: 415,
     Code.AUTH_FAILED: 401,
     Code.SIGNATURE_INVALID: 401,
+    Code.SIGNATURE_REQUIRED: 401,
+    Code.UNKNOWN_SENDER: 401,
     Code.SCOPE_DENIED: 403,
+    Code.WRONG_TARGET: 403,
+    Code.INVALID_COUNTER: 400,
     Code.COUNTER_REPLAYED: 409,
     Code.COUNTER_TOO_OLD: 408,
     Code.COUNTER_EXHAUSTED: 409,
@@ -75,7 +99,14 @@ HTTP_STATUS: dict[Code, int] = {
 class WarningCode(StrEnum):
     """Stable codes of events that are accepted but must be counted, logged and audited."""
 
+    #: A duplicate that passed anyway (a fresh ESTOP; see :mod:`antireplay.window`).
+    REPLAY_DETECTED = "REPLAY_DETECTED"
+    #: A fresh ESTOP admitted while the replay state could not be reached.
+    STATE_UNAVAILABLE = "STATE_UNAVAILABLE"
+    #: An epoch sender moved to its successor prefix after a forward clock glitch.
     EPOCH_SENDER_ROTATED = "EPOCH_SENDER_ROTATED"
+    #: A second DDS relay publishes under this relay's service name.
+    DUPLICATE_SERVICE_NAME = "DUPLICATE_SERVICE_NAME"
 
 
 #: COMMAND_NACK in the current canonical RCAN numbering; 31 was its number in RCAN v1.5/v1.6.
@@ -129,7 +160,8 @@ class ReplayDetectedError(ReplayAttackError):
 
 
 class MessageStaleError(ReplayAttackError):
-    """The message is older than its window (or below the cache's low watermark)."""
+    """The message cannot be proven fresh: older than its window, or at or below a
+    watermark or fence (``detail`` says which: ``watermark``, ``restart_fence``, ``fence``)."""
 
     code = Code.MESSAGE_STALE
 
@@ -158,6 +190,18 @@ class InvalidEnvelopeError(ReplayAttackError):
     code = Code.INVALID_ENVELOPE
 
 
+class PayloadTooLargeError(ReplayAttackError):
+    """The body is larger than the transport's limit (refused before parsing)."""
+
+    code = Code.PAYLOAD_TOO_LARGE
+
+
+class UnsupportedMediaTypeError(ReplayAttackError):
+    """The body's declared media type is not one this transport parses."""
+
+    code = Code.UNSUPPORTED_MEDIA_TYPE
+
+
 class VersionIncompatibleError(ReplayAttackError):
     """The envelope's RCAN version is not one this receiver speaks."""
 
@@ -182,13 +226,38 @@ class InvalidFrameError(ReplayAttackError):
     code = Code.INVALID_FRAME
 
 
-class AuthenticationError(ReplayAttackError):
+class SignatureInvalidError(ReplayAttackError):
     """A MAC or signature did not verify."""
 
     code = Code.SIGNATURE_INVALID
 
 
-class CounterReplayError(ReplayAttackError):
+class SignatureRequiredError(ReplayAttackError):
+    """The message carries no signature and its type is not allowed unsigned."""
+
+    code = Code.SIGNATURE_REQUIRED
+
+
+class UnknownSenderError(ReplayAttackError):
+    """The message names a key or identity this receiver does not know."""
+
+    code = Code.UNKNOWN_SENDER
+
+
+class WrongTargetError(ReplayAttackError):
+    """A message is addressed to another receiver (another vehicle).  A signed frame is
+    bound only after its signature verified; an allow-listed unsigned one is not authentic."""
+
+    code = Code.WRONG_TARGET
+
+
+class InvalidCounterError(ReplayAttackError):
+    """The counter is not a non-negative integer."""
+
+    code = Code.INVALID_COUNTER
+
+
+class CounterReplayedError(ReplayAttackError):
     """The counter was already accepted on this stream."""
 
     code = Code.COUNTER_REPLAYED
@@ -200,13 +269,13 @@ class CounterTooOldError(ReplayAttackError):
     code = Code.COUNTER_TOO_OLD
 
 
-class CounterLimitError(ReplayAttackError):
-    """The counter is at or above the limit: the session must be rekeyed."""
+class CounterExhaustedError(ReplayAttackError):
+    """The peer's counter is at or above the limit: the session must be rekeyed."""
 
     code = Code.COUNTER_EXHAUSTED
 
 
-class EpochReplayError(ReplayAttackError):
+class EpochReplayedError(ReplayAttackError):
     """The epoch is not greater than the last one accepted from that prefix."""
 
     code = Code.EPOCH_REPLAYED
@@ -219,7 +288,8 @@ class EpochTooFarAheadError(ReplayAttackError):
 
 
 class SessionClosedError(ReplayAttackError):
-    """The stream's session was closed or evicted; only a new handshake helps."""
+    """The frame's session was issued but is no longer held (closed after a rekey, or
+    evicted), its keys gone with it; only a new handshake helps."""
 
     code = Code.SESSION_CLOSED
 
@@ -231,7 +301,9 @@ class UnknownSessionError(ReplayAttackError):
 
 
 class WrongDirectionError(ReplayAttackError):
-    """An authentic frame arrived from the wrong side of a link (a reflection)."""
+    """A frame claims to come from the wrong side of a link (a reflection).  Checked
+    before any signature, so the claim itself is not authenticated; the frame is only
+    dropped."""
 
     code = Code.WRONG_DIRECTION
 
@@ -253,7 +325,8 @@ class ConfigError(AntiReplayError, ValueError):
 
 
 class NonceExhaustedError(AntiReplayError):
-    """A sender counter reached its limit; rekey instead of wrapping."""
+    """This sender's own counter, epoch or timestamp reached its limit; rekey instead of
+    wrapping.  Not an answer to a peer (a peer's exhausted counter is ``COUNTER_EXHAUSTED``)."""
 
 
 class StateFileError(AntiReplayError):

@@ -1,7 +1,8 @@
 """The HTTP gateway: a thin Starlette adapter in front of a robot's command API.
 
 ``POST /v1/messages`` takes one RCAN envelope (``application/json``, at most
-``max_body_bytes``), runs :class:`~antireplay.pipeline.Receiver`, and either
+``max_body_bytes``), runs :class:`~antireplay.pipeline.Receiver` (built from the
+configuration by :func:`antireplay.wiring.build_receiver`), and either
 forwards the accepted message upstream (the canonical re-encoding, never the
 raw bytes) and answers with the upstream's result, or answers with the
 COMMAND_NACK and its HTTP status.  ``GET /healthz`` and ``GET /metrics``
@@ -26,7 +27,6 @@ import asyncio
 import contextlib
 import importlib
 import json
-import os
 import queue
 import threading
 import time
@@ -49,15 +49,14 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from antireplay.audit import AuditLog
-from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key, write_key_pair
+from antireplay.auth import write_key_pair
 from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig, KeyConfig
 from antireplay.envelope import encode
 from antireplay.errors import ConfigError, InvalidEnvelopeError, StateUnavailableError
 from antireplay.groupcommit import GroupCommitter
 from antireplay.pipeline import Outcome, Pending, Receiver
-from antireplay.stores import open_store
+from antireplay.wiring import build_receiver
 
 DEMO_KID = "demo-operator"
 _encode_json = msgspec.json.Encoder().encode
@@ -82,53 +81,6 @@ def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
                 scopes=["control", "safety"],
             )
         ],
-    )
-
-
-def build_registry(config: AppConfig) -> KeyRegistry:
-    keys = KeyRegistry(sdk_compat=config.sdk_compat)
-    for entry in config.keys:
-        try:
-            loaded = tuple(load_public_key(Path(p).read_bytes()) for p in entry.public_keys)
-            keys.add(entry.kid, entry.owner, entry.alg, loaded, set(entry.scopes))
-        except (OSError, ValueError) as exc:
-            raise ConfigError(
-                f"keys.{entry.kid}.public_keys", entry.public_keys, str(exc)
-            ) from None
-    return keys
-
-
-def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
-    """Wire a Receiver from configuration: keys, store, audit, JWT."""
-    verifier = None
-    if config.jwt.keys or config.jwt.hs256_secret_env:
-        secret = os.environ.get(config.jwt.hs256_secret_env or "", "") or None
-        verifier = JwtVerifier(
-            {kid: load_public_key(Path(p).read_bytes()) for kid, p in config.jwt.keys.items()},
-            audience=config.jwt.audience,
-            issuer=config.jwt.issuer,
-            hs256_secret=secret.encode() if secret else None,
-            leeway_s=config.jwt.leeway_s,
-            clock=clock,
-        )
-    store = open_store(
-        config.store,
-        clock=clock,
-        max_entries=config.security.msg_id_cache_size,
-        skew_s=config.security.skew_s,
-    )
-    with contextlib.suppress(StateUnavailableError):  # down now: noticed on the first commit
-        store.verify()  # loss detection at boot, not on the first command
-    return Receiver(
-        config.security,
-        build_registry(config),
-        store,
-        AuditLog(config.audit),
-        clock,
-        jwt=verifier,
-        jwt_required=config.jwt.required,
-        versions=frozenset(config.versions),
-        max_bytes=config.max_body_bytes,
     )
 
 

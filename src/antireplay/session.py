@@ -39,15 +39,25 @@ whole header and the payload, so a frame moved to another session, direction
 or purpose fails.  Each (direction, purpose) has its own counter starting at
 0 and its own :class:`~antireplay.counters.CounterWindow` on the receiving
 side, so reordering within 8,128 frames is fine and each counter is accepted
-once.  Receive order: parse, window ``check`` (before crypto), verify, window
-``accept`` (commit): a forged far-future counter changes nothing.
+once.  Two phases, as everywhere (:mod:`antireplay.counters`): ``check``
+records nothing, ``commit`` records; :meth:`Session.open` and
+:meth:`Responder.open` are the recipe: parse, window ``check`` (before crypto),
+verify, window ``commit``, so a forged far-future counter changes nothing.
 
 Rekeying: :attr:`Session.needs_rekey` turns true at ``REKEY_AFTER`` (2**60)
 frames in either direction, long before the hard limit where ``seal`` raises
 :class:`~antireplay.errors.NonceExhaustedError`.  Bounded memory: a responder
-keeps at most ``max_sessions``; the oldest sequence is evicted *with its keys*,
-so none of its frames can ever verify again (eviction forces a new session
-rather than re-opening a window), and a frame for it gets ``SESSION_CLOSED``.
+keeps its sessions in a :class:`~antireplay.counters.FencedTable` of at most
+``max_sessions``, keyed and marked by sequence; the oldest sequence is evicted
+*with its keys*, so none of its frames can ever verify again (eviction forces a
+new session rather than re-opening a window).  A frame never brings a new key
+to that table (only a handshake does), so its fence plays no part in routing:
+a frame for a session the responder issued but no longer holds, closed after
+a rekey or evicted, gets ``SESSION_CLOSED`` (one event, one code, whatever
+happened to other sessions since; the answer is a new handshake), one for a
+sequence never issued ``UNKNOWN_SESSION``, and a frame sent in this side's
+own direction (reflected back at its sender) ``WRONG_DIRECTION``, as in
+MAVLink; all three before any cryptography.
 """
 
 from __future__ import annotations
@@ -66,13 +76,14 @@ from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from antireplay.clock import Clock, resolve
-from antireplay.counters import COUNTER_LIMIT, CounterWindow, NonceCounter
+from antireplay.counters import COUNTER_LIMIT, CounterWindow, FencedTable, NonceCounter
 from antireplay.errors import (
-    AuthenticationError,
-    CounterReplayError,
     InvalidFrameError,
     SessionClosedError,
+    SignatureInvalidError,
+    UnknownSenderError,
     UnknownSessionError,
+    WrongDirectionError,
 )
 from antireplay.replay import ReplayCache
 from antireplay.stores.memory import MemoryStore
@@ -184,31 +195,38 @@ class Session:
             raise ValueError("only the initiator signs command frames")
         return head + payload + self.signing_key.sign(head + payload, _CTX_CMD)
 
+    def check(self, frame: bytes) -> None:
+        """Raise the typed reason ``frame`` would be refused, its tag aside; records nothing."""
+        self.check_parsed(frame, parse_frame_head(frame))
+
     def open(self, frame: bytes) -> Opened:
-        """Parse, window check (pre-crypto), verify, commit."""
+        """The recipe: parse, :meth:`check` (pre-crypto), verify, commit."""
         return self.open_parsed(frame, parse_frame_head(frame))
 
-    def open_parsed(self, frame: bytes, head: tuple[Purpose, Direction, bytes, int]) -> Opened:
-        """:meth:`open` for a frame whose header the caller already parsed."""
+    def check_parsed(self, frame: bytes, head: tuple[Purpose, Direction, bytes, int]) -> None:
+        """:meth:`check` for a frame whose header the caller already parsed."""
         purpose, direction, sid, counter = head
         if sid != self.session_id:
             raise UnknownSessionError("frame belongs to another session")
         if direction is self.role:
-            raise InvalidFrameError("frame travels in the wrong direction")
-        tag_len = MAC_LEN if purpose is Purpose.DATA else SIG_LEN
-        if len(frame) < _FRAME_HEAD.size + tag_len:
+            raise WrongDirectionError("frame travels in this side's own direction (reflected)")
+        if len(frame) < _FRAME_HEAD.size + (MAC_LEN if purpose is Purpose.DATA else SIG_LEN):
             raise InvalidFrameError("frame too short for its tag")
-        window = self._recv[purpose]
-        window.check(counter)
+        self._recv[purpose].check(counter)
+
+    def open_parsed(self, frame: bytes, head: tuple[Purpose, Direction, bytes, int]) -> Opened:
+        """:meth:`open` for a frame whose header the caller already parsed."""
+        self.check_parsed(frame, head)
+        purpose, counter = head[0], head[3]
+        tag_len = MAC_LEN if purpose is Purpose.DATA else SIG_LEN
         body, tag = frame[:-tag_len], frame[-tag_len:]
         if purpose is Purpose.DATA:
             good = hmac.compare_digest(hmac.digest(self.recv_key, body, "sha256"), tag)
         else:
             good = self._verify_command(body, tag)
         if not good:
-            raise AuthenticationError("frame tag does not verify")
-        if not window.accept(counter):
-            raise CounterReplayError(f"counter {counter} already accepted")
+            raise SignatureInvalidError("frame tag does not verify")
+        self._recv[purpose].commit(counter)
         return Opened(body[_FRAME_HEAD.size :], counter, purpose, self.session_id)
 
     def _verify_command(self, body: bytes, tag: bytes) -> bool:
@@ -284,7 +302,7 @@ class Initiator:
         transcript = _transcript(hs1, seq, nonce_r)
         keys = _HandshakeKeys.derive(secret, transcript)
         if sid[8:] != transcript[:8] or not hmac.compare_digest(mac, keys.confirmation):
-            raise AuthenticationError("HS2 key confirmation failed")
+            raise SignatureInvalidError("HS2 key confirmation failed")
         return Session(
             sid, Direction.I2R, "responder", keys.i2r, keys.r2i, signing_key=self.signing_key
         )
@@ -304,7 +322,6 @@ class Responder:
     ) -> None:
         self.kem_key = kem_key
         self.peers = dict(peers)
-        self.max_sessions = max_sessions
         self._key_hash = hashlib.sha256(kem_key.public_key().public_bytes_raw()).digest()
         self._seq = sequence if sequence is not None else NonceCounter(1)
         # No restart fence: a replayed HS1 can never yield the keys of the session it
@@ -313,24 +330,32 @@ class Responder:
         # initiator for skew seconds.
         hs1_store = MemoryStore(max_entries=100_000, clock=clock, restart_fence=False)
         self._seen_hs1 = ReplayCache(HANDSHAKE_WINDOW_S, 100_000, 5.0, clock, store=hs1_store)
-        self._sessions: dict[int, Session] = {}
+        self._sessions: FencedTable[int, Session] = FencedTable(max_sessions, what="session")
         self._lock = threading.Lock()
 
+    @property
+    def max_sessions(self) -> int:
+        return self._sessions.max_keys
+
+    def __len__(self) -> int:
+        return len(self._sessions)
+
     def accept_handshake(self, hs1: bytes) -> tuple[Session, bytes]:
-        """Validate HS1 (cheap checks, then signature, then KEM), open a session, return HS2."""
+        """The handshake recipe: HS1 checks (shape, freshness, seen-set; records nothing),
+        signature and KEM, then commit the HS1 digest and open a session; returns HS2."""
         peer_id, digest, ts, body, sig, kem_ct = self._parse_hs1(hs1)
         self._seen_hs1.check(digest, ts)
         peer_key = self.peers.get(peer_id)
         if peer_key is None:
-            raise AuthenticationError("unknown initiator identity")
+            raise UnknownSenderError("unknown initiator identity")
         try:
             peer_key.verify(sig, body, _CTX_HS1)
         except InvalidSignature:
-            raise AuthenticationError("HS1 signature does not verify") from None
+            raise SignatureInvalidError("HS1 signature does not verify") from None
         try:
             secret = self.kem_key.decapsulate(kem_ct)
         except ValueError:
-            raise AuthenticationError("KEM decapsulation failed") from None
+            raise InvalidFrameError("KEM ciphertext does not decapsulate") from None
         self._seen_hs1.commit(digest, ts)
         seq, nonce_r = self._seq.next(), os.urandom(NONCE_LEN)
         transcript = _transcript(hs1, seq, nonce_r)
@@ -338,10 +363,8 @@ class Responder:
         keys = _HandshakeKeys.derive(secret, transcript)
         session = Session(sid, Direction.R2I, peer_id, keys.r2i, keys.i2r, peer_verify_key=peer_key)
         hs2 = bytes([HS2_MAGIC, VERSION]) + sid + nonce_r + keys.confirmation
-        with self._lock:
-            if len(self._sessions) >= self.max_sessions:
-                del self._sessions[min(self._sessions)]  # the oldest; its keys go with it
-            self._sessions[seq] = session
+        with self._lock:  # a full table evicts the oldest sequence, its keys with it
+            self._sessions.commit(seq, seq, lambda: session)
         return session, hs2
 
     def _parse_hs1(self, hs1: bytes) -> tuple[str, str, float, bytes, bytes, bytes]:
@@ -367,22 +390,33 @@ class Responder:
         digest = hashlib.sha256(hs1).hexdigest()
         return peer_id, digest, ts_ms / 1000, hs1[:-SIG_LEN], hs1[-SIG_LEN:], kem_ct
 
-    def open(self, frame: bytes) -> Opened:
-        """Route a frame to its session; unknown or evicted sessions get typed errors."""
-        head = parse_frame_head(frame)
+    def _route(self, head: tuple[Purpose, Direction, bytes, int]) -> Session:
+        """The frame's live session; records nothing and reads without the lock (the
+        session's window commit is the re-check).  Issued but no longer held (closed
+        after a rekey, or evicted): ``SESSION_CLOSED``; never issued: ``UNKNOWN_SESSION``."""
         sid = head[2]
         seq = int.from_bytes(sid[:8], "big")
         session = self._sessions.get(seq)
-        if session is None or session.session_id != sid:
-            if session is None and seq < self._seq.peek:
-                raise SessionClosedError("session was closed or evicted; handshake again")
-            raise UnknownSessionError("no such session")
-        return session.open_parsed(bytes(frame), head)
+        if session is not None and session.session_id == sid:
+            return session
+        if session is None and seq < self._seq.peek:
+            raise SessionClosedError("session closed or evicted, its keys gone; handshake again")
+        raise UnknownSessionError("no such session")
+
+    def check(self, frame: bytes) -> None:
+        """Route and check a frame, its tag aside; records nothing."""
+        head = parse_frame_head(frame)
+        self._route(head).check_parsed(bytes(frame), head)
+
+    def open(self, frame: bytes) -> Opened:
+        """The recipe: route the frame to its session, then check, verify, commit."""
+        head = parse_frame_head(frame)
+        return self._route(head).open_parsed(bytes(frame), head)
 
     def close(self, session: Session) -> None:
         """End a session (after a rekey): its keys are dropped, so its frames can never pass."""
         with self._lock:
-            self._sessions.pop(session.seq, None)
+            self._sessions.discard(session.seq)
 
 
 __all__ = ["COUNTER_LIMIT", "Direction", "Initiator", "Opened", "Purpose", "Responder", "Session"]

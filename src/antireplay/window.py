@@ -47,7 +47,10 @@ always accepted; if its msg_id has a live entry, or it falls under the fence or
 the watermark, or the store is saturated, the verdict carries
 ``warning="REPLAY_DETECTED"`` (to be audited), and the store records it anyway
 (``force``), extending the entry of a later duplicate.  A stale ESTOP (older
-than the safety window) is refused; STOP and RESUME get no exemption.
+than the safety window) is refused; STOP and RESUME get no exemption.  The
+one exemption outside this file is the outage: when the store cannot be reached
+at all, :class:`~antireplay.replay.ReplayCache` admits a fresh ESTOP with
+``warning="STATE_UNAVAILABLE"`` and refuses everything else with 503.
 
 Timestamps are finite, non-negative Unix **seconds**: ``int``/``float`` or a
 plain decimal string (``"1700000000.25"``, as the RCAN SDK emits).  Rejected

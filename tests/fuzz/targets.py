@@ -16,7 +16,8 @@ Targets (the names are the corpus folders):
 * ``http``: the real gateway app (:func:`antireplay.gateway.create_app` on its
   embedded default: SQLite state and audit in a temporary folder), called as
   ASGI with fuzzed headers and body;
-* ``mavlink``: :func:`split_frames`, :func:`parse_frame`, :meth:`MavlinkGuard.check`;
+* ``mavlink``: :func:`split_frames`, :class:`FrameReader`, :func:`parse_frame`,
+  :meth:`MavlinkGuard.check`;
 * ``session``: :func:`parse_frame_head`, :meth:`Responder.open`,
   :meth:`Responder.accept_handshake`;
 * ``epochs``: :meth:`EpochVerifier.open` and ``open_ping``.
@@ -48,7 +49,8 @@ from antireplay.envelope import (
 from antireplay.epochs import EpochSigner, EpochVerifier
 from antireplay.errors import Code
 from antireplay.gateway import DEMO_KID, create_app, embedded_default
-from antireplay.mavlink import MavlinkGuard, parse_frame, split_frames
+from antireplay.mavlink import FrameReader, MavlinkGuard, parse_frame, split_frames
+from antireplay.mavlink.codec import MAX_FRAME
 from antireplay.pipeline import Receiver
 from antireplay.replay import ReplayCache
 from antireplay.session import Initiator, Responder, parse_frame_head
@@ -224,7 +226,14 @@ def _guard() -> MavlinkGuard:
 
 
 def check_mavlink(data: bytes) -> None:
-    """split_frames, parse_frame and the guard raise typed errors only."""
+    """split_frames, the stream reader, parse_frame and the guard raise typed errors only;
+    the reader returns only frames that parse and holds at most one frame's bytes."""
+    reader = FrameReader()
+    cut = reader.feed(data[: len(data) // 2]) + reader.feed(data[len(data) // 2 :])
+    if reader.pending > MAX_FRAME:
+        raise AssertionError(f"the reader holds {reader.pending} bytes")
+    for raw in cut:
+        parse_frame(raw)
     try:
         frames = split_frames(data)
     except ReplayAttackError as exc:

@@ -69,7 +69,7 @@ def read(config_path: Path, topic: str | None, count: int, timeout_s: float) -> 
             _participant(cfg),
             topic or cfg.reader.topic,
             cfg.psk(),
-            state_file=cfg.reader.state_file,
+            store=cfg.reader.store,
             max_age_s=cfg.max_age_s,
             max_forward_s=cfg.max_forward_s,
             audit=_audit(cfg),
@@ -173,13 +173,16 @@ def relay(config_path: Path, duration_s: float) -> None:
         psk = cfg.psk()
         audit = _audit(cfg)
         listen = cfg.relay.ping_listen
-        ping = None if listen is None else PingListener(psk, bind=parse_udp(listen), audit=audit)
+        ping = None if listen is None else PingListener(
+            psk, bind=parse_udp(listen), max_age_s=cfg.max_age_s,
+            max_forward_s=cfg.max_forward_s, audit=audit,
+        )  # fmt: skip
         service = AnnouncementRelay(
             _participant(cfg),
             psk,
             service_name=cfg.relay.service_name,
             signer_state=cfg.relay.signer_state,
-            verifier_state=cfg.relay.verifier_state,
+            verifier_store=cfg.relay.verifier_store,
             max_age_s=cfg.max_age_s,
             max_forward_s=cfg.max_forward_s,
             audit=audit,

@@ -1,31 +1,60 @@
 """The ``dds:`` configuration block: keys, state files, domain id.  Validated, never clamped.
 
-Unknown keys are errors (a typo cannot leave a default in force), and every
-error names the dotted key, the value and what is allowed
-(:class:`~antireplay.errors.ConfigError`).  The pre-shared key is read from a
-file holding it in hex, never from the YAML itself.
+Unknown keys are errors (a typo cannot leave a default in force; a key that was
+renamed says what it is called now), and every error names the dotted key, the
+value and what is allowed (:class:`~antireplay.errors.ConfigError`); when
+several keys are wrong, the first is the error and the others follow in its
+text.  The pre-shared key is read from a file holding it in hex, never from the
+YAML itself.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic_core import ErrorDetails
 
 from antireplay.config import load_yaml
 from antireplay.errors import ConfigError
 
 MAX_DOMAIN_ID = 232  # Cyclone's port arithmetic; antireplay.dds.domain checks the same
+#: The freshness bounds every DDS endpoint defaults to: readers and listeners refuse a sample
+#: older than ``MAX_AGE_S`` or sealed more than ``MAX_FORWARD_S`` ahead; writers rotate their
+#: prefix past the same ``MAX_FORWARD_S`` (a forward glitch the readers would refuse).
+MAX_AGE_S, MAX_FORWARD_S = 30.0, 5.0
 
 
 class _Block(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
+#: The replay store specs a reader accepts (:func:`antireplay.stores.open_store`); a
+#: ``sqlite:`` path must not be blank nor start or end with blanks.
+STORE_SPEC = r"^(memory|sqlite:\S(.*\S)?|rediss?://.+|unix://.+|redis\+cluster://.+)$"
+#: What each constrained key allows, in words (pydantic's wording names no unit or spec).
+ALLOWED: dict[str, str] = {
+    "store": "a store spec: memory, sqlite:PATH (a non-blank path), redis://HOST:PORT, "
+    "rediss://..., unix://PATH or redis+cluster://...",
+    "verifier_store": "a store spec: sqlite:PATH (a non-blank path), redis://HOST:PORT, "
+    "rediss://..., unix://PATH, redis+cluster://... or memory",
+    "max_age_s": "a number of seconds above 0 and at most 86400",
+    "max_forward_s": "a number of seconds above 1 (writers reserve 1 s of epochs at a time) "
+    "and at most 3600",
+}
+#: Keys of earlier releases, by their dotted path under ``dds``, and what replaced them.
+RENAMED: dict[str, str] = {
+    "relay.verifier_state": "dds.relay.verifier_store (a store spec, e.g. sqlite:PATH)",
+    "reader.state_file": "dds.reader.store (a store spec, e.g. sqlite:PATH)",
+}
+
+
 class ReaderConfig(_Block):
     topic: str = Field(default="antireplay/commands", min_length=1, max_length=256)
-    state_file: str | None = None
+    #: ``memory`` fences at start (module docstring of antireplay.dds.topics).
+    store: str = Field(default="memory", pattern=STORE_SPEC)
 
 
 class WriterConfig(_Block):
@@ -36,7 +65,7 @@ class WriterConfig(_Block):
 class RelayConfig(_Block):
     service_name: str = Field(min_length=1, max_length=128)
     signer_state: str
-    verifier_state: str
+    verifier_store: str = Field(pattern=STORE_SPEC)
     ping_listen: str | None = None  # host:port, UDP
 
 
@@ -46,8 +75,9 @@ class DdsConfig(_Block):
     domain_id: int = Field(default=0, ge=0, le=MAX_DOMAIN_ID)
     loopback_only: bool = True
     psk_file: str
-    max_age_s: float | None = Field(default=30.0, gt=0, le=86_400)
-    max_forward_s: float | None = Field(default=5.0, gt=0, le=3_600)
+    #: Required bounds (null is an error, never "unbounded").
+    max_age_s: float = Field(default=MAX_AGE_S, gt=0, le=86_400)
+    max_forward_s: float = Field(default=MAX_FORWARD_S, gt=1, le=3_600)
     audit: str | None = None
     reader: ReaderConfig = Field(default_factory=ReaderConfig)
     writer: WriterConfig = Field(default_factory=WriterConfig)
@@ -61,9 +91,7 @@ class DdsConfig(_Block):
         try:
             return cls.model_validate(data)
         except ValidationError as exc:
-            err = exc.errors()[0]
-            key = ".".join(["dds", *(str(p) for p in err["loc"])])
-            raise ConfigError(key, err.get("input"), err["msg"]) from None
+            raise _config_error(exc.errors()) from None
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> DdsConfig:
@@ -82,6 +110,41 @@ class DdsConfig(_Block):
         if len(key) < 16:
             raise ConfigError("dds.psk_file", self.psk_file, "a key of at least 16 bytes")
         return key
+
+
+class _Missing:
+    """The value shown for a required key that is absent."""
+
+    def __repr__(self) -> str:
+        return "(missing)"
+
+
+def _config_error(errors: list[ErrorDetails]) -> ConfigError:
+    """One ConfigError for pydantic's errors: renamed keys first, then the rest in order;
+    the first names its key and value, the others follow in its text."""
+    found = sorted(
+        (_explain(err) for err in errors), key=lambda e: not e[2].startswith("no such key")
+    )
+    key, value, allowed = found[0]
+    if len(found) > 1:
+        allowed += "; and " + "; ".join(f"{k}={v!r}: allowed {a}" for k, v, a in found[1:])
+    return ConfigError(key, value, allowed)
+
+
+def _explain(err: ErrorDetails) -> tuple[str, object, str]:
+    """(dotted key, value, what is allowed) for one pydantic error."""
+    path = ".".join(str(part) for part in err["loc"])
+    value = err.get("input")
+    if err["type"] == "missing":
+        return f"dds.{path}", _Missing(), "a value: the key is required"
+    if err["type"] == "extra_forbidden":
+        renamed = RENAMED.get(path)
+        allowed = "no such key" + (f": it was renamed to {renamed}" if renamed else "")
+        return f"dds.{path}", value, allowed
+    allowed = ALLOWED.get(str(err["loc"][-1]), err["msg"])
+    if isinstance(value, float) and math.isnan(value):
+        allowed = f"{allowed} (.nan is not a number)"
+    return f"dds.{path}", value, allowed
 
 
 def parse_udp(spec: str) -> tuple[str, int]:

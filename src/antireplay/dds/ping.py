@@ -6,10 +6,14 @@ A participant tells a relay "I am reachable here" with a binding ping: an
 :mod:`antireplay.epochs` frame of kind ``PING`` (its own HKDF key, so a ping
 is never taken for an announcement nor the reverse) sent over UDP.  The
 listener's order: datagram size (cheap, before any crypto), then
-:meth:`EpochVerifier.open_ping` (MAC, freshness, ``epoch > last``, commit),
-and only then does it learn the sender's address for that prefix.  A replayed
+:meth:`EpochVerifier.open_ping` (MAC, freshness, the start fence and
+``epoch > last``, then the commit on its store), and only then does it learn
+the sender's address for that prefix.  A replayed
 or forged ping from an attacker's address is refused with a typed verdict and
-changes nothing: no address is learned from unauthenticated traffic.
+changes nothing: no address is learned from unauthenticated traffic.  Every
+verdict is counted; refusals are audited at a bounded rate
+(:class:`~antireplay.dds.topics.RefusalAuditor`), and :meth:`PingListener.drain`
+judges a bounded number of datagrams per call.
 """
 
 from __future__ import annotations
@@ -20,12 +24,16 @@ from collections import Counter
 
 from antireplay.audit import AuditLog
 from antireplay.clock import Clock, resolve
-from antireplay.dds.topics import Verdict, audit_refusal, open_judged
+from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
+from antireplay.dds.topics import RefusalAuditor, Verdict, open_judged
 from antireplay.epochs import MIN_LEN, EpochSigner, EpochVerifier, Kind
 from antireplay.errors import Code
+from antireplay.stores import ReplayStore
 
 #: A binding ping is small; anything larger is dropped before any crypto.
 MAX_PING = 1024
+#: Datagrams one :meth:`PingListener.drain` judges at most.
+DRAIN_LIMIT = 256
 
 
 class PingSender:
@@ -39,10 +47,10 @@ class PingSender:
         state_file: str | os.PathLike[str] | None = None,
         clock: Clock | None = None,
         bind: tuple[str, int] = ("127.0.0.1", 0),
+        max_forward_s: float = MAX_FORWARD_S,
     ) -> None:
-        self.signer = EpochSigner(
-            psk, nonce_prefix=nonce_prefix, state_file=state_file, clock=clock
-        )
+        self.signer = EpochSigner(psk, nonce_prefix=nonce_prefix, state_file=state_file,
+                                  clock=clock, max_forward_s=max_forward_s)  # fmt: skip
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(bind)
 
@@ -69,16 +77,17 @@ class PingListener:
         psk: bytes,
         *,
         bind: tuple[str, int] = ("127.0.0.1", 0),
-        state_file: str | os.PathLike[str] | None = None,
+        store: ReplayStore | str = "memory",
         clock: Clock | None = None,
-        max_age_s: float | None = None,
-        max_forward_s: float | None = None,
+        max_age_s: float = MAX_AGE_S,
+        max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
     ) -> None:
         self._clock = resolve(clock)
         self.verifier = EpochVerifier(
             psk,
-            state_file=state_file,
+            store=store,
+            namespace="dds:ping",
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
             clock=self._clock,
@@ -88,6 +97,7 @@ class PingListener:
         self.sock.bind(bind)
         self.peers: dict[bytes, tuple[str, int]] = {}
         self.counts: Counter[str] = Counter()
+        self._refusals = RefusalAuditor(self._clock, "dds ping", self.counts)
 
     @property
     def address(self) -> tuple[str, int]:
@@ -109,8 +119,8 @@ class PingListener:
                     "accepted", None, "", where, opened.nonce_prefix, opened.epoch, opened.payload
                 )
         self.counts[verdict.outcome] += 1
-        if not verdict.accepted and self.audit is not None:
-            audit_refusal(self.audit, self._clock, verdict, "dds ping", self.counts)
+        if not verdict.accepted:
+            self._refusals.record(self.audit, verdict)
         return verdict
 
     def receive(self, timeout_s: float) -> Verdict | None:
@@ -122,10 +132,12 @@ class PingListener:
             return None
         return self.judge(datagram, (str(source[0]), int(source[1])))
 
-    def drain(self) -> list[Verdict]:
-        """Judge every datagram already waiting, without blocking."""
-        verdicts = []
-        while (verdict := self.receive(0.0)) is not None:
+    def drain(self, limit: int = DRAIN_LIMIT) -> list[Verdict]:
+        """Judge the datagrams already waiting, at most ``limit``, without blocking: a
+        flood cannot hold the caller's thread (the rest wait in the socket buffer, and
+        the kernel drops what does not fit)."""
+        verdicts: list[Verdict] = []
+        while len(verdicts) < limit and (verdict := self.receive(0.0)) is not None:
             verdicts.append(verdict)
         return verdicts
 

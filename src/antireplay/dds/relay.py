@@ -3,8 +3,9 @@
 Theory of operation
 -------------------
 Participants publish sealed announcements on the ingress topic
-(:data:`ANNOUNCE_TOPIC`).  The relay opens each with its own durable
-:class:`~antireplay.epochs.EpochVerifier` (a replayed, forged or stale
+(:data:`ANNOUNCE_TOPIC`).  The relay opens each with its own
+:class:`~antireplay.epochs.EpochVerifier` on a replay store
+(``verifier_store``, e.g. ``sqlite:PATH``; a replayed, forged or stale
 announcement is refused there and renews nothing), and only an accepted one is
 announced again on the egress topic (:data:`RELAYED_TOPIC`), sealed by the
 relay's signer under its *service-name* prefix, carrying the origin's prefix
@@ -18,7 +19,8 @@ its own egress topic with a separate in-memory verifier: an *authentic* sample
 under its own prefix that it never emitted (it remembers the digests of its
 last samples, and each relay process stamps a random ``relay_id`` into what it
 announces) can only come from a twin.
-It is reported (error log, :attr:`AnnouncementRelay.twins`, the audit trail),
+It is reported (error log, :attr:`AnnouncementRelay.twins`, the audit trail
+with ``warning=DUPLICATE_SERVICE_NAME``),
 and subscribers' verifiers count it as a prefix collision as well.
 """
 
@@ -36,10 +38,12 @@ from cyclonedds.domain import DomainParticipant
 
 from antireplay.audit import AuditLog
 from antireplay.clock import Clock, resolve
+from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.ping import PingListener
 from antireplay.dds.topics import SealedReader, SealedWriter, Verdict
 from antireplay.dds.wire import SealedSample
-from antireplay.errors import InvalidFrameError, StateUnavailableError
+from antireplay.errors import InvalidFrameError, StateUnavailableError, WarningCode
+from antireplay.stores import ReplayStore
 
 log = logging.getLogger("antireplay.dds.relay")
 
@@ -47,6 +51,8 @@ ANNOUNCE_TOPIC = "antireplay/announce"
 RELAYED_TOPIC = "antireplay/relayed"
 #: Epochs the relay remembers having emitted, to tell its own samples from a twin's.
 EMITTED_MEMORY = 4096
+#: Binding pings one :meth:`AnnouncementRelay.pump` judges at most.
+PINGS_PER_PUMP = 256
 _ORIGIN = struct.Struct(">8sQ8s")
 
 
@@ -99,12 +105,12 @@ class AnnouncementRelay:
         *,
         service_name: str,
         signer_state: str | os.PathLike[str],
-        verifier_state: str | os.PathLike[str],
+        verifier_store: ReplayStore | str,
         ingress: str = ANNOUNCE_TOPIC,
         egress: str = RELAYED_TOPIC,
         clock: Clock | None = None,
-        max_age_s: float | None = None,
-        max_forward_s: float | None = None,
+        max_age_s: float = MAX_AGE_S,
+        max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
         ping: PingListener | None = None,
     ) -> None:
@@ -116,7 +122,7 @@ class AnnouncementRelay:
             participant,
             ingress,
             psk,
-            state_file=verifier_state,
+            store=verifier_store,
             clock=self._clock,
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
@@ -129,8 +135,12 @@ class AnnouncementRelay:
             service_name=service_name,
             state_file=signer_state,
             clock=self._clock,
+            max_forward_s=max_forward_s,  # the subscribers' bound: rotate, never be refused
         )
-        self._watch = SealedReader(participant, egress, psk, clock=self._clock)
+        self._watch = SealedReader(
+            participant, egress, psk, clock=self._clock,
+            max_age_s=max_age_s, max_forward_s=max_forward_s,
+        )  # fmt: skip
         self.relay_id = os.urandom(8)
         self._emitted: deque[bytes] = deque(maxlen=EMITTED_MEMORY)
         self.relayed = 0
@@ -138,12 +148,14 @@ class AnnouncementRelay:
         self.counts: Counter[str] = Counter()
 
     def close(self) -> None:
-        """Release the relay's state files (owner locks), as a stopping process does."""
+        """Release the relay's state (the signer's file lock, the stores it opened)."""
         for part in (self.ingress, self.egress, self._watch):
             part.close()
 
     def pump(self, timeout_s: float = 0.1) -> list[Verdict]:
-        """One round: judge waiting announcements, relay the accepted, look for a twin."""
+        """One round: judge waiting announcements, relay the accepted, look for a twin,
+        judge at most ``PINGS_PER_PUMP`` waiting pings (a ping flood cannot stall the
+        announcements)."""
         verdicts = self.ingress.poll(timeout_s)
         for verdict in verdicts:
             if verdict.accepted:
@@ -151,7 +163,7 @@ class AnnouncementRelay:
         for sample, seen in self._watch.take_judged():
             self._check_twin(sample, seen)
         if self.ping is not None:
-            self.ping.drain()
+            self.ping.drain(PINGS_PER_PUMP)
         return verdicts
 
     def serve(self, stop: threading.Event, period_s: float = 0.1) -> None:
@@ -190,7 +202,7 @@ class AnnouncementRelay:
                 at=self._clock.wall(),
                 outcome="alert",
                 code=None,
-                warning=report.line(),
+                warning=WarningCode.DUPLICATE_SERVICE_NAME,
                 msg_type=None,
                 sender=report.nonce_prefix.hex(),
                 sender_verified=True,

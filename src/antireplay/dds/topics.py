@@ -17,12 +17,23 @@ instance either (the DDS key field is only a routing copy, compared first).
 
 A reader judges each sample in the house order: size and shape, the claimed
 instance against the DDS key field (no crypto, no state), then
-:meth:`EpochVerifier.open` (MAC, freshness, ``epoch > last[prefix]``, commit,
-persisted with ``state_file`` before it returns).  Only then is the data
-decoded and handed over.  Everything else becomes a :class:`Verdict` with a
+:meth:`EpochVerifier.open` (MAC, freshness, ``epoch > last[prefix]``, then the
+commit: one ``advance`` on the reader's replay store, durable before it
+returns with a ``sqlite:`` or Redis store).  Only then is the data decoded and
+handed over.
+
+**Start fence.**  A reader refuses every sample sealed before it started
+(plus ``max_forward_s``, the furthest ahead a writer may run) unless its store
+proves otherwise: the default ``memory`` store cannot know what a previous
+process accepted, so it fences at its construction, exactly as the replay
+cache does; a ``sqlite:PATH`` store that survived the restart sets no fence
+(and raises one when it finds it lost data).  An age bound is required
+(``max_age_s``): a reader that never heard of a writer still refuses a capture
+older than that.  Everything else becomes a :class:`Verdict` with a
 stable :class:`~antireplay.errors.Code` and an ``outcome`` word that is
 counted in :attr:`SealedReader.counts` and, with an audit log, appended to the
-hash-chained audit trail.  Several writers share a topic: each has its own
+hash-chained audit trail, rate-limited (:class:`RefusalAuditor`) so that a
+flood of garbage cannot grow it without bound.  Several writers share a topic: each has its own
 prefix (random, or restored from its state file), and the verifier keeps one
 epoch per prefix.  A writer restarted with its state file resumes above every
 epoch it could have used; one whose state file vanished while its witness
@@ -54,6 +65,7 @@ from cyclonedds.util import duration
 
 from antireplay.audit import AuditLog
 from antireplay.clock import Clock, resolve
+from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.wire import SealedSample
 from antireplay.epochs import (
     MAX_LEN,
@@ -65,15 +77,17 @@ from antireplay.epochs import (
     Kind,
 )
 from antireplay.errors import (
-    AuthenticationError,
     Code,
-    EpochReplayError,
+    EpochReplayedError,
     EpochTooFarAheadError,
     InvalidFrameError,
     MessageStaleError,
     ReplayAttackError,
+    SignatureInvalidError,
     StateUnavailableError,
 )
+from antireplay.pipeline import TokenBucket
+from antireplay.stores import ReplayStore
 
 log = logging.getLogger("antireplay.dds")
 
@@ -83,6 +97,8 @@ _ILEN = struct.Struct(">H")
 MAX_INSTANCE = 256
 #: Type name bound in the MAC for topics whose samples are raw bytes.
 RAW = "octets"
+#: Refusals audited per second, per class (see :class:`RefusalAuditor`); as the MAVLink proxy.
+AUDIT_PER_S = 50.0
 
 
 def default_qos(depth: int = 256) -> Qos:
@@ -136,14 +152,13 @@ class SealedWriter:
         state_file: str | os.PathLike[str] | None = None,
         clock: Clock | None = None,
         reserve_s: float = 1.0,
-        max_forward_s: float | None = None,
+        max_forward_s: float = MAX_FORWARD_S,
         qos: Qos | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
-        # max_forward_s: the readers' bound, so a forward clock glitch the readers would
-        # refuse makes this writer rotate its prefix instead of locking itself out
-        # (None: readers set no bound; the signer keeps its own default).
-        bound = {} if max_forward_s is None else {"max_forward_s": max_forward_s}
+        # max_forward_s: the readers' bound (their default unless configured), so a forward
+        # clock glitch the readers would refuse makes this writer rotate its prefix instead
+        # of being refused until real time catches up.
         self.signer = EpochSigner(
             topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
             nonce_prefix=nonce_prefix,
@@ -151,7 +166,7 @@ class SealedWriter:
             state_file=state_file,
             clock=clock,
             reserve_s=reserve_s,
-            **bound,
+            max_forward_s=max_forward_s,
         )
         qos = qos or default_qos()
         self._writer = DataWriter(participant, _topic(participant, topic, qos), qos=qos)
@@ -228,10 +243,11 @@ class Verdict:
 #: Rejection class -> the outcome word counted and audited (prefix collisions are told apart).
 _OUTCOMES: dict[type[ReplayAttackError], str] = {
     InvalidFrameError: "malformed",
-    AuthenticationError: "forged",
+    SignatureInvalidError: "forged",
     MessageStaleError: "stale",
     EpochTooFarAheadError: "ahead",
-    EpochReplayError: "replayed",
+    EpochReplayedError: "replayed",
+    StateUnavailableError: "state_unavailable",
 }
 
 
@@ -245,24 +261,27 @@ class SealedReader:
         psk: bytes,
         *,
         data_type: type[IdlStruct] | None = None,
-        state_file: str | os.PathLike[str] | None = None,
+        store: ReplayStore | str = "memory",
         clock: Clock | None = None,
-        max_age_s: float | None = None,
-        max_forward_s: float | None = None,
+        max_age_s: float = MAX_AGE_S,
+        max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
         qos: Qos | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
         self._clock = resolve(clock)
+        type_name, domain = type_name_of(data_type), _domain_of(participant)
         self.verifier = EpochVerifier(
-            topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
-            state_file=state_file,
+            topic_key(psk, topic, type_name, domain),
+            store=store,
+            namespace=f"dds:{domain}:{topic}:{type_name}",
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
             clock=self._clock,
         )
         self.audit = audit
         self.counts: Counter[str] = Counter()
+        self._refusals = RefusalAuditor(self._clock, f"dds {topic}", self.counts)
         self._lock = threading.Lock()
         qos = qos or default_qos()
         self._reader = DataReader(participant, _topic(participant, topic, qos), qos=qos)
@@ -275,7 +294,7 @@ class SealedReader:
         return len(self._reader.get_matched_publications())
 
     def close(self) -> None:
-        """Release the verifier's state file (its owner lock), as a stopping process does."""
+        """Close the verifier's store if the reader opened it, as a stopping process does."""
         self.verifier.close()
 
     def judge(self, sample: SealedSample) -> Verdict:
@@ -285,10 +304,7 @@ class SealedReader:
         self.counts[verdict.outcome] += 1
         if not verdict.accepted:
             log.debug("refused sample on %s: %s", self.topic_name, verdict.line())
-            if self.audit is not None:
-                audit_refusal(
-                    self.audit, self._clock, verdict, f"dds {self.topic_name}", self.counts
-                )
+            self._refusals.record(self.audit, verdict)
         return verdict
 
     def _judge(self, sample: SealedSample) -> Verdict:
@@ -341,24 +357,39 @@ class SealedReader:
         return verdicts
 
 
-def audit_refusal(
-    audit: AuditLog, clock: Clock, verdict: Verdict, where: str, counts: Counter[str]
-) -> None:
-    """Append one refusal to the audit trail (sender = claimed prefix; never the payload)."""
-    try:
-        audit.append(
-            at=clock.wall(),
-            outcome="rejected",
-            code=str(verdict.code),
-            warning=f"{where}: {verdict.outcome}",
-            msg_type=None,
-            sender=None if verdict.nonce_prefix is None else verdict.nonce_prefix.hex(),
-            sender_verified=verdict.authentic,
-            msg_id=None if verdict.epoch is None else str(verdict.epoch),
-        )
-    except StateUnavailableError:
-        counts["audit_unavailable"] += 1
-        log.error("audit trail unavailable; a %s refusal was not recorded", where)
+class RefusalAuditor:
+    """Appends refused samples (or pings) to an audit trail, at most ``AUDIT_PER_S`` a
+    second for unauthenticated refusals and as many again for authentic ones (a replayed
+    or stale sample), as the MAVLink proxy's auditor does: a flood of garbage can neither
+    grow the trail (and its fsyncs) without bound nor crowd out the record of a replay.
+    Every refusal is still counted in ``counts``, the skipped records as
+    ``audit_rate_limited``."""
+
+    def __init__(self, clock: Clock, where: str, counts: Counter[str]) -> None:
+        self._clock, self._where, self._counts = clock, where, counts
+        self._budget = {authentic: TokenBucket(AUDIT_PER_S, clock) for authentic in (False, True)}
+
+    def record(self, audit: AuditLog | None, verdict: Verdict) -> None:
+        """One record for a refusal (sender = claimed prefix; never the payload)."""
+        if audit is None:
+            return
+        if not self._budget[verdict.authentic].take():
+            self._counts["audit_rate_limited"] += 1
+            return
+        try:
+            audit.append(
+                at=self._clock.wall(),
+                outcome="rejected",
+                code=str(verdict.code),
+                warning=f"{self._where}: {verdict.outcome}",
+                msg_type=None,
+                sender=None if verdict.nonce_prefix is None else verdict.nonce_prefix.hex(),
+                sender_verified=verdict.authentic,
+                msg_id=None if verdict.epoch is None else str(verdict.epoch),
+            )
+        except StateUnavailableError:
+            self._counts["audit_unavailable"] += 1
+            log.error("audit trail unavailable; a %s refusal was not recorded", self._where)
 
 
 def claim(sealed: bytes) -> tuple[bytes, int]:
@@ -380,7 +411,7 @@ def open_judged(
         if verifier.prefix_collisions != collisions:
             outcome = "prefix_collision"
         return Verdict(outcome, exc.code, exc.reason, instance, prefix, epoch)
-    except OSError as exc:  # the accepted epoch could not be persisted: fail closed
+    except OSError as exc:  # the store could not persist the epoch: fail closed
         reason = f"verifier state not persisted: {exc.strerror or exc}"
         return Verdict("state_unavailable", Code.STATE_UNAVAILABLE, reason, instance)
 
@@ -398,4 +429,12 @@ def _claimed_instance(sealed: bytes) -> str | None:
         return None
 
 
-__all__ = ["SealedReader", "SealedSample", "SealedWriter", "Verdict", "claim", "topic_key"]
+__all__ = [
+    "RefusalAuditor",
+    "SealedReader",
+    "SealedSample",
+    "SealedWriter",
+    "Verdict",
+    "claim",
+    "topic_key",
+]

@@ -1,11 +1,11 @@
-"""MAVLink v2 signing guard, sender helper and UDP proxy (pymavlink's gaps closed).
+"""MAVLink v2 signing guard: verify, bind to this vehicle, timestamp rules, commit.
 
 Theory of operation
 -------------------
-A signed MAVLink v2 frame ends with a 13-byte trailer: ``link_id`` (1 byte), a
-48-bit timestamp (10 µs units since 2015-01-01 UTC, little-endian) and the
-first 6 bytes of ``SHA-256(key | frame without those 6 bytes)``.
-:meth:`MavlinkGuard.check` judges one frame, in this order:
+The frame format and the strict parse are :mod:`antireplay.mavlink.codec`'s.
+Two phases, as everywhere: :meth:`MavlinkGuard.check` records nothing,
+:meth:`MavlinkGuard.open` is the recipe (check, authenticate, commit).  A frame
+is judged in this order:
 
 1. **parse** strictly (v2 only, known incompat flags, exact length, CRC with
    the dialect's ``crc_extra`` when the message is known) -> ``INVALID_FRAME``;
@@ -13,25 +13,38 @@ first 6 bytes of ``SHA-256(key | frame without those 6 bytes)``.
    refused with ``WRONG_DIRECTION`` (see *Direction binding* below); a
    guard built with ``system_id`` refuses that id as a source from the start;
    **unsigned** frames pass only if their message id is on the explicit
-   allow-list; a frame carrying the signed flag never falls back to it;
-3. **verify** the signature in constant time -> ``SIGNATURE_INVALID``.  Nothing
+   allow-list (else ``SIGNATURE_REQUIRED``), MAVLink v1 frames only if it is
+   also on ``allow_v1``; a frame carrying the signed flag never falls back to it;
+3. **timestamp rules**, reading only memory: any timestamp more than
+   ``max_forward_s`` ahead of the receiver's wall clock is
+   ``MESSAGE_FROM_FUTURE``; at or below the restart fence ``MESSAGE_STALE``; a
+   held stream ``(system, component, link)`` needs ``ts > last`` (or, with
+   ``reorder_window``, a fresh counter in an RFC 6479
+   :class:`~antireplay.counters.CounterWindow`) -> ``COUNTER_REPLAYED``; a
+   stream the table does not hold must be above the table's eviction fence
+   (``MESSAGE_STALE``, ``detail="fence"``).  So a replay costs no HMAC.  This
+   is :meth:`~MavlinkGuard.check`;
+4. **verify** the signature in constant time -> ``SIGNATURE_INVALID``.  Nothing
    before this point touches the stream table, so a forged frame with
    timestamp ``2**48 - 1`` changes nothing (pymavlink records it first and is
    jammed until restart), and forged frames cannot grow the table;
-4. **bind** to this vehicle: with ``system_id`` set, a frame whose
-   ``target_system`` is another vehicle is refused (0 = broadcast passes);
-5. **timestamp rules** per stream ``(system, component, link)``:
-   a known stream needs ``ts > last`` (or, with ``reorder_window``, a fresh
-   counter in an RFC 6479 :class:`~antireplay.counters.CounterWindow`);
-   a *new* stream's first timestamp must be within ``new_stream_max_age_s``
-   (60 s) of the **receiver's wall clock** (pymavlink compares it with its own
-   counter, which a restart resets) and above the eviction fence; any
-   timestamp more than ``max_forward_s`` ahead of the wall clock is refused;
-6. **commit** under a lock: the stream's state advances in memory; with a
+5. **bind** to this vehicle: with ``system_id`` set, a frame whose
+   ``target_system`` is another vehicle is ``WRONG_TARGET`` (0 = broadcast
+   passes);
+6. **commit** under a lock: step 3 again on a fresh clock; a *new* stream reads
+   its persisted high-water from the store (a floor) and, without one, its
+   first timestamp must be within ``new_stream_max_age_s`` (60 s) of the
+   **receiver's wall clock** (pymavlink compares it with its own counter, which
+   a restart resets); then the stream's state advances in memory, and with a
    store it is persisted off the frame path (*Persistence* below).
 
-The stream table is bounded: when full, the least recently used stream is
-evicted and a fence rises to its last timestamp; new streams must be above it.
+The stream table is a :class:`~antireplay.counters.FencedTable`: bounded; a
+full table admits a new stream (at step 6; :meth:`~MavlinkGuard.check` tests
+only the fence) only above its lowest high-water, and only then evicts that
+stream and raises the fence to it; a new stream at or below it is refused
+(``MESSAGE_STALE``, ``detail="fence"``) and evicts nothing.  A stream the table
+does not hold must come back above the fence, even when the store holds a
+(possibly older, not yet flushed) high-water for it.
 
 Persistence: a periodic flush and a restart fence, not an fsync per frame
 ------------------------------------------------------------------------
@@ -72,7 +85,7 @@ next odd generation with ``advance`` (atomic on every backend), releases the nex
 even one, so a guard whose lease was taken over can never renew it again; a second
 guard on the same prefix refuses frames with ``STATE_UNAVAILABLE`` while the first
 holds the lease, and takes over behind the fence once it expired (active/standby
-proxies on one Redis work this way).  Deployments that want several guards
+routers on one Redis work this way).  Deployments that want several guards
 *active at once* on one prefix pass ``write_through=True``: every accepted
 timestamp is then written through (``advance``) before the frame is forwarded, and
 a refused ``advance`` is a replay, at one store write per frame.  All guards on one
@@ -84,147 +97,60 @@ Both directions of a link share one key: ground stations (MAVProxy, QGC,
 pymavlink's ``setup_signing``) sign and verify with a single secret per link,
 so separate keys per direction would break every stock ground station.  The
 ``link_id`` cannot carry the direction either: each sender picks its own
-(QGC uses its link number), so the proxy cannot pin it.  What does separate
+(QGC uses its link number), so the router cannot pin it.  What does separate
 the directions is the **source system id** in the frame header, which the
 signature covers: the vehicle (and its components) send as the vehicle's
 system id, a ground station as its own (255 by default), and MAVLink requires
 them to differ on one network.  So a guard refuses, before any crypto, frames
 whose source system belongs to the other side: the vehicle's own id
-(``system_id``, when configured) and, in :class:`MavlinkProxy`, every source
+(``system_id``, when configured) and, in
+:class:`~antireplay.mavlink.router.MavlinkRouter`, every source
 system id that has *authenticated* in the other direction (learned only from
 signed, accepted frames; an unsigned allow-listed frame teaches nothing, or a
 spoofed unsigned heartbeat could silence the real vehicle).  A signed vehicle
-frame reflected back to the listen port therefore gets ``WRONG_DIRECTION``,
+frame reflected back from a ground link therefore gets ``WRONG_DIRECTION``,
 and stamps nothing in the inbound stream table.  Configure ``--system-id``:
 without it, a reflection is refused only once the vehicle has spoken through
-this proxy process.
-
-Sender side: :class:`TimestampSource` keeps a link's timestamp tied to real
-time (``max(last + 1, now)``) and raises :class:`NonceExhaustedError` at
-``2**48`` instead of truncating; :func:`sign_frame` signs a v2 frame with it.
+this router process.
 """
 
 from __future__ import annotations
 
 import hashlib
 import hmac
-import socket
-import struct
 import threading
 import time
-from collections import Counter, OrderedDict
-from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
-
-from pymavlink.dialects.v20 import ardupilotmega as dialect
-from pymavlink.generator.mavcrc import x25crc
+from collections import Counter
+from dataclasses import dataclass
 
 from antireplay.clock import Clock, resolve
-from antireplay.counters import CounterWindow
+from antireplay.counters import CounterWindow, FencedTable
 from antireplay.errors import (
-    AuthenticationError,
-    CounterReplayError,
-    InvalidFrameError,
+    CounterReplayedError,
     MessageFromFutureError,
     MessageStaleError,
-    NonceExhaustedError,
     ReplayAttackError,
+    SignatureInvalidError,
+    SignatureRequiredError,
     StateUnavailableError,
     WrongDirectionError,
+    WrongTargetError,
+)
+from antireplay.mavlink.codec import (
+    MAV_EPOCH,
+    TS_LIMIT,
+    UNITS_PER_S,
+    Frame,
+    mav_time,
+    parse_frame,
+    target_system,
 )
 from antireplay.stores import ReplayStore
 from antireplay.window import NEVER
 
-STX_V2 = 0xFD
-SIGNED = 0x01
-HEADER = 10
-SIG_LEN = 13
-MAV_EPOCH = 1_420_070_400  # 2015-01-01T00:00:00Z
-TS_LIMIT = 2**48
-UNITS_PER_S = 100_000
 _MS = UNITS_PER_S // 1000  # the lease's expiry is stored in milliseconds
 _GENERATION = 2**42  # lease value = generation * 2**42 + expiry (ms): 139 years of expiry
 _AHEAD_STEP = UNITS_PER_S // 10  # the persisted ahead margin grows by 0.1 s steps
-_HEAD = struct.Struct("<BBBBBBBHB")  # stx len incompat compat seq sys comp msgid(lo16) msgid(hi8)
-
-
-def mav_time(clock: Clock) -> int:
-    """The wall clock in MAVLink signing units (10 µs since 2015-01-01)."""
-    return int((clock.wall() - MAV_EPOCH) * UNITS_PER_S)
-
-
-@dataclass(frozen=True)
-class Frame:
-    """One parsed MAVLink v2 frame."""
-
-    raw: bytes
-    sysid: int
-    compid: int
-    msgid: int
-    payload: bytes
-    signed: bool
-    link_id: int = 0
-    timestamp: int = 0
-
-    @property
-    def stream(self) -> tuple[int, int, int]:
-        return (self.sysid, self.compid, self.link_id)
-
-
-def split_frames(datagram: bytes) -> list[bytes]:
-    """Cut a datagram into v2 frames; anything malformed raises ``INVALID_FRAME``."""
-    frames, at = [], 0
-    while at < len(datagram):
-        if datagram[at] != STX_V2:
-            raise InvalidFrameError("not a MAVLink v2 frame (v1 frames cannot be signed)")
-        if len(datagram) - at < HEADER + 2:
-            raise InvalidFrameError("truncated header")
-        length, incompat = datagram[at + 1], datagram[at + 2]
-        total = HEADER + length + 2 + (SIG_LEN if incompat & SIGNED else 0)
-        if len(datagram) - at < total:
-            raise InvalidFrameError("truncated frame")
-        frames.append(bytes(datagram[at : at + total]))
-        at += total
-    if not frames:
-        raise InvalidFrameError("empty datagram")
-    return frames
-
-
-def parse_frame(raw: bytes) -> Frame:
-    """Strictly parse one v2 frame (length, flags, CRC for known messages)."""
-    if len(raw) < HEADER + 2 or raw[0] != STX_V2:
-        raise InvalidFrameError("not a MAVLink v2 frame")
-    _, length, incompat, _, _, sysid, compid, lo, hi = _HEAD.unpack_from(raw)
-    if incompat & ~SIGNED:
-        raise InvalidFrameError("unknown incompatibility flags")
-    signed = bool(incompat & SIGNED)
-    if len(raw) != HEADER + length + 2 + (SIG_LEN if signed else 0):
-        raise InvalidFrameError("frame length does not match its header")
-    msgid = lo | hi << 16
-    payload = raw[HEADER : HEADER + length]
-    spec = dialect.mavlink_map.get(msgid)
-    if spec is not None:
-        crc = x25crc(raw[1 : HEADER + length])
-        crc.accumulate(bytes([spec.crc_extra]))
-        if crc.crc != int.from_bytes(raw[HEADER + length : HEADER + length + 2], "little"):
-            raise InvalidFrameError("CRC mismatch")
-    if not signed:
-        return Frame(raw, sysid, compid, msgid, payload, False)
-    trailer = raw[-SIG_LEN:]
-    timestamp = int.from_bytes(trailer[1:7], "little")
-    return Frame(raw, sysid, compid, msgid, payload, True, trailer[0], timestamp)
-
-
-def target_system(frame: Frame) -> int | None:
-    """The frame's ``target_system`` field, if its message (known to the dialect) has one."""
-    spec = dialect.mavlink_map.get(frame.msgid)
-    if spec is None or "target_system" not in spec.ordered_fieldnames:
-        return None
-    size = spec.unpacker.size
-    payload = frame.payload[:size].ljust(size, b"\0")  # v2 trims trailing zero bytes
-    values = spec.unpacker.unpack(payload)
-    return int(values[spec.ordered_fieldnames.index("target_system")])
 
 
 @dataclass(frozen=True)
@@ -235,17 +161,20 @@ class MavVerdict:
     msgid: int
     timestamp: int
     signed: bool
+    frame: Frame  # the parsed frame, so that an adapter routes without parsing it again
 
 
 @dataclass
 class _Stream:
-    last: int
+    """A stream's entry beside its high-water mark in the table (the mark is ``last``)."""
+
     floor: int = -1  # restored from a store: everything at or below was (or may have been) seen
     window: CounterWindow | None = None
 
 
 class MavlinkGuard:
-    """Judges MAVLink v2 frames: verify, bind, timestamp rules, commit (module docstring).
+    """Judges MAVLink v2 frames: :meth:`check` records nothing, :meth:`open` checks,
+    verifies, binds and commits (module docstring).
 
     With a store, call :meth:`start` before the first frame (it claims the lease and
     starts the flusher; a first frame claims lazily otherwise) and :meth:`stop` after
@@ -260,6 +189,7 @@ class MavlinkGuard:
         clock: Clock | None = None,
         system_id: int | None = None,
         allow_unsigned: frozenset[int] = frozenset(),
+        allow_v1: frozenset[int] = frozenset(),
         max_streams: int = 256,
         reorder_window: int = 0,
         new_stream_max_age_s: float = 60.0,
@@ -278,6 +208,7 @@ class MavlinkGuard:
         self.clock = resolve(clock)
         self.system_id = system_id
         self.allow_unsigned = allow_unsigned
+        self.allow_v1 = allow_v1 & allow_unsigned
         self.max_streams = max_streams
         self.reorder_window = reorder_window
         self.new_stream_max_age = int(new_stream_max_age_s * UNITS_PER_S)
@@ -289,8 +220,7 @@ class MavlinkGuard:
         self._lease_skew = int(lease_skew_s * UNITS_PER_S)
         #: Source system ids that belong to the other direction (module docstring).
         self.refused_sources: set[int] = set() if system_id is None else {system_id}
-        self._streams: OrderedDict[tuple[int, int, int], _Stream] = OrderedDict()
-        self._fence = -1
+        self._streams: FencedTable[tuple[int, int, int], _Stream] = FencedTable(max_streams)
         self._lock = threading.Lock()
         self.counts: Counter[str] = Counter()
         # Periodic persistence (module docstring): all MAVLink units except the generation.
@@ -312,26 +242,44 @@ class MavlinkGuard:
         """Whether this guard persists periodically behind a lease (module docstring)."""
         return self.store is not None and not self.write_through
 
-    def check(self, raw: bytes) -> MavVerdict:
-        """Accept one frame or raise a typed :class:`ReplayAttackError`."""
+    def check(self, raw: bytes) -> Frame:
+        """Records nothing: parse, direction, allow-list and every stream rule a replay
+        fails, before any cryptography (steps 1 to 3 of the module docstring)."""
         frame = parse_frame(raw)
         if frame.sysid in self.refused_sources:
-            raise WrongDirectionError(f"system {frame.sysid} sends from the other side of the link")
+            raise WrongDirectionError(
+                f"wrong link: system {frame.sysid} sends from the other side of the link"
+            )
         if not frame.signed:
             if frame.msgid not in self.allow_unsigned:
-                raise AuthenticationError(f"unsigned message {frame.msgid} not allow-listed")
+                raise SignatureRequiredError(f"unsigned message {frame.msgid} not allow-listed")
+            if frame.version == 1 and frame.msgid not in self.allow_v1:
+                raise SignatureRequiredError(f"MAVLink v1 message {frame.msgid} not allow-listed")
+            return frame
+        now = mav_time(self.clock)
+        stream = self._judge(frame.stream, frame.timestamp, now)
+        if (
+            stream is None
+            and self.store is None
+            and frame.timestamp < now - self.new_stream_max_age
+        ):
+            raise MessageStaleError(self._too_old(frame.timestamp, now))
+        return frame
+
+    def open(self, raw: bytes) -> MavVerdict:
+        """Check, verify the signature, bind, commit: accept one frame or raise a typed
+        :class:`ReplayAttackError`.  Of two racers on one timestamp exactly one passes."""
+        frame = self.check(raw)
+        if not frame.signed:
             self._bind(frame)
-            return MavVerdict(frame.stream, frame.msgid, 0, False)
+            return MavVerdict(frame.stream, frame.msgid, 0, False, frame)
         expected = hashlib.sha256(self._key + raw[:-6]).digest()[:6]
         if not hmac.compare_digest(expected, raw[-6:]):
-            raise AuthenticationError("MAVLink signature does not verify")
+            raise SignatureInvalidError("MAVLink signature does not verify")
         self._bind(frame)
-        now = mav_time(self.clock)
-        if frame.timestamp > now + self.max_forward:
-            raise MessageFromFutureError("timestamp too far ahead of the receiver's clock")
         with self._lock:
-            self._commit(frame, now)
-        return MavVerdict(frame.stream, frame.msgid, frame.timestamp, True)
+            self._commit(frame, mav_time(self.clock))
+        return MavVerdict(frame.stream, frame.msgid, frame.timestamp, True, frame)
 
     # --- lifecycle: lease, flusher ---------------------------------------------------------
 
@@ -470,35 +418,66 @@ class MavlinkGuard:
             return
         target = target_system(frame)
         if target not in (None, 0, self.system_id):
-            raise AuthenticationError(f"frame addressed to system {target}, not this vehicle")
+            raise WrongTargetError(f"frame addressed to system {target}, not this vehicle")
+
+    def _judge(self, key: tuple[int, int, int], ts: int, now: int) -> _Stream | None:
+        """Records nothing: the rules a held stream's timestamp, or a new stream's, must
+        pass; the stream's entry, or None for a stream the table does not hold."""
+        if ts > now + self.max_forward:
+            raise MessageFromFutureError(
+                f"timestamp {_s(ts - now)} s ahead of the receiver's clock "
+                f"(limit {_s(self.max_forward)} s)"
+            )
+        if ts <= self.restart_fence:
+            raise MessageStaleError(
+                f"old timestamp: {_s(self.restart_fence - ts)} s below the restart fence "
+                "(the previous run may have accepted it)"
+            )
+        stream = self._streams.check(key, ts)
+        if stream is None:
+            return None
+        last = self._streams.mark(key)
+        assert last is not None
+        if ts <= stream.floor:
+            raise CounterReplayedError(
+                f"old timestamp: {_s(stream.floor - ts)} s behind the persisted stream state"
+            )
+        if stream.window is None:
+            if ts <= last:
+                raise CounterReplayedError(
+                    f"old timestamp: {_s(last - ts)} s behind the stream's last"
+                )
+        else:
+            stream.window.check(ts)
+        return stream
+
+    def _too_old(self, ts: int, now: int) -> str:
+        return (
+            f"old timestamp: new stream {_s(now - ts)} s behind the receiver's clock "
+            f"(limit {_s(self.new_stream_max_age)} s)"
+        )
 
     def _commit(self, frame: Frame, now: int) -> None:
         key, ts = frame.stream, frame.timestamp
         periodic = self.periodic
         if periodic and not self._generation:
             self._acquire(now)  # no start(): the first frame claims the lease
-        stream = self._streams.get(key)
+        stream = self._judge(key, ts, now)
         if stream is None:
             stream = self._open_stream(key, ts, now)
-        if ts <= stream.floor:
-            raise CounterReplayError("timestamp not newer than the persisted stream state")
-        if stream.window is None:
-            if ts <= stream.last:
-                raise CounterReplayError("timestamp not newer than the stream's last")
-        else:
-            stream.window.check(ts)
-            if not stream.window.accept(ts):
-                raise CounterReplayError("timestamp already seen in the reorder window")
         if periodic:
             self._before_accept(ts, now)
-            self._dirty[self._store_key(key)] = max(ts, stream.last)
         elif self.store is not None and not self.store.advance(self._store_key(key), ts):
-            # Another guard on the same store (a second proxy, a restarted one still
+            # Another guard on the same store (a second router, a restarted one still
             # running) already took this timestamp or a later one: this copy is a replay.
-            raise CounterReplayError("timestamp already committed to the shared stream state")
-        stream.last = max(stream.last, ts)
-        self._streams[key] = stream
-        self._streams.move_to_end(key)
+            raise CounterReplayedError("timestamp already committed to the shared stream state")
+        self._streams.commit(key, ts, lambda: stream)
+        if stream.window is not None:
+            stream.window.commit(ts)
+        if periodic:
+            last = self._streams.mark(key)
+            assert last is not None
+            self._dirty[self._store_key(key)] = last
 
     def _before_accept(self, ts: int, now: int) -> None:
         """What must be durable before a frame is accepted: a live lease, the ahead margin."""
@@ -514,202 +493,26 @@ class MavlinkGuard:
         self._high = max(self._high, now)
 
     def _open_stream(self, key: tuple[int, int, int], ts: int, now: int) -> _Stream:
+        """A stream the table does not hold: its persisted high-water (if any) becomes its
+        floor; without one, its first timestamp must be recent.  The table's eviction
+        fence applies either way (a stream evicted before its last flush may have a
+        persisted value below what this process accepted)."""
         stored = self.store.current(self._store_key(key)) if self.store is not None else None
-        if ts <= self.restart_fence:
-            raise MessageStaleError(
-                "timestamp at or below the restart fence (the previous run may have accepted it)"
+        if stored is None and ts < now - self.new_stream_max_age:
+            raise MessageStaleError(self._too_old(ts, now))
+        stream = _Stream(floor=-1 if stored is None else stored)
+        if ts <= stream.floor:
+            raise CounterReplayedError(
+                f"old timestamp: {_s(stream.floor - ts)} s behind the persisted stream state"
             )
-        if stored is None:
-            if ts < now - self.new_stream_max_age:
-                raise MessageStaleError("new stream's timestamp is more than 60 s behind")
-            if ts <= self._fence:
-                raise MessageStaleError("new stream below the eviction fence")
-        seen = -1 if stored is None else stored
-        stream = _Stream(last=seen, floor=seen)
         if self.reorder_window:
             stream.window = CounterWindow(self.reorder_window, limit=TS_LIMIT)
-        if len(self._streams) >= self.max_streams:
-            _, evicted = self._streams.popitem(last=False)
-            self._fence = max(self._fence, evicted.last)
         return stream
 
     def _store_key(self, key: tuple[int, int, int]) -> str:
         return f"{self.prefix}:{key[0]}:{key[1]}:{key[2]}"
 
 
-class TimestampSource:
-    """A sender's link timestamp tied to real time; never wraps past 2**48."""
-
-    def __init__(self, clock: Clock | None = None, last: int = 0) -> None:
-        self.clock = resolve(clock)
-        self._last = last
-        self._lock = threading.Lock()
-
-    def next(self) -> int:
-        with self._lock:
-            ts = max(self._last + 1, mav_time(self.clock))
-            if ts >= TS_LIMIT:
-                raise NonceExhaustedError("MAVLink timestamp reached 2**48; rekey the link")
-            self._last = ts
-            return ts
-
-
-def sign_frame(frame: bytes, key: bytes, link_id: int, timestamps: TimestampSource) -> bytes:
-    """Sign an unsigned v2 frame of a message known to the dialect."""
-    parsed = parse_frame(frame)
-    if parsed.signed:
-        raise ValueError("frame is already signed")
-    spec = dialect.mavlink_map.get(parsed.msgid)
-    if spec is None:
-        raise ValueError(f"message {parsed.msgid} is not in the dialect")
-    head = bytearray(frame[:HEADER])
-    head[2] |= SIGNED
-    body = bytes(head) + parsed.payload
-    crc = x25crc(body[1:])
-    crc.accumulate(bytes([spec.crc_extra]))
-    checksum: int = crc.crc
-    signed = body + checksum.to_bytes(2, "little")
-    signed += bytes([link_id]) + timestamps.next().to_bytes(6, "little")
-    return signed + hashlib.sha256(key + signed).digest()[:6]
-
-
-@dataclass
-class ProxyStats:
-    """What the proxy did, per direction."""
-
-    forwarded: Counter[str] = field(default_factory=Counter)
-    dropped: Counter[str] = field(default_factory=Counter)
-
-
-class MavlinkProxy:
-    """UDP proxy: frames from the ground side go to the vehicle only if ``inbound`` accepts
-    them; frames from the vehicle go back to the ground peer only if ``outbound`` accepts
-    them.  ``on_reject`` receives each rejection (for audit and metrics).
-
-    The ground peer (where telemetry goes) is learned only from a datagram in which at
-    least one *signed* frame was accepted: garbage, forged or replayed frames, and
-    unsigned allow-listed frames (anyone can make those), never move it, so one spoofed
-    datagram cannot redirect the vehicle's telemetry.  Until a peer has authenticated,
-    telemetry is dropped and counted as ``outbound:NO_PEER``.  Residual: an attacker who
-    sees a ground frame before the proxy does can race it in from its own address; that
-    frame is authentic and fresh, so the peer follows it (UDP carries no authenticated
-    address; the same holds for every MAVLink endpoint).  Each side's authenticated
-    source systems are refused on the other side (module docstring: direction binding).
-    """
-
-    def __init__(
-        self,
-        listen: tuple[str, int],
-        forward: tuple[str, int],
-        inbound: MavlinkGuard,
-        outbound: MavlinkGuard,
-        on_reject: Callable[[str, ReplayAttackError, bytes], Any] | None = None,
-    ) -> None:
-        self.ground = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.ground.bind(listen)
-        self.vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.vehicle.connect(forward)
-        for sock in (self.ground, self.vehicle):
-            sock.settimeout(0.2)  # lets the loops notice stop() promptly
-        self.inbound, self.outbound = inbound, outbound
-        self.on_reject = on_reject
-        self.stats = ProxyStats()
-        self._peer: tuple[str, int] | None = None
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
-
-    @property
-    def address(self) -> tuple[str, int]:
-        host, port = self.ground.getsockname()[:2]
-        return str(host), int(port)
-
-    @property
-    def peer(self) -> tuple[str, int] | None:
-        """Where telemetry goes: the last ground address that sent an authenticated frame."""
-        return self._peer
-
-    def start(self) -> None:
-        """Start both guards (lease, flusher), then the two forwarding loops."""
-        self.inbound.start()
-        self.outbound.start()
-        for target in (self._from_ground, self._from_vehicle):
-            thread = threading.Thread(target=target, daemon=True)
-            thread.start()
-            self._threads.append(thread)
-
-    def stop(self) -> None:
-        """Stop forwarding, then flush both guards and release their leases."""
-        self._stop.set()
-        for thread in self._threads:
-            thread.join(timeout=5)
-        for sock in (self.ground, self.vehicle):
-            sock.close()
-        self.inbound.stop()
-        self.outbound.stop()
-
-    def _filter(
-        self, direction: str, guard: MavlinkGuard, other: MavlinkGuard, datagram: bytes
-    ) -> tuple[bytes, bool]:
-        """The accepted frames, and whether any of them was signed (authenticated)."""
-        out, authenticated = bytearray(), False
-        try:
-            frames = split_frames(datagram)
-        except ReplayAttackError as exc:
-            self._reject(direction, exc, datagram)
-            return b"", False
-        for raw in frames:
-            try:
-                verdict = guard.check(raw)
-            except ReplayAttackError as exc:
-                self._reject(direction, exc, raw)
-                continue
-            if verdict.signed:
-                authenticated = True
-                other.refused_sources.add(verdict.stream[0])  # this side's system, from now on
-            self.stats.forwarded[direction] += 1
-            out += raw
-        return bytes(out), authenticated
-
-    def _reject(self, direction: str, exc: ReplayAttackError, raw: bytes) -> None:
-        self.stats.dropped[f"{direction}:{exc.code}"] += 1
-        if self.on_reject is not None:
-            self.on_reject(direction, exc, raw)
-
-    def _from_ground(self) -> None:
-        while not self._stop.is_set():
-            try:
-                datagram, peer = self.ground.recvfrom(65_535)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            allowed, authenticated = self._filter("inbound", self.inbound, self.outbound, datagram)
-            if authenticated:
-                self._peer = peer
-            if allowed:
-                try:
-                    self.vehicle.send(allowed)
-                except OSError:
-                    self.stats.dropped["inbound:VEHICLE_UNREACHABLE"] += 1
-
-    def _from_vehicle(self) -> None:
-        while not self._stop.is_set():
-            try:
-                datagram = self.vehicle.recv(65_535)
-            except TimeoutError:
-                continue
-            except (ConnectionRefusedError, ConnectionResetError):
-                continue  # the vehicle is not up yet: ICMP port unreachable
-            except OSError:
-                return
-            allowed, _ = self._filter("outbound", self.outbound, self.inbound, datagram)
-            if not allowed:
-                continue
-            peer = self._peer
-            if peer is None:
-                self.stats.dropped["outbound:NO_PEER"] += 1
-                continue
-            try:
-                self.ground.sendto(allowed, peer)
-            except OSError:
-                self.stats.dropped["outbound:GROUND_UNREACHABLE"] += 1
+def _s(units: int) -> str:
+    """MAVLink units as seconds, for a refusal's reason (the gap an operator asks about)."""
+    return f"{units / UNITS_PER_S:.2f}"

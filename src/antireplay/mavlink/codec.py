@@ -1,0 +1,287 @@
+"""MAVLink frames: strict parsing, stream framing, the signature trailer, signing.
+
+Theory of operation
+-------------------
+A signed MAVLink v2 frame ends with a 13-byte trailer: ``link_id`` (1 byte), a
+48-bit timestamp (10 µs units since 2015-01-01 UTC, little-endian) and the
+first 6 bytes of ``SHA-256(key | frame without those 6 bytes)``.
+
+:func:`split_frames` cuts a datagram into v2 frames and :func:`parse_frame` parses
+one strictly: known incompat flags, exact length, and the CRC with the dialect's
+``crc_extra`` when the message is known; anything else raises ``INVALID_FRAME``.
+A MAVLink v1 frame (``0xFE``) parses too, as an unsigned frame with
+``version == 1`` (v1 cannot be signed; the guard takes it only where listed).
+:class:`FrameReader` cuts a byte stream (serial, TCP) into frames the way
+flight-stack parsers do: it skips bytes until a start marker, waits for the
+whole frame (a v2 header with unknown incompat flags is a false start at once),
+and on a CRC mismatch drops one byte and resynchronises; it never
+buffers more than one frame, so a flood of garbage costs linear work and no
+memory.  Parsing decides nothing else: verifying the signature and judging the
+timestamp are the guard's (:mod:`antireplay.mavlink.guard`).  :func:`target`
+reads a known message's ``target_system``/``target_component`` fields;
+:func:`claimed_source` reads the source system and component an audit record
+names, from any bytes, unauthenticated.  :func:`passphrase_key` derives a link
+key from a passphrase as MAVProxy, QGroundControl and Mission Planner do
+(SHA-256 of the passphrase).
+
+:func:`mav_time` is the wall clock in signing units.  Sender side:
+:class:`TimestampSource` keeps a link's timestamp tied to real time
+(``max(last + 1, now)``) and raises :class:`NonceExhaustedError` at ``2**48``
+instead of truncating.  Given a store it is durable: it reserves a ceiling
+``reserve_s`` ahead (one store write per ``reserve_s`` of signing) and a new
+source starts above the stored ceiling, so a restarted signer never repeats a
+timestamp (the MAVLink spec's rule), whatever the wall clock did; after a store
+data loss it starts above the loss time plus the reserve.  :func:`sign_frame`
+signs a v2 frame with it (a signed frame is signed again: a router forwarding
+between links with different keys).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import struct
+from dataclasses import dataclass
+
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+from pymavlink.generator.mavcrc import x25crc
+
+from antireplay.clock import Clock, resolve
+from antireplay.counters import NonceCounter, StoreCeiling
+from antireplay.errors import InvalidFrameError, NonceExhaustedError
+from antireplay.stores import ReplayStore
+from antireplay.window import NEVER
+
+STX_V2 = 0xFD
+STX_V1 = 0xFE
+SIGNED = 0x01
+HEADER = 10
+HEADER_V1 = 6
+MAX_FRAME = HEADER + 255 + 2 + 13
+SIG_LEN = 13
+MAV_EPOCH = 1_420_070_400  # 2015-01-01T00:00:00Z
+TS_LIMIT = 2**48
+UNITS_PER_S = 100_000
+_HEAD = struct.Struct("<BBBBBBBHB")  # stx len incompat compat seq sys comp msgid(lo16) msgid(hi8)
+
+
+def mav_time(clock: Clock) -> int:
+    """The wall clock in MAVLink signing units (10 µs since 2015-01-01)."""
+    return int((clock.wall() - MAV_EPOCH) * UNITS_PER_S)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One parsed MAVLink v2 frame."""
+
+    raw: bytes
+    sysid: int
+    compid: int
+    msgid: int
+    payload: bytes
+    signed: bool
+    link_id: int = 0
+    timestamp: int = 0
+    version: int = 2
+
+    @property
+    def stream(self) -> tuple[int, int, int]:
+        return (self.sysid, self.compid, self.link_id)
+
+
+def split_frames(datagram: bytes) -> list[bytes]:
+    """Cut a datagram into v2 frames; anything malformed raises ``INVALID_FRAME``."""
+    frames, at = [], 0
+    while at < len(datagram):
+        if datagram[at] != STX_V2:
+            raise InvalidFrameError("not a MAVLink v2 frame (v1 frames cannot be signed)")
+        if len(datagram) - at < HEADER + 2:
+            raise InvalidFrameError("truncated header")
+        length, incompat = datagram[at + 1], datagram[at + 2]
+        total = HEADER + length + 2 + (SIG_LEN if incompat & SIGNED else 0)
+        if len(datagram) - at < total:
+            raise InvalidFrameError("truncated frame")
+        frames.append(bytes(datagram[at : at + total]))
+        at += total
+    if not frames:
+        raise InvalidFrameError("empty datagram")
+    return frames
+
+
+def frame_length(data: bytes | bytearray, at: int = 0) -> int | None:
+    """The length of the frame starting at ``data[at]`` (a start marker), if its header is in."""
+    if data[at] == STX_V1:
+        return HEADER_V1 + data[at + 1] + 2 if len(data) - at >= 2 else None
+    if len(data) - at < 3:
+        return None
+    return HEADER + data[at + 1] + 2 + (SIG_LEN if data[at + 2] & SIGNED else 0)
+
+
+class FrameReader:
+    """Cuts a byte stream into frames (module docstring); not thread-safe (one per stream)."""
+
+    def __init__(self) -> None:
+        self._buffer = bytearray()
+        #: Bytes skipped while resynchronising (garbage, corrupt frames), for the caller's count.
+        self.skipped = 0
+
+    @property
+    def pending(self) -> int:
+        """Bytes held for a frame not yet complete (at most one frame)."""
+        return len(self._buffer)
+
+    def feed(self, data: bytes) -> list[bytes]:
+        """Append ``data``; return the complete frames (v1 or v2) it finished."""
+        buffer, frames = self._buffer, []
+        buffer += data
+        while buffer:
+            start = _next_start(buffer)
+            if start:
+                self.skipped += start
+                del buffer[:start]
+                continue
+            if buffer[0] == STX_V2 and len(buffer) >= 3 and buffer[2] & ~SIGNED:
+                self.skipped += 1  # unknown incompat flags: a false start, known at once
+                del buffer[:1]
+                continue
+            length = frame_length(buffer)
+            if length is None or len(buffer) < length:
+                break
+            raw = bytes(buffer[:length])
+            try:
+                parse_frame(raw)
+            except InvalidFrameError:
+                self.skipped += 1  # a false start or a corrupt frame: resynchronise
+                del buffer[:1]
+                continue
+            frames.append(raw)
+            del buffer[:length]
+        return frames
+
+
+def _next_start(buffer: bytearray) -> int:
+    """Offset of the first start marker (the whole length if there is none)."""
+    found = [at for at in (buffer.find(STX_V2), buffer.find(STX_V1)) if at >= 0]
+    return min(found) if found else len(buffer)
+
+
+def _parse_v1(raw: bytes) -> Frame:
+    if len(raw) < HEADER_V1 + 2 or len(raw) != HEADER_V1 + raw[1] + 2:
+        raise InvalidFrameError("MAVLink v1 frame length does not match its header")
+    sysid, compid, msgid = raw[3], raw[4], raw[5]
+    payload = raw[HEADER_V1:-2]
+    spec = dialect.mavlink_map.get(msgid)
+    if spec is not None:
+        crc = x25crc(raw[1:-2])
+        crc.accumulate(bytes([spec.crc_extra]))
+        if crc.crc != int.from_bytes(raw[-2:], "little"):
+            raise InvalidFrameError("CRC mismatch")
+    return Frame(raw, sysid, compid, msgid, payload, False, version=1)
+
+
+def parse_frame(raw: bytes) -> Frame:
+    """Strictly parse one frame (length, flags, CRC for known messages); v1 is unsigned."""
+    if raw[:1] == bytes([STX_V1]):
+        return _parse_v1(raw)
+    if len(raw) < HEADER + 2 or raw[0] != STX_V2:
+        raise InvalidFrameError("not a MAVLink frame")
+    _, length, incompat, _, _, sysid, compid, lo, hi = _HEAD.unpack_from(raw)
+    if incompat & ~SIGNED:
+        raise InvalidFrameError("unknown incompatibility flags")
+    signed = bool(incompat & SIGNED)
+    if len(raw) != HEADER + length + 2 + (SIG_LEN if signed else 0):
+        raise InvalidFrameError("frame length does not match its header")
+    msgid = lo | hi << 16
+    payload = raw[HEADER : HEADER + length]
+    spec = dialect.mavlink_map.get(msgid)
+    if spec is not None:
+        crc = x25crc(raw[1 : HEADER + length])
+        crc.accumulate(bytes([spec.crc_extra]))
+        if crc.crc != int.from_bytes(raw[HEADER + length : HEADER + length + 2], "little"):
+            raise InvalidFrameError("CRC mismatch")
+    if not signed:
+        return Frame(raw, sysid, compid, msgid, payload, False)
+    trailer = raw[-SIG_LEN:]
+    timestamp = int.from_bytes(trailer[1:7], "little")
+    return Frame(raw, sysid, compid, msgid, payload, True, trailer[0], timestamp)
+
+
+def target(frame: Frame) -> tuple[int | None, int | None]:
+    """The frame's ``target_system`` and ``target_component`` fields, where its message
+    (known to the dialect) has them; None where it has not (a broadcast)."""
+    spec = dialect.mavlink_map.get(frame.msgid)
+    names = () if spec is None else spec.ordered_fieldnames
+    if "target_system" not in names:
+        return None, None
+    size = spec.unpacker.size
+    payload = frame.payload[:size].ljust(size, b"\0")  # v2 trims trailing zero bytes
+    values = spec.unpacker.unpack(payload)
+    component = values[names.index("target_component")] if "target_component" in names else None
+    return int(values[names.index("target_system")]), component
+
+
+def target_system(frame: Frame) -> int | None:
+    """The frame's ``target_system`` field, if its message (known to the dialect) has one."""
+    return target(frame)[0]
+
+
+def claimed_source(raw: bytes) -> tuple[int, int] | None:
+    """The header's source system and component, unverified (None if too short to hold them)."""
+    if raw[:1] == bytes([STX_V1]):
+        return (raw[3], raw[4]) if len(raw) > 4 else None
+    return (raw[5], raw[6]) if len(raw) > 6 else None
+
+
+def passphrase_key(passphrase: str) -> bytes:
+    """The 32-byte link key for a passphrase: SHA-256 of its bytes (MAVProxy's
+    ``signing key PASSPHRASE``, QGroundControl, Mission Planner)."""
+    return hashlib.sha256(passphrase.encode()).digest()
+
+
+class TimestampSource(NonceCounter):
+    """A sender's link timestamp: the project's one sender source
+    (:class:`~antireplay.counters.NonceCounter`) anchored to MAVLink time, never past
+    ``2**48``; with a store, never repeating across restarts (module docstring)."""
+
+    def __init__(
+        self,
+        clock: Clock | None = None,
+        last: int = 0,
+        *,
+        store: ReplayStore | None = None,
+        store_key: str = "mav-sign",
+        reserve_s: float = 1.0,
+    ) -> None:
+        self.clock = clock_ = resolve(clock)
+        reserve = int(reserve_s * UNITS_PER_S)
+        if store is not None:
+            last = max(last, store.current(store_key) or 0)
+            lost = store.verify().fence
+            if lost != NEVER:  # the store forgot its ceiling: resume above what it could hold
+                last = max(last, int((lost - MAV_EPOCH) * UNITS_PER_S) + reserve)
+        if last + 1 >= TS_LIMIT:
+            raise NonceExhaustedError("MAVLink timestamp reached 2**48; rekey the link")
+        super().__init__(last + 1, limit=TS_LIMIT, anchor=lambda: mav_time(clock_))
+        if store is not None:
+            self.attach(StoreCeiling(store, store_key), reserve)
+
+
+def sign_frame(
+    frame: bytes | Frame, key: bytes, link_id: int, timestamps: TimestampSource
+) -> bytes:
+    """Sign a v2 frame of a message known to the dialect with ``key``; a signed frame is
+    signed again (a router forwarding between links with different keys)."""
+    parsed = frame if isinstance(frame, Frame) else parse_frame(frame)
+    if parsed.version != 2:
+        raise ValueError("a MAVLink v1 frame cannot be signed")
+    spec = dialect.mavlink_map.get(parsed.msgid)
+    if spec is None:
+        raise ValueError(f"message {parsed.msgid} is not in the dialect")
+    head = bytearray(parsed.raw[:HEADER])
+    head[2] |= SIGNED
+    body = bytes(head) + parsed.payload
+    crc = x25crc(body[1:])
+    crc.accumulate(bytes([spec.crc_extra]))
+    checksum: int = crc.crc
+    signed = body + checksum.to_bytes(2, "little")
+    signed += bytes([link_id]) + timestamps.next().to_bytes(6, "little")
+    return signed + hashlib.sha256(key + signed).digest()[:6]

@@ -1,0 +1,359 @@
+"""MAVLink router: many endpoints, each with a role; forwards what the guards accept.
+
+Theory of operation
+-------------------
+A :class:`MavlinkRouter` joins any number of :class:`Link` s, each a transport
+(:mod:`antireplay.mavlink.endpoints`) with a **role**:
+
+* ``vehicle``: the flight controller side (a serial port, SITL, a companion's
+  mavlink-router).  Its frames are judged by the **outbound** guard (the vehicle
+  key); they are "outbound".
+* ``ground``: an untrusted ground link (radio, LTE, a GCS on the network).  Its
+  frames must verify with the link's key, judged by that key's **inbound** guard.
+* ``trusted``: a local tool that cannot sign (mavros, BlueOS, Cockpit,
+  mavlink2rest, a script).  Its unsigned v2 frames are **signed on its behalf**
+  with the vehicle key, the router's ``sign_link_id`` and a durable
+  :class:`~antireplay.mavlink.codec.TimestampSource` (never repeats, even across
+  restarts), then judged by the vehicle key's inbound guard like any frame.
+
+The router holds no replay rule: every frame goes through exactly one guard
+call (:meth:`~antireplay.mavlink.guard.MavlinkGuard.open`, two when a ground
+link has its own key: its guard, then the vehicle key's guard on the frame the
+router signed again), and whatever the guard refuses is a counted drop with its
+code and reason, handed to ``on_reject`` (:class:`Refusal`, one line that says
+why: bad signature, old timestamp and the gap in seconds, wrong link, not
+allow-listed).  Frames the router signs are committed in the vehicle key's
+inbound guard, so a capture of them replayed on a ground link that shares the
+vehicle key is a replay there too.  Frames the router signs for a ground link
+with a key of its own are not committed anywhere (they leave, they never came
+in), so a ground link refuses every frame carrying the router's
+``sign_link_id`` (``WRONG_DIRECTION``): otherwise a copy reflected back would
+be a new stream for that link's guard and reach the vehicle again.  Ground
+stations must therefore not sign with that link id (251 unless configured).
+
+**Keys per link.**  Frames travel in the vehicle key's form: a frame from a ground
+link with its own key is signed again with the vehicle key (and committed, as
+above); a signed frame going to a ground link with another key is signed again
+with that link's key.  Frames to trusted links go as they are; unsigned
+allow-listed frames are never signed by the router (anyone can make those).
+
+**Routing like mavlink-router**, learned only from authenticated frames (signed
+and accepted, or signed on a trusted link's behalf): the source system and
+component of such a frame become a route to the link (and peer) it came from,
+and the peer (a ``udpin`` sender, a ``tcpin`` client) may receive from then on;
+at most ``max_peers`` per link, the least recently authenticated dropped
+first.  Unsigned allow-listed frames, garbage, forged and replayed frames teach
+nothing.  A frame without a target (or target system 0) goes to every other
+link's receivers; a targeted frame goes where its target was seen (the
+component where known, else every link that saw the system); a targeted frame
+for a system nobody announced goes to the vehicle links (the configured side),
+or, from the vehicle, is dropped as ``NO_ROUTE``.  A frame with no receiver at
+all is dropped as ``NO_PEER`` (counted, not reported: telemetry before a ground
+station authenticated is normal).  A source system that authenticated on one side
+is refused on the other (*Direction binding* in :mod:`antireplay.mavlink.guard`).
+
+Bounded work: the route table holds ``max_routes`` systems, per-stream counters
+``max_stream_stats`` streams (accepted streams only: a forged frame cannot add
+one), transports buffer one frame per reader; a refused frame costs a parse and
+at most one HMAC.  Routing decisions are made under one lock; writes happen
+outside it, so a slow TCP client cannot stall the other links.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter, OrderedDict
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+from antireplay.errors import (
+    AntiReplayError,
+    Code,
+    InvalidFrameError,
+    NonceExhaustedError,
+    ReplayAttackError,
+    WrongDirectionError,
+)
+from antireplay.mavlink.codec import (
+    SIGNED,
+    STX_V2,
+    Frame,
+    TimestampSource,
+    claimed_source,
+    sign_frame,
+    target,
+)
+from antireplay.mavlink.endpoints import Peer, Transport
+from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
+
+INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
+#: A v2 signature block: link id, 6-byte timestamp, 6-byte signature (the link id first).
+_SIGNATURE_LEN = 13
+Location = tuple["Link", Peer | None]
+
+
+class Role(StrEnum):
+    """What an endpoint is (module docstring)."""
+
+    VEHICLE = "vehicle"
+    TRUSTED = "trusted"
+    GROUND = "ground"
+
+
+@dataclass(eq=False)
+class Link:
+    """One endpoint of the router: a transport, its role and its key (None: trusted)."""
+
+    transport: Transport
+    role: Role
+    key: bytes | None = None
+    max_peers: int = 8
+    #: Peers that authenticated, least recent first (a ``udpin`` or ``tcpin`` link's receivers).
+    peers: OrderedDict[Peer, None] = field(default_factory=OrderedDict)
+
+    @property
+    def name(self) -> str:
+        return self.transport.spec.text
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A dropped frame: where, the code, and why (the log line an operator reads)."""
+
+    direction: str
+    link: str
+    code: str
+    reason: str
+    raw: bytes
+
+    def __str__(self) -> str:
+        source = claimed_source(self.raw)
+        claims = "" if source is None else f" claiming {source[0]}/{source[1]}"
+        return f"refused {self.direction} frame on {self.link}{claims}: {self.code}: {self.reason}"
+
+
+@dataclass
+class RouterStats:
+    """What the router did: per direction, per code, per accepted stream."""
+
+    forwarded: Counter[str] = field(default_factory=Counter)
+    dropped: Counter[str] = field(default_factory=Counter)  # "direction:CODE"
+    #: Refusals the handler could not record (the audit trail is down): still dropped.
+    unaudited: int = 0
+    #: Accepted frames per stream ``(link name, system, component, link id)``, bounded.
+    streams: OrderedDict[tuple[str, int, int, int], int] = field(default_factory=OrderedDict)
+
+
+class MavlinkRouter:
+    """Routes frames between links, through the guards (module docstring).
+
+    ``inbound`` maps each key a ground link (or the vehicle) uses to its inbound guard;
+    ``signers`` each key the router signs with to its timestamp source.
+    """
+
+    def __init__(
+        self,
+        links: Sequence[Link],
+        inbound: Mapping[bytes, MavlinkGuard],
+        outbound: MavlinkGuard,
+        *,
+        signers: Mapping[bytes, TimestampSource] | None = None,
+        sign_link_id: int = 251,
+        on_reject: Callable[[Refusal], Any] | None = None,
+        max_routes: int = 1024,
+        max_stream_stats: int = 1024,
+    ) -> None:
+        vehicle_keys = {link.key for link in links if link.role is Role.VEHICLE}
+        vehicle_key = vehicle_keys.pop() if len(vehicle_keys) == 1 else None
+        if vehicle_key is None:
+            raise ValueError("the vehicle links need one key, the same for all")
+        self.vehicle_key = vehicle_key
+        for link in links:
+            if link.role is Role.GROUND and link.key is None:
+                raise ValueError(f"ground link {link.name} needs a key")
+        missing = {self.vehicle_key} | {
+            link.key for link in links if link.key and link.role is Role.GROUND
+        }
+        if missing - set(inbound):
+            raise ValueError("every key in use needs an inbound guard")
+        self.links = list(links)
+        self.inbound, self.outbound = dict(inbound), outbound
+        self.signers = dict(signers or {})
+        self.sign_link_id = sign_link_id
+        self.on_reject = on_reject
+        self.max_routes, self.max_stream_stats = max_routes, max_stream_stats
+        self.stats = RouterStats()
+        self._by_transport = {id(link.transport): link for link in links}
+        self._routes: OrderedDict[int, dict[int, Location]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def start(self) -> None:
+        """Start every guard (lease, flusher), then every transport."""
+        for guard in self._guards():
+            guard.start()
+        for link in self.links:
+            link.transport.start(self._deliver)
+
+    def stop(self) -> None:
+        """Stop every transport, then flush every guard and release its lease."""
+        for link in self.links:
+            link.transport.close()
+        for guard in self._guards():
+            guard.stop()
+
+    def routes(self) -> dict[tuple[int, int], str]:
+        """The learned routes: ``(system, component)`` to the link's name."""
+        with self._lock:
+            return {
+                (system, component): where[0].name
+                for system, table in self._routes.items()
+                for component, where in table.items()
+            }
+
+    def _guards(self) -> list[MavlinkGuard]:
+        return [*self.inbound.values(), self.outbound]
+
+    # --- the frame path --------------------------------------------------------------------
+
+    def _deliver(
+        self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
+    ) -> None:
+        link = self._by_transport[id(transport)]
+        direction = OUTBOUND if link.role is Role.VEHICLE else INBOUND
+        if skipped:
+            self._refuse(
+                direction,
+                link,
+                Code.INVALID_FRAME,
+                f"{skipped} bytes that are no MAVLink frame",
+                b"",
+            )
+        for raw in frames:
+            try:
+                verdict = self._judge(link, raw)
+            except ReplayAttackError as exc:
+                self._refuse(direction, link, exc.code, exc.reason, raw)
+                continue
+            with self._lock:
+                self._account(link, peer, verdict)
+                self.stats.forwarded[direction] += 1
+                targets = self._destinations(link, verdict.frame)
+            if not targets:
+                if target(verdict.frame)[0]:
+                    self._refuse(direction, link, "NO_ROUTE", "target never seen", raw)
+                else:  # telemetry before any receiver authenticated: counted, not logged
+                    self.stats.dropped[f"{direction}:NO_PEER"] += 1
+            for where, to in targets:
+                self._send(where, to, verdict.frame)
+
+    def _judge(self, link: Link, raw: bytes) -> MavVerdict:
+        """The guard's verdict on ``raw`` (module docstring); raises ReplayAttackError."""
+        if link.role is Role.VEHICLE:
+            return self.outbound.open(raw)
+        key = self.vehicle_key if link.key is None else link.key  # None: a trusted link
+        signed_v2 = len(raw) > _SIGNATURE_LEN and raw[0] == STX_V2 and bool(raw[2] & SIGNED)
+        if link.role is Role.TRUSTED and raw[0] == STX_V2 and not signed_v2:
+            raw = self._sign(raw, key)  # an unsigned v2 frame from a trusted tool
+        elif link.role is Role.GROUND and signed_v2 and raw[-_SIGNATURE_LEN] == self.sign_link_id:
+            raise WrongDirectionError(
+                f"wrong link: a frame this router signed (link id {self.sign_link_id}) "
+                "came back from a ground link"
+            )
+        verdict = self.inbound[key].open(raw)
+        if key != self.vehicle_key and verdict.signed:  # a ground link with its own key
+            return self.inbound[self.vehicle_key].open(self._sign(verdict.frame, self.vehicle_key))
+        return verdict
+
+    def _sign(self, frame: bytes | Frame, key: bytes) -> bytes:
+        """``frame`` signed by the router with ``key``; a frame it cannot sign is refused."""
+        signer = self.signers.get(key)
+        if signer is None:
+            raise InvalidFrameError("no timestamp source for this key: cannot sign")
+        try:
+            return sign_frame(frame, key, self.sign_link_id, signer)
+        except (ValueError, NonceExhaustedError) as exc:
+            raise InvalidFrameError(f"cannot sign on behalf: {exc}") from None
+
+    def _account(self, link: Link, peer: Peer | None, verdict: MavVerdict) -> None:
+        """Learn from an authenticated frame; count the stream (caller holds ``_lock``)."""
+        frame = verdict.frame
+        if verdict.signed:
+            if peer is not None:
+                link.peers[peer] = None
+                link.peers.move_to_end(peer)
+                if len(link.peers) > link.max_peers:
+                    link.peers.popitem(last=False)
+            table = self._routes.setdefault(frame.sysid, {})
+            table[frame.compid] = (link, peer)
+            self._routes.move_to_end(frame.sysid)
+            if len(self._routes) > self.max_routes:
+                self._routes.popitem(last=False)
+            others = [self.outbound] if link.role is not Role.VEHICLE else self.inbound.values()
+            for guard in others:
+                guard.refused_sources.add(frame.sysid)
+            key = (link.name, *verdict.stream)
+            streams = self.stats.streams
+            streams[key] = streams.get(key, 0) + 1
+            streams.move_to_end(key)
+            if len(streams) > self.max_stream_stats:
+                streams.popitem(last=False)
+
+    def _destinations(self, source: Link, frame: Frame) -> list[Location]:
+        """Where ``frame`` goes (module docstring); caller holds ``_lock``."""
+        system, component = target(frame)
+        if not system:
+            return [
+                (link, to) for link in self.links if link is not source for to in _receivers(link)
+            ]
+        table = self._routes.get(system, {})
+        seen = [where for where in table.values() if where[0] is not source]
+        exact = table.get(component) if component else None
+        if exact is not None and exact[0] is not source:
+            seen = [exact]
+        if seen:
+            return _unique(seen)
+        if source.role is Role.VEHICLE:
+            return []
+        return [
+            (link, to)
+            for link in self.links
+            if link.role is Role.VEHICLE
+            for to in _receivers(link)
+        ]
+
+    def _send(self, link: Link, to: Peer | None, frame: Frame) -> None:
+        """Write the judged frame (signed again where ``link`` has a key of its own)."""
+        data = frame.raw
+        if frame.signed and link.key is not None and link.key != self.vehicle_key:
+            try:
+                data = self._sign(frame, link.key)
+            except ReplayAttackError as exc:
+                self._refuse(OUTBOUND, link, exc.code, exc.reason, frame.raw)
+                return
+        if not link.transport.send(data, to):
+            direction = INBOUND if link.role is Role.VEHICLE else OUTBOUND
+            self.stats.dropped[f"{direction}:UNREACHABLE"] += 1
+
+    def _refuse(self, direction: str, link: Link, code: str, reason: str, raw: bytes) -> None:
+        self.stats.dropped[f"{direction}:{code}"] += 1
+        if self.on_reject is None:
+            return
+        try:
+            self.on_reject(Refusal(direction, link.name, str(code), reason, raw))
+        except AntiReplayError:  # an audit trail that is down must not stop the forwarding
+            self.stats.unaudited += 1
+
+
+def _receivers(link: Link) -> Iterable[Peer | None]:
+    """A fixed endpoint's one destination, or the peers that authenticated on it."""
+    return (None,) if link.transport.fixed else list(link.peers)
+
+
+def _unique(found: list[Location]) -> list[Location]:
+    out: list[Location] = []
+    for where in found:
+        if not any(where[0] is w[0] and where[1] == w[1] for w in out):
+            out.append(where)
+    return out

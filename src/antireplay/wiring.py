@@ -1,0 +1,269 @@
+"""Wiring: the one place that turns configuration into the Receiver and the MAVLink router.
+
+Theory of operation
+-------------------
+The adapters own transport and process lifetime only: :mod:`antireplay.gateway`
+speaks HTTP, :mod:`antireplay.cli` parses options, reports errors and waits for a
+signal.  What a configuration turns into is decided here, the same way for both:
+open the replay state, load the keys, open the audit trail, then build the policy
+object on them.
+
+* :func:`build_receiver` builds the gateway's :class:`~antireplay.pipeline.Receiver`
+  from :class:`~antireplay.config.AppConfig`: the key registry
+  (:func:`build_registry`), the JWT verifier when configured, the store (bounded and
+  skewed as ``security`` says) checked for data loss at boot (``verify()``: a store
+  that is down now is noticed on the first commit instead), and the audit trail.
+* :func:`build_mavlink_router` builds the MAVLink router from the ``mavlink-router``
+  options on an opened store and audit trail: its endpoints, an inbound guard per
+  key (bound to ``system_id``), the outbound guard, each on its own store prefix
+  (``mav-in``, ``mav-out``), a durable timestamp source per key the router signs
+  with, and the refusal handler (:func:`mavlink_auditor`), which logs why each
+  dropped frame was refused and records it with its direction and the source its
+  header claims (``mav:inbound:255/190``; unverified, so ``sender_verified`` is
+  false), rate-limited so that a flood of
+  garbage cannot grow the trail or the log without bound.
+  :func:`serve_router_metrics` exposes the router's counters to Prometheus.
+
+The MAVLink stack is imported only when a router is built, so the gateway does not
+load the MAVLink dialect.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from antireplay.audit import AuditLog
+from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key
+from antireplay.clock import Clock, resolve
+from antireplay.config import AppConfig
+from antireplay.errors import ConfigError, StateUnavailableError
+from antireplay.pipeline import Receiver, TokenBucket
+from antireplay.stores import ReplayStore, open_store
+
+if TYPE_CHECKING:
+    from prometheus_client.core import Metric
+
+    from antireplay.mavlink import MavlinkRouter, Refusal, Role
+
+#: Audit records and log lines per second for refused MAVLink frames (the rest are counted).
+MAVLINK_AUDIT_PER_S = 50.0
+log = logging.getLogger("antireplay.mavlink")
+
+
+def build_registry(config: AppConfig) -> KeyRegistry:
+    """The sender keys the configuration names, loaded (a bad key file is a ConfigError)."""
+    keys = KeyRegistry(sdk_compat=config.sdk_compat)
+    for entry in config.keys:
+        try:
+            loaded = tuple(load_public_key(Path(p).read_bytes()) for p in entry.public_keys)
+            keys.add(entry.kid, entry.owner, entry.alg, loaded, set(entry.scopes))
+        except (OSError, ValueError) as exc:
+            raise ConfigError(
+                f"keys.{entry.kid}.public_keys", entry.public_keys, str(exc)
+            ) from None
+    return keys
+
+
+def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
+    """Wire a Receiver from configuration: keys, store, audit, JWT."""
+    verifier = None
+    if config.jwt.keys or config.jwt.hs256_secret_env:
+        secret = os.environ.get(config.jwt.hs256_secret_env or "", "") or None
+        verifier = JwtVerifier(
+            {kid: load_public_key(Path(p).read_bytes()) for kid, p in config.jwt.keys.items()},
+            audience=config.jwt.audience,
+            issuer=config.jwt.issuer,
+            hs256_secret=secret.encode() if secret else None,
+            leeway_s=config.jwt.leeway_s,
+            clock=clock,
+        )
+    store = open_store(
+        config.store,
+        clock=clock,
+        max_entries=config.security.msg_id_cache_size,
+        skew_s=config.security.skew_s,
+    )
+    with contextlib.suppress(StateUnavailableError):  # down now: noticed on the first commit
+        store.verify()  # loss detection at boot, not on the first command
+    return Receiver(
+        config.security,
+        build_registry(config),
+        store,
+        AuditLog(config.audit),
+        clock,
+        jwt=verifier,
+        jwt_required=config.jwt.required,
+        versions=frozenset(config.versions),
+        max_bytes=config.max_body_bytes,
+    )
+
+
+def mavlink_auditor(audit: AuditLog, clock: Clock | None = None) -> Callable[[Refusal], None]:
+    """The router's ``on_reject``: one audit record and one log line per dropped frame,
+    rate-limited; the log line after a gap says how many refusals it left out."""
+    from antireplay.mavlink import claimed_source  # noqa: PLC0415 - module docstring
+
+    clock = resolve(clock)
+    bucket = TokenBucket(MAVLINK_AUDIT_PER_S, clock)
+    left_out = 0
+
+    def audit_reject(refusal: Refusal) -> None:
+        nonlocal left_out
+        if not bucket.take():
+            left_out += 1
+            return
+        source = claimed_source(refusal.raw)
+        claimed = "" if source is None else f":{source[0]}/{source[1]}"
+        audit.append(
+            at=clock.wall(), outcome="rejected", code=refusal.code, warning=None,
+            msg_type=None, sender=f"mav:{refusal.direction}{claimed}", sender_verified=False,
+            msg_id=None,
+        )  # fmt: skip
+        more = f" ({left_out} more refusals not logged)" if left_out else ""
+        left_out = 0
+        log.warning("%s%s", refusal, more)
+
+    return audit_reject
+
+
+@dataclass(frozen=True)
+class Allowed:
+    """Message ids one direction takes unsigned, and those of them it takes as MAVLink v1."""
+
+    unsigned: frozenset[int] = frozenset()
+    v1: frozenset[int] = frozenset()
+
+
+@dataclass(frozen=True)
+class RouterOptions:
+    """The ``mavlink-router`` knobs that shape its guards (see :class:`MavlinkGuard`)."""
+
+    system_id: int | None = None
+    to_vehicle: Allowed = Allowed()
+    from_vehicle: Allowed = Allowed()
+    reorder_window: int = 0
+    write_through: bool = False
+    max_forward_s: float = 60.0
+    new_stream_max_age_s: float = 60.0
+    sign_link_id: int = 251
+
+
+def build_mavlink_router(
+    endpoints: Sequence[tuple[Role, str, bytes | None]],
+    store: ReplayStore,
+    audit: AuditLog,
+    options: RouterOptions = RouterOptions(),
+) -> MavlinkRouter:
+    """The router on ``store``: ``endpoints`` are ``(role, connection string, key)``.
+
+    Guards: ``mav-out`` judges the vehicle's frames; ``mav-in`` judges frames to the
+    vehicle under the vehicle key, ``mav-in-<key fingerprint>`` those of a ground link
+    with a key of its own; the router's signatures take their timestamps from
+    ``mav-sign-<fingerprint>-<sign link id>`` (durable; two routers on one store sign
+    as different streams when their link ids differ).  Opens every endpoint now: ValueError for a
+    bad connection string, OSError for one that cannot be opened (those already
+    opened are closed again).
+    """
+    from antireplay.mavlink import (  # noqa: PLC0415 - module docstring
+        Link,
+        MavlinkGuard,
+        MavlinkRouter,
+        Role,
+        TimestampSource,
+        open_transport,
+        parse_endpoint,
+    )
+
+    specs = [(role, parse_endpoint(text), key) for role, text, key in endpoints]
+    vehicle_key = next((key for role, _, key in specs if role is Role.VEHICLE and key), None)
+    if vehicle_key is None:
+        raise ValueError("a MAVLink router needs a vehicle endpoint with a key")
+
+    def guard(prefix: str, vehicle: int | None, allowed: Allowed, key: bytes) -> MavlinkGuard:
+        return MavlinkGuard(
+            key, store=store, system_id=vehicle, allow_unsigned=allowed.unsigned,
+            allow_v1=allowed.v1, reorder_window=options.reorder_window,
+            write_through=options.write_through, store_prefix=prefix,
+            max_forward_s=options.max_forward_s,
+            new_stream_max_age_s=options.new_stream_max_age_s,
+        )  # fmt: skip
+
+    keys = {vehicle_key} | {key for role, _, key in specs if key and role is Role.GROUND}
+    names = {key: "" if key == vehicle_key else f"-{_fingerprint(key)}" for key in keys}
+    inbound = {
+        key: guard(f"mav-in{names[key]}", options.system_id, options.to_vehicle, key)
+        for key in keys
+    }
+    outbound = guard("mav-out", None, options.from_vehicle, vehicle_key)
+    signers = {
+        key: TimestampSource(
+            store=store, store_key=f"mav-sign-{_fingerprint(key)}-{options.sign_link_id}"
+        )
+        for key in keys
+    }
+    links: list[Link] = []
+    try:
+        for role, spec, key in specs:
+            links.append(Link(open_transport(spec), role, key))
+    except OSError:
+        for link in links:
+            link.transport.close()
+        raise
+    return MavlinkRouter(
+        links, inbound, outbound, signers=signers, sign_link_id=options.sign_link_id,
+        on_reject=mavlink_auditor(audit),
+    )  # fmt: skip
+
+
+def _fingerprint(key: bytes) -> str:
+    """A short public name for a key (store prefixes): not the key, not reversible."""
+    return hashlib.sha256(b"antireplay mavlink key" + key).hexdigest()[:12]
+
+
+def serve_router_metrics(router: MavlinkRouter, port: int) -> None:
+    """Serve the router's counters to Prometheus on loopback ``port``: frames forwarded
+    per direction, dropped per direction and code, accepted per stream."""
+    from prometheus_client import REGISTRY, start_http_server  # noqa: PLC0415
+    from prometheus_client.core import CounterMetricFamily  # noqa: PLC0415
+    from prometheus_client.registry import Collector  # noqa: PLC0415
+
+    class RouterCollector(Collector):
+        def collect(self) -> Iterator[Metric]:
+            stats = router.stats
+            forwarded = CounterMetricFamily(
+                "antireplay_mavlink_forwarded", "Frames forwarded", labels=["direction"]
+            )
+            for direction, n in list(stats.forwarded.items()):
+                forwarded.add_metric([direction], n)
+            dropped = CounterMetricFamily(
+                "antireplay_mavlink_dropped", "Frames dropped", labels=["direction", "code"]
+            )
+            for label, n in list(stats.dropped.items()):
+                direction, _, code = label.partition(":")
+                dropped.add_metric([direction, code], n)
+            streams = CounterMetricFamily(
+                "antireplay_mavlink_stream_frames",
+                "Authenticated frames accepted per stream",
+                labels=["endpoint", "system", "component", "link"],
+            )
+            for (endpoint, system, component, link_id), n in list(stats.streams.items()):
+                streams.add_metric([endpoint, str(system), str(component), str(link_id)], n)
+            unaudited = CounterMetricFamily(
+                "antireplay_mavlink_refusals_unaudited",
+                "Refused frames the audit trail could not record (it was down)",
+            )
+            unaudited.add_metric([], stats.unaudited)
+            yield forwarded
+            yield dropped
+            yield streams
+            yield unaudited
+
+    REGISTRY.register(RouterCollector())
+    start_http_server(port, addr="127.0.0.1")

@@ -1,0 +1,95 @@
+"""The wiring: what a configuration or the router's options turn into."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pytest
+
+from antireplay.audit import AuditLog
+from antireplay.clock import ManualClock
+from antireplay.mavlink import Refusal, Role, passphrase_key
+from antireplay.stores.memory import MemoryStore
+from antireplay.wiring import (
+    MAVLINK_AUDIT_PER_S,
+    Allowed,
+    RouterOptions,
+    build_mavlink_router,
+    mavlink_auditor,
+)
+
+
+def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    log = AuditLog(tmp_path / "audit.db")
+    clock = ManualClock()
+    audit = mavlink_auditor(log, clock)
+    frame = bytes([0xFD, 9, 0, 0, 0, 255, 190]) + bytes(14)
+    for _ in range(int(MAVLINK_AUDIT_PER_S) + 10):
+        audit(Refusal("inbound", "udpin:0.0.0.0:14550", "INVALID_FRAME", "x", frame))
+    clock.advance(2 / MAVLINK_AUDIT_PER_S)  # a token back (and a spare for rounding)
+    with caplog.at_level(logging.WARNING, logger="antireplay.mavlink"):
+        audit(Refusal("outbound", "/dev/ttyACM0,57600", "INVALID_FRAME", "x", b"\xfd\x00"))
+    records = log.tail(1_000)
+    log.close()
+    assert len(records) == MAVLINK_AUDIT_PER_S + 1
+    first, last = records[0], records[-1]
+    assert first.at == clock.wall() - 2 / MAVLINK_AUDIT_PER_S
+    assert (first.sender, first.sender_verified, first.code) == (
+        "mav:inbound:255/190",
+        False,
+        "INVALID_FRAME",
+    )
+    assert (first.outcome, first.warning) == ("rejected", None)
+    assert (last.sender, last.warning) == ("mav:outbound", None)
+    assert caplog.messages[-1] == (
+        "refused outbound frame on /dev/ttyACM0,57600: INVALID_FRAME: x "
+        "(10 more refusals not logged)"
+    )
+
+
+def test_mavlink_router_guards_per_key_and_direction(tmp_path: Path) -> None:
+    log = AuditLog(tmp_path / "audit.db")
+    vehicle_key, radio_key = bytes(32), passphrase_key("radio link")
+    options = RouterOptions(
+        system_id=7, to_vehicle=Allowed(frozenset({0, 109}), frozenset({109})),
+        from_vehicle=Allowed(frozenset({109})), reorder_window=16, write_through=True,
+        max_forward_s=5.0, new_stream_max_age_s=300.0,
+    )  # fmt: skip
+    router = build_mavlink_router(
+        [
+            (Role.VEHICLE, "udpout:127.0.0.1:9", vehicle_key),
+            (Role.GROUND, "udpin:127.0.0.1:0", vehicle_key),
+            (Role.GROUND, "udp:127.0.0.1:0", radio_key),
+            (Role.TRUSTED, "udpin:127.0.0.1:0", None),
+        ],
+        MemoryStore(),
+        log,
+        options,
+    )
+    try:
+        inbound, radio, outbound = (
+            router.inbound[vehicle_key],
+            router.inbound[radio_key],
+            router.outbound,
+        )
+        assert inbound.prefix == "mav-in" and outbound.prefix == "mav-out"
+        assert radio.prefix.startswith("mav-in-") and radio_key.hex()[:8] not in radio.prefix
+        assert (inbound.system_id, radio.system_id, outbound.system_id) == (7, 7, None)
+        assert inbound.allow_unsigned == frozenset({0, 109}) and inbound.allow_v1 == frozenset(
+            {109}
+        )
+        assert outbound.allow_unsigned == frozenset({109}) and outbound.allow_v1 == frozenset()
+        for guard in (inbound, radio, outbound):
+            assert guard.reorder_window == 16 and guard.write_through
+            assert guard.max_forward == 5 * 100_000 and guard.new_stream_max_age == 300 * 100_000
+        assert set(router.signers) == {vehicle_key, radio_key}
+        assert [link.role for link in router.links] == [
+            Role.VEHICLE, Role.GROUND, Role.GROUND, Role.TRUSTED,
+        ]  # fmt: skip
+    finally:
+        for link in router.links:
+            link.transport.close()
+        log.close()
