@@ -16,6 +16,13 @@ app and frames by ``Transfer-Encoding``; httptools refuses such requests
 itself.  Every audit record is committed (fsync) before the response is
 sent, so a graceful or abrupt shutdown loses no answered message's record.
 
+``POST /v1/messages`` is answered by the front middleware itself (no routing,
+no Request object), and a request holds a thread only while there is work for
+one: a byte-identical replay is refused on the event loop; parsing, the store
+read and the signature run in a few :class:`Workers`; the state commit and the
+audit row are group-committed and awaited on the loop
+(:meth:`~antireplay.pipeline.Receiver.receive_async`).
+
 With no configuration the gateway runs on the embedded default: SQLite state
 and audit under ``./.antireplay/`` and a generated demo key pair
 (:func:`embedded_default`).
