@@ -111,3 +111,16 @@ def test_b64_helper_turns_garbage_into_signature_invalid(receiver: Receiver, val
     body = json.loads(signed())
     body["sig"]["value"] = value
     assert codes(receiver.receive(json.dumps(body).encode())) == (False, 401, "SIGNATURE_INVALID")
+
+
+def test_an_unsigned_or_unknown_key_envelope_gets_its_own_code_beside_a_token(
+    jwt_receiver: Receiver,
+) -> None:
+    """One event, one code: a valid bearer token does not turn 'unsigned' or 'unknown key'
+    into AUTH_FAILED (which stays the code of a missing or bad token)."""
+    unsigned = json.dumps(message()).encode()
+    unknown = json.dumps(sign_envelope(message(), "nobody", "ed25519", ED)).encode()
+    bearer = {"Authorization": f"Bearer {token()}"}
+    assert jwt_receiver.receive(unsigned, bearer).code == "SIGNATURE_REQUIRED"
+    assert jwt_receiver.receive(unknown, bearer).code == "UNKNOWN_SENDER"
+    assert jwt_receiver.receive(unsigned).code == "AUTH_FAILED"  # the token is required here

@@ -49,7 +49,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, mldsa
 
 from antireplay.clock import Clock, resolve
-from antireplay.envelope import Envelope, canonical_bytes, parse, sdk_signed_bytes
+from antireplay.envelope import Envelope, Signature, canonical_bytes, parse, sdk_signed_bytes
 from antireplay.errors import (
     AuthFailedError,
     SignatureInvalidError,
@@ -143,15 +143,21 @@ class KeyRegistry:
         self.entries[kid] = entry
         return entry
 
-    def verify(self, env: Envelope) -> Signer:
-        """Verify ``env.sig``; raises ``SIGNATURE_REQUIRED``, ``UNKNOWN_SENDER`` or
-        ``SIGNATURE_INVALID`` (all 401)."""
+    def signing_key(self, env: Envelope) -> tuple[Signature, KeyEntry]:
+        """The signature block and the registered key it names (no cryptography); raises
+        ``SIGNATURE_REQUIRED`` (unsigned) or ``UNKNOWN_SENDER`` (key id not registered)."""
         sig = env.signature()
         if sig is None:
             raise SignatureRequiredError("message is not signed")
         entry = self.entries.get(sig.kid)
         if entry is None:
             raise UnknownSenderError("unknown signing key")
+        return sig, entry
+
+    def verify(self, env: Envelope) -> Signer:
+        """Verify ``env.sig``; raises ``SIGNATURE_REQUIRED``, ``UNKNOWN_SENDER`` or
+        ``SIGNATURE_INVALID`` (all 401)."""
+        sig, entry = self.signing_key(env)
         if sig.alg != entry.alg:
             raise SignatureInvalidError("signature algorithm does not match the key")
         parts = sig.value.split(".")

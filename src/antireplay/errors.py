@@ -107,6 +107,8 @@ class WarningCode(StrEnum):
     EPOCH_SENDER_ROTATED = "EPOCH_SENDER_ROTATED"
     #: A second DDS relay publishes under this relay's service name.
     DUPLICATE_SERVICE_NAME = "DUPLICATE_SERVICE_NAME"
+    #: The replay store may have lost data; a fence now refuses what it may have forgotten.
+    STATE_LOST = "STATE_LOST"
 
 
 #: COMMAND_NACK in the current canonical RCAN numbering; 31 was its number in RCAN v1.5/v1.6.

@@ -60,7 +60,14 @@ from antireplay.auth import write_key_pair
 from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig, KeyConfig
 from antireplay.envelope import encode
-from antireplay.errors import ConfigError, InvalidEnvelopeError, StateUnavailableError
+from antireplay.errors import (
+    ConfigError,
+    InvalidEnvelopeError,
+    PayloadTooLargeError,
+    ReplayAttackError,
+    StateUnavailableError,
+    UnsupportedMediaTypeError,
+)
 from antireplay.groupcommit import GroupCommitter
 from antireplay.pipeline import Outcome, Pending, Receiver
 from antireplay.wiring import build_receiver
@@ -277,36 +284,36 @@ async def _settle(receiver: Receiver, workers: Workers, pending: Pending) -> Out
 
 def _framing_refusal(
     ctype: bytes | None, length: bytes | None, limit: int
-) -> tuple[int, str] | None:
-    """Status and reason refusing the declared content type or length, ``None`` if fine."""
+) -> ReplayAttackError | None:
+    """The typed refusal of the declared content type or length, ``None`` if fine."""
     if (ctype or b"").decode("latin-1").split(";")[0].strip().lower() != "application/json":
-        return 415, "content-type must be application/json"
+        return UnsupportedMediaTypeError("content-type must be application/json")
     if length is None:
         return None
     declared = length.decode("latin-1")
     if not (declared.isascii() and declared.isdigit()):
-        return 400, "invalid content-length"
+        return InvalidEnvelopeError("invalid content-length")
     digits = declared.lstrip("0")
     if len(digits) > len(str(limit)) or (digits and int(digits) > limit):
-        return 413, f"body larger than {limit} bytes"
+        return PayloadTooLargeError(f"body larger than {limit} bytes")
     return None
 
 
-async def _body(receive: Receive, limit: int) -> bytes | int:
-    """The request body, or the status refusing it (413 too large, 400 disconnected)."""
+async def _body(receive: Receive, limit: int) -> bytes | ReplayAttackError:
+    """The request body, or its typed refusal (too large, client disconnected)."""
     chunks: list[bytes] = []
     size = 0
     while True:
         message = await receive()
         kind = message["type"]
         if kind == "http.disconnect":
-            return 400
+            return InvalidEnvelopeError("client disconnected")
         if kind != "http.request":
             continue
         chunk = message.get("body", b"")
         size += len(chunk)
         if size > limit:
-            return 413
+            return PayloadTooLargeError(f"body larger than {limit} bytes")
         chunks.append(chunk)
         if not message.get("more_body", False):
             return b"".join(chunks)
@@ -375,21 +382,20 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     nack_type = config.security.nack_type
     workers = Workers(4)
 
-    async def refuse(send: Send, status: int, reason: str) -> None:
-        """Transport-level refusals: the same NACK as the pipeline's, with the configured type."""
-        await _answer(send, status, InvalidEnvelopeError(reason).to_nack(None, nack_type=nack_type))
+    async def refuse(send: Send, error: ReplayAttackError) -> None:
+        """Transport-level refusals: the same NACK as the pipeline's, with the configured type;
+        the code decides the status (``errors.HTTP_STATUS``), as everywhere."""
+        await _answer(send, error.http_status, error.to_nack(None, nack_type=nack_type))
 
-    async def messages(  # noqa: PLR0911 - one answer per case
+    async def messages(
         scope: Scope, receive: Receive, send: Send, ctype: bytes | None, length: bytes | None
     ) -> None:
         refusal = _framing_refusal(ctype, length, limit)
         if refusal is not None:
-            return await refuse(send, *refusal)
+            return await refuse(send, refusal)
         raw = await _body(receive, limit)
-        if raw == 413:
-            return await refuse(send, 413, f"body larger than {limit} bytes")
         if not isinstance(raw, bytes):
-            return await refuse(send, 400, "client disconnected")
+            return await refuse(send, raw)
         started = ticker.monotonic()
         headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
         pending = await receiver.receive_async(raw, headers, workers)

@@ -5,13 +5,23 @@ Theory of operation
 :meth:`Receiver.receive` runs the steps cheapest first, so a replay is thrown
 away before any cryptography:
 
+0. a byte-identical copy of a message accepted here     -> REPLAY_DETECTED 409
+   (a bounded memo of accepted bodies, no parse, no
+   I/O; :meth:`Receiver.reject_known_copy`).  ESTOPs and
+   messages accepted with a warning never enter it, so
+   a fresh duplicate ESTOP still takes steps 1-7 and
+   keeps its exemption; a forgotten copy takes the full
+   path and is refused at step 3
 1. parse the envelope (size, depth, schema)              -> INVALID_ENVELOPE 400
 2. check the RCAN version                                -> VERSION_INCOMPATIBLE 426
 3. replay check: freshness + msg_id seen-set, the       -> MESSAGE_STALE 408 /
    store's fence and watermark                              REPLAY_DETECTED 409
    (:meth:`ReplayCache.check`, records nothing)
-4. JWT, if configured or presented                       -> AUTH_FAILED 401
-5. signature over the canonical envelope                 -> SIGNATURE_INVALID 401
+4. JWT, if configured or presented (an unsigned or      -> AUTH_FAILED 401
+   unknown-key envelope gets its own code, as at 5)
+5. signature over the canonical envelope                 -> SIGNATURE_REQUIRED /
+                                                            UNKNOWN_SENDER /
+                                                            SIGNATURE_INVALID 401
 6. authorization (scopes; SDK-compat field rule)         -> SCOPE_DENIED 403
 7. **commit**: the store's atomic record of the msg_id   -> REPLAY_DETECTED 409
    (:meth:`ReplayCache.commit`; two copies racing         MESSAGE_STALE 408
@@ -65,6 +75,7 @@ from antireplay.errors import (
     ScopeDeniedError,
     StateUnavailableError,
     VersionIncompatibleError,
+    WarningCode,
 )
 from antireplay.messages import MessageType
 from antireplay.replay import ReplayCache
@@ -344,10 +355,7 @@ class Receiver:
             return
         if self.jwt is None:
             raise AuthFailedError("bearer tokens are not accepted here")
-        sig = env.signature()
-        entry = self.keys.entries.get(sig.kid) if sig is not None else None
-        if entry is None:
-            raise AuthFailedError("token presented for an unknown signing key")
+        _, entry = self.keys.signing_key(env)  # unsigned or unknown key: its own code
         self.jwt.check(token, entry.owner)
 
     def _authorize(self, env: Envelope, signer: Signer) -> None:
@@ -405,7 +413,7 @@ class Receiver:
             return
         try:
             self.audit.append(
-                at=self.clock.wall(), outcome="state", code="STATE_LOST", warning=reason[:200],
+                at=self.clock.wall(), outcome="state", code=WarningCode.STATE_LOST, warning=reason[:200],
                 msg_type=None, sender=None, sender_verified=False, msg_id=None,
             )  # fmt: skip
         except StateUnavailableError:
