@@ -129,6 +129,8 @@ class Transport:
         """Write ``data`` to ``peer`` without waiting; False (and counted) if it was not."""
         try:
             self._write(data, peer)
+        except _StalledError:  # counted, and the peer hung up on
+            return False
         except OSError as exc:  # not connected: a client gone, a device or server down
             self._error("not_connected" if exc.errno == errno.ENOTCONN else "send", exc)
             return False
@@ -225,9 +227,13 @@ class UdpTransport(Transport):
                 self._deliver(self, None if self.fixed else sender, frames, skipped)
 
 
+class _StalledError(OSError):
+    """A peer that could not take a whole frame now: counted as ``stalled``, hung up on."""
+
+
 def _send_whole(sock: socket.socket, data: bytes) -> None:
-    """Send all of ``data`` now or none of it counts: OSError (``EAGAIN``) if the socket
-    took less (the caller disconnects it: the stream may hold part of a frame)."""
+    """Send all of ``data`` now; BlockingIOError if the socket took less (the caller
+    hangs up: the stream ends with part of this frame, never spliced into the next)."""
     sent = sock.send(data, socket.MSG_DONTWAIT)
     if sent != len(data):
         raise BlockingIOError(errno.EAGAIN, f"took {sent} of {len(data)} bytes")
@@ -257,7 +263,7 @@ class TcpClientTransport(Transport):
                 self._error("stalled", f"disconnected: it does not read ({exc.strerror})")
                 _hang_up(self._sock)
                 self._sock = None
-                raise
+                raise _StalledError from exc
 
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -315,7 +321,7 @@ class TcpServerTransport(Transport):
                 del self._clients[peer]
                 self._trusted.discard(peer)
                 _hang_up(client)
-                raise
+                raise _StalledError from exc
 
     def close(self) -> None:
         super().close()
