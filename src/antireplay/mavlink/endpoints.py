@@ -22,11 +22,12 @@ thread with a short timeout so that :meth:`Transport.close` returns promptly, an
 bounds what a flood can cost: one frame of buffer per reader, ``max_clients``
 TCP clients.
 
-**Never blocked by a peer.**  ``send`` runs in the thread that read the frame
-(another link's reader), so it never waits: TCP writes are non-blocking, and a
-peer whose socket cannot take the whole frame now is disconnected (counted as
-``stalled``) rather than sent part of a frame or waited for; a TCP ground station
-reconnects, the ``tcp`` client reconnects by itself.  **A full ``tcpin`` makes
+**Never blocked by a network peer.**  ``send`` runs in the thread that read the
+frame (another link's reader), so it does not wait: UDP and TCP writes are
+non-blocking, and a TCP peer whose socket cannot take the whole frame now is
+hung up on (counted as ``stalled``) rather than waited for or sent more after
+part of a frame; a TCP ground station reconnects, the ``tcp`` client reconnects
+by itself.  (A serial write waits for the local driver's buffer.)  **A full ``tcpin`` makes
 room**: the router calls :meth:`Transport.authenticated` for each peer that sent
 a frame it accepted, and a new client takes the slot of the client connected
 longest that never did (``clients_evicted``); only when every slot is
