@@ -224,6 +224,8 @@ def test_mavlink_router_key_and_allow_list_options(
     one_line_error(run(main, [*keyed, "--allow-unsigned", "NOPE"]), "NOPE", "RADIO_STATUS")
     one_line_error(run(main, [*keyed, "--vehicle", "serial0"]), "serial0")
     one_line_error(run(main, [*keyed, "--max-forward-s", "0"]), "--max-forward-s")
+    one_line_error(run(main, [*base, "--vehicle", "/dev/null,115200", "--passphrase-env",
+                              "MAV_PASS"]), "/dev/null,115200", "not a serial port")  # fmt: skip
     missing = str(tmp_path / "no-such-tty")
     one_line_error(run(main, ["mavlink-router", "--audit", str(tmp_path / "audit.db"), "--store",
                               "memory", "--vehicle", f"{missing},57600", "--passphrase-env",

@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import os
 import socket
+import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -13,6 +18,7 @@ import pytest
 os.environ["MAVLINK20"] = "1"  # pymavlink's mavutil speaks MAVLink 1 unless told otherwise
 from pymavlink import mavutil
 
+from antireplay.clock import SystemClock
 from antireplay.mavlink import (
     EndpointSpec,
     Link,
@@ -25,8 +31,16 @@ from antireplay.mavlink import (
     parse_endpoint,
     passphrase_key,
 )
+from antireplay.mavlink.codec import FrameReader, mav_time
+from antireplay.mavlink.endpoints import (
+    LOG_EVERY_S,
+    Peer,
+    TcpServerTransport,
+    Transport,
+)
+from antireplay.wiring import router_metrics
 from tests.harness import free_port, until
-from tests.mavlink_frames import KEY
+from tests.mavlink_frames import KEY, command_frame, encoder, unsigned_heartbeat
 from tests.test_mavlink_codec import v1_radio_status
 
 RADIO_KEY = passphrase_key("the radio link's own passphrase")
@@ -226,3 +240,233 @@ def test_vehicle_over_tcp_as_sitl_offers_it() -> None:
     finally:
         gcs.close()
         net.close()
+
+
+class Delivered:
+    """A transport's ``deliver``: what it handed over, frame by frame, with the peer."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[Peer | None, bytes]] = []
+
+    def __call__(self, _t: Transport, peer: Peer | None, frames: list[bytes], _s: int) -> None:
+        self.frames.extend((peer, frame) for frame in frames)
+
+
+def _thread_cpu_s(thread: threading.Thread) -> float:
+    assert thread.ident is not None
+    return time.clock_gettime(time.pthread_getcpuclockid(thread.ident))
+
+
+def _new_pty(link: Path) -> tuple[int, int]:
+    """A pty pair whose slave ``link`` names (as udev's /dev/serial/by-id/ links do);
+    the master does not block (nothing reads its echo)."""
+    master, slave = os.openpty()
+    os.set_blocking(master, False)
+    staged = link.with_name("staged")
+    staged.symlink_to(os.ttyname(slave))
+    staged.replace(link)
+    return master, slave
+
+
+def test_serial_device_that_goes_away_is_reopened_without_spinning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A flight controller that reboots closes its port: the reader counts one end of file,
+    logs it, closes the device and waits (no busy loop) until it comes back, then reads on."""
+    caplog.set_level(logging.INFO, logger="antireplay.mavlink")
+    device = tmp_path / "ttyFC"
+    master, slave = _new_pty(device)
+    transport = open_transport(parse_endpoint(f"{device},115200"))
+    delivered = Delivered()
+    transport.start(delivered)
+    frame = unsigned_heartbeat(1)
+    second: tuple[int, int] | None = None
+    try:
+        os.write(master, frame)
+        until("the first frame", lambda: delivered.frames == [(None, frame)])
+        os.close(master)
+        os.close(slave)
+        until("the end of file", lambda: transport.errors["eof"])
+        cpu = _thread_cpu_s(transport._threads[0])
+        until("four reopen attempts", lambda: transport.errors["reopen"] >= 4)  # 0.75 s
+        assert _thread_cpu_s(transport._threads[0]) - cpu < 0.1  # waiting, not spinning
+        assert transport.errors["eof"] == 1  # the closed device is not read again
+        assert not transport.send(frame, None)
+        assert transport.errors["not_connected"] == 1
+        second = _new_pty(device)
+
+        def arrived() -> bool:
+            with contextlib.suppress(BlockingIOError):  # the first may go before raw mode
+                os.write(second[0], frame)
+            return len(delivered.frames) > 1
+
+        until("a frame from the device that came back", arrived)
+        assert transport.send(frame, None)
+        lines = [r.getMessage() for r in caplog.records]
+        assert sum(": eof: " in line for line in lines) == 1
+        assert sum(": reopen: " in line for line in lines) == 1  # the rest rate-limited
+        assert f"{device},115200: opened again" in lines
+    finally:
+        transport.close()
+        for fd in second or ():
+            os.close(fd)
+
+
+def _stall(client: socket.socket, send: Callable[[bytes], bool], frame: bytes) -> float:
+    """Send ``frame`` to a peer that reads nothing until a send fails; how long the
+    failing send took."""
+    for _ in range(1_000_000):
+        start = time.perf_counter()
+        if not send(frame):
+            return time.perf_counter() - start
+    pytest.fail(f"{client} took every frame")
+
+
+def _stream_to_end(sock: socket.socket) -> FrameReader:
+    """Read ``sock`` to its end through a FrameReader (what a GCS's parser makes of it)."""
+    reader = FrameReader()
+    sock.settimeout(20)
+    while data := sock.recv(65_536):
+        reader.feed(data)
+    return reader
+
+
+def test_tcpin_client_that_does_not_read_is_dropped_without_blocking_the_sender() -> None:
+    """The router's send runs in another link's reader thread: a full client is never
+    waited for; it is disconnected (counted as stalled) and never gets a frame spliced
+    into another: at most a cut-short last one before the end of the stream."""
+    transport = open_transport(parse_endpoint("tcpin:127.0.0.1:0"))
+    delivered = Delivered()
+    transport.start(delivered)
+    client = socket.socket()
+    client.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    client.connect(transport.address)
+    try:
+        client.sendall(unsigned_heartbeat(255))
+        until("the client's frame", lambda: delivered.frames)
+        peer = delivered.frames[0][0]
+        big = command_frame(*encoder())
+        took = _stall(client, lambda frame: transport.send(frame, peer), big)
+        assert took < 0.15  # the old sendall waited out its 0.2 s timeout here
+        assert transport.errors == Counter({"stalled": 1})
+        reader = _stream_to_end(client)  # the server hung up
+        assert reader.skipped == 0 and reader.pending < len(big)
+        assert not transport.send(big, peer)
+        assert transport.errors["not_connected"] == 1
+    finally:
+        client.close()
+        transport.close()
+
+
+def test_tcp_vehicle_that_does_not_read_is_dropped_and_reconnected() -> None:
+    """``tcp:`` (the router as SITL's client): a server that stops reading is hung up on,
+    never waited for, and connected to again."""
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(20)
+    transport = open_transport(parse_endpoint(f"tcp:127.0.0.1:{server.getsockname()[1]}"))
+    transport.start(Delivered())
+    first, _ = server.accept()
+    try:
+        until("connected", lambda: transport.send(unsigned_heartbeat(1), None))
+        took = _stall(first, lambda frame: transport.send(frame, None), command_frame(*encoder()))
+        assert took < 0.15
+        assert transport.errors["stalled"] == 1
+        reader = _stream_to_end(first)
+        assert reader.skipped == 0
+        second, _ = server.accept()  # it came back
+        second.close()
+    finally:
+        first.close()
+        server.close()
+        transport.close()
+
+
+def _hung_up(sock: socket.socket) -> bool:
+    sock.settimeout(20)
+    with contextlib.suppress(ConnectionResetError):
+        return sock.recv(1) == b""
+    return True
+
+
+def test_full_tcpin_evicts_the_oldest_client_that_never_authenticated(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Idle connections cannot lock ground stations out: a newcomer to a full ``tcpin``
+    takes the slot of the oldest client that never sent a frame the router accepted;
+    when every client authenticated, the newcomer is refused.  All of it is counted in
+    the router's metrics and logged once per kind."""
+    ground = Link(
+        TcpServerTransport(parse_endpoint("tcpin:127.0.0.1:0"), max_clients=2), Role.GROUND, KEY
+    )
+    vehicle = Link(open_transport(parse_endpoint("udpout:127.0.0.1:9")), Role.VEHICLE, KEY)
+    router = MavlinkRouter([ground, vehicle], {KEY: MavlinkGuard(KEY)}, MavlinkGuard(KEY))
+    router.start()
+    address = ground.transport.address
+    now = mav_time(SystemClock())
+    clients: list[socket.socket] = []
+
+    def connect() -> socket.socket:
+        clients.append(socket.create_connection(address))
+        return clients[-1]
+
+    def authenticate(sock: socket.socket, sysid: int) -> None:
+        mav, sink = encoder(sysid, ts=now)
+        mav.heartbeat_send(6, 8, 0, 0, 0)
+        sock.sendall(sink.frames[-1])
+
+    try:
+        with caplog.at_level(logging.WARNING, logger="antireplay.mavlink"):
+            authenticate(connect(), 250)
+            until("the first GCS authenticated", lambda: len(ground.peers) == 1)
+            idle, newcomer = connect(), connect()
+            assert _hung_up(idle)  # the oldest unauthenticated client gave its slot
+            authenticate(newcomer, 251)
+            until("the newcomer authenticated", lambda: len(ground.peers) == 2)
+            late = connect()
+            assert _hung_up(late)  # every slot authenticated: refused
+            assert not _hung_up_now(clients[0]) and not _hung_up_now(newcomer)
+        errors = ground.transport.errors
+        assert (errors["clients_evicted"], errors["clients_refused"]) == (1, 1)
+        exported = {
+            (sample.labels["endpoint"], sample.labels["kind"]): sample.value
+            for family in router_metrics(router)
+            if family.name == "antireplay_mavlink_transport_errors"
+            for sample in family.samples
+        }
+        assert exported == {
+            (ground.name, "clients_evicted"): 1.0,
+            (ground.name, "clients_refused"): 1.0,
+        }
+        lines = [r.getMessage() for r in caplog.records]
+        assert sum("clients_evicted" in line for line in lines) == 1
+        assert sum("clients_refused" in line for line in lines) == 1
+    finally:
+        for sock in clients:
+            sock.close()
+        router.stop()
+
+
+def _hung_up_now(sock: socket.socket) -> bool:
+    sock.setblocking(False)
+    try:
+        return sock.recv(1) == b""
+    except BlockingIOError:
+        return False
+
+
+def test_transport_errors_are_logged_first_then_rate_limited(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """One line for the first error of a kind; later ones are counted, and the next line
+    (after ``LOG_EVERY_S``) says how many it left out."""
+    transport = Transport(parse_endpoint("udpout:127.0.0.1:9"))
+    with caplog.at_level(logging.WARNING, logger="antireplay.mavlink"):
+        for _ in range(3):
+            transport._error("send", "refused")
+        transport._logged["send"] = (time.monotonic() - LOG_EVERY_S, 1)  # a minute later
+        transport._error("send", "refused")
+    assert [r.getMessage() for r in caplog.records] == [
+        "udpout:127.0.0.1:9: send: refused",
+        "udpout:127.0.0.1:9: send: refused (2 more since the last line)",
+    ]
+    assert transport.errors["send"] == 4

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import socket
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,8 @@ from antireplay.wiring import (
     build_mavlink_router,
     mavlink_auditor,
 )
+from tests.harness import free_port
+from tests.mavlink_frames import KEY
 
 
 def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(
@@ -92,4 +95,26 @@ def test_mavlink_router_guards_per_key_and_direction(tmp_path: Path) -> None:
     finally:
         for link in router.links:
             link.transport.close()
+        log.close()
+
+
+def test_endpoint_that_is_not_a_serial_port_names_itself_and_closes_the_others(
+    tmp_path: Path,
+) -> None:
+    """``--vehicle /dev/null,115200``: an OSError naming the endpoint (no termios
+    traceback), and the ground port opened before it is free again."""
+    port = free_port()
+    log = AuditLog(tmp_path / "audit.db")
+    try:
+        with pytest.raises(OSError, match=r"\] /dev/null,115200: not a serial port \("):
+            build_mavlink_router(
+                [
+                    (Role.GROUND, f"tcpin:127.0.0.1:{port}", KEY),
+                    (Role.VEHICLE, "/dev/null,115200", KEY),
+                ],
+                MemoryStore(),
+                log,
+            )
+        socket.create_server(("127.0.0.1", port)).close()  # closed again
+    finally:
         log.close()

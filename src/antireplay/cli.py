@@ -768,7 +768,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
     except OSError as exc:
-        _fail(f"{' / '.join(text for _, text, _ in endpoints)}: {exc.strerror or exc}")
+        _fail(str(exc.strerror or exc))  # names the endpoint
     except ReplayAttackError as exc:
         _fail(f"--store {store_spec}: {exc}")
     if metrics_port is not None:

@@ -22,7 +22,8 @@ object on them.
   header claims (``mav:inbound:255/190``; unverified, so ``sender_verified`` is
   false), rate-limited so that a flood of
   garbage cannot grow the trail or the log without bound.
-  :func:`serve_router_metrics` exposes the router's counters to Prometheus.
+  :func:`serve_router_metrics` exposes the router's counters (:func:`router_metrics`)
+  to Prometheus.
 
 The MAVLink stack is imported only when a router is built, so the gateway does not
 load the MAVLink dialect.
@@ -167,9 +168,9 @@ def build_mavlink_router(
     vehicle under the vehicle key, ``mav-in-<key fingerprint>`` those of a ground link
     with a key of its own; the router's signatures take their timestamps from
     ``mav-sign-<fingerprint>-<sign link id>`` (durable; two routers on one store sign
-    as different streams when their link ids differ).  Opens every endpoint now: ValueError for a
-    bad connection string, OSError for one that cannot be opened (those already
-    opened are closed again).
+    as different streams when their link ids differ).  Opens every endpoint now: ValueError
+    for a bad connection string, OSError naming the one that cannot be opened (those
+    already opened are closed again).
     """
     from antireplay.mavlink import (  # noqa: PLC0415 - module docstring
         Link,
@@ -211,8 +212,11 @@ def build_mavlink_router(
     links: list[Link] = []
     try:
         for role, spec, key in specs:
-            links.append(Link(open_transport(spec), role, key))
-    except OSError:
+            try:
+                links.append(Link(open_transport(spec), role, key))
+            except OSError as exc:
+                raise OSError(exc.errno, f"{spec.text}: {exc.strerror or exc}") from exc
+    except BaseException:
         for link in links:
             link.transport.close()
         raise
@@ -228,42 +232,54 @@ def _fingerprint(key: bytes) -> str:
 
 
 def serve_router_metrics(router: MavlinkRouter, port: int) -> None:
-    """Serve the router's counters to Prometheus on loopback ``port``: frames forwarded
-    per direction, dropped per direction and code, accepted per stream."""
+    """Serve :func:`router_metrics` to Prometheus on loopback ``port``."""
     from prometheus_client import REGISTRY, start_http_server  # noqa: PLC0415
-    from prometheus_client.core import CounterMetricFamily  # noqa: PLC0415
     from prometheus_client.registry import Collector  # noqa: PLC0415
 
     class RouterCollector(Collector):
         def collect(self) -> Iterator[Metric]:
-            stats = router.stats
-            forwarded = CounterMetricFamily(
-                "antireplay_mavlink_forwarded", "Frames forwarded", labels=["direction"]
-            )
-            for direction, n in list(stats.forwarded.items()):
-                forwarded.add_metric([direction], n)
-            dropped = CounterMetricFamily(
-                "antireplay_mavlink_dropped", "Frames dropped", labels=["direction", "code"]
-            )
-            for label, n in list(stats.dropped.items()):
-                direction, _, code = label.partition(":")
-                dropped.add_metric([direction, code], n)
-            streams = CounterMetricFamily(
-                "antireplay_mavlink_stream_frames",
-                "Authenticated frames accepted per stream",
-                labels=["endpoint", "system", "component", "link"],
-            )
-            for (endpoint, system, component, link_id), n in list(stats.streams.items()):
-                streams.add_metric([endpoint, str(system), str(component), str(link_id)], n)
-            unaudited = CounterMetricFamily(
-                "antireplay_mavlink_refusals_unaudited",
-                "Refused frames the audit trail could not record (it was down)",
-            )
-            unaudited.add_metric([], stats.unaudited)
-            yield forwarded
-            yield dropped
-            yield streams
-            yield unaudited
+            return iter(router_metrics(router))
 
     REGISTRY.register(RouterCollector())
     start_http_server(port, addr="127.0.0.1")
+
+
+def router_metrics(router: MavlinkRouter) -> list[Metric]:
+    """The router's counters now: frames forwarded per direction, dropped per direction
+    and code, accepted per stream, refusals left unaudited, transport errors per
+    endpoint and kind."""
+    from prometheus_client.core import CounterMetricFamily  # noqa: PLC0415
+
+    stats = router.stats
+    forwarded = CounterMetricFamily(
+        "antireplay_mavlink_forwarded", "Frames forwarded", labels=["direction"]
+    )
+    for direction, n in list(stats.forwarded.items()):
+        forwarded.add_metric([direction], n)
+    dropped = CounterMetricFamily(
+        "antireplay_mavlink_dropped", "Frames dropped", labels=["direction", "code"]
+    )
+    for label, n in list(stats.dropped.items()):
+        direction, _, code = label.partition(":")
+        dropped.add_metric([direction, code], n)
+    streams = CounterMetricFamily(
+        "antireplay_mavlink_stream_frames",
+        "Authenticated frames accepted per stream",
+        labels=["endpoint", "system", "component", "link"],
+    )
+    for (endpoint, system, component, link_id), n in list(stats.streams.items()):
+        streams.add_metric([endpoint, str(system), str(component), str(link_id)], n)
+    unaudited = CounterMetricFamily(
+        "antireplay_mavlink_refusals_unaudited",
+        "Refused frames the audit trail could not record (it was down)",
+    )
+    unaudited.add_metric([], stats.unaudited)
+    transport = CounterMetricFamily(
+        "antireplay_mavlink_transport_errors",
+        "Transport errors per endpoint and kind (connect, send, stalled, eof, reopen, ...)",
+        labels=["endpoint", "kind"],
+    )
+    for link in router.links:
+        for kind, n in list(link.transport.errors.items()):
+            transport.add_metric([link.name, kind], n)
+    return [forwarded, dropped, streams, unaudited, transport]

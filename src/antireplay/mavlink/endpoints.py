@@ -20,17 +20,37 @@ peers may receive is the router's: a peer is learned only from an authenticated
 frame (:mod:`antireplay.mavlink.router`).  Every transport reads in its own
 thread with a short timeout so that :meth:`Transport.close` returns promptly, and
 bounds what a flood can cost: one frame of buffer per reader, ``max_clients``
-TCP clients (more are closed at once and counted).
+TCP clients.
+
+**Never blocked by a network peer.**  ``send`` runs in the thread that read the
+frame (another link's reader), so it does not wait: UDP and TCP writes are
+non-blocking, and a TCP peer whose socket cannot take the whole frame now is
+hung up on (counted as ``stalled``) rather than waited for or sent more after
+part of a frame; a TCP ground station reconnects, the ``tcp`` client reconnects
+by itself.  (A serial write waits for the local driver's buffer.)  **A full ``tcpin`` makes
+room**: the router calls :meth:`Transport.authenticated` for each peer that sent
+a frame it accepted, and a new client takes the slot of the client connected
+longest that never did (``clients_evicted``); only when every slot is
+authenticated is the newcomer refused (``clients_refused``).  **A serial device
+that goes away** (flight controller reboot, USB unplugged) reads as end of file:
+counted (``eof``), closed, and opened again with a backoff of
+``REOPEN_S`` doubling to ``REOPEN_MAX_S`` (``reopen``: failed attempts) until
+it is back.  Every such event is counted in :attr:`Transport.errors` per kind
+(exported as ``antireplay_mavlink_transport_errors_total``) and logged, the
+first of each kind at once, then at most once per ``LOG_EVERY_S`` per kind.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import logging
 import os
 import select
 import socket
 import termios
 import threading
+import time
 import tty
 from collections import Counter
 from collections.abc import Callable
@@ -44,7 +64,10 @@ Peer = tuple[str, int] | int
 #: ``deliver(transport, peer, frames, skipped_bytes)``: what a transport hands the router.
 Deliver = Callable[["Transport", Peer | None, list[bytes], int], None]
 DEFAULT_BAUD = 57_600
+REOPEN_S, REOPEN_MAX_S = 0.05, 2.0  # a serial device's reopen backoff: first, longest
+LOG_EVERY_S = 60.0  # one log line per endpoint and error kind at most this often
 _POLL_S = 0.2  # read timeout: how soon a reader notices close()
+log = logging.getLogger("antireplay.mavlink")
 
 
 @dataclass(frozen=True)
@@ -86,7 +109,9 @@ class Transport:
         self.spec = spec
         #: Whether the endpoint has a destination of its own (``send`` to peer ``None``).
         self.fixed = fixed
+        #: Transport errors per kind (module docstring), for metrics.
         self.errors: Counter[str] = Counter()
+        self._logged: dict[str, tuple[float, int]] = {}  # kind: (when logged, count then)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._deliver: Deliver | None = None
@@ -102,13 +127,18 @@ class Transport:
         self._spawn(self._run)
 
     def send(self, data: bytes, peer: Peer | None) -> bool:
-        """Write ``data`` to ``peer``; False (and counted) if it could not be written."""
+        """Write ``data`` to ``peer`` without waiting; False (and counted) if it was not."""
         try:
             self._write(data, peer)
-        except OSError:
-            self.errors["send"] += 1
+        except _StalledError:  # counted, and the peer hung up on
+            return False
+        except OSError as exc:  # not connected: a client gone, a device or server down
+            self._error("not_connected" if exc.errno == errno.ENOTCONN else "send", exc)
             return False
         return True
+
+    def authenticated(self, peer: Peer) -> None:
+        """The router accepted a frame from ``peer`` (a ``tcpin`` client keeps its slot)."""
 
     def _write(self, data: bytes, peer: Peer | None) -> None:
         """Write ``data`` to ``peer`` or raise OSError."""
@@ -116,7 +146,7 @@ class Transport:
 
     def close(self) -> None:
         self._stop.set()
-        for thread in self._threads:
+        for thread in list(self._threads):
             thread.join(timeout=5)
 
     def _run(self) -> None:
@@ -124,7 +154,7 @@ class Transport:
 
     def _spawn(self, target: Callable[[], None]) -> None:
         thread = threading.Thread(target=target, daemon=True, name=f"mavlink {self.spec.text}")
-        self._threads.append(thread)
+        self._threads = [*(t for t in self._threads if t.is_alive()), thread]
         thread.start()
 
     def _hand(self, peer: Peer | None, reader: FrameReader, data: bytes) -> None:
@@ -133,6 +163,19 @@ class Transport:
         if (frames or skipped) and self._deliver is not None:
             self._deliver(self, peer, frames, skipped)
 
+    def _error(self, kind: str, detail: object, level: int = logging.WARNING) -> None:
+        """Count an error of ``kind``; log the first at once, then one line per
+        ``LOG_EVERY_S`` saying how many came since."""
+        self.errors[kind] += 1
+        now = time.monotonic()
+        last = self._logged.get(kind)
+        if last is not None and now - last[0] < LOG_EVERY_S:
+            return
+        since = self.errors[kind] - (last[1] if last else 0) - 1
+        more = f" ({since} more since the last line)" if since else ""
+        self._logged[kind] = (now, self.errors[kind])
+        log.log(level, "%s: %s: %s%s", self.spec.text, kind, detail, more)
+
 
 class UdpTransport(Transport):
     """``udpin`` (bound; answers peers the router names) or ``udpout`` (a fixed address)."""
@@ -140,10 +183,14 @@ class UdpTransport(Transport):
     def __init__(self, spec: EndpointSpec) -> None:
         super().__init__(spec, fixed=spec.kind == "udpout")
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        if self.fixed:
-            self.sock.connect((spec.host, spec.port))
-        else:
-            self.sock.bind((spec.host, spec.port))
+        try:
+            if self.fixed:
+                self.sock.connect((spec.host, spec.port))
+            else:
+                self.sock.bind((spec.host, spec.port))
+        except OSError:
+            self.sock.close()
+            raise
         self.sock.settimeout(_POLL_S)
 
     @property
@@ -153,9 +200,9 @@ class UdpTransport(Transport):
 
     def _write(self, data: bytes, peer: Peer | None) -> None:
         if isinstance(peer, tuple):
-            self.sock.sendto(data, peer)
+            self.sock.sendto(data, socket.MSG_DONTWAIT, peer)
         else:
-            self.sock.send(data)
+            self.sock.send(data, socket.MSG_DONTWAIT)
 
     def close(self) -> None:
         super().close()
@@ -169,13 +216,34 @@ class UdpTransport(Transport):
                 continue
             except (ConnectionRefusedError, ConnectionResetError):
                 continue  # udpout: nobody listens there yet (ICMP port unreachable)
-            except OSError:
-                return
+            except OSError as exc:
+                if not self._stop.is_set():
+                    self._error("read", exc)
+                    self._stop.wait(_POLL_S)
+                continue
             reader = FrameReader()  # a datagram is judged alone: leftovers are garbage
             frames = reader.feed(datagram)
             skipped = reader.skipped + reader.pending
             if self._deliver is not None:
                 self._deliver(self, None if self.fixed else sender, frames, skipped)
+
+
+class _StalledError(OSError):
+    """A peer that could not take a whole frame now: counted as ``stalled``, hung up on."""
+
+
+def _send_whole(sock: socket.socket, data: bytes) -> None:
+    """Send all of ``data`` now; BlockingIOError if the socket took less (the caller
+    hangs up: the stream ends with part of this frame, never spliced into the next)."""
+    sent = sock.send(data, socket.MSG_DONTWAIT)
+    if sent != len(data):
+        raise BlockingIOError(errno.EAGAIN, f"took {sent} of {len(data)} bytes")
+
+
+def _hang_up(sock: socket.socket) -> None:
+    """End a connection another thread reads: its ``recv`` sees the end and closes it."""
+    with contextlib.suppress(OSError):
+        sock.shutdown(socket.SHUT_RDWR)
 
 
 class TcpClientTransport(Transport):
@@ -189,36 +257,45 @@ class TcpClientTransport(Transport):
     def _write(self, data: bytes, peer: Peer | None) -> None:
         with self._lock:
             if self._sock is None:
-                raise OSError("not connected")
-            self._sock.sendall(data)
+                raise OSError(errno.ENOTCONN, "not connected")
+            try:
+                _send_whole(self._sock, data)
+            except BlockingIOError as exc:
+                self._error("stalled", f"disconnected: it does not read ({exc.strerror})")
+                _hang_up(self._sock)
+                self._sock = None
+                raise _StalledError from exc
 
     def _run(self) -> None:
         while not self._stop.is_set():
             try:
                 sock = socket.create_connection((self.spec.host, self.spec.port), timeout=_POLL_S)
-            except OSError:
-                self.errors["connect"] += 1
+            except OSError as exc:
+                self._error("connect", exc)
                 self._stop.wait(1.0)  # the autopilot or router is not up yet
                 continue
-            sock.settimeout(_POLL_S)
+            sock.setblocking(False)
             with self._lock:
                 self._sock = sock
             _read_stream(sock, self._stop, partial(self._hand, None, FrameReader()))
             with self._lock:
                 self._sock = None
             sock.close()
+            if not self._stop.is_set():
+                self._error("eof", "connection lost; reconnecting")
 
 
 class TcpServerTransport(Transport):
     """``tcpin:HOST:PORT``: each client is a peer (its connection number); at most
-    ``max_clients`` at once, more are closed at once and counted."""
+    ``max_clients`` at once (module docstring: a full server makes room)."""
 
     def __init__(self, spec: EndpointSpec, max_clients: int = 16) -> None:
         super().__init__(spec, fixed=False)
         self.max_clients = max_clients
         self.server = socket.create_server((spec.host, spec.port))
         self.server.settimeout(_POLL_S)
-        self._clients: dict[int, socket.socket] = {}
+        self._clients: dict[int, socket.socket] = {}  # in connection order
+        self._trusted: set[int] = set()  # clients that sent a frame the router accepted
         self._next = 0
         self._lock = threading.Lock()
 
@@ -227,11 +304,25 @@ class TcpServerTransport(Transport):
         host, port = self.server.getsockname()[:2]
         return str(host), int(port)
 
+    def authenticated(self, peer: Peer) -> None:
+        if isinstance(peer, int):
+            with self._lock:
+                if peer in self._clients:
+                    self._trusted.add(peer)
+
     def _write(self, data: bytes, peer: Peer | None) -> None:
-        client = self._clients.get(peer) if isinstance(peer, int) else None
-        if client is None:
-            raise OSError("client gone")
-        client.sendall(data)
+        with self._lock:  # never held long: the send does not wait
+            client = self._clients.get(peer) if isinstance(peer, int) else None
+            if client is None or not isinstance(peer, int):
+                raise OSError(errno.ENOTCONN, "client gone")
+            try:
+                _send_whole(client, data)
+            except BlockingIOError as exc:
+                self._error("stalled", f"client {peer} disconnected: it does not read ({exc})")
+                del self._clients[peer]
+                self._trusted.discard(peer)
+                _hang_up(client)
+                raise _StalledError from exc
 
     def close(self) -> None:
         super().close()
@@ -246,73 +337,142 @@ class TcpServerTransport(Transport):
             except OSError:
                 return
             with self._lock:
-                if len(self._clients) >= self.max_clients:
-                    self.errors["clients_refused"] += 1
+                if len(self._clients) >= self.max_clients and not self._make_room():
+                    self._error("clients_refused", f"{self.max_clients} clients, all authenticated")
                     client.close()
                     continue
+                client.setblocking(False)
                 self._next += 1
                 number = self._next
                 self._clients[number] = client
-            client.settimeout(_POLL_S)
             self._spawn(partial(self._serve, client, number))
+
+    def _make_room(self) -> bool:
+        """Disconnect the oldest client that never authenticated (caller holds ``_lock``)."""
+        idle = next((n for n in self._clients if n not in self._trusted), None)
+        if idle is None:
+            return False
+        self._error("clients_evicted", f"client {idle} never authenticated: gave its slot")
+        _hang_up(self._clients.pop(idle))
+        return True
 
     def _serve(self, client: socket.socket, number: int) -> None:
         _read_stream(client, self._stop, partial(self._hand, number, FrameReader()))
         with self._lock:
-            self._clients.pop(number, None)
+            if self._clients.get(number) is client:
+                del self._clients[number]
+            self._trusted.discard(number)
         client.close()
 
 
 class SerialTransport(Transport):
-    """A serial device (a flight controller's USB or telemetry port), raw at ``baud``."""
+    """A serial device (a flight controller's USB or telemetry port), raw at ``baud``;
+    opened again when it comes back after going away (module docstring)."""
 
     def __init__(self, spec: EndpointSpec) -> None:
         super().__init__(spec)
-        self.fd = os.open(spec.host, os.O_RDWR | os.O_NOCTTY)
+        self.fd: int | None = self._open()
+        self._lock = threading.Lock()
+
+    def _open(self) -> int:
+        """Open and configure the device; OSError (naming it) if it cannot be."""
+        fd = os.open(self.spec.host, os.O_RDWR | os.O_NOCTTY)
         try:
-            tty.setraw(self.fd)
-            attrs = termios.tcgetattr(self.fd)
-            speed = getattr(termios, f"B{spec.port}")
+            tty.setraw(fd)
+            attrs = termios.tcgetattr(fd)
+            speed = getattr(termios, f"B{self.spec.port}")
             attrs[4] = attrs[5] = speed  # ispeed, ospeed
             attrs[2] |= termios.CLOCAL | termios.CREAD
-            termios.tcsetattr(self.fd, termios.TCSANOW, attrs)
-        except (termios.error, OSError):
-            os.close(self.fd)
+            termios.tcsetattr(fd, termios.TCSANOW, attrs)
+        except termios.error as exc:
+            os.close(fd)
+            code, reason = exc.args
+            raise OSError(code, f"not a serial port ({reason})", self.spec.host) from None
+        except OSError:
+            os.close(fd)
             raise
-        self._lock = threading.Lock()
+        return fd
 
     def _write(self, data: bytes, peer: Peer | None) -> None:
         view = memoryview(data)
         with self._lock:
+            if self.fd is None:
+                raise OSError(errno.ENOTCONN, "device gone; reopening")
             while view:
                 view = view[os.write(self.fd, view) :]
 
     def close(self) -> None:
         super().close()
-        with contextlib.suppress(OSError):
-            os.close(self.fd)
+        with self._lock:
+            fd, self.fd = self.fd, None
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
 
     def _run(self) -> None:
-        reader = FrameReader()
+        delay = REOPEN_S
+        while not self._stop.is_set():
+            fd = self.fd
+            if fd is None:
+                return
+            if self._read(fd):
+                delay = REOPEN_S  # it worked for a while: the next outage starts afresh
+            with self._lock:
+                self.fd = None
+            with contextlib.suppress(OSError):
+                os.close(fd)
+            delay = self._reopen(delay)
+
+    def _read(self, fd: int) -> bool:
+        """Read until the device goes away (counted as ``eof`` or ``read``) or ``close()``;
+        True if anything was read."""
+        reader, got = FrameReader(), False
         while not self._stop.is_set():
             try:
-                ready, _, _ = select.select([self.fd], [], [], _POLL_S)
-                if not ready:
-                    continue
-                data = os.read(self.fd, 4096)
-            except OSError:
-                self.errors["read"] += 1
-                return  # the device went away (unplugged); the router counts nothing more
+                ready, _, _ = select.select([fd], [], [], _POLL_S)
+                data = os.read(fd, 4096) if ready else None
+            except OSError as exc:
+                gone = exc.errno in {errno.EIO, errno.ENXIO, errno.ENODEV}
+                self._error("eof" if gone else "read", f"{exc}; reopening")
+                break
+            if data == b"":  # the other side of a pty closed; a USB device unplugged
+                self._error("eof", "the device went away; reopening")
+                break
             if data:
+                got = True
                 self._hand(None, reader, data)
+        if reader.pending and self._deliver is not None:  # a frame cut short: garbage
+            self._deliver(self, None, [], reader.pending)
+        return got
+
+    def _reopen(self, delay: float) -> float:
+        """Open the device again after ``delay``, doubling to ``REOPEN_MAX_S`` between
+        attempts; the delay to wait after the next loss."""
+        while not self._stop.wait(delay):
+            delay = min(2 * delay, REOPEN_MAX_S)
+            try:
+                fd = self._open()
+            except OSError as exc:
+                self._error("reopen", exc)
+                continue
+            with self._lock:
+                self.fd = fd
+            log.info("%s: opened again", self.spec.text)
+            break
+        return delay
 
 
 def _read_stream(sock: socket.socket, stop: threading.Event, hand: Callable[[bytes], None]) -> None:
-    """Read a TCP connection until it closes or ``stop`` is set."""
+    """Read a non-blocking TCP connection until it closes or ``stop`` is set (non-blocking,
+    so that a send from another thread never waits either)."""
+    poller = select.poll()
+    poller.register(sock, select.POLLIN)
     while not stop.is_set():
+        if not poller.poll(_POLL_S * 1000):
+            continue
         try:
             data = sock.recv(65_536)
-        except TimeoutError:
+        except BlockingIOError:
             continue
         except OSError:
             return

@@ -283,6 +283,7 @@ class MavlinkRouter:
             if peer is not None:
                 link.peers[peer] = None
                 link.peers.move_to_end(peer)
+                link.transport.authenticated(peer)
                 if len(link.peers) > link.max_peers:
                     link.peers.popitem(last=False)
             table = self._routes.setdefault(frame.sysid, {})
