@@ -413,8 +413,9 @@ class Receiver:
             return
         try:
             self.audit.append(
-                at=self.clock.wall(), outcome="state", code=WarningCode.STATE_LOST, warning=reason[:200],
-                msg_type=None, sender=None, sender_verified=False, msg_id=None,
+                at=self.clock.wall(), outcome="state", code=WarningCode.STATE_LOST,
+                warning=reason[:200], msg_type=None, sender=None, sender_verified=False,
+                msg_id=None,
             )  # fmt: skip
         except StateUnavailableError:
             self.stats.audit_failures += 1
