@@ -173,7 +173,7 @@ def test_telemetry_both_ways_is_hmac_in_one_chunk(link: Link) -> None:
     link.up([frame])
     assert link.delivered == [beat]  # byte for byte
     attitude = plain(lambda m: m.attitude_send(1, 0.1, 0.2, 0.3, 0, 0, 0), sysid=1)
-    air = link.vehicle.from_fc(attitude)
+    air = link.vehicle.from_local(attitude)
     assert len(air) == 1
     link.down(air)
     assert link.telemetry == [attitude]
@@ -365,7 +365,7 @@ def test_vehicle_end_restart_the_ground_end_handshakes_again(
 
 
 def test_forged_hint_is_ignored_while_telemetry_flows(link: Link) -> None:
-    link.down(link.vehicle.from_fc(plain(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), sysid=1)))
+    link.down(link.vehicle.from_local(plain(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), sysid=1)))
     session = link.ground.session
     assert link.ground.from_air(link.vehicle.hint()[0]).air == []
     assert link.ground.session is session

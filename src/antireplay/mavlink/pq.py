@@ -550,7 +550,7 @@ class VehicleEnd:
         self._hinted = now
         return [status_frame(STATUS_NO_SESSION, self.sender.sysid, self.sender.compid)]
 
-    def from_fc(self, raw: bytes) -> list[bytes]:
+    def from_local(self, raw: bytes) -> list[bytes]:
         """Wrap one telemetry frame from the flight controller (dropped with no session)."""
         frame = _parse(raw)
         if self.current is None:

@@ -1,0 +1,294 @@
+"""The post-quantum carriage through a real MAVProxy: ground station -> ground end -> MAVProxy
+-> vehicle end -> a pymavlink vehicle on a serial pseudo-terminal, and back.
+
+MAVProxy (from PyPI, headless, no signing, no dialect of ours) forwards the ``PQ_CHUNK``
+messages as unknown messages, untouched.  An attacker sends straight to the vehicle end's
+air port what it captured on the air (the ground end's ``tap``).  Every wait polls an
+observable event under a deadline.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import socket
+import subprocess
+import sys
+import threading
+import tty
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from antireplay.mavlink.codec import parse_frame
+from antireplay.mavlink.endpoints import open_transport, parse_endpoint
+from antireplay.mavlink.pq import (
+    DIALECT,
+    MSG_CHUNK,
+    GroundEnd,
+    Kind,
+    VehicleEnd,
+    pack_v2,
+    parse_chunk,
+)
+from antireplay.mavlink.pq_link import PqLink
+from antireplay.session import Initiator, Responder
+from tests.harness import free_port, until
+
+GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
+ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
+ARM, SERVO = 400, 183
+
+
+class PlainPtyVehicle:
+    """A pymavlink vehicle (system 1) on a pseudo-terminal, unsigned: the vehicle end is
+    its only link, so whatever reaches it passed the post-quantum checks."""
+
+    def __init__(self) -> None:
+        self.master, self.slave = os.openpty()
+        tty.setraw(self.slave)
+        self.device = os.ttyname(self.slave)
+        self.mav = dialect.MAVLink(self, srcSystem=1, srcComponent=1)
+        self.received: list[Any] = []
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._threads = [threading.Thread(target=self._read), threading.Thread(target=self._beat)]
+        for thread in self._threads:
+            thread.start()
+
+    def write(self, data: bytes) -> None:
+        os.write(self.master, data)
+
+    def commands(self, command: int) -> list[Any]:
+        return [
+            m for m in list(self.received)
+            if m.get_type() == "COMMAND_LONG" and m.command == command
+        ]  # fmt: skip
+
+    def _beat(self) -> None:
+        while not self._stop.wait(0.05):  # telemetry at 20 Hz
+            with self._lock:
+                self.mav.heartbeat_send(2, 3, 0, 0, 4)
+                self.mav.attitude_send(1, 0.1, 0.2, 0.3, 0, 0, 0)
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.master], [], [], 0.1)
+            if not ready:
+                continue
+            try:
+                data = os.read(self.master, 4096)
+            except OSError:
+                return
+            for msg in self.mav.parse_buffer(data) or []:
+                if msg.get_type() != "BAD_DATA":
+                    self.received.append(msg)
+
+    def close(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join()
+        os.close(self.master)
+        os.close(self.slave)
+
+
+def mavproxy(home: Path, master: str, out: str) -> subprocess.Popen[bytes]:
+    """MAVProxy, headless, with no key and no dialect of ours."""
+    script = Path(sys.executable).parent / "mavproxy.py"
+    if not script.exists():
+        pytest.fail(f"MAVProxy is not installed ({script}): pip install -e '.[dev]'")
+    args = [
+        "--master", master, "--out", out, "--daemon", "--non-interactive", "--no-state",
+        "--default-modules", "link", "--source-system", "254", "--source-component", "190",
+    ]  # fmt: skip
+    return subprocess.Popen(
+        [sys.executable, str(script), *args],
+        env=dict(os.environ, HOME=str(home)),
+        cwd=home,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+
+
+class Setup:
+    """GCS -> ground end -> MAVProxy -> vehicle end -> pty vehicle, an attacker on the air."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.vehicle = PlainPtyVehicle()
+        self.ground_port, self.proxy_port, self.air_port = free_port(), free_port(), free_port()
+        self.captured: list[bytes] = []  # every frame the ground end put on the air
+        self.vehicle_link = self.start_vehicle_end()
+        self.ground_link = self.start_ground_end()
+        self.proxy = mavproxy(
+            tmp, f"udpout:127.0.0.1:{self.air_port}", f"udpin:127.0.0.1:{self.proxy_port}"
+        )
+        self.gcs = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{self.ground_port}", source_system=255, source_component=190
+        )
+        self.attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._stop = threading.Event()
+        self._beat = threading.Thread(target=self._gcs_beat)
+        self._beat.start()
+
+    def start_vehicle_end(self) -> PqLink:
+        self.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, max_sessions=4)
+        link = PqLink(
+            VehicleEnd(self.responder),
+            open_transport(parse_endpoint(f"{self.vehicle.device},57600")),
+            open_transport(parse_endpoint(f"udpin:127.0.0.1:{self.air_port}")),
+        )
+        link.start()
+        return link
+
+    def start_ground_end(self) -> PqLink:
+        end = GroundEnd(Initiator("gcs", GCS_KEY), ROBOT_KEM.public_key())
+        link = PqLink(
+            end,
+            open_transport(parse_endpoint(f"udpin:127.0.0.1:{self.ground_port}")),
+            open_transport(parse_endpoint(f"udpout:127.0.0.1:{self.proxy_port}")),
+            tap=self.captured.append,
+        )
+        link.start()
+        return link
+
+    def _gcs_beat(self) -> None:
+        while not self._stop.wait(0.1):  # a ground station's heartbeat at 10 Hz
+            self.gcs.mav.heartbeat_send(6, 8, 0, 0, 0)
+
+    def heard_vehicle(self) -> bool:
+        while (msg := self.gcs.recv_match(type="HEARTBEAT", blocking=False)) is not None:
+            if msg.get_srcSystem() == 1:
+                return True
+        return False
+
+    def inject(self, frames: list[bytes]) -> None:
+        for raw in frames:
+            self.attacker.sendto(raw, ("127.0.0.1", self.air_port))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._beat.join()
+        self.proxy.terminate()
+        self.proxy.wait(timeout=30)
+        self.ground_link.stop()
+        self.vehicle_link.stop()
+        self.gcs.close()
+        self.attacker.close()
+        self.vehicle.close()
+
+
+@pytest.fixture
+def setup(tmp_path: Path) -> Iterator[Setup]:
+    made = Setup(tmp_path)
+    try:
+        yield made
+    finally:
+        made.close()
+
+
+def transfers(frames: list[bytes]) -> dict[int, list[bytes]]:
+    """The chunk frames grouped by transfer number, in the order they were sent."""
+    grouped: dict[int, list[bytes]] = {}
+    for raw in frames:
+        chunk = parse_chunk(parse_frame(raw))
+        grouped.setdefault(chunk.transfer, []).append(raw)
+    return grouped
+
+
+def command_transfers(frames: list[bytes]) -> list[list[bytes]]:
+    return [group for group in transfers(frames).values() if len(group) == 20]
+
+
+def retarget(raw: bytes, at: int, value: int) -> bytes:
+    """One payload byte rewritten, the MAVLink CRC fixed (a man in the middle would)."""
+    frame = parse_frame(raw)
+    payload = bytearray(frame.payload.ljust(DIALECT[MSG_CHUNK][1], b"\0"))
+    payload[at] = value
+    crc_extra = DIALECT[MSG_CHUNK][0]
+    return pack_v2(
+        MSG_CHUNK, bytes(payload), crc_extra, sysid=frame.sysid, compid=frame.compid, seq=0
+    )
+
+
+def drops(link: PqLink, code: str) -> Callable[[], int]:
+    return lambda: link.dropped[f"air:{code}"]
+
+
+def test_pq_commands_through_mavproxy(setup: Setup) -> None:
+    vehicle = setup.vehicle
+    # The handshake went through MAVProxy; wrapped telemetry comes back, unwrapped.
+    until("vehicle telemetry at the ground station", setup.heard_vehicle)
+    handshakes = [
+        group
+        for group in transfers(setup.captured).values()
+        if parse_chunk(parse_frame(group[0])).kind is Kind.HS1
+    ]
+    hs1 = handshakes[-1]  # the one that opened the session (MAVProxy may start later)
+    assert len(hs1) == 26
+
+    # ARM arrives once, as the ground station sent it.
+    setup.gcs.mav.command_long_send(1, 1, ARM, 0, 1, 0, 0, 0, 0, 0, 0)
+    until("ARM at the vehicle", lambda: vehicle.commands(ARM))
+    (arm,) = vehicle.commands(ARM)
+    assert arm.get_srcSystem() == 255 and arm.param1 == 1
+    until("the ARM transfer captured", lambda: command_transfers(setup.captured))
+    (captured_arm,) = command_transfers(setup.captured)
+
+    # Its replay, straight onto the air port: dropped.
+    setup.inject(captured_arm)
+    until("the replay refused", drops(setup.vehicle_link, "COUNTER_REPLAYED"))
+
+    # A man in the middle: the target rewritten, the message id rewritten, two commands
+    # spliced into one transfer, the handshake replayed: nothing passes.
+    setup.gcs.mav.command_long_send(1, 1, SERVO, 0, 42, 0, 0, 0, 0, 0, 0)
+    until("DO_SET_SERVO at the vehicle", lambda: vehicle.commands(SERVO))
+    until("both captured", lambda: len(command_transfers(setup.captured)) == 2)
+    servo = command_transfers(setup.captured)[1]
+    forged_target = [retarget(servo[0], 6 + 28 + 6 + 30, 7), *servo[1:]]
+    setup.inject([retarget(raw, 0, 0x77) for raw in forged_target])  # a fresh transfer number
+    until("the retargeted chunk refused", drops(setup.vehicle_link, "SIGNATURE_INVALID"))
+    header = bytearray(servo[0])
+    header[7] = 76  # COMMAND_LONG's id in the outer header
+    setup.inject([bytes(header)])
+    until("the re-identified chunk refused", drops(setup.vehicle_link, "INVALID_FRAME"))
+    splice = [retarget(raw, 0, 0x55) for raw in captured_arm[:10] + servo[10:]]
+    before = setup.vehicle_link.dropped["air:SIGNATURE_INVALID"]
+    setup.inject(splice)
+    until(
+        "the spliced chunks refused",
+        lambda: setup.vehicle_link.dropped["air:SIGNATURE_INVALID"] >= before + 20,
+    )
+    sessions = len(setup.responder)
+    setup.inject(hs1)
+    until("the handshake replay refused", drops(setup.vehicle_link, "REPLAY_DETECTED"))
+    assert len(setup.responder) == sessions
+
+    # The vehicle end restarts: the ground end learns it (PQ_STATUS while the vehicle is
+    # silent) and hand-shakes again; the capture from the previous session is dropped.
+    setup.vehicle_link.stop()
+    setup.vehicle_link = setup.start_vehicle_end()
+    until("a new session after the vehicle end restarted", lambda: len(setup.responder) == 1)
+    until("vehicle telemetry again", setup.heard_vehicle)
+    setup.inject(captured_arm)
+    until("the old session's ARM refused", drops(setup.vehicle_link, "UNKNOWN_SESSION"))
+    setup.gcs.mav.command_long_send(1, 1, ARM, 0, 0, 0, 0, 0, 0, 0, 0)  # DISARM
+    until("DISARM at the vehicle", lambda: len(vehicle.commands(ARM)) == 2)
+
+    # The ground end restarts: a new session at once; the old captures stay dead.
+    setup.ground_link.stop()
+    setup.ground_link = setup.start_ground_end()
+    until("a second session", lambda: len(setup.responder) == 2)
+    setup.inject(captured_arm)
+    setup.gcs.mav.command_long_send(1, 1, SERVO, 0, 43, 0, 0, 0, 0, 0, 0)
+    until("the new ground end's command", lambda: len(vehicle.commands(SERVO)) == 2)
+    assert [c.param1 for c in vehicle.commands(ARM)] == [1, 0]
+    assert [c.param1 for c in vehicle.commands(SERVO)] == [42, 43]
+    assert all(m.get_srcSystem() == 255 for m in vehicle.received)
