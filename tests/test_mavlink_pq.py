@@ -35,6 +35,7 @@ from antireplay.mavlink.pq import (
     Reassembler,
     VehicleEnd,
     chunk_key,
+    compact,
     inner_of,
     pack_v2,
     parse_chunk,
@@ -229,9 +230,9 @@ def _tamper(raw: bytes, at: int, value: int) -> bytes:
 
 
 def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> None:
-    # the target system sits in the first chunk: chunk header, session header, inner header,
+    # the target system sits in the first chunk: chunk header, compact header, inner header,
     # then COMMAND_LONG's target_system at payload offset 30
-    target_at = 6 + 28 + 6 + 30
+    target_at = 6 + 10 + 6 + 30
     frames = link.ground.from_local(arm(target=1))
     link.up([_tamper(frames[0], target_at, 2), *frames[1:]])
     assert link.refused == ["SIGNATURE_INVALID"] and not link.commands()
@@ -252,7 +253,7 @@ def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> No
     blob = bytearray(session.seal(inner_of(parse_frame(arm(target=1))), Purpose.COMMAND))
     blob[28 + 6 + 30] = 2
     key = chunk_key(session.send_key)
-    link.up(ChunkSender(255, 197, transfer=900).frames(bytes(blob), Kind.FRAME, key))
+    link.up(ChunkSender(255, 197, transfer=900).frames(compact(bytes(blob)), Kind.FRAME, key))
     assert link.refused[-1] == "SIGNATURE_INVALID" and not link.commands()
     link.up(frames[:1])  # the genuine first chunk completes the genuine command
     assert [c.target_system for c in link.commands()] == [1]

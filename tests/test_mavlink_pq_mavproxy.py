@@ -252,7 +252,7 @@ def test_pq_commands_through_mavproxy(setup: Setup) -> None:
     until("DO_SET_SERVO at the vehicle", lambda: vehicle.commands(SERVO))
     until("both captured", lambda: len(command_transfers(setup.captured)) == 2)
     servo = command_transfers(setup.captured)[1]
-    forged_target = [retarget(servo[0], 6 + 28 + 6 + 30, 7), *servo[1:]]
+    forged_target = [retarget(servo[0], 6 + 10 + 6 + 30, 7), *servo[1:]]
     setup.inject([retarget(raw, 0, 0x77) for raw in forged_target])  # a fresh transfer number
     until("the retargeted chunk refused", drops(setup.vehicle_link, "SIGNATURE_INVALID"))
     header = bytearray(servo[0])

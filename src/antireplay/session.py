@@ -32,7 +32,8 @@ Frames::
 
     0xA5 | ver | purpose | direction | session_id[16] | counter u64 | payload | tag
 
-``purpose`` is ``data`` (tag = HMAC-SHA256 under the direction's data key) or
+``purpose`` is ``data`` (tag = HMAC-SHA256 under the direction's data key, truncated
+to 128 bits: bytes on a 57,600-baud radio count, RFC 2104 allows it) or
 ``command`` (initiator to responder only; tag = ML-DSA-87 signature by the
 initiator's identity key, context ``antireplay/v1 cmd``).  The tag covers the
 whole header and the payload, so a frame moved to another session, direction
@@ -91,6 +92,7 @@ from antireplay.stores.memory import MemoryStore
 VERSION = 1
 HS1_MAGIC, HS2_MAGIC, FRAME_MAGIC = 0xA1, 0xA2, 0xA5
 KEM_CT_LEN, NONCE_LEN, SIG_LEN, MAC_LEN, SESSION_ID_LEN = 1568, 32, 4627, 32, 16
+TAG_LEN = 16  # a data frame's tag: HMAC-SHA256 truncated to 128 bits
 MAX_ID_LEN = 128
 MAX_FRAME = 65_536
 REKEY_AFTER = 2**60
@@ -187,10 +189,10 @@ class Session:
         """Frame ``payload`` with the next counter; commands are signed with ML-DSA-87."""
         counter = self._send[purpose].next()
         head = _FRAME_HEAD.pack(FRAME_MAGIC, VERSION, purpose, self.role, self.session_id, counter)
-        if len(head) + len(payload) + (MAC_LEN if purpose is Purpose.DATA else SIG_LEN) > MAX_FRAME:
+        if len(head) + len(payload) + (TAG_LEN if purpose is Purpose.DATA else SIG_LEN) > MAX_FRAME:
             raise ValueError("payload too large for one frame")
         if purpose is Purpose.DATA:
-            return head + payload + hmac.digest(self.send_key, head + payload, "sha256")
+            return head + payload + hmac.digest(self.send_key, head + payload, "sha256")[:TAG_LEN]
         if self.signing_key is None:
             raise ValueError("only the initiator signs command frames")
         return head + payload + self.signing_key.sign(head + payload, _CTX_CMD)
@@ -210,7 +212,7 @@ class Session:
             raise UnknownSessionError("frame belongs to another session")
         if direction is self.role:
             raise WrongDirectionError("frame travels in this side's own direction (reflected)")
-        if len(frame) < _FRAME_HEAD.size + (MAC_LEN if purpose is Purpose.DATA else SIG_LEN):
+        if len(frame) < _FRAME_HEAD.size + (TAG_LEN if purpose is Purpose.DATA else SIG_LEN):
             raise InvalidFrameError("frame too short for its tag")
         self._recv[purpose].check(counter)
 
@@ -218,10 +220,11 @@ class Session:
         """:meth:`open` for a frame whose header the caller already parsed."""
         self.check_parsed(frame, head)
         purpose, counter = head[0], head[3]
-        tag_len = MAC_LEN if purpose is Purpose.DATA else SIG_LEN
+        tag_len = TAG_LEN if purpose is Purpose.DATA else SIG_LEN
         body, tag = frame[:-tag_len], frame[-tag_len:]
         if purpose is Purpose.DATA:
-            good = hmac.compare_digest(hmac.digest(self.recv_key, body, "sha256"), tag)
+            mac = hmac.digest(self.recv_key, body, "sha256")[:TAG_LEN]
+            good = hmac.compare_digest(mac, tag)
         else:
             good = self._verify_command(body, tag)
         if not good:
@@ -251,7 +254,7 @@ def parse_frame_head(frame: bytes) -> tuple[Purpose, Direction, bytes, int]:
         frame = bytes(frame)
     if len(frame) > MAX_FRAME:
         raise InvalidFrameError(f"frame longer than {MAX_FRAME} bytes")
-    if len(frame) < _FRAME_HEAD.size + MAC_LEN:
+    if len(frame) < _FRAME_HEAD.size + TAG_LEN:
         raise InvalidFrameError("frame too short")
     magic, ver, purpose, direction, sid, counter = _FRAME_HEAD.unpack_from(frame)
     if magic != FRAME_MAGIC or ver != VERSION:
