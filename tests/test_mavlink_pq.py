@@ -11,7 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
+from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -398,3 +398,21 @@ def test_fuzzed_chunk_payloads_only_typed_errors(payload: bytes) -> None:
 
 FUZZ = Link(ManualClock())
 FUZZ.connect()
+
+
+def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
+    vehicle_x25519 = x25519.X25519PrivateKey.generate()
+    link = Link(clock)
+    link.responder = Responder(
+        ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock, x25519_key=vehicle_x25519
+    )
+    link.vehicle = VehicleEnd(link.responder, clock=clock)
+    initiator = Initiator("gcs", GCS_KEY, clock)
+    hybrid = vehicle_x25519.public_key()
+    link.ground = GroundEnd(initiator, ROBOT_KEM.public_key(), hybrid=hybrid, clock=clock)
+    hs1 = link.ground.handshake()
+    assert len(hs1) == 26  # the X25519 share fits in the same 26 chunks
+    link.up(hs1)
+    frames = link.ground.from_local(arm())
+    link.up(frames + frames)
+    assert len(link.commands()) == 1 and link.refused == ["COUNTER_REPLAYED"]

@@ -81,7 +81,7 @@ from dataclasses import dataclass, field
 from enum import IntEnum
 from importlib import resources
 
-from cryptography.hazmat.primitives.asymmetric import mlkem
+from cryptography.hazmat.primitives.asymmetric import mlkem, x25519
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavparse
 from pymavlink.generator.mavcrc import x25crc
@@ -469,9 +469,11 @@ class GroundEnd:
         signed: frozenset[int] = SIGNED_MESSAGES,
         retry_s: float = 2.0,
         max_queued: int = 16,
+        hybrid: x25519.X25519PublicKey | None = None,
         clock: Clock | None = None,
     ) -> None:
         self.initiator, self.responder_key = initiator, responder_key
+        self.hybrid = hybrid  # the vehicle's static X25519 key: hybrid handshakes
         self.signed = signed
         self.retry_s = retry_s
         self.sender = ChunkSender(system_id, component_id)
@@ -484,7 +486,7 @@ class GroundEnd:
 
     def handshake(self) -> list[bytes]:
         """Start a new handshake (the current session keeps working until HS2 arrives)."""
-        hs1 = self.initiator.start(self.responder_key)
+        hs1 = self.initiator.start(self.responder_key, self.hybrid)
         self._pending = (hs1, self._clock.monotonic())
         return self.sender.frames(hs1, Kind.HS1)
 
