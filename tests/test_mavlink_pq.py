@@ -416,3 +416,24 @@ def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
     frames = link.ground.from_local(arm())
     link.up(frames + frames)
     assert len(link.commands()) == 1 and link.refused == ["COUNTER_REPLAYED"]
+
+
+def test_a_frame_withheld_from_a_superseded_session_never_plays(link: Link) -> None:
+    withheld = link.ground.from_local(arm(param1=1.0))  # jammed and recorded, never delivered
+    link.connect()  # the ground end rekeys
+    link.up(link.ground.from_local(arm(param1=0.0)))  # the new session carries a frame
+    link.up(withheld)
+    assert [c.param1 for c in link.commands()] == [0.0]
+    assert link.refused[-20:] == ["SIGNATURE_INVALID"] * 20  # no live session's chunk key
+    beat = link.ground.session
+    assert beat is not None and len(link.responder) == 1  # the old session's keys are gone
+
+
+def test_heartbeats_do_not_push_a_queued_command_out(clock: ManualClock) -> None:
+    link = Link(clock)
+    hs1 = link.ground.from_local(arm())
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    for _ in range(50):
+        link.ground.from_local(beat)
+    link.up(hs1)
+    assert len(link.commands()) == 1 and link.ground.unsent == 50

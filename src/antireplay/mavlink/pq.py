@@ -53,7 +53,7 @@ COMMAND_INT, SET_MODE, PARAM_SET, missions) are ``command`` frames, signed with 
 operator's ML-DSA-87 key (non-repudiable, 4,627 bytes: 20 chunks); everything else
 (GCS heartbeats, RC/manual control, and all telemetry from the vehicle) is a
 ``data`` frame under the session's HMAC-SHA256-128 key (one chunk for messages up to
-217 bytes of payload: 72 bytes more on air than plain MAVLink, 59 more than MAVLink
+217 bytes of payload: 38 bytes more on air than plain MAVLink, 25 more than MAVLink
 signing).
 
 The two ends are sans-I/O here (:class:`GroundEnd`, :class:`VehicleEnd`); the
@@ -61,14 +61,19 @@ adapter that moves their bytes is :mod:`antireplay.mavlink.pq_link`.  Ground end
 starts a handshake at once and whenever the session nears its counter limit
 (:attr:`~antireplay.session.Session.needs_rekey`) or the vehicle end reports it has no
 session (``PQ_STATUS``, unauthenticated, so acted upon at most once per
-``retry_s``); queues at most ``max_queued`` local messages while it has no session;
+``retry_s``, and only when nothing authenticated came from the vehicle for that long);
+while it has no session, queues at most ``max_queued`` commands and drops the rest;
 wraps every local message; unwraps telemetry.  Vehicle end: answers HS1 with HS2
 (:meth:`~antireplay.session.Responder.accept_handshake`: shape, freshness and the
 seen-set before the signature, commit after, so a replayed HS1 opens nothing),
 opens frames with :meth:`~antireplay.session.Responder.open` (window ``check``
 before the signature, ``commit`` after), rebuilds the plain MAVLink frame for the
 flight controller, and wraps the flight controller's telemetry under the newest
-session that authenticated.  Every refusal is a typed error the caller counts.
+session that authenticated.  The first frame that authenticates in a peer's new session
+closes that peer's older sessions (:meth:`~antireplay.session.Responder.close`), so a
+frame withheld from an old session (jammed, recorded) can never be played later
+(``SESSION_CLOSED``); one ground end per operator identity.  Every refusal is a typed
+error the caller counts.
 """
 
 from __future__ import annotations
@@ -447,6 +452,8 @@ class Output:
 
     local: list[bytes] = field(default_factory=list)
     air: list[bytes] = field(default_factory=list)
+    #: A blob verified (HS1, HS2, a session frame): its sender may be learned as the air peer.
+    authenticated: bool = False
 
 
 def _parse(raw: bytes) -> Frame:
@@ -468,7 +475,7 @@ class GroundEnd:
         component_id: int = 197,
         signed: frozenset[int] = SIGNED_MESSAGES,
         retry_s: float = 2.0,
-        max_queued: int = 16,
+        max_queued: int = 8,
         hybrid: x25519.X25519PublicKey | None = None,
         clock: Clock | None = None,
     ) -> None:
@@ -483,6 +490,7 @@ class GroundEnd:
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
         self._queue: deque[bytes] = deque(maxlen=max_queued)
         self._heard = float("-inf")  # when an authenticated frame last came from the vehicle
+        self.unsent = 0
 
     def handshake(self) -> list[bytes]:
         """Start a new handshake (the current session keeps working until HS2 arrives)."""
@@ -491,10 +499,15 @@ class GroundEnd:
         return self.sender.frames(hs1, Kind.HS1)
 
     def from_local(self, raw: bytes) -> list[bytes]:
-        """Wrap one plain frame from a local peer; queued (bounded) while no session."""
+        """Wrap one plain frame from a local peer.  While there is no session, commands wait
+        in a bounded queue and the rest is dropped (counted in :attr:`unsent`): a heartbeat
+        comes again, and must not push a command out of the queue."""
         frame = _parse(raw)
         if self.session is None:
-            self._queue.append(raw)
+            if frame.msgid in self.signed:
+                self._queue.append(raw)
+            else:
+                self.unsent += 1
             return self._retry()
         purpose = Purpose.COMMAND if frame.msgid in self.signed else Purpose.DATA
         out = self._seal(self.session, inner_of(frame), purpose)
@@ -529,14 +542,14 @@ class GroundEnd:
             raise UnknownSessionError(f"{kind.name} blob with no session to take it")
         opened = open_compact(blob, [self.session], Direction.R2I, self.session.open)
         self._heard = self._clock.monotonic()
-        return Output(local=[plain_frame(opened.payload)])
+        return Output(local=[plain_frame(opened.payload)], authenticated=True)
 
     def _finish(self, hs2: bytes) -> Output:
         if self._pending is None:
             raise UnknownSessionError("HS2 with no handshake in progress")
         self.session = self.initiator.finish(self._pending[0], hs2)
         self._pending, self._heard = None, self._clock.monotonic()
-        out = Output()
+        out = Output(authenticated=True)
         while self._queue:
             out.air += self.from_local(self._queue.popleft())
         return out
@@ -584,13 +597,22 @@ class VehicleEnd:
             session, hs2 = self.responder.accept_handshake(blob)
             self._sessions.append(session)
             self.current = session
-            return Output(air=self.sender.frames(hs2, Kind.HS2))
+            return Output(air=self.sender.frames(hs2, Kind.HS2), authenticated=True)
         if kind is Kind.HS2:
             raise InvalidFrameError("HS2 travels to the ground end")
         opened = open_compact(blob, self._sessions, Direction.I2R, self.responder.open)
         session = next(s for s in self._sessions if s.session_id == opened.session_id)
+        self._supersede(session)
         self.current = session
-        return Output(local=[plain_frame(opened.payload)])
+        return Output(local=[plain_frame(opened.payload)], authenticated=True)
+
+    def _supersede(self, session: Session) -> None:
+        """Close the peer's older sessions once a newer one carried a frame: the ground end
+        has moved on, so a frame withheld from an old session can never be played later."""
+        for old in [s for s in self._sessions if s.peer_id == session.peer_id]:
+            if old.seq < session.seq:
+                self.responder.close(old)
+                self._sessions.remove(old)
 
     def hint(self) -> list[bytes]:
         """A rate-limited ``PQ_STATUS`` telling the ground end it has no session here."""

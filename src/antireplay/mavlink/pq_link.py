@@ -112,12 +112,12 @@ class PqLink:
                         hint = self.end.hint()
                 self._to_air(hint, peer)
                 continue
-            if out.local or out.air:  # the blob authenticated: its sender is the air peer
+            if out.authenticated:  # its sender is the air peer from now on
                 self._air_peer = peer
                 self.forwarded["air"] += 1
             for data in out.local:
                 self._to_local(data)
-            self._to_air(out.air, peer)
+            self._to_air(out.air, peer if out.authenticated else self._air_peer)
 
     def _to_local(self, data: bytes) -> None:
         peers: list[Peer | None] = [None] if self.local.fixed else list(self._local_peers)
