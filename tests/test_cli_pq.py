@@ -108,7 +108,10 @@ def test_bad_options_are_one_line_errors(keys: Path) -> None:
     for extra, expected in (
         (["--kem-key", str(keys / "vehicle.key.pem"), "--peer", "gcs"], "expected NAME=PEM"),
         (["--kem-key", str(keys / "gcs.key.pem"), "--peer", "g=x"], "not a MLKEM1024PrivateKey"),
-        (["--kem-key", str(keys / "vehicle.key.pem"), "--peer", "g=nope.pem"], "not a PEM public"),
+        (
+            ["--kem-key", str(keys / "vehicle.key.pem"), "--peer", "g=nope.pem"],
+            "not a PEM public key",
+        ),
     ):
         result = runner.invoke(main, [*base, *extra])
         assert result.exit_code == 2, result.output

@@ -10,22 +10,16 @@ observable event under a deadline.
 from __future__ import annotations
 
 import os
-import select
 import socket
-import subprocess
-import sys
 import threading
-import tty
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil
-from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay.mavlink.codec import parse_frame
 from antireplay.mavlink.endpoints import open_transport, parse_endpoint
@@ -41,95 +35,24 @@ from antireplay.mavlink.pq import (
 from antireplay.mavlink.pq_link import PqLink
 from antireplay.session import Initiator, Responder
 from tests.harness import free_port, until
+from tests.test_mavlink_mavproxy import PtyVehicle, mavproxy
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
 ARM, SERVO = 400, 183
 
 
-class PlainPtyVehicle:
-    """A pymavlink vehicle (system 1) on a pseudo-terminal, unsigned: the vehicle end is
-    its only link, so whatever reaches it passed the post-quantum checks."""
-
-    def __init__(self) -> None:
-        self.master, self.slave = os.openpty()
-        tty.setraw(self.slave)
-        self.device = os.ttyname(self.slave)
-        self.mav = dialect.MAVLink(self, srcSystem=1, srcComponent=1)
-        self.received: list[Any] = []
-        self._stop = threading.Event()
-        self._lock = threading.Lock()
-        self._threads = [threading.Thread(target=self._read), threading.Thread(target=self._beat)]
-        for thread in self._threads:
-            thread.start()
-
-    def write(self, data: bytes) -> None:
-        os.write(self.master, data)
-
-    def commands(self, command: int) -> list[Any]:
-        return [
-            m for m in list(self.received)
-            if m.get_type() == "COMMAND_LONG" and m.command == command
-        ]  # fmt: skip
-
-    def _beat(self) -> None:
-        while not self._stop.wait(0.05):  # telemetry at 20 Hz
-            with self._lock:
-                self.mav.heartbeat_send(2, 3, 0, 0, 4)
-                self.mav.attitude_send(1, 0.1, 0.2, 0.3, 0, 0, 0)
-
-    def _read(self) -> None:
-        while not self._stop.is_set():
-            ready, _, _ = select.select([self.master], [], [], 0.1)
-            if not ready:
-                continue
-            try:
-                data = os.read(self.master, 4096)
-            except OSError:
-                return
-            for msg in self.mav.parse_buffer(data) or []:
-                if msg.get_type() != "BAD_DATA":
-                    self.received.append(msg)
-
-    def close(self) -> None:
-        self._stop.set()
-        for thread in self._threads:
-            thread.join()
-        os.close(self.master)
-        os.close(self.slave)
-
-
-def mavproxy(home: Path, master: str, out: str) -> subprocess.Popen[bytes]:
-    """MAVProxy, headless, with no key and no dialect of ours."""
-    script = Path(sys.executable).parent / "mavproxy.py"
-    if not script.exists():
-        pytest.fail(f"MAVProxy is not installed ({script}): pip install -e '.[dev]'")
-    args = [
-        "--master", master, "--out", out, "--daemon", "--non-interactive", "--no-state",
-        "--default-modules", "link", "--source-system", "254", "--source-component", "190",
-    ]  # fmt: skip
-    return subprocess.Popen(
-        [sys.executable, str(script), *args],
-        env=dict(os.environ, HOME=str(home)),
-        cwd=home,
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-
-
 class Setup:
     """GCS -> ground end -> MAVProxy -> vehicle end -> pty vehicle, an attacker on the air."""
 
     def __init__(self, tmp: Path) -> None:
-        self.vehicle = PlainPtyVehicle()
+        self.vehicle = PtyVehicle(key=None)  # the vehicle end is its only link
         self.ground_port, self.proxy_port, self.air_port = free_port(), free_port(), free_port()
         self.captured: list[bytes] = []  # every frame the ground end put on the air
         self.vehicle_link = self.start_vehicle_end()
         self.ground_link = self.start_ground_end()
-        self.proxy = mavproxy(
-            tmp, f"udpout:127.0.0.1:{self.air_port}", f"udpin:127.0.0.1:{self.proxy_port}"
-        )
+        master, out = f"udpout:127.0.0.1:{self.air_port}", f"udpin:127.0.0.1:{self.proxy_port}"
+        self.proxy = mavproxy(tmp, master, out, passphrase=None)  # no key, no dialect of ours
         self.gcs = mavutil.mavlink_connection(
             f"udpout:127.0.0.1:{self.ground_port}", source_system=255, source_component=190
         )
@@ -273,10 +196,13 @@ def test_pq_commands_through_mavproxy(setup: Setup) -> None:
 
     # The vehicle end restarts: the ground end learns it (PQ_STATUS while the vehicle is
     # silent) and hand-shakes again; the capture from the previous session is dropped.
+    ground_end = setup.ground_link.end
+    assert isinstance(ground_end, GroundEnd)
+    old_session = ground_end.session
     setup.vehicle_link.stop()
     setup.vehicle_link = setup.start_vehicle_end()
     until("a new session after the vehicle end restarted", lambda: len(setup.responder) == 1)
-    until("vehicle telemetry again", setup.heard_vehicle)
+    until("the ground end in it", lambda: ground_end.session is not old_session)
     setup.inject(captured_arm)
     until("the old session's ARM refused", drops(setup.vehicle_link, "UNKNOWN_SESSION"))
     setup.gcs.mav.command_long_send(1, 1, ARM, 0, 0, 0, 0, 0, 0, 0, 0)  # DISARM

@@ -32,31 +32,22 @@ log = logging.getLogger("antireplay.mavlink.pq")
 PEM = click.Path(path_type=Path, dir_okay=False, exists=True)
 
 
-def _private(path: Path, kind: Any, option: str) -> Any:
+def _key(path: Path, kind: Any, option: str) -> Any:
+    """The PEM key of type ``kind`` in ``path`` (private or public, as ``kind`` is)."""
+    private = "Private" in kind.__name__
+    what = "an unencrypted PEM private key" if private else "a PEM public key"
     try:
-        key = serialization.load_pem_private_key(path.read_bytes(), None)
-    except (OSError, ValueError, TypeError) as exc:
-        raise click.BadParameter(
-            f"{path}: not an unencrypted PEM private key ({exc})", param_hint=option
-        ) from None
-    if not isinstance(key, kind):
-        raise click.BadParameter(
-            f"{path}: a {type(key).__name__}, not a {kind.__name__}", param_hint=option
+        data = path.read_bytes()
+        key = (
+            serialization.load_pem_private_key(data, None)
+            if private
+            else serialization.load_pem_public_key(data)
         )
-    return key
-
-
-def _public(path: Path, kind: Any, option: str) -> Any:
-    try:
-        key = serialization.load_pem_public_key(path.read_bytes())
     except (OSError, ValueError, TypeError) as exc:
-        raise click.BadParameter(
-            f"{path}: not a PEM public key ({exc})", param_hint=option
-        ) from None
+        raise click.BadParameter(f"{path}: not {what} ({exc})", param_hint=option) from None
     if not isinstance(key, kind):
-        raise click.BadParameter(
-            f"{path}: a {type(key).__name__}, not a {kind.__name__}", param_hint=option
-        )
+        message = f"{path}: a {type(key).__name__}, not a {kind.__name__}"
+        raise click.BadParameter(message, param_hint=option)
     return key
 
 
@@ -133,13 +124,11 @@ def ground(  # noqa: PLR0917 - one option per knob
     from antireplay.mavlink.pq import GroundEnd  # noqa: PLC0415
     from antireplay.session import Initiator  # noqa: PLC0415
 
-    key: mldsa.MLDSA87PrivateKey = _private(signing_key, mldsa.MLDSA87PrivateKey, "'--signing-key'")
-    kem: mlkem.MLKEM1024PublicKey = _public(
-        vehicle_key, mlkem.MLKEM1024PublicKey, "'--vehicle-key'"
-    )
+    key: mldsa.MLDSA87PrivateKey = _key(signing_key, mldsa.MLDSA87PrivateKey, "'--signing-key'")
+    kem: mlkem.MLKEM1024PublicKey = _key(vehicle_key, mlkem.MLKEM1024PublicKey, "'--vehicle-key'")
     hybrid = None
     if vehicle_x25519 is not None:
-        hybrid = _public(vehicle_x25519, x25519.X25519PublicKey, "'--vehicle-x25519'")
+        hybrid = _key(vehicle_x25519, x25519.X25519PublicKey, "'--vehicle-x25519'")
     try:
         initiator = Initiator(identity, key)
     except ValueError as exc:
@@ -183,15 +172,15 @@ def vehicle(  # noqa: PLR0917 - one option per knob
     from antireplay.mavlink.pq import VehicleEnd  # noqa: PLC0415
     from antireplay.session import Responder  # noqa: PLC0415
 
-    kem: mlkem.MLKEM1024PrivateKey = _private(kem_key, mlkem.MLKEM1024PrivateKey, "'--kem-key'")
+    kem: mlkem.MLKEM1024PrivateKey = _key(kem_key, mlkem.MLKEM1024PrivateKey, "'--kem-key'")
     registry: dict[str, mldsa.MLDSA87PublicKey] = {}
     for entry in peers:
         name, sep, path = entry.partition("=")
         if not sep or not name or not path:
             raise click.BadParameter(f"{entry!r}: expected NAME=PEM", param_hint="'--peer'")
-        registry[name] = _public(Path(path), mldsa.MLDSA87PublicKey, "'--peer'")
+        registry[name] = _key(Path(path), mldsa.MLDSA87PublicKey, "'--peer'")
     hybrid = None
     if x25519_key is not None:
-        hybrid = _private(x25519_key, x25519.X25519PrivateKey, "'--x25519-key'")
+        hybrid = _key(x25519_key, x25519.X25519PrivateKey, "'--x25519-key'")
     responder = Responder(kem, registry, max_sessions=max_sessions, x25519_key=hybrid)
     _run(VehicleEnd(responder, system_id=system_id), fc, air, "vehicle")
