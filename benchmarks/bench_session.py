@@ -15,24 +15,41 @@ Run: ``python -m benchmarks.bench_session``.
    beside classic MAVLink signing: the router signs (``sign_frame``) and the guard
    verifies (``MavlinkGuard.open``).  Median microseconds per command (the latency the
    ends add, radio airtime aside) and commands per second.
+3. **End to end on loopback UDP** (threads in this process, real sockets): a ground station
+   sends ``LATENCY_N`` COMMAND_LONGs one at a time to the ground end, which carries them to
+   the vehicle end, which delivers them to a flight-controller socket; beside the MAVLink
+   router (SQLite store) signing the same commands on behalf of a trusted endpoint and
+   forwarding them to the same socket.  Median and p90 milliseconds from send to receipt.
 """
 
 from __future__ import annotations
 
 import os
+import socket
+import statistics
+import tempfile
+import time
 from collections.abc import Callable
+from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 from pymavlink.dialects.v20 import ardupilotmega as dialect
+from tests.harness import free_port
 
 from antireplay import ManualClock
-from antireplay.mavlink import MavlinkGuard, TimestampSource, passphrase_key, sign_frame
+from antireplay.audit import AuditLog
+from antireplay.mavlink import MavlinkGuard, Role, TimestampSource, passphrase_key, sign_frame
+from antireplay.mavlink.endpoints import open_transport, parse_endpoint
 from antireplay.mavlink.pq import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq_link import PqLink
 from antireplay.session import Initiator, Responder
+from antireplay.stores.sqlite import SqliteStore
+from antireplay.wiring import RouterOptions, build_mavlink_router
 from benchmarks._timing import per_op_ns, rate
 
 os.environ["MAVLINK20"] = "1"
 BAUD_BYTES_S = 57_600 / 10
+LATENCY_N = 50
 CLEITONQ_CHUNKS, CLEITONQ_FRAME = 20, 12 + 255
 #: (name, Hz, builder) of a typical telemetry stream on a 57,600-baud radio.
 STREAM: tuple[tuple[str, int, Callable[[dialect.MAVLink], None]], ...] = (
@@ -139,9 +156,106 @@ def commands_per_second() -> None:
     print(f"  ratio {pq / classic:.0f}x")
 
 
+def _latencies(send: Callable[[int], None], fc: socket.socket) -> list[float]:
+    """Milliseconds from ``send(i)`` to a COMMAND_LONG with ``param1 == i`` at ``fc``."""
+    decoder, out = dialect.MAVLink(_Sink()), []
+    for i in range(LATENCY_N):
+        start = time.perf_counter()
+        send(i)
+        while True:
+            data = fc.recv(65_535)
+            msgs = [m for m in decoder.parse_buffer(data) or [] if m.get_type() == "COMMAND_LONG"]
+            if any(m.param1 == i for m in msgs):
+                break
+        out.append((time.perf_counter() - start) * 1000)
+    return out
+
+
+def _fc_socket() -> socket.socket:
+    fc = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    fc.bind(("127.0.0.1", 0))
+    fc.settimeout(10)
+    return fc
+
+
+def _pq_path(fc: socket.socket) -> list[float]:
+    gcs_key, kem = mldsa.MLDSA87PrivateKey.generate(), mlkem.MLKEM1024PrivateKey.generate()
+    air, local = free_port(), free_port()
+    fc_port = fc.getsockname()[1]
+    vehicle = PqLink(
+        VehicleEnd(Responder(kem, {"gcs": gcs_key.public_key()})),
+        open_transport(parse_endpoint(f"udpout:127.0.0.1:{fc_port}")),
+        open_transport(parse_endpoint(f"udpin:127.0.0.1:{air}")),
+    )
+    ground_end = GroundEnd(Initiator("gcs", gcs_key), kem.public_key())
+    ground = PqLink(
+        ground_end,
+        open_transport(parse_endpoint(f"udpin:127.0.0.1:{local}")),
+        open_transport(parse_endpoint(f"udpout:127.0.0.1:{air}")),
+    )
+    vehicle.start()
+    ground.start()
+    gcs = dialect.MAVLink(_Udp(("127.0.0.1", local)), srcSystem=255, srcComponent=190)
+    try:
+        while ground_end.session is None:
+            time.sleep(0.01)
+        return _latencies(lambda i: gcs.command_long_send(1, 1, 400, 0, i, 0, 0, 0, 0, 0, 0), fc)
+    finally:
+        ground.stop()
+        vehicle.stop()
+
+
+def _router_path(fc: socket.socket) -> list[float]:
+    trusted, fc_port = free_port(), fc.getsockname()[1]
+    with tempfile.TemporaryDirectory() as tmp:
+        store, audit = SqliteStore(Path(tmp) / "mav.db"), AuditLog(Path(tmp) / "audit.db")
+        key = passphrase_key("bench")
+        router = build_mavlink_router(
+            [
+                (Role.VEHICLE, f"udpout:127.0.0.1:{fc_port}", key),
+                (Role.TRUSTED, f"udpin:127.0.0.1:{trusted}", None),
+            ],
+            store,
+            audit,
+            RouterOptions(system_id=1),
+        )
+        router.start()
+        tool = dialect.MAVLink(_Udp(("127.0.0.1", trusted)), srcSystem=200, srcComponent=1)
+        try:
+            return _latencies(
+                lambda i: tool.command_long_send(1, 1, 400, 0, i, 0, 0, 0, 0, 0, 0), fc
+            )
+        finally:
+            router.stop()
+            audit.close()
+            store.close()
+
+
+def end_to_end() -> None:
+    print(f"End to end on loopback UDP, {LATENCY_N} commands one at a time (ms, p50 / p90):")
+    for name, path in (("ours, two ends", _pq_path), ("MAVLink router", _router_path)):
+        fc = _fc_socket()
+        try:
+            samples = sorted(path(fc))
+        finally:
+            fc.close()
+        p50, p90 = statistics.median(samples), samples[int(len(samples) * 0.9)]
+        print(f"  {name:16} {p50:>7.2f} / {p90:>7.2f}")
+
+
+class _Udp:
+    def __init__(self, to: tuple[str, int]) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.to = to
+
+    def write(self, data: bytes) -> None:
+        self.sock.sendto(data, self.to)
+
+
 def main() -> None:
     bytes_on_air()
     commands_per_second()
+    end_to_end()
 
 
 if __name__ == "__main__":
