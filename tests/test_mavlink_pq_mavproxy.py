@@ -3,8 +3,9 @@
 
 MAVProxy (from PyPI, headless, no signing, no dialect of ours) forwards the ``PQ_CHUNK``
 messages as unknown messages, untouched.  An attacker sends straight to the vehicle end's
-air port what it captured on the air (the ground end's ``tap``).  Every wait polls an
-observable event under a deadline.
+air port what it captured on the air (the ground end's ``tap``).  A second test puts the
+vehicle end behind the MAVLink router's trusted endpoint.  Every wait polls an observable
+event under a deadline.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil
 
+from antireplay.audit import AuditLog
+from antireplay.mavlink import Role
 from antireplay.mavlink.codec import parse_frame
 from antireplay.mavlink.endpoints import open_transport, parse_endpoint
 from antireplay.mavlink.pq import (
@@ -34,8 +37,10 @@ from antireplay.mavlink.pq import (
 )
 from antireplay.mavlink.pq_link import PqLink
 from antireplay.session import Initiator, Responder
+from antireplay.stores.sqlite import SqliteStore
+from antireplay.wiring import RouterOptions, build_mavlink_router
 from tests.harness import free_port, until
-from tests.test_mavlink_mavproxy import PtyVehicle, mavproxy
+from tests.test_mavlink_mavproxy import KEY, PtyVehicle, mavproxy
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
@@ -218,3 +223,51 @@ def test_pq_commands_through_mavproxy(setup: Setup) -> None:
     assert [c.param1 for c in vehicle.commands(ARM)] == [1, 0]
     assert [c.param1 for c in vehicle.commands(SERVO)] == [42, 43]
     assert all(m.get_srcSystem() == 255 for m in vehicle.received)
+
+
+def test_vehicle_end_behind_the_mavlink_router(tmp_path: Path) -> None:
+    """The vehicle end delivers to the router's trusted endpoint, which signs for it with the
+    flight controller's MAVLink key: the autopilot verifies every command it gets."""
+    vehicle = PtyVehicle()  # signs and verifies with KEY
+    trusted, air, local = free_port(), free_port(), free_port()
+    store, audit = SqliteStore(tmp_path / "mav.db"), AuditLog(tmp_path / "audit.db")
+    router = build_mavlink_router(
+        [
+            (Role.VEHICLE, f"{vehicle.device},57600", KEY),
+            (Role.TRUSTED, f"udpin:127.0.0.1:{trusted}", None),
+        ],
+        store,
+        audit,
+        RouterOptions(system_id=1),
+    )
+    router.start()
+    gcs_key, kem = mldsa.MLDSA87PrivateKey.generate(), mlkem.MLKEM1024PrivateKey.generate()
+    links = [
+        PqLink(
+            VehicleEnd(Responder(kem, {"gcs": gcs_key.public_key()})),
+            open_transport(parse_endpoint(f"udpout:127.0.0.1:{trusted}")),
+            open_transport(parse_endpoint(f"udpin:127.0.0.1:{air}")),
+        ),
+        PqLink(
+            GroundEnd(Initiator("gcs", gcs_key), kem.public_key()),
+            open_transport(parse_endpoint(f"udpin:127.0.0.1:{local}")),
+            open_transport(parse_endpoint(f"udpout:127.0.0.1:{air}")),
+        ),
+    ]
+    for link in links:
+        link.start()
+    gcs = mavutil.mavlink_connection(f"udpout:127.0.0.1:{local}", source_system=255)
+    try:
+        gcs.mav.command_long_send(1, 1, ARM, 0, 1, 0, 0, 0, 0, 0, 0)  # waits for the session
+        until("ARM at the autopilot, signed by the router", lambda: vehicle.commands(ARM))
+        (arm,) = vehicle.commands(ARM)
+        assert arm.get_signed() and arm.get_link_id() == 251 and arm.get_srcSystem() == 255
+        assert vehicle.rejected == 0
+    finally:
+        gcs.close()
+        for link in links:
+            link.stop()
+        router.stop()
+        audit.close()
+        store.close()
+        vehicle.close()
