@@ -437,3 +437,10 @@ def test_heartbeats_do_not_push_a_queued_command_out(clock: ManualClock) -> None
         link.ground.from_local(beat)
     link.up(hs1)
     assert len(link.commands()) == 1 and link.ground.unsent == 50
+
+
+def test_unknown_local_message_is_refused_before_sealing(link: Link) -> None:
+    raw = bytearray(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4)))
+    raw[7:10] = (60999).to_bytes(3, "little")  # a message id nobody knows
+    with pytest.raises(InvalidFrameError, match="not in the dialect"):
+        link.ground.from_local(bytes(raw))

@@ -294,3 +294,14 @@ def test_hybrid_share_of_low_order_is_refused(clock: ManualClock) -> None:
     forged = body + GCS_KEY.sign(body, b"antireplay/v1 hs1")
     with pytest.raises(InvalidFrameError, match="X25519"):
         robot.accept_handshake(forged)
+
+
+def test_forged_hs2_does_not_cancel_the_handshake(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    hs1 = gcs.start(ROBOT_KEM.public_key())
+    _, hs2 = robot.accept_handshake(hs1)
+    with pytest.raises(SignatureInvalidError):
+        gcs.finish(hs1, hs2[:-1] + bytes([hs2[-1] ^ 1]))
+    gcs.finish(hs1, hs2)  # the genuine HS2 still finishes
+    with pytest.raises(UnknownSessionError):
+        gcs.finish(hs1, hs2)  # and only once

@@ -331,8 +331,10 @@ class Initiator:
         return hs1
 
     def finish(self, hs1: bytes, hs2: bytes) -> Session:
-        """Check the responder's key confirmation and derive the session."""
-        pending = self._pending.pop(hashlib.sha256(hs1).digest(), None)
+        """Check the responder's key confirmation and derive the session; a forged HS2
+        changes nothing (the genuine one can still finish)."""
+        digest = hashlib.sha256(hs1).digest()
+        pending = self._pending.get(digest)  # consumed only by an HS2 that confirms
         if pending is None:
             raise UnknownSessionError("no handshake in progress for this HS1")
         _, secret = pending
@@ -344,6 +346,7 @@ class Initiator:
         keys = _HandshakeKeys.derive(secret, transcript)
         if sid[8:] != transcript[:8] or not hmac.compare_digest(mac, keys.confirmation):
             raise SignatureInvalidError("HS2 key confirmation failed")
+        del self._pending[digest]
         return Session(
             sid, Direction.I2R, "responder", keys.i2r, keys.r2i, signing_key=self.signing_key
         )

@@ -393,7 +393,11 @@ class Reassembler:
 
 
 def inner_of(frame: Frame) -> bytes:
-    """The inner of a plain MAVLink v2 message (module docstring)."""
+    """The inner of a plain MAVLink v2 message (module docstring); a message the dialect
+    does not know is refused here, before anything is sealed (the far end could not
+    rebuild it)."""
+    if frame.msgid not in dialect.mavlink_map:
+        raise InvalidFrameError(f"message {frame.msgid} is not in the dialect")
     head = bytes([frame.sysid, frame.compid, frame.raw[4]]) + frame.msgid.to_bytes(3, "little")
     return head + frame.payload
 
