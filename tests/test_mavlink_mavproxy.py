@@ -41,16 +41,18 @@ TOOL_SYSTEM = 200
 
 class PtyVehicle:
     """A pymavlink vehicle (system 1) on the master side of a pseudo-terminal: signs what it
-    sends (wall-anchored), verifies what it receives with the same key, keeps both."""
+    sends (wall-anchored), verifies what it receives with the same key, keeps both; with
+    ``key=None`` it neither signs nor verifies."""
 
-    def __init__(self) -> None:
+    def __init__(self, key: bytes | None = KEY) -> None:
         self.master, self.slave = os.openpty()
         tty.setraw(self.slave)  # a UART: no echo, no line editing, before anyone writes
         self.device = os.ttyname(self.slave)
         self.mav = dialect.MAVLink(self, srcSystem=1, srcComponent=1)
-        self.mav.signing.secret_key = KEY
-        self.mav.signing.sign_outgoing = True
-        self.mav.signing.link_id = 3
+        if key is not None:
+            self.mav.signing.secret_key = key
+            self.mav.signing.sign_outgoing = True
+            self.mav.signing.link_id = 3
         self.received: list[Any] = []  # every message that verified
         self.rejected = 0
         self._stop = threading.Event()
@@ -108,16 +110,21 @@ class PtyVehicle:
         os.close(self.slave)
 
 
-def mavproxy(home: Path, master: str, out: str) -> subprocess.Popen[bytes]:
-    """MAVProxy, headless, signing its master link with the passphrase in signing.keys."""
+def mavproxy(
+    home: Path, master: str, out: str, passphrase: str | None = PASSPHRASE
+) -> subprocess.Popen[bytes]:
+    """MAVProxy, headless, signing its master link with the passphrase in signing.keys
+    (``passphrase=None``: no key, no signing module, system 254)."""
     script = Path(sys.executable).parent / "mavproxy.py"
     if not script.exists():
         pytest.fail(f"MAVProxy is not installed ({script}): pip install -e '.[dev]'")
-    (home / ".mavproxy").mkdir(parents=True, exist_ok=True)
-    (home / ".mavproxy" / "signing.keys").write_text(f"{master} {PASSPHRASE}\n")
+    if passphrase is not None:
+        (home / ".mavproxy").mkdir(parents=True, exist_ok=True)
+        (home / ".mavproxy" / "signing.keys").write_text(f"{master} {passphrase}\n")
+    modules, system = ("signing", "255") if passphrase is not None else ("link", "254")
     args = [
         "--master", master, "--out", out, "--daemon", "--non-interactive", "--no-state",
-        "--default-modules", "signing", "--source-system", "255", "--source-component", "190",
+        "--default-modules", modules, "--source-system", system, "--source-component", "190",
     ]  # fmt: skip
     return subprocess.Popen(
         [sys.executable, str(script), *args],

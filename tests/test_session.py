@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
+from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -250,3 +250,58 @@ def test_bit_flips_in_a_real_frame_are_rejected(index: int, mask: int) -> None:
 FUZZ_CLOCK = ManualClock()
 _g, FUZZ_ROBOT = pair(FUZZ_CLOCK)
 FUZZ_GCS, _r, _h = connect(_g, FUZZ_ROBOT)
+
+
+ROBOT_X25519 = x25519.X25519PrivateKey.generate()
+
+
+def test_hybrid_handshake_round_trip_and_no_downgrade(clock: ManualClock) -> None:
+    gcs = Initiator("gcs-1", GCS_KEY, clock)
+    peers = {"gcs-1": GCS_KEY.public_key()}
+    hybrid = Responder(ROBOT_KEM, peers, clock=clock, x25519_key=ROBOT_X25519)
+    hs1 = gcs.start(ROBOT_KEM.public_key(), ROBOT_X25519.public_key())
+    robot_side, hs2 = hybrid.accept_handshake(hs1)
+    gcs_side = gcs.finish(hs1, hs2)
+    assert robot_side.open(gcs_side.seal(b"ARM", Purpose.COMMAND)).payload == b"ARM"
+    with pytest.raises(InvalidFrameError, match="hybrid"):  # a PQ-only HS1: a downgrade
+        hybrid.accept_handshake(gcs.start(ROBOT_KEM.public_key()))
+    pq_only = Responder(ROBOT_KEM, peers, clock=clock)
+    with pytest.raises(InvalidFrameError, match="ML-KEM-1024 only"):
+        pq_only.accept_handshake(gcs.start(ROBOT_KEM.public_key(), ROBOT_X25519.public_key()))
+
+
+def test_hybrid_secret_needs_both_halves(clock: ManualClock) -> None:
+    """The wrong X25519 key (same ML-KEM key) derives other keys: HS2 does not confirm."""
+    gcs = Initiator("gcs-1", GCS_KEY, clock)
+    impostor = x25519.X25519PrivateKey.generate()
+    robot = Responder(ROBOT_KEM, {"gcs-1": GCS_KEY.public_key()}, clock=clock, x25519_key=impostor)
+    hs1 = gcs.start(ROBOT_KEM.public_key(), ROBOT_X25519.public_key())
+    _, hs2 = robot.accept_handshake(hs1)
+    with pytest.raises(SignatureInvalidError):
+        gcs.finish(hs1, hs2)
+
+
+def test_hybrid_share_of_low_order_is_refused(clock: ManualClock) -> None:
+    """An all-zero X25519 share (a low-order point) is a typed refusal, never a traceback."""
+    gcs = Initiator("gcs-1", GCS_KEY, clock)
+    robot = Responder(
+        ROBOT_KEM, {"gcs-1": GCS_KEY.public_key()}, clock=clock, x25519_key=ROBOT_X25519
+    )
+    hs1 = bytearray(gcs.start(ROBOT_KEM.public_key(), ROBOT_X25519.public_key()))
+    at = 12 + len("gcs-1") + 32 + 1568
+    hs1[at : at + 32] = bytes(32)
+    body = bytes(hs1[:-4627])
+    forged = body + GCS_KEY.sign(body, b"antireplay/v1 hs1")
+    with pytest.raises(InvalidFrameError, match="X25519"):
+        robot.accept_handshake(forged)
+
+
+def test_forged_hs2_does_not_cancel_the_handshake(clock: ManualClock) -> None:
+    gcs, robot = pair(clock)
+    hs1 = gcs.start(ROBOT_KEM.public_key())
+    _, hs2 = robot.accept_handshake(hs1)
+    with pytest.raises(SignatureInvalidError):
+        gcs.finish(hs1, hs2[:-1] + bytes([hs2[-1] ^ 1]))
+    gcs.finish(hs1, hs2)  # the genuine HS2 still finishes
+    with pytest.raises(UnknownSessionError):
+        gcs.finish(hs1, hs2)  # and only once

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, NoReturn
 import click
 import httpx
 from cryptography.hazmat.primitives import serialization
-from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa
+from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa, mlkem, x25519
 from rich.console import Console
 from rich.progress import Progress
 from rich.table import Table
@@ -33,6 +33,7 @@ from antireplay import counters, epochs
 from antireplay.audit import AuditLog, reanchor, verify
 from antireplay.audit import tail as audit_tail_records
 from antireplay.auth import PrivateKey, load_public_key, sign_envelope, write_key_pair
+from antireplay.cli_pq import mavlink_pq
 from antireplay.config import AppConfig
 from antireplay.counters import DEFAULT_WINDOW
 from antireplay.dds.cli import dds
@@ -51,6 +52,8 @@ KEY_TYPES: dict[str, Any] = {
     "ed25519": ed25519.Ed25519PrivateKey,
     "ml-dsa-65": mldsa.MLDSA65PrivateKey,
     "ml-dsa-87": mldsa.MLDSA87PrivateKey,
+    "ml-kem-1024": mlkem.MLKEM1024PrivateKey,  # a vehicle's key for `mavlink-pq`
+    "x25519": x25519.X25519PrivateKey,  # a vehicle's hybrid key for `mavlink-pq`
 }
 
 
@@ -790,6 +793,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
 
 
 main.add_command(mavlink_router, "mavlink-proxy")  # the command's first name, kept
+main.add_command(mavlink_pq)
 
 
 def _udp_shorthand(spec: str, kind: str, option: str) -> str:

@@ -24,7 +24,19 @@ It picks a **session sequence** (strictly increasing, from a
     session_id = seq u64 | transcript[:8]
     key(label) = HKDF-SHA256(ikm=shared_secret, salt=transcript, info="antireplay/v1 " + label)
 
-with labels ``i2r data``, ``r2i data`` and ``confirm``.  Because the responder
+with labels ``i2r data``, ``r2i data`` and ``confirm``.
+
+**Hybrid option** (X25519 + ML-KEM-1024, for operators who must keep a classical
+guarantee): the responder also owns a static X25519 key (``x25519_key``) that the
+initiator knows; HS1 then starts with ``0xA3`` and carries an ephemeral X25519 share
+after ``kem_ct`` (signed with the rest), and ``shared_secret`` becomes
+``SHA3-256(kem_secret | X25519(ephemeral, static) | share | static_pub |
+"antireplay/v1 hybrid")``, the concatenation combiner of CleitonQ's ``hybrid.rs``
+with both public values bound.  The session keys stand while either ML-KEM-1024 or
+X25519 does.  A hybrid responder refuses a PQ-only HS1 (a downgrade) and a PQ-only
+one a hybrid HS1, both ``INVALID_FRAME`` before any cryptography.  The X25519 half is
+forward-secret against a later theft of the initiator's keys only (the responder's
+X25519 key is static; rotate it per mission where that matters).  Because the responder
 contributes ``nonce_r`` and a new sequence, even an HS1 replayed after its
 window could never reopen a session with the same keys or id.
 
@@ -32,7 +44,8 @@ Frames::
 
     0xA5 | ver | purpose | direction | session_id[16] | counter u64 | payload | tag
 
-``purpose`` is ``data`` (tag = HMAC-SHA256 under the direction's data key) or
+``purpose`` is ``data`` (tag = HMAC-SHA256 under the direction's data key, truncated
+to 128 bits: bytes on a 57,600-baud radio count, RFC 2104 allows it) or
 ``command`` (initiator to responder only; tag = ML-DSA-87 signature by the
 initiator's identity key, context ``antireplay/v1 cmd``).  The tag covers the
 whole header and the payload, so a frame moved to another session, direction
@@ -72,7 +85,7 @@ from enum import IntEnum
 
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import hashes
-from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
+from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from antireplay.clock import Clock, resolve
@@ -90,7 +103,11 @@ from antireplay.stores.memory import MemoryStore
 
 VERSION = 1
 HS1_MAGIC, HS2_MAGIC, FRAME_MAGIC = 0xA1, 0xA2, 0xA5
+HS1_HYBRID_MAGIC = 0xA3  # HS1 with an X25519 share (hybrid key establishment)
+X25519_LEN = 32
+_HYBRID_LABEL = b"antireplay/v1 hybrid"
 KEM_CT_LEN, NONCE_LEN, SIG_LEN, MAC_LEN, SESSION_ID_LEN = 1568, 32, 4627, 32, 16
+TAG_LEN = 16  # a data frame's tag: HMAC-SHA256 truncated to 128 bits
 MAX_ID_LEN = 128
 MAX_FRAME = 65_536
 REKEY_AFTER = 2**60
@@ -147,6 +164,17 @@ class _HandshakeKeys:
         )
 
 
+def _combine(
+    kem_secret: bytes, dh_secret: bytes, share: bytes, responder: x25519.X25519PublicKey
+) -> bytes:
+    """The hybrid secret: a concatenation combiner (NIST SP 800-227; CleitonQ's
+    ``hybrid.rs``) that also binds both X25519 public values, secure while either the
+    ML-KEM or the X25519 secret is."""
+    return hashlib.sha3_256(
+        kem_secret + dh_secret + share + responder.public_bytes_raw() + _HYBRID_LABEL
+    ).digest()
+
+
 def _transcript(hs1: bytes, seq: int, nonce_r: bytes) -> bytes:
     return hashlib.sha256(
         b"antireplay/v1 transcript" + hs1 + seq.to_bytes(8, "big") + nonce_r
@@ -187,10 +215,10 @@ class Session:
         """Frame ``payload`` with the next counter; commands are signed with ML-DSA-87."""
         counter = self._send[purpose].next()
         head = _FRAME_HEAD.pack(FRAME_MAGIC, VERSION, purpose, self.role, self.session_id, counter)
-        if len(head) + len(payload) + (MAC_LEN if purpose is Purpose.DATA else SIG_LEN) > MAX_FRAME:
+        if len(head) + len(payload) + (TAG_LEN if purpose is Purpose.DATA else SIG_LEN) > MAX_FRAME:
             raise ValueError("payload too large for one frame")
         if purpose is Purpose.DATA:
-            return head + payload + hmac.digest(self.send_key, head + payload, "sha256")
+            return head + payload + hmac.digest(self.send_key, head + payload, "sha256")[:TAG_LEN]
         if self.signing_key is None:
             raise ValueError("only the initiator signs command frames")
         return head + payload + self.signing_key.sign(head + payload, _CTX_CMD)
@@ -210,7 +238,7 @@ class Session:
             raise UnknownSessionError("frame belongs to another session")
         if direction is self.role:
             raise WrongDirectionError("frame travels in this side's own direction (reflected)")
-        if len(frame) < _FRAME_HEAD.size + (MAC_LEN if purpose is Purpose.DATA else SIG_LEN):
+        if len(frame) < _FRAME_HEAD.size + (TAG_LEN if purpose is Purpose.DATA else SIG_LEN):
             raise InvalidFrameError("frame too short for its tag")
         self._recv[purpose].check(counter)
 
@@ -218,10 +246,11 @@ class Session:
         """:meth:`open` for a frame whose header the caller already parsed."""
         self.check_parsed(frame, head)
         purpose, counter = head[0], head[3]
-        tag_len = MAC_LEN if purpose is Purpose.DATA else SIG_LEN
+        tag_len = TAG_LEN if purpose is Purpose.DATA else SIG_LEN
         body, tag = frame[:-tag_len], frame[-tag_len:]
         if purpose is Purpose.DATA:
-            good = hmac.compare_digest(hmac.digest(self.recv_key, body, "sha256"), tag)
+            mac = hmac.digest(self.recv_key, body, "sha256")[:TAG_LEN]
+            good = hmac.compare_digest(mac, tag)
         else:
             good = self._verify_command(body, tag)
         if not good:
@@ -251,7 +280,7 @@ def parse_frame_head(frame: bytes) -> tuple[Purpose, Direction, bytes, int]:
         frame = bytes(frame)
     if len(frame) > MAX_FRAME:
         raise InvalidFrameError(f"frame longer than {MAX_FRAME} bytes")
-    if len(frame) < _FRAME_HEAD.size + MAC_LEN:
+    if len(frame) < _FRAME_HEAD.size + TAG_LEN:
         raise InvalidFrameError("frame too short")
     magic, ver, purpose, direction, sid, counter = _FRAME_HEAD.unpack_from(frame)
     if magic != FRAME_MAGIC or ver != VERSION:
@@ -276,13 +305,25 @@ class Initiator:
         self._clock = resolve(clock)
         self._pending: dict[bytes, tuple[bytes, bytes]] = {}
 
-    def start(self, responder_key: mlkem.MLKEM1024PublicKey) -> bytes:
-        """Build HS1 for a responder; keep the shared secret until HS2 arrives."""
-        secret, kem_ct = responder_key.encapsulate()
+    def start(
+        self,
+        responder_key: mlkem.MLKEM1024PublicKey,
+        hybrid: x25519.X25519PublicKey | None = None,
+    ) -> bytes:
+        """Build HS1 for a responder; keep the shared secret until HS2 arrives.  With
+        ``hybrid`` (the responder's static X25519 key) HS1 carries an ephemeral X25519
+        share too and the secret combines both (module docstring)."""
+        kem_secret, kem_ct = responder_key.encapsulate()
         raw_id = self.identity.encode()
-        head = _HS1_HEAD.pack(HS1_MAGIC, VERSION, int(self._clock.wall() * 1000), len(raw_id))
+        magic = HS1_MAGIC if hybrid is None else HS1_HYBRID_MAGIC
+        head = _HS1_HEAD.pack(magic, VERSION, int(self._clock.wall() * 1000), len(raw_id))
         key_hash = hashlib.sha256(responder_key.public_bytes_raw()).digest()
-        body = head + raw_id + key_hash + kem_ct + os.urandom(NONCE_LEN)
+        share, secret = b"", kem_secret
+        if hybrid is not None:
+            ephemeral = x25519.X25519PrivateKey.generate()
+            share = ephemeral.public_key().public_bytes_raw()
+            secret = _combine(kem_secret, ephemeral.exchange(hybrid), share, hybrid)
+        body = head + raw_id + key_hash + kem_ct + share + os.urandom(NONCE_LEN)
         hs1 = body + self.signing_key.sign(body, _CTX_HS1)
         if len(self._pending) >= MAX_PENDING:
             del self._pending[next(iter(self._pending))]  # the oldest unanswered handshake
@@ -290,8 +331,10 @@ class Initiator:
         return hs1
 
     def finish(self, hs1: bytes, hs2: bytes) -> Session:
-        """Check the responder's key confirmation and derive the session."""
-        pending = self._pending.pop(hashlib.sha256(hs1).digest(), None)
+        """Check the responder's key confirmation and derive the session; a forged HS2
+        changes nothing (the genuine one can still finish)."""
+        digest = hashlib.sha256(hs1).digest()
+        pending = self._pending.get(digest)  # consumed only by an HS2 that confirms
         if pending is None:
             raise UnknownSessionError("no handshake in progress for this HS1")
         _, secret = pending
@@ -303,6 +346,7 @@ class Initiator:
         keys = _HandshakeKeys.derive(secret, transcript)
         if sid[8:] != transcript[:8] or not hmac.compare_digest(mac, keys.confirmation):
             raise SignatureInvalidError("HS2 key confirmation failed")
+        del self._pending[digest]
         return Session(
             sid, Direction.I2R, "responder", keys.i2r, keys.r2i, signing_key=self.signing_key
         )
@@ -319,8 +363,11 @@ class Responder:
         max_sessions: int = 256,
         sequence: NonceCounter | None = None,
         clock: Clock | None = None,
+        x25519_key: x25519.X25519PrivateKey | None = None,
     ) -> None:
         self.kem_key = kem_key
+        #: Hybrid mode: every HS1 must carry an X25519 share (a PQ-only HS1 is a downgrade).
+        self.x25519_key = x25519_key
         self.peers = dict(peers)
         self._key_hash = hashlib.sha256(kem_key.public_key().public_bytes_raw()).digest()
         self._seq = sequence if sequence is not None else NonceCounter(1)
@@ -343,7 +390,7 @@ class Responder:
     def accept_handshake(self, hs1: bytes) -> tuple[Session, bytes]:
         """The handshake recipe: HS1 checks (shape, freshness, seen-set; records nothing),
         signature and KEM, then commit the HS1 digest and open a session; returns HS2."""
-        peer_id, digest, ts, body, sig, kem_ct = self._parse_hs1(hs1)
+        peer_id, digest, ts, body, sig, kem_ct, share = self._parse_hs1(hs1)
         self._seen_hs1.check(digest, ts)
         peer_key = self.peers.get(peer_id)
         if peer_key is None:
@@ -354,8 +401,11 @@ class Responder:
             raise SignatureInvalidError("HS1 signature does not verify") from None
         try:
             secret = self.kem_key.decapsulate(kem_ct)
+            if self.x25519_key is not None:
+                dh = self.x25519_key.exchange(x25519.X25519PublicKey.from_public_bytes(share))
+                secret = _combine(secret, dh, share, self.x25519_key.public_key())
         except ValueError:
-            raise InvalidFrameError("KEM ciphertext does not decapsulate") from None
+            raise InvalidFrameError("KEM ciphertext or X25519 share is invalid") from None
         self._seen_hs1.commit(digest, ts)
         seq, nonce_r = self._seq.next(), os.urandom(NONCE_LEN)
         transcript = _transcript(hs1, seq, nonce_r)
@@ -367,15 +417,20 @@ class Responder:
             self._sessions.commit(seq, seq, lambda: session)
         return session, hs2
 
-    def _parse_hs1(self, hs1: bytes) -> tuple[str, str, float, bytes, bytes, bytes]:
+    def _parse_hs1(self, hs1: bytes) -> tuple[str, str, float, bytes, bytes, bytes, bytes]:
         if not isinstance(hs1, bytes) or len(hs1) < _HS1_HEAD.size:
             raise InvalidFrameError("HS1 too short")
         magic, ver, ts_ms, id_len = _HS1_HEAD.unpack_from(hs1)
-        if magic != HS1_MAGIC or ver != VERSION:
+        if magic not in (HS1_MAGIC, HS1_HYBRID_MAGIC) or ver != VERSION:
             raise InvalidFrameError("not an antireplay v1 HS1")
+        hybrid = self.x25519_key is not None
+        if (magic == HS1_HYBRID_MAGIC) != hybrid:
+            want = "hybrid (X25519 + ML-KEM-1024)" if hybrid else "ML-KEM-1024 only"
+            raise InvalidFrameError(f"this responder takes {want} handshakes")
+        share_len = X25519_LEN if hybrid else 0
         if not 0 < id_len <= MAX_ID_LEN:
             raise InvalidFrameError("bad identity length")
-        expected = _HS1_HEAD.size + id_len + 32 + KEM_CT_LEN + NONCE_LEN + SIG_LEN
+        expected = _HS1_HEAD.size + id_len + 32 + KEM_CT_LEN + share_len + NONCE_LEN + SIG_LEN
         if len(hs1) != expected:
             raise InvalidFrameError(f"HS1 must be {expected} bytes, got {len(hs1)}")
         at = _HS1_HEAD.size
@@ -386,9 +441,13 @@ class Responder:
         at += id_len
         if not hmac.compare_digest(hs1[at : at + 32], self._key_hash):
             raise InvalidFrameError("HS1 is addressed to another responder key")
-        kem_ct = hs1[at + 32 : at + 32 + KEM_CT_LEN]
+        at += 32
+        kem_ct, share = (
+            hs1[at : at + KEM_CT_LEN],
+            hs1[at + KEM_CT_LEN : at + KEM_CT_LEN + share_len],
+        )
         digest = hashlib.sha256(hs1).hexdigest()
-        return peer_id, digest, ts_ms / 1000, hs1[:-SIG_LEN], hs1[-SIG_LEN:], kem_ct
+        return peer_id, digest, ts_ms / 1000, hs1[:-SIG_LEN], hs1[-SIG_LEN:], kem_ct, share
 
     def _route(self, head: tuple[Purpose, Direction, bytes, int]) -> Session:
         """The frame's live session; records nothing and reads without the lock (the
