@@ -145,6 +145,9 @@ def test_transport_refusals(http: httpx.Client) -> None:
     huge = b'{"x":"' + b"a" * 70_000 + b'"}'
     reply = post(http, huge)
     assert reply.status_code == 413 and reply.json()["code"] == "PAYLOAD_TOO_LARGE"
+    counted = http.get("/metrics").text
+    for code in ("PAYLOAD_TOO_LARGE", "UNSUPPORTED_MEDIA_TYPE"):
+        assert f'antireplay_rejected_total{{code="{code}"}} 1.0' in counted
     assert http.get("/healthz").json()["status"] == "ok"
 
 

@@ -9,11 +9,13 @@ import json
 import multiprocessing
 import random
 import shutil
+import sqlite3
 import threading
 import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import redis
@@ -698,3 +700,40 @@ def test_open_store_specs(tmp_path: Path) -> None:
     for bad in ("", "sqlite:", "postgres://x", "memroy"):
         with pytest.raises(ConfigError):
             open_store(bad)
+
+
+class _FullDisk:
+    """A connection whose next COMMIT fails the way SQLite does on a full disk."""
+
+    def __init__(self, db: Any) -> None:
+        self.db, self.failures = db, 1
+
+    def execute(self, sql: str, *args: Any) -> Any:
+        if sql == "COMMIT" and self.failures:
+            self.failures -= 1
+            self.db.execute("ROLLBACK")  # SQLite rolls the transaction back itself
+            raise sqlite3.OperationalError("database or disk is full")
+        return self.db.execute(sql, *args)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.db, name)
+
+
+def test_a_failed_commit_is_an_outage_not_a_rollback(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A full disk fails one batch with its own cause (503), and the next batch (or the
+    next open) does not mistake the un-advanced database for a rollback."""
+    store = SqliteStore(tmp_path / "state.db")
+    assert store.commit("a", NOW + 30, NOW).recorded
+    monkeypatch.setattr(store, "_db", _FullDisk(store._db))
+    with pytest.raises(StateUnavailableError, match="disk is full"):
+        store.commit("b", NOW + 30, NOW)
+    monkeypatch.undo()
+    seen = store.commit("b", NOW + 30, NOW)
+    assert seen.recorded and not seen.lost and store.fence() == float("-inf")
+    assert store.data_loss_events == 0
+    store.close()
+    reopened = SqliteStore(tmp_path / "state.db")
+    assert reopened.fence() == float("-inf") and reopened.loss_reason is None
+    reopened.close()

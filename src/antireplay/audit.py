@@ -64,6 +64,7 @@ is anchored automatically; a trail with rows and neither key nor checkpoint
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import hmac
 import json
@@ -498,7 +499,8 @@ class AuditLog:
                 db.executemany("INSERT INTO audit VALUES (?,?,?,?,?,?,?,?,?,?,?)", values)
                 db.execute("COMMIT")
             except BaseException:
-                db.execute("ROLLBACK")
+                with contextlib.suppress(sqlite3.Error):  # a full disk: SQLite rolled back
+                    db.execute("ROLLBACK")
                 raise
             self._rows, self._head = seq, prev
             self._checkpoint()

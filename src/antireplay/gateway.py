@@ -384,7 +384,9 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
 
     async def refuse(send: Send, error: ReplayAttackError) -> None:
         """Transport-level refusals: the same NACK as the pipeline's, with the configured type;
-        the code decides the status (``errors.HTTP_STATUS``), as everywhere."""
+        the code decides the status (``errors.HTTP_STATUS``), as everywhere; counted like
+        every rejection."""
+        metrics.rejected.labels(str(error.code)).inc()
         await _answer(send, error.http_status, error.to_nack(None, nack_type=nack_type))
 
     async def messages(

@@ -57,6 +57,7 @@ names the file and the recovery.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import hashlib
 import logging
 import os
@@ -99,6 +100,8 @@ ON CONFLICT (key) DO UPDATE SET value = excluded.value WHERE excluded.value > co
 """
 #: One queued commit: key, expires_at, now, force.
 _Op = tuple[str, float, float, bool]
+#: The meta row as a transaction read it: generation, watermark, fence, data-loss events.
+_Meta = tuple[int, float, float, int]
 _FLOOR = -1e300  # SQLite REAL has no -inf literal that round-trips everywhere: "nothing yet"
 
 
@@ -217,9 +220,8 @@ class SqliteStore:
 
     def _verify(self) -> None:
         """At open: compare the database with its witness; fence on any sign of loss."""
-        db = self._db
-        db.execute("BEGIN IMMEDIATE")
-        try:
+
+        def body(db: sqlite3.Connection) -> tuple[None, _Meta]:
             row = db.execute(
                 "SELECT deployment, generation, watermark, fence, data_loss_events FROM meta"
             ).fetchone()
@@ -241,24 +243,43 @@ class SqliteStore:
                 self.loss_reason = reason
                 log.warning("replay state %s: %s; fence raised to %s", self.path, reason, fence)
             self._deployment = deployment
-            self._store_meta(generation + 1, watermark, fence, losses)
+            return None, (generation, watermark, fence, losses)
+
+        self._transaction(body)
+
+    def _transaction(self, body: Callable[[sqlite3.Connection], tuple[T, _Meta]]) -> T:
+        """One write transaction: ``body`` does its work and returns its result and the meta
+        it read; the meta row goes out with the next generation, the witness is written
+        *before* COMMIT (so a database that later goes back is noticed), and this
+        process's view moves only after COMMIT succeeded.  A failed COMMIT (a full disk)
+        puts the witness back to the committed generation, so it is not mistaken for a
+        rollback later; the original error is raised, not the ROLLBACK's."""
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        written = False
+        try:
+            result, (generation, watermark, fence, losses) = body(db)
+            generation += 1
+            db.execute(
+                "INSERT OR REPLACE INTO meta VALUES (1, ?, ?, ?, ?, ?)",
+                (self._deployment, generation, watermark, fence, losses),
+            )
+            self._wall_hw = max(self._wall_hw, self._clock.wall())
+            written = True
+            self.witness.write(self._deployment, generation, self._wall_hw)
             db.execute("COMMIT")
         except BaseException:
-            db.execute("ROLLBACK")
+            with contextlib.suppress(sqlite3.Error):  # SQLite may have rolled back already
+                db.execute("ROLLBACK")
+            if written and self._generation:
+                with contextlib.suppress(OSError):  # if this fails too, the next open fences
+                    self.witness.write(self._deployment, self._generation, self._wall_hw)
             raise
-
-    def _store_meta(self, generation: int, watermark: float, fence: float, losses: int) -> None:
-        """Write the meta row and the witness (inside the caller's write transaction)."""
-        self._db.execute(
-            "INSERT OR REPLACE INTO meta VALUES (1, ?, ?, ?, ?, ?)",
-            (self._deployment, generation, watermark, fence, losses),
-        )
-        self._wall_hw = max(self._wall_hw, self._clock.wall())
-        self.witness.write(self._deployment, generation, self._wall_hw)
         self._generation = generation
         self._watermark = NEVER if watermark <= _FLOOR else watermark
         self._fence = NEVER if fence <= _FLOOR else fence
         self.data_loss_events = losses
+        return result
 
     def fence(self) -> float:
         return self._fence
@@ -308,22 +329,17 @@ class SqliteStore:
         """One transaction for a batch: bounded purge (raising the watermark), each record
         in order (racers on one key: one winner), meta + witness once, one COMMIT."""
 
+        def body(db: sqlite3.Connection) -> tuple[list[tuple[float, bool]], _Meta]:
+            generation, watermark, fence, losses = self._meta_checked(db)
+            now = min(op[2] for op in ops)  # no caller's entry is purged early
+            purged = db.execute(_PURGE_SELECT, (now, PURGE_BATCH + 2 * len(ops))).fetchall()
+            if purged:
+                db.executemany("DELETE FROM seen WHERE key = ?", [(k,) for k, _ in purged])
+                watermark = max(watermark, *(e for _, e in purged))
+            return [self._record(db, op) for op in ops], (generation, watermark, fence, losses)
+
         def tx() -> list[Seen]:
-            db = self._db
-            db.execute("BEGIN IMMEDIATE")
-            try:
-                generation, watermark, fence, losses = self._meta_checked(db)
-                now = min(op[2] for op in ops)  # no caller's entry is purged early
-                purged = db.execute(_PURGE_SELECT, (now, PURGE_BATCH + 2 * len(ops))).fetchall()
-                if purged:
-                    db.executemany("DELETE FROM seen WHERE key = ?", [(k,) for k, _ in purged])
-                    watermark = max(watermark, *(e for _, e in purged))
-                results = [self._record(db, op) for op in ops]
-                self._store_meta(generation + 1, watermark, fence, losses)
-                db.execute("COMMIT")
-            except BaseException:
-                db.execute("ROLLBACK")
-                raise
+            results = self._transaction(body)
             wm, fence_now, lost = self._watermark, self._fence, self._lost_pending
             self._lost_pending = False
             return [
@@ -356,15 +372,7 @@ class SqliteStore:
         """Re-read the shared meta row (fence, watermark), checking for a live rollback."""
 
         def tx() -> Seen:
-            db = self._db
-            db.execute("BEGIN IMMEDIATE")
-            try:
-                generation, watermark, fence, losses = self._meta_checked(db)
-                self._store_meta(generation + 1, watermark, fence, losses)
-                db.execute("COMMIT")
-            except BaseException:
-                db.execute("ROLLBACK")
-                raise
+            self._transaction(lambda db: (None, self._meta_checked(db)))
             return Seen(NEVER, self._watermark, self._fence)
 
         with self._lock:
@@ -385,18 +393,12 @@ class SqliteStore:
         (so a restored copy of the counters is noticed too)."""
         encoded = _codec.encode(value)
 
+        def body(db: sqlite3.Connection) -> tuple[bool, _Meta]:
+            meta = self._meta_checked(db)
+            return db.execute(_ADVANCE, (key, encoded)).rowcount == 1, meta
+
         def tx() -> bool:
-            db = self._db
-            db.execute("BEGIN IMMEDIATE")
-            try:
-                generation, watermark, fence, losses = self._meta_checked(db)
-                advanced = db.execute(_ADVANCE, (key, encoded)).rowcount == 1
-                self._store_meta(generation + 1, watermark, fence, losses)
-                db.execute("COMMIT")
-            except BaseException:
-                db.execute("ROLLBACK")
-                raise
-            return advanced
+            return self._transaction(body)
 
         with self._lock:
             return self._run(tx)
