@@ -14,7 +14,7 @@ Run: ``python -m benchmarks.bench_mavlink``.
    added p99 <= 2 ms.
 2. **Throughput**: a burst of ``BURST`` frames sent as fast as the sender can through
    each path: frames delivered and delivered frames per second.
-3. **Guard**: frames per second through ``MavlinkGuard.check`` beside pymavlink
+3. **Guard**: frames per second through ``MavlinkGuard.open`` beside pymavlink
    2.4.x ``MAVLink.parse_char`` with signing on, on the same signed frames.
 """
 
@@ -265,8 +265,8 @@ def guard_rows() -> None:
     stale = batch[0]
     base_replay_ns = per_op_ns(rejected(lambda: receiver.parse_char(stale), dialect.MAVError), N)
     rows = [
-        ("MavlinkGuard.check accept", accept_ns),
-        ("MavlinkGuard.check replay", replay_ns),
+        ("MavlinkGuard.open accept", accept_ns),
+        ("MavlinkGuard.open replay", replay_ns),
         ("pymavlink parse_char+decode, signed (baseline)", base_ns),
         ("pymavlink parse_char replay (baseline)", base_replay_ns),
     ]
