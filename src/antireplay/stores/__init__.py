@@ -59,10 +59,6 @@ class ReplayStore(Protocol):
     def backend(self) -> str:
         """``memory``, ``sqlite``, ``redis`` or ``redis-cluster`` (a metrics label)."""
 
-    @property
-    def persistent(self) -> bool:
-        """Whether the state survives a restart of this process."""
-
     def lookup(self, key: str) -> Seen: ...
 
     def fence(self) -> float:

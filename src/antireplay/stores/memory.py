@@ -54,7 +54,6 @@ ANY_SLOT: Final = 1 << 60
 class MemoryStore:
     """The store contract in process memory (see the module docstring)."""
 
-    persistent: Final = False
     backend: Final = "memory"
 
     def __init__(

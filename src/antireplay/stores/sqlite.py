@@ -154,7 +154,6 @@ class Witness:
 class SqliteStore:
     """The store contract on a SQLite file (WAL, synchronous commits, witness file)."""
 
-    persistent: Final = True
     backend: Final = "sqlite"
 
     def __init__(
