@@ -26,11 +26,13 @@ import httpx
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa, mlkem, x25519
 from rich.console import Console
+from rich.measure import Measurement
 from rich.progress import Progress
 from rich.table import Table
+from rich.text import Text
 
 from antireplay import counters, epochs
-from antireplay.audit import AuditLog, reanchor, verify
+from antireplay.audit import AuditLog, Record, reanchor, sanitize, verify
 from antireplay.audit import tail as audit_tail_records
 from antireplay.auth import PrivateKey, load_public_key, sign_envelope, write_key_pair
 from antireplay.cli_pq import mavlink_pq
@@ -149,12 +151,22 @@ def _check_audit_anchor(path: Path) -> None:
         )
 
 
+def importable_cwd() -> None:
+    """Put the working directory on ``sys.path`` (as ``python -m`` does), so a
+    ``module:function`` upstream in it imports without ``PYTHONPATH=.``; appended, so a
+    file there never shadows an installed package."""
+    cwd = str(Path.cwd())
+    if cwd not in sys.path and "" not in sys.path:
+        sys.path.append(cwd)
+
+
 def preflight(config: AppConfig) -> None:
     """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
     from antireplay.gateway import resolve_upstream  # noqa: PLC0415
     from antireplay.stores import open_store  # noqa: PLC0415
     from antireplay.wiring import build_registry  # noqa: PLC0415
 
+    importable_cwd()
     try:
         build_registry(config)
         for kid, pem in config.jwt.keys.items():
@@ -186,12 +198,41 @@ def preflight(config: AppConfig) -> None:
 @click.option("--host", default="127.0.0.1", show_default=True)
 @click.option("--port", default=8080, show_default=True, type=click.IntRange(0, 65535))
 @click.option("--state-dir", default=Path(".antireplay"), type=click.Path(path_type=Path))
-def serve(config_path: Path | None, host: str, port: int, state_dir: Path) -> None:
-    """Run the HTTP gateway (embedded default without --config)."""
+@click.option("--access-log", is_flag=True, help="Log every request on stdout (uvicorn's log).")
+@click.option(
+    "--ssl-certfile",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Serve HTTPS with this PEM certificate (chain); needs --ssl-keyfile.",
+)
+@click.option(
+    "--ssl-keyfile",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="The certificate's PEM private key.",
+)
+def serve(  # noqa: PLR0917 - one option per knob
+    config_path: Path | None,
+    host: str,
+    port: int,
+    state_dir: Path,
+    access_log: bool,
+    ssl_certfile: Path | None,
+    ssl_keyfile: Path | None,
+) -> None:
+    """Run the HTTP gateway (embedded default without --config).
+
+    Prints one line once it listens: ``listening on http(s)://HOST:PORT (store ..., audit
+    ...)``; ``GET /healthz`` is liveness, ``GET /readyz`` readiness (store and audit)."""
+    import socket  # noqa: PLC0415
+
     import uvicorn  # noqa: PLC0415
+    from uvicorn.config import LOGGING_CONFIG  # noqa: PLC0415
 
     from antireplay.gateway import create_app  # noqa: PLC0415
 
+    if (ssl_certfile is None) != (ssl_keyfile is None):
+        raise click.UsageError("give --ssl-certfile and --ssl-keyfile together")
     config = _load_config(config_path, state_dir)
     preflight(config)
     try:
@@ -200,7 +241,35 @@ def serve(config_path: Path | None, host: str, port: int, state_dir: Path) -> No
         _fail(str(exc))
     except sqlite3.DatabaseError as exc:
         _fail(f"{config.audit} or {config.store}: {exc}")
-    uvicorn.run(app, host=host, port=port, log_level="warning", timeout_graceful_shutdown=10)
+    log_config: dict[str, Any] = json.loads(json.dumps(LOGGING_CONFIG))  # a deep copy
+    log_config["loggers"]["uvicorn.error"]["level"] = "WARNING"
+    settings = uvicorn.Config(
+        app,
+        log_config=log_config,
+        access_log=access_log,
+        timeout_graceful_shutdown=10,
+        ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
+        ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile),
+    )
+    if ssl_certfile is not None:
+        settings.load()  # a bad certificate or key fails here, as one line, before listening
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.create_server((host, port), family=family)  # a busy port: one line (OSError)
+    bound = sock.getsockname()[1]
+    scheme = "https" if ssl_certfile is not None else "http"
+    where = f"[{host}]" if family == socket.AF_INET6 else host
+    click.echo(
+        f"listening on {scheme}://{where}:{bound} "
+        f"(store {_without_secrets(config.store)}, audit {config.audit})"
+    )
+    uvicorn.Server(settings).run(sockets=[sock])
+
+
+def _without_secrets(spec: str) -> str:
+    """A store spec fit to print: the user and password of a URL are masked."""
+    scheme, sep, rest = spec.partition("://")
+    userinfo, at, location = rest.rpartition("@")
+    return f"{scheme}{sep}***@{location}" if sep and at and userinfo else spec
 
 
 def _table(results: list[StepResult], title: str) -> Table:
@@ -398,22 +467,48 @@ def audit_reanchor(path: Path, head_key: Path | None, head_file: Path | None) ->
 @audit.command("tail")
 @click.argument("path", type=click.Path(exists=True, path_type=Path))
 @click.option("-n", "count", default=20, show_default=True, type=click.IntRange(min=0))
-def audit_tail(path: Path, count: int) -> None:
-    """Print the most recent records."""
+@click.option("--json", "as_json", is_flag=True, help="One JSON object per line.")
+def audit_tail(path: Path, count: int, as_json: bool) -> None:
+    """Print the most recent records (a table, never truncated; or JSON lines)."""
     _check_audit_file(path, _OPEN_ONLY_AUDIT)
-    table = Table(title=str(path))
-    for column in ("seq", "time (UTC)", "outcome", "code", "warning", "type", "sender", "msg_id"):
-        table.add_column(column)
     try:
         records = audit_tail_records(path, count)  # read-only: tail never writes the trail
     except StateFileError as exc:
         _fail(str(exc))
-    for r in records:
-        when = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(r.at))
-        sender = f"{r.sender}" + ("" if r.sender_verified else " (claimed)")
-        row = (r.seq, when, r.outcome, r.code, r.warning, r.msg_type, sender, r.msg_id)
-        table.add_row(*("" if v is None else str(v) for v in row))
-    console.print(table)
+    rows = [_shown(r) for r in records]
+    if as_json:
+        for row in rows:
+            click.echo(json.dumps(row, separators=(",", ":")))
+        return
+    table = Table(title=str(path))
+    for column in ("seq", "time (UTC)", "outcome", "code", "warning", "type", "sender", "msg_id"):
+        table.add_column(column, overflow="fold")
+    for row in rows:
+        sender = f"{row['sender']}" + ("" if row["sender_verified"] else " (claimed)")
+        cells = (row["seq"], row["time"], row["outcome"], row["code"], row["warning"],
+                 row["msg_type"], sender, row["msg_id"])  # fmt: skip
+        table.add_row(*(Text("" if v is None else str(v)) for v in cells))
+    out = console
+    if not console.is_terminal:  # a pipe or a file: as wide as the table, nothing cut
+        out = Console(width=max(80, Measurement.get(console, console.options, table).maximum))
+    out.print(table)
+
+
+def _shown(record: Record) -> dict[str, Any]:
+    """One record as printed: every string passed through ``sanitize`` again (a trail edited
+    behind our back could hold escapes or markup), the time also as ISO 8601 UTC."""
+    return {
+        "seq": record.seq,
+        "at": record.at,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(record.at)),
+        "outcome": sanitize(record.outcome),
+        "code": sanitize(record.code),
+        "warning": sanitize(record.warning),
+        "msg_type": record.msg_type,
+        "sender": sanitize(record.sender),
+        "sender_verified": record.sender_verified,
+        "msg_id": sanitize(record.msg_id),
+    }
 
 
 @main.group()
@@ -674,6 +769,12 @@ def _router_endpoints(  # noqa: PLR0917 - the endpoint and key options, as given
     help="Serve Prometheus metrics here.",
 )
 @click.option(
+    "--metrics-host",
+    default="127.0.0.1",
+    show_default=True,
+    help="The address the metrics port binds (0.0.0.0 for a Prometheus on another host).",
+)
+@click.option(
     "--allow-unsigned",
     multiple=True,
     help="[to-vehicle:|from-vehicle:]MESSAGE[:v1]: a message (name or id) taken unsigned, in "
@@ -728,6 +829,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     store_spec: str,
     audit_path: str,
     metrics_port: int | None,
+    metrics_host: str,
     allow_unsigned: tuple[str, ...],
     reorder_window: int,
     max_forward_s: float,
@@ -775,7 +877,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     except ReplayAttackError as exc:
         _fail(f"--store {store_spec}: {exc}")
     if metrics_port is not None:
-        serve_router_metrics(router, metrics_port)
+        serve_router_metrics(router, metrics_port, metrics_host)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())

@@ -5,8 +5,13 @@
 configuration by :func:`antireplay.wiring.build_receiver`), and either
 forwards the accepted message upstream (the canonical re-encoding, never the
 raw bytes) and answers with the upstream's result, or answers with the
-COMMAND_NACK and its HTTP status.  ``GET /healthz`` and ``GET /metrics``
-(Prometheus) complete it.  No rule lives here: every decision is the
+COMMAND_NACK and its HTTP status.  ``GET /healthz`` (liveness: the process
+answers), ``GET /readyz`` (readiness: the replay store answers a read and the
+audit trail could take an append now, else 503 with the reason, since every
+command would get 503 too) and ``GET /metrics`` (Prometheus) complete it.
+The readiness probes record nothing: a read of one key and a write lock taken
+and released on the audit file, so a probe never notices a store's data loss
+in place of the commit that fences and audits it.  No rule lives here: every decision is the
 pipeline's, except transport framing: a request that carries both
 ``Content-Length`` and ``Transfer-Encoding`` is refused with 400 and the
 connection closed (RFC 9112 §6.1), on every route, because a proxy in front
@@ -35,6 +40,7 @@ import contextlib
 import importlib
 import json
 import queue
+import sqlite3
 import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
@@ -56,6 +62,7 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from antireplay.audit import AuditLog
 from antireplay.auth import write_key_pair
 from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig, KeyConfig
@@ -73,6 +80,13 @@ from antireplay.pipeline import Outcome, Pending, Receiver
 from antireplay.wiring import build_receiver
 
 DEMO_KID = "demo-operator"
+#: Latency buckets from 50 µs (a check takes ~0.1 ms; an fsync a few ms) to 2.5 s.
+LATENCY_BUCKETS = (
+    0.00005, 0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
+    1.0, 2.5, float("inf"),
+)  # fmt: skip
+#: The key ``/readyz`` reads from the store (a read records nothing).
+READINESS_KEY = "antireplay-readiness-probe"
 _encode_json = msgspec.json.Encoder().encode
 Upstream = Callable[[dict[str, Any]], Awaitable[tuple[int, Any]]]
 
@@ -136,7 +150,9 @@ class Metrics:
         self.warnings = Counter(
             "antireplay_warnings", "Accepted with warning", ["warning"], registry=r
         )
-        self.latency = Histogram("antireplay_latency_seconds", "Pipeline latency", registry=r)
+        self.latency = Histogram(
+            "antireplay_latency_seconds", "Pipeline latency", buckets=LATENCY_BUCKETS, registry=r
+        )
         self.store_errors = Counter(
             "antireplay_store_errors", "STATE_UNAVAILABLE answers", registry=r
         )
@@ -179,8 +195,8 @@ class StateCollector(Collector):
             gauge.add_metric([backend], status.get(key, float("nan")))
             yield gauge
         for name, doc, key in (
-            ("antireplay_watermark_raises", "Entries evicted early (saturation)", "evictions"),
-            ("antireplay_state_data_loss", "Data-loss events noticed", "data_loss_events"),
+            ("antireplay_watermark_raises_total", "Entries evicted early (full)", "evictions"),
+            ("antireplay_state_data_loss_total", "Data-loss events noticed", "data_loss_events"),
         ):
             counter = CounterMetricFamily(name, doc, labels=["backend"])
             counter.add_metric([backend], status.get(key, float("nan")))
@@ -192,7 +208,7 @@ class StateCollector(Collector):
             refusals.add_metric([cause], count)
         yield refusals
         fence = CounterMetricFamily(
-            "antireplay_restart_fence_rejections", "Refused by the restart/data-loss fence"
+            "antireplay_restart_fence_rejections_total", "Refused by the restart/data-loss fence"
         )
         fence.add_metric([], cache.refusals["restart_fence"])
         yield fence
@@ -372,6 +388,38 @@ def _resolve(future: asyncio.Future[Any], result: Any, error: BaseException | No
         future.set_exception(error)
 
 
+def readiness(receiver: Receiver) -> str | None:
+    """Why the gateway cannot serve commands now (store or audit trail), ``None`` if it can.
+
+    Blocking I/O (run it in a thread); records nothing."""
+    try:
+        receiver.cache.store.lookup(READINESS_KEY)
+    except Exception as exc:  # any backend's failure is the reason, never a 500
+        return f"store: {exc}"
+    return None if receiver.audit is None else audit_problem(receiver.audit)
+
+
+def audit_problem(audit: AuditLog, timeout_s: float = 1.0) -> str | None:
+    """Why ``audit`` could not take an append now, or ``None``: its file is still there and
+    its write lock can be taken within ``timeout_s`` (taken and released, nothing written),
+    and its head checkpoint file is writable."""
+    try:
+        db = sqlite3.connect(f"file:{audit.path}?mode=rw", uri=True, timeout=timeout_s)
+        try:
+            db.execute("BEGIN IMMEDIATE")
+            db.execute("ROLLBACK")
+        finally:
+            db.close()
+    except sqlite3.Error as exc:
+        return f"audit {audit.path}: {exc}"
+    try:
+        with audit.anchor.path.open("r+b"):
+            pass
+    except OSError as exc:
+        return f"audit head {audit.anchor.path}: {exc.strerror or exc}"
+    return None
+
+
 def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     """The gateway application for ``config``."""
     receiver = build_receiver(config, clock)
@@ -421,6 +469,12 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     async def healthz(_: Request) -> Response:
         return JSONResponse({"status": "ok", "time": time.time()})
 
+    async def readyz(_: Request) -> Response:
+        reason = await run_in_threadpool(readiness, receiver)
+        if reason is not None:
+            return JSONResponse({"status": "unavailable", "reason": reason}, status_code=503)
+        return JSONResponse({"status": "ready"})
+
     async def metrics_endpoint(_: Request) -> Response:
         body = await run_in_threadpool(generate_latest, metrics.registry)  # may read the store
         return Response(body, media_type="text/plain; version=0.0.4")
@@ -439,6 +493,7 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
         routes=[
             Route("/v1/messages", wrong_method, methods=["POST"]),
             Route("/healthz", healthz, methods=["GET"]),
+            Route("/readyz", readyz, methods=["GET"]),
             Route("/metrics", metrics_endpoint, methods=["GET"]),
         ],
         lifespan=lifespan,

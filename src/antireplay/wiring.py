@@ -231,8 +231,8 @@ def _fingerprint(key: bytes) -> str:
     return hashlib.sha256(b"antireplay mavlink key" + key).hexdigest()[:12]
 
 
-def serve_router_metrics(router: MavlinkRouter, port: int) -> None:
-    """Serve :func:`router_metrics` to Prometheus on loopback ``port``."""
+def serve_router_metrics(router: MavlinkRouter, port: int, host: str = "127.0.0.1") -> None:
+    """Serve :func:`router_metrics` to Prometheus on ``host:port`` (loopback by default)."""
     from prometheus_client import REGISTRY, start_http_server  # noqa: PLC0415
     from prometheus_client.registry import Collector  # noqa: PLC0415
 
@@ -241,7 +241,7 @@ def serve_router_metrics(router: MavlinkRouter, port: int) -> None:
             return iter(router_metrics(router))
 
     REGISTRY.register(RouterCollector())
-    start_http_server(port, addr="127.0.0.1")
+    start_http_server(port, addr=host)
 
 
 def router_metrics(router: MavlinkRouter) -> list[Metric]:
