@@ -490,7 +490,8 @@ def audit_tail(path: Path, count: int, as_json: bool) -> None:
         table.add_row(*(Text("" if v is None else str(v)) for v in cells))
     out = console
     if not console.is_terminal:  # a pipe or a file: as wide as the table, nothing cut
-        out = Console(width=max(80, Measurement.get(console, console.options, table).maximum))
+        wide = Console(width=1_000_000)
+        out = Console(width=max(80, Measurement.get(wide, wide.options, table).maximum))
     out.print(table)
 
 
