@@ -167,7 +167,7 @@ def test_serve_says_where_it_listens_over_tls_with_access_log_and_a_local_upstre
     cert, key = self_signed(tmp_path)
     args = ["--config", str(config), "--port", "0", "--access-log"]
     with serve(tmp_path, *args, "--ssl-certfile", str(cert), "--ssl-keyfile", str(key)) as proc:
-        assert proc.stdout is not None
+        assert proc.stdout is not None and proc.stderr is not None
         line = proc.stdout.readline().strip()
         prefix = "listening on https://127.0.0.1:"
         assert line.startswith(prefix), (line, proc.stderr.read() if proc.poll() else "")
