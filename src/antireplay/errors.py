@@ -114,6 +114,36 @@ class WarningCode(StrEnum):
 #: COMMAND_NACK in the current canonical RCAN numbering; 31 was its number in RCAN v1.5/v1.6.
 NACK_TYPE_CURRENT = 18
 NACK_TYPE_LEGACY = 31
+COMMAND_ACK = 17
+#: The robot URI an answer names as its ``target`` (the RCAN SDK's ``RCANMessage.from_dict``
+#: parses ``target`` as one); answers are not addressed to anyone the receiver has verified.
+ANSWER_TARGET = "rcan://local/antireplay/receiver/v1/gateway"
+ANSWER_RCAN = "3.2"
+
+
+def _sdk_answer(cmd: str, msg_id: str | None, status: str, message: str) -> dict[str, Any]:
+    """The fields the RCAN SDK's classes read an answer with: ``RCANMessage.from_dict``
+    needs ``rcan``, ``cmd`` and a robot-URI ``target``; ``RCANResponse.from_dict`` takes
+    ``msg_id`` (the answered message's), ``status`` and ``message``."""
+    return {
+        "rcan": ANSWER_RCAN,
+        "rcan_version": ANSWER_RCAN,
+        "cmd": cmd,
+        "target": ANSWER_TARGET,
+        "msg_id": msg_id or "",
+        "status": status,
+        "message": message,
+    }
+
+
+def command_ack(msg_id: str | None, warning: str | None = None) -> dict[str, Any]:
+    """The COMMAND_ACK (type 17) answering an accepted message; the SDK reads it as
+    ``RCANResponse`` with ``status == "ok"`` (``msg_id`` sanitized by the caller)."""
+    body: dict[str, Any] = {"type": COMMAND_ACK, "accepted": True, "ref_msg_id": msg_id}
+    if warning is not None:
+        body["warning"] = warning
+    message = "accepted" if warning is None else f"accepted with warning {warning}"
+    return {**body, **_sdk_answer("COMMAND_ACK", msg_id, "ok", message)}
 
 
 class AntiReplayError(Exception):
@@ -139,7 +169,10 @@ class ReplayAttackError(AntiReplayError):
         return HTTP_STATUS[self.code]
 
     def to_nack(self, msg_id: str | None, *, nack_type: int = NACK_TYPE_CURRENT) -> dict[str, Any]:
-        """The COMMAND_NACK body answering the rejected message.
+        """The COMMAND_NACK body answering the rejected message: ``type``, ``code``,
+        ``ref_msg_id``, ``reason`` (and ``detail``) for RCAN §8.3, plus what the RCAN SDK's
+        ``RCANMessage.from_dict`` and ``RCANResponse.from_dict`` read (``status: "error"``,
+        ``message`` = the reason, ``msg_id`` = ``ref_msg_id`` or ``""``).
 
         ``msg_id`` must already be sanitized by the caller when it came from an
         unauthenticated peer; the NACK never echoes the payload.
@@ -152,7 +185,7 @@ class ReplayAttackError(AntiReplayError):
         }
         if self.detail is not None:
             body["detail"] = self.detail
-        return body
+        return {**body, **_sdk_answer("COMMAND_NACK", msg_id, "error", self.reason)}
 
 
 class ReplayDetectedError(ReplayAttackError):
