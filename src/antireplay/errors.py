@@ -121,19 +121,22 @@ ANSWER_TARGET = "rcan://local/antireplay/receiver/v1/gateway"
 ANSWER_RCAN = "3.2"
 
 
-def _sdk_answer(cmd: str, msg_id: str | None, status: str, message: str) -> dict[str, Any]:
-    """The fields the RCAN SDK's classes read an answer with: ``RCANMessage.from_dict``
-    needs ``rcan``, ``cmd`` and a robot-URI ``target``; ``RCANResponse.from_dict`` takes
-    ``msg_id`` (the answered message's), ``status`` and ``message``."""
+def _sdk_fields(cmd: str, status: str) -> dict[str, Any]:
+    """The constant fields the RCAN SDK's classes read an answer with:
+    ``RCANMessage.from_dict`` needs ``rcan``, ``cmd`` and a robot-URI ``target``;
+    ``RCANResponse.from_dict`` takes ``status`` (and ``msg_id``, ``message``, set per
+    answer: the answered message's msg_id, or ``""``, and the reason)."""
     return {
         "rcan": ANSWER_RCAN,
         "rcan_version": ANSWER_RCAN,
         "cmd": cmd,
         "target": ANSWER_TARGET,
-        "msg_id": msg_id or "",
         "status": status,
-        "message": message,
     }
+
+
+_NACK_FIELDS = _sdk_fields("COMMAND_NACK", "error")
+_ACK_FIELDS = _sdk_fields("COMMAND_ACK", "ok")
 
 
 def command_ack(msg_id: str | None, warning: str | None = None) -> dict[str, Any]:
@@ -143,7 +146,7 @@ def command_ack(msg_id: str | None, warning: str | None = None) -> dict[str, Any
     if warning is not None:
         body["warning"] = warning
     message = "accepted" if warning is None else f"accepted with warning {warning}"
-    return {**body, **_sdk_answer("COMMAND_ACK", msg_id, "ok", message)}
+    return {**body, **_ACK_FIELDS, "msg_id": msg_id or "", "message": message}
 
 
 class AntiReplayError(Exception):
@@ -182,10 +185,13 @@ class ReplayAttackError(AntiReplayError):
             "code": str(self.code),
             "ref_msg_id": msg_id,
             "reason": self.reason,
+            **_NACK_FIELDS,
+            "msg_id": msg_id or "",
+            "message": self.reason,
         }
         if self.detail is not None:
             body["detail"] = self.detail
-        return {**body, **_sdk_answer("COMMAND_NACK", msg_id, "error", self.reason)}
+        return body
 
 
 class ReplayDetectedError(ReplayAttackError):
