@@ -18,7 +18,15 @@ With ``sdk_compat=True`` such a signature is accepted, but the result is
 marked ``subset=True`` and the pipeline refuses the message if it sets any
 field the SDK does not sign (everything but ``rcan, msg_id, timestamp, cmd,
 target, params``; see :func:`~antireplay.envelope.unsigned_policy_fields`), so
-nothing unsigned is authorized or forwarded.
+nothing unsigned is authorized or forwarded (the SDK's ``qos`` delivery hint is
+tolerated and dropped).  The SDK signs with ``sig.kid`` = its key id
+(:func:`sdk_key_id`: SHA-256 of the raw public key, 8 hex digits); a registry
+can answer to it as well (:meth:`KeyRegistry.alias`, done by
+:func:`~antireplay.wiring.build_registry` in compatibility mode), and
+:func:`sign_sdk` signs the way the SDK's ``sign_message`` does.
+
+Key files: :func:`load_public_key` is the one loader (``config check``,
+``serve``, the library): PEM, or the SDK's raw ML-DSA public key file.
 
 Every call that does cryptography increments ``verifications`` (and
 :class:`JwtVerifier` ``decodes``), so tests can prove that a replay or a stale
