@@ -279,7 +279,10 @@ def test_serve_with_sdk_keys_end_to_end(tmp_path: Path, pair: Any) -> None:
     try:
         msg = sign_message(RCANMessage(cmd="move_forward", target=ROBOT), pair)
         url = f"{gw.url}/v1/messages"
-        assert httpx.post(url, content=msg.to_json(), headers=JSON).status_code == 200
+        accepted = httpx.post(url, content=msg.to_json(), headers=JSON)
+        assert accepted.status_code == 200
+        ack = RCANResponse.from_dict(accepted.json())  # the COMMAND_ACK, read by the SDK
+        assert (ack.msg_id, ack.status) == (msg.msg_id, "ok")
         replay = httpx.post(url, content=msg.to_json(), headers=JSON)
         assert replay.status_code == 409
         assert RCANResponse.from_dict(replay.json()).msg_id == msg.msg_id
