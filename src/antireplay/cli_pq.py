@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
+from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 
@@ -43,7 +44,7 @@ def _key(path: Path, kind: Any, option: str) -> Any:
             if private
             else serialization.load_pem_public_key(data)
         )
-    except (OSError, ValueError, TypeError) as exc:
+    except (OSError, ValueError, TypeError, UnsupportedAlgorithm) as exc:
         raise click.BadParameter(f"{path}: not {what} ({exc})", param_hint=option) from None
     if not isinstance(key, kind):
         message = f"{path}: a {type(key).__name__}, not a {kind.__name__}"
