@@ -18,9 +18,11 @@ from hypothesis import strategies as st
 from antireplay import ManualClock
 from antireplay.counters import NonceCounter
 from antireplay.errors import (
+    CounterReplayedError,
     InvalidFrameError,
     MessageStaleError,
     ReplayAttackError,
+    SignatureInvalidError,
     UnknownSessionError,
 )
 from antireplay.mavlink.codec import parse_frame
@@ -37,10 +39,19 @@ from antireplay.mavlink.pq import (
     chunk_key,
     compact,
     inner_of,
+    open_compact,
     pack_v2,
     parse_chunk,
 )
-from antireplay.session import REKEY_AFTER, Initiator, Purpose, Responder
+from antireplay.session import (
+    REKEY_AFTER,
+    Direction,
+    Initiator,
+    Opened,
+    Purpose,
+    Responder,
+    Session,
+)
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
@@ -444,3 +455,105 @@ def test_unknown_local_message_is_refused_before_sealing(link: Link) -> None:
     raw[7:10] = (60999).to_bytes(3, "little")  # a message id nobody knows
     with pytest.raises(InvalidFrameError, match="not in the dialect"):
         link.ground.from_local(bytes(raw))
+
+
+class _Sessions:
+    """A receiver over several sessions (a responder's routing, without its table)."""
+
+    def __init__(self, *sessions: Session) -> None:
+        self.by_id = {s.session_id: s for s in sessions}
+
+    def check(self, frame: bytes) -> None:
+        self.by_id[frame[4:20]].check(frame)
+
+    def open(self, frame: bytes) -> Opened:
+        return self.by_id[frame[4:20]].open(frame)
+
+
+def _pair(sid: bytes) -> tuple[Session, Session]:
+    """The two sides of a session with id ``sid`` (keys of its own)."""
+    i2r, r2i = os.urandom(32), os.urandom(32)
+    initiator = Session(sid, Direction.I2R, "responder", i2r, r2i, signing_key=GCS_KEY)
+    responder = Session(sid, Direction.R2I, "gcs", r2i, i2r, peer_verify_key=GCS_KEY.public_key())
+    return initiator, responder
+
+
+def test_a_shared_handle_never_lets_one_session_refuse_the_others_frames() -> None:
+    old_i, old_r = _pair(b"\0" * 7 + b"\1" + b"o" * 7 + b"\x42")
+    new_i, new_r = _pair(b"\0" * 7 + b"\2" + b"n" * 7 + b"\x42")  # the same handle, 0x42
+    receiver = _Sessions(old_r, new_r)
+    sessions = [old_r, new_r]
+    for _ in range(3):  # the old session's counters run ahead
+        for purpose in Purpose:
+            old_r.open(old_i.seal(b"x" * 8, purpose))
+    for purpose in Purpose:  # the new session's first frames: counter 0, used in the old
+        opened = open_compact(
+            compact(new_i.seal(b"y" * 8, purpose)), sessions, Direction.I2R, receiver
+        )
+        assert (opened.session_id, opened.counter) == (new_r.session_id, 0)
+    replay = compact(old_i.seal(b"z" * 8))
+    open_compact(replay, sessions, Direction.I2R, receiver)
+    with pytest.raises(CounterReplayedError):  # the old session's replay names itself
+        open_compact(replay, sessions, Direction.I2R, receiver)
+    forged = bytearray(compact(old_i.seal(b"w" * 8)))  # counter 4: fresh in both windows
+    forged[-1] ^= 1
+    with pytest.raises(SignatureInvalidError):
+        open_compact(bytes(forged), sessions, Direction.I2R, receiver)
+
+
+def test_the_vehicle_end_draws_session_ids_whose_handles_differ(clock: ManualClock) -> None:
+    link = Link(clock, max_sessions=8)
+    for _ in range(8):  # eight live sessions, none carrying a frame (none superseded)
+        link.connect()
+    assert len({s.session_id[-1] for s in link.vehicle._sessions}) == 8
+    avoid = lambda sid: sid[-1] < 0xF0  # noqa: E731 - all but 16 handles taken
+    _, hs2 = link.responder.accept_handshake(
+        link.ground.initiator.start(ROBOT_KEM.public_key()), avoid
+    )
+    assert hs2[2 + 15] >= 0xF0
+
+
+def test_queued_commands_expire_and_every_drop_is_counted(clock: ManualClock) -> None:
+    link = Link(clock)
+    for p in range(10):  # no vehicle: every HS1 is lost, commands queue
+        link.ground.from_local(arm(param1=float(p)))
+    assert link.ground.drops == {"QUEUE_FULL": 2}
+    clock.advance(3)
+    link.ground.from_local(arm(param1=10.0))
+    clock.advance(3)  # all but the last are older than queue_ttl_s (5 s)
+    link.up(link.ground.handshake())
+    assert [c.param1 for c in link.commands()] == [10.0]
+    assert link.ground.drops == {"QUEUE_FULL": 3, "QUEUE_EXPIRED": 7}
+    assert link.ground.unsent == 10
+
+
+def test_a_message_that_must_be_signed_is_refused_in_a_data_frame(clock: ManualClock) -> None:
+    link = Link(clock)
+    link.ground = GroundEnd(
+        Initiator("gcs", GCS_KEY, clock), ROBOT_KEM.public_key(), clock=clock, signed=frozenset()
+    )
+    link.connect()
+    (frame,) = link.ground.from_local(arm())  # an HMAC data frame
+    link.up([frame])
+    assert not link.commands() and link.refused == ["SIGNATURE_REQUIRED"]
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda m: m.mission_item_send(1, 1, 0, 0, 16, 0, 1, 0, 0, 0, 0, 1.0, 2.0, 30.0),
+        lambda m: m.mission_write_partial_list_send(1, 1, 0, 3),
+        lambda m: m.param_ext_set_send(1, 1, b"ARMING_CHECK", b"0", 6),
+        lambda m: m.serial_control_send(10, 0, 0, 0, 4, [ord(c) for c in "rebo"] + [0] * 66),
+        lambda m: m.file_transfer_protocol_send(0, 1, 1, [0] * 251),
+        lambda m: m.set_position_target_local_ned_send(0, 1, 1, 1, 0, 1, 2, 3, *[0] * 8),
+        lambda m: m.set_position_target_global_int_send(0, 1, 1, 5, 0, 1, 2, 3, *[0] * 8),
+    ],
+)
+def test_command_carrying_messages_are_signed_by_default(
+    link: Link, build: Callable[[dialect.MAVLink], None]
+) -> None:
+    frames = link.ground.from_local(plain(build))
+    assert len(frames) > 1  # an ML-DSA-87 signature: several chunks
+    link.up(frames)
+    assert len(link.delivered) == 1 and link.refused == []

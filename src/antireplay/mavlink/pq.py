@@ -80,11 +80,12 @@ from __future__ import annotations
 
 import hmac
 import struct
-from collections import OrderedDict, deque
-from collections.abc import Callable, Iterable
+from collections import Counter, OrderedDict, deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import IntEnum
 from importlib import resources
+from typing import Protocol
 
 from cryptography.hazmat.primitives.asymmetric import mlkem, x25519
 from pymavlink.dialects.v20 import ardupilotmega as dialect
@@ -94,7 +95,9 @@ from pymavlink.generator.mavcrc import x25crc
 from antireplay.clock import Clock, resolve
 from antireplay.errors import (
     InvalidFrameError,
+    ReplayAttackError,
     SignatureInvalidError,
+    SignatureRequiredError,
     UnknownSessionError,
 )
 from antireplay.mavlink.codec import HEADER, STX_V2, Frame, parse_frame
@@ -140,17 +143,32 @@ class Kind(IntEnum):
     FRAME_CHUNKED = 4
 
 
-#: Messages signed with ML-DSA-87 (``command`` frames); the rest travel HMAC-protected.
+#: Messages signed with ML-DSA-87 (``command`` frames): whatever changes what the vehicle
+#: does, including missions, parameters, guided setpoints, file transfer (scripts, logs)
+#: and the serial shell; the rest travels HMAC-protected.  The vehicle end refuses any of
+#: them in a data frame (``SIGNATURE_REQUIRED``).
 SIGNED_MESSAGES = frozenset(
     {
         dialect.MAVLINK_MSG_ID_COMMAND_LONG,
         dialect.MAVLINK_MSG_ID_COMMAND_INT,
         dialect.MAVLINK_MSG_ID_SET_MODE,
         dialect.MAVLINK_MSG_ID_PARAM_SET,
+        dialect.MAVLINK_MSG_ID_PARAM_EXT_SET,
         dialect.MAVLINK_MSG_ID_MISSION_COUNT,
+        dialect.MAVLINK_MSG_ID_MISSION_ITEM,
         dialect.MAVLINK_MSG_ID_MISSION_ITEM_INT,
+        dialect.MAVLINK_MSG_ID_MISSION_WRITE_PARTIAL_LIST,
         dialect.MAVLINK_MSG_ID_MISSION_CLEAR_ALL,
         dialect.MAVLINK_MSG_ID_MISSION_SET_CURRENT,
+        dialect.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED,
+        dialect.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT,
+        dialect.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET,
+        dialect.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET,
+        dialect.MAVLINK_MSG_ID_SET_HOME_POSITION,
+        dialect.MAVLINK_MSG_ID_SET_GPS_GLOBAL_ORIGIN,
+        dialect.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL,
+        dialect.MAVLINK_MSG_ID_SERIAL_CONTROL,
+        dialect.MAVLINK_MSG_ID_LOG_ERASE,
     }
 )
 
@@ -434,20 +452,46 @@ def expand(air: bytes, sessions: Iterable[Session], direction: Direction) -> lis
     ]
 
 
+class Receiver(Protocol):
+    """What opens session frames: a :class:`~antireplay.session.Session` or a
+    :class:`~antireplay.session.Responder` (``check`` records nothing, ``open`` commits)."""
+
+    def check(self, frame: bytes) -> None: ...
+
+    def open(self, frame: bytes) -> Opened: ...
+
+
 def open_compact(
-    air: bytes, sessions: Iterable[Session], direction: Direction, open_: Callable[[bytes], Opened]
+    air: bytes, sessions: Iterable[Session], direction: Direction, receiver: Receiver
 ) -> Opened:
-    """Open a compact frame with ``open_`` under the first live session it verifies in
-    (a handle shared by two sessions costs one more tag check); typed errors otherwise."""
+    """Open a compact frame under the live session its tag verifies in; typed errors
+    otherwise.  A handle shared by two sessions (the vehicle end avoids it, but cannot
+    always) is resolved by the tag, never by a window: every candidate is ``check`` ed
+    (cheap, records nothing), those that pass are opened newest first (check,
+    authenticate, commit, each under its own session), so another session's counters
+    can never refuse this one's frames.  When none authenticates, a window refusal
+    outranks ``SIGNATURE_INVALID`` (it names a replay)."""
     candidates = expand(air, sessions, direction)
     if not candidates:
         raise UnknownSessionError("no live session with this handle; handshake again")
-    for frame in candidates[:-1]:
+    if len(candidates) == 1:
+        return receiver.open(candidates[0])
+    refused: ReplayAttackError | None = None
+    fresh = []
+    for frame in reversed(candidates):
         try:
-            return open_(frame)
-        except SignatureInvalidError:
+            receiver.check(frame)
+        except ReplayAttackError as exc:
+            refused = refused or exc
             continue
-    return open_(candidates[-1])
+        fresh.append(frame)
+    for frame in fresh:
+        try:
+            return receiver.open(frame)
+        except SignatureInvalidError as exc:
+            refused = refused or exc
+    assert refused is not None
+    raise refused
 
 
 @dataclass
@@ -480,6 +524,7 @@ class GroundEnd:
         signed: frozenset[int] = SIGNED_MESSAGES,
         retry_s: float = 2.0,
         max_queued: int = 8,
+        queue_ttl_s: float = 5.0,
         hybrid: x25519.X25519PublicKey | None = None,
         clock: Clock | None = None,
     ) -> None:
@@ -492,9 +537,13 @@ class GroundEnd:
         self._clock = resolve(clock)
         self._reassembler = Reassembler(clock=clock)
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
-        self._queue: deque[bytes] = deque(maxlen=max_queued)
+        self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
+        self._queue: deque[tuple[bytes, float]] = deque()  # commands and when they came
         self._heard = float("-inf")  # when an authenticated frame last came from the vehicle
-        self.unsent = 0
+        #: Local messages that never left, by reason: ``NO_SESSION`` (not a command, no
+        #: session), ``QUEUE_FULL`` (the oldest queued command, pushed out by a newer one),
+        #: ``QUEUE_EXPIRED`` (a command that waited longer than ``queue_ttl_s``).
+        self.drops: Counter[str] = Counter()
 
     def handshake(self) -> list[bytes]:
         """Start a new handshake (the current session keeps working until HS2 arrives)."""
@@ -504,14 +553,20 @@ class GroundEnd:
 
     def from_local(self, raw: bytes) -> list[bytes]:
         """Wrap one plain frame from a local peer.  While there is no session, commands wait
-        in a bounded queue and the rest is dropped (counted in :attr:`unsent`): a heartbeat
-        comes again, and must not push a command out of the queue."""
+        in a bounded queue, each at most ``queue_ttl_s`` (a command is meant for now, not
+        for whenever the link comes back), and the rest is dropped: a heartbeat comes
+        again, and must not push a command out of the queue.  Every drop is counted in
+        :attr:`drops`."""
         frame = _parse(raw)
         if self.session is None:
             if frame.msgid in self.signed:
-                self._queue.append(raw)
+                self._expire_queue()
+                if len(self._queue) >= self.max_queued:
+                    self._queue.popleft()
+                    self.drops["QUEUE_FULL"] += 1
+                self._queue.append((raw, self._clock.monotonic()))
             else:
-                self.unsent += 1
+                self.drops["NO_SESSION"] += 1
             return self._retry()
         purpose = Purpose.COMMAND if frame.msgid in self.signed else Purpose.DATA
         out = self._seal(self.session, inner_of(frame), purpose)
@@ -544,7 +599,7 @@ class GroundEnd:
             return self._finish(blob)
         if kind not in (Kind.FRAME, Kind.FRAME_CHUNKED) or self.session is None:
             raise UnknownSessionError(f"{kind.name} blob with no session to take it")
-        opened = open_compact(blob, [self.session], Direction.R2I, self.session.open)
+        opened = open_compact(blob, [self.session], Direction.R2I, self.session)
         self._heard = self._clock.monotonic()
         return Output(local=[plain_frame(opened.payload)], authenticated=True)
 
@@ -554,9 +609,21 @@ class GroundEnd:
         self.session = self.initiator.finish(self._pending[0], hs2)
         self._pending, self._heard = None, self._clock.monotonic()
         out = Output(authenticated=True)
+        self._expire_queue()
         while self._queue:
-            out.air += self.from_local(self._queue.popleft())
+            out.air += self.from_local(self._queue.popleft()[0])
         return out
+
+    def _expire_queue(self) -> None:
+        horizon = self._clock.monotonic() - self.queue_ttl_s
+        while self._queue and self._queue[0][1] < horizon:
+            self._queue.popleft()
+            self.drops["QUEUE_EXPIRED"] += 1
+
+    @property
+    def unsent(self) -> int:
+        """Local messages that never left (:attr:`drops`, all reasons)."""
+        return sum(self.drops.values())
 
     @property
     def reassembly(self) -> ReassemblyStats:
@@ -573,9 +640,11 @@ class VehicleEnd:
         system_id: int = 1,
         component_id: int = 197,
         hint_interval_s: float = 1.0,
+        signed: frozenset[int] = SIGNED_MESSAGES,
         clock: Clock | None = None,
     ) -> None:
         self.responder = responder
+        self.signed = signed  # messages delivered only from a command (ML-DSA-87) frame
         self.sender = ChunkSender(system_id, component_id)
         self.hint_interval_s = hint_interval_s
         self._clock = resolve(clock)
@@ -598,17 +667,30 @@ class VehicleEnd:
             return Output()
         kind, blob = done
         if kind is Kind.HS1:
-            session, hs2 = self.responder.accept_handshake(blob)
+            handles = {s.session_id[-1] for s in self._sessions}
+            session, hs2 = self.responder.accept_handshake(blob, lambda sid: sid[-1] in handles)
             self._sessions.append(session)
             self.current = session
             return Output(air=self.sender.frames(hs2, Kind.HS2), authenticated=True)
         if kind is Kind.HS2:
             raise InvalidFrameError("HS2 travels to the ground end")
-        opened = open_compact(blob, self._sessions, Direction.I2R, self.responder.open)
+        self._require_signature(blob)
+        opened = open_compact(blob, self._sessions, Direction.I2R, self.responder)
         session = next(s for s in self._sessions if s.session_id == opened.session_id)
         self._supersede(session)
         self.current = session
         return Output(local=[plain_frame(opened.payload)], authenticated=True)
+
+    def _require_signature(self, air: bytes) -> None:
+        """Refuse, before any cryptography, a message that must be signed (:attr:`signed`)
+        but travels in a data frame: a holder of the session's HMAC keys (a ground end
+        configured otherwise, or an insider) cannot command the vehicle."""
+        inner_at = _COMPACT.size
+        if len(air) < inner_at + _INNER_HEAD:
+            raise InvalidFrameError("session frame too short")
+        msgid = int.from_bytes(air[inner_at + 3 : inner_at + 6], "little")
+        if air[1] != Purpose.COMMAND and msgid in self.signed:
+            raise SignatureRequiredError(f"message {msgid} must be signed (ML-DSA-87)")
 
     def _supersede(self, session: Session) -> None:
         """Close the peer's older sessions once a newer one carried a frame: the ground end

@@ -115,7 +115,6 @@ Client = redis.Redis | redis.cluster.RedisCluster
 class RedisStore:
     """The store contract on Redis or Redis Cluster (see the module docstring)."""
 
-
     def __init__(
         self,
         url: str,
