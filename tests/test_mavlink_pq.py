@@ -31,6 +31,8 @@ from antireplay.mavlink.pq import (
     DIALECT,
     MAX_CHUNKS,
     MSG_CHUNK,
+    REKEY_TRANSFERS,
+    TRANSFER_LIMIT,
     ChunkSender,
     GroundEnd,
     Kind,
@@ -43,6 +45,8 @@ from antireplay.mavlink.pq import (
     pack_v2,
     parse_chunk,
 )
+from antireplay.mavlink.pq_link import PqLink
+from antireplay.mavlink.router import Refusal
 from antireplay.session import (
     REKEY_AFTER,
     Direction,
@@ -56,6 +60,8 @@ from antireplay.session import (
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavgen
+
+from tests.test_mavlink_router import FakeTransport
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
@@ -174,9 +180,9 @@ def test_arm_arrives_once_and_its_replay_is_dropped(link: Link) -> None:
     (command,) = link.commands()
     assert (command.command, command.target_system, command.param1) == (ARM, 1, 1.0)
     assert command.get_srcSystem() == 255 and command.get_srcComponent() == 190
-    link.up(frames)  # the whole capture again
+    link.up(frames)  # the whole capture again: each chunk's transfer already opened
     assert len(link.commands()) == 1
-    assert link.refused == ["COUNTER_REPLAYED"]
+    assert link.refused == ["REPLAY_DETECTED"] * 20
 
 
 def test_telemetry_both_ways_is_hmac_in_one_chunk(link: Link) -> None:
@@ -426,7 +432,7 @@ def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
     link.up(hs1)
     frames = link.ground.from_local(arm())
     link.up(frames + frames)
-    assert len(link.commands()) == 1 and link.refused == ["COUNTER_REPLAYED"]
+    assert len(link.commands()) == 1 and link.refused == ["REPLAY_DETECTED"] * 20
 
 
 def test_a_frame_withheld_from_a_superseded_session_never_plays(link: Link) -> None:
@@ -557,3 +563,79 @@ def test_command_carrying_messages_are_signed_by_default(
     assert len(frames) > 1  # an ML-DSA-87 signature: several chunks
     link.up(frames)
     assert len(link.delivered) == 1 and link.refused == []
+
+
+def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: Link) -> None:
+    old = []
+    for _ in range(6):  # the attacker records six commands, all delivered
+        frames = link.ground.from_local(arm())
+        old.append(frames)
+        link.up(frames)
+    for t in range(4):  # and replays 19 of 20 chunks of four: none is buffered
+        link.up(old[t][:19])
+    assert link.refused == ["REPLAY_DETECTED"] * 76
+    fresh = link.ground.from_local(arm(param1=0.0))
+    for i, chunk in enumerate(fresh):
+        link.up([chunk, old[4 + i % 2][0]])
+    assert [c.param1 for c in link.commands()][-1] == 0.0
+    assert link.vehicle.reassembly.evicted == 0
+
+
+def test_a_silent_vehicle_end_gets_a_handshake_without_its_hint(
+    link: Link, clock: ManualClock
+) -> None:
+    link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
+    link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted; its hints stolen
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    for _ in range(6):  # the GCS heartbeat each second; nothing authenticated comes back
+        clock.advance(1)
+        link.up(link.ground.from_local(beat))
+    assert link.refused.count("UNKNOWN_SESSION") == 5  # the sixth carried a new HS1 too
+    link.up(link.ground.from_local(arm()))
+    assert len(link.commands()) == 1
+
+
+def test_the_ground_end_rekeys_before_its_transfer_numbers_wrap(link: Link) -> None:
+    session = link.ground.session
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    first = link.ground.sender.transfer  # where the session began
+    link.ground.sender.transfer = first + REKEY_TRANSFERS - 2
+    assert len(link.ground.from_local(beat)) == 1
+    out = link.ground.from_local(beat)  # the 30,000th transfer: a new handshake goes out
+    assert len(out) > 1
+    link.ground.sender.transfer = first + TRANSFER_LIMIT  # its HS1 lost meanwhile
+    link.ground.from_local(arm())  # no more sending in the old session: queued
+    assert link.ground.session is None
+    link.up(link.ground.handshake())
+    assert link.ground.session is not session and len(link.commands()) == 1
+
+
+def test_the_link_counts_plain_mavlink_quietly_and_exports_the_ends_drops(
+    clock: ManualClock,
+) -> None:
+    refusals: list[Refusal] = []
+    made = Link(clock)
+    local, air = FakeTransport("udpin:0.0.0.0:1", fixed=False), FakeTransport("udpout:1.2.3.4:5")
+    pq = PqLink(made.ground, local, air, on_reject=refusals.append)
+    pq.start()  # the first HS1 goes out, and is lost
+    for _ in range(9):
+        local.inject(arm(), ("10.0.0.1", 9))
+    clock.advance(6)
+    air.inject(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), sysid=1))  # MAVProxy's own
+    air.inject(raw_chunk((7, 0, 1, 1, 3), b"x"))
+    local.inject(arm(), ("10.0.0.1", 9))
+    assert pq.dropped == {
+        "air:PLAIN": 1,
+        "air:UNKNOWN_SESSION": 1,
+        "local:QUEUE_FULL": 1,
+        "local:QUEUE_EXPIRED": 8,
+    }
+    assert [r.code for r in refusals] == ["UNKNOWN_SESSION"]
+
+
+def test_a_chunk_planted_ahead_cannot_spoil_the_next_handshake(clock: ManualClock) -> None:
+    link = Link(clock)
+    planted = link.ground.sender.transfer + 1  # the next transfer number, were it counted
+    link.up([raw_chunk((planted, 0, 32, 1, Kind.HS1), b"x")])
+    link.up(link.ground.handshake())
+    assert link.ground.session is not None

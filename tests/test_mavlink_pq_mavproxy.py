@@ -172,7 +172,7 @@ def test_pq_commands_through_mavproxy(setup: Setup) -> None:
 
     # Its replay, straight onto the air port: dropped.
     setup.inject(captured_arm)
-    until("the replay refused", drops(setup.vehicle_link, "COUNTER_REPLAYED"))
+    until("the replay refused", drops(setup.vehicle_link, "REPLAY_DETECTED"))
 
     # A man in the middle: the target rewritten, the message id rewritten, two commands
     # spliced into one transfer, the handshake replayed: nothing passes.
@@ -195,8 +195,12 @@ def test_pq_commands_through_mavproxy(setup: Setup) -> None:
         lambda: setup.vehicle_link.dropped["air:SIGNATURE_INVALID"] >= before + 20,
     )
     sessions = len(setup.responder)
+    replays = setup.vehicle_link.dropped["air:REPLAY_DETECTED"]
     setup.inject(hs1)
-    until("the handshake replay refused", drops(setup.vehicle_link, "REPLAY_DETECTED"))
+    until(
+        "the handshake replay refused",
+        lambda: setup.vehicle_link.dropped["air:REPLAY_DETECTED"] > replays,
+    )
     assert len(setup.responder) == sessions
 
     # The vehicle end restarts: the ground end learns it (PQ_STATUS while the vehicle is

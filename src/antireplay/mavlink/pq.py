@@ -79,6 +79,7 @@ error the caller counts.
 from __future__ import annotations
 
 import hmac
+import secrets
 import struct
 from collections import Counter, OrderedDict, deque
 from collections.abc import Iterable
@@ -96,6 +97,7 @@ from antireplay.clock import Clock, resolve
 from antireplay.errors import (
     InvalidFrameError,
     ReplayAttackError,
+    ReplayDetectedError,
     SignatureInvalidError,
     SignatureRequiredError,
     UnknownSessionError,
@@ -115,6 +117,10 @@ from antireplay.session import (
 MSG_CHUNK, MSG_STATUS = 61000, 61001
 CHUNK_DATA, CHUNK_MAC, MAX_CHUNKS = 249, 8, 32
 STATUS_NO_SESSION = 1
+#: A ground end rekeys once its session used this many transfer numbers, and stops
+#: sending in it at ``TRANSFER_LIMIT``: within a session they never wrap (module docstring).
+REKEY_TRANSFERS, TRANSFER_LIMIT = 30_000, 32_000
+MAX_SENDER_KEYS = 16  # (sender, chunk key) pairs whose newest opened transfer is kept
 _INNER_HEAD = 6
 _FRAME = struct.Struct(">BBBB16sQ")  # a session frame's header (antireplay.session)
 _COMPACT = struct.Struct(">BBQ")  # handle purpose counter: the header as it travels
@@ -240,8 +246,15 @@ class Chunk:
 _KINDS = {int(k): k for k in Kind}
 
 
+class PlainFrameError(InvalidFrameError):
+    """A plain MAVLink message (or a v1 frame) where only our dialect travels: on the air,
+    routers' own heartbeats, known and benign, which an end counts rather than reports."""
+
+
 def parse_chunk(frame: Frame) -> Chunk:
     """The cheap checks (module docstring); every failure is a typed INVALID_FRAME."""
+    if frame.msgid not in DIALECT:
+        raise PlainFrameError(f"plain MAVLink message {frame.msgid}, not carried")
     if frame.msgid != MSG_CHUNK:
         raise InvalidFrameError("not a PQ_CHUNK")
     payload = _payload_of(frame)
@@ -279,8 +292,11 @@ class ChunkSender:
     transfer: int = 0
     seq: int = 0
 
-    def frames(self, blob: bytes, kind: Kind, mac_key: bytes | None = None) -> list[bytes]:
-        """``blob`` as chunk frames; a session frame needing several chunks gets chunk MACs."""
+    def frames(
+        self, blob: bytes, kind: Kind, mac_key: bytes | None = None, transfer: int | None = None
+    ) -> list[bytes]:
+        """``blob`` as chunk frames; a session frame needing several chunks gets chunk MACs.
+        ``transfer``: this number instead of the next one (an HS1's unpredictable one)."""
         if kind is Kind.FRAME and len(blob) > CHUNK_DATA:
             kind = Kind.FRAME_CHUNKED
         room = CHUNK_DATA - (CHUNK_MAC if kind is Kind.FRAME_CHUNKED else 0)
@@ -289,16 +305,17 @@ class ChunkSender:
             raise ValueError(f"blob of {len(blob)} bytes needs more than {MAX_CHUNKS} chunks")
         if kind is Kind.FRAME_CHUNKED and mac_key is None:
             raise ValueError("a chunked session frame needs the chunk key")
-        self.transfer = (self.transfer + 1) & 0xFFFF
+        if transfer is None:
+            self.transfer = transfer = (self.transfer + 1) & 0xFFFF
         out = []
         for index, piece in enumerate(pieces):
             data = piece
             if kind is Kind.FRAME_CHUNKED:
                 assert mac_key is not None
                 length = len(piece) + CHUNK_MAC
-                head = _CHUNK.pack(self.transfer, index, len(pieces), length, kind)
+                head = _CHUNK.pack(transfer, index, len(pieces), length, kind)
                 data += _chunk_mac(mac_key, bytes([self.sysid, self.compid]) + head + piece)
-            payload = _CHUNK.pack(self.transfer, index, len(pieces), len(data), kind)
+            payload = _CHUNK.pack(transfer, index, len(pieces), len(data), kind)
             payload += data.ljust(CHUNK_DATA, b"\0")
             out.append(self._pack(payload))
         return out
@@ -345,6 +362,8 @@ class Reassembler:
         self._clock = resolve(clock)
         self._frames: OrderedDict[tuple[int, int, int], _Transfer] = OrderedDict()
         self._handshakes: OrderedDict[tuple[int, int, int], _Transfer] = OrderedDict()
+        # the newest transfer number that opened, per sender and chunk key (a few live keys)
+        self._newest: OrderedDict[tuple[int, int, bytes], int] = OrderedDict()
         self.stats = ReassemblyStats()
 
     @property
@@ -366,6 +385,7 @@ class Reassembler:
         transfer = pool.get(chunk.key)
         key = self._authenticate(chunk, keys if transfer is None else (transfer.key,))
         if transfer is None:
+            self._check_fresh(chunk, key)
             transfer = self._admit(pool, chunk, key)
         elif transfer.count != chunk.count or transfer.kind is not chunk.kind:
             raise InvalidFrameError("chunk disagrees with its transfer (count or kind)")
@@ -380,6 +400,25 @@ class Reassembler:
             return None
         del pool[chunk.key]
         return transfer.kind, b"".join(transfer.pieces[i] for i in range(transfer.count))
+
+    def opened(self, chunk: Chunk, key: bytes) -> None:
+        """The blob ``chunk`` belongs to opened (authenticated, fresh) in the session whose
+        chunk key is ``key``: chunks of this transfer and earlier ones (16-bit serial
+        arithmetic) from that sender are replays from now on."""
+        at = (chunk.sysid, chunk.compid, key)
+        newest = self._newest.get(at)
+        if newest is None or 0 < (chunk.transfer - newest) & 0xFFFF < 0x8000:
+            self._newest[at] = chunk.transfer
+            self._newest.move_to_end(at)
+            if len(self._newest) > MAX_SENDER_KEYS:
+                self._newest.popitem(last=False)
+
+    def _check_fresh(self, chunk: Chunk, key: bytes | None) -> None:
+        newest = None if key is None else self._newest.get((chunk.sysid, chunk.compid, key))
+        if newest is not None and (newest - chunk.transfer) & 0xFFFF < 0x8000:
+            raise ReplayDetectedError(
+                f"chunk of transfer {chunk.transfer}, at or before {newest} that opened"
+            )
 
     def _authenticate(self, chunk: Chunk, keys: Iterable[bytes | None]) -> bytes | None:
         if chunk.kind is not Kind.FRAME_CHUNKED:
@@ -507,7 +546,7 @@ class Output:
 def _parse(raw: bytes) -> Frame:
     frame = parse_frame(raw)
     if frame.version != 2:
-        raise InvalidFrameError("MAVLink v1 frames are not carried")
+        raise PlainFrameError("MAVLink v1 frames are not carried")
     return frame
 
 
@@ -523,6 +562,7 @@ class GroundEnd:
         component_id: int = 197,
         signed: frozenset[int] = SIGNED_MESSAGES,
         retry_s: float = 2.0,
+        silence_s: float = 5.0,
         max_queued: int = 8,
         queue_ttl_s: float = 5.0,
         hybrid: x25519.X25519PublicKey | None = None,
@@ -531,8 +571,9 @@ class GroundEnd:
         self.initiator, self.responder_key = initiator, responder_key
         self.hybrid = hybrid  # the vehicle's static X25519 key: hybrid handshakes
         self.signed = signed
-        self.retry_s = retry_s
+        self.retry_s, self.silence_s = retry_s, silence_s
         self.sender = ChunkSender(system_id, component_id)
+        self._first_transfer = 0  # the sender's transfer number when the session began
         self.session: Session | None = None
         self._clock = resolve(clock)
         self._reassembler = Reassembler(clock=clock)
@@ -546,10 +587,11 @@ class GroundEnd:
         self.drops: Counter[str] = Counter()
 
     def handshake(self) -> list[bytes]:
-        """Start a new handshake (the current session keeps working until HS2 arrives)."""
+        """Start a new handshake (the current session keeps working until HS2 arrives).  Its
+        transfer number is random: nobody can plant a conflicting chunk ahead of it."""
         hs1 = self.initiator.start(self.responder_key, self.hybrid)
         self._pending = (hs1, self._clock.monotonic())
-        return self.sender.frames(hs1, Kind.HS1)
+        return self.sender.frames(hs1, Kind.HS1, transfer=secrets.randbelow(0x10000))
 
     def from_local(self, raw: bytes) -> list[bytes]:
         """Wrap one plain frame from a local peer.  While there is no session, commands wait
@@ -558,6 +600,8 @@ class GroundEnd:
         again, and must not push a command out of the queue.  Every drop is counted in
         :attr:`drops`."""
         frame = _parse(raw)
+        if self.session is not None and self._transfers_used() >= TRANSFER_LIMIT:
+            self.session = None  # its transfer numbers would wrap: wait for the new one
         if self.session is None:
             if frame.msgid in self.signed:
                 self._expire_queue()
@@ -569,10 +613,21 @@ class GroundEnd:
                 self.drops["NO_SESSION"] += 1
             return self._retry()
         purpose = Purpose.COMMAND if frame.msgid in self.signed else Purpose.DATA
-        out = self._seal(self.session, inner_of(frame), purpose)
-        if self.session.needs_rekey and self._pending is None:
-            out += self.handshake()
-        return out
+        return self._seal(self.session, inner_of(frame), purpose) + self._renew(self.session)
+
+    def _renew(self, session: Session) -> list[bytes]:
+        """A new handshake (rate-limited by ``retry_s``) when this session should end: its
+        counters near their limit, its chunks' transfer numbers near half their range
+        (:data:`REKEY_TRANSFERS`), or nothing authenticated came from the vehicle for
+        ``silence_s`` (a restarted vehicle end; its ``PQ_STATUS`` hint can be lost or
+        outrun by an attacker's junk)."""
+        silent = self._clock.monotonic() - self._heard >= self.silence_s
+        if session.needs_rekey or silent or self._transfers_used() >= REKEY_TRANSFERS:
+            return self._retry()
+        return []
+
+    def _transfers_used(self) -> int:
+        return (self.sender.transfer - self._first_transfer) & 0xFFFF
 
     def _seal(self, session: Session, inner: bytes, purpose: Purpose) -> list[bytes]:
         blob = compact(session.seal(inner, purpose))
@@ -591,7 +646,8 @@ class GroundEnd:
             hinted = read_status(frame) == STATUS_NO_SESSION and silent
             return Output(air=self._retry() if hinted else [])
         keys = [chunk_key(self.session.recv_key)] if self.session is not None else []
-        done = self._reassembler.feed(parse_chunk(frame), keys)
+        chunk = parse_chunk(frame)
+        done = self._reassembler.feed(chunk, keys)
         if done is None:
             return Output()
         kind, blob = done
@@ -600,6 +656,7 @@ class GroundEnd:
         if kind not in (Kind.FRAME, Kind.FRAME_CHUNKED) or self.session is None:
             raise UnknownSessionError(f"{kind.name} blob with no session to take it")
         opened = open_compact(blob, [self.session], Direction.R2I, self.session)
+        self._reassembler.opened(chunk, keys[0])
         self._heard = self._clock.monotonic()
         return Output(local=[plain_frame(opened.payload)], authenticated=True)
 
@@ -608,6 +665,7 @@ class GroundEnd:
             raise UnknownSessionError("HS2 with no handshake in progress")
         self.session = self.initiator.finish(self._pending[0], hs2)
         self._pending, self._heard = None, self._clock.monotonic()
+        self._first_transfer = self.sender.transfer
         out = Output(authenticated=True)
         self._expire_queue()
         while self._queue:
@@ -658,7 +716,8 @@ class VehicleEnd:
         frame = _parse(raw)
         keys = [chunk_key(s.recv_key) for s in self._sessions]
         try:
-            done = self._reassembler.feed(parse_chunk(frame), keys)
+            chunk = parse_chunk(frame)
+            done = self._reassembler.feed(chunk, keys)
         except SignatureInvalidError:
             if keys:
                 raise
@@ -677,6 +736,7 @@ class VehicleEnd:
         self._require_signature(blob)
         opened = open_compact(blob, self._sessions, Direction.I2R, self.responder)
         session = next(s for s in self._sessions if s.session_id == opened.session_id)
+        self._reassembler.opened(chunk, chunk_key(session.recv_key))
         self._supersede(session)
         self.current = session
         return Output(local=[plain_frame(opened.payload)], authenticated=True)
@@ -732,6 +792,7 @@ __all__ = [
     "GroundEnd",
     "Kind",
     "Output",
+    "PlainFrameError",
     "Reassembler",
     "ReassemblyStats",
     "VehicleEnd",
