@@ -47,15 +47,10 @@ from antireplay.mavlink.pq import (
 )
 from antireplay.mavlink.pq_link import PqLink
 from antireplay.mavlink.router import Refusal
-from antireplay.session import (
-    REKEY_AFTER,
-    Direction,
-    Initiator,
-    Opened,
-    Purpose,
-    Responder,
-    Session,
-)
+from antireplay.session import REKEY_AFTER, Initiator, Purpose, Responder
+from antireplay.session import Direction as Dir
+from antireplay.session import Opened as Open
+from antireplay.session import Session as Sess
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
@@ -466,21 +461,21 @@ def test_unknown_local_message_is_refused_before_sealing(link: Link) -> None:
 class _Sessions:
     """A receiver over several sessions (a responder's routing, without its table)."""
 
-    def __init__(self, *sessions: Session) -> None:
+    def __init__(self, *sessions: Sess) -> None:
         self.by_id = {s.session_id: s for s in sessions}
 
     def check(self, frame: bytes) -> None:
         self.by_id[frame[4:20]].check(frame)
 
-    def open(self, frame: bytes) -> Opened:
+    def open(self, frame: bytes) -> Open:
         return self.by_id[frame[4:20]].open(frame)
 
 
-def _pair(sid: bytes) -> tuple[Session, Session]:
+def _pair(sid: bytes) -> tuple[Sess, Sess]:
     """The two sides of a session with id ``sid`` (keys of its own)."""
     i2r, r2i = os.urandom(32), os.urandom(32)
-    initiator = Session(sid, Direction.I2R, "responder", i2r, r2i, signing_key=GCS_KEY)
-    responder = Session(sid, Direction.R2I, "gcs", r2i, i2r, peer_verify_key=GCS_KEY.public_key())
+    initiator = Sess(sid, Dir.I2R, "responder", i2r, r2i, signing_key=GCS_KEY)
+    responder = Sess(sid, Dir.R2I, "gcs", r2i, i2r, peer_verify_key=GCS_KEY.public_key())
     return initiator, responder
 
 
@@ -493,18 +488,16 @@ def test_a_shared_handle_never_lets_one_session_refuse_the_others_frames() -> No
         for purpose in Purpose:
             old_r.open(old_i.seal(b"x" * 8, purpose))
     for purpose in Purpose:  # the new session's first frames: counter 0, used in the old
-        opened = open_compact(
-            compact(new_i.seal(b"y" * 8, purpose)), sessions, Direction.I2R, receiver
-        )
+        opened = open_compact(compact(new_i.seal(b"y" * 8, purpose)), sessions, Dir.I2R, receiver)
         assert (opened.session_id, opened.counter) == (new_r.session_id, 0)
     replay = compact(old_i.seal(b"z" * 8))
-    open_compact(replay, sessions, Direction.I2R, receiver)
+    open_compact(replay, sessions, Dir.I2R, receiver)
     with pytest.raises(CounterReplayedError):  # the old session's replay names itself
-        open_compact(replay, sessions, Direction.I2R, receiver)
+        open_compact(replay, sessions, Dir.I2R, receiver)
     forged = bytearray(compact(old_i.seal(b"w" * 8)))  # counter 4: fresh in both windows
     forged[-1] ^= 1
     with pytest.raises(SignatureInvalidError):
-        open_compact(bytes(forged), sessions, Direction.I2R, receiver)
+        open_compact(bytes(forged), sessions, Dir.I2R, receiver)
 
 
 def test_the_vehicle_end_draws_session_ids_whose_handles_differ(clock: ManualClock) -> None:
