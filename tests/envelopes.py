@@ -83,12 +83,13 @@ def sdk_registry(pair: Any, compat: bool) -> KeyRegistry:
     return keys
 
 
-#: Each field a man in the middle may add to a genuine SDK-signed message.
+#: Each field a man in the middle may add to a genuine SDK-signed message (but ``qos``,
+#: the tolerated delivery hint that is never forwarded).
 MITM_FIELDS: dict[str, Any] = {
     "loa": 3, "presence_verified": True, "read_only": True,
     "delegation_chain": [{"issuer": "root", "scope": "*"}], "rcan_version": "3.9",
     "confidence": 0.9, "sender": "admin", "scope": "safety", "sender_type": "human",
-    "cloud_provider": "x", "key_id": "other", "qos": 2, "sequence_number": 7,
+    "cloud_provider": "x", "key_id": "other", "sequence_number": 7,
     "group_id": "fleet", "proximity_m": 0.5, "transport_encoding": "cbor",
     "firmware_hash": "ab" * 32, "attestation_ref": "https://x/sbom", "type": 6,
     "safety_event": "ESTOP",

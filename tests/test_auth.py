@@ -8,10 +8,21 @@ from typing import Any
 
 import jwt as pyjwt
 import pytest
-from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ec, mldsa
+from rcan import RCANMessage
+from rcan.signing import MLDSAKeyPair, verify_message
 
 from antireplay import ManualClock, SecurityConfig
-from antireplay.auth import JwtVerifier, b64decode, b64encode, sign_envelope
+from antireplay.auth import (
+    JwtVerifier,
+    b64decode,
+    b64encode,
+    load_public_key,
+    sdk_key_id,
+    sign_envelope,
+    sign_sdk,
+)
 from antireplay.errors import SignatureInvalidError
 from antireplay.pipeline import Receiver
 from tests.conftest import fresh_receiver
@@ -19,6 +30,7 @@ from tests.envelopes import (
     ED,
     JWT_KEY,
     NOW,
+    PQ,
     codes,
     message,
     registry,
@@ -124,3 +136,28 @@ def test_an_unsigned_or_unknown_key_envelope_gets_its_own_code_beside_a_token(
     assert jwt_receiver.receive(unsigned, bearer).code == "SIGNATURE_REQUIRED"
     assert jwt_receiver.receive(unknown, bearer).code == "UNKNOWN_SENDER"
     assert jwt_receiver.receive(unsigned).code == "AUTH_FAILED"  # the token is required here
+
+
+def test_public_key_files_pem_or_the_sdk_s_raw_bytes() -> None:
+    """One loader: PEM (any supported type) and the SDK's raw ML-DSA keys; the rest by name."""
+    pq = mldsa.MLDSA65PrivateKey.generate().public_key()
+    pq87 = mldsa.MLDSA87PrivateKey.generate().public_key()
+    pem = pq.public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+    )
+    assert load_public_key(pem) == pq
+    assert load_public_key(pq.public_bytes_raw()) == pq
+    assert load_public_key(pq87.public_bytes_raw()) == pq87
+    with pytest.raises(ValueError, match="1952 or 2592 bytes"):
+        load_public_key(b"\x01" * 32)
+    with pytest.raises(ValueError, match="SDK private key file"):
+        load_public_key(b"MLDS" + b"\x00" * 5990)
+
+
+def test_sdk_signatures_made_here_verify_with_the_sdk() -> None:
+    body = sign_sdk(message(), PQ)
+    pair = MLDSAKeyPair.from_public_bytes(PQ.public_key().public_bytes_raw())
+    verify_message(RCANMessage.from_dict(body), [pair])
+    assert body["sig"]["kid"] == pair.key_id == sdk_key_id(PQ.public_key())
+    with pytest.raises(ValueError, match="does not cover scope"):
+        sign_sdk(message(scope="safety"), PQ)

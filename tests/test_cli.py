@@ -172,6 +172,11 @@ def test_sign_bad_inputs(tmp_path: Path) -> None:
     one_line_error(run(main, args), "--json", "m.json", "not JSON")
     bad_json.write_text("[1, 2]")
     one_line_error(run(main, args), "--json", "JSON object")
+    no_kid = ["sign", "--key", str(tmp_path / "k.pem"), "--cmd", "c", "--target", "t"]
+    one_line_error(run(main, no_kid), "--kid", "--sdk")
+    sdk = [*no_kid, "--sdk"]
+    one_line_error(run(main, sdk), "--key", "k.pem", "ML-DSA-65")
+    one_line_error(run(main, [*sdk, "--key", str(tmp_path / "k.pem")]), "exactly one --key")
 
 
 def test_mavlink_proxy_bad_inputs(tmp_path: Path) -> None:

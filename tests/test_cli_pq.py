@@ -104,6 +104,10 @@ def test_ground_and_vehicle_ends_carry_arm(keys: Path, fc: Any) -> None:
 
 def test_bad_options_are_one_line_errors(keys: Path) -> None:
     runner = CliRunner()
+    # a PKCS #8 key of an algorithm cryptography does not know (OID 1.2.3.4)
+    (keys / "odd.key.pem").write_text(
+        "-----BEGIN PRIVATE KEY-----\nMBACAQAwBQYDKgMEBAQEAgAA\n-----END PRIVATE KEY-----\n"
+    )
     base = ["mavlink-pq", "vehicle", "--fc", "udpout:127.0.0.1:9", "--air", "udpin:127.0.0.1:0"]
     for extra, expected in (
         (["--kem-key", str(keys / "vehicle.key.pem"), "--peer", "gcs"], "expected NAME=PEM"),
@@ -112,6 +116,7 @@ def test_bad_options_are_one_line_errors(keys: Path) -> None:
             ["--kem-key", str(keys / "vehicle.key.pem"), "--peer", "g=nope.pem"],
             "not a PEM public key",
         ),
+        (["--kem-key", str(keys / "odd.key.pem"), "--peer", "g=x"], "Unknown key type"),
     ):
         result = runner.invoke(main, [*base, *extra])
         assert result.exit_code == 2, result.output

@@ -4,13 +4,14 @@ SDK's signed subset is exactly what the SDK signs."""
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import msgspec
 import pytest
 from rcan import RCANMessage
 from rcan.signing import _canonical_message_bytes
 
-from antireplay.envelope import MAX_INT_TIMESTAMP, SDK_SIGNED_FIELDS, encode, parse
+from antireplay.envelope import MAX_INT_TIMESTAMP, SDK_SIGNED_FIELDS, encode, parse, safety_class
 from antireplay.errors import InvalidEnvelopeError, InvalidTimestampError
 from tests.envelopes import MITM_FIELDS
 
@@ -68,3 +69,37 @@ def test_sdk_signed_fields_are_what_the_sdk_signs() -> None:
     for name, value in MITM_FIELDS.items():
         setattr(probe, name, value)
     assert _canonical_message_bytes(probe) == before
+
+
+@pytest.mark.parametrize(
+    ("fields", "expected"),
+    [
+        ({"cmd": "ESTOP"}, (6, "ESTOP")),
+        ({"cmd": "STOP", "type": 1}, (6, "STOP")),
+        ({"cmd": "RESUME", "type": 6}, (6, "RESUME")),
+        ({"cmd": "ESTOP", "type": 6, "safety_event": "ESTOP"}, (6, "ESTOP")),
+        ({"cmd": "ESTOP", "params": {"safety_event": "ESTOP"}}, (6, "ESTOP")),
+        ({"cmd": "estop"}, (1, None)),  # exact, upper case: anything else is a command
+        ({"cmd": "halt", "type": 6, "safety_event": "ESTOP"}, (6, "ESTOP")),
+        ({"cmd": "ESTOP", "type": 3}, (3, None)),  # only COMMAND and SAFETY are mapped
+    ],
+)
+def test_safety_class_derives_safety_from_the_signed_cmd(
+    fields: dict[str, Any], expected: tuple[int, str | None]
+) -> None:
+    body = {"msg_id": "m", "target": "t", "timestamp": 1, **fields}
+    assert safety_class(parse(json.dumps(body).encode())) == expected
+
+
+@pytest.mark.parametrize(
+    "fields",
+    [
+        {"cmd": "ESTOP", "type": 6, "safety_event": "STOP"},
+        {"cmd": "STOP", "safety_event": "ESTOP"},
+        {"cmd": "RESUME", "params": {"safety_event": "ESTOP"}},
+    ],
+)
+def test_a_safety_cmd_and_a_contradicting_event_are_refused(fields: dict[str, Any]) -> None:
+    body = json.dumps({"msg_id": "m", "target": "t", "timestamp": 1, **fields}).encode()
+    with pytest.raises(InvalidEnvelopeError, match="contradicts"):
+        parse(body)

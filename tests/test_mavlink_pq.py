@@ -6,6 +6,7 @@ import contextlib
 import importlib.util
 import os
 import random
+import secrets
 import struct
 from collections.abc import Callable
 from pathlib import Path
@@ -18,9 +19,11 @@ from hypothesis import strategies as st
 from antireplay import ManualClock
 from antireplay.counters import NonceCounter
 from antireplay.errors import (
+    CounterReplayedError,
     InvalidFrameError,
     MessageStaleError,
     ReplayAttackError,
+    SignatureInvalidError,
     UnknownSessionError,
 )
 from antireplay.mavlink.codec import parse_frame
@@ -29,6 +32,8 @@ from antireplay.mavlink.pq import (
     DIALECT,
     MAX_CHUNKS,
     MSG_CHUNK,
+    REKEY_TRANSFERS,
+    TRANSFER_LIMIT,
     ChunkSender,
     GroundEnd,
     Kind,
@@ -37,14 +42,22 @@ from antireplay.mavlink.pq import (
     chunk_key,
     compact,
     inner_of,
+    open_compact,
     pack_v2,
     parse_chunk,
 )
+from antireplay.mavlink.pq_link import PqLink
+from antireplay.mavlink.router import Refusal
 from antireplay.session import REKEY_AFTER, Initiator, Purpose, Responder
+from antireplay.session import Direction as Dir
+from antireplay.session import Opened as Open
+from antireplay.session import Session as Sess
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavgen
+
+from tests.test_mavlink_router import FakeTransport
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
@@ -163,9 +176,9 @@ def test_arm_arrives_once_and_its_replay_is_dropped(link: Link) -> None:
     (command,) = link.commands()
     assert (command.command, command.target_system, command.param1) == (ARM, 1, 1.0)
     assert command.get_srcSystem() == 255 and command.get_srcComponent() == 190
-    link.up(frames)  # the whole capture again
+    link.up(frames)  # the whole capture again: each chunk's transfer already opened
     assert len(link.commands()) == 1
-    assert link.refused == ["COUNTER_REPLAYED"]
+    assert link.refused == ["REPLAY_DETECTED"] * 20
 
 
 def test_telemetry_both_ways_is_hmac_in_one_chunk(link: Link) -> None:
@@ -415,7 +428,7 @@ def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
     link.up(hs1)
     frames = link.ground.from_local(arm())
     link.up(frames + frames)
-    assert len(link.commands()) == 1 and link.refused == ["COUNTER_REPLAYED"]
+    assert len(link.commands()) == 1 and link.refused == ["REPLAY_DETECTED"] * 20
 
 
 def test_a_frame_withheld_from_a_superseded_session_never_plays(link: Link) -> None:
@@ -444,3 +457,183 @@ def test_unknown_local_message_is_refused_before_sealing(link: Link) -> None:
     raw[7:10] = (60999).to_bytes(3, "little")  # a message id nobody knows
     with pytest.raises(InvalidFrameError, match="not in the dialect"):
         link.ground.from_local(bytes(raw))
+
+
+class _Sessions:
+    """A receiver over several sessions (a responder's routing, without its table)."""
+
+    def __init__(self, *sessions: Sess) -> None:
+        self.by_id = {s.session_id: s for s in sessions}
+
+    def check(self, frame: bytes) -> None:
+        self.by_id[frame[4:20]].check(frame)
+
+    def open(self, frame: bytes) -> Open:
+        return self.by_id[frame[4:20]].open(frame)
+
+
+def _pair(sid: bytes) -> tuple[Sess, Sess]:
+    """The two sides of a session with id ``sid`` (keys of its own)."""
+    i2r, r2i = os.urandom(32), os.urandom(32)
+    initiator = Sess(sid, Dir.I2R, "responder", i2r, r2i, signing_key=GCS_KEY)
+    responder = Sess(sid, Dir.R2I, "gcs", r2i, i2r, peer_verify_key=GCS_KEY.public_key())
+    return initiator, responder
+
+
+def test_a_shared_handle_never_lets_one_session_refuse_the_others_frames() -> None:
+    old_i, old_r = _pair(b"\0" * 7 + b"\1" + b"o" * 7 + b"\x42")
+    new_i, new_r = _pair(b"\0" * 7 + b"\2" + b"n" * 7 + b"\x42")  # the same handle, 0x42
+    receiver = _Sessions(old_r, new_r)
+    sessions = [old_r, new_r]
+    for _ in range(3):  # the old session's counters run ahead
+        for purpose in Purpose:
+            old_r.open(old_i.seal(b"x" * 8, purpose))
+    for purpose in Purpose:  # the new session's first frames: counter 0, used in the old
+        opened = open_compact(compact(new_i.seal(b"y" * 8, purpose)), sessions, Dir.I2R, receiver)
+        assert (opened.session_id, opened.counter) == (new_r.session_id, 0)
+    replay = compact(old_i.seal(b"z" * 8))
+    open_compact(replay, sessions, Dir.I2R, receiver)
+    with pytest.raises(CounterReplayedError):  # the old session's replay names itself
+        open_compact(replay, sessions, Dir.I2R, receiver)
+    forged = bytearray(compact(old_i.seal(b"w" * 8)))  # counter 4: fresh in both windows
+    forged[-1] ^= 1
+    with pytest.raises(SignatureInvalidError):
+        open_compact(bytes(forged), sessions, Dir.I2R, receiver)
+
+
+def test_the_vehicle_end_draws_session_ids_whose_handles_differ(clock: ManualClock) -> None:
+    link = Link(clock, max_sessions=8)
+    for _ in range(8):  # eight live sessions, none carrying a frame (none superseded)
+        link.connect()
+    assert len({s.session_id[-1] for s in link.vehicle._sessions}) == 8
+    avoid = lambda sid: sid[-1] < 0xF0  # noqa: E731 - all but 16 handles taken
+    _, hs2 = link.responder.accept_handshake(
+        link.ground.initiator.start(ROBOT_KEM.public_key()), avoid
+    )
+    assert hs2[2 + 15] >= 0xF0
+
+
+def test_queued_commands_expire_and_every_drop_is_counted(clock: ManualClock) -> None:
+    link = Link(clock)
+    for p in range(10):  # no vehicle: every HS1 is lost, commands queue
+        link.ground.from_local(arm(param1=float(p)))
+    assert link.ground.drops == {"QUEUE_FULL": 2}
+    clock.advance(3)
+    link.ground.from_local(arm(param1=10.0))
+    clock.advance(3)  # all but the last are older than queue_ttl_s (5 s)
+    link.up(link.ground.handshake())
+    assert [c.param1 for c in link.commands()] == [10.0]
+    assert link.ground.drops == {"QUEUE_FULL": 3, "QUEUE_EXPIRED": 7}
+    assert link.ground.unsent == 10
+
+
+def test_a_message_that_must_be_signed_is_refused_in_a_data_frame(clock: ManualClock) -> None:
+    link = Link(clock)
+    link.ground = GroundEnd(
+        Initiator("gcs", GCS_KEY, clock), ROBOT_KEM.public_key(), clock=clock, signed=frozenset()
+    )
+    link.connect()
+    (frame,) = link.ground.from_local(arm())  # an HMAC data frame
+    link.up([frame])
+    assert not link.commands() and link.refused == ["SIGNATURE_REQUIRED"]
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda m: m.mission_item_send(1, 1, 0, 0, 16, 0, 1, 0, 0, 0, 0, 1.0, 2.0, 30.0),
+        lambda m: m.mission_write_partial_list_send(1, 1, 0, 3),
+        lambda m: m.param_ext_set_send(1, 1, b"ARMING_CHECK", b"0", 6),
+        lambda m: m.serial_control_send(10, 0, 0, 0, 4, [ord(c) for c in "rebo"] + [0] * 66),
+        lambda m: m.file_transfer_protocol_send(0, 1, 1, [0] * 251),
+        lambda m: m.set_position_target_local_ned_send(0, 1, 1, 1, 0, 1, 2, 3, *[0] * 8),
+        lambda m: m.set_position_target_global_int_send(0, 1, 1, 5, 0, 1, 2, 3, *[0] * 8),
+    ],
+)
+def test_command_carrying_messages_are_signed_by_default(
+    link: Link, build: Callable[[dialect.MAVLink], None]
+) -> None:
+    frames = link.ground.from_local(plain(build))
+    assert len(frames) > 1  # an ML-DSA-87 signature: several chunks
+    link.up(frames)
+    assert len(link.delivered) == 1 and link.refused == []
+
+
+def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: Link) -> None:
+    old = []
+    for _ in range(6):  # the attacker records six commands, all delivered
+        frames = link.ground.from_local(arm())
+        old.append(frames)
+        link.up(frames)
+    for t in range(4):  # and replays 19 of 20 chunks of four: none is buffered
+        link.up(old[t][:19])
+    assert link.refused == ["REPLAY_DETECTED"] * 76
+    fresh = link.ground.from_local(arm(param1=0.0))
+    for i, chunk in enumerate(fresh):
+        link.up([chunk, old[4 + i % 2][0]])
+    assert [c.param1 for c in link.commands()][-1] == 0.0
+    assert link.vehicle.reassembly.evicted == 0
+
+
+def test_a_silent_vehicle_end_gets_a_handshake_without_its_hint(
+    link: Link, clock: ManualClock
+) -> None:
+    link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
+    link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted; its hints stolen
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    for _ in range(6):  # the GCS heartbeat each second; nothing authenticated comes back
+        clock.advance(1)
+        link.up(link.ground.from_local(beat))
+    assert link.refused.count("UNKNOWN_SESSION") == 5  # the sixth carried a new HS1 too
+    link.up(link.ground.from_local(arm()))
+    assert len(link.commands()) == 1
+
+
+def test_the_ground_end_rekeys_before_its_transfer_numbers_wrap(link: Link) -> None:
+    session = link.ground.session
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    first = link.ground.sender.transfer  # where the session began
+    link.ground.sender.transfer = first + REKEY_TRANSFERS - 2
+    assert len(link.ground.from_local(beat)) == 1
+    out = link.ground.from_local(beat)  # the 30,000th transfer: a new handshake goes out
+    assert len(out) > 1
+    link.ground.sender.transfer = first + TRANSFER_LIMIT  # its HS1 lost meanwhile
+    link.ground.from_local(arm())  # no more sending in the old session: queued
+    assert link.ground.session is None
+    link.up(link.ground.handshake())
+    assert link.ground.session is not session and len(link.commands()) == 1
+
+
+def test_the_link_counts_plain_mavlink_quietly_and_exports_the_ends_drops(
+    clock: ManualClock,
+) -> None:
+    refusals: list[Refusal] = []
+    made = Link(clock)
+    local, air = FakeTransport("udpin:0.0.0.0:1", fixed=False), FakeTransport("udpout:1.2.3.4:5")
+    pq = PqLink(made.ground, local, air, on_reject=refusals.append)
+    pq.start()  # the first HS1 goes out, and is lost
+    for _ in range(9):
+        local.inject(arm(), ("10.0.0.1", 9))
+    clock.advance(6)
+    air.inject(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), sysid=1))  # MAVProxy's own
+    air.inject(raw_chunk((7, 0, 1, 1, 3), b"x"))
+    local.inject(arm(), ("10.0.0.1", 9))
+    assert pq.dropped == {
+        "air:PLAIN": 1,
+        "air:UNKNOWN_SESSION": 1,
+        "local:QUEUE_FULL": 1,
+        "local:QUEUE_EXPIRED": 8,
+    }
+    assert [r.code for r in refusals] == ["UNKNOWN_SESSION"]
+
+
+def test_a_chunk_planted_ahead_cannot_spoil_the_next_handshake(
+    clock: ManualClock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    link = Link(clock)
+    planted = link.ground.sender.transfer + 1  # the next transfer number, were it counted
+    # The handshake's number is random; pinned here to one the attacker did not guess.
+    monkeypatch.setattr(secrets, "randbelow", lambda n: (planted + 1) % n)
+    link.up([raw_chunk((planted, 0, 32, 1, Kind.HS1), b"x")])
+    link.up(link.ground.handshake())
+    assert link.ground.session is not None

@@ -172,7 +172,7 @@ def test_pq_commands_through_mavproxy(setup: Setup) -> None:
 
     # Its replay, straight onto the air port: dropped.
     setup.inject(captured_arm)
-    until("the replay refused", drops(setup.vehicle_link, "COUNTER_REPLAYED"))
+    until("the replay refused", drops(setup.vehicle_link, "REPLAY_DETECTED"))
 
     # A man in the middle: the target rewritten, the message id rewritten, two commands
     # spliced into one transfer, the handshake replayed: nothing passes.
@@ -184,9 +184,13 @@ def test_pq_commands_through_mavproxy(setup: Setup) -> None:
     setup.inject([retarget(raw, 0, 0x77) for raw in forged_target])  # a fresh transfer number
     until("the retargeted chunk refused", drops(setup.vehicle_link, "SIGNATURE_INVALID"))
     header = bytearray(servo[0])
-    header[7] = 76  # COMMAND_LONG's id in the outer header
+    header[7] = 76  # COMMAND_LONG's id in the outer header: plain MAVLink, never carried
+    plain = setup.vehicle_link.dropped["air:PLAIN"]  # MAVProxy's own heartbeats among them
     setup.inject([bytes(header)])
-    until("the re-identified chunk refused", drops(setup.vehicle_link, "INVALID_FRAME"))
+    until(
+        "the re-identified chunk dropped",
+        lambda: setup.vehicle_link.dropped["air:PLAIN"] > plain,
+    )
     splice = [retarget(raw, 0, 0x55) for raw in captured_arm[:10] + servo[10:]]
     before = setup.vehicle_link.dropped["air:SIGNATURE_INVALID"]
     setup.inject(splice)
@@ -195,8 +199,12 @@ def test_pq_commands_through_mavproxy(setup: Setup) -> None:
         lambda: setup.vehicle_link.dropped["air:SIGNATURE_INVALID"] >= before + 20,
     )
     sessions = len(setup.responder)
+    replays = setup.vehicle_link.dropped["air:REPLAY_DETECTED"]
     setup.inject(hs1)
-    until("the handshake replay refused", drops(setup.vehicle_link, "REPLAY_DETECTED"))
+    until(
+        "the handshake replay refused",
+        lambda: setup.vehicle_link.dropped["air:REPLAY_DETECTED"] > replays,
+    )
     assert len(setup.responder) == sessions
 
     # The vehicle end restarts: the ground end learns it (PQ_STATUS while the vehicle is

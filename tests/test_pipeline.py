@@ -205,7 +205,7 @@ def test_copies_racing_through_crypto_one_wins(receiver: Receiver) -> None:
 # --- the official RCAN SDK --------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("field", [{"qos": 1}, {"scope": "control"}])
+@pytest.mark.parametrize("field", [{"sequence_number": 1}, {"scope": "control"}])
 def test_compat_mode_refuses_unsigned_policy_fields(clock: ManualClock, field: Any) -> None:
     raw, pair = sdk_message(**field)
     compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
@@ -233,6 +233,15 @@ def test_compat_mode_forwards_exactly_the_signed_fields(clock: ManualClock) -> N
     forwarded = json.loads(encode(out.envelope))
     assert set(forwarded) == {*SDK_SIGNED_FIELDS, "rcan_version", "sig"}
     assert forwarded["rcan_version"] == forwarded["rcan"]
+
+
+def test_compat_mode_tolerates_the_qos_hint_and_never_forwards_it(clock: ManualClock) -> None:
+    """``qos`` is the SDK's unsigned delivery hint: no policy reads it, so it is dropped."""
+    raw, pair = sdk_message(qos=2)
+    compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
+    out = compat.receive(raw)
+    assert out.accepted and out.envelope is not None
+    assert "qos" not in json.loads(encode(out.envelope))
 
 
 def test_compat_mode_tampered_unsigned_field_is_refused(clock: ManualClock) -> None:

@@ -18,7 +18,15 @@ With ``sdk_compat=True`` such a signature is accepted, but the result is
 marked ``subset=True`` and the pipeline refuses the message if it sets any
 field the SDK does not sign (everything but ``rcan, msg_id, timestamp, cmd,
 target, params``; see :func:`~antireplay.envelope.unsigned_policy_fields`), so
-nothing unsigned is authorized or forwarded.
+nothing unsigned is authorized or forwarded (the SDK's ``qos`` delivery hint is
+tolerated and dropped).  The SDK signs with ``sig.kid`` = its key id
+(:func:`sdk_key_id`: SHA-256 of the raw public key, 8 hex digits); a registry
+can answer to it as well (:meth:`KeyRegistry.alias`, done by
+:func:`~antireplay.wiring.build_registry` in compatibility mode), and
+:func:`sign_sdk` signs the way the SDK's ``sign_message`` does.
+
+Key files: :func:`load_public_key` is the one loader (``config check``,
+``serve``, the library): PEM, or the SDK's raw ML-DSA public key file.
 
 Every call that does cryptography increments ``verifications`` (and
 :class:`JwtVerifier` ``decodes``), so tests can prove that a replay or a stale
@@ -36,12 +44,13 @@ from __future__ import annotations
 
 import base64
 import binascii
+import hashlib
 import json
 import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import jwt
 from cryptography.exceptions import InvalidSignature
@@ -49,7 +58,14 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, mldsa
 
 from antireplay.clock import Clock, resolve
-from antireplay.envelope import Envelope, Signature, canonical_bytes, parse, sdk_signed_bytes
+from antireplay.envelope import (
+    Envelope,
+    Signature,
+    canonical_bytes,
+    parse,
+    sdk_signed_bytes,
+    unsigned_policy_fields,
+)
 from antireplay.errors import (
     AuthFailedError,
     SignatureInvalidError,
@@ -99,13 +115,49 @@ def b64encode(raw: bytes) -> str:
     return base64.urlsafe_b64encode(raw).rstrip(b"=").decode()
 
 
-def load_public_key(pem: bytes) -> PublicKey:
-    key = serialization.load_pem_public_key(pem)
-    if not isinstance(
-        key, ed25519.Ed25519PublicKey | mldsa.MLDSA65PublicKey | mldsa.MLDSA87PublicKey
-    ):
-        raise ValueError(f"unsupported public key type {type(key).__name__}")
-    return key
+#: Raw FIPS 204 public keys by length: what the RCAN SDK's ``MLDSAKeyPair.save_public`` writes.
+RAW_PUBLIC_KEYS: dict[int, type[mldsa.MLDSA65PublicKey] | type[mldsa.MLDSA87PublicKey]] = {
+    1952: mldsa.MLDSA65PublicKey,
+    2592: mldsa.MLDSA87PublicKey,
+}
+#: The first bytes of the RCAN SDK's private key file (``MLDSAKeyPair.save``).
+SDK_PRIVATE_MAGIC = b"MLDS"
+
+
+def load_public_key(data: bytes) -> PublicKey:
+    """A public key file as written by ``antireplay keygen`` (PEM) or the RCAN SDK (raw).
+
+    The one loader for ``config check``, ``serve`` and the library: PEM
+    SubjectPublicKeyInfo, or a raw ML-DSA-65/87 public key (the SDK's
+    ``MLDSAKeyPair.save_public``, 1,952 bytes).  The SDK writes no Ed25519 key files
+    (``rcan.signing.KeyPair`` is deprecated).  The SDK's private key file is refused
+    by name: a receiver needs, and should hold, only the public half.
+    """
+    if data.startswith(b"-----BEGIN"):
+        key = serialization.load_pem_public_key(data)
+        if not isinstance(
+            key, ed25519.Ed25519PublicKey | mldsa.MLDSA65PublicKey | mldsa.MLDSA87PublicKey
+        ):
+            raise ValueError(f"unsupported public key type {type(key).__name__}")
+        return key
+    if data.startswith(SDK_PRIVATE_MAGIC):
+        raise ValueError(
+            "this is an RCAN SDK private key file (MLDSAKeyPair.save); give the receiver "
+            "the public key file (MLDSAKeyPair.save_public)"
+        )
+    kind = RAW_PUBLIC_KEYS.get(len(data))
+    if kind is None:
+        raise ValueError(
+            f"not a PEM public key nor a raw ML-DSA-65/87 public key ({len(data)} bytes; "
+            f"raw keys are {' or '.join(map(str, RAW_PUBLIC_KEYS))} bytes)"
+        )
+    return kind.from_public_bytes(data)
+
+
+def sdk_key_id(key: PublicKey) -> str:
+    """The RCAN SDK's key id: the first 8 hex digits of SHA-256 over the raw public key
+    (``MLDSAKeyPair.key_id``); the SDK's ``sign_message`` puts it in ``sig.kid``."""
+    return hashlib.sha256(key.public_bytes_raw()).hexdigest()[:8]
 
 
 def _check(key: PublicKey, sig: bytes, data: bytes) -> bool:
@@ -142,6 +194,14 @@ class KeyRegistry:
         entry = KeyEntry(kid, owner, alg, keys, frozenset(scopes))
         self.entries[kid] = entry
         return entry
+
+    def alias(self, kid: str, entry: KeyEntry) -> None:
+        """Let ``entry`` answer to a second kid as well (the RCAN SDK's key id, which the
+        SDK always puts in ``sig.kid``); never shadows another key."""
+        other = self.entries.get(kid)
+        if other is not None and other != entry:
+            raise ValueError(f"kid {kid!r} (the SDK key id of {entry.kid!r}) names another key")
+        self.entries[kid] = entry
 
     def signing_key(self, env: Envelope) -> tuple[Signature, KeyEntry]:
         """The signature block and the registered key it names (no cryptography); raises
@@ -271,6 +331,37 @@ def sign_envelope(
     data = canonical_bytes(parse(raw, max_bytes=len(raw)))  # the receiver enforces its own limit
     value = ".".join(b64encode(key.sign(data)) for key in private)
     return {**unsigned, "sig": {"alg": alg, "kid": kid, "value": value}}
+
+
+class SdkKeyPair(Protocol):
+    """The RCAN SDK's ``rcan.signing.MLDSAKeyPair`` as far as signing needs it."""
+
+    key_id: str
+
+    def sign_bytes(self, data: bytes) -> bytes: ...
+
+
+def sign_sdk(message: dict[str, Any], key: mldsa.MLDSA65PrivateKey | SdkKeyPair) -> dict[str, Any]:
+    """Sign ``message`` exactly as the RCAN SDK's ``sign_message`` does, so that the SDK's
+    ``verify_message`` (and a receiver in ``sdk_compat`` mode) accepts it.
+
+    The signature covers only the SDK's subset (:func:`~antireplay.envelope.sdk_signed_bytes`),
+    so a message setting any other field is refused here (``ValueError``) rather than sent
+    with fields nobody signed; ``kid`` is the SDK's key id (:func:`sdk_key_id`).
+    """
+    unsigned = {k: v for k, v in message.items() if k != "sig"}
+    raw = json.dumps(unsigned).encode()
+    env = parse(raw, max_bytes=len(raw))
+    extra = unsigned_policy_fields(env)
+    if extra:
+        raise ValueError(f"the SDK signature does not cover {', '.join(extra)}")
+    data = sdk_signed_bytes(env)
+    if isinstance(key, mldsa.MLDSA65PrivateKey):
+        raw, kid = key.sign(data), sdk_key_id(key.public_key())
+    else:
+        raw, kid = key.sign_bytes(data), key.key_id
+    value = base64.urlsafe_b64encode(raw).decode()
+    return {**unsigned, "sig": {"alg": "ml-dsa-65", "kid": kid, "value": value}}
 
 
 def write_key_pair(key: PrivateKey, private: Path, public: Path) -> None:

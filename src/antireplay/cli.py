@@ -34,7 +34,16 @@ from rich.text import Text
 from antireplay import counters, epochs
 from antireplay.audit import AuditLog, Record, reanchor, sanitize, verify
 from antireplay.audit import tail as audit_tail_records
-from antireplay.auth import PrivateKey, load_public_key, sign_envelope, write_key_pair
+from antireplay.auth import (
+    SDK_PRIVATE_MAGIC,
+    PrivateKey,
+    SdkKeyPair,
+    load_public_key,
+    sdk_key_id,
+    sign_envelope,
+    sign_sdk,
+    write_key_pair,
+)
 from antireplay.cli_pq import mavlink_pq
 from antireplay.config import AppConfig
 from antireplay.counters import DEFAULT_WINDOW
@@ -339,8 +348,13 @@ def _private_key(paths: tuple[Path, ...]) -> PrivateKey | tuple[PrivateKey, ...]
     required=True,
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
 )
-@click.option("--kid", required=True)
+@click.option("--kid", default=None, help="Required, except with --sdk (the key's SDK key id).")
 @click.option("--alg", default="ed25519", show_default=True)
+@click.option(
+    "--sdk",
+    is_flag=True,
+    help="Sign as the RCAN SDK's sign_message does (ML-DSA-65; its verify_message accepts it).",
+)
 @click.option("--json", "json_file", type=click.File("r"), help="Base message (JSON file or -).")
 @click.option("--cmd", default=None)
 @click.option("--target", default=None)
@@ -352,8 +366,9 @@ def _private_key(paths: tuple[Path, ...]) -> PrivateKey | tuple[PrivateKey, ...]
 @click.option("--scope", default=None)
 def sign(  # noqa: PLR0917 - one option per envelope field
     key_paths: tuple[Path, ...],
-    kid: str,
+    kid: str | None,
     alg: str,
+    sdk: bool,
     json_file: Any,
     cmd: str | None,
     target: str | None,
@@ -384,10 +399,40 @@ def sign(  # noqa: PLR0917 - one option per envelope field
             value = raw
         body.setdefault("params", {})[name] = value
     try:
-        signed = sign_envelope(body, kid, alg, _private_key(key_paths))
+        if sdk:
+            signed = sign_sdk(body, _sdk_key(key_paths, kid))
+        elif kid is None:
+            _fail("--kid is required (except with --sdk)")
+        else:
+            signed = sign_envelope(body, kid, alg, _private_key(key_paths))
     except (ValueError, ReplayAttackError) as exc:
-        _fail(f"cannot sign: {exc}")
+        hint = "; with --sdk, --cmd ESTOP/STOP/RESUME is a safety message" if sdk else ""
+        _fail(f"cannot sign: {exc}{hint}")
     click.echo(json.dumps(signed))
+
+
+def _sdk_key(paths: tuple[Path, ...], kid: str | None) -> mldsa.MLDSA65PrivateKey | SdkKeyPair:
+    """One ML-DSA-65 key for ``sign --sdk``: a PEM key, or the RCAN SDK's own key file
+    (``MLDSAKeyPair.save``; signed with the SDK, which must be installed)."""
+    if len(paths) != 1:
+        _fail("--sdk signs with exactly one --key (ML-DSA-65)")
+    data = paths[0].read_bytes()
+    key: mldsa.MLDSA65PrivateKey | SdkKeyPair
+    if data.startswith(SDK_PRIVATE_MAGIC):
+        try:
+            from rcan.signing import MLDSAKeyPair  # noqa: PLC0415 - only for the SDK's files
+        except ImportError:
+            _fail(f"--key {paths[0]}: an RCAN SDK key file; install the SDK: pip install rcan[pq]")
+        key = MLDSAKeyPair.load(paths[0])
+        key_id = key.key_id
+    else:
+        pem = _private_key(paths)
+        if not isinstance(pem, mldsa.MLDSA65PrivateKey):
+            _fail(f"--key {paths[0]}: the RCAN SDK signs with ML-DSA-65 only")
+        key, key_id = pem, sdk_key_id(pem.public_key())
+    if kid is not None and kid != key_id:
+        _fail(f"--kid {kid}: the SDK signs with the key's SDK key id, {key_id}")
+    return key
 
 
 @main.command()

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import click
+from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 
@@ -43,7 +44,7 @@ def _key(path: Path, kind: Any, option: str) -> Any:
             if private
             else serialization.load_pem_public_key(data)
         )
-    except (OSError, ValueError, TypeError) as exc:
+    except (OSError, ValueError, TypeError, UnsupportedAlgorithm) as exc:
         raise click.BadParameter(f"{path}: not {what} ({exc})", param_hint=option) from None
     if not isinstance(key, kind):
         message = f"{path}: a {type(key).__name__}, not a {kind.__name__}"
@@ -111,6 +112,13 @@ def mavlink_pq() -> None:
     "--vehicle-x25519", type=PEM, help="The vehicle's X25519 public key: hybrid handshakes."
 )
 @click.option("--system-id", default=255, show_default=True, type=click.IntRange(1, 255))
+@click.option(
+    "--queue-ttl",
+    default=5.0,
+    show_default=True,
+    type=click.FloatRange(0, 600),
+    help="Seconds a command waits for a session before it is dropped (counted).",
+)
 def ground(  # noqa: PLR0917 - one option per knob
     local: str,
     air: str,
@@ -119,6 +127,7 @@ def ground(  # noqa: PLR0917 - one option per knob
     vehicle_key: Path,
     vehicle_x25519: Path | None,
     system_id: int,
+    queue_ttl: float,
 ) -> None:
     """The end next to the ground station: opens the session, wraps its peers' messages."""
     from antireplay.mavlink.pq import GroundEnd  # noqa: PLC0415
@@ -133,7 +142,8 @@ def ground(  # noqa: PLR0917 - one option per knob
         initiator = Initiator(identity, key)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="'--identity'") from None
-    _run(GroundEnd(initiator, kem, system_id=system_id, hybrid=hybrid), local, air, "ground")
+    end = GroundEnd(initiator, kem, system_id=system_id, hybrid=hybrid, queue_ttl_s=queue_ttl)
+    _run(end, local, air, "ground")
 
 
 @mavlink_pq.command()

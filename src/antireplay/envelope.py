@@ -43,9 +43,22 @@ read_only, presence_verified, proximity_m, loa, transport_encoding,
 firmware_hash, attestation_ref`` (and our ``type``, ``safety_event``,
 ``timestamp_ms``).  :func:`unsigned_policy_fields` names those a message sets; the
 pipeline refuses such a message, so in compatibility mode only signed content
-is authorized and forwarded.  ``rcan_version`` is the one exception: the SDK
-always emits it as a mirror of ``rcan``, so it passes when empty or equal to
-the signed ``rcan`` (then it says nothing unsigned).
+is authorized and forwarded.  Two exceptions: ``rcan_version``, which the SDK
+always emits as a mirror of ``rcan``, passes when empty or equal to the signed
+``rcan`` (then it says nothing unsigned); and ``qos``, the SDK's delivery hint
+(its ``make_estop_with_qos`` sets 2), is tolerated but read by no policy and
+removed before forwarding (:func:`without_delivery_hints`).
+
+Safety commands: the SDK has no signed way to say SAFETY (its ``type``,
+``safety_event`` and ``qos`` are unsigned; ``rcan.safety.make_estop_message``
+builds an unsigned dict), but its signature covers ``cmd``.  So a COMMAND (or
+SAFETY) message whose ``cmd`` is exactly ``ESTOP``, ``STOP`` or ``RESUME``
+(upper case, :data:`SAFETY_COMMANDS`) *is* a SAFETY message with that event
+(:func:`safety_class`): the 10 s safety window, the ``safety`` scope and the
+ESTOP invariant apply, derived only from a signed field, for SDK and full
+signatures alike.  A ``safety_event`` field or parameter that contradicts such
+a ``cmd`` is ``INVALID_ENVELOPE``; any other ``cmd`` (``estop``, ``halt``)
+is an ordinary command unless ``type``/``safety_event`` say otherwise.
 """
 
 from __future__ import annotations
@@ -56,7 +69,7 @@ from typing import Annotated, Any
 import msgspec
 
 from antireplay.errors import InvalidEnvelopeError, InvalidTimestampError
-from antireplay.messages import MessageType
+from antireplay.messages import MessageType, SafetyEvent
 
 MAX_BYTES = 64 * 1024
 MAX_DEPTH = 16
@@ -157,7 +170,9 @@ def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH)
     try:
         env = _DECODER.decode(raw)
     except msgspec.ValidationError as exc:
-        raise InvalidEnvelopeError(f"schema: {_short(str(exc))}") from None
+        reason = _short(str(exc))
+        hint = _SAFETY_DICT_HINT if "`message_type`" in reason else ""
+        raise InvalidEnvelopeError(f"schema: {reason}{hint}") from None
     except (msgspec.DecodeError, UnicodeDecodeError) as exc:
         raise InvalidEnvelopeError(_decode_failure(raw, exc)) from None
     except RecursionError:
@@ -167,10 +182,45 @@ def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH)
     for stamp in (env.timestamp, env.timestamp_ms):
         if type(stamp) is int and not -MAX_INT_TIMESTAMP <= stamp <= MAX_INT_TIMESTAMP:
             raise InvalidTimestampError("timestamp out of range")
+    if env.cmd in SAFETY_COMMANDS:
+        _check_safety_command(env)
     deep = _nested(env.params) or bool(env.delegation_chain)
     if deep and max(_depth(env.params), _depth(env.delegation_chain)) > max_depth:
         raise InvalidEnvelopeError(f"nested deeper than {max_depth} levels")
     return env
+
+
+#: Signed commands that are safety messages (module docstring, "Safety commands").
+SAFETY_COMMANDS = frozenset(str(event) for event in SafetyEvent)
+_SAFETY = int(MessageType.SAFETY)
+_SAFETY_TYPES = frozenset({int(MessageType.COMMAND), _SAFETY})
+
+
+def safety_class(env: Envelope) -> tuple[int, str | None]:
+    """The message type and safety event the window and the scopes apply: a COMMAND (or
+    a SAFETY message) whose ``cmd`` is ``ESTOP``, ``STOP`` or ``RESUME`` is SAFETY with
+    that event; anything else is what its ``type`` and ``safety_event`` say."""
+    if env.cmd in SAFETY_COMMANDS and env.type in _SAFETY_TYPES:
+        return _SAFETY, env.cmd
+    return env.type, env.safety_event
+
+
+def _check_safety_command(env: Envelope) -> None:
+    """A safety command names its event once: a ``safety_event`` (field or parameter)
+    that says otherwise is ambiguous, and refused rather than guessed."""
+    if env.type not in _SAFETY_TYPES:
+        return
+    for said in (env.safety_event, env.params.get("safety_event")):
+        if said is not None and said != env.cmd:
+            raise InvalidEnvelopeError(f"cmd {env.cmd} contradicts its safety_event")
+
+
+#: ``rcan.safety.make_estop_message`` builds an unsigned dict (``message_type``, ``ruri``):
+#: nothing a receiver may act on; the refusal says what to send instead.
+_SAFETY_DICT_HINT = (
+    " (an rcan.safety message is unsigned: send a signed RCANMessage with cmd ESTOP, STOP"
+    " or RESUME)"
+)
 
 
 def _short(text: str) -> str:
@@ -232,6 +282,9 @@ def sdk_signed_bytes(env: Envelope) -> bytes:
 SDK_SIGNED_FIELDS = frozenset({"rcan", "msg_id", "timestamp", "cmd", "target", "params"})
 #: Authenticated on their own (``sig`` is the signature; a ``jwt`` is verified separately).
 _SELF_AUTHENTICATED = frozenset({"sig", "jwt"})
+#: Unsigned delivery hints the SDK sets (``make_estop_with_qos``: ``qos=2``): tolerated,
+#: read by no policy, and removed before forwarding (:func:`without_delivery_hints`).
+SDK_DELIVERY_HINTS = frozenset({"qos"})
 _DEFAULTS = Envelope(msg_id="", cmd="", target="", timestamp=0)
 
 
@@ -239,7 +292,7 @@ def unsigned_policy_fields(env: Envelope) -> list[str]:
     """Fields set on ``env`` that the SDK's signature does not cover (module docstring)."""
     unsigned = []
     for name in env.__struct_fields__:
-        if name in SDK_SIGNED_FIELDS or name in _SELF_AUTHENTICATED:
+        if name in SDK_SIGNED_FIELDS or name in _SELF_AUTHENTICATED or name in SDK_DELIVERY_HINTS:
             continue
         value = getattr(env, name)
         if name == "rcan_version":
@@ -248,3 +301,8 @@ def unsigned_policy_fields(env: Envelope) -> list[str]:
         elif value != getattr(_DEFAULTS, name):
             unsigned.append(name)
     return unsigned
+
+
+def without_delivery_hints(env: Envelope) -> Envelope:
+    """``env`` minus the unsigned delivery hints (what an SDK-signed message forwards)."""
+    return msgspec.structs.replace(env, qos=_DEFAULTS.qos) if env.qos != _DEFAULTS.qos else env

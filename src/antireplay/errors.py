@@ -114,6 +114,39 @@ class WarningCode(StrEnum):
 #: COMMAND_NACK in the current canonical RCAN numbering; 31 was its number in RCAN v1.5/v1.6.
 NACK_TYPE_CURRENT = 18
 NACK_TYPE_LEGACY = 31
+COMMAND_ACK = 17
+#: The robot URI an answer names as its ``target`` (the RCAN SDK's ``RCANMessage.from_dict``
+#: parses ``target`` as one); answers are not addressed to anyone the receiver has verified.
+ANSWER_TARGET = "rcan://local/antireplay/receiver/v1/gateway"
+ANSWER_RCAN = "3.2"
+
+
+def _sdk_fields(cmd: str, status: str) -> dict[str, Any]:
+    """The constant fields the RCAN SDK's classes read an answer with:
+    ``RCANMessage.from_dict`` needs ``rcan``, ``cmd`` and a robot-URI ``target``;
+    ``RCANResponse.from_dict`` takes ``status`` (and ``msg_id``, ``message``, set per
+    answer: the answered message's msg_id, or ``""``, and the reason)."""
+    return {
+        "rcan": ANSWER_RCAN,
+        "rcan_version": ANSWER_RCAN,
+        "cmd": cmd,
+        "target": ANSWER_TARGET,
+        "status": status,
+    }
+
+
+_NACK_FIELDS = _sdk_fields("COMMAND_NACK", "error")
+_ACK_FIELDS = _sdk_fields("COMMAND_ACK", "ok")
+
+
+def command_ack(msg_id: str | None, warning: str | None = None) -> dict[str, Any]:
+    """The COMMAND_ACK (type 17) answering an accepted message; the SDK reads it as
+    ``RCANResponse`` with ``status == "ok"`` (``msg_id`` sanitized by the caller)."""
+    body: dict[str, Any] = {"type": COMMAND_ACK, "accepted": True, "ref_msg_id": msg_id}
+    if warning is not None:
+        body["warning"] = warning
+    message = "accepted" if warning is None else f"accepted with warning {warning}"
+    return {**body, **_ACK_FIELDS, "msg_id": msg_id or "", "message": message}
 
 
 class AntiReplayError(Exception):
@@ -139,7 +172,10 @@ class ReplayAttackError(AntiReplayError):
         return HTTP_STATUS[self.code]
 
     def to_nack(self, msg_id: str | None, *, nack_type: int = NACK_TYPE_CURRENT) -> dict[str, Any]:
-        """The COMMAND_NACK body answering the rejected message.
+        """The COMMAND_NACK body answering the rejected message: ``type``, ``code``,
+        ``ref_msg_id``, ``reason`` (and ``detail``) for RCAN §8.3, plus what the RCAN SDK's
+        ``RCANMessage.from_dict`` and ``RCANResponse.from_dict`` read (``status: "error"``,
+        ``message`` = the reason, ``msg_id`` = ``ref_msg_id`` or ``""``).
 
         ``msg_id`` must already be sanitized by the caller when it came from an
         unauthenticated peer; the NACK never echoes the payload.
@@ -149,6 +185,9 @@ class ReplayAttackError(AntiReplayError):
             "code": str(self.code),
             "ref_msg_id": msg_id,
             "reason": self.reason,
+            **_NACK_FIELDS,
+            "msg_id": msg_id or "",
+            "message": self.reason,
         }
         if self.detail is not None:
             body["detail"] = self.detail

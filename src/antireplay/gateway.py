@@ -453,9 +453,7 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
         metrics.observe(outcome, ticker.monotonic() - started)
         if not outcome.accepted:
             return await _answer(send, outcome.status, outcome.nack)
-        answer: dict[str, Any] = {"accepted": True, "msg_id": outcome.msg_id}
-        if outcome.warning:
-            answer["warning"] = outcome.warning
+        answer: dict[str, Any] = outcome.ack or {}  # COMMAND_ACK: readable by the rcan SDK
         if upstream is None:
             return await _answer(send, 200, answer)
         assert outcome.envelope is not None

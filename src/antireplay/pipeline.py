@@ -34,8 +34,13 @@ rejected at step 5 and the genuine message is still accepted afterwards.
 
 ESTOP invariant, end to end: a fresh, *authentic* SAFETY/ESTOP whose msg_id
 was already seen passes with ``warning="REPLAY_DETECTED"``; the warning is
-audited.  Because the signature covers ``type`` and ``safety_event``, nobody
-can turn a captured command into an exempt ESTOP.
+audited.  What is SAFETY/ESTOP is decided by
+:func:`~antireplay.envelope.safety_class` from signed fields only: ``type`` and
+``safety_event`` (covered by a full signature), or ``cmd`` ``ESTOP``/``STOP``/
+``RESUME`` (covered by the RCAN SDK's signature too, whose unsigned ``type`` and
+``safety_event`` are refused at step 6).  So nobody can turn a captured command
+into an exempt ESTOP.  An SDK-signed message's unsigned ``qos`` hint is removed
+from the accepted envelope (nothing unsigned is forwarded).
 
 Every rejection becomes an :class:`Outcome` carrying the code, the HTTP status
 and the COMMAND_NACK (type 18, or 31 with ``nack_type: 31``); nothing raises out
@@ -66,7 +71,14 @@ from antireplay.audit import AuditLog, sanitize
 from antireplay.auth import JwtVerifier, KeyRegistry, Signer
 from antireplay.clock import Clock, resolve
 from antireplay.config import SecurityConfig
-from antireplay.envelope import MAX_BYTES, Envelope, parse, unsigned_policy_fields
+from antireplay.envelope import (
+    MAX_BYTES,
+    Envelope,
+    parse,
+    safety_class,
+    unsigned_policy_fields,
+    without_delivery_hints,
+)
 from antireplay.errors import (
     AuthFailedError,
     Code,
@@ -76,11 +88,12 @@ from antireplay.errors import (
     StateUnavailableError,
     VersionIncompatibleError,
     WarningCode,
+    command_ack,
 )
 from antireplay.messages import MessageType
 from antireplay.replay import ReplayCache
 from antireplay.stores import ReplayStore
-from antireplay.window import Seen, Verdict, is_estop
+from antireplay.window import Seen, Verdict
 
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
 
@@ -106,6 +119,11 @@ class Outcome:
         if self.error is None:
             return None
         return self.error.to_nack(self.msg_id, nack_type=self.nack_type)
+
+    @property
+    def ack(self) -> dict[str, Any] | None:
+        """The COMMAND_ACK answering an accepted message (built on demand)."""
+        return command_ack(self.msg_id, self.warning) if self.accepted else None
 
 
 @dataclass(slots=True)
@@ -147,7 +165,7 @@ class _Copy:
     length: int
     expires_at: float
     msg_id: str | None
-    type: int  # named like Envelope's fields, so the audit reads either the same way
+    type: int  # the type the policy applied (envelope.safety_class)
     sender: str | None
 
 
@@ -214,7 +232,7 @@ class Receiver:
             return self._reject(error, env, signer)
         assert env is not None and signer is not None
         try:
-            verdict = self.cache.commit(env.msg_id, env.seconds, env.type, env.safety_event)
+            verdict = self.cache.commit(env.msg_id, env.seconds, *safety_class(env))
         except ReplayAttackError as exc:
             return self._reject(exc, env, signer)
         return self._accept(raw, env, signer, verdict)
@@ -237,7 +255,7 @@ class Receiver:
         assert env is not None and signer is not None
         cache = self.cache
         try:
-            plan, now = cache.begin_commit(env.msg_id, env.seconds, env.type, env.safety_event)
+            plan, now = cache.begin_commit(env.msg_id, env.seconds, *safety_class(env))
             args = (plan.msg_id, plan.expires_at, now, plan.estop)
             seen: Seen | StateUnavailableError
             try:
@@ -263,10 +281,11 @@ class Receiver:
         try:
             env = parse(raw, max_bytes=self.max_bytes)
             self._check_version(env)
-            self.cache.check(env.msg_id, env.seconds, env.type, env.safety_event)
+            msg_type, event = safety_class(env)
+            self.cache.check(env.msg_id, env.seconds, msg_type, event)
             self._check_jwt(env, headers or {})
             signer = self.keys.verify(env)
-            self._authorize(env, signer)
+            self._authorize(env, signer, msg_type)
         except ReplayAttackError as exc:
             return env, signer, exc
         return env, signer, None
@@ -274,11 +293,13 @@ class Receiver:
     def _accept(
         self, raw: bytes, env: Envelope, signer: Signer, verdict: Verdict, *, on_loop: bool = False
     ) -> Pending:
+        if signer.subset:
+            env = without_delivery_hints(env)  # unsigned: never forwarded
         outcome = Outcome(
             True, 200, warning=verdict.warning, msg_id=sanitize(env.msg_id), envelope=env,
             signer=signer,
         )  # fmt: skip
-        memo = verdict.warning is None and not is_estop(env.type, env.safety_event)
+        memo = verdict.warning is None and not verdict.estop
         pending = Pending(outcome, memo=(raw, verdict.expires_at) if memo else None)
         return self._queue_audit(pending, on_loop=on_loop)
 
@@ -315,7 +336,8 @@ class Receiver:
         copies = self._copies
         if len(copies) >= self.config.msg_id_cache_size:
             copies.pop(next(iter(copies)), None)
-        copies[hash(raw)] = _Copy(len(raw), expires_at, sanitize(env.msg_id), env.type, env.sender)
+        msg_type = safety_class(env)[0]
+        copies[hash(raw)] = _Copy(len(raw), expires_at, sanitize(env.msg_id), msg_type, env.sender)
 
     def _known_copy(self, raw: bytes) -> _Copy | None:
         copy = self._copies.get(hash(raw)) if type(raw) is bytes else None
@@ -358,14 +380,14 @@ class Receiver:
         _, entry = self.keys.signing_key(env)  # unsigned or unknown key: its own code
         self.jwt.check(token, entry.owner)
 
-    def _authorize(self, env: Envelope, signer: Signer) -> None:
+    def _authorize(self, env: Envelope, signer: Signer, msg_type: int) -> None:
         if signer.subset:
             unsigned = unsigned_policy_fields(env)
             if unsigned:
                 raise ScopeDeniedError(
                     f"fields not covered by the RCAN SDK signature: {', '.join(unsigned)}"
                 )
-        needed = "safety" if env.type == MessageType.SAFETY else (env.scope or "control")
+        needed = "safety" if msg_type == MessageType.SAFETY else (env.scope or "control")
         if needed not in signer.scopes and "*" not in signer.scopes:
             raise ScopeDeniedError(f"key {sanitize(signer.kid)} lacks scope {sanitize(needed)}")
 
@@ -443,13 +465,14 @@ class Receiver:
         signer: Signer | None,
         copy: _Copy | None,
     ) -> dict[str, Any]:
-        source = copy if copy is not None else env  # both carry ``type`` and ``sender``
+        source = copy if copy is not None else env  # both carry ``sender``
+        msg_type = copy.type if copy is not None else safety_class(env)[0] if env else None
         return {
             "at": self.clock.wall(),
             "outcome": "accepted" if outcome.accepted else "rejected",
             "code": outcome.code,
             "warning": outcome.warning or (outcome.error.detail if outcome.error else None),
-            "msg_type": source.type if source is not None else None,
+            "msg_type": msg_type,
             "sender": signer.owner if signer else source.sender if source is not None else None,
             "sender_verified": signer is not None,
             "msg_id": outcome.msg_id,

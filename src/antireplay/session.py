@@ -80,6 +80,7 @@ import hmac
 import os
 import struct
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -113,6 +114,7 @@ MAX_FRAME = 65_536
 REKEY_AFTER = 2**60
 HANDSHAKE_WINDOW_S = 30.0
 MAX_PENDING = 64
+AVOID_TRIES = 64  # Responder.accept_handshake's draws of a session id
 _HS1_HEAD = struct.Struct(">BBQH")
 _FRAME_HEAD = struct.Struct(">BBBB16sQ")
 _HS2_LEN = 2 + SESSION_ID_LEN + NONCE_LEN + MAC_LEN
@@ -387,9 +389,15 @@ class Responder:
     def __len__(self) -> int:
         return len(self._sessions)
 
-    def accept_handshake(self, hs1: bytes) -> tuple[Session, bytes]:
+    def accept_handshake(
+        self, hs1: bytes, avoid: Callable[[bytes], bool] | None = None
+    ) -> tuple[Session, bytes]:
         """The handshake recipe: HS1 checks (shape, freshness, seen-set; records nothing),
-        signature and KEM, then commit the HS1 digest and open a session; returns HS2."""
+        signature and KEM, then commit the HS1 digest and open a session; returns HS2.
+
+        ``avoid``: session ids it is true of are drawn again (a fresh ``nonce_r``, at most
+        ``AVOID_TRIES`` times), for a carriage that shortens ids on the air and would
+        rather two live sessions never share the short form."""
         peer_id, digest, ts, body, sig, kem_ct, share = self._parse_hs1(hs1)
         self._seen_hs1.check(digest, ts)
         peer_key = self.peers.get(peer_id)
@@ -407,9 +415,13 @@ class Responder:
         except ValueError:
             raise InvalidFrameError("KEM ciphertext or X25519 share is invalid") from None
         self._seen_hs1.commit(digest, ts)
-        seq, nonce_r = self._seq.next(), os.urandom(NONCE_LEN)
-        transcript = _transcript(hs1, seq, nonce_r)
-        sid = seq.to_bytes(8, "big") + transcript[:8]
+        seq = self._seq.next()
+        for _ in range(AVOID_TRIES):
+            nonce_r = os.urandom(NONCE_LEN)
+            transcript = _transcript(hs1, seq, nonce_r)
+            sid = seq.to_bytes(8, "big") + transcript[:8]
+            if avoid is None or not avoid(sid):
+                break
         keys = _HandshakeKeys.derive(secret, transcript)
         session = Session(sid, Direction.R2I, peer_id, keys.r2i, keys.i2r, peer_verify_key=peer_key)
         hs2 = bytes([HS2_MAGIC, VERSION]) + sid + nonce_r + keys.confirmation

@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from antireplay.audit import AuditLog
-from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key
+from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key, sdk_key_id
 from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig
 from antireplay.errors import ConfigError, StateUnavailableError
@@ -59,16 +59,28 @@ log = logging.getLogger("antireplay.mavlink")
 
 
 def build_registry(config: AppConfig) -> KeyRegistry:
-    """The sender keys the configuration names, loaded (a bad key file is a ConfigError)."""
+    """The sender keys the configuration names, loaded by the one loader
+    (:func:`~antireplay.auth.load_public_key`: PEM or the RCAN SDK's raw key file; a bad
+    key file is a ConfigError), for ``config check`` and ``serve`` alike.  With
+    ``sdk_compat``, an ML-DSA-65 key also answers to its SDK key id
+    (:func:`~antireplay.auth.sdk_key_id`), the kid the SDK always signs with."""
     keys = KeyRegistry(sdk_compat=config.sdk_compat)
+    added = []
     for entry in config.keys:
         try:
             loaded = tuple(load_public_key(Path(p).read_bytes()) for p in entry.public_keys)
-            keys.add(entry.kid, entry.owner, entry.alg, loaded, set(entry.scopes))
+            added.append(keys.add(entry.kid, entry.owner, entry.alg, loaded, set(entry.scopes)))
         except (OSError, ValueError) as exc:
             raise ConfigError(
                 f"keys.{entry.kid}.public_keys", entry.public_keys, str(exc)
             ) from None
+    for key in added if config.sdk_compat else ():
+        if key.alg == "ml-dsa-65":
+            try:
+                keys.alias(sdk_key_id(key.public_keys[0]), key)
+            except ValueError as exc:
+                allowed = f"a key whose SDK key id no other key uses as its kid ({exc})"
+                raise ConfigError(f"keys.{key.kid}.kid", key.kid, allowed) from None
     return keys
 
 

@@ -43,8 +43,10 @@ from antireplay.envelope import (
     canonical_bytes,
     encode,
     parse,
+    safety_class,
     sdk_signed_bytes,
     unsigned_policy_fields,
+    without_delivery_hints,
 )
 from antireplay.epochs import EpochSigner, EpochVerifier
 from antireplay.errors import Code
@@ -99,13 +101,14 @@ def check_envelope(data: bytes) -> None:
     canonical_bytes(env)
     sanitize(env.msg_id)
     unsigned_policy_fields(env)
+    without_delivery_hints(env)
     for step in (env.signature, lambda: sdk_signed_bytes(env), lambda: json.loads(encode(env))):
         try:
             step()
         except ReplayAttackError as exc:
             _typed(exc)
     try:
-        _window().check(env.msg_id, env.seconds, env.type, env.safety_event)
+        _window().check(env.msg_id, env.seconds, *safety_class(env))
     except ReplayAttackError as exc:
         _typed(exc)
 
@@ -137,6 +140,7 @@ def check_receiver(data: bytes) -> None:
     outcome = _receiver().receive(body, headers)
     if outcome.accepted:
         assert outcome.status == 200
+        json.dumps(outcome.ack)
         return
     assert outcome.code in TYPED and 400 <= outcome.status < 500, outcome
     json.dumps(outcome.nack)
@@ -319,7 +323,15 @@ def _envelopes() -> list[bytes]:
     sdk["sig"] = {"alg": "ml-dsa-65", "kid": "op-pq", "value": ""}
     sdk_bytes = sdk_signed_bytes(parse(json.dumps(sdk).encode()))
     sdk["sig"]["value"] = b64encode(PQ.sign(sdk_bytes))
-    return [json.dumps(m).encode() for m in [*signed, sdk, base]]
+    # Safety by signed cmd (an SDK ESTOP with its qos hint), and a contradicting event.
+    sdk_estop: dict[str, Any] = {**base, "msg_id": "seed-6", "cmd": "ESTOP", "qos": 2}
+    sdk_estop["sig"] = {**sdk["sig"], "value": ""}
+    estop_bytes = sdk_signed_bytes(parse(json.dumps(sdk_estop).encode()))
+    sdk_estop["sig"]["value"] = b64encode(PQ.sign(estop_bytes))
+    stop = {**base, "msg_id": "seed-7", "cmd": "STOP"}
+    signed.append(sign_envelope(stop, "op-ed", "ed25519", ED))
+    contradiction = {**base, "msg_id": "seed-8", "cmd": "ESTOP", "safety_event": "RESUME"}
+    return [json.dumps(m).encode() for m in [*signed, sdk, sdk_estop, contradiction, base]]
 
 
 def seeds(target: str) -> list[bytes]:

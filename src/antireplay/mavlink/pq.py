@@ -24,15 +24,26 @@ zero bytes (MAVLink v2); ``len`` says what is data.
 
 Receiving (:class:`Reassembler`), cheap first: strict MAVLink parse and our CRC, the
 header's bounds (``index < count <= 32``, ``len`` fits, a kind that needs one chunk
-has one), then the chunk MAC for kind 4 under the keys of the live sessions, and only
-then the chunk is buffered.  A chunk flood without a session key therefore cannot
-occupy the frame pool at all; the handshake pool (HS1 from an unknown peer cannot
-carry a MAC) is separate and small, and a full one evicts the transfer with the
-fewest chunks (the oldest among equals), so a flood of first chunks cannot push out a
-handshake that is almost complete, nor any command.  Transfers expire after
-``timeout_s``; duplicates are ignored, a conflicting chunk is refused.  A lost chunk
-loses its blob; no other blob can complete with it (the MAC binds each chunk to its
-transfer, index and count; the session frame's tag binds everything again).
+has one), then the chunk MAC for kind 4 under the keys of the live sessions, then its
+transfer number against the newest one that opened from that sender under that key
+(16-bit serial arithmetic: at or behind it, a recorded chunk, ``REPLAY_DETECTED``),
+and only then the chunk is buffered.  A chunk flood without a session key therefore
+cannot occupy the frame pool at all, nor can chunks replayed from the session's own
+history; the handshake pool (HS1 from an unknown peer cannot carry a MAC) is separate
+and small, and a full one evicts the transfer with the fewest chunks (the oldest among
+equals), so a flood of first chunks cannot push out a handshake that is almost
+complete, nor any command.  Transfers expire after ``timeout_s``; duplicates are
+ignored, a conflicting chunk is refused; evictions, expiries and duplicates are counted
+(:class:`ReassemblyStats`, exported by the link).  A lost chunk loses its blob; no
+other blob can complete with it (the MAC binds each chunk to its transfer, index and
+count; the session frame's tag binds everything again).  Transfer numbers are 16 bits:
+a ground end rekeys after ``REKEY_TRANSFERS`` of them and stops sending in a session at
+``TRANSFER_LIMIT``, so they never wrap within a session towards the vehicle; the
+vehicle end's do wrap (it cannot rekey), so a chunk of its telemetry recorded more than
+32,768 transfers ago can still take a slot of the ground end's pool until it expires
+(its tag refuses it at the end).  An HS1 goes out under a random transfer number, so a
+chunk planted ahead of it cannot spoil it; one injected in reaction to it (conflicting
+count or piece) can, as jamming could; the ground end tries again after ``retry_s``.
 Memory: ``(max_transfers + max_handshakes) * 32 * 249`` bytes at most.
 
 Session frames travel **compact**, ``handle u8 | purpose u8 | counter u64 | inner |
@@ -48,43 +59,52 @@ and the session frame's tag covers session id, direction, purpose, counter and t
 inner, hence the message id, the source, and the target system/component (fields of
 the payload; :func:`~antireplay.mavlink.codec.target`); the frame rebuilt from it is the
 sender's frame, byte for byte (unsigned).  Choice of tag per message
-(:data:`SIGNED_MESSAGES`): commands that change what the vehicle does (COMMAND_LONG,
-COMMAND_INT, SET_MODE, PARAM_SET, missions) are ``command`` frames, signed with the
-operator's ML-DSA-87 key (non-repudiable, 4,627 bytes: 20 chunks); everything else
-(GCS heartbeats, RC/manual control, and all telemetry from the vehicle) is a
-``data`` frame under the session's HMAC-SHA256-128 key (one chunk for messages up to
-217 bytes of payload: 38 bytes more on air than plain MAVLink, 25 more than MAVLink
-signing).
+(:data:`SIGNED_MESSAGES`): whatever changes what the vehicle does (commands, mode,
+parameters, missions, guided setpoints, home and origin, file transfer, the serial
+shell, log erasure) is a ``command`` frame, signed with the operator's ML-DSA-87 key
+(non-repudiable, 4,627 bytes: 20 chunks), and the vehicle end refuses any of them in a
+data frame (``SIGNATURE_REQUIRED``, before any cryptography); everything else (GCS
+heartbeats, RC/manual control, and all telemetry from the vehicle) is a ``data`` frame
+under the session's HMAC-SHA256-128 key (one chunk for messages up to 217 bytes of
+payload: 38 bytes more on air than plain MAVLink, 25 more than MAVLink signing).
 
 The two ends are sans-I/O here (:class:`GroundEnd`, :class:`VehicleEnd`); the
 adapter that moves their bytes is :mod:`antireplay.mavlink.pq_link`.  Ground end:
-starts a handshake at once and whenever the session nears its counter limit
-(:attr:`~antireplay.session.Session.needs_rekey`) or the vehicle end reports it has no
-session (``PQ_STATUS``, unauthenticated, so acted upon at most once per
-``retry_s``, and only when nothing authenticated came from the vehicle for that long);
-while it has no session, queues at most ``max_queued`` commands and drops the rest;
-wraps every local message; unwraps telemetry.  Vehicle end: answers HS1 with HS2
-(:meth:`~antireplay.session.Responder.accept_handshake`: shape, freshness and the
-seen-set before the signature, commit after, so a replayed HS1 opens nothing),
-opens frames with :meth:`~antireplay.session.Responder.open` (window ``check``
-before the signature, ``commit`` after), rebuilds the plain MAVLink frame for the
-flight controller, and wraps the flight controller's telemetry under the newest
-session that authenticated.  The first frame that authenticates in a peer's new session
-closes that peer's older sessions (:meth:`~antireplay.session.Responder.close`), so a
-frame withheld from an old session (jammed, recorded) can never be played later
-(``SESSION_CLOSED``); one ground end per operator identity.  Every refusal is a typed
-error the caller counts.
+starts a handshake at once and again (at most once per ``retry_s``) whenever the
+session nears its counter limit (:attr:`~antireplay.session.Session.needs_rekey`) or
+its transfer limit, when nothing authenticated came from the vehicle for ``silence_s``
+(a restarted vehicle end), or when the vehicle end reports it has no session
+(``PQ_STATUS``, unauthenticated, so heeded only when nothing authenticated came from
+the vehicle for ``retry_s``); while it has no session, queues at most ``max_queued``
+commands, each for at most ``queue_ttl_s``, and drops the rest, every drop counted
+(:attr:`GroundEnd.drops`); wraps every local message; unwraps telemetry.  Vehicle
+end: answers HS1 with HS2 (:meth:`~antireplay.session.Responder.accept_handshake`:
+shape, freshness and the seen-set before the signature, commit after, so a replayed
+HS1 opens nothing; it draws a session id whose handle no live session has), opens
+frames with :meth:`~antireplay.session.Responder.open` (window ``check`` before the
+signature, ``commit`` after; for a handle two live sessions still share, under each
+candidate in turn, so the tag decides and one session's window never refuses
+another's frame), rebuilds the plain MAVLink frame for the flight controller, and
+wraps the flight controller's telemetry under the newest session that authenticated.
+The first frame that authenticates in a peer's new session closes that peer's older
+sessions (:meth:`~antireplay.session.Responder.close`), so a frame withheld from an
+old session (jammed, recorded) can never be played later (``SESSION_CLOSED``); one
+ground end per operator identity.  Every refusal is a typed error the caller counts.
+Only MAVLink v2 travels: a v1 frame is refused on both sides (:class:`PlainFrameError`,
+as plain MAVLink on the air is).
 """
 
 from __future__ import annotations
 
 import hmac
+import secrets
 import struct
-from collections import OrderedDict, deque
-from collections.abc import Callable, Iterable
+from collections import Counter, OrderedDict, deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from enum import IntEnum
 from importlib import resources
+from typing import Protocol
 
 from cryptography.hazmat.primitives.asymmetric import mlkem, x25519
 from pymavlink.dialects.v20 import ardupilotmega as dialect
@@ -94,7 +114,10 @@ from pymavlink.generator.mavcrc import x25crc
 from antireplay.clock import Clock, resolve
 from antireplay.errors import (
     InvalidFrameError,
+    ReplayAttackError,
+    ReplayDetectedError,
     SignatureInvalidError,
+    SignatureRequiredError,
     UnknownSessionError,
 )
 from antireplay.mavlink.codec import HEADER, STX_V2, Frame, parse_frame
@@ -112,6 +135,10 @@ from antireplay.session import (
 MSG_CHUNK, MSG_STATUS = 61000, 61001
 CHUNK_DATA, CHUNK_MAC, MAX_CHUNKS = 249, 8, 32
 STATUS_NO_SESSION = 1
+#: A ground end rekeys once its session used this many transfer numbers, and stops
+#: sending in it at ``TRANSFER_LIMIT``: within a session they never wrap (module docstring).
+REKEY_TRANSFERS, TRANSFER_LIMIT = 30_000, 32_000
+MAX_SENDER_KEYS = 16  # (sender, chunk key) pairs whose newest opened transfer is kept
 _INNER_HEAD = 6
 _FRAME = struct.Struct(">BBBB16sQ")  # a session frame's header (antireplay.session)
 _COMPACT = struct.Struct(">BBQ")  # handle purpose counter: the header as it travels
@@ -140,17 +167,32 @@ class Kind(IntEnum):
     FRAME_CHUNKED = 4
 
 
-#: Messages signed with ML-DSA-87 (``command`` frames); the rest travel HMAC-protected.
+#: Messages signed with ML-DSA-87 (``command`` frames): whatever changes what the vehicle
+#: does, including missions, parameters, guided setpoints, file transfer (scripts, logs)
+#: and the serial shell; the rest travels HMAC-protected.  The vehicle end refuses any of
+#: them in a data frame (``SIGNATURE_REQUIRED``).
 SIGNED_MESSAGES = frozenset(
     {
         dialect.MAVLINK_MSG_ID_COMMAND_LONG,
         dialect.MAVLINK_MSG_ID_COMMAND_INT,
         dialect.MAVLINK_MSG_ID_SET_MODE,
         dialect.MAVLINK_MSG_ID_PARAM_SET,
+        dialect.MAVLINK_MSG_ID_PARAM_EXT_SET,
         dialect.MAVLINK_MSG_ID_MISSION_COUNT,
+        dialect.MAVLINK_MSG_ID_MISSION_ITEM,
         dialect.MAVLINK_MSG_ID_MISSION_ITEM_INT,
+        dialect.MAVLINK_MSG_ID_MISSION_WRITE_PARTIAL_LIST,
         dialect.MAVLINK_MSG_ID_MISSION_CLEAR_ALL,
         dialect.MAVLINK_MSG_ID_MISSION_SET_CURRENT,
+        dialect.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED,
+        dialect.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT,
+        dialect.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET,
+        dialect.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET,
+        dialect.MAVLINK_MSG_ID_SET_HOME_POSITION,
+        dialect.MAVLINK_MSG_ID_SET_GPS_GLOBAL_ORIGIN,
+        dialect.MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL,
+        dialect.MAVLINK_MSG_ID_SERIAL_CONTROL,
+        dialect.MAVLINK_MSG_ID_LOG_ERASE,
     }
 )
 
@@ -222,8 +264,15 @@ class Chunk:
 _KINDS = {int(k): k for k in Kind}
 
 
+class PlainFrameError(InvalidFrameError):
+    """A plain MAVLink message (or a v1 frame) where only our dialect travels: on the air,
+    routers' own heartbeats, known and benign, which an end counts rather than reports."""
+
+
 def parse_chunk(frame: Frame) -> Chunk:
     """The cheap checks (module docstring); every failure is a typed INVALID_FRAME."""
+    if frame.msgid not in DIALECT:
+        raise PlainFrameError(f"plain MAVLink message {frame.msgid}, not carried")
     if frame.msgid != MSG_CHUNK:
         raise InvalidFrameError("not a PQ_CHUNK")
     payload = _payload_of(frame)
@@ -261,8 +310,11 @@ class ChunkSender:
     transfer: int = 0
     seq: int = 0
 
-    def frames(self, blob: bytes, kind: Kind, mac_key: bytes | None = None) -> list[bytes]:
-        """``blob`` as chunk frames; a session frame needing several chunks gets chunk MACs."""
+    def frames(
+        self, blob: bytes, kind: Kind, mac_key: bytes | None = None, transfer: int | None = None
+    ) -> list[bytes]:
+        """``blob`` as chunk frames; a session frame needing several chunks gets chunk MACs.
+        ``transfer``: this number instead of the next one (an HS1's unpredictable one)."""
         if kind is Kind.FRAME and len(blob) > CHUNK_DATA:
             kind = Kind.FRAME_CHUNKED
         room = CHUNK_DATA - (CHUNK_MAC if kind is Kind.FRAME_CHUNKED else 0)
@@ -271,16 +323,17 @@ class ChunkSender:
             raise ValueError(f"blob of {len(blob)} bytes needs more than {MAX_CHUNKS} chunks")
         if kind is Kind.FRAME_CHUNKED and mac_key is None:
             raise ValueError("a chunked session frame needs the chunk key")
-        self.transfer = (self.transfer + 1) & 0xFFFF
+        if transfer is None:
+            self.transfer = transfer = (self.transfer + 1) & 0xFFFF
         out = []
         for index, piece in enumerate(pieces):
             data = piece
             if kind is Kind.FRAME_CHUNKED:
                 assert mac_key is not None
                 length = len(piece) + CHUNK_MAC
-                head = _CHUNK.pack(self.transfer, index, len(pieces), length, kind)
+                head = _CHUNK.pack(transfer, index, len(pieces), length, kind)
                 data += _chunk_mac(mac_key, bytes([self.sysid, self.compid]) + head + piece)
-            payload = _CHUNK.pack(self.transfer, index, len(pieces), len(data), kind)
+            payload = _CHUNK.pack(transfer, index, len(pieces), len(data), kind)
             payload += data.ljust(CHUNK_DATA, b"\0")
             out.append(self._pack(payload))
         return out
@@ -327,6 +380,8 @@ class Reassembler:
         self._clock = resolve(clock)
         self._frames: OrderedDict[tuple[int, int, int], _Transfer] = OrderedDict()
         self._handshakes: OrderedDict[tuple[int, int, int], _Transfer] = OrderedDict()
+        # the newest transfer number that opened, per sender and chunk key (a few live keys)
+        self._newest: OrderedDict[tuple[int, int, bytes], int] = OrderedDict()
         self.stats = ReassemblyStats()
 
     @property
@@ -348,6 +403,7 @@ class Reassembler:
         transfer = pool.get(chunk.key)
         key = self._authenticate(chunk, keys if transfer is None else (transfer.key,))
         if transfer is None:
+            self._check_fresh(chunk, key)
             transfer = self._admit(pool, chunk, key)
         elif transfer.count != chunk.count or transfer.kind is not chunk.kind:
             raise InvalidFrameError("chunk disagrees with its transfer (count or kind)")
@@ -362,6 +418,25 @@ class Reassembler:
             return None
         del pool[chunk.key]
         return transfer.kind, b"".join(transfer.pieces[i] for i in range(transfer.count))
+
+    def opened(self, chunk: Chunk, key: bytes) -> None:
+        """The blob ``chunk`` belongs to opened (authenticated, fresh) in the session whose
+        chunk key is ``key``: chunks of this transfer and earlier ones (16-bit serial
+        arithmetic) from that sender are replays from now on."""
+        at = (chunk.sysid, chunk.compid, key)
+        newest = self._newest.get(at)
+        if newest is None or 0 < (chunk.transfer - newest) & 0xFFFF < 0x8000:
+            self._newest[at] = chunk.transfer
+            self._newest.move_to_end(at)
+            if len(self._newest) > MAX_SENDER_KEYS:
+                self._newest.popitem(last=False)
+
+    def _check_fresh(self, chunk: Chunk, key: bytes | None) -> None:
+        newest = None if key is None else self._newest.get((chunk.sysid, chunk.compid, key))
+        if newest is not None and (newest - chunk.transfer) & 0xFFFF < 0x8000:
+            raise ReplayDetectedError(
+                f"chunk of transfer {chunk.transfer}, at or before {newest} that opened"
+            )
 
     def _authenticate(self, chunk: Chunk, keys: Iterable[bytes | None]) -> bytes | None:
         if chunk.kind is not Kind.FRAME_CHUNKED:
@@ -434,20 +509,46 @@ def expand(air: bytes, sessions: Iterable[Session], direction: Direction) -> lis
     ]
 
 
+class Receiver(Protocol):
+    """What opens session frames: a :class:`~antireplay.session.Session` or a
+    :class:`~antireplay.session.Responder` (``check`` records nothing, ``open`` commits)."""
+
+    def check(self, frame: bytes) -> None: ...
+
+    def open(self, frame: bytes) -> Opened: ...
+
+
 def open_compact(
-    air: bytes, sessions: Iterable[Session], direction: Direction, open_: Callable[[bytes], Opened]
+    air: bytes, sessions: Iterable[Session], direction: Direction, receiver: Receiver
 ) -> Opened:
-    """Open a compact frame with ``open_`` under the first live session it verifies in
-    (a handle shared by two sessions costs one more tag check); typed errors otherwise."""
+    """Open a compact frame under the live session its tag verifies in; typed errors
+    otherwise.  A handle shared by two sessions (the vehicle end avoids it, but cannot
+    always) is resolved by the tag, never by a window: every candidate is ``check`` ed
+    (cheap, records nothing), those that pass are opened newest first (check,
+    authenticate, commit, each under its own session), so another session's counters
+    can never refuse this one's frames.  When none authenticates, a window refusal
+    outranks ``SIGNATURE_INVALID`` (it names a replay)."""
     candidates = expand(air, sessions, direction)
     if not candidates:
         raise UnknownSessionError("no live session with this handle; handshake again")
-    for frame in candidates[:-1]:
+    if len(candidates) == 1:
+        return receiver.open(candidates[0])
+    refused: ReplayAttackError | None = None
+    fresh = []
+    for frame in reversed(candidates):
         try:
-            return open_(frame)
-        except SignatureInvalidError:
+            receiver.check(frame)
+        except ReplayAttackError as exc:
+            refused = refused or exc
             continue
-    return open_(candidates[-1])
+        fresh.append(frame)
+    for frame in fresh:
+        try:
+            return receiver.open(frame)
+        except SignatureInvalidError as exc:
+            refused = refused or exc
+    assert refused is not None
+    raise refused
 
 
 @dataclass
@@ -463,7 +564,7 @@ class Output:
 def _parse(raw: bytes) -> Frame:
     frame = parse_frame(raw)
     if frame.version != 2:
-        raise InvalidFrameError("MAVLink v1 frames are not carried")
+        raise PlainFrameError("MAVLink v1 frames are not carried")
     return frame
 
 
@@ -479,45 +580,72 @@ class GroundEnd:
         component_id: int = 197,
         signed: frozenset[int] = SIGNED_MESSAGES,
         retry_s: float = 2.0,
+        silence_s: float = 5.0,
         max_queued: int = 8,
+        queue_ttl_s: float = 5.0,
         hybrid: x25519.X25519PublicKey | None = None,
         clock: Clock | None = None,
     ) -> None:
         self.initiator, self.responder_key = initiator, responder_key
         self.hybrid = hybrid  # the vehicle's static X25519 key: hybrid handshakes
         self.signed = signed
-        self.retry_s = retry_s
+        self.retry_s, self.silence_s = retry_s, silence_s
         self.sender = ChunkSender(system_id, component_id)
+        self._first_transfer = 0  # the sender's transfer number when the session began
         self.session: Session | None = None
         self._clock = resolve(clock)
         self._reassembler = Reassembler(clock=clock)
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
-        self._queue: deque[bytes] = deque(maxlen=max_queued)
+        self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
+        self._queue: deque[tuple[bytes, float]] = deque()  # commands and when they came
         self._heard = float("-inf")  # when an authenticated frame last came from the vehicle
-        self.unsent = 0
+        #: Local messages that never left, by reason: ``NO_SESSION`` (not a command, no
+        #: session), ``QUEUE_FULL`` (the oldest queued command, pushed out by a newer one),
+        #: ``QUEUE_EXPIRED`` (a command that waited longer than ``queue_ttl_s``).
+        self.drops: Counter[str] = Counter()
 
     def handshake(self) -> list[bytes]:
-        """Start a new handshake (the current session keeps working until HS2 arrives)."""
+        """Start a new handshake (the current session keeps working until HS2 arrives).  Its
+        transfer number is random: nobody can plant a conflicting chunk ahead of it."""
         hs1 = self.initiator.start(self.responder_key, self.hybrid)
         self._pending = (hs1, self._clock.monotonic())
-        return self.sender.frames(hs1, Kind.HS1)
+        return self.sender.frames(hs1, Kind.HS1, transfer=secrets.randbelow(0x10000))
 
     def from_local(self, raw: bytes) -> list[bytes]:
         """Wrap one plain frame from a local peer.  While there is no session, commands wait
-        in a bounded queue and the rest is dropped (counted in :attr:`unsent`): a heartbeat
-        comes again, and must not push a command out of the queue."""
+        in a bounded queue, each at most ``queue_ttl_s`` (a command is meant for now, not
+        for whenever the link comes back), and the rest is dropped: a heartbeat comes
+        again, and must not push a command out of the queue.  Every drop is counted in
+        :attr:`drops`."""
         frame = _parse(raw)
+        if self.session is not None and self._transfers_used() >= TRANSFER_LIMIT:
+            self.session = None  # its transfer numbers would wrap: wait for the new one
         if self.session is None:
             if frame.msgid in self.signed:
-                self._queue.append(raw)
+                self._expire_queue()
+                if len(self._queue) >= self.max_queued:
+                    self._queue.popleft()
+                    self.drops["QUEUE_FULL"] += 1
+                self._queue.append((raw, self._clock.monotonic()))
             else:
-                self.unsent += 1
+                self.drops["NO_SESSION"] += 1
             return self._retry()
         purpose = Purpose.COMMAND if frame.msgid in self.signed else Purpose.DATA
-        out = self._seal(self.session, inner_of(frame), purpose)
-        if self.session.needs_rekey and self._pending is None:
-            out += self.handshake()
-        return out
+        return self._seal(self.session, inner_of(frame), purpose) + self._renew(self.session)
+
+    def _renew(self, session: Session) -> list[bytes]:
+        """A new handshake (rate-limited by ``retry_s``) when this session should end: its
+        counters near their limit, its chunks' transfer numbers near half their range
+        (:data:`REKEY_TRANSFERS`), or nothing authenticated came from the vehicle for
+        ``silence_s`` (a restarted vehicle end; its ``PQ_STATUS`` hint can be lost or
+        outrun by an attacker's junk)."""
+        silent = self._clock.monotonic() - self._heard >= self.silence_s
+        if session.needs_rekey or silent or self._transfers_used() >= REKEY_TRANSFERS:
+            return self._retry()
+        return []
+
+    def _transfers_used(self) -> int:
+        return (self.sender.transfer - self._first_transfer) & 0xFFFF
 
     def _seal(self, session: Session, inner: bytes, purpose: Purpose) -> list[bytes]:
         blob = compact(session.seal(inner, purpose))
@@ -536,7 +664,8 @@ class GroundEnd:
             hinted = read_status(frame) == STATUS_NO_SESSION and silent
             return Output(air=self._retry() if hinted else [])
         keys = [chunk_key(self.session.recv_key)] if self.session is not None else []
-        done = self._reassembler.feed(parse_chunk(frame), keys)
+        chunk = parse_chunk(frame)
+        done = self._reassembler.feed(chunk, keys)
         if done is None:
             return Output()
         kind, blob = done
@@ -544,7 +673,8 @@ class GroundEnd:
             return self._finish(blob)
         if kind not in (Kind.FRAME, Kind.FRAME_CHUNKED) or self.session is None:
             raise UnknownSessionError(f"{kind.name} blob with no session to take it")
-        opened = open_compact(blob, [self.session], Direction.R2I, self.session.open)
+        opened = open_compact(blob, [self.session], Direction.R2I, self.session)
+        self._reassembler.opened(chunk, keys[0])
         self._heard = self._clock.monotonic()
         return Output(local=[plain_frame(opened.payload)], authenticated=True)
 
@@ -553,10 +683,23 @@ class GroundEnd:
             raise UnknownSessionError("HS2 with no handshake in progress")
         self.session = self.initiator.finish(self._pending[0], hs2)
         self._pending, self._heard = None, self._clock.monotonic()
+        self._first_transfer = self.sender.transfer
         out = Output(authenticated=True)
+        self._expire_queue()
         while self._queue:
-            out.air += self.from_local(self._queue.popleft())
+            out.air += self.from_local(self._queue.popleft()[0])
         return out
+
+    def _expire_queue(self) -> None:
+        horizon = self._clock.monotonic() - self.queue_ttl_s
+        while self._queue and self._queue[0][1] < horizon:
+            self._queue.popleft()
+            self.drops["QUEUE_EXPIRED"] += 1
+
+    @property
+    def unsent(self) -> int:
+        """Local messages that never left (:attr:`drops`, all reasons)."""
+        return sum(self.drops.values())
 
     @property
     def reassembly(self) -> ReassemblyStats:
@@ -573,9 +716,11 @@ class VehicleEnd:
         system_id: int = 1,
         component_id: int = 197,
         hint_interval_s: float = 1.0,
+        signed: frozenset[int] = SIGNED_MESSAGES,
         clock: Clock | None = None,
     ) -> None:
         self.responder = responder
+        self.signed = signed  # messages delivered only from a command (ML-DSA-87) frame
         self.sender = ChunkSender(system_id, component_id)
         self.hint_interval_s = hint_interval_s
         self._clock = resolve(clock)
@@ -589,7 +734,8 @@ class VehicleEnd:
         frame = _parse(raw)
         keys = [chunk_key(s.recv_key) for s in self._sessions]
         try:
-            done = self._reassembler.feed(parse_chunk(frame), keys)
+            chunk = parse_chunk(frame)
+            done = self._reassembler.feed(chunk, keys)
         except SignatureInvalidError:
             if keys:
                 raise
@@ -598,17 +744,31 @@ class VehicleEnd:
             return Output()
         kind, blob = done
         if kind is Kind.HS1:
-            session, hs2 = self.responder.accept_handshake(blob)
+            handles = {s.session_id[-1] for s in self._sessions}
+            session, hs2 = self.responder.accept_handshake(blob, lambda sid: sid[-1] in handles)
             self._sessions.append(session)
             self.current = session
             return Output(air=self.sender.frames(hs2, Kind.HS2), authenticated=True)
         if kind is Kind.HS2:
             raise InvalidFrameError("HS2 travels to the ground end")
-        opened = open_compact(blob, self._sessions, Direction.I2R, self.responder.open)
+        self._require_signature(blob)
+        opened = open_compact(blob, self._sessions, Direction.I2R, self.responder)
         session = next(s for s in self._sessions if s.session_id == opened.session_id)
+        self._reassembler.opened(chunk, chunk_key(session.recv_key))
         self._supersede(session)
         self.current = session
         return Output(local=[plain_frame(opened.payload)], authenticated=True)
+
+    def _require_signature(self, air: bytes) -> None:
+        """Refuse, before any cryptography, a message that must be signed (:attr:`signed`)
+        but travels in a data frame: a holder of the session's HMAC keys (a ground end
+        configured otherwise, or an insider) cannot command the vehicle."""
+        inner_at = _COMPACT.size
+        if len(air) < inner_at + _INNER_HEAD:
+            raise InvalidFrameError("session frame too short")
+        msgid = int.from_bytes(air[inner_at + 3 : inner_at + 6], "little")
+        if air[1] != Purpose.COMMAND and msgid in self.signed:
+            raise SignatureRequiredError(f"message {msgid} must be signed (ML-DSA-87)")
 
     def _supersede(self, session: Session) -> None:
         """Close the peer's older sessions once a newer one carried a frame: the ground end
@@ -650,6 +810,7 @@ __all__ = [
     "GroundEnd",
     "Kind",
     "Output",
+    "PlainFrameError",
     "Reassembler",
     "ReassemblyStats",
     "VehicleEnd",

@@ -17,7 +17,10 @@ between two :class:`~antireplay.mavlink.endpoints.Transport` s:
   learns routes; plain MAVLink from the air never reaches the flight controller.
 
 Every refusal is counted in :attr:`PqLink.dropped` under ``side:CODE`` and handed to
-``on_reject`` as a :class:`~antireplay.mavlink.router.Refusal`; a vehicle end that
+``on_reject`` as a :class:`~antireplay.mavlink.router.Refusal`, except plain MAVLink on
+the air (routers send their own heartbeats there; never carried, counted ``air:PLAIN``);
+what the end drops without an error (reassembly evictions and expiries, a ground end's
+expired or displaced queued commands) is counted there too.  A vehicle end that
 refuses a frame for a session it does not hold (``UNKNOWN_SESSION``,
 ``SESSION_CLOSED``) answers with the rate-limited ``PQ_STATUS`` hint.  Bytes written
 to the air are counted (:attr:`PqLink.air_bytes`), and ``tap`` sees each air frame
@@ -34,7 +37,7 @@ from typing import Any
 
 from antireplay.errors import AntiReplayError, Code, ReplayAttackError
 from antireplay.mavlink.endpoints import Peer, Transport
-from antireplay.mavlink.pq import GroundEnd, Output, VehicleEnd
+from antireplay.mavlink.pq import GroundEnd, Output, PlainFrameError, VehicleEnd
 from antireplay.mavlink.router import Refusal
 
 _HINTED = {Code.UNKNOWN_SESSION, Code.SESSION_CLOSED}
@@ -56,12 +59,13 @@ class PqLink:
         self.end, self.local, self.air = end, local, air
         self.on_reject, self.tap = on_reject, tap
         self.max_local_peers = max_local_peers
-        self.dropped: Counter[str] = Counter()
+        self._dropped: Counter[str] = Counter()
         self.forwarded: Counter[str] = Counter()
         self.air_bytes = 0
         self._local_peers: dict[Peer, None] = {}
         self._air_peer: Peer | None = None
         self._lock = threading.Lock()
+        self._count_lock = threading.Lock()
 
     def start(self) -> None:
         """Start both transports; a ground end sends its first handshake."""
@@ -105,6 +109,9 @@ class PqLink:
             try:
                 with self._lock:
                     out: Output = self.end.from_air(raw)
+            except PlainFrameError:  # a router's own heartbeat, say: counted, not reported
+                self._count("air:PLAIN")
+                continue
             except ReplayAttackError as exc:
                 self._refuse("air", exc.code, exc.reason, raw)
                 if exc.code in _HINTED and isinstance(self.end, VehicleEnd):
@@ -123,26 +130,52 @@ class PqLink:
         peers: list[Peer | None] = [None] if self.local.fixed else list(self._local_peers)
         for peer in peers:
             if not self.local.send(data, peer):
-                self.dropped["local:UNREACHABLE"] += 1
+                self._count("local:UNREACHABLE")
 
     def _to_air(self, frames: list[bytes], peer: Peer | None) -> None:
         if not frames:
             return
         if peer is None and not self.air.fixed:
-            self.dropped["air:NO_PEER"] += len(frames)
+            self._count("air:NO_PEER", len(frames))
             return
         for data in frames:
             if self.tap is not None:
                 self.tap(data)
             self.air_bytes += len(data)
             if not self.air.send(data, peer):
-                self.dropped["air:UNREACHABLE"] += 1
+                self._count("air:UNREACHABLE")
+
+    @property
+    def dropped(self) -> Counter[str]:
+        """Everything dropped, by ``side:REASON``: refusals (``side:CODE``), what the end
+        threw away without an error (reassembly: ``air:EVICTED``, ``air:EXPIRED``,
+        ``air:DUPLICATE``; a ground end's local messages that never left:
+        ``local:NO_SESSION``, ``local:QUEUE_FULL``, ``local:QUEUE_EXPIRED``), plain
+        MAVLink on the air (``air:PLAIN``) and what could not be written."""
+        with self._lock:
+            stats = self.end.reassembly
+            out = Counter(
+                {
+                    "air:EVICTED": stats.evicted,
+                    "air:EXPIRED": stats.expired,
+                    "air:DUPLICATE": stats.duplicates,
+                }
+            )
+            if isinstance(self.end, GroundEnd):
+                out.update({f"local:{k}": v for k, v in self.end.drops.items()})
+        with self._count_lock:
+            out.update(self._dropped)
+        return +out  # the zero counts dropped
+
+    def _count(self, key: str, n: int = 1) -> None:
+        with self._count_lock:
+            self._dropped[key] += n
 
     def _refuse(self, side: str, code: str, reason: str, raw: bytes) -> None:
-        self.dropped[f"{side}:{code}"] += 1
+        self._count(f"{side}:{code}")
         if self.on_reject is None:
             return
         try:
             self.on_reject(Refusal(side, f"pq {side}", str(code), reason, raw))
         except AntiReplayError:
-            self.dropped["unaudited"] += 1
+            self._count("unaudited")
