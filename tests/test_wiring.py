@@ -7,9 +7,13 @@ import socket
 from pathlib import Path
 
 import pytest
+from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay.audit import AuditLog
+from antireplay.auth import write_key_pair
 from antireplay.clock import ManualClock
+from antireplay.config import AppConfig, KeyConfig
+from antireplay.errors import ConfigError
 from antireplay.mavlink import Refusal, Role, passphrase_key
 from antireplay.stores.memory import MemoryStore
 from antireplay.wiring import (
@@ -17,6 +21,7 @@ from antireplay.wiring import (
     Allowed,
     RouterOptions,
     build_mavlink_router,
+    build_registry,
     mavlink_auditor,
 )
 from tests.harness import free_port
@@ -118,3 +123,17 @@ def test_endpoint_that_is_not_a_serial_port_names_itself_and_closes_the_others(
         socket.create_server(("127.0.0.1", port)).close()  # closed again
     finally:
         log.close()
+
+
+def test_two_keys_under_one_kid_are_a_config_error(tmp_path: Path) -> None:
+    """A kid names one key: a second entry would shadow the first (or leave it answering
+    under an alias with its old scopes), and the audit could not tell which key signed."""
+    entries = []
+    for name, scopes in (("old", ["control", "safety"]), ("new", ["control"])):
+        public = tmp_path / f"{name}.pub.pem"
+        write_key_pair(ed25519.Ed25519PrivateKey.generate(), tmp_path / f"{name}.pem", public)
+        key = KeyConfig(kid="operator", owner="op", alg="ed25519", public_keys=[str(public)],
+                        scopes=scopes)  # fmt: skip
+        entries.append(key)
+    with pytest.raises(ConfigError, match=r"keys\.operator\.kid"):
+        build_registry(AppConfig(keys=entries))

@@ -191,6 +191,8 @@ class KeyRegistry:
         for key, kind in zip(keys, expected, strict=True):
             if not isinstance(key, kind):
                 raise ValueError(f"{alg} needs a {kind.__name__}, got {type(key).__name__}")
+        if kid in self.entries:  # two keys under one kid: which one signed would be unknowable
+            raise ValueError(f"kid {kid!r} is already registered")
         entry = KeyEntry(kid, owner, alg, keys, frozenset(scopes))
         self.entries[kid] = entry
         return entry

@@ -67,6 +67,8 @@ def build_registry(config: AppConfig) -> KeyRegistry:
     keys = KeyRegistry(sdk_compat=config.sdk_compat)
     added = []
     for entry in config.keys:
+        if entry.kid in keys.entries:
+            raise ConfigError(f"keys.{entry.kid}.kid", entry.kid, "a kid no other key uses")
         try:
             loaded = tuple(load_public_key(Path(p).read_bytes()) for p in entry.public_keys)
             added.append(keys.add(entry.kid, entry.owner, entry.alg, loaded, set(entry.scopes)))
