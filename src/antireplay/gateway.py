@@ -38,13 +38,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import importlib
-import json
+import inspect
 import queue
 import sqlite3
 import threading
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from contextlib import asynccontextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -57,13 +58,13 @@ from prometheus_client.registry import Collector
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.middleware import Middleware
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from antireplay.audit import AuditLog
-from antireplay.auth import write_key_pair
+from antireplay.audit import AuditLog, sanitize
+from antireplay.auth import Signer, write_key_pair
 from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig, KeyConfig
 from antireplay.envelope import encode
@@ -76,7 +77,7 @@ from antireplay.errors import (
     UnsupportedMediaTypeError,
 )
 from antireplay.groupcommit import GroupCommitter
-from antireplay.pipeline import Outcome, Pending, Receiver
+from antireplay.pipeline import Outcome, Receiver
 from antireplay.wiring import build_receiver
 
 DEMO_KID = "demo-operator"
@@ -88,7 +89,33 @@ LATENCY_BUCKETS = (
 #: The key ``/readyz`` reads from the store (a read records nothing).
 READINESS_KEY = "antireplay-readiness-probe"
 _encode_json = msgspec.json.Encoder().encode
-Upstream = Callable[[dict[str, Any]], Awaitable[tuple[int, Any]]]
+_decode_json = msgspec.json.decode
+#: Request headers only the guard sets (the verified signer); a client's copies are dropped.
+SIGNER_HEADERS = ("rcan-signer-owner", "rcan-signer-kid", "rcan-signer-scopes", "rcan-msg-id")
+_SIGNER_HEADERS = frozenset(name.encode() for name in SIGNER_HEADERS)
+
+
+@dataclass(frozen=True, slots=True)
+class Verified:
+    """What the guard hands the application with an accepted message: the envelope as
+    verified (its canonical re-encoding, unsigned SDK hints removed), who signed it, and
+    the COMMAND_ACK the gateway would answer."""
+
+    envelope: dict[str, Any]
+    signer: Signer
+    msg_id: str | None
+    warning: str | None
+    ack: dict[str, Any]
+
+    def headers(self) -> list[tuple[str, str]]:
+        """The signer as request headers (``SIGNER_HEADERS``), every value sanitized."""
+        signer = self.signer
+        scopes = ",".join(sorted(sanitize(scope) or "" for scope in signer.scopes))
+        values = (sanitize(signer.owner), sanitize(signer.kid), scopes, self.msg_id)
+        return [(name, value or "") for name, value in zip(SIGNER_HEADERS, values, strict=True)]
+
+
+Upstream = Callable[[Verified], Awaitable[tuple[int, Any]]]
 
 
 def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
@@ -113,14 +140,17 @@ def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
 
 
 def resolve_upstream(spec: str | None, timeout_s: float) -> Upstream | None:
-    """``http(s)://…`` → POST via httpx; ``module:function`` → call it; None → answer locally."""
+    """``http(s)://…`` → POST via httpx, the signer in ``SIGNER_HEADERS``; ``module:function``
+    → call it with the envelope (and the :class:`Signer` if it takes a second parameter);
+    None → answer locally."""
     if spec is None:
         return None
     if spec.startswith(("http://", "https://")):
         client = httpx.AsyncClient(timeout=timeout_s)
 
-        async def post(envelope: dict[str, Any]) -> tuple[int, Any]:
-            reply = await client.post(spec, json=envelope)
+        async def post(verified: Verified) -> tuple[int, Any]:
+            # A request of our own: nothing the client sent but the verified envelope.
+            reply = await client.post(spec, json=verified.envelope, headers=verified.headers())
             try:
                 return reply.status_code, reply.json()
             except ValueError:
@@ -132,11 +162,25 @@ def resolve_upstream(spec: str | None, timeout_s: float) -> Upstream | None:
         func = getattr(importlib.import_module(module_name), attr)
     except (ImportError, AttributeError, ValueError) as exc:
         raise ConfigError("upstream", spec, f"http(s)://URL or module:function ({exc})") from None
+    with_signer = _takes_two(func)
 
-    async def call(envelope: dict[str, Any]) -> tuple[int, Any]:
-        return 200, await run_in_threadpool(func, envelope)
+    async def call(verified: Verified) -> tuple[int, Any]:
+        if with_signer:
+            return 200, await run_in_threadpool(func, verified.envelope, verified.signer)
+        return 200, await run_in_threadpool(func, verified.envelope)
 
     return call
+
+
+def _takes_two(func: Callable[..., Any]) -> bool:
+    """Whether ``func`` accepts a second positional argument (``handle(envelope, signer)``)."""
+    try:
+        params = inspect.signature(func).parameters.values()
+    except (TypeError, ValueError):  # no signature to read: called as before
+        return False
+    kinds = [p.kind for p in params]
+    positional = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    return sum(k in positional for k in kinds) >= 2 or inspect.Parameter.VAR_POSITIONAL in kinds
 
 
 class Metrics:
@@ -160,6 +204,11 @@ class Metrics:
             "antireplay_upstream_errors", "Upstream failures", registry=r
         )
         r.register(StateCollector(receiver))
+
+    async def endpoint(self, _: Request) -> Response:
+        """``GET /metrics`` (a Starlette endpoint: ``app.add_route("/metrics", ...)``)."""
+        body = await run_in_threadpool(generate_latest, self.registry)  # may read the store
+        return Response(body, media_type="text/plain; version=0.0.4")
 
     def observe(self, outcome: Outcome, seconds: float) -> None:
         self.latency.observe(seconds)
@@ -227,43 +276,251 @@ class StateCollector(Collector):
         yield operations
 
 
-class RefuseAmbiguousFraming:
-    """ASGI middleware in front of every route: both Content-Length and Transfer-Encoding
-    -> 400 and close (RFC 9112); ``POST /v1/messages`` goes straight to ``messages`` (no
-    routing, no Request object: the hot path); everything else to the Starlette app."""
+class Refused(Exception):  # noqa: N818 - it is the answer, not a failure
+    """A refusal: the COMMAND_NACK and its HTTP status, exactly as the gateway answers them.
+    :class:`RcanGuard` raises it; the handler :meth:`RcanGuard.install` adds answers it."""
 
-    def __init__(self, app: ASGIApp, messages: Messages, nack_type: int = 18) -> None:
+    def __init__(self, status: int, nack: dict[str, Any], *, close: bool = False) -> None:
+        super().__init__(status, nack.get("code"))
+        self.status, self.nack, self.close = status, nack, close
+
+    async def answer(self, send: Send) -> None:
+        await _answer(send, self.status, self.nack, close=self.close)
+
+    def response(self) -> Response:
+        headers = {"connection": "close"} if self.close else None
+        body = _encode_json(self.nack)
+        return Response(body, self.status, headers=headers, media_type="application/json")
+
+
+Framing = tuple[bytes | None, bytes | None, bool]
+
+
+class _Checkpoint:
+    """The gateway's request path for one POST, shared by :class:`Guard` (ASGI middleware,
+    and the gateway itself) and :class:`RcanGuard` (FastAPI dependency): framing refusals,
+    the body limit, :meth:`Receiver.receive_async`, metrics."""
+
+    def __init__(
+        self,
+        config: AppConfig | None,
+        *,
+        clock: Clock | None,
+        receiver: Receiver | None,
+        metrics: Metrics | None,
+    ) -> None:
+        self._owns_receiver = receiver is None
+        if receiver is None:
+            receiver = build_receiver(config if config is not None else embedded_default(), clock)
+        self.receiver = receiver
+        self.metrics = metrics if metrics is not None else Metrics(receiver)
+        self.limit = receiver.max_bytes
+        self.nack_type = receiver.config.nack_type
+        self.workers = Workers(4)
+        self._ticker = resolve(None)
+        self._closed = False
+
+    @property
+    def metrics_endpoint(self) -> Callable[[Request], Awaitable[Response]]:
+        """A Starlette endpoint serving these metrics: ``app.add_route("/metrics", ...)``."""
+        return self.metrics.endpoint
+
+    def close(self) -> None:
+        """Stop the worker threads (and close the audit trail of a receiver built here)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.workers.shutdown()
+        if self._owns_receiver and self.receiver.audit is not None:
+            self.receiver.audit.close()
+
+    def ambiguous(self, framing: Framing) -> Refused | None:
+        """Both Content-Length and Transfer-Encoding: refused and closed (RFC 9112)."""
+        if framing[1] is None or not framing[2]:
+            return None
+        reason = "both Content-Length and Transfer-Encoding (RFC 9112 section 6.1)"
+        nack = InvalidEnvelopeError(reason).to_nack(None, nack_type=self.nack_type)
+        return Refused(400, nack, close=True)
+
+    async def check(
+        self, scope: Scope, receive: Receive, framing: Framing
+    ) -> tuple[Verified, bytes] | Refused:
+        """One POSTed envelope: its :class:`Verified` and canonical bytes, or its refusal."""
+        refusal = _framing_refusal(framing[0], framing[1], self.limit)
+        if refusal is None:
+            raw = await _body(receive, self.limit)
+            if isinstance(raw, bytes):
+                return await self._receive(scope, raw)
+            refusal = raw
+        # Transport-level refusals: the same NACK as the pipeline's, with the configured
+        # type; the code decides the status (errors.HTTP_STATUS); counted like every other.
+        self.metrics.rejected.labels(str(refusal.code)).inc()
+        return Refused(refusal.http_status, refusal.to_nack(None, nack_type=self.nack_type))
+
+    async def _receive(self, scope: Scope, raw: bytes) -> tuple[Verified, bytes] | Refused:
+        started = self._ticker.monotonic()
+        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
+        outcome = await self.receiver.receive_async(raw, headers, self.workers)
+        self.metrics.observe(outcome, self._ticker.monotonic() - started)
+        if not outcome.accepted:
+            assert outcome.nack is not None
+            return Refused(outcome.status, outcome.nack)
+        assert outcome.envelope is not None and outcome.signer is not None
+        body = encode(outcome.envelope)
+        ack = outcome.ack or {}  # COMMAND_ACK: readable by the rcan SDK
+        verified = Verified(
+            _decode_json(body), outcome.signer, outcome.msg_id, outcome.warning, ack
+        )
+        return verified, body
+
+
+class Guard(_Checkpoint):
+    """ASGI middleware that runs the gateway's request path inside an application.
+
+    ``POST`` on one of ``paths`` is checked exactly as ``antireplay serve`` checks it (the
+    gateway *is* a Guard around its forwarding app): a refusal is answered here with the
+    gateway's NACK and status; an accepted message reaches ``app`` with the canonical
+    envelope as its body, the verified signer in ``SIGNER_HEADERS`` (a client's copies
+    dropped) and ``scope["state"]["antireplay"]``: a :class:`Verified` (Starlette:
+    ``request.state.antireplay``).  Every request with both Content-Length and
+    Transfer-Encoding is refused and closed, on every route (the request-smuggling shape).
+    The hot path builds no Request object.  Lifespan shutdown stops its workers."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        config: AppConfig | None = None,
+        *,
+        paths: tuple[str, ...] = ("/v1/messages",),
+        clock: Clock | None = None,
+        receiver: Receiver | None = None,
+        metrics: Metrics | None = None,
+    ) -> None:
+        super().__init__(config, clock=clock, receiver=receiver, metrics=metrics)
         self.app = app
-        self.messages = messages
-        self.nack_type = nack_type
+        self.paths = frozenset(paths)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
+            if scope["type"] == "lifespan":
+                send = self._closing(send)
             await self.app(scope, receive, send)
             return
-        ctype: bytes | None = None
-        length: bytes | None = None
-        chunked = False
-        for raw_name, value in scope["headers"]:
-            name = raw_name.lower()
-            if name == b"content-type":
-                ctype = value if ctype is None else ctype
-            elif name == b"content-length":
-                length = value if length is None else length
-            elif name == b"transfer-encoding":
-                chunked = True
-        if length is not None and chunked:
-            reason = "both Content-Length and Transfer-Encoding (RFC 9112 section 6.1)"
-            nack = InvalidEnvelopeError(reason).to_nack(None, nack_type=self.nack_type)
-            await _answer(send, 400, nack, close=True)
-            return
-        if scope["method"] == "POST" and _route_path(scope) == "/v1/messages":
-            await self.messages(scope, receive, send, ctype, length)
-            return
-        await self.app(scope, receive, send)
+        framing = _framing(scope)
+        refused = self.ambiguous(framing)
+        if refused is not None:
+            return await refused.answer(send)
+        if scope["method"] != "POST" or _route_path(scope) not in self.paths:
+            return await self.app(scope, receive, send)
+        result = await self.check(scope, receive, framing)
+        if isinstance(result, Refused):
+            return await result.answer(send)
+        verified, body = result
+        inner = {
+            **scope,
+            "headers": _verified_headers(scope["headers"], verified, len(body)),
+            "state": {**scope.get("state", {}), "antireplay": verified},
+        }
+        await self.app(inner, _replay(body, receive), send)
+
+    def _closing(self, send: Send) -> Send:
+        async def closing(message: Message) -> None:
+            if message["type"] in {"lifespan.shutdown.complete", "lifespan.shutdown.failed"}:
+                await run_in_threadpool(self.close)
+            await send(message)
+
+        return closing
 
 
-Messages = Callable[[Scope, Receive, Send, bytes | None, bytes | None], Awaitable[None]]
+class RcanGuard(_Checkpoint):
+    """The gateway's request path as a FastAPI dependency: ``Depends(guard)`` reads the
+    body, runs it and returns the :class:`Verified` message; a refusal raises
+    :class:`Refused`, answered with the gateway's exact NACK and status by the handler
+    :meth:`install` adds.  FastAPI is not imported here: any Starlette request works."""
+
+    def __init__(
+        self,
+        config: AppConfig | None = None,
+        *,
+        clock: Clock | None = None,
+        receiver: Receiver | None = None,
+    ) -> None:
+        super().__init__(config, clock=clock, receiver=receiver, metrics=None)
+
+    async def __call__(self, request: Request) -> Verified:
+        framing = _framing(request.scope)
+        result = self.ambiguous(framing) or await self.check(
+            request.scope, _streamed(request), framing
+        )
+        if isinstance(result, Refused):
+            raise result
+        return result[0]
+
+    def install(self, app: Starlette) -> None:
+        """Answer :class:`Refused` with the NACK itself (not wrapped in ``detail``)."""
+        app.add_exception_handler(Refused, _refused_response)
+
+
+async def _refused_response(_: Request, exc: Exception) -> Response:
+    assert isinstance(exc, Refused)
+    return exc.response()
+
+
+def _framing(scope: Scope) -> Framing:
+    """The first Content-Type and Content-Length, and whether Transfer-Encoding is present."""
+    ctype: bytes | None = None
+    length: bytes | None = None
+    chunked = False
+    for raw_name, value in scope["headers"]:
+        name = raw_name.lower()
+        if name == b"content-type":
+            ctype = value if ctype is None else ctype
+        elif name == b"content-length":
+            length = value if length is None else length
+        elif name == b"transfer-encoding":
+            chunked = True
+    return ctype, length, chunked
+
+
+def _verified_headers(
+    headers: list[tuple[bytes, bytes]], verified: Verified, length: int
+) -> list[tuple[bytes, bytes]]:
+    """The request headers for the application: the new body's length, the signer's."""
+    dropped = {b"content-length", b"transfer-encoding", *_SIGNER_HEADERS}
+    kept = [(name, value) for name, value in headers if name.lower() not in dropped]
+    kept.append((b"content-length", b"%d" % length))
+    kept += [(name.encode(), value.encode()) for name, value in verified.headers()]
+    return kept
+
+
+def _replay(body: bytes, receive: Receive) -> Receive:
+    """The application's ``receive``: the canonical body once, then the client's messages."""
+    sent = False
+
+    async def replay() -> Message:
+        nonlocal sent
+        if sent:
+            return await receive()
+        sent = True
+        return {"type": "http.request", "body": body, "more_body": False}
+
+    return replay
+
+
+def _streamed(request: Request) -> Receive:
+    """ASGI ``receive`` over ``request.stream()`` (which also replays a body already read)."""
+    chunks = request.stream().__aiter__()
+
+    async def receive() -> Message:
+        try:
+            chunk = await chunks.__anext__()
+        except StopAsyncIteration:
+            return {"type": "http.request", "body": b"", "more_body": False}
+        except ClientDisconnect:
+            return {"type": "http.disconnect"}
+        return {"type": "http.request", "body": chunk, "more_body": True}
+
+    return receive
 
 
 def _route_path(scope: Scope) -> str:
@@ -281,21 +538,6 @@ async def _answer(send: Send, status: int, content: object, *, close: bool = Fal
         headers.append((b"connection", b"close"))
     await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})
-
-
-async def _settle(receiver: Receiver, workers: Workers, pending: Pending) -> Outcome:
-    """Wait, without a thread, until the outcome's audit row is durable, then settle it."""
-    failure: BaseException | None = None
-    audit = pending.audit
-    if audit is not None:
-        try:
-            await (audit if isinstance(audit, asyncio.Future) else asyncio.wrap_future(audit))
-        except Exception as exc:  # settle() turns any failure into the answer
-            failure = exc
-    if failure is not None and pending.outcome.accepted:  # its refusal is audited: blocks
-        outcome: Outcome = await workers(receiver.settle, pending, failure)
-        return outcome
-    return receiver.settle(pending, failure)
 
 
 def _framing_refusal(
@@ -421,48 +663,11 @@ def audit_problem(audit: AuditLog, timeout_s: float = 1.0) -> str | None:
 
 
 def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
-    """The gateway application for ``config``."""
+    """The gateway application for ``config``: a :class:`Guard` in front of an app whose
+    ``POST /v1/messages`` forwards what the guard verified (one code path by construction)."""
     receiver = build_receiver(config, clock)
-    upstream = resolve_upstream(config.upstream, config.upstream_timeout_s)
     metrics = Metrics(receiver)
-    limit = config.max_body_bytes
-    ticker = resolve(None)
-    nack_type = config.security.nack_type
-    workers = Workers(4)
-
-    async def refuse(send: Send, error: ReplayAttackError) -> None:
-        """Transport-level refusals: the same NACK as the pipeline's, with the configured type;
-        the code decides the status (``errors.HTTP_STATUS``), as everywhere; counted like
-        every rejection."""
-        metrics.rejected.labels(str(error.code)).inc()
-        await _answer(send, error.http_status, error.to_nack(None, nack_type=nack_type))
-
-    async def messages(
-        scope: Scope, receive: Receive, send: Send, ctype: bytes | None, length: bytes | None
-    ) -> None:
-        refusal = _framing_refusal(ctype, length, limit)
-        if refusal is not None:
-            return await refuse(send, refusal)
-        raw = await _body(receive, limit)
-        if not isinstance(raw, bytes):
-            return await refuse(send, raw)
-        started = ticker.monotonic()
-        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
-        pending = await receiver.receive_async(raw, headers, workers)
-        outcome = await _settle(receiver, workers, pending)
-        metrics.observe(outcome, ticker.monotonic() - started)
-        if not outcome.accepted:
-            return await _answer(send, outcome.status, outcome.nack)
-        answer: dict[str, Any] = outcome.ack or {}  # COMMAND_ACK: readable by the rcan SDK
-        if upstream is None:
-            return await _answer(send, 200, answer)
-        assert outcome.envelope is not None
-        try:
-            status, result = await upstream(json.loads(encode(outcome.envelope)))
-        except Exception as exc:
-            metrics.upstream_errors.inc()
-            return await _answer(send, 502, {**answer, "upstream_error": type(exc).__name__})
-        return await _answer(send, status, {**answer, "result": result})
+    forward = _Forward(resolve_upstream(config.upstream, config.upstream_timeout_s), metrics)
 
     async def healthz(_: Request) -> Response:
         return JSONResponse({"status": "ok", "time": time.time()})
@@ -473,30 +678,41 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
             return JSONResponse({"status": "unavailable", "reason": reason}, status_code=503)
         return JSONResponse({"status": "ready"})
 
-    async def metrics_endpoint(_: Request) -> Response:
-        body = await run_in_threadpool(generate_latest, metrics.registry)  # may read the store
-        return Response(body, media_type="text/plain; version=0.0.4")
-
-    async def wrong_method(_: Request) -> Response:
-        return Response(status_code=405)  # POST is answered by RefuseAmbiguousFraming
-
     @asynccontextmanager
     async def lifespan(_: Starlette) -> AsyncIterator[None]:
-        yield
-        workers.shutdown()
+        yield  # the Guard stops its workers once this has run
         if receiver.audit is not None:
             receiver.audit.close()
 
     app = Starlette(
         routes=[
-            Route("/v1/messages", wrong_method, methods=["POST"]),
+            Route("/v1/messages", forward, methods=["POST"]),
             Route("/healthz", healthz, methods=["GET"]),
             Route("/readyz", readyz, methods=["GET"]),
-            Route("/metrics", metrics_endpoint, methods=["GET"]),
+            Route("/metrics", metrics.endpoint, methods=["GET"]),
         ],
         lifespan=lifespan,
-        middleware=[Middleware(RefuseAmbiguousFraming, messages=messages, nack_type=nack_type)],
+        middleware=[Middleware(Guard, config=config, receiver=receiver, metrics=metrics)],
     )
     app.state.receiver = receiver
     app.state.metrics = metrics
     return app
+
+
+class _Forward:
+    """The gateway's ``POST /v1/messages`` behind its :class:`Guard` (a raw ASGI app: no
+    Request object): the upstream's answer with the ACK, or the ACK alone."""
+
+    def __init__(self, upstream: Upstream | None, metrics: Metrics) -> None:
+        self.upstream, self.metrics = upstream, metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        verified: Verified = scope["state"]["antireplay"]
+        if self.upstream is None:
+            return await _answer(send, 200, verified.ack)
+        try:
+            status, result = await self.upstream(verified)
+        except Exception as exc:
+            self.metrics.upstream_errors.inc()
+            return await _answer(send, 502, {**verified.ack, "upstream_error": type(exc).__name__})
+        return await _answer(send, status, {**verified.ack, "result": result})

@@ -52,9 +52,9 @@ garbage cannot turn into a flood of fsyncs (it is still counted in ``stats``).
 No answer goes out before its audit row is durable.  :meth:`Receiver.receive`
 is :meth:`~Receiver.receive_later` (every step, the audit row *queued* for the
 trail's next group commit) followed by :meth:`~Receiver.settle` once that row
-is durable; an event loop runs the two halves itself and awaits the row in
-between without holding a thread.  An accepted message whose row cannot be
-made durable is refused (``STATE_UNAVAILABLE``) at ``settle``.
+is durable; :meth:`~Receiver.receive_async` runs the two halves on an event loop
+and awaits the row in between without holding a thread.  An accepted message
+whose row cannot be made durable is refused (``STATE_UNAVAILABLE``) at ``settle``.
 """
 
 from __future__ import annotations
@@ -238,6 +238,24 @@ class Receiver:
         return self._accept(raw, env, signer, verdict)
 
     async def receive_async(
+        self, raw: bytes, headers: Mapping[str, str] | None = None, offload: Offload | None = None
+    ) -> Outcome:
+        """:meth:`receive` for an event loop: the settled outcome, its audit row durable,
+        awaited without holding a thread (:meth:`receive_later_async`, then :meth:`settle`)."""
+        pending = await self.receive_later_async(raw, headers, offload)
+        failure: BaseException | None = None
+        audit = pending.audit
+        if audit is not None:
+            try:
+                await (audit if isinstance(audit, asyncio.Future) else asyncio.wrap_future(audit))
+            except Exception as exc:  # settle() turns any failure into the answer
+                failure = exc
+        if failure is not None and pending.outcome.accepted:  # its refusal is audited: blocks
+            outcome: Outcome = await (offload or _default_offload)(self.settle, pending, failure)
+            return outcome
+        return self.settle(pending, failure)
+
+    async def receive_later_async(
         self, raw: bytes, headers: Mapping[str, str] | None = None, offload: Offload | None = None
     ) -> Pending:
         """:meth:`receive_later` for an event loop, holding a thread only while there is work
