@@ -8,6 +8,9 @@ unauthenticated message carries changes state.
 
 * :class:`Receiver` (:mod:`antireplay.pipeline`): RCAN envelopes over HTTP or
   any transport: shape, freshness, msg_id, signature, scope, commit, audit.
+* :class:`Guard` / :class:`RcanGuard` (:mod:`antireplay.gateway`): the gateway's
+  request path inside your own ASGI app, as middleware or a FastAPI dependency,
+  handing the application a :class:`Verified` message and its signer.
 * :class:`MavlinkGuard` (:mod:`antireplay.mavlink`): signed MAVLink v2 frames.
 * :class:`Initiator` / :class:`Responder` (:mod:`antireplay.session`):
   post-quantum sessions with counter windows.
@@ -37,6 +40,7 @@ from antireplay._native import IMPLEMENTATION as WINDOW_BUILD  # first: picks th
 from antireplay.clock import Clock, ManualClock, SystemClock
 from antireplay.config import SecurityConfig
 from antireplay.counters import CounterWindow, FencedTable, NonceCounter
+from antireplay.envelope import safety_class
 from antireplay.errors import (
     AntiReplayError,
     Code,
@@ -56,6 +60,7 @@ from antireplay.window import Seen, Verdict, Window
 
 if TYPE_CHECKING:
     from antireplay.epochs import EpochSigner, EpochVerifier
+    from antireplay.gateway import Guard, RcanGuard, Verified
     from antireplay.mavlink import MavlinkGuard
     from antireplay.pipeline import Receiver
     from antireplay.session import Initiator, Responder
@@ -70,6 +75,9 @@ _RECIPES = {
     "Responder": "antireplay.session",
     "EpochSigner": "antireplay.epochs",
     "EpochVerifier": "antireplay.epochs",
+    "Guard": "antireplay.gateway",
+    "RcanGuard": "antireplay.gateway",
+    "Verified": "antireplay.gateway",
 }
 
 __all__ = [
@@ -82,6 +90,7 @@ __all__ = [
     "EpochSigner",
     "EpochVerifier",
     "FencedTable",
+    "Guard",
     "Initiator",
     "InvalidMessageIdError",
     "InvalidTimestampError",
@@ -92,6 +101,7 @@ __all__ = [
     "MessageType",
     "NonceCounter",
     "NonceExhaustedError",
+    "RcanGuard",
     "Receiver",
     "ReplayAttackError",
     "ReplayCache",
@@ -102,9 +112,11 @@ __all__ = [
     "Seen",
     "SystemClock",
     "Verdict",
+    "Verified",
     "WarningCode",
     "Window",
     "__version__",
+    "safety_class",
 ]
 
 
