@@ -347,24 +347,19 @@ class _Checkpoint:
     ) -> tuple[Verified, bytes] | Refused:
         """One POSTed envelope: its :class:`Verified` and canonical bytes, or its refusal."""
         refusal = _framing_refusal(framing[0], framing[1], self.limit)
-        if refusal is None:
-            raw = await _body(receive, self.limit)
-            if isinstance(raw, bytes):
-                return await self._receive(scope, raw)
-            refusal = raw
-        # Transport-level refusals: the same NACK as the pipeline's, with the configured
-        # type; the code decides the status (errors.HTTP_STATUS); counted like every other.
-        self.metrics.rejected.labels(str(refusal.code)).inc()
-        return Refused(refusal.http_status, refusal.to_nack(None, nack_type=self.nack_type))
-
-    async def _receive(self, scope: Scope, raw: bytes) -> tuple[Verified, bytes] | Refused:
+        raw = await _body(receive, self.limit) if refusal is None else refusal
+        if not isinstance(raw, bytes):
+            # Transport-level refusals: the same NACK as the pipeline's, with the configured
+            # type; the code decides the status (errors.HTTP_STATUS); counted like the rest.
+            self.metrics.rejected.labels(str(raw.code)).inc()
+            return Refused(raw.http_status, raw.to_nack(None, nack_type=self.nack_type))
         started = self._ticker.monotonic()
         headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
         outcome = await self.receiver.receive_async(raw, headers, self.workers)
         self.metrics.observe(outcome, self._ticker.monotonic() - started)
-        if not outcome.accepted:
-            assert outcome.nack is not None
-            return Refused(outcome.status, outcome.nack)
+        nack = outcome.nack
+        if nack is not None:
+            return Refused(outcome.status, nack)
         assert outcome.envelope is not None and outcome.signer is not None
         body = encode(outcome.envelope)
         ack = outcome.ack or {}  # COMMAND_ACK: readable by the rcan SDK
@@ -407,8 +402,9 @@ class Guard(_Checkpoint):
             await self.app(scope, receive, send)
             return
         framing = _framing(scope)
-        refused = self.ambiguous(framing)
-        if refused is not None:
+        if framing[1] is not None and framing[2]:  # both Content-Length and Transfer-Encoding
+            refused = self.ambiguous(framing)
+            assert refused is not None
             return await refused.answer(send)
         if scope["method"] != "POST" or _route_path(scope) not in self.paths:
             return await self.app(scope, receive, send)
