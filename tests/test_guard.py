@@ -29,7 +29,7 @@ from antireplay.envelope import encode, parse
 from antireplay.gateway import SIGNER_HEADERS, Guard, RcanGuard, Verified, create_app
 from antireplay.pipeline import Outcome
 from antireplay.wiring import build_receiver
-from tests.harness import free_port, until
+from tests.harness import free_port, state_rows, until
 
 NOW = 1_800_000_000.0
 LIMIT = 4096
@@ -150,28 +150,33 @@ def dependency_app(cfg: AppConfig, clock: ManualClock) -> tuple[Target, RcanGuar
     return target, guard
 
 
+def ways_in(tmp_path: Path, clock: ManualClock) -> tuple[list[Target], list[Guard | RcanGuard]]:
+    """The gateway, the middleware and the dependency, each on its own SQLite state."""
+    public = tmp_path / "operator.pub.pem"
+    upstream = "tests.test_guard:record"
+    gateway = Target(
+        "gateway", create_app(config(tmp_path / "gw", public, upstream=upstream), clock=clock)
+    )
+    middleware, guard = guarded_app(config(tmp_path / "mw", public), clock)
+    dependency, dep = dependency_app(config(tmp_path / "dep", public), clock)
+    return [gateway, middleware, dependency], [guard, dep]
+
+
 @pytest.fixture
 def targets(
     tmp_path: Path,
 ) -> Iterator[tuple[ed25519.Ed25519PrivateKey, ManualClock, list[Target]]]:
     write_demo_config(tmp_path)  # the operator's key pair
-    public, clock = tmp_path / "operator.pub.pem", ManualClock(wall=NOW)
-    gateway = Target(
-        "gateway",
-        create_app(
-            config(tmp_path / "gw", public, upstream="tests.test_guard:record"), clock=clock
-        ),
-    )
-    middleware, guard = guarded_app(config(tmp_path / "mw", public), clock)
-    dependency, dep = dependency_app(config(tmp_path / "dep", public), clock)
+    clock = ManualClock(wall=NOW)
+    ways, guards = ways_in(tmp_path, clock)
     CALLS.clear()
-    yield load_operator_key(tmp_path), clock, [gateway, middleware, dependency]
-    guard.close()
-    dep.close()
+    yield load_operator_key(tmp_path), clock, ways
+    for guard in guards:
+        guard.close()
 
 
 def test_every_demo_step_gets_the_gateways_answer_from_middleware_and_dependency(
-    targets: tuple[ed25519.Ed25519PrivateKey, ManualClock, list[Target]],
+    targets: tuple[ed25519.Ed25519PrivateKey, ManualClock, list[Target]], tmp_path: Path
 ) -> None:
     key, clock, ways = targets
 
@@ -243,6 +248,28 @@ def test_every_demo_step_gets_the_gateways_answer_from_middleware_and_dependency
         # Behind the middleware the body is the canonical re-encoding, its length fixed.
         assert body == encode(parse(body)) and json.loads(body) == verified.envelope
         assert headers["content-length"] == str(len(body))
+    # The flood recorded nothing anywhere: three accepted msg_ids in each real SQLite store.
+    assert {state_rows(tmp_path / d) for d in ("gw", "mw", "dep")} == {3}
+
+
+def test_after_a_restart_every_way_in_still_refuses_the_replay(
+    targets: tuple[ed25519.Ed25519PrivateKey, ManualClock, list[Target]], tmp_path: Path
+) -> None:
+    key, clock, ways = targets
+    first = command(key, timestamp=clock.wall())
+
+    async def send(to: list[Target]) -> list[Answer]:
+        return [await call(way.app, first) for way in to]
+
+    assert [a.status for a in asyncio.run(send(ways))] == [200, 200, 200]
+    restarted, guards = ways_in(tmp_path, clock)  # new receivers on the same files
+    try:
+        replays = asyncio.run(send(restarted))
+    finally:
+        for guard in guards:
+            guard.close()
+    assert {(a.status, a.json()["code"]) for a in replays} == {(409, "REPLAY_DETECTED")}
+    assert len({a.body for a in replays}) == 1
 
 
 def test_the_application_sees_the_verified_signer_never_the_clients_claim(
