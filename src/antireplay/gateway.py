@@ -21,8 +21,14 @@ app and frames by ``Transfer-Encoding``; httptools refuses such requests
 itself.  Every audit record is committed (fsync) before the response is
 sent, so a graceful or abrupt shutdown loses no answered message's record.
 
-``POST /v1/messages`` is answered by the front middleware itself (no routing,
-no Request object), and a request holds a thread only while there is work for
+The request path is :class:`Guard`, an ASGI middleware, and the gateway is a
+Guard around a small app that forwards what it verified: the same code serves
+any Starlette/FastAPI robot API in process (:class:`Guard`, or
+:class:`RcanGuard` as a FastAPI dependency), with the same answers, metrics
+and audit trail.  The application gets a :class:`Verified` (envelope, signer,
+ACK); an HTTP upstream gets the signer in headers the gateway sets itself
+(``SIGNER_HEADERS``).  A refusal is answered by the Guard (no routing, no
+Request object), and a request holds a thread only while there is work for
 one: a byte-identical replay is refused on the event loop; parsing, the store
 read and the signature run in a few :class:`Workers`; the state commit and the
 audit row are group-committed and awaited on the loop
