@@ -409,3 +409,35 @@ def test_guard_under_uvicorn_serves_metrics_and_stops_its_workers(tmp_path: Path
     assert 'antireplay_rejected_total{code="REPLAY_DETECTED"} 1.0' in text
     assert guard.receiver.stats.accepted == 1
     assert not any(t.is_alive() for t in guard.workers._threads)  # lifespan shutdown stopped them
+
+
+def test_add_middleware_form_guards_the_path_and_leaves_other_routes_alone(
+    tmp_path: Path,
+) -> None:
+    write_demo_config(tmp_path)
+    clock = ManualClock(wall=NOW)
+    api = FastAPI()
+    api.add_middleware(
+        Guard, config=config(tmp_path / "mw", tmp_path / "operator.pub.pem"), clock=clock
+    )
+    handed: list[Verified] = []
+
+    @api.post("/v1/messages")
+    async def move(request: Request) -> dict[str, Any]:
+        handed.append(request.state.antireplay)
+        return {"ok": True}
+
+    @api.post("/notes")
+    async def notes(request: Request) -> dict[str, Any]:
+        return {"bytes": len(await request.body())}  # not a guarded path: untouched
+
+    raw = command(load_operator_key(tmp_path), timestamp=clock.wall())
+
+    async def play() -> list[Answer]:
+        return [await call(api, raw), await call(api, raw), await call(api, b"hi", path="/notes")]
+
+    accepted, replay, other = asyncio.run(play())
+    assert (accepted.status, accepted.json()) == (200, {"ok": True})
+    assert (replay.status, replay.json()["code"]) == (409, "REPLAY_DETECTED")
+    assert (other.status, other.json()) == (200, {"bytes": 2})
+    assert [v.msg_id for v in handed] == [json.loads(raw)["msg_id"]]
