@@ -408,9 +408,8 @@ class Guard(_Checkpoint):
             await self.app(scope, receive, send)
             return
         framing = _framing(scope)
-        if framing[1] is not None and framing[2]:  # both Content-Length and Transfer-Encoding
-            refused = self.ambiguous(framing)
-            assert refused is not None
+        refused = self.ambiguous(framing)
+        if refused is not None:
             return await refused.answer(send)
         if scope["method"] != "POST" or _route_path(scope) not in self.paths:
             return await self.app(scope, receive, send)
