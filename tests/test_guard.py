@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import subprocess
+import sys
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -441,3 +443,12 @@ def test_add_middleware_form_guards_the_path_and_leaves_other_routes_alone(
     assert (replay.status, replay.json()["code"]) == (409, "REPLAY_DETECTED")
     assert (other.status, other.json()) == (200, {"bytes": 2})
     assert [v.msg_id for v in handed] == [json.loads(raw)["msg_id"]]
+
+
+def test_fastapi_stays_optional() -> None:
+    code = (
+        "import sys, antireplay, antireplay.gateway; "
+        "print(antireplay.RcanGuard.__name__, 'fastapi' in sys.modules)"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["RcanGuard", "False"]
