@@ -75,6 +75,7 @@ import secrets
 import sqlite3
 import tempfile
 import threading
+import time
 from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -556,6 +557,24 @@ def tail(path: str | Path, n: int = 20) -> list[Record]:
         return _records(db.execute(_TAIL, (n,)).fetchall())
     finally:
         db.close()
+
+
+def shown(record: Record) -> dict[str, Any]:
+    """One record as ``audit tail`` and the status page show it: every string passed through
+    ``sanitize`` again (a trail edited behind our back could hold escapes or markup), the time
+    also as ISO 8601 UTC."""
+    return {
+        "seq": record.seq,
+        "at": record.at,
+        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(record.at)),
+        "outcome": sanitize(record.outcome),
+        "code": sanitize(record.code),
+        "warning": sanitize(record.warning),
+        "msg_type": record.msg_type,
+        "sender": sanitize(record.sender),
+        "sender_verified": record.sender_verified,
+        "msg_id": sanitize(record.msg_id),
+    }
 
 
 def _compare(db: sqlite3.Connection, checkpoint: Checkpoint) -> str | None:

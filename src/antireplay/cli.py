@@ -32,7 +32,7 @@ from rich.table import Table
 from rich.text import Text
 
 from antireplay import counters, epochs
-from antireplay.audit import AuditLog, Record, reanchor, sanitize, verify
+from antireplay.audit import AuditLog, reanchor, shown, verify
 from antireplay.audit import tail as audit_tail_records
 from antireplay.auth import (
     SDK_PRIVATE_MAGIC,
@@ -520,7 +520,7 @@ def audit_tail(path: Path, count: int, as_json: bool) -> None:
         records = audit_tail_records(path, count)  # read-only: tail never writes the trail
     except StateFileError as exc:
         _fail(str(exc))
-    rows = [_shown(r) for r in records]
+    rows = [shown(r) for r in records]
     if as_json:
         for row in rows:
             click.echo(json.dumps(row, separators=(",", ":")))
@@ -538,23 +538,6 @@ def audit_tail(path: Path, count: int, as_json: bool) -> None:
         wide = Console(width=1_000_000)
         out = Console(width=max(80, Measurement.get(wide, wide.options, table).maximum))
     out.print(table)
-
-
-def _shown(record: Record) -> dict[str, Any]:
-    """One record as printed: every string passed through ``sanitize`` again (a trail edited
-    behind our back could hold escapes or markup), the time also as ISO 8601 UTC."""
-    return {
-        "seq": record.seq,
-        "at": record.at,
-        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(record.at)),
-        "outcome": sanitize(record.outcome),
-        "code": sanitize(record.code),
-        "warning": sanitize(record.warning),
-        "msg_type": record.msg_type,
-        "sender": sanitize(record.sender),
-        "sender_verified": record.sender_verified,
-        "msg_id": sanitize(record.msg_id),
-    }
 
 
 @main.group()

@@ -6,7 +6,8 @@ configuration by :func:`antireplay.wiring.build_receiver`), and either
 forwards the accepted message upstream (the canonical re-encoding, never the
 raw bytes) and answers with the upstream's result, or answers with the
 COMMAND_NACK and its HTTP status.  ``GET /healthz`` (liveness: the process
-answers), ``GET /readyz`` (readiness: the replay store answers a read and the
+answers), ``GET /`` and ``GET /status.json`` (the read-only status page,
+:mod:`antireplay.status`), ``GET /readyz`` (readiness: the replay store answers a read and the
 audit trail could take an append now, else 503 with the reason, since every
 command would get 503 too) and ``GET /metrics`` (Prometheus) complete it.
 The readiness probes record nothing: a read of one key and a write lock taken
@@ -77,6 +78,7 @@ from antireplay.errors import (
 )
 from antireplay.groupcommit import GroupCommitter
 from antireplay.pipeline import Outcome, Pending, Receiver
+from antireplay.status import routes as status_routes
 from antireplay.wiring import build_receiver
 
 DEMO_KID = "demo-operator"
@@ -493,6 +495,7 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
             Route("/healthz", healthz, methods=["GET"]),
             Route("/readyz", readyz, methods=["GET"]),
             Route("/metrics", metrics_endpoint, methods=["GET"]),
+            *status_routes(receiver, metrics.registry, readiness),  # GET /, GET /status.json
         ],
         lifespan=lifespan,
         middleware=[Middleware(RefuseAmbiguousFraming, messages=messages, nack_type=nack_type)],
