@@ -195,6 +195,8 @@ def test_status_json_is_the_page_data_and_matches_metrics(gateway: GatewayProces
     assert "script-src" not in page.headers["content-security-policy"]
     data = reply.json()
     assert data["ready"] is True and data["reason"] is None
+    assert None not in data["counters"].values()  # every name it reads is still exported
+    assert set(data["group_commit"]) == {"state", "audit"}
     assert data["counters"]["accepted"] == 2
     assert data["counters"]["rejected"] == {"REPLAY_DETECTED": 1, "SIGNATURE_INVALID": 1}
     assert data["store"]["backend"] == "sqlite" and data["store"]["entries"] == 2
