@@ -55,7 +55,7 @@ from antireplay.pipeline import Receiver
 RECENT = 20
 #: Seconds between the page's own reloads.
 REFRESH_S = 5
-Readiness = Callable[[Receiver], "str | None"]
+Readiness = Callable[[Receiver], str | None]
 Samples = dict[str, list[tuple[dict[str, str], float]]]
 
 
