@@ -56,6 +56,20 @@ RECENT = 20
 #: Seconds between the page's own reloads.
 REFRESH_S = 5
 Readiness = Callable[[Receiver], str | None]
+#: The audit columns shown (what ``antireplay audit tail`` prints).
+AUDIT_COLUMNS = ("seq", "time", "outcome", "code", "warning", "msg_type", "sender", "msg_id")
+_STYLE = """
+body{font:14px/1.4 system-ui,sans-serif;margin:1.5em;color:#222;background:#fafafa}
+h1{font-size:1.4em;margin:0 0 .3em}
+.ready{color:#0a6b2d}.unready{color:#a40000}
+section{display:flex;flex-wrap:wrap;gap:1.5em;align-items:flex-start}
+table{border-collapse:collapse;background:#fff;margin-bottom:1em}
+caption{text-align:left;font-weight:600;padding:.3em 0}
+th,td{border:1px solid #ddd;padding:.25em .6em;text-align:left;vertical-align:top}
+td{font-family:ui-monospace,monospace;word-break:break-all}
+.none{color:#777;font-style:italic}
+footer{color:#777;font-size:.9em}
+"""
 Samples = dict[str, list[tuple[dict[str, str], float]]]
 
 
@@ -163,21 +177,6 @@ def _empty(columns: int, text: str) -> str:
     return f'<tr><td colspan="{columns}" class="none">{_text(text)}</td></tr>'
 
 
-AUDIT_COLUMNS = ("seq", "time", "outcome", "code", "warning", "msg_type", "sender", "msg_id")
-_STYLE = """
-body{font:14px/1.4 system-ui,sans-serif;margin:1.5em;color:#222;background:#fafafa}
-h1{font-size:1.4em;margin:0 0 .3em}
-.ready{color:#0a6b2d}.unready{color:#a40000}
-section{display:flex;flex-wrap:wrap;gap:1.5em;align-items:flex-start}
-table{border-collapse:collapse;background:#fff;margin-bottom:1em}
-caption{text-align:left;font-weight:600;padding:.3em 0}
-th,td{border:1px solid #ddd;padding:.25em .6em;text-align:left;vertical-align:top}
-td{font-family:ui-monospace,monospace;word-break:break-all}
-.none{color:#777;font-style:italic}
-footer{color:#777;font-size:.9em}
-"""
-
-
 def render(data: dict[str, Any], nonce: str) -> str:
     """The page for one :func:`snapshot` (every value escaped; no script)."""
     counters, store, audit = data["counters"], data["store"], data["audit"]
@@ -241,12 +240,16 @@ def _pairs(counts: dict[str, Any]) -> list[tuple[object, str]]:
 
 
 def _cell(record: dict[str, Any], column: str) -> object:
+    """One audit cell; an unauthenticated sender is marked as only claimed, as ``audit tail``
+    does."""
     if column == "sender" and record["sender"] is not None and not record["sender_verified"]:
         return f"{record['sender']} (claimed)"
     return record[column]
 
 
 def security_headers(nonce: str | None = None) -> dict[str, str]:
+    """The headers of every status response: nothing may run, load or frame it; only the
+    page's one stylesheet (``nonce``) applies; never sniffed, cached or referred onward."""
     style = f"'nonce-{nonce}'" if nonce else "'none'"
     policy = (
         f"default-src 'none'; style-src {style}; base-uri 'none'; form-action 'none'; "
