@@ -64,7 +64,7 @@ h1{font-size:1.4em;margin:0 0 .3em}
 .ready{color:#0a6b2d}.unready{color:#a40000}
 section{display:flex;flex-wrap:wrap;gap:1.5em;align-items:flex-start}
 table{border-collapse:collapse;background:#fff;margin-bottom:1em}
-caption{text-align:left;font-weight:600;padding:.3em 0}
+caption{text-align:left;font-weight:600;padding:.3em 0;white-space:nowrap}
 th,td{border:1px solid #ddd;padding:.25em .6em;text-align:left;vertical-align:top}
 td{font-family:ui-monospace,monospace;word-break:break-all}
 .none{color:#777;font-style:italic}
