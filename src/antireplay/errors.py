@@ -31,7 +31,7 @@ are separate: they are not answers to a peer.
 from __future__ import annotations
 
 from enum import StrEnum
-from typing import Any
+from typing import Any, Literal
 
 
 class Code(StrEnum):
@@ -63,6 +63,7 @@ class Code(StrEnum):
     UNKNOWN_SESSION = "UNKNOWN_SESSION"
     STATE_UNAVAILABLE = "STATE_UNAVAILABLE"
     WRONG_DIRECTION = "WRONG_DIRECTION"
+    UPSTREAM_FAILED = "UPSTREAM_FAILED"
 
 
 #: The one place where a code becomes an HTTP status.
@@ -93,6 +94,7 @@ HTTP_STATUS: dict[Code, int] = {
     Code.UNKNOWN_SESSION: 401,
     Code.STATE_UNAVAILABLE: 503,
     Code.WRONG_DIRECTION: 403,
+    Code.UPSTREAM_FAILED: 502,
 }
 
 
@@ -353,6 +355,27 @@ class StateUnavailableError(ReplayAttackError):
     """The replay state store cannot be reached; fail closed."""
 
     code = Code.STATE_UNAVAILABLE
+
+
+class UpstreamFailedError(ReplayAttackError):
+    """An accepted message's upstream call failed.  Its msg_id stays spent (the upstream
+    may have acted before failing); ``delivered`` says ``"no"`` (the upstream was never
+    reached: nothing ran) or ``"unknown"`` (sent, then failed or timed out: it may have
+    run).  The sender repeats the action, if it still wants it, under a new msg_id."""
+
+    code = Code.UPSTREAM_FAILED
+
+    def __init__(self, failure: str, *, delivered: Literal["no", "unknown"]) -> None:
+        self.delivered = delivered
+        super().__init__(
+            f"upstream failed ({failure}); delivered: {self.delivered}; this msg_id is spent,"
+            " send the action again under a new msg_id",
+            detail=f"delivered={self.delivered}",
+        )
+
+    def to_nack(self, msg_id: str | None, *, nack_type: int = NACK_TYPE_CURRENT) -> dict[str, Any]:
+        """The COMMAND_NACK, plus ``delivered`` (``"no"`` or ``"unknown"``)."""
+        return {**super().to_nack(msg_id, nack_type=nack_type), "delivered": self.delivered}
 
 
 class ConfigError(AntiReplayError, ValueError):
