@@ -11,12 +11,16 @@ away before any cryptography:
    messages accepted with a warning never enter it, so
    a fresh duplicate ESTOP still takes steps 1-7 and
    keeps its exemption; a forgotten copy takes the full
-   path and is refused at step 3
+   path and is refused at step 3, and so does a copy of
+   a message that declared ``qos`` >= 1 (its retry is
+   decided there)
 1. parse the envelope (size, depth, schema)              -> INVALID_ENVELOPE 400
 2. check the RCAN version                                -> VERSION_INCOMPATIBLE 426
 3. replay check: freshness + msg_id seen-set, the       -> MESSAGE_STALE 408 /
    store's fence and watermark                              REPLAY_DETECTED 409
-   (:meth:`ReplayCache.check`, records nothing)
+   (:meth:`ReplayCache.check`, records nothing);            or the original answer
+   REPLAY_DETECTED for a QoS retransmission: the            (``Outcome.retry``)
+   retry rule below, no crypto
 4. JWT, if configured or presented (an unsigned or      -> AUTH_FAILED 401
    unknown-key envelope gets its own code, as at 5)
 5. signature over the canonical envelope                 -> SIGNATURE_REQUIRED /
@@ -41,6 +45,23 @@ audited.  What is SAFETY/ESTOP is decided by
 ``safety_event`` are refused at step 6).  So nobody can turn a captured command
 into an exempt ESTOP.  An SDK-signed message's unsigned ``qos`` hint is removed
 from the accepted envelope (nothing unsigned is forwarded).
+
+QoS retries (:mod:`antireplay.answers`).  A message that declares ``qos`` >= 1
+and is refused ``REPLAY_DETECTED`` (step 3, or step 7 when two copies raced) is a
+*retransmission* when a digest of its authenticated content (signed bytes,
+signature alg, kid and value) equals the one kept for its msg_id when that
+message was accepted here: the same bytes under the same signature as a message
+verified here, so no second signature check.  It is answered with the original
+answer (:attr:`Outcome.retry`: same status and body, ``"duplicate": true``, header
+``rcan-duplicate: true``), audited as ``REPLAY_DETECTED`` with warning
+``QOS_RETRY`` under the original's verified sender, counted (``stats.retries``),
+and never executed or forwarded again.  The transport hands every accepted
+outcome's answer to :meth:`Receiver.hold_answer` (also an upstream failure's 502);
+until then the original is *in flight*: :meth:`Receiver.receive_async` waits for it
+on the loop (at most ``answer_wait_s``, no thread held), :meth:`Receiver.receive`
+refuses at once.  No qos, other content, no held answer (evicted, too large,
+restarted, another replica, none in time): ``REPLAY_DETECTED`` 409 as before.  An
+ESTOP is never held: its fresh duplicate is processed (the invariant above).
 
 Every rejection becomes an :class:`Outcome` carrying the code, the HTTP status
 and the COMMAND_NACK (type 18, or 31 with ``nack_type: 31``); nothing raises out
