@@ -61,7 +61,7 @@ def test_a_qos_retransmission_gets_the_original_answer_marked_audited_counted(
     checks = receiver.keys.verifications
     again = receiver.receive(raw)
     assert not again.accepted and again.retry is not None
-    assert (again.status, again.code) == (200, "REPLAY_DETECTED")
+    assert (again.status, again.code, again.retry.status) == (409, "REPLAY_DETECTED", 200)
     body = json.loads(again.retry.body)
     assert body == {**(first.ack or {}), "result": "moved", "duplicate": True}
     assert ("rcan-duplicate", "true") in again.retry.headers

@@ -135,7 +135,8 @@ class Outcome:
     error: ReplayAttackError | None = None
     nack_type: int = 18
     #: A QoS retransmission's answer: the original's, marked duplicate; the transport sends
-    #: it as is (the outcome is not accepted: nothing runs again).  ``None`` normally.
+    #: it as is (the outcome is not accepted: nothing runs again; ``status`` and ``nack``
+    #: say 409 ``REPLAY_DETECTED``, detail ``QOS_RETRY``).  ``None`` normally.
     retry: HeldAnswer | None = None
 
     @property
@@ -357,7 +358,7 @@ class Receiver:
             "QoS retransmission: the original answer, not executed again", detail=QOS_RETRY
         )
         outcome = self._outcome(exc, env, entry.signer, None)
-        outcome.status, outcome.retry = held.status, held
+        outcome.retry = held  # status, nack: still 409, what a retry-unaware transport sends
         self.stats.rejected[exc.code] += 1
         self.stats.retries += 1
         return self._queue_audit(Pending(outcome), on_loop=on_loop)
