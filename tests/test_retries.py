@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,8 +20,9 @@ from rcan.qos import QoSManager
 from rcan.signing import MLDSAKeyPair, sign_message
 
 from antireplay import ManualClock, SecurityConfig
-from antireplay.answers import MAX_BODY, AnswerMemo, HeldAnswer, marked
+from antireplay.answers import MAX_BODY, MAX_TOTAL, AnswerMemo, Entry, HeldAnswer, marked
 from antireplay.audit import verify
+from antireplay.auth import Signer
 from antireplay.cli import main
 from antireplay.envelope import parse
 from antireplay.errors import UpstreamFailedError
@@ -164,7 +165,8 @@ async def receive_on_loop(receiver: Receiver, raw: bytes) -> Outcome:
     return receiver.settle(pending, None)
 
 
-async def until_waiting(receiver: Receiver, raw: bytes, task: Awaitable[Outcome]) -> None:
+async def until_waiting(receiver: Receiver, raw: bytes) -> None:
+    """Yield to the loop until a retransmission of ``raw`` waits for the original's answer."""
     entry = receiver.answers.find(parse(raw), NOW)
     assert entry is not None
     for _ in range(1000):
@@ -181,7 +183,7 @@ def test_a_retransmission_in_flight_waits_for_the_original_answer(receiver: Rece
         first = await receive_on_loop(receiver, raw)
         assert first.accepted  # answer not handed over yet: in flight
         retry = asyncio.ensure_future(receive_on_loop(receiver, raw))
-        await until_waiting(receiver, raw, retry)
+        await until_waiting(receiver, raw)
         assert not retry.done()
         receiver.hold_answer(first, 201, JSON_HEADERS, json.dumps(first.ack).encode())
         return first, await retry
@@ -204,12 +206,66 @@ def test_a_retransmission_in_flight_gets_409_when_no_answer_comes(receiver: Rece
     assert "none arrived in time" in (late.reason or "")
 
 
-def test_the_memo_is_bounded_and_marks_the_answer() -> None:
-    memo = AnswerMemo(4)
-    assert len(memo) == 0
+def test_two_copies_racing_through_crypto_the_loser_gets_the_winner_s_answer(
+    receiver: Receiver,
+) -> None:
+    """Both pass the check before either commits (step 7 refuses the loser): the loser is
+    as authentic as the winner, and waits for the winner's answer."""
+    raw = signed(qos=1)
+    receiver.answer_wait_s = 60  # only the winner's answer ends the wait in this test
+    gate = asyncio.Event()
+    at_gate: list[str] = []
+
+    async def gated(fn: Callable[..., Any], *args: Any) -> Any:
+        if getattr(fn, "__name__", "") == "commit":
+            at_gate.append("commit")
+            await gate.wait()
+        return fn(*args)
+
+    async def one() -> Outcome:
+        pending = await receiver.receive_async(raw, None, gated)
+        if pending.audit is not None:
+            await pending.audit  # type: ignore[misc]
+        return receiver.settle(pending, None)
+
+    async def scenario() -> tuple[Outcome, Outcome]:
+        tasks = [asyncio.ensure_future(one()) for _ in range(2)]
+        for _ in range(1000):
+            if len(at_gate) == 2:
+                break
+            await asyncio.sleep(0)
+        assert len(at_gate) == 2, "both copies reach the commit"
+        gate.set()
+        done, waiting = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        assert len(done) == 1, "the loser waits for the winner's answer"
+        winner = done.pop().result()
+        receiver.hold_answer(winner, 200, JSON_HEADERS, json.dumps(winner.ack).encode())
+        return winner, await waiting.pop()
+
+    winner, loser = asyncio.run(scenario())
+    assert winner.accepted and receiver.keys.verifications == 2
+    assert loser.retry is not None and json.loads(loser.retry.body)["duplicate"] is True
+    assert receiver.stats.accepted == 1 and receiver.stats.retries == 1
+
+
+def test_the_memo_is_bounded_forgets_expired_entries_and_marks_the_answer() -> None:
+    signer = Signer("k", "operator", frozenset())
+    memo = AnswerMemo(600)
     body = json.dumps({"status": "ok"}).encode()
-    memo.hold("never-expected", 200, (), body)  # qos 0: nothing is kept
+    memo.hold("never-expected", 200, (), body)  # qos 0: nothing is kept, nothing is parsed
     assert len(memo) == 0
+    memo.expect("old", Entry(b"d", False, NOW - 1, signer), NOW - 2)
+    memo.expect("new", Entry(b"d", False, NOW + 30, signer), NOW)
+    assert len(memo) == 1  # "old" expired: dropped
+    big = b"x" * MAX_BODY
+    for i in range(MAX_TOTAL // MAX_BODY + 10):
+        memo.expect(f"m{i}", Entry(b"d", False, NOW + 30, signer), NOW)
+        memo.hold(f"m{i}", 200, (), big)
+    assert len(memo) <= MAX_TOTAL // MAX_BODY  # the byte budget, not the count, bounds it
+    small = AnswerMemo(2)
+    for name in ("a", "b", "c"):
+        small.expect(name, Entry(b"d", False, NOW + 30, signer), NOW)
+    assert len(small) == 2
     held = HeldAnswer(200, (("rcan-duplicate", "true"),), b'{"status":"ok","duplicate":true}')
     assert marked(200, [("rcan-duplicate", "true")], body) == held
     assert marked(502, (), b"not json").body == b"not json"
