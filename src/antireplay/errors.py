@@ -20,6 +20,9 @@ handshake does): a frame for a session the responder no longer holds, closed
 or evicted, is ``SESSION_CLOSED``.  A frame from the wrong side of a link is
 ``WRONG_DIRECTION`` (MAVLink and sessions alike).  Events that are accepted but must be counted,
 logged and audited are :class:`WarningCode` values, never bare strings.
+``UPSTREAM_FAILED`` (502) answers a message that *was* accepted (its msg_id spent)
+when the gateway's upstream failed; it is a COMMAND_NACK all the same, so the RCAN
+SDK reads ``status: "error"``, never an ACK.
 
 Rejections of a *message* derive from :class:`ReplayAttackError` (the name the
 RCAN SDK uses for this family), so ``except ReplayAttackError`` catches every
