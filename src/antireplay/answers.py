@@ -160,10 +160,10 @@ class AnswerMemo:
                 self._drop_locked(msg_id)
                 return
             entry.answer = answer
+            _wake(entry.waiters, answer)
             self._bytes += len(answer.body)
             while self._bytes > MAX_TOTAL:
                 self._drop_locked(next(iter(self._entries)))
-            _wake(entry.waiters, answer)
 
     def drop(self, msg_id: str) -> None:
         """Forget ``msg_id`` (its accept was refused after all); waiters get ``None``."""
