@@ -47,7 +47,7 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import httpx
 import msgspec
@@ -63,6 +63,7 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from antireplay.answers import HeldAnswer
 from antireplay.audit import AuditLog
 from antireplay.auth import write_key_pair
 from antireplay.clock import Clock, resolve
@@ -75,6 +76,7 @@ from antireplay.errors import (
     ReplayAttackError,
     StateUnavailableError,
     UnsupportedMediaTypeError,
+    UpstreamFailedError,
 )
 from antireplay.groupcommit import GroupCommitter
 from antireplay.pipeline import Outcome, Pending, Receiver
@@ -141,6 +143,32 @@ def resolve_upstream(spec: str | None, timeout_s: float) -> Upstream | None:
     return call
 
 
+async def _forward(
+    upstream: Upstream | None, outcome: Outcome, metrics: Metrics, nack_type: int
+) -> tuple[int, dict[str, Any]]:
+    """The answer to an accepted message: its COMMAND_ACK (readable by the rcan SDK) with
+    the upstream's result, or 502 ``UPSTREAM_FAILED`` (the msg_id stays spent: README
+    "Threat model")."""
+    answer: dict[str, Any] = outcome.ack or {}
+    if upstream is None:
+        return 200, answer
+    assert outcome.envelope is not None
+    try:
+        status, result = await upstream(json.loads(encode(outcome.envelope)))
+    except Exception as exc:
+        metrics.upstream_errors.inc()
+        failed = UpstreamFailedError(type(exc).__name__, delivered=_delivered(exc))
+        return 502, failed.to_nack(outcome.msg_id, nack_type=nack_type)
+    return status, {**answer, "result": result}
+
+
+def _delivered(exc: Exception) -> Literal["no", "unknown"]:
+    """Whether a failed upstream call reached the upstream: ``"no"`` when no connection was
+    made (nothing was sent), else ``"unknown"`` (sent, then failed or timed out)."""
+    unsent = (httpx.ConnectError, httpx.ConnectTimeout, httpx.PoolTimeout)
+    return "no" if isinstance(exc, unsent) else "unknown"
+
+
 class Metrics:
     """Prometheus metrics of one gateway (its own registry, so tests can run several)."""
 
@@ -161,6 +189,9 @@ class Metrics:
         self.upstream_errors = Counter(
             "antireplay_upstream_errors", "Upstream failures", registry=r
         )
+        self.retries = Counter(
+            "antireplay_retries_answered", "QoS retries given the original answer", registry=r
+        )
         r.register(StateCollector(receiver))
 
     def observe(self, outcome: Outcome, seconds: float) -> None:
@@ -173,6 +204,8 @@ class Metrics:
             self.rejected.labels(outcome.code or "UNKNOWN").inc()
             if outcome.code == "STATE_UNAVAILABLE":
                 self.store_errors.inc()
+            if outcome.retry is not None:
+                self.retries.inc()
 
 
 class StateCollector(Collector):
@@ -275,12 +308,16 @@ def _route_path(scope: Scope) -> str:
     return path[len(root) :] if root and path.startswith(root) else path
 
 
-async def _answer(send: Send, status: int, content: object, *, close: bool = False) -> None:
-    """One JSON response, sent as two ASGI messages (what JSONResponse sends, cheaper)."""
-    body = _encode_json(content)
+async def _answer(
+    send: Send, status: int, content: object, held: HeldAnswer | None = None, *, close: bool = False
+) -> None:
+    """One JSON response (``content``, or its encoding as bytes; plus a held answer's
+    headers), sent as two ASGI messages (what JSONResponse sends, cheaper)."""
+    body = content if isinstance(content, bytes) else _encode_json(content)
     headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body))]
     if close:
         headers.append((b"connection", b"close"))
+    headers += [(k.encode("latin-1"), v.encode("latin-1")) for k, v in held.headers] if held else []
     await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})
 
@@ -425,6 +462,7 @@ def audit_problem(audit: AuditLog, timeout_s: float = 1.0) -> str | None:
 def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     """The gateway application for ``config``."""
     receiver = build_receiver(config, clock)
+    receiver.answer_wait_s = config.upstream_timeout_s  # a retry waits for its original
     upstream = resolve_upstream(config.upstream, config.upstream_timeout_s)
     metrics = Metrics(receiver)
     limit = config.max_body_bytes
@@ -453,18 +491,14 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
         pending = await receiver.receive_async(raw, headers, workers)
         outcome = await _settle(receiver, workers, pending)
         metrics.observe(outcome, ticker.monotonic() - started)
+        if outcome.retry is not None:  # a QoS retransmission: the original answer, marked
+            return await _answer(send, outcome.retry.status, outcome.retry.body, outcome.retry)
         if not outcome.accepted:
             return await _answer(send, outcome.status, outcome.nack)
-        answer: dict[str, Any] = outcome.ack or {}  # COMMAND_ACK: readable by the rcan SDK
-        if upstream is None:
-            return await _answer(send, 200, answer)
-        assert outcome.envelope is not None
-        try:
-            status, result = await upstream(json.loads(encode(outcome.envelope)))
-        except Exception as exc:
-            metrics.upstream_errors.inc()
-            return await _answer(send, 502, {**answer, "upstream_error": type(exc).__name__})
-        return await _answer(send, status, {**answer, "result": result})
+        status, answer = await _forward(upstream, outcome, metrics, nack_type)
+        body = _encode_json(answer)
+        receiver.hold_answer(outcome, status, (), body)  # for its QoS retransmissions
+        return await _answer(send, status, body)
 
     async def healthz(_: Request) -> Response:
         return JSONResponse({"status": "ok", "time": time.time()})
