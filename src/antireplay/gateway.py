@@ -6,12 +6,13 @@ configuration by :func:`antireplay.wiring.build_receiver`), and either
 forwards the accepted message upstream (the canonical re-encoding, never the
 raw bytes) and answers with the upstream's result, or answers with the
 COMMAND_NACK and its HTTP status.  ``GET /healthz`` (liveness: the process
-answers), ``GET /readyz`` (readiness: the replay store answers a read and the
-audit trail could take an append now, else 503 with the reason, since every
-command would get 503 too) and ``GET /metrics`` (Prometheus) complete it.
-The readiness probes record nothing: a read of one key and a write lock taken
-and released on the audit file, so a probe never notices a store's data loss
-in place of the commit that fences and audits it.  No rule lives here: every decision is the
+answers), ``GET /readyz`` (readiness: the replay store could take a commit and
+the audit trail an append now, else 503 with the reason, since every command
+would get 503 too) and ``GET /metrics`` (Prometheus) complete it.  The
+readiness probes record nothing (the store's ``ready()``: a read, the eviction
+policy, a write lock taken and released; the same lock on the audit file), so
+a probe never notices a store's data loss in place of the commit that fences
+and audits it.  No rule lives here: every decision is the
 pipeline's, except transport framing: a request that carries both
 ``Content-Length`` and ``Transfer-Encoding`` is refused with 400 and the
 connection closed (RFC 9112 §6.1), on every route, because a proxy in front
@@ -85,8 +86,6 @@ LATENCY_BUCKETS = (
     0.00005, 0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
     1.0, 2.5, float("inf"),
 )  # fmt: skip
-#: The key ``/readyz`` reads from the store (a read records nothing).
-READINESS_KEY = "antireplay-readiness-probe"
 _encode_json = msgspec.json.Encoder().encode
 Upstream = Callable[[dict[str, Any]], Awaitable[tuple[int, Any]]]
 
@@ -393,7 +392,7 @@ def readiness(receiver: Receiver) -> str | None:
 
     Blocking I/O (run it in a thread); records nothing."""
     try:
-        receiver.cache.store.lookup(READINESS_KEY)
+        receiver.cache.store.ready()
     except Exception as exc:  # any backend's failure is the reason, never a 500
         return f"store: {exc}"
     return None if receiver.audit is None else audit_problem(receiver.audit)

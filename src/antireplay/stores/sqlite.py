@@ -314,6 +314,31 @@ class SqliteStore:
         finally:
             self._readers.put(db)
 
+    def _connect(self, timeout_s: float) -> sqlite3.Connection:
+        """Another connection to the existing file (``mode=rw``): a deleted file is an error
+        (``STATE_UNAVAILABLE``), never a new empty database made behind the writer's back."""
+        uri = f"{self.path.resolve().as_uri()}?mode=rw"
+        return sqlite3.connect(uri, uri=True, timeout=timeout_s, check_same_thread=False)
+
+    def ready(self) -> None:
+        """What a commit needs, recording nothing: the file is still there with its meta row
+        and its write lock can be taken within a second (``BEGIN IMMEDIATE``, then
+        ``ROLLBACK``), on a connection of its own."""
+
+        def probe() -> None:
+            db = self._connect(min(self._timeout_s, 1.0))
+            try:
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    if db.execute("SELECT generation FROM meta").fetchone() is None:
+                        raise sqlite3.DatabaseError("no meta row (replaced or truncated)")
+                finally:
+                    db.execute("ROLLBACK")
+            finally:
+                db.close()
+
+        self._run(probe)
+
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         """Queue the record for the next group commit; return once it is durable."""
         return self._committer.submit((key, expires_at, now, force))

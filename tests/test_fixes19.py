@@ -1,0 +1,86 @@
+"""Findings of the issue-19 review: readiness that says what a commit would meet, state files
+never re-created by a reader, a tampered audit trail shown and verified without a traceback,
+and typed errors from `serve` and `sign --sdk`."""
+
+from __future__ import annotations
+
+import asyncio
+import sqlite3
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+from starlette.applications import Starlette
+
+from antireplay.clock import Clock, ManualClock
+from antireplay.config import AppConfig
+from antireplay.demo import JSON, command, load_operator_key, write_demo_config
+from antireplay.gateway import create_app
+from tests.redis_server import RedisServer
+
+#: The default skew_s: a new deployment's fence refuses messages stamped up to this after it.
+SKEW_S = 5.0
+
+
+def call(app: Starlette, method: str, path: str, content: bytes | None = None) -> httpx.Response:
+    """One request to the app in process (ASGI, no socket)."""
+
+    async def once() -> httpx.Response:
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://gateway") as http:
+            return await http.request(method, path, content=content, headers=JSON)
+
+    return asyncio.run(once())
+
+
+@contextmanager
+def gateway(state: Path, clock: Clock | None = None, **overrides: str) -> Iterator[Starlette]:
+    """The demo gateway in process; its store closed afterwards."""
+    app = create_app(AppConfig.from_yaml(write_demo_config(state, **overrides)), clock=clock)
+    try:
+        yield app
+    finally:
+        app.state.receiver.cache.store.close()
+
+
+def send(app: Starlette, state: Path, age_s: float = 0.0) -> httpx.Response:
+    return call(app, "POST", "/v1/messages", command(load_operator_key(state), age_s))
+
+
+def test_readyz_is_503_when_redis_may_evict_and_so_is_a_command(tmp_path: Path) -> None:
+    server = RedisServer(tmp_path)
+    server.start()
+    try:
+        clock = ManualClock(wall=time.time())
+        with gateway(tmp_path, clock, store=server.url) as app:  # a new deployment: fenced
+            clock.advance(SKEW_S + 1)  # messages stamped this far ahead pass that fence
+            assert call(app, "GET", "/readyz").status_code == 200
+            server.client().config_set("maxmemory-policy", "allkeys-lru")
+            probe = call(app, "GET", "/readyz")
+            assert probe.status_code == 503, probe.text
+            assert "maxmemory-policy allkeys-lru" in probe.json()["reason"]
+            refused = send(app, tmp_path, -(SKEW_S + 1))
+            assert (refused.status_code, refused.json()["code"]) == (503, "STATE_UNAVAILABLE")
+            server.client().config_set("maxmemory-policy", "noeviction")
+            assert call(app, "GET", "/readyz").status_code == 200
+            assert send(app, tmp_path, -(SKEW_S + 1)).status_code == 200
+    finally:
+        server.stop()
+
+
+def test_readyz_is_503_while_another_process_holds_the_state_write_lock(tmp_path: Path) -> None:
+    with gateway(tmp_path, store=f"sqlite:{tmp_path / 'state.db'}") as app:
+        assert call(app, "GET", "/readyz").status_code == 200
+        holder = sqlite3.connect(tmp_path / "state.db", timeout=0)
+        holder.execute("BEGIN IMMEDIATE")
+        try:
+            blocked = call(app, "GET", "/readyz")
+        finally:
+            holder.execute("ROLLBACK")
+            holder.close()
+        assert blocked.status_code == 503
+        assert blocked.json()["reason"].endswith("state.db: database is locked")
+        assert call(app, "GET", "/readyz").status_code == 200
+        assert send(app, tmp_path).status_code == 200
