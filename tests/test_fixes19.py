@@ -5,6 +5,7 @@ and typed errors from `serve` and `sign --sdk`."""
 from __future__ import annotations
 
 import asyncio
+import shutil
 import sqlite3
 import time
 from collections.abc import Iterator
@@ -84,3 +85,25 @@ def test_readyz_is_503_while_another_process_holds_the_state_write_lock(tmp_path
         assert blocked.json()["reason"].endswith("state.db: database is locked")
         assert call(app, "GET", "/readyz").status_code == 200
         assert send(app, tmp_path).status_code == 200
+
+
+def test_a_deleted_state_file_stays_missing_and_unready_and_commands_are_refused(
+    tmp_path: Path,
+) -> None:
+    db = tmp_path / "state.db"
+    with gateway(tmp_path) as app:
+        assert send(app, tmp_path).status_code == 200  # readers and the writer are open
+        assert call(app, "GET", "/readyz").status_code == 200
+        shutil.copy(db, tmp_path / "copy.db")
+        db.unlink()
+        for restored in (False, False, True):  # then a copy put in its place: still refused
+            if restored:
+                shutil.copy(tmp_path / "copy.db", db)
+            probe = call(app, "GET", "/readyz")
+            assert probe.status_code == 503, probe.text
+            assert "deleted or replaced while running" in probe.json()["reason"]
+            refused = send(app, tmp_path)
+            assert (refused.status_code, refused.json()["code"]) == (503, "STATE_UNAVAILABLE")
+            metrics = call(app, "GET", "/metrics")
+            assert metrics.status_code == 200
+            assert db.exists() is restored  # no probe, lookup or scrape made a new database
