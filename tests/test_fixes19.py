@@ -5,16 +5,21 @@ and typed errors from `serve` and `sign --sdk`."""
 from __future__ import annotations
 
 import asyncio
+import json
 import shutil
 import sqlite3
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import httpx
+from click.testing import CliRunner
 from starlette.applications import Starlette
 
+from antireplay.audit import AuditLog
+from antireplay.cli import main
 from antireplay.clock import Clock, ManualClock
 from antireplay.config import AppConfig
 from antireplay.demo import JSON, command, load_operator_key, write_demo_config
@@ -107,3 +112,46 @@ def test_a_deleted_state_file_stays_missing_and_unready_and_commands_are_refused
             metrics = call(app, "GET", "/metrics")
             assert metrics.status_code == 200
             assert db.exists() is restored  # no probe, lookup or scrape made a new database
+
+
+# --- audit tail and verify on what a trail holds ------------------------------------------------
+
+REASON = "database missing, truncated or replaced (the witness says it existed)"
+
+
+def lost_and_found(path: Path, reason: str) -> None:
+    """A STATE_LOST row (its warning is the store's reason, free text) and a row with no
+    sender (a memo hit)."""
+    log = AuditLog(path)
+    log.append(at=1_800_000_000.0, outcome="state", code="STATE_LOST", warning=reason,
+               msg_type=None, sender=None, sender_verified=False, msg_id=None)  # fmt: skip
+    log.append(at=1_800_000_001.0, outcome="rejected", code="REPLAY_DETECTED", warning=None,
+               msg_type=1, sender=None, sender_verified=False, msg_id="m1")  # fmt: skip
+    log.close()
+
+
+def tail_json(path: Path) -> list[dict[str, Any]]:
+    result = CliRunner().invoke(main, ["audit", "tail", str(path), "--json"])
+    assert result.exit_code == 0, result.output
+    return [json.loads(line) for line in result.output.splitlines()]
+
+
+def test_audit_tail_shows_the_state_lost_reason_and_no_none_sender(tmp_path: Path) -> None:
+    path = tmp_path / "audit.db"
+    lost_and_found(path, REASON)
+    (lost, _) = tail_json(path)
+    assert lost["warning"] == REASON
+    table = CliRunner().invoke(main, ["audit", "tail", str(path)])
+    assert table.exit_code == 0, table.output
+    assert REASON in table.output
+
+
+def test_audit_tail_escapes_and_bounds_a_hostile_reason(tmp_path: Path) -> None:
+    path = tmp_path / "audit.db"
+    lost_and_found(path, "lost\x1b[2J\nforged line\u202e" + "x" * 500)
+    (lost, _) = tail_json(path)
+    shown = lost["warning"]
+    assert shown.startswith("lost\\x1b[2J\\nforged line\\u202e") and len(shown) == 200
+    assert shown.isprintable()
+    table = CliRunner().invoke(main, ["audit", "tail", str(path)])
+    assert "\x1b" not in table.output and "forged line" in table.output

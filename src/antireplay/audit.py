@@ -137,6 +137,16 @@ def sanitize(value: object) -> str | None:
     return "sha256:" + hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:16]
 
 
+def printable(value: object, limit: int = 200) -> str | None:
+    """Free text (a STATE_LOST reason) safe to print: every character that is not printable
+    (controls, escapes, bidi overrides) shown as its escape, at most ``limit`` characters."""
+    if value is None:
+        return None
+    text = value if isinstance(value, str) else repr(value)
+    shown = "".join(c if c.isprintable() else ascii(c)[1:-1] for c in text[: limit + 1])
+    return shown if len(shown) <= limit else shown[: limit - 1] + "…"
+
+
 def _digest(prev: str, row: dict[str, Any]) -> str:
     body = json.dumps(row, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256((prev + body).encode()).hexdigest()

@@ -32,7 +32,7 @@ from rich.table import Table
 from rich.text import Text
 
 from antireplay import counters, epochs
-from antireplay.audit import AuditLog, Record, reanchor, sanitize, verify
+from antireplay.audit import AuditLog, Record, printable, reanchor, sanitize, verify
 from antireplay.audit import tail as audit_tail_records
 from antireplay.auth import (
     SDK_PRIVATE_MAGIC,
@@ -541,15 +541,16 @@ def audit_tail(path: Path, count: int, as_json: bool) -> None:
 
 
 def _shown(record: Record) -> dict[str, Any]:
-    """One record as printed: every string passed through ``sanitize`` again (a trail edited
-    behind our back could hold escapes or markup), the time also as ISO 8601 UTC."""
+    """One record as printed: identifiers through ``sanitize`` again (a trail edited behind
+    our back could hold escapes or markup), the warning (a STATE_LOST reason is free text)
+    through ``printable``, the time also as ISO 8601 UTC."""
     return {
         "seq": record.seq,
         "at": record.at,
         "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(record.at)),
         "outcome": sanitize(record.outcome),
         "code": sanitize(record.code),
-        "warning": sanitize(record.warning),
+        "warning": printable(record.warning),
         "msg_type": record.msg_type,
         "sender": sanitize(record.sender),
         "sender_verified": record.sender_verified,
