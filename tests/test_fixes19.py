@@ -15,16 +15,18 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 from click.testing import CliRunner
 from starlette.applications import Starlette
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, verify
 from antireplay.cli import main
 from antireplay.clock import Clock, ManualClock
 from antireplay.config import AppConfig
 from antireplay.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.gateway import create_app
 from tests.redis_server import RedisServer
+from tests.test_audit import sql, trail
 
 #: The default skew_s: a new deployment's fence refuses messages stamped up to this after it.
 SKEW_S = 5.0
@@ -155,3 +157,35 @@ def test_audit_tail_escapes_and_bounds_a_hostile_reason(tmp_path: Path) -> None:
     assert shown.isprintable()
     table = CliRunner().invoke(main, ["audit", "tail", str(path)])
     assert "\x1b" not in table.output and "forged line" in table.output
+
+
+@pytest.mark.parametrize("at", ["1e300", "9e999", "-9e999", "-5", "'yesterday'", "x'00'"])
+def test_a_tampered_time_or_type_is_shown_invalid_and_verify_names_the_row(
+    tmp_path: Path, at: str
+) -> None:
+    path = tmp_path / "audit.db"
+    trail(path, 3)
+    sql(path, f"UPDATE audit SET at = {at}, msg_type = 'x\x1b[31m<b>' || char(10) WHERE seq = 2")
+    for args in (["--json"], []):
+        result = CliRunner().invoke(main, ["audit", "tail", str(path), *args])
+        assert result.exit_code == 0, result.output
+        assert "Traceback" not in result.output and "\x1b" not in result.output
+        assert "<b>" not in result.output  # the hostile type is hashed like any identifier
+    rows = tail_json(path)
+    assert (rows[1]["at"], rows[1]["time"]) == (None, "invalid")
+    assert rows[1]["msg_type"].startswith("sha256:")
+    assert rows[0]["time"] == "2027-01-15T08:00:00Z"  # its neighbours are intact
+    report = verify(path)
+    assert (report.broken_at, report.reason) == (2, "invalid at: a value antireplay never writes")
+    result = CliRunner().invoke(main, ["audit", "verify", str(path)])
+    assert result.exit_code == 1 and "chain broken at row 2: invalid at" in result.output
+
+
+def test_verify_names_a_blob_in_a_text_column(tmp_path: Path) -> None:
+    path = tmp_path / "audit.db"
+    trail(path, 2)
+    sql(path, "UPDATE audit SET sender = x'ff00' WHERE seq = 1")
+    assert (verify(path).broken_at, verify(path).reason) == (
+        1, "invalid sender: a value antireplay never writes",
+    )  # fmt: skip
+    assert CliRunner().invoke(main, ["audit", "tail", str(path)]).exit_code == 0

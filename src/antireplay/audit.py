@@ -147,6 +147,35 @@ def printable(value: object, limit: int = 200) -> str | None:
     return shown if len(shown) <= limit else shown[: limit - 1] + "…"
 
 
+#: Wall times antireplay can write: from the epoch to the end of year 9999.
+LATEST_AT = 253_402_300_799.0
+
+
+def valid_at(value: object) -> float | None:
+    """The row's time if it is one antireplay could have written (a finite real within the
+    years 1970-9999), else ``None`` (a tampered row: 1e300, NaN, a string)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    at = float(value)
+    return at if 0.0 <= at <= LATEST_AT else None
+
+
+def _wrongly_typed(row: dict[str, Any]) -> str | None:
+    """The first column holding a value antireplay never writes, or ``None``."""
+    for name, value in row.items():
+        if name == "at":
+            ok = valid_at(value) is not None
+        elif name in ("seq", "sender_verified", "msg_type"):
+            ok = (value is None and name == "msg_type") or (
+                type(value) is int and (name != "sender_verified" or value in (0, 1))
+            )
+        else:
+            ok = (value is None and name != "outcome") or isinstance(value, str)
+        if not ok:
+            return name
+    return None
+
+
 def _digest(prev: str, row: dict[str, Any]) -> str:
     body = json.dumps(row, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256((prev + body).encode()).hexdigest()
@@ -555,7 +584,7 @@ class AuditLog:
 
 def _records(rows: list[Any]) -> list[Record]:
     return [
-        Record(r[0], r[1], r[2], r[3], r[4], r[5], r[6], bool(r[7]), r[8]) for r in reversed(rows)
+        Record(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7] == 1, r[8]) for r in reversed(rows)
     ]
 
 
@@ -666,6 +695,9 @@ def _walk(db: sqlite3.Connection) -> tuple[int, int | None, str | None]:
     for values in db.execute(_ALL):
         count += 1
         row = dict(zip(_FIELDS, values[:9], strict=True))
+        wrong = _wrongly_typed(row)
+        if wrong is not None:
+            return count, expected_seq, f"invalid {wrong}: a value antireplay never writes"
         if row["seq"] != expected_seq:
             return count, expected_seq, "record missing or reordered"
         if values[9] != prev:

@@ -32,7 +32,7 @@ from rich.table import Table
 from rich.text import Text
 
 from antireplay import counters, epochs
-from antireplay.audit import AuditLog, Record, printable, reanchor, sanitize, verify
+from antireplay.audit import AuditLog, Record, printable, reanchor, sanitize, valid_at, verify
 from antireplay.audit import tail as audit_tail_records
 from antireplay.auth import (
     SDK_PRIVATE_MAGIC,
@@ -541,17 +541,19 @@ def audit_tail(path: Path, count: int, as_json: bool) -> None:
 
 
 def _shown(record: Record) -> dict[str, Any]:
-    """One record as printed: identifiers through ``sanitize`` again (a trail edited behind
-    our back could hold escapes or markup), the warning (a STATE_LOST reason is free text)
-    through ``printable``, the time also as ISO 8601 UTC."""
+    """One record as printed, whatever a trail edited behind our back holds: identifiers
+    through ``sanitize`` again, the warning (a STATE_LOST reason is free text) through
+    ``printable``, numbers only if they are numbers antireplay writes (else ``sanitize``d,
+    and an impossible time is ``null`` / "invalid"), the time also as ISO 8601 UTC."""
+    at = valid_at(record.at)
     return {
-        "seq": record.seq,
-        "at": record.at,
-        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(record.at)),
+        "seq": record.seq if type(record.seq) is int else sanitize(record.seq),
+        "at": at,
+        "time": "invalid" if at is None else time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(at)),
         "outcome": sanitize(record.outcome),
         "code": sanitize(record.code),
         "warning": printable(record.warning),
-        "msg_type": record.msg_type,
+        "msg_type": record.msg_type if type(record.msg_type) is int else sanitize(record.msg_type),
         "sender": sanitize(record.sender),
         "sender_verified": record.sender_verified,
         "msg_id": sanitize(record.msg_id),
