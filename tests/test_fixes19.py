@@ -8,6 +8,7 @@ import asyncio
 import json
 import shutil
 import sqlite3
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -16,11 +17,12 @@ from typing import Any
 
 import httpx
 import pytest
+import yaml
 from click.testing import CliRunner
 from starlette.applications import Starlette
 
 from antireplay.audit import AuditLog, verify
-from antireplay.cli import main
+from antireplay.cli import importable_cwd, main
 from antireplay.clock import Clock, ManualClock
 from antireplay.config import AppConfig
 from antireplay.demo import JSON, command, load_operator_key, write_demo_config
@@ -189,3 +191,19 @@ def test_verify_names_a_blob_in_a_text_column(tmp_path: Path) -> None:
         1, "invalid sender: a value antireplay never writes",
     )  # fmt: skip
     assert CliRunner().invoke(main, ["audit", "tail", str(path)]).exit_code == 0
+
+
+def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
+    for upstream in (None, "http://robot:8000/cmd", "https://robot/cmd"):
+        importable_cwd(upstream)
+        assert str(tmp_path) not in sys.path, upstream
+    config = yaml.safe_load(write_demo_config(tmp_path).read_text())
+    for upstream, added in (("http://127.0.0.1:9/x", False), ("antireplay.demo:robot", True)):
+        (tmp_path / "c.yaml").write_text(yaml.safe_dump({**config, "upstream": upstream}))
+        result = CliRunner().invoke(main, ["config", "check", str(tmp_path / "c.yaml")])
+        assert result.exit_code == 0, result.output
+        assert (str(tmp_path) in sys.path) is added, upstream

@@ -160,10 +160,13 @@ def _check_audit_anchor(path: Path) -> None:
         )
 
 
-def importable_cwd() -> None:
+def importable_cwd(upstream: str | None) -> None:
     """Put the working directory on ``sys.path`` (as ``python -m`` does), so a
     ``module:function`` upstream in it imports without ``PYTHONPATH=.``; appended, so a
-    file there never shadows an installed package."""
+    file there never shadows an installed package.  Only for such an upstream: otherwise
+    nothing is imported from the working directory at all."""
+    if upstream is None or upstream.startswith(("http://", "https://")):
+        return
     cwd = str(Path.cwd())
     if cwd not in sys.path and "" not in sys.path:
         sys.path.append(cwd)
@@ -175,7 +178,7 @@ def preflight(config: AppConfig) -> None:
     from antireplay.stores import open_store  # noqa: PLC0415
     from antireplay.wiring import build_registry  # noqa: PLC0415
 
-    importable_cwd()
+    importable_cwd(config.upstream)
     try:
         build_registry(config)
         for kid, pem in config.jwt.keys.items():
