@@ -10,6 +10,7 @@ as ``serve``, so a configuration that passes the check starts.
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import sqlite3
@@ -38,6 +39,7 @@ from antireplay.auth import (
     SDK_PRIVATE_MAGIC,
     PrivateKey,
     SdkKeyPair,
+    UnsignedFieldsError,
     load_public_key,
     sdk_key_id,
     sign_envelope,
@@ -330,15 +332,24 @@ def keygen(alg: str, out: Path) -> None:
     console.print(f"[green]{alg} key pair:[/green] {private} {public}")
 
 
-def _private_key(paths: tuple[Path, ...]) -> PrivateKey | tuple[PrivateKey, ...]:
+#: What ``sign --key`` accepts, for its errors.
+_SIGNING_KEYS = "an unencrypted PEM private key (Ed25519, ML-DSA-65 or ML-DSA-87)"
+_SDK_KEYS = "an unencrypted PEM ML-DSA-65 private key or an RCAN SDK key file (MLDSAKeyPair.save)"
+#: The sizes of an ML-DSA-65 key pair (FIPS 204), as the SDK's key file holds them.
+_SDK_KEY_SIZES = (1952, 4032)
+
+
+def _private_key(
+    paths: tuple[Path, ...], accepted: str = _SIGNING_KEYS
+) -> PrivateKey | tuple[PrivateKey, ...]:
     keys = []
     for path in paths:
         try:
             key = serialization.load_pem_private_key(path.read_bytes(), None)
         except (ValueError, TypeError) as exc:
-            _fail(f"--key {path}: not an unencrypted PEM private key ({exc})")
+            _fail(f"--key {path}: not {accepted} ({exc})")
         if not isinstance(key, PrivateKey):
-            _fail(f"--key {path}: unsupported key type {type(key).__name__}")
+            _fail(f"--key {path}: a {type(key).__name__}; accepted: {accepted}")
         keys.append(key)
     return keys[0] if len(keys) == 1 else tuple(keys)
 
@@ -409,7 +420,11 @@ def sign(  # noqa: PLR0917 - one option per envelope field
         else:
             signed = sign_envelope(body, kid, alg, _private_key(key_paths))
     except (ValueError, ReplayAttackError) as exc:
-        hint = "; with --sdk, --cmd ESTOP/STOP/RESUME is a safety message" if sdk else ""
+        hint = ""
+        if isinstance(exc, UnsignedFieldsError) and {"type", "safety_event", "scope"} & set(
+            exc.fields
+        ):
+            hint = "; with --sdk, --cmd ESTOP/STOP/RESUME is a safety message"
         _fail(f"cannot sign: {exc}{hint}")
     click.echo(json.dumps(signed))
 
@@ -422,16 +437,26 @@ def _sdk_key(paths: tuple[Path, ...], kid: str | None) -> mldsa.MLDSA65PrivateKe
     data = paths[0].read_bytes()
     key: mldsa.MLDSA65PrivateKey | SdkKeyPair
     if data.startswith(SDK_PRIVATE_MAGIC):
-        try:
+        size = int.from_bytes(data[4:6], "big")
+        if (size, len(data) - 6 - size) != _SDK_KEY_SIZES:
+            _fail(f"--key {paths[0]}: a damaged RCAN SDK key file; accepted: {_SDK_KEYS}")
+        try:  # the SDK signs its own files with dilithium-py (``rcan[pq]``)
             from rcan.signing import MLDSAKeyPair  # noqa: PLC0415 - only for the SDK's files
-        except ImportError:
-            _fail(f"--key {paths[0]}: an RCAN SDK key file; install the SDK: pip install rcan[pq]")
+
+            importlib.import_module("dilithium_py.ml_dsa")
+        except ImportError as exc:
+            _fail(
+                f"--key {paths[0]}: an RCAN SDK key file, and the SDK cannot sign with it here "
+                f"({exc}); install it: pip install 'rcan[pq]' (or give a PEM ML-DSA-65 key)"
+            )
         key = MLDSAKeyPair.load(paths[0])
         key_id = key.key_id
     else:
-        pem = _private_key(paths)
+        pem = _private_key(paths, _SDK_KEYS)
         if not isinstance(pem, mldsa.MLDSA65PrivateKey):
-            _fail(f"--key {paths[0]}: the RCAN SDK signs with ML-DSA-65 only")
+            _fail(
+                f"--key {paths[0]}: the RCAN SDK signs with ML-DSA-65 only; accepted: {_SDK_KEYS}"
+            )
         key, key_id = pem, sdk_key_id(pem.public_key())
     if kid is not None and kid != key_id:
         _fail(f"--kid {kid}: the SDK signs with the key's SDK key id, {key_id}")
