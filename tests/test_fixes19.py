@@ -29,7 +29,8 @@ from antireplay.cli import importable_cwd, main
 from antireplay.clock import Clock, ManualClock
 from antireplay.config import AppConfig
 from antireplay.demo import JSON, command, load_operator_key, write_demo_config
-from antireplay.gateway import create_app
+from antireplay.errors import StateUnavailableError
+from antireplay.gateway import create_app, embedded_default
 from tests.redis_server import RedisServer
 from tests.test_audit import sql, trail
 from tests.test_cli import one_line_error
@@ -259,3 +260,23 @@ def test_sign_sdk_refuses_a_target_the_sdk_cannot_parse(tmp_path: Path, target: 
     write_key_pair(mldsa.MLDSA65PrivateKey.generate(), tmp_path / "k.pem", tmp_path / "k.pub")
     one_line_error(sdk_sign(tmp_path / "k.pem", "--target", target), "target", "RCAN SDK")
     one_line_error(sdk_sign(tmp_path / "k.pem"), "target", "missing")
+
+
+def test_metrics_counters_keep_their_last_value_while_the_store_is_down(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    app = create_app(embedded_default(tmp_path))
+    loss = 'antireplay_state_data_loss_total{backend="sqlite"}'
+    assert f"{loss} 0.0" in call(app, "GET", "/metrics").text
+
+    def down() -> dict[str, float]:
+        raise StateUnavailableError("sqlite: down")
+
+    monkeypatch.setattr(app.state.receiver.cache.store, "status", down)
+    text = call(app, "GET", "/metrics").text
+    assert (
+        f"{loss} 0.0" in text and 'antireplay_watermark_raises_total{backend="sqlite"} 0.0' in text
+    )
+    assert 'antireplay_cache_entries{backend="sqlite"} NaN' in text  # a gauge may be unknown
+    counters = [line for line in text.splitlines() if "_total{" in line]
+    assert counters and not any(line.endswith("NaN") for line in counters), counters

@@ -173,10 +173,13 @@ class Metrics:
 
 
 class StateCollector(Collector):
-    """The replay state of the backend actually in use, read at scrape time."""
+    """The replay state of the backend actually in use, read at scrape time.  While the
+    store is down its gauges are NaN (unknown) and its counters keep their last known
+    value (a counter is never NaN: a rate over it would be NaN too); none known, no sample."""
 
     def __init__(self, receiver: Receiver) -> None:
         self.receiver = receiver
+        self._counted: dict[str, float] = {}
 
     def collect(self) -> Iterator[Metric]:
         cache = self.receiver.cache
@@ -198,7 +201,10 @@ class StateCollector(Collector):
             ("antireplay_state_data_loss_total", "Data-loss events noticed", "data_loss_events"),
         ):
             counter = CounterMetricFamily(name, doc, labels=["backend"])
-            counter.add_metric([backend], status.get(key, float("nan")))
+            if key in status:
+                self._counted[key] = status[key]
+            if key in self._counted:
+                counter.add_metric([backend], self._counted[key])
             yield counter
         refusals = CounterMetricFamily(
             "antireplay_replay_refusals", "Window refusals by cause", labels=["cause"]
