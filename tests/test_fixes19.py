@@ -148,11 +148,13 @@ def tail_json(path: Path) -> list[dict[str, Any]]:
 def test_audit_tail_shows_the_state_lost_reason_and_no_none_sender(tmp_path: Path) -> None:
     path = tmp_path / "audit.db"
     lost_and_found(path, REASON)
-    (lost, _) = tail_json(path)
+    lost, memo = tail_json(path)
     assert lost["warning"] == REASON
     table = CliRunner().invoke(main, ["audit", "tail", str(path)])
     assert table.exit_code == 0, table.output
     assert REASON in table.output
+    assert "None" not in table.output  # a row without a sender shows "-"
+    assert memo["sender"] is None
 
 
 def test_audit_tail_escapes_and_bounds_a_hostile_reason(tmp_path: Path) -> None:

@@ -557,7 +557,8 @@ def audit_tail(path: Path, count: int, as_json: bool) -> None:
     for column in ("seq", "time (UTC)", "outcome", "code", "warning", "type", "sender", "msg_id"):
         table.add_column(column, overflow="fold")
     for row in rows:
-        sender = f"{row['sender']}" + ("" if row["sender_verified"] else " (claimed)")
+        sender = row["sender"] or "-"  # a row with no sender (STATE_LOST, a memo hit)
+        sender += "" if row["sender"] is None or row["sender_verified"] else " (claimed)"
         cells = (row["seq"], row["time"], row["outcome"], row["code"], row["warning"],
                  row["msg_type"], sender, row["msg_id"])  # fmt: skip
         table.add_row(*(Text("" if v is None else str(v)) for v in cells))
