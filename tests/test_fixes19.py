@@ -7,7 +7,9 @@ from __future__ import annotations
 import asyncio
 import json
 import shutil
+import socket
 import sqlite3
+import subprocess
 import sys
 import time
 from collections.abc import Iterator
@@ -31,6 +33,7 @@ from antireplay.config import AppConfig
 from antireplay.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.errors import StateUnavailableError
 from antireplay.gateway import create_app, embedded_default
+from tests.harness import free_port
 from tests.redis_server import RedisServer
 from tests.test_audit import sql, trail
 from tests.test_cli import one_line_error
@@ -214,6 +217,40 @@ def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(
         result = CliRunner().invoke(main, ["config", "check", str(tmp_path / "c.yaml")])
         assert result.exit_code == 0, result.output
         assert (str(tmp_path) in sys.path) is added, upstream
+
+
+def test_a_bad_tls_certificate_or_key_is_one_line_naming_both(tmp_path: Path) -> None:
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    cert.write_text("not a certificate\n")
+    key.write_text("not a key\n")
+    args = ["serve", "--state-dir", str(tmp_path / "state"), "--port", "0"]
+    result = CliRunner().invoke(
+        main, [*args, "--ssl-certfile", str(cert), "--ssl-keyfile", str(key)]
+    )
+    one_line_error(result, "--ssl-certfile", str(cert), "--ssl-keyfile", str(key), "PEM")
+
+
+@pytest.mark.parametrize(("host", "why"), [("192.0.2.1", "assign"), ("bad..host", "label")])
+def test_mavlink_router_metrics_host_errors_name_the_option(
+    tmp_path: Path, host: str, why: str
+) -> None:
+    key = tmp_path / "link.key"
+    key.write_bytes(bytes(range(32)))
+    args = ["mavlink-proxy", "--forward", "udp:127.0.0.1:9", "--key-file", str(key),
+            "--audit", str(tmp_path / "audit.db"), "--store", "memory",
+            "--listen", f"udp:127.0.0.1:{free_udp_port()}",
+            "--metrics-port", str(free_port()), "--metrics-host", host]  # fmt: skip
+    script = Path(sys.executable).with_name("antireplay")  # a process: metrics are global
+    done = subprocess.run([script, *args], capture_output=True, text=True, timeout=60, check=False)
+    assert (done.returncode, done.stdout) == (2, ""), done.stderr
+    (line,) = done.stderr.splitlines()
+    assert line.startswith("antireplay: error: --metrics-host " + host) and why in line, line
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
 
 
 # --- sign --sdk ---------------------------------------------------------------------------------

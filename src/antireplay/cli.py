@@ -266,7 +266,13 @@ def serve(  # noqa: PLR0917 - one option per knob
         ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile),
     )
     if ssl_certfile is not None:
-        settings.load()  # a bad certificate or key fails here, as one line, before listening
+        try:  # a bad certificate or key fails here, as one line naming both, before listening
+            settings.load()
+        except (OSError, ValueError) as exc:
+            _fail(
+                f"--ssl-certfile {ssl_certfile} / --ssl-keyfile {ssl_keyfile}: not a PEM "
+                f"certificate (chain) and its unencrypted PEM private key ({exc})"
+            )
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.create_server((host, port), family=family)  # a busy port: one line (OSError)
     bound = sock.getsockname()[1]
@@ -955,7 +961,13 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     except ReplayAttackError as exc:
         _fail(f"--store {store_spec}: {exc}")
     if metrics_port is not None:
-        serve_router_metrics(router, metrics_port, metrics_host)
+        try:
+            serve_router_metrics(router, metrics_port, metrics_host)
+        except (OSError, ValueError) as exc:  # an unknown host, a busy port, a bad name
+            _fail(
+                f"--metrics-host {metrics_host} --metrics-port {metrics_port}: cannot serve "
+                f"metrics there ({getattr(exc, 'strerror', None) or exc})"
+            )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
