@@ -33,6 +33,7 @@ from antireplay.config import AppConfig
 from antireplay.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.errors import StateUnavailableError
 from antireplay.gateway import create_app, embedded_default
+from tests.conftest import ROOT
 from tests.harness import free_port
 from tests.redis_server import RedisServer
 from tests.test_audit import sql, trail
@@ -203,6 +204,9 @@ def test_verify_names_a_blob_in_a_text_column(tmp_path: Path) -> None:
     assert CliRunner().invoke(main, ["audit", "tail", str(path)]).exit_code == 0
 
 
+# --- serve: the working directory, TLS; mavlink-router --metrics-host -------------------------
+
+
 def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -301,6 +305,9 @@ def test_sign_sdk_refuses_a_target_the_sdk_cannot_parse(tmp_path: Path, target: 
     one_line_error(sdk_sign(tmp_path / "k.pem"), "target", "missing")
 
 
+# --- metrics and the README ---------------------------------------------------------------------
+
+
 def test_metrics_counters_keep_their_last_value_while_the_store_is_down(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -319,3 +326,10 @@ def test_metrics_counters_keep_their_last_value_while_the_store_is_down(
     assert 'antireplay_cache_entries{backend="sqlite"} NaN' in text  # a gauge may be unknown
     counters = [line for line in text.splitlines() if "_total{" in line]
     assert counters and not any(line.endswith("NaN") for line in counters), counters
+
+
+def test_readme_waits_for_readiness_in_bounded_loops_and_notes_the_upgrade() -> None:
+    readme = (ROOT / "README.md").read_text()
+    assert "until curl" not in readme
+    assert readme.count("for i in $(seq 100); do curl -sf") == 2
+    assert "**Upgrading:** a signed `cmd` `STOP` or `RESUME` is now SAFETY" in readme
