@@ -7,12 +7,13 @@ forwards the accepted message upstream (the canonical re-encoding, never the
 raw bytes) and answers with the upstream's result, or answers with the
 COMMAND_NACK and its HTTP status.  ``GET /healthz`` (liveness: the process
 answers), ``GET /`` and ``GET /status.json`` (the read-only status page,
-:mod:`antireplay.status`), ``GET /readyz`` (readiness: the replay store answers a read and the
-audit trail could take an append now, else 503 with the reason, since every
-command would get 503 too) and ``GET /metrics`` (Prometheus) complete it.
-The readiness probes record nothing: a read of one key and a write lock taken
-and released on the audit file, so a probe never notices a store's data loss
-in place of the commit that fences and audits it.  No rule lives here: every decision is the
+:mod:`antireplay.status`), ``GET /readyz`` (readiness: the replay store could take a commit and
+the audit trail an append now, else 503 with the reason, since every command
+would get 503 too) and ``GET /metrics`` (Prometheus) complete it.  The
+readiness probes record nothing (the store's ``ready()``: a read, the eviction
+policy, a write lock taken and released; the same lock on the audit file), so
+a probe never notices a store's data loss in place of the commit that fences
+and audits it.  No rule lives here: every decision is the
 pipeline's, except transport framing: a request that carries both
 ``Content-Length`` and ``Transfer-Encoding`` is refused with 400 and the
 connection closed (RFC 9112 §6.1), on every route, because a proxy in front
@@ -89,8 +90,6 @@ LATENCY_BUCKETS = (
     0.00005, 0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
     1.0, 2.5, float("inf"),
 )  # fmt: skip
-#: The key ``/readyz`` reads from the store (a read records nothing).
-READINESS_KEY = "antireplay-readiness-probe"
 _encode_json = msgspec.json.Encoder().encode
 Upstream = Callable[[dict[str, Any]], Awaitable[tuple[int, Any]]]
 
@@ -209,10 +208,13 @@ class Metrics:
 
 
 class StateCollector(Collector):
-    """The replay state of the backend actually in use, read at scrape time."""
+    """The replay state of the backend actually in use, read at scrape time.  While the
+    store is down its gauges are NaN (unknown) and its counters keep their last known
+    value (a counter is never NaN: a rate over it would be NaN too); none known, no sample."""
 
     def __init__(self, receiver: Receiver) -> None:
         self.receiver = receiver
+        self._counted: dict[str, float] = {}
 
     def collect(self) -> Iterator[Metric]:
         cache = self.receiver.cache
@@ -234,7 +236,10 @@ class StateCollector(Collector):
             ("antireplay_state_data_loss_total", "Data-loss events noticed", "data_loss_events"),
         ):
             counter = CounterMetricFamily(name, doc, labels=["backend"])
-            counter.add_metric([backend], status.get(key, float("nan")))
+            if key in status:
+                self._counted[key] = status[key]
+            if key in self._counted:
+                counter.add_metric([backend], self._counted[key])
             yield counter
         refusals = CounterMetricFamily(
             "antireplay_replay_refusals", "Window refusals by cause", labels=["cause"]
@@ -432,7 +437,7 @@ def readiness(receiver: Receiver) -> str | None:
 
     Blocking I/O (run it in a thread); records nothing."""
     try:
-        receiver.cache.store.lookup(READINESS_KEY)
+        receiver.cache.store.ready()
     except Exception as exc:  # any backend's failure is the reason, never a 500
         return f"store: {exc}"
     return None if receiver.audit is None else audit_problem(receiver.audit)
