@@ -452,3 +452,29 @@ def test_fastapi_stays_optional() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["RcanGuard", "False"]
+
+
+def test_a_qos_retransmission_gets_the_apps_original_answer_and_never_reaches_it_again(
+    tmp_path: Path,
+) -> None:
+    write_demo_config(tmp_path)
+    clock = ManualClock(wall=NOW)
+    target, guard = guarded_app(config(tmp_path / "mw", tmp_path / "operator.pub.pem"), clock)
+    dependency, dep = dependency_app(config(tmp_path / "dep", tmp_path / "operator.pub.pem"), clock)
+    raw = command(load_operator_key(tmp_path), timestamp=clock.wall(), qos=1)
+
+    async def twice(app: ASGIApp) -> list[Answer]:
+        return [await call(app, raw), await call(app, raw)]
+
+    try:
+        first, again = asyncio.run(twice(target.app))
+        behind_dependency = asyncio.run(twice(dependency.app))
+    finally:
+        guard.close()
+        dep.close()
+    assert (first.status, again.status) == (200, 200)
+    assert again.json() == {**first.json(), "duplicate": True}
+    assert again.headers[b"rcan-duplicate"] == b"true"
+    assert len(target.handed) == 1  # executed once
+    assert [a.status for a in behind_dependency] == [200, 409]
+    assert len(dependency.handed) == 1

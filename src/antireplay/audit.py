@@ -75,6 +75,7 @@ import secrets
 import sqlite3
 import tempfile
 import threading
+import time
 from collections.abc import Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -135,6 +136,45 @@ def sanitize(value: object) -> str | None:
     if _SAFE.fullmatch(text):
         return text
     return "sha256:" + hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:16]
+
+
+def printable(value: object, limit: int = 200) -> str | None:
+    """Free text (a STATE_LOST reason) safe to print: every character that is not printable
+    (controls, escapes, bidi overrides) shown as its escape, at most ``limit`` characters."""
+    if value is None:
+        return None
+    text = value if isinstance(value, str) else repr(value)
+    shown = "".join(c if c.isprintable() else ascii(c)[1:-1] for c in text[: limit + 1])
+    return shown if len(shown) <= limit else shown[: limit - 1] + "…"
+
+
+#: Wall times antireplay can write: from the epoch to the end of year 9999.
+LATEST_AT = 253_402_300_799.0
+
+
+def valid_at(value: object) -> float | None:
+    """The row's time if it is one antireplay could have written (a finite real within the
+    years 1970-9999), else ``None`` (a tampered row: 1e300, NaN, a string)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    at = float(value)
+    return at if 0.0 <= at <= LATEST_AT else None
+
+
+def _wrongly_typed(row: dict[str, Any]) -> str | None:
+    """The first column holding a value antireplay never writes, or ``None``."""
+    for name, value in row.items():
+        if name == "at":
+            ok = valid_at(value) is not None
+        elif name in ("seq", "sender_verified", "msg_type"):
+            ok = (value is None and name == "msg_type") or (
+                type(value) is int and (name != "sender_verified" or value in (0, 1))
+            )
+        else:
+            ok = (value is None and name != "outcome") or isinstance(value, str)
+        if not ok:
+            return name
+    return None
 
 
 def _digest(prev: str, row: dict[str, Any]) -> str:
@@ -545,7 +585,7 @@ class AuditLog:
 
 def _records(rows: list[Any]) -> list[Record]:
     return [
-        Record(r[0], r[1], r[2], r[3], r[4], r[5], r[6], bool(r[7]), r[8]) for r in reversed(rows)
+        Record(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7] == 1, r[8]) for r in reversed(rows)
     ]
 
 
@@ -556,6 +596,27 @@ def tail(path: str | Path, n: int = 20) -> list[Record]:
         return _records(db.execute(_TAIL, (n,)).fetchall())
     finally:
         db.close()
+
+
+def shown(record: Record) -> dict[str, Any]:
+    """One record as ``audit tail`` and the status page show it, whatever a trail edited
+    behind our back holds: identifiers through ``sanitize`` again, the warning (a STATE_LOST
+    reason is free text) through ``printable``, numbers only if they are numbers antireplay
+    writes (else ``sanitize``d, and an impossible time is ``null`` / "invalid"), the time
+    also as ISO 8601 UTC."""
+    at = valid_at(record.at)
+    return {
+        "seq": record.seq if type(record.seq) is int else sanitize(record.seq),
+        "at": at,
+        "time": "invalid" if at is None else time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(at)),
+        "outcome": sanitize(record.outcome),
+        "code": sanitize(record.code),
+        "warning": printable(record.warning),
+        "msg_type": record.msg_type if type(record.msg_type) is int else sanitize(record.msg_type),
+        "sender": sanitize(record.sender),
+        "sender_verified": record.sender_verified,
+        "msg_id": sanitize(record.msg_id),
+    }
 
 
 def _compare(db: sqlite3.Connection, checkpoint: Checkpoint) -> str | None:
@@ -656,6 +717,9 @@ def _walk(db: sqlite3.Connection) -> tuple[int, int | None, str | None]:
     for values in db.execute(_ALL):
         count += 1
         row = dict(zip(_FIELDS, values[:9], strict=True))
+        wrong = _wrongly_typed(row)
+        if wrong is not None:
+            return count, expected_seq, f"invalid {wrong}: a value antireplay never writes"
         if row["seq"] != expected_seq:
             return count, expected_seq, "record missing or reordered"
         if values[9] != prev:

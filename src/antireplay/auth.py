@@ -343,20 +343,48 @@ class SdkKeyPair(Protocol):
     def sign_bytes(self, data: bytes) -> bytes: ...
 
 
+class UnsignedFieldsError(ValueError):
+    """The message sets fields the SDK's signature does not cover (:func:`sign_sdk`)."""
+
+    def __init__(self, fields: list[str]) -> None:
+        super().__init__(f"the SDK signature does not cover {', '.join(fields)}")
+        self.fields = fields
+
+
+def sdk_target_problem(target: object) -> str | None:
+    """Why the RCAN SDK could not read ``target`` (its own parser, ``RobotURI.parse``, which
+    its ``RCANMessage.from_dict`` and so ``verify_message`` run), or ``None``."""
+    from rcan.address import RobotURI  # noqa: PLC0415 - the SDK, only when signing for it
+    from rcan.exceptions import RCANAddressError  # noqa: PLC0415
+
+    if not isinstance(target, str):
+        return "missing" if target is None else f"a string is needed, not {type(target).__name__}"
+    try:
+        RobotURI.parse(target)
+    except RCANAddressError as exc:
+        return str(exc)
+    return None
+
+
 def sign_sdk(message: dict[str, Any], key: mldsa.MLDSA65PrivateKey | SdkKeyPair) -> dict[str, Any]:
     """Sign ``message`` exactly as the RCAN SDK's ``sign_message`` does, so that the SDK's
     ``verify_message`` (and a receiver in ``sdk_compat`` mode) accepts it.
 
     The signature covers only the SDK's subset (:func:`~antireplay.envelope.sdk_signed_bytes`),
-    so a message setting any other field is refused here (``ValueError``) rather than sent
-    with fields nobody signed; ``kid`` is the SDK's key id (:func:`sdk_key_id`).
+    so a message setting any other field is refused here (:class:`UnsignedFieldsError`)
+    rather than sent with fields nobody signed, and so is a ``target`` the SDK cannot parse
+    (``ValueError``: its ``verify_message`` would fail on it); ``kid`` is the SDK's key id
+    (:func:`sdk_key_id`).
     """
     unsigned = {k: v for k, v in message.items() if k != "sig"}
     raw = json.dumps(unsigned).encode()
     env = parse(raw, max_bytes=len(raw))
     extra = unsigned_policy_fields(env)
     if extra:
-        raise ValueError(f"the SDK signature does not cover {', '.join(extra)}")
+        raise UnsignedFieldsError(extra)
+    problem = sdk_target_problem(unsigned.get("target"))
+    if problem is not None:
+        raise ValueError(f"target: the RCAN SDK cannot read it ({problem})")
     data = sdk_signed_bytes(env)
     if isinstance(key, mldsa.MLDSA65PrivateKey):
         raw, kid = key.sign(data), sdk_key_id(key.public_key())

@@ -10,6 +10,7 @@ as ``serve``, so a configuration that passes the check starts.
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import sqlite3
@@ -32,12 +33,13 @@ from rich.table import Table
 from rich.text import Text
 
 from antireplay import counters, epochs
-from antireplay.audit import AuditLog, Record, reanchor, sanitize, verify
+from antireplay.audit import AuditLog, reanchor, shown, verify
 from antireplay.audit import tail as audit_tail_records
 from antireplay.auth import (
     SDK_PRIVATE_MAGIC,
     PrivateKey,
     SdkKeyPair,
+    UnsignedFieldsError,
     load_public_key,
     sdk_key_id,
     sign_envelope,
@@ -160,10 +162,13 @@ def _check_audit_anchor(path: Path) -> None:
         )
 
 
-def importable_cwd() -> None:
+def importable_cwd(upstream: str | None) -> None:
     """Put the working directory on ``sys.path`` (as ``python -m`` does), so a
     ``module:function`` upstream in it imports without ``PYTHONPATH=.``; appended, so a
-    file there never shadows an installed package."""
+    file there never shadows an installed package.  Only for such an upstream: otherwise
+    nothing is imported from the working directory at all."""
+    if upstream is None or upstream.startswith(("http://", "https://")):
+        return
     cwd = str(Path.cwd())
     if cwd not in sys.path and "" not in sys.path:
         sys.path.append(cwd)
@@ -175,7 +180,7 @@ def preflight(config: AppConfig) -> None:
     from antireplay.stores import open_store  # noqa: PLC0415
     from antireplay.wiring import build_registry  # noqa: PLC0415
 
-    importable_cwd()
+    importable_cwd(config.upstream)
     try:
         build_registry(config)
         for kid, pem in config.jwt.keys.items():
@@ -261,7 +266,13 @@ def serve(  # noqa: PLR0917 - one option per knob
         ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile),
     )
     if ssl_certfile is not None:
-        settings.load()  # a bad certificate or key fails here, as one line, before listening
+        try:  # a bad certificate or key fails here, as one line naming both, before listening
+            settings.load()
+        except (OSError, ValueError) as exc:
+            _fail(
+                f"--ssl-certfile {ssl_certfile} / --ssl-keyfile {ssl_keyfile}: not a PEM "
+                f"certificate (chain) and its unencrypted PEM private key ({exc})"
+            )
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.create_server((host, port), family=family)  # a busy port: one line (OSError)
     bound = sock.getsockname()[1]
@@ -327,15 +338,24 @@ def keygen(alg: str, out: Path) -> None:
     console.print(f"[green]{alg} key pair:[/green] {private} {public}")
 
 
-def _private_key(paths: tuple[Path, ...]) -> PrivateKey | tuple[PrivateKey, ...]:
+#: What ``sign --key`` accepts, for its errors.
+_SIGNING_KEYS = "an unencrypted PEM private key (Ed25519, ML-DSA-65 or ML-DSA-87)"
+_SDK_KEYS = "an unencrypted PEM ML-DSA-65 private key or an RCAN SDK key file (MLDSAKeyPair.save)"
+#: The sizes of an ML-DSA-65 key pair (FIPS 204), as the SDK's key file holds them.
+_SDK_KEY_SIZES = (1952, 4032)
+
+
+def _private_key(
+    paths: tuple[Path, ...], accepted: str = _SIGNING_KEYS
+) -> PrivateKey | tuple[PrivateKey, ...]:
     keys = []
     for path in paths:
         try:
             key = serialization.load_pem_private_key(path.read_bytes(), None)
         except (ValueError, TypeError) as exc:
-            _fail(f"--key {path}: not an unencrypted PEM private key ({exc})")
+            _fail(f"--key {path}: not {accepted} ({exc})")
         if not isinstance(key, PrivateKey):
-            _fail(f"--key {path}: unsupported key type {type(key).__name__}")
+            _fail(f"--key {path}: a {type(key).__name__}; accepted: {accepted}")
         keys.append(key)
     return keys[0] if len(keys) == 1 else tuple(keys)
 
@@ -406,7 +426,11 @@ def sign(  # noqa: PLR0917 - one option per envelope field
         else:
             signed = sign_envelope(body, kid, alg, _private_key(key_paths))
     except (ValueError, ReplayAttackError) as exc:
-        hint = "; with --sdk, --cmd ESTOP/STOP/RESUME is a safety message" if sdk else ""
+        hint = ""
+        if isinstance(exc, UnsignedFieldsError) and {"type", "safety_event", "scope"} & set(
+            exc.fields
+        ):
+            hint = "; with --sdk, --cmd ESTOP/STOP/RESUME is a safety message"
         _fail(f"cannot sign: {exc}{hint}")
     click.echo(json.dumps(signed))
 
@@ -419,16 +443,26 @@ def _sdk_key(paths: tuple[Path, ...], kid: str | None) -> mldsa.MLDSA65PrivateKe
     data = paths[0].read_bytes()
     key: mldsa.MLDSA65PrivateKey | SdkKeyPair
     if data.startswith(SDK_PRIVATE_MAGIC):
-        try:
+        size = int.from_bytes(data[4:6], "big")
+        if (size, len(data) - 6 - size) != _SDK_KEY_SIZES:
+            _fail(f"--key {paths[0]}: a damaged RCAN SDK key file; accepted: {_SDK_KEYS}")
+        try:  # the SDK signs its own files with dilithium-py (``rcan[pq]``)
             from rcan.signing import MLDSAKeyPair  # noqa: PLC0415 - only for the SDK's files
-        except ImportError:
-            _fail(f"--key {paths[0]}: an RCAN SDK key file; install the SDK: pip install rcan[pq]")
+
+            importlib.import_module("dilithium_py.ml_dsa")
+        except ImportError as exc:
+            _fail(
+                f"--key {paths[0]}: an RCAN SDK key file, and the SDK cannot sign with it here "
+                f"({exc}); install it: pip install 'rcan[pq]' (or give a PEM ML-DSA-65 key)"
+            )
         key = MLDSAKeyPair.load(paths[0])
         key_id = key.key_id
     else:
-        pem = _private_key(paths)
+        pem = _private_key(paths, _SDK_KEYS)
         if not isinstance(pem, mldsa.MLDSA65PrivateKey):
-            _fail(f"--key {paths[0]}: the RCAN SDK signs with ML-DSA-65 only")
+            _fail(
+                f"--key {paths[0]}: the RCAN SDK signs with ML-DSA-65 only; accepted: {_SDK_KEYS}"
+            )
         key, key_id = pem, sdk_key_id(pem.public_key())
     if kid is not None and kid != key_id:
         _fail(f"--kid {kid}: the SDK signs with the key's SDK key id, {key_id}")
@@ -520,7 +554,7 @@ def audit_tail(path: Path, count: int, as_json: bool) -> None:
         records = audit_tail_records(path, count)  # read-only: tail never writes the trail
     except StateFileError as exc:
         _fail(str(exc))
-    rows = [_shown(r) for r in records]
+    rows = [shown(r) for r in records]
     if as_json:
         for row in rows:
             click.echo(json.dumps(row, separators=(",", ":")))
@@ -529,7 +563,8 @@ def audit_tail(path: Path, count: int, as_json: bool) -> None:
     for column in ("seq", "time (UTC)", "outcome", "code", "warning", "type", "sender", "msg_id"):
         table.add_column(column, overflow="fold")
     for row in rows:
-        sender = f"{row['sender']}" + ("" if row["sender_verified"] else " (claimed)")
+        sender = row["sender"] or "-"  # a row with no sender (STATE_LOST, a memo hit)
+        sender += "" if row["sender"] is None or row["sender_verified"] else " (claimed)"
         cells = (row["seq"], row["time"], row["outcome"], row["code"], row["warning"],
                  row["msg_type"], sender, row["msg_id"])  # fmt: skip
         table.add_row(*(Text("" if v is None else str(v)) for v in cells))
@@ -538,23 +573,6 @@ def audit_tail(path: Path, count: int, as_json: bool) -> None:
         wide = Console(width=1_000_000)
         out = Console(width=max(80, Measurement.get(wide, wide.options, table).maximum))
     out.print(table)
-
-
-def _shown(record: Record) -> dict[str, Any]:
-    """One record as printed: every string passed through ``sanitize`` again (a trail edited
-    behind our back could hold escapes or markup), the time also as ISO 8601 UTC."""
-    return {
-        "seq": record.seq,
-        "at": record.at,
-        "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(record.at)),
-        "outcome": sanitize(record.outcome),
-        "code": sanitize(record.code),
-        "warning": sanitize(record.warning),
-        "msg_type": record.msg_type,
-        "sender": sanitize(record.sender),
-        "sender_verified": record.sender_verified,
-        "msg_id": sanitize(record.msg_id),
-    }
 
 
 @main.group()
@@ -923,7 +941,13 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     except ReplayAttackError as exc:
         _fail(f"--store {store_spec}: {exc}")
     if metrics_port is not None:
-        serve_router_metrics(router, metrics_port, metrics_host)
+        try:
+            serve_router_metrics(router, metrics_port, metrics_host)
+        except (OSError, ValueError) as exc:  # an unknown host, a busy port, a bad name
+            _fail(
+                f"--metrics-host {metrics_host} --metrics-port {metrics_port}: cannot serve "
+                f"metrics there ({getattr(exc, 'strerror', None) or exc})"
+            )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())

@@ -20,6 +20,9 @@ handshake does): a frame for a session the responder no longer holds, closed
 or evicted, is ``SESSION_CLOSED``.  A frame from the wrong side of a link is
 ``WRONG_DIRECTION`` (MAVLink and sessions alike).  Events that are accepted but must be counted,
 logged and audited are :class:`WarningCode` values, never bare strings.
+``UPSTREAM_FAILED`` (502) answers a message that *was* accepted (its msg_id spent)
+when the gateway's upstream failed; it is a COMMAND_NACK all the same, so the RCAN
+SDK reads ``status: "error"``, never an ACK.
 
 Rejections of a *message* derive from :class:`ReplayAttackError` (the name the
 RCAN SDK uses for this family), so ``except ReplayAttackError`` catches every
@@ -31,7 +34,7 @@ are separate: they are not answers to a peer.
 from __future__ import annotations
 
 from enum import StrEnum
-from typing import Any
+from typing import Any, Literal
 
 
 class Code(StrEnum):
@@ -63,6 +66,7 @@ class Code(StrEnum):
     UNKNOWN_SESSION = "UNKNOWN_SESSION"
     STATE_UNAVAILABLE = "STATE_UNAVAILABLE"
     WRONG_DIRECTION = "WRONG_DIRECTION"
+    UPSTREAM_FAILED = "UPSTREAM_FAILED"
 
 
 #: The one place where a code becomes an HTTP status.
@@ -93,6 +97,7 @@ HTTP_STATUS: dict[Code, int] = {
     Code.UNKNOWN_SESSION: 401,
     Code.STATE_UNAVAILABLE: 503,
     Code.WRONG_DIRECTION: 403,
+    Code.UPSTREAM_FAILED: 502,
 }
 
 
@@ -353,6 +358,27 @@ class StateUnavailableError(ReplayAttackError):
     """The replay state store cannot be reached; fail closed."""
 
     code = Code.STATE_UNAVAILABLE
+
+
+class UpstreamFailedError(ReplayAttackError):
+    """An accepted message's upstream call failed.  Its msg_id stays spent (the upstream
+    may have acted before failing); ``delivered`` says ``"no"`` (the upstream was never
+    reached: nothing ran) or ``"unknown"`` (sent, then failed or timed out: it may have
+    run).  The sender repeats the action, if it still wants it, under a new msg_id."""
+
+    code = Code.UPSTREAM_FAILED
+
+    def __init__(self, failure: str, *, delivered: Literal["no", "unknown"]) -> None:
+        self.delivered = delivered
+        super().__init__(
+            f"upstream failed ({failure}); delivered: {self.delivered}; this msg_id is spent,"
+            " send the action again under a new msg_id",
+            detail=f"delivered={self.delivered}",
+        )
+
+    def to_nack(self, msg_id: str | None, *, nack_type: int = NACK_TYPE_CURRENT) -> dict[str, Any]:
+        """The COMMAND_NACK, plus ``delivered`` (``"no"`` or ``"unknown"``)."""
+        return {**super().to_nack(msg_id, nack_type=nack_type), "delivered": self.delivered}
 
 
 class ConfigError(AntiReplayError, ValueError):

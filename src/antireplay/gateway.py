@@ -6,12 +6,14 @@ configuration by :func:`antireplay.wiring.build_receiver`), and either
 forwards the accepted message upstream (the canonical re-encoding, never the
 raw bytes) and answers with the upstream's result, or answers with the
 COMMAND_NACK and its HTTP status.  ``GET /healthz`` (liveness: the process
-answers), ``GET /readyz`` (readiness: the replay store answers a read and the
-audit trail could take an append now, else 503 with the reason, since every
-command would get 503 too) and ``GET /metrics`` (Prometheus) complete it.
-The readiness probes record nothing: a read of one key and a write lock taken
-and released on the audit file, so a probe never notices a store's data loss
-in place of the commit that fences and audits it.  No rule lives here: every decision is the
+answers), ``GET /`` and ``GET /status.json`` (the read-only status page,
+:mod:`antireplay.status`), ``GET /readyz`` (readiness: the replay store could take a commit and
+the audit trail an append now, else 503 with the reason, since every command
+would get 503 too) and ``GET /metrics`` (Prometheus) complete it.  The
+readiness probes record nothing (the store's ``ready()``: a read, the eviction
+policy, a write lock taken and released; the same lock on the audit file), so
+a probe never notices a store's data loss in place of the commit that fences
+and audits it.  No rule lives here: every decision is the
 pipeline's, except transport framing: a request that carries both
 ``Content-Length`` and ``Transfer-Encoding`` is refused with 400 and the
 connection closed (RFC 9112 §6.1), on every route, because a proxy in front
@@ -53,7 +55,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import httpx
 import msgspec
@@ -69,6 +71,7 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from antireplay.answers import HeldAnswer
 from antireplay.audit import AuditLog, sanitize
 from antireplay.auth import Signer, write_key_pair
 from antireplay.clock import Clock, resolve
@@ -81,9 +84,11 @@ from antireplay.errors import (
     ReplayAttackError,
     StateUnavailableError,
     UnsupportedMediaTypeError,
+    UpstreamFailedError,
 )
 from antireplay.groupcommit import GroupCommitter
 from antireplay.pipeline import Outcome, Receiver
+from antireplay.status import routes as status_routes
 from antireplay.wiring import build_receiver
 
 DEMO_KID = "demo-operator"
@@ -92,8 +97,6 @@ LATENCY_BUCKETS = (
     0.00005, 0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5,
     1.0, 2.5, float("inf"),
 )  # fmt: skip
-#: The key ``/readyz`` reads from the store (a read records nothing).
-READINESS_KEY = "antireplay-readiness-probe"
 _encode_json = msgspec.json.Encoder().encode
 _decode_json = msgspec.json.decode
 #: Request headers only the guard sets (the verified signer); a client's copies are dropped.
@@ -189,6 +192,31 @@ def _takes_two(func: Callable[..., Any]) -> bool:
     return sum(k in positional for k in kinds) >= 2 or inspect.Parameter.VAR_POSITIONAL in kinds
 
 
+async def _forward(
+    upstream: Upstream | None, verified: Verified, metrics: Metrics, nack_type: int
+) -> tuple[int, dict[str, Any]]:
+    """The answer to an accepted message: its COMMAND_ACK (readable by the rcan SDK) with
+    the upstream's result, or 502 ``UPSTREAM_FAILED`` (the msg_id stays spent: README
+    "Threat model")."""
+    answer = verified.ack
+    if upstream is None:
+        return 200, answer
+    try:
+        status, result = await upstream(verified)
+    except Exception as exc:
+        metrics.upstream_errors.inc()
+        failed = UpstreamFailedError(type(exc).__name__, delivered=_delivered(exc))
+        return 502, failed.to_nack(verified.msg_id, nack_type=nack_type)
+    return status, {**answer, "result": result}
+
+
+def _delivered(exc: Exception) -> Literal["no", "unknown"]:
+    """Whether a failed upstream call reached the upstream: ``"no"`` when no connection was
+    made (nothing was sent), else ``"unknown"`` (sent, then failed or timed out)."""
+    unsent = (httpx.ConnectError, httpx.ConnectTimeout, httpx.PoolTimeout)
+    return "no" if isinstance(exc, unsent) else "unknown"
+
+
 class Metrics:
     """Prometheus metrics of one gateway (its own registry, so tests can run several)."""
 
@@ -209,6 +237,9 @@ class Metrics:
         self.upstream_errors = Counter(
             "antireplay_upstream_errors", "Upstream failures", registry=r
         )
+        self.retries = Counter(
+            "antireplay_retries_answered", "QoS retries given the original answer", registry=r
+        )
         r.register(StateCollector(receiver))
 
     async def endpoint(self, _: Request) -> Response:
@@ -226,13 +257,18 @@ class Metrics:
             self.rejected.labels(outcome.code or "UNKNOWN").inc()
             if outcome.code == "STATE_UNAVAILABLE":
                 self.store_errors.inc()
+            if outcome.retry is not None:
+                self.retries.inc()
 
 
 class StateCollector(Collector):
-    """The replay state of the backend actually in use, read at scrape time."""
+    """The replay state of the backend actually in use, read at scrape time.  While the
+    store is down its gauges are NaN (unknown) and its counters keep their last known
+    value (a counter is never NaN: a rate over it would be NaN too); none known, no sample."""
 
     def __init__(self, receiver: Receiver) -> None:
         self.receiver = receiver
+        self._counted: dict[str, float] = {}
 
     def collect(self) -> Iterator[Metric]:
         cache = self.receiver.cache
@@ -254,7 +290,10 @@ class StateCollector(Collector):
             ("antireplay_state_data_loss_total", "Data-loss events noticed", "data_loss_events"),
         ):
             counter = CounterMetricFamily(name, doc, labels=["backend"])
-            counter.add_metric([backend], status.get(key, float("nan")))
+            if key in status:
+                self._counted[key] = status[key]
+            if key in self._counted:
+                counter.add_metric([backend], self._counted[key])
             yield counter
         refusals = CounterMetricFamily(
             "antireplay_replay_refusals", "Window refusals by cause", labels=["cause"]
@@ -286,16 +325,26 @@ class Refused(Exception):  # noqa: N818 - it is the answer, not a failure
     """A refusal: the COMMAND_NACK and its HTTP status, exactly as the gateway answers them.
     :class:`RcanGuard` raises it; the handler :meth:`RcanGuard.install` adds answers it."""
 
-    def __init__(self, status: int, nack: dict[str, Any], *, close: bool = False) -> None:
-        super().__init__(status, nack.get("code"))
-        self.status, self.nack, self.close = status, nack, close
+    def __init__(
+        self, status: int, nack: dict[str, Any] | bytes, *, close: bool = False,
+        held: HeldAnswer | None = None,
+    ) -> None:  # fmt: skip
+        super().__init__(status)
+        self.status, self.nack, self.close, self.held = status, nack, close, held
+
+    @classmethod
+    def retry(cls, held: HeldAnswer) -> Refused:
+        """A QoS retransmission: the original answer again, marked, never a second run."""
+        return cls(held.status, held.body, held=held)
 
     async def answer(self, send: Send) -> None:
-        await _answer(send, self.status, self.nack, close=self.close)
+        await _answer(send, self.status, self.nack, self.held, close=self.close)
 
     def response(self) -> Response:
-        headers = {"connection": "close"} if self.close else None
-        body = _encode_json(self.nack)
+        headers = dict(self.held.headers) if self.held else {}
+        if self.close:
+            headers["connection"] = "close"
+        body = self.nack if isinstance(self.nack, bytes) else _encode_json(self.nack)
         return Response(body, self.status, headers=headers, media_type="application/json")
 
 
@@ -350,8 +399,9 @@ class _Checkpoint:
 
     async def check(
         self, scope: Scope, receive: Receive, framing: Framing
-    ) -> tuple[Verified, bytes] | Refused:
-        """One POSTed envelope: its :class:`Verified` and canonical bytes, or its refusal."""
+    ) -> tuple[Verified, bytes, Outcome] | Refused:
+        """One POSTed envelope: its :class:`Verified`, canonical bytes and outcome, or its
+        refusal (a QoS retransmission's: the original answer, :meth:`Refused.retry`)."""
         refusal = _framing_refusal(framing[0], framing[1], self.limit)
         raw = await _body(receive, self.limit) if refusal is None else refusal
         if not isinstance(raw, bytes):
@@ -363,6 +413,8 @@ class _Checkpoint:
         headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
         outcome = await self.receiver.receive_async(raw, headers, self.workers)
         self.metrics.observe(outcome, self._ticker.monotonic() - started)
+        if outcome.retry is not None:
+            return Refused.retry(outcome.retry)
         nack = outcome.nack
         if nack is not None:
             return Refused(outcome.status, nack)
@@ -372,7 +424,7 @@ class _Checkpoint:
         verified = Verified(
             _decode_json(body), outcome.signer, outcome.msg_id, outcome.warning, ack
         )
-        return verified, body
+        return verified, body, outcome
 
 
 class Guard(_Checkpoint):
@@ -416,13 +468,28 @@ class Guard(_Checkpoint):
         result = await self.check(scope, receive, framing)
         if isinstance(result, Refused):
             return await result.answer(send)
-        verified, body = result
+        verified, body, outcome = result
         inner = {
             **scope,
             "headers": _verified_headers(scope["headers"], verified, len(body)),
             "state": {**scope.get("state", {}), "antireplay": verified},
         }
-        await self.app(inner, _replay(body, receive), send)
+        # Its QoS retransmissions get this answer again: held before it is sent (a no-op
+        # unless the message declared qos >= 1; an SDK signer's hint is already stripped).
+        sent: list[Message] = []
+
+        async def keep(message: Message) -> None:
+            sent.append(message)
+
+        try:
+            await self.app(inner, _replay(body, receive), keep)
+        finally:
+            start = next((m for m in sent if m["type"] == "http.response.start"), None)
+            answer = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
+            if start is not None:
+                self.receiver.hold_answer(outcome, start["status"], (), answer)
+            for message in sent:
+                await send(message)
 
     def _closing(self, send: Send) -> Send:
         async def closing(message: Message) -> None:
@@ -455,7 +522,12 @@ class RcanGuard(_Checkpoint):
         )
         if isinstance(result, Refused):
             raise result
-        return result[0]
+        verified, _, outcome = result
+        if outcome.envelope is not None and type(outcome.envelope.msg_id) is str:
+            # The route's answer is not seen here: a QoS retransmission is refused (409),
+            # never run again, rather than kept waiting for an answer nobody holds.
+            self.receiver.answers.drop(outcome.envelope.msg_id)
+        return verified
 
     def install(self, app: Starlette) -> None:
         """Answer :class:`Refused` with the NACK itself (not wrapped in ``detail``)."""
@@ -531,12 +603,16 @@ def _route_path(scope: Scope) -> str:
     return path[len(root) :] if root and path.startswith(root) else path
 
 
-async def _answer(send: Send, status: int, content: object, *, close: bool = False) -> None:
-    """One JSON response, sent as two ASGI messages (what JSONResponse sends, cheaper)."""
-    body = _encode_json(content)
+async def _answer(
+    send: Send, status: int, content: object, held: HeldAnswer | None = None, *, close: bool = False
+) -> None:
+    """One JSON response (``content``, or its encoding as bytes; plus a held answer's
+    headers), sent as two ASGI messages (what JSONResponse sends, cheaper)."""
+    body = content if isinstance(content, bytes) else _encode_json(content)
     headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body))]
     if close:
         headers.append((b"connection", b"close"))
+    headers += [(k.encode("latin-1"), v.encode("latin-1")) for k, v in held.headers] if held else []
     await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})
 
@@ -636,7 +712,7 @@ def readiness(receiver: Receiver) -> str | None:
 
     Blocking I/O (run it in a thread); records nothing."""
     try:
-        receiver.cache.store.lookup(READINESS_KEY)
+        receiver.cache.store.ready()
     except Exception as exc:  # any backend's failure is the reason, never a 500
         return f"store: {exc}"
     return None if receiver.audit is None else audit_problem(receiver.audit)
@@ -667,8 +743,10 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     """The gateway application for ``config``: a :class:`Guard` in front of an app whose
     ``POST /v1/messages`` forwards what the guard verified (one code path by construction)."""
     receiver = build_receiver(config, clock)
+    receiver.answer_wait_s = config.upstream_timeout_s  # a retry waits for its original
     metrics = Metrics(receiver)
-    forward = _Forward(resolve_upstream(config.upstream, config.upstream_timeout_s), metrics)
+    upstream = resolve_upstream(config.upstream, config.upstream_timeout_s)
+    forward = _Forward(upstream, metrics, config.security.nack_type)
 
     async def healthz(_: Request) -> Response:
         return JSONResponse({"status": "ok", "time": time.time()})
@@ -691,6 +769,7 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
             Route("/healthz", healthz, methods=["GET"]),
             Route("/readyz", readyz, methods=["GET"]),
             Route("/metrics", metrics.endpoint, methods=["GET"]),
+            *status_routes(receiver, metrics.registry, readiness),  # GET /, GET /status.json
         ],
         lifespan=lifespan,
         middleware=[Middleware(Guard, config=config, receiver=receiver, metrics=metrics)],
@@ -704,16 +783,10 @@ class _Forward:
     """The gateway's ``POST /v1/messages`` behind its :class:`Guard` (a raw ASGI app: no
     Request object): the upstream's answer with the ACK, or the ACK alone."""
 
-    def __init__(self, upstream: Upstream | None, metrics: Metrics) -> None:
-        self.upstream, self.metrics = upstream, metrics
+    def __init__(self, upstream: Upstream | None, metrics: Metrics, nack_type: int) -> None:
+        self.upstream, self.metrics, self.nack_type = upstream, metrics, nack_type
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         verified: Verified = scope["state"]["antireplay"]
-        if self.upstream is None:
-            return await _answer(send, 200, verified.ack)
-        try:
-            status, result = await self.upstream(verified)
-        except Exception as exc:
-            self.metrics.upstream_errors.inc()
-            return await _answer(send, 502, {**verified.ack, "upstream_error": type(exc).__name__})
-        return await _answer(send, status, {**verified.ack, "result": result})
+        status, answer = await _forward(self.upstream, verified, self.metrics, self.nack_type)
+        await _answer(send, status, answer)

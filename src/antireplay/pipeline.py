@@ -11,12 +11,16 @@ away before any cryptography:
    messages accepted with a warning never enter it, so
    a fresh duplicate ESTOP still takes steps 1-7 and
    keeps its exemption; a forgotten copy takes the full
-   path and is refused at step 3
+   path and is refused at step 3, and so does a copy of
+   a message that declared ``qos`` >= 1 (its retry is
+   decided there)
 1. parse the envelope (size, depth, schema)              -> INVALID_ENVELOPE 400
 2. check the RCAN version                                -> VERSION_INCOMPATIBLE 426
 3. replay check: freshness + msg_id seen-set, the       -> MESSAGE_STALE 408 /
    store's fence and watermark                              REPLAY_DETECTED 409
-   (:meth:`ReplayCache.check`, records nothing)
+   (:meth:`ReplayCache.check`, records nothing);            or the original answer
+   REPLAY_DETECTED for a QoS retransmission: the            (``Outcome.retry``)
+   retry rule below, no crypto
 4. JWT, if configured or presented (an unsigned or      -> AUTH_FAILED 401
    unknown-key envelope gets its own code, as at 5)
 5. signature over the canonical envelope                 -> SIGNATURE_REQUIRED /
@@ -42,6 +46,23 @@ audited.  What is SAFETY/ESTOP is decided by
 into an exempt ESTOP.  An SDK-signed message's unsigned ``qos`` hint is removed
 from the accepted envelope (nothing unsigned is forwarded).
 
+QoS retries (:mod:`antireplay.answers`).  A message that declares ``qos`` >= 1
+and is refused ``REPLAY_DETECTED`` (step 3, or step 7 when two copies raced) is a
+*retransmission* when a digest of its authenticated content (signed bytes,
+signature alg, kid and value) equals the one kept for its msg_id when that
+message was accepted here: the same bytes under the same signature as a message
+verified here, so no second signature check.  It is answered with the original
+answer (:attr:`Outcome.retry`: same status and body, ``"duplicate": true``, header
+``rcan-duplicate: true``), audited as ``REPLAY_DETECTED`` with warning
+``QOS_RETRY`` under the original's verified sender, counted (``stats.retries``),
+and never executed or forwarded again.  The transport hands every accepted
+outcome's answer to :meth:`Receiver.hold_answer` (also an upstream failure's 502);
+until then the original is *in flight*: :meth:`Receiver.receive_async` waits for it
+on the loop (at most ``answer_wait_s``, no thread held), :meth:`Receiver.receive`
+refuses at once.  No qos, other content, no held answer (evicted, too large,
+restarted, another replica, none in time): ``REPLAY_DETECTED`` 409 as before.  An
+ESTOP is never held: its fresh duplicate is processed (the invariant above).
+
 Every rejection becomes an :class:`Outcome` carrying the code, the HTTP status
 and the COMMAND_NACK (type 18, or 31 with ``nack_type: 31``); nothing raises out
 of ``receive``.  The audit trail always gets accepted messages and every
@@ -62,11 +83,12 @@ from __future__ import annotations
 import asyncio
 import threading
 from collections import Counter
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
+from antireplay.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer, digest
 from antireplay.audit import AuditLog, sanitize
 from antireplay.auth import JwtVerifier, KeyRegistry, Signer
 from antireplay.clock import Clock, resolve
@@ -112,6 +134,10 @@ class Outcome:
     signer: Signer | None = None
     error: ReplayAttackError | None = None
     nack_type: int = 18
+    #: A QoS retransmission's answer: the original's, marked duplicate; the transport sends
+    #: it as is (the outcome is not accepted: nothing runs again; ``status`` and ``nack``
+    #: say 409 ``REPLAY_DETECTED``, detail ``QOS_RETRY``).  ``None`` normally.
+    retry: HeldAnswer | None = None
 
     @property
     def nack(self) -> dict[str, Any] | None:
@@ -134,8 +160,9 @@ class Pending:
     #: The queued audit row (``None``: nothing to wait for: no trail, or not audited);
     #: an asyncio future when an event loop queued it (:meth:`Receiver.reject_known_copy`).
     audit: Future[int] | asyncio.Future[int] | None = None
-    #: An accepted body and its expiry, remembered as a known copy once audited.
-    memo: tuple[bytes, float] | None = None
+    #: An accepted body, its expiry and whether it declared ``qos`` >= 1, remembered as a
+    #: known copy once audited.
+    memo: tuple[bytes, float, bool] | None = None
 
 
 #: Runs ``fn(*args)`` in a thread; the event loop awaits the result.
@@ -167,6 +194,7 @@ class _Copy:
     msg_id: str | None
     type: int  # the type the policy applied (envelope.safety_class)
     sender: str | None
+    qos: bool  # declared qos >= 1: a copy goes on to step 3, where its retry is decided
 
 
 @dataclass
@@ -179,6 +207,8 @@ class Stats:
     unaudited: int = 0
     audit_failures: int = 0
     losses: int = 0
+    #: QoS retransmissions answered with their original answer (also in ``rejected``).
+    retries: int = 0
 
 
 class Receiver:
@@ -210,6 +240,9 @@ class Receiver:
         self.versions = versions
         self.stats = Stats()
         self._copies: dict[int, _Copy] = {}
+        self.answers = AnswerMemo(config.msg_id_cache_size)
+        #: How long an event loop waits for the answer of an original still in flight.
+        self.answer_wait_s = 5.0
         self._bucket = TokenBucket(invalid_audit_per_s, self.clock)
         reason = getattr(self.cache.store, "loss_reason", None)
         if reason is not None:  # noticed while the store opened (a lost or rolled-back file)
@@ -228,14 +261,20 @@ class Receiver:
         if copy is not None:
             return self._reject_copy(copy)
         env, signer, error = self._authenticate(raw, headers)
-        if error is not None:
-            return self._reject(error, env, signer)
-        assert env is not None and signer is not None
-        try:
-            verdict = self.cache.commit(env.msg_id, env.seconds, *safety_class(env))
-        except ReplayAttackError as exc:
-            return self._reject(exc, env, signer)
-        return self._accept(raw, env, signer, verdict)
+        if error is None:
+            assert env is not None and signer is not None
+            try:
+                verdict = self.cache.commit(env.msg_id, env.seconds, *safety_class(env))
+            except ReplayAttackError as exc:
+                error = exc
+            else:
+                return self._accept(raw, env, signer, verdict)
+        entry, error = self._retry_entry(error, env)
+        if entry is not None and entry.answer is not None:
+            return self._answer_retry(entry, entry.answer, env)
+        if entry is not None:  # in flight: only an event loop waits (receive_async)
+            error = _not_held("original answer not held here yet (still in flight)")
+        return self._reject(error, env, signer)
 
     async def receive_async(
         self, raw: bytes, headers: Mapping[str, str] | None = None, offload: Offload | None = None
@@ -269,7 +308,7 @@ class Receiver:
         run = offload or _default_offload
         env, signer, error = await run(self._authenticate, raw, headers)
         if error is not None:
-            return self._reject(error, env, signer, on_loop=True)
+            return await self._reject_async(error, env, signer)
         assert env is not None and signer is not None
         cache = self.cache
         try:
@@ -286,8 +325,61 @@ class Receiver:
                 seen = exc
             verdict = cache.finish_commit(plan, now, seen)
         except ReplayAttackError as exc:
-            return self._reject(exc, env, signer, on_loop=True)
+            return await self._reject_async(exc, env, signer)
         return self._accept(raw, env, signer, verdict, on_loop=True)
+
+    async def _reject_async(
+        self, error: ReplayAttackError, env: Envelope | None, signer: Signer | None
+    ) -> Pending:
+        """The refusal, or a QoS retransmission's original answer, awaited on the loop
+        while the original is still in flight (at most ``answer_wait_s``)."""
+        entry, error = self._retry_entry(error, env)
+        if entry is not None:
+            held = await self.answers.wait(entry, self.answer_wait_s)
+            if held is not None:
+                return self._answer_retry(entry, held, env, on_loop=True)
+            error = _not_held("original answer not held here (none arrived in time)")
+        return self._reject(error, env, signer, on_loop=True)
+
+    def _retry_entry(
+        self, error: ReplayAttackError, env: Envelope | None
+    ) -> tuple[Entry | None, ReplayAttackError]:
+        """For a ``REPLAY_DETECTED`` message that declares ``qos`` >= 1 and carries the
+        same authenticated content as the message accepted under its msg_id: that
+        message's answer entry (held or in flight; no signature check, answers.py).
+        Otherwise ``None`` and the refusal to send."""
+        if error.code != Code.REPLAY_DETECTED or env is None or env.qos < 1:
+            return None, error
+        entry = self.answers.find(env, self.clock.wall())
+        return entry, error if entry is not None else _not_held("original answer not held here")
+
+    def hold_answer(
+        self,
+        outcome: Outcome,
+        status: int,
+        headers: Iterable[tuple[str, str]],
+        body: bytes,
+    ) -> None:
+        """Keep the answer a transport produced for an accepted message (also an upstream
+        failure's), for its QoS retransmissions; call it before sending the answer.  A
+        no-op unless the message declared ``qos`` >= 1 (answers.py bounds what is kept)."""
+        env = outcome.envelope
+        if outcome.accepted and env is not None and type(env.msg_id) is str:
+            self.answers.hold(env.msg_id, status, headers, body)
+
+    def _answer_retry(
+        self, entry: Entry, held: HeldAnswer, env: Envelope | None, *, on_loop: bool = False
+    ) -> Pending:
+        """A QoS retransmission: the original answer, audited as a refused replay
+        (``REPLAY_DETECTED``, warning ``QOS_RETRY``) by the original's verified signer."""
+        exc = ReplayDetectedError(
+            "QoS retransmission: the original answer, not executed again", detail=QOS_RETRY
+        )
+        outcome = self._outcome(exc, env, entry.signer, None)
+        outcome.retry = held  # status, nack: still 409, what a retry-unaware transport sends
+        self.stats.rejected[exc.code] += 1
+        self.stats.retries += 1
+        return self._queue_audit(Pending(outcome), on_loop=on_loop)
 
     def _authenticate(
         self, raw: bytes, headers: Mapping[str, str] | None
@@ -311,14 +403,20 @@ class Receiver:
     def _accept(
         self, raw: bytes, env: Envelope, signer: Signer, verdict: Verdict, *, on_loop: bool = False
     ) -> Pending:
+        memo = verdict.warning is None and not verdict.estop
+        qos = env.qos >= 1  # declared (an SDK signer's is stripped below)
+        if memo and qos:  # its retransmissions get the answer the transport holds
+            found = digest(env, signer.subset)
+            if found is not None:
+                entry = Entry(found, signer.subset, verdict.expires_at, signer)
+                self.answers.expect(env.msg_id, entry, self.clock.wall())
         if signer.subset:
             env = without_delivery_hints(env)  # unsigned: never forwarded
         outcome = Outcome(
             True, 200, warning=verdict.warning, msg_id=sanitize(env.msg_id), envelope=env,
             signer=signer,
         )  # fmt: skip
-        memo = verdict.warning is None and not verdict.estop
-        pending = Pending(outcome, memo=(raw, verdict.expires_at) if memo else None)
+        pending = Pending(outcome, memo=(raw, verdict.expires_at, qos) if memo else None)
         return self._queue_audit(pending, on_loop=on_loop)
 
     def settle(self, pending: Pending, failure: BaseException | None) -> Outcome:
@@ -331,6 +429,8 @@ class Receiver:
             if outcome.accepted:
                 # Nothing accepted may be missing from the audit trail: refuse to act on it.
                 # Its msg_id is spent; the sender resends with a new one once the disk is back.
+                if outcome.envelope is not None and type(outcome.envelope.msg_id) is str:
+                    self.answers.drop(outcome.envelope.msg_id)  # no answer to hold
                 exc = StateUnavailableError(f"audit trail unavailable: {failure}")
                 refusal = self._reject(exc, outcome.envelope, outcome.signer)
                 return self.settle(refusal, _wait(refusal.audit))
@@ -343,24 +443,28 @@ class Receiver:
                 self._remember_copy(*pending.memo, outcome.envelope)
         return outcome
 
-    def _remember_copy(self, raw: bytes, expires_at: float, env: Envelope) -> None:
+    def _remember_copy(self, raw: bytes, expires_at: float, qos: bool, env: Envelope) -> None:
         """Memo of accepted bodies: a byte-identical copy is a replay, known before parsing.
 
         Only authenticated, accepted, non-ESTOP messages enter it (a fresh duplicate ESTOP
         must still be processed), keyed by Python's keyed SipHash of the body plus its
         length; it is bounded (oldest forgotten first) and forgetting only means the copy
-        takes the full path, where the window rejects it as before.
+        takes the full path, where the window rejects it as before.  A copy of a message
+        that declared ``qos`` >= 1 is not refused here: it goes on to step 3, where the
+        retry rule is decided (one decision point; a parse, no crypto).
         """
         copies = self._copies
         if len(copies) >= self.config.msg_id_cache_size:
             copies.pop(next(iter(copies)), None)
         msg_type = safety_class(env)[0]
-        copies[hash(raw)] = _Copy(len(raw), expires_at, sanitize(env.msg_id), msg_type, env.sender)
+        copies[hash(raw)] = _Copy(
+            len(raw), expires_at, sanitize(env.msg_id), msg_type, env.sender, qos
+        )
 
     def _known_copy(self, raw: bytes) -> _Copy | None:
         copy = self._copies.get(hash(raw)) if type(raw) is bytes else None
         if copy is not None and copy.length == len(raw) and copy.expires_at >= self.clock.wall():
-            return copy
+            return None if copy.qos else copy
         return None
 
     def _reject_copy(self, copy: _Copy) -> Pending:
@@ -495,6 +599,10 @@ class Receiver:
             "sender_verified": signer is not None,
             "msg_id": outcome.msg_id,
         }
+
+
+def _not_held(why: str) -> ReplayDetectedError:
+    return ReplayDetectedError(f"msg_id already accepted; {why}")
 
 
 def _bearer(headers: Mapping[str, str]) -> str | None:

@@ -20,6 +20,9 @@ code the tests and benchmarks exercise:
   taking its lease), returning the fence and watermark.
 * ``status()``: figures for ``/metrics`` (entries, watermark, fence,
   evictions, data-loss events).
+* ``ready()``: raise ``STATE_UNAVAILABLE`` unless a commit could go through
+  now (``/readyz``); records nothing, so it never notices a loss in place of
+  the commit that fences and audits it.
 
 Every :class:`~antireplay.window.Seen` carries the store's **watermark** and
 **fence** as of that operation:
@@ -77,6 +80,9 @@ class ReplayStore(Protocol):
     def current(self, key: str) -> int | None: ...
 
     def status(self) -> dict[str, float]: ...
+
+    def ready(self) -> None:
+        """Raise ``StateUnavailableError`` unless a commit could go through now; records nothing."""
 
     def close(self) -> None: ...
 

@@ -198,5 +198,8 @@ class MemoryStore:
             "data_loss_events": float(self.data_loss_events),
         }
 
+    def ready(self) -> None:
+        """Process memory always takes a commit (a full table refuses per message)."""
+
     def close(self) -> None:
         """Nothing to release."""

@@ -153,7 +153,11 @@ class RedisStore:
         # Refuse to start on an evicting Redis; if it is down now, every script checks the
         # policy again on the first call that reaches it.
         with contextlib.suppress(redis.ConnectionError, redis.TimeoutError):
-            self._check_policy()
+            policy = self._evicting_policy()
+            if policy is not None:
+                raise ConfigError(
+                    "store", self.url, f"a Redis with maxmemory-policy noeviction ({policy})"
+                )
 
     def fence(self) -> float:
         return self._fence
@@ -182,8 +186,7 @@ class RedisStore:
         if reply[0] == -1:
             policy = reply[1].decode() if isinstance(reply[1], bytes) else str(reply[1])
             raise StateUnavailableError(
-                f"redis {self.url} has maxmemory-policy {policy}, which can silently evict "
-                "replay state; set it to noeviction"
+                f"redis {self.url}: {_evicting(policy)}; set it to noeviction"
             )
         return self._seen(reply)
 
@@ -226,19 +229,23 @@ class RedisStore:
     def close(self) -> None:
         self._redis.close()
 
-    def _check_policy(self) -> None:
-        """Refuse a Redis that may evict our keys (``maxmemory-policy`` other than noeviction)."""
+    def ready(self) -> None:
+        """A read of the deployment's meta and the eviction check every commit's script runs
+        (``maxmemory-policy`` changed at run time): what a commit needs, recording nothing."""
+        self._call(lambda: self._redis.exists(self._meta))
+        policy = self._call(self._evicting_policy)
+        if policy is not None:
+            raise StateUnavailableError(f"redis {self.url}: {policy}; set it to noeviction")
+
+    def _evicting_policy(self) -> str | None:
+        """Why a node may evict our keys (``maxmemory-policy`` other than noeviction), or None."""
         info: Any = self._redis.info("memory")
         nodes = info.values() if isinstance(self._redis, redis.cluster.RedisCluster) else [info]
         for node in nodes:
             policy = node.get("maxmemory_policy", "noeviction") if isinstance(node, dict) else None
             if policy is not None and policy != "noeviction":
-                raise ConfigError(
-                    "store",
-                    self.url,
-                    f"a Redis with maxmemory-policy noeviction (this one has {policy}, which "
-                    "can silently evict replay state)",
-                )
+                return _evicting(policy)
+        return None
 
     def _call(self, op: Callable[[], T]) -> T:
         try:
@@ -247,6 +254,10 @@ class RedisStore:
             raise StateUnavailableError(f"redis unreachable: {exc}") from None
         except redis.RedisError as exc:
             raise StateUnavailableError(f"redis error: {exc}") from None
+
+
+def _evicting(policy: str) -> str:
+    return f"maxmemory-policy {policy} can silently evict replay state"
 
 
 def _floor(value: float) -> float:

@@ -51,7 +51,10 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
 Deleting the database *and* its witness is indistinguishable from a new
 deployment; that is the documented way to reset.  Corruption found while
 running answers ``STATE_UNAVAILABLE`` (503; a fresh ESTOP still passes) and
-names the file and the recovery.
+names the file and the recovery; so does a database deleted or replaced while
+running (each write transaction first checks that the path still names the
+file it opened), until the restart that fences.  Readers open the existing file
+only (``mode=rw``): a lookup or a readiness probe never creates a new empty one.
 """
 
 from __future__ import annotations
@@ -166,6 +169,7 @@ class SqliteStore:
         self._clock = resolve(clock)
         self._lock = threading.Lock()
         self._db = self._open(timeout_s)
+        self._file = _identity(self.path)
         self._deployment = ""
         self._generation = 0
         self._wall_hw = _FLOOR
@@ -253,6 +257,7 @@ class SqliteStore:
         process's view moves only after COMMIT succeeded.  A failed COMMIT (a full disk)
         puts the witness back to the committed generation, so it is not mistaken for a
         rollback later; the original error is raised, not the ROLLBACK's."""
+        self._same_file()
         db = self._db
         db.execute("BEGIN IMMEDIATE")
         written = False
@@ -280,6 +285,20 @@ class SqliteStore:
         self.data_loss_events = losses
         return result
 
+    def _same_file(self) -> None:
+        """Refuse to write once the file was deleted or replaced under this process: the
+        writer would keep recording into a file nobody can open again (the restart that
+        follows fences what it held, from the witness)."""
+        try:
+            found = _identity(self.path)
+        except FileNotFoundError:
+            found = None
+        if found != self._file:
+            raise StateUnavailableError(
+                f"sqlite {self.path}: the state file was deleted or replaced while running; "
+                "restart (the restart fences what the lost file held)"
+            )
+
     def fence(self) -> float:
         return self._fence
 
@@ -306,13 +325,37 @@ class SqliteStore:
         try:
             db = self._readers.get_nowait()
         except queue.Empty:
-            db = self._run(
-                lambda: sqlite3.connect(self.path, timeout=self._timeout_s, check_same_thread=False)
-            )
+            db = self._run(lambda: self._connect(self._timeout_s))
         try:
             return self._run(lambda: query(db))
         finally:
             self._readers.put(db)
+
+    def _connect(self, timeout_s: float) -> sqlite3.Connection:
+        """Another connection to the existing file (``mode=rw``): a deleted file is an error
+        (``STATE_UNAVAILABLE``), never a new empty database made behind the writer's back."""
+        uri = f"{self.path.resolve().as_uri()}?mode=rw"
+        return sqlite3.connect(uri, uri=True, timeout=timeout_s, check_same_thread=False)
+
+    def ready(self) -> None:
+        """What a commit needs, recording nothing: the file is still there with its meta row
+        and its write lock can be taken within a second (``BEGIN IMMEDIATE``, then
+        ``ROLLBACK``), on a connection of its own."""
+
+        def probe() -> None:
+            self._same_file()
+            db = self._connect(min(self._timeout_s, 1.0))
+            try:
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    if db.execute("SELECT generation FROM meta").fetchone() is None:
+                        raise sqlite3.DatabaseError("no meta row (replaced or truncated)")
+                finally:
+                    db.execute("ROLLBACK")
+            finally:
+                db.close()
+
+        self._run(probe)
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         """Queue the record for the next group commit; return once it is durable."""
@@ -456,6 +499,12 @@ class SqliteStore:
             raise StateUnavailableError(f"sqlite {self.path}: {exc}") from None
         except OSError as exc:
             raise StateUnavailableError(f"sqlite witness {self.witness.path}: {exc}") from None
+
+
+def _identity(path: Path) -> tuple[int, int]:
+    """Which file ``path`` names now (device, inode)."""
+    found = path.stat()
+    return found.st_dev, found.st_ino
 
 
 def check_readable(path: str | Path) -> None:
