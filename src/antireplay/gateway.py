@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import importlib
 import inspect
 import queue
@@ -118,10 +119,18 @@ class Verified:
 
     def headers(self) -> list[tuple[str, str]]:
         """The signer as request headers (``SIGNER_HEADERS``), every value sanitized."""
-        signer = self.signer
-        scopes = ",".join(sorted(sanitize(scope) or "" for scope in signer.scopes))
-        values = (sanitize(signer.owner), sanitize(signer.kid), scopes, self.msg_id)
-        return [(name, value or "") for name, value in zip(SIGNER_HEADERS, values, strict=True)]
+        owner, kid, scopes = _signer_values(self.signer)
+        return [
+            *zip(SIGNER_HEADERS, (owner, kid, scopes), strict=False),
+            (SIGNER_HEADERS[3], self.msg_id or ""),
+        ]
+
+
+@functools.lru_cache(maxsize=256)
+def _signer_values(signer: Signer) -> tuple[str, str, str]:
+    """Owner, kid and sorted scopes, sanitized (a few keys sign everything: cached)."""
+    scopes = ",".join(sorted(sanitize(scope) or "" for scope in signer.scopes))
+    return sanitize(signer.owner) or "", sanitize(signer.kid) or "", scopes
 
 
 Upstream = Callable[[Verified], Awaitable[tuple[int, Any]]]
@@ -448,10 +457,13 @@ class Guard(_Checkpoint):
         clock: Clock | None = None,
         receiver: Receiver | None = None,
         metrics: Metrics | None = None,
+        accepted: ASGIApp | None = None,
     ) -> None:
         super().__init__(config, clock=clock, receiver=receiver, metrics=metrics)
         self.app = app
         self.paths = frozenset(paths)
+        #: Where an accepted message goes (default ``app``; the gateway: its forwarder).
+        self.accepted = app if accepted is None else accepted
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -482,7 +494,7 @@ class Guard(_Checkpoint):
             sent.append(message)
 
         try:
-            await self.app(inner, _replay(body, receive), keep)
+            await self.accepted(inner, _replay(body, receive), keep)
         finally:
             start = next((m for m in sent if m["type"] == "http.response.start"), None)
             answer = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
@@ -772,7 +784,9 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
             *status_routes(receiver, metrics.registry, readiness),  # GET /, GET /status.json
         ],
         lifespan=lifespan,
-        middleware=[Middleware(Guard, config=config, receiver=receiver, metrics=metrics)],
+        middleware=[
+            Middleware(Guard, receiver=receiver, metrics=metrics, accepted=forward)
+        ],  # an accepted message goes straight to the forwarder (no routing on the hot path)
     )
     app.state.receiver = receiver
     app.state.metrics = metrics
