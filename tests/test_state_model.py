@@ -156,13 +156,15 @@ class StoreVsModel(RuleBasedStateMachine):
         now = self.clock.wall()
         expected = self.model.decide(mid, ts, kind, now)
         exact = (mid, ts, kind[0], kind[1]) in self.model.exact
+        noticed = self.store.status().get("data_loss_events", 0)
         try:
             verdict = self.cache.commit(mid, ts, kind[0], kind[1])
         except StateUnavailableError as exc:
             raise AssertionError(f"the store was unreachable outside a restart: {exc}") from None
         except ReplayAttackError as exc:
-            if expected not in {"stale", "future"}:  # the commit reached the store
-                self.pending_loss = False
+            # Told only if the commit reached the store: a refusal by the fence this process
+            # already knows (or by staleness) never does.
+            self.pending_loss &= self.store.status().get("data_loss_events", 0) == noticed
             self.refused(expected, exc, (mid, ts, kind[0], kind[1]), now)
             return
         self.pending_loss = False
