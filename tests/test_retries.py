@@ -266,7 +266,8 @@ def test_the_memo_is_bounded_forgets_expired_entries_and_marks_the_answer() -> N
     for name in ("a", "b", "c"):
         small.expect(name, Entry(b"d", False, NOW + 30, signer), NOW)
     assert len(small) == 2
-    held = HeldAnswer(200, (("rcan-duplicate", "true"),), b'{"status":"ok","duplicate":true}')
+    marker = b'{"status": "ok","duplicate":true}'  # the original's bytes, the key inserted
+    held = HeldAnswer(200, (("rcan-duplicate", "true"),), marker)
     assert marked(200, [("rcan-duplicate", "true")], body) == held
     assert marked(502, (), b"not json").body == b"not json"
 

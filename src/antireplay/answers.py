@@ -11,7 +11,8 @@ again; if its answer was lost on the way back, the sender still needs it.
 ``qos`` >= 1, a :func:`digest` of its authenticated content (the signed bytes, the
 signature's ``alg``, ``kid`` and value), its window expiry, the :class:`Signer`
 that verified it and, once the transport produced it, the answer (status, headers,
-body, already marked ``"duplicate": true`` and ``rcan-duplicate: true``).  A copy
+body, already marked: ``"duplicate": true`` inserted into a JSON object body, its
+other bytes untouched, and the header ``rcan-duplicate: true``).  A copy
 whose digest equals the held one carries the same bytes under the same signature
 as a message verified here, so it is exactly as authentic, with no second
 signature check; it gets the held answer, which was on the wire already.
@@ -32,10 +33,11 @@ import asyncio
 import contextlib
 import hashlib
 import hmac
-import json
 import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+
+import msgspec
 
 from antireplay.auth import Signer
 from antireplay.envelope import Envelope, canonical_bytes, sdk_signed_bytes
@@ -79,14 +81,18 @@ def digest(env: Envelope, subset: bool) -> bytes | None:
 
 
 def marked(status: int, headers: Iterable[tuple[str, str]], body: bytes) -> HeldAnswer:
-    """The answer as a retransmission gets it: ``"duplicate": true`` in a JSON object body,
-    and the ``rcan-duplicate: true`` header."""
+    """The answer as a retransmission gets it: ``"duplicate": true`` inserted as the last
+    key of a JSON object body (every other byte as the original; not re-encoded), and the
+    ``rcan-duplicate: true`` header (all a non-JSON body gets)."""
     try:
-        content = json.loads(body)
-    except ValueError:
+        content = msgspec.json.decode(body)
+    except msgspec.DecodeError:
         content = None
-    if isinstance(content, dict):
-        body = json.dumps({**content, "duplicate": True}, separators=(",", ":")).encode()
+    if isinstance(content, dict) and content.get("duplicate") is not True:
+        end = body.rstrip()
+        inner = end[:-1].rstrip()  # a JSON object ends with "}"
+        separator = b"" if inner.endswith(b"{") else b","
+        body = inner + separator + b'"duplicate":true}' + body[len(end) :]
     kept = tuple((k, v) for k, v in headers if k.lower() != DUPLICATE_HEADER[0])
     return HeldAnswer(status, (*kept, DUPLICATE_HEADER), body)
 
@@ -164,6 +170,12 @@ class AnswerMemo:
             self._bytes += len(answer.body)
             while self._bytes > MAX_TOTAL:
                 self._drop_locked(next(iter(self._entries)))
+
+    def in_flight(self, msg_id: str) -> bool:
+        """Whether ``msg_id`` waits for its answer here (accepted with ``qos`` >= 1)."""
+        with self._lock:
+            entry = self._entries.get(msg_id)
+            return entry is not None and entry.answer is None
 
     def drop(self, msg_id: str) -> None:
         """Forget ``msg_id`` (its accept was refused after all); waiters get ``None``."""

@@ -363,12 +363,13 @@ class StateUnavailableError(ReplayAttackError):
 class UpstreamFailedError(ReplayAttackError):
     """An accepted message's upstream call failed.  Its msg_id stays spent (the upstream
     may have acted before failing); ``delivered`` says ``"no"`` (the upstream was never
-    reached: nothing ran) or ``"unknown"`` (sent, then failed or timed out: it may have
-    run).  The sender repeats the action, if it still wants it, under a new msg_id."""
+    reached: nothing ran), ``"unknown"`` (sent, then failed or timed out: it may have
+    run) or ``"yes"`` (it answered with an HTTP error status).  The sender repeats the
+    action, if it still wants it, under a new msg_id."""
 
     code = Code.UPSTREAM_FAILED
 
-    def __init__(self, failure: str, *, delivered: Literal["no", "unknown"]) -> None:
+    def __init__(self, failure: str, *, delivered: Literal["no", "unknown", "yes"]) -> None:
         self.delivered = delivered
         super().__init__(
             f"upstream failed ({failure}); delivered: {self.delivered}; this msg_id is spent,"
@@ -377,7 +378,7 @@ class UpstreamFailedError(ReplayAttackError):
         )
 
     def to_nack(self, msg_id: str | None, *, nack_type: int = NACK_TYPE_CURRENT) -> dict[str, Any]:
-        """The COMMAND_NACK, plus ``delivered`` (``"no"`` or ``"unknown"``)."""
+        """The COMMAND_NACK, plus ``delivered`` (``"no"``, ``"unknown"`` or ``"yes"``)."""
         return {**super().to_nack(msg_id, nack_type=nack_type), "delivered": self.delivered}
 
 

@@ -64,15 +64,17 @@ from cryptography.hazmat.primitives.asymmetric import ed25519
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
+from starlette._utils import get_route_path
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException
 from starlette.middleware import Middleware
 from starlette.requests import ClientDisconnect, Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from antireplay.answers import HeldAnswer
+from antireplay.answers import MAX_BODY, HeldAnswer
 from antireplay.audit import AuditLog, sanitize
 from antireplay.auth import Signer, write_key_pair
 from antireplay.clock import Clock, resolve
@@ -99,10 +101,19 @@ LATENCY_BUCKETS = (
     1.0, 2.5, float("inf"),
 )  # fmt: skip
 _encode_json = msgspec.json.Encoder().encode
+#: ``scope["state"]`` key of the accepted message's :class:`Outcome` (its audit context).
+_OUTCOME = "antireplay.outcome"
 _decode_json = msgspec.json.decode
 #: Request headers only the guard sets (the verified signer); a client's copies are dropped.
 SIGNER_HEADERS = ("rcan-signer-owner", "rcan-signer-kid", "rcan-signer-scopes", "rcan-msg-id")
 _SIGNER_HEADERS = frozenset(name.encode() for name in SIGNER_HEADERS)
+#: Response headers a held answer does not keep (per connection, or recomputed on resend).
+_HOP_BY_HOP = frozenset({
+    b"connection", b"keep-alive", b"proxy-authenticate", b"proxy-authorization", b"te",
+    b"trailer", b"transfer-encoding", b"upgrade", b"content-length",
+})  # fmt: skip
+#: How much longer than the upstream budget a QoS retry waits for its original's answer.
+ANSWER_SLACK_S = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -159,8 +170,10 @@ def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
 
 def resolve_upstream(spec: str | None, timeout_s: float) -> Upstream | None:
     """``http(s)://…`` → POST via httpx, the signer in ``SIGNER_HEADERS``; ``module:function``
-    → call it with the envelope (and the :class:`Signer` if it takes a second parameter);
-    None → answer locally."""
+    → call it with the envelope (and the :class:`Signer` if its second parameter is named
+    ``signer`` or annotated :class:`Signer`); None → answer locally.  The result is
+    ``(status, body)``; ``_NO_BODY`` is an HTTP answer without a body (1xx, 204, 304).
+    :func:`_forward` bounds the whole call by ``upstream_timeout_s``."""
     if spec is None:
         return None
     if spec.startswith(("http://", "https://")):
@@ -169,6 +182,8 @@ def resolve_upstream(spec: str | None, timeout_s: float) -> Upstream | None:
         async def post(verified: Verified) -> tuple[int, Any]:
             # A request of our own: nothing the client sent but the verified envelope.
             reply = await client.post(spec, json=verified.envelope, headers=verified.headers())
+            if not reply.content:
+                return reply.status_code, _NO_BODY
             try:
                 return reply.status_code, reply.json()
             except ValueError:
@@ -190,38 +205,59 @@ def resolve_upstream(spec: str | None, timeout_s: float) -> Upstream | None:
     return call
 
 
+#: An HTTP upstream's answer without a body (1xx, 204, 304): the client gets 200 and the ACK.
+_NO_BODY = object()
+
+
 def _takes_two(func: Callable[..., Any]) -> bool:
-    """Whether ``func`` accepts a second positional argument (``handle(envelope, signer)``)."""
+    """Whether ``func`` takes the :class:`Signer` second: its second positional parameter is
+    named ``signer`` or annotated ``Signer`` (``handle(envelope, retries=3)`` is not)."""
     try:
-        params = inspect.signature(func).parameters.values()
+        params = list(inspect.signature(func).parameters.values())
     except (TypeError, ValueError):  # no signature to read: called as before
         return False
-    kinds = [p.kind for p in params]
     positional = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
-    return sum(k in positional for k in kinds) >= 2 or inspect.Parameter.VAR_POSITIONAL in kinds
+    second = [p for p in params if p.kind in positional][1:2]
+    if not second:
+        return False
+    annotation = second[0].annotation
+    named = annotation is Signer or (
+        isinstance(annotation, str) and annotation.rsplit(".", 1)[-1] == "Signer"
+    )
+    return second[0].name == "signer" or named
 
 
 async def _forward(
-    upstream: Upstream | None, verified: Verified, metrics: Metrics, nack_type: int
-) -> tuple[int, dict[str, Any]]:
-    """The answer to an accepted message: its COMMAND_ACK (readable by the rcan SDK) with
-    the upstream's result, or 502 ``UPSTREAM_FAILED`` (the msg_id stays spent: README
-    "Threat model")."""
+    upstream: Upstream | None, verified: Verified, nack_type: int, timeout_s: float
+) -> tuple[int, bytes, UpstreamFailedError | None]:
+    """The answer to an accepted message (status, JSON bytes): its COMMAND_ACK (readable by
+    the rcan SDK) with the upstream's result, or a COMMAND_NACK ``UPSTREAM_FAILED`` (the
+    msg_id stays spent: README "Threat model"): 502 when the call failed, timed out (the
+    whole call, ``timeout_s``) or its result is not JSON; the upstream's own status when it
+    answered >= 400 (``delivered: "yes"``, its body in ``result``)."""
     answer = verified.ack
     if upstream is None:
-        return 200, answer
+        return 200, _encode_json(answer), None
     try:
-        status, result = await upstream(verified)
+        status, result = await asyncio.wait_for(upstream(verified), timeout_s)
+        if status >= 400:
+            error = UpstreamFailedError(f"HTTP {status}", delivered="yes")
+            nack = error.to_nack(verified.msg_id, nack_type=nack_type)
+            relayed = None if result is _NO_BODY else result
+            body = _encode_json({**nack, "upstream_status": status, "result": relayed})
+            return status, body, error
+        if result is _NO_BODY:  # 1xx/204/304: nothing to relay but that it answered
+            return 200, _encode_json({**answer, "upstream_status": status}), None
+        return status, _encode_json({**answer, "result": result}), None
     except Exception as exc:
-        metrics.upstream_errors.inc()
-        failed = UpstreamFailedError(type(exc).__name__, delivered=_delivered(exc))
-        return 502, failed.to_nack(verified.msg_id, nack_type=nack_type)
-    return status, {**answer, "result": result}
+        error = UpstreamFailedError(type(exc).__name__, delivered=_delivered(exc))
+        return 502, _encode_json(error.to_nack(verified.msg_id, nack_type=nack_type)), error
 
 
 def _delivered(exc: Exception) -> Literal["no", "unknown"]:
     """Whether a failed upstream call reached the upstream: ``"no"`` when no connection was
-    made (nothing was sent), else ``"unknown"`` (sent, then failed or timed out)."""
+    made (nothing was sent), else ``"unknown"`` (sent, then failed, timed out, or answered
+    what cannot be encoded)."""
     unsent = (httpx.ConnectError, httpx.ConnectTimeout, httpx.PoolTimeout)
     return "no" if isinstance(exc, unsent) else "unknown"
 
@@ -330,16 +366,20 @@ class StateCollector(Collector):
         yield operations
 
 
-class Refused(Exception):  # noqa: N818 - it is the answer, not a failure
+class Refused(HTTPException):
     """A refusal: the COMMAND_NACK and its HTTP status, exactly as the gateway answers them.
-    :class:`RcanGuard` raises it; the handler :meth:`RcanGuard.install` adds answers it."""
+    :class:`RcanGuard` raises it; the handler :meth:`RcanGuard.install` adds answers it
+    with the NACK as the body.  An HTTPException (``detail``: the NACK's JSON text), so
+    without that handler Starlette's or FastAPI's still answers with the typed status."""
 
     def __init__(
         self, status: int, nack: dict[str, Any] | bytes, *, close: bool = False,
         held: HeldAnswer | None = None,
     ) -> None:  # fmt: skip
-        super().__init__(status)
+        body = nack if isinstance(nack, bytes) else _encode_json(nack)
+        super().__init__(status, body.decode("utf-8", "replace"))
         self.status, self.nack, self.close, self.held = status, nack, close, held
+        self.body = body
 
     @classmethod
     def retry(cls, held: HeldAnswer) -> Refused:
@@ -350,11 +390,15 @@ class Refused(Exception):  # noqa: N818 - it is the answer, not a failure
         await _answer(send, self.status, self.nack, self.held, close=self.close)
 
     def response(self) -> Response:
-        headers = dict(self.held.headers) if self.held else {}
-        if self.close:
-            headers["connection"] = "close"
-        body = self.nack if isinstance(self.nack, bytes) else _encode_json(self.nack)
-        return Response(body, self.status, headers=headers, media_type="application/json")
+        if self.held is None:
+            headers = {"connection": "close"} if self.close else {}
+            return Response(self.body, self.status, headers=headers, media_type="application/json")
+        response = Response(self.body, self.status)
+        response.raw_headers = [
+            *_held_headers(self.held),
+            (b"content-length", b"%d" % len(self.body)),
+        ]
+        return response
 
 
 Framing = tuple[bytes | None, bytes | None, bool]
@@ -442,11 +486,14 @@ class Guard(_Checkpoint):
     ``POST`` on one of ``paths`` is checked exactly as ``antireplay serve`` checks it (the
     gateway *is* a Guard around its forwarding app): a refusal is answered here with the
     gateway's NACK and status; an accepted message reaches ``app`` with the canonical
-    envelope as its body, the verified signer in ``SIGNER_HEADERS`` (a client's copies
-    dropped) and ``scope["state"]["antireplay"]``: a :class:`Verified` (Starlette:
-    ``request.state.antireplay``).  Every request with both Content-Length and
-    Transfer-Encoding is refused and closed, on every route (the request-smuggling shape).
-    The hot path builds no Request object.  Lifespan shutdown stops its workers."""
+    envelope as its body, the verified signer in ``SIGNER_HEADERS`` and
+    ``scope["state"]["antireplay"]``: a :class:`Verified` (Starlette:
+    ``request.state.antireplay``); another method on those paths is refused (405).  A
+    client's ``SIGNER_HEADERS`` are dropped from every request, on every route, and so is
+    every request with both Content-Length and Transfer-Encoding (refused and closed: the
+    request-smuggling shape).  The app's answer passes through as it is sent (streaming
+    works); a copy is kept only for a message a QoS retransmission may repeat.  The hot
+    path builds no Request object.  Lifespan shutdown stops its workers."""
 
     def __init__(
         self,
@@ -475,8 +522,17 @@ class Guard(_Checkpoint):
         refused = self.ambiguous(framing)
         if refused is not None:
             return await refused.answer(send)
-        if scope["method"] != "POST" or _route_path(scope) not in self.paths:
+        if any(name.lower() in _SIGNER_HEADERS for name, _ in scope["headers"]):
+            # Only the guard speaks for the signer, on every route: a client's copies go.
+            kept = [(n, v) for n, v in scope["headers"] if n.lower() not in _SIGNER_HEADERS]
+            scope = {**scope, "headers": kept}
+        if _route_path(scope) not in self.paths:
             return await self.app(scope, receive, send)
+        if scope["method"] != "POST":
+            nack = InvalidEnvelopeError("method must be POST").to_nack(
+                None, nack_type=self.nack_type
+            )
+            return await Refused(405, nack).answer(send)
         result = await self.check(scope, receive, framing)
         if isinstance(result, Refused):
             return await result.answer(send)
@@ -484,24 +540,58 @@ class Guard(_Checkpoint):
         inner = {
             **scope,
             "headers": _verified_headers(scope["headers"], verified, len(body)),
-            "state": {**scope.get("state", {}), "antireplay": verified},
+            "state": {**scope.get("state", {}), "antireplay": verified, _OUTCOME: outcome},
         }
-        # Its QoS retransmissions get this answer again: held before it is sent (a no-op
-        # unless the message declared qos >= 1; an SDK signer's hint is already stripped).
-        sent: list[Message] = []
-
-        async def keep(message: Message) -> None:
-            sent.append(message)
-
+        relay, finish = self._holding(outcome, send)
         try:
-            await self.accepted(inner, _replay(body, receive), keep)
+            await self.accepted(inner, _replay(body, receive), relay)
         finally:
-            start = next((m for m in sent if m["type"] == "http.response.start"), None)
-            answer = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
-            if start is not None:
-                self.receiver.hold_answer(outcome, start["status"], (), answer)
-            for message in sent:
-                await send(message)
+            finish()
+
+    def _holding(self, outcome: Outcome, send: Send) -> tuple[Send, Callable[[], None]]:
+        """``send`` passing the answer through as it comes, and copying it (at most
+        ``MAX_BODY`` bytes) only when a QoS retransmission may ask for it (the memo has
+        this message in flight: it declared qos >= 1 when received).  A complete answer is
+        held as the final body message passes; a stream cut short, an app that raised or
+        an answer too large drops the entry (its waiters get 409 at once)."""
+        env = outcome.envelope
+        msg_id = env.msg_id if env is not None and type(env.msg_id) is str else None
+        if msg_id is None or not self.receiver.answers.in_flight(msg_id):
+            return send, _nothing
+        answers = self.receiver.answers
+        start: Message | None = None
+        chunks: list[bytes] = []
+        size = 0
+        copying, complete = True, False
+
+        async def holding(message: Message) -> None:
+            nonlocal start, size, copying, complete
+            if message["type"] == "http.response.start":
+                start = message
+            elif message["type"] == "http.response.body" and copying:
+                chunk = message.get("body", b"")
+                size += len(chunk)
+                if size > MAX_BODY:  # not held: a retry gets 409
+                    copying = False
+                    chunks.clear()
+                    answers.drop(msg_id)
+                else:
+                    chunks.append(chunk)
+                if copying and start is not None and not message.get("more_body", False):
+                    complete = True
+                    headers = [
+                        (k.decode("latin-1"), v.decode("latin-1"))
+                        for k, v in start.get("headers", ())
+                        if k.lower() not in _HOP_BY_HOP
+                    ]
+                    self.receiver.hold_answer(outcome, start["status"], headers, b"".join(chunks))
+            await send(message)
+
+        def finish() -> None:
+            if not complete:
+                answers.drop(msg_id)
+
+        return holding, finish
 
     def _closing(self, send: Send) -> Send:
         async def closing(message: Message) -> None:
@@ -578,6 +668,10 @@ def _verified_headers(
     return kept
 
 
+def _nothing() -> None:
+    """Nothing to settle: the message's answer is not kept."""
+
+
 def _replay(body: bytes, receive: Receive) -> Receive:
     """The application's ``receive``: the canonical body once, then the client's messages."""
     sent = False
@@ -609,22 +703,24 @@ def _streamed(request: Request) -> Receive:
 
 
 def _route_path(scope: Scope) -> str:
-    """The path the router would match (``root_path`` removed, as Starlette does)."""
-    path: str = scope["path"]
-    root: str = scope.get("root_path", "")
-    return path[len(root) :] if root and path.startswith(root) else path
+    """The path the router would match: Starlette's own ``get_route_path``."""
+    return get_route_path(scope)
+
+
+def _held_headers(held: HeldAnswer) -> list[tuple[bytes, bytes]]:
+    return [(k.encode("latin-1"), v.encode("latin-1")) for k, v in held.headers]
 
 
 async def _answer(
     send: Send, status: int, content: object, held: HeldAnswer | None = None, *, close: bool = False
 ) -> None:
-    """One JSON response (``content``, or its encoding as bytes; plus a held answer's
-    headers), sent as two ASGI messages (what JSONResponse sends, cheaper)."""
+    """One response, sent as two ASGI messages (what JSONResponse sends, cheaper): JSON
+    ``content`` (or its encoding as bytes), or a held answer's body under its own headers."""
     body = content if isinstance(content, bytes) else _encode_json(content)
-    headers = [(b"content-type", b"application/json"), (b"content-length", b"%d" % len(body))]
+    headers = _held_headers(held) if held else [(b"content-type", b"application/json")]
+    headers.append((b"content-length", b"%d" % len(body)))
     if close:
         headers.append((b"connection", b"close"))
-    headers += [(k.encode("latin-1"), v.encode("latin-1")) for k, v in held.headers] if held else []
     await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})
 
@@ -755,10 +851,11 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
     """The gateway application for ``config``: a :class:`Guard` in front of an app whose
     ``POST /v1/messages`` forwards what the guard verified (one code path by construction)."""
     receiver = build_receiver(config, clock)
-    receiver.answer_wait_s = config.upstream_timeout_s  # a retry waits for its original
+    # A retry waits for its original while that is still within its upstream budget.
+    receiver.answer_wait_s = config.upstream_timeout_s + ANSWER_SLACK_S
     metrics = Metrics(receiver)
     upstream = resolve_upstream(config.upstream, config.upstream_timeout_s)
-    forward = _Forward(upstream, metrics, config.security.nack_type)
+    forward = _Forward(upstream, metrics, receiver, config.upstream_timeout_s)
 
     async def healthz(_: Request) -> Response:
         return JSONResponse({"status": "ok", "time": time.time()})
@@ -795,12 +892,21 @@ def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
 
 class _Forward:
     """The gateway's ``POST /v1/messages`` behind its :class:`Guard` (a raw ASGI app: no
-    Request object): the upstream's answer with the ACK, or the ACK alone."""
+    Request object): the upstream's answer with the ACK, or the ACK alone; an upstream
+    failure is counted and audited (durable before it is answered)."""
 
-    def __init__(self, upstream: Upstream | None, metrics: Metrics, nack_type: int) -> None:
-        self.upstream, self.metrics, self.nack_type = upstream, metrics, nack_type
+    def __init__(
+        self, upstream: Upstream | None, metrics: Metrics, receiver: Receiver, timeout_s: float
+    ) -> None:
+        self.upstream, self.metrics, self.receiver = upstream, metrics, receiver
+        self.timeout_s = timeout_s
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         verified: Verified = scope["state"]["antireplay"]
-        status, answer = await _forward(self.upstream, verified, self.metrics, self.nack_type)
-        await _answer(send, status, answer)
+        nack_type = self.receiver.config.nack_type
+        status, body, failure = await _forward(self.upstream, verified, nack_type, self.timeout_s)
+        if failure is not None:
+            self.metrics.upstream_errors.inc()
+            outcome: Outcome = scope["state"][_OUTCOME]
+            await self.receiver.record_upstream_failure(outcome, failure)
+        await _answer(send, status, body)

@@ -56,7 +56,8 @@ answer (:attr:`Outcome.retry`: same status and body, ``"duplicate": true``, head
 ``rcan-duplicate: true``), audited as ``REPLAY_DETECTED`` with warning
 ``QOS_RETRY`` under the original's verified sender, counted (``stats.retries``),
 and never executed or forwarded again.  The transport hands every accepted
-outcome's answer to :meth:`Receiver.hold_answer` (also an upstream failure's 502);
+outcome's answer to :meth:`Receiver.hold_answer` (also an upstream failure's NACK,
+audited by :meth:`Receiver.record_upstream_failure`);
 until then the original is *in flight*: :meth:`Receiver.receive_async` waits for it
 on the loop (at most ``answer_wait_s``, no thread held), :meth:`Receiver.receive`
 refuses at once.  No qos, other content, no held answer (evicted, too large,
@@ -366,6 +367,23 @@ class Receiver:
         env = outcome.envelope
         if outcome.accepted and env is not None and type(env.msg_id) is str:
             self.answers.hold(env.msg_id, status, headers, body)
+
+    async def record_upstream_failure(self, outcome: Outcome, error: ReplayAttackError) -> None:
+        """Audit that an accepted message's upstream failed (``UPSTREAM_FAILED``, warning
+        ``delivered=…``, under its verified sender), queued with the other rows and durable
+        before the failure is answered; a row that cannot be written is counted."""
+        failed = Outcome(
+            False, error.http_status, str(error.code), error.reason, msg_id=outcome.msg_id,
+            envelope=outcome.envelope, signer=outcome.signer, error=error,
+            nack_type=self.config.nack_type,
+        )  # fmt: skip
+        audit = self._queue_audit(Pending(failed), on_loop=True).audit
+        if audit is None:
+            return
+        try:
+            await (audit if isinstance(audit, asyncio.Future) else asyncio.wrap_future(audit))
+        except Exception:  # the failure is still answered; the missing row is counted
+            self.stats.audit_failures += 1
 
     def _answer_retry(
         self, entry: Entry, held: HeldAnswer, env: Envelope | None, *, on_loop: bool = False
