@@ -8,6 +8,8 @@ import pytest
 import redis
 
 from antireplay import ManualClock
+from antireplay.status import render
+from tests.test_status import _snapshot_with
 from tests.test_stores import NOW, _assert_fenced, _fresh_deployment, _replicas
 
 
@@ -29,3 +31,13 @@ def test_redis_fence_log_line_prints_a_number(
     shown = lines[0].rsplit("fence raised to ", 1)[1]
     assert "b'" not in shown
     assert float(shown) > NOW
+
+
+def test_status_page_names_what_the_window_refusals_table_counts() -> None:
+    """The table shows the window's refusals (fence and store included), not every replay:
+    a byte-identical copy refused at step 0 is in "Rejected by code" only, so the heading
+    says so instead of claiming "Replay refusals"."""
+    page = render(_snapshot_with("x"), "nonce")
+    assert "Replay refusals by cause" not in page
+    assert "Replay-window refusals by cause" in page
+    assert "byte-identical copies count under Rejected by code only" in page
