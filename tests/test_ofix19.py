@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import logging
 
 import pytest
@@ -9,6 +10,9 @@ import redis
 
 from antireplay import ManualClock
 from antireplay.status import render
+from antireplay.stores import open_store
+from antireplay.stores.sqlite import SqliteStore
+from tests.test_readme import README
 from tests.test_status import _snapshot_with
 from tests.test_stores import NOW, _assert_fenced, _fresh_deployment, _replicas
 
@@ -41,3 +45,12 @@ def test_status_page_names_what_the_window_refusals_table_counts() -> None:
     assert "Replay refusals by cause" not in page
     assert "Replay-window refusals by cause" in page
     assert "byte-identical copies count under Rejected by code only" in page
+
+
+def test_readme_states_the_sqlite_busy_timeout_the_store_uses() -> None:
+    """The README's number for how long a command waits on a locked state file is the
+    store's own default (and open_store passes no other)."""
+    default = inspect.signature(SqliteStore).parameters["timeout_s"].default
+    text = " ".join(README.read_text(encoding="utf-8").split())
+    assert f"SQLite's busy timeout, {default:g} s (fixed: no configuration knob)" in text
+    assert "timeout" not in inspect.getsource(open_store)
