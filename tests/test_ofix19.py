@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import inspect
 import logging
+from pathlib import Path
+from types import SimpleNamespace
+from typing import cast
 
 import pytest
 import redis
 
 from antireplay import ManualClock
-from antireplay.status import render
+from antireplay.audit import AuditLog
+from antireplay.pipeline import Receiver
+from antireplay.status import _audit, render
 from antireplay.stores import open_store
 from antireplay.stores.sqlite import SqliteStore
 from tests.test_readme import README
@@ -54,3 +59,24 @@ def test_readme_states_the_sqlite_busy_timeout_the_store_uses() -> None:
     text = " ".join(README.read_text(encoding="utf-8").split())
     assert f"SQLite's busy timeout, {default:g} s (fixed: no configuration knob)" in text
     assert "timeout" not in inspect.getsource(open_store)
+
+
+def _trail_with_records(path: Path, n: int) -> AuditLog:
+    log = AuditLog(path, clock=ManualClock(wall=NOW))
+    for i in range(n):
+        log.append(at=NOW, outcome="accepted", code=None, warning=None, msg_type=1,
+                   sender="operator", sender_verified=True, msg_id=f"m{i}")  # fmt: skip
+    return log
+
+
+def test_status_says_the_trail_was_deleted_under_the_running_gateway(tmp_path: Path) -> None:
+    """Deleted while serving: the status page speaks of the running gateway, not of a start."""
+    log = _trail_with_records(tmp_path / "audit.db", 1)
+    try:
+        (tmp_path / "audit.db").unlink()
+        said = _audit(cast(Receiver, SimpleNamespace(audit=log)), 5)["error"]
+    finally:
+        log.close()
+    assert "deleted under the running gateway" in said
+    assert "refusing to start" not in said
+    assert "audit reanchor" in said

@@ -409,6 +409,7 @@ class AuditLog:
         self._clock = resolve(clock)
         self._head_synced = self._clock.monotonic()
         self._head_dirty = False
+        self._refuse_deleted_trail()
         self._db = _connect(self.path, read_only=False)
         self._lock = threading.Lock()
         try:
@@ -419,6 +420,26 @@ class AuditLog:
         self._rows, self._head = _last(self._db)  # what this writer knows the chain to be
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
+        )
+
+    def _refuse_deleted_trail(self) -> None:
+        """A head checkpoint without its trail means the trail was deleted: refuse before
+        ``_connect`` would create an empty file in its place (a refused start creates
+        nothing), saying how many records the checkpoint says existed."""
+        if self.path.exists() or not self.anchor.path.exists():
+            return
+        try:
+            checkpoint = self.anchor.read(None)
+        except AuditFileError:
+            checkpoint = None  # unreadable too: still deleted, count unknown
+        held = "records" if checkpoint is None else f"{checkpoint.rows} records"
+        raise AuditFileError(
+            str(self.path),
+            f"deleted: its head checkpoint {self.anchor.path} says the trail held {held}",
+            recovery=(
+                f"restore {self.path} from a backup; or, to start a new trail and keep the "
+                f"evidence, move {self.anchor.path} and {self.anchor.key_path} aside"
+            ),
         )
 
     def _open_anchor(self) -> bytes:

@@ -142,7 +142,15 @@ def _audit(receiver: Receiver, records: int) -> dict[str, Any]:
     path = str(receiver.audit.path)
     try:
         rows = [shown(r) for r in tail(path, records)]
-    except (StateFileError, sqlite3.Error, OSError) as exc:
+    except StateFileError as exc:  # its wording is for a refused start: this one runs
+        error = (
+            f"audit trail {path} deleted under the running gateway: every command is refused "
+            f"(503); stop the gateway and restore the file, or see `antireplay audit reanchor`"
+            if not receiver.audit.path.exists()
+            else f"audit file {exc.path}: {exc.problem}. Recover with: {exc.recovery}"
+        )
+        return {"path": path, "records": [], "error": error}
+    except (sqlite3.Error, OSError) as exc:
         return {"path": path, "records": [], "error": str(exc)}
     return {"path": path, "records": rows[::-1], "error": None}
 
