@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import logging
 from pathlib import Path
@@ -10,9 +11,12 @@ from typing import cast
 
 import pytest
 import redis
+from click.testing import CliRunner, Result
 
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
+from antireplay.cli import main
+from antireplay.errors import AuditFileError
 from antireplay.pipeline import Receiver
 from antireplay.status import _audit, render
 from antireplay.stores import open_store
@@ -69,6 +73,25 @@ def _trail_with_records(path: Path, n: int) -> AuditLog:
     return log
 
 
+@pytest.mark.parametrize("key_too", [False, True], ids=["db", "db-and-key"])
+def test_a_refused_start_on_a_deleted_trail_creates_nothing(tmp_path: Path, key_too: bool) -> None:
+    """``rm audit.db*`` under a running gateway (which rewrites its head afterwards): the next
+    start refuses, says the trail was deleted and how many records the head says it held, and
+    leaves no new empty trail behind for the start after that to adopt."""
+    path = tmp_path / "audit.db"
+    _trail_with_records(path, 3).close()
+    doomed = [path, *tmp_path.glob("audit.db-*")]
+    if key_too:
+        doomed.append(tmp_path / "audit.db.key")
+    for file in doomed:
+        file.unlink()
+    with pytest.raises(AuditFileError) as err:
+        AuditLog(path)
+    assert "deleted" in err.value.problem
+    assert "held 3 records" in err.value.problem
+    assert not path.exists()
+
+
 def test_status_says_the_trail_was_deleted_under_the_running_gateway(tmp_path: Path) -> None:
     """Deleted while serving: the status page speaks of the running gateway, not of a start."""
     log = _trail_with_records(tmp_path / "audit.db", 1)
@@ -80,3 +103,29 @@ def test_status_says_the_trail_was_deleted_under_the_running_gateway(tmp_path: P
     assert "deleted under the running gateway" in said
     assert "refusing to start" not in said
     assert "audit reanchor" in said
+
+
+def _config_check(tmp_path: Path, yaml: str) -> Result:
+    (tmp_path / "antireplay.yaml").write_text(yaml)
+    with contextlib.chdir(tmp_path):
+        return CliRunner().invoke(main, ["config", "check", "antireplay.yaml"])
+
+
+def test_config_check_reaches_the_redis_store(tmp_path: Path) -> None:
+    """``config check`` opens the store as ``serve`` does: an unreachable Redis fails it
+    with one line naming the store, instead of passing a configuration that cannot start."""
+    said = _config_check(tmp_path, "store: redis://127.0.0.1:1/0\naudit: audit.db\n")
+    assert said.exit_code == 2, said.output
+    errors = [line for line in said.stderr.splitlines() if line.strip()]
+    assert len(errors) == 1 and "store redis://127.0.0.1:1/0" in errors[0], said.stderr
+
+
+def test_config_check_ends_with_a_verdict_and_warns_without_keys(
+    tmp_path: Path, redis_url: str
+) -> None:
+    """A reachable store passes; the last line is the verdict, and a configuration without
+    keys (a gateway that refuses everything) is warned about on stderr, still exit 0."""
+    said = _config_check(tmp_path, f"store: {redis_url}\naudit: audit.db\n")
+    assert said.exit_code == 0, said.output
+    assert said.stdout.strip().splitlines()[-1] == f"ok: 0 keys, store {redis_url}, audit audit.db"
+    assert "warning" in said.stderr and "no keys" in said.stderr

@@ -202,7 +202,11 @@ def preflight(config: AppConfig) -> None:
 
             check_readable(config.store[len("sqlite:") :])  # read-only: nothing used up
         else:
-            open_store(config.store).close()
+            store = open_store(config.store)
+            try:
+                store.ready()  # reaches it: the PING and eviction check serve's first commit runs
+            finally:
+                store.close()
     except ConfigError as exc:
         _fail(str(exc))
     except Exception as exc:  # any backend's own failure, named with its spec
@@ -608,6 +612,10 @@ def config_check(path: Path) -> None:
         _fail(str(exc))
     preflight(cfg)
     console.print_json(data=cfg.model_dump())
+    if not cfg.keys:
+        click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
+                   "so every command will be refused", err=True)  # fmt: skip
+    click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
 
 
 @main.command()
