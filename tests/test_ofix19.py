@@ -16,7 +16,7 @@ from click.testing import CliRunner, Result
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.cli import main
-from antireplay.errors import AuditFileError
+from antireplay.errors import AuditFileError, StateUnavailableError
 from antireplay.pipeline import Receiver
 from antireplay.status import _audit, render
 from antireplay.stores import open_store
@@ -129,3 +129,17 @@ def test_config_check_ends_with_a_verdict_and_warns_without_keys(
     assert said.exit_code == 0, said.output
     assert said.stdout.strip().splitlines()[-1] == f"ok: 0 keys, store {redis_url}, audit audit.db"
     assert "warning" in said.stderr and "no keys" in said.stderr
+
+
+def test_a_running_writer_refuses_to_append_to_a_deleted_trail(tmp_path: Path) -> None:
+    """Deleted under a running writer, a trail would swallow every later record with the
+    unlinked file: the append fails (503 for the command) instead of being lost."""
+    log = _trail_with_records(tmp_path / "audit.db", 1)
+    try:
+        for file in tmp_path.glob("audit.db*"):
+            file.unlink()
+        with pytest.raises(StateUnavailableError, match="deleted or replaced"):
+            log.append(at=NOW, outcome="accepted", code=None, warning=None, msg_type=1,
+                       sender="operator", sender_verified=True, msg_id="lost")  # fmt: skip
+    finally:
+        log.close()
