@@ -9,7 +9,9 @@ left running (its gateway).  A block runs in a fresh directory holding only ``.v
 interpreter's environment), under ``bash -e -o pipefail`` or this Python, in a private
 network namespace (``unshare -rn``, loopback up), so the fixed ports the README uses (8080,
 DDS) cannot collide with anything else on the machine; whatever it left running in the
-background is killed afterwards.
+background is killed afterwards.  A chain runs in one shell, so a later block can stop the
+server an earlier one started (``kill $gateway``).  A last test follows the whole README in
+order in one shell and one directory, as a reader does: each guide must stop its own servers.
 """
 
 from __future__ import annotations
@@ -69,16 +71,20 @@ def test_every_block_says_whether_it_is_run() -> None:
     assert not unmarked, f"README.md lines {unmarked}: add <!-- test: run --> or manual (why)"
 
 
-@pytest.mark.parametrize("chain", chains(), ids=lambda c: f"README.md:{c[0].line}")
-def test_snippet_runs_verbatim(chain: list[Snippet], tmp_path: Path) -> None:
+def run_blocks(blocks: list[Snippet], tmp_path: Path, coda: str = "true") -> tuple[int, str]:
+    """Run ``blocks`` in order in one ``bash -e`` (shell variables carry over, as in a reader's
+    terminal; a Python block runs as a command of that shell), then ``coda``, in a private
+    network namespace; kill whatever is left in the background."""
     (tmp_path / ".venv").symlink_to(sys.prefix)
-    steps = []
-    for i, snippet in enumerate(chain):
-        script = tmp_path / (f"snippet{i}.sh" if snippet.lang == "bash" else f"snippet{i}.py")
-        script.write_text(snippet.code)
-        run = "bash -e -o pipefail" if snippet.lang == "bash" else shlex.quote(sys.executable)
-        steps.append(f"{run} {script.name}")
-    driver = " && ".join(["ip link set lo up", *steps])
+    lines = []
+    for i, snippet in enumerate(blocks):
+        if snippet.lang == "bash":
+            lines.append(snippet.code)
+        else:
+            (tmp_path / f"snippet{i}.py").write_text(snippet.code)
+            lines.append(f"{shlex.quote(sys.executable)} snippet{i}.py")
+    (tmp_path / "readme.sh").write_text("\n".join(lines))
+    driver = f"ip link set lo up && bash -e -o pipefail readme.sh && {coda}"
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     output = tmp_path / "output.txt"
     with output.open("wb") as sink:
@@ -87,12 +93,35 @@ def test_snippet_runs_verbatim(chain: list[Snippet], tmp_path: Path) -> None:
             stderr=subprocess.STDOUT, start_new_session=True,
         )  # fmt: skip
         try:
-            code = proc.wait(timeout=300)
+            code = proc.wait(timeout=600)
         finally:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(proc.pid, signal.SIGKILL)  # what it left in the background
-    said = output.read_text(errors="replace")
+    return code, output.read_text(errors="replace")
+
+
+@pytest.mark.parametrize("chain", chains(), ids=lambda c: f"README.md:{c[0].line}")
+def test_snippet_runs_verbatim(chain: list[Snippet], tmp_path: Path) -> None:
+    code, said = run_blocks(chain, tmp_path)
     where = f"README.md:{chain[0].line}"
     assert code == 0, f"{where} exited {code}:\n{said[-4000:]}"
     for wanted in (w for snippet in chain for w in snippet.expect):
         assert wanted in said, f"{where}: {wanted!r} not in:\n{said[-4000:]}"
+
+
+def test_readme_followed_in_order_in_one_shell(tmp_path: Path) -> None:
+    """A reader runs every block top to bottom in one terminal and one directory: each guide
+    stops the servers it started (checked after each guide, naming it), so the next guide's
+    server gets its port (a leftover would answer the next readiness wait, or hang the DDS
+    guide's ``wait``), and nothing is left listening at the end."""
+    blocks = []
+    for chain in chains():
+        where = f"README.md:{chain[0].line}"
+        left = f'[ -z "$(jobs -pr)" ] || {{ echo "{where} left running:"; jobs -r; exit 1; }}'
+        blocks += [*chain, Snippet(chain[0].line, "bash", left, ())]
+    listening = "ss -Hltn > listening.txt && ! grep -q . listening.txt"
+    code, said = run_blocks(blocks, tmp_path, coda=listening)
+    left = (tmp_path / "listening.txt").read_text() if (tmp_path / "listening.txt").exists() else ""
+    assert code == 0, f"exited {code}; still listening: {left!r}\n{said[-4000:]}"
+    for wanted in (w for snippet in blocks for w in snippet.expect):
+        assert wanted in said, f"{wanted!r} not in:\n{said[-4000:]}"

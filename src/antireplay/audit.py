@@ -58,7 +58,11 @@ recovery (``antireplay audit verify PATH`` to see what is provable, then
 head, or moving the files aside to start a new trail).  Only an *empty* trail
 is anchored automatically; a trail with rows and neither key nor checkpoint
 (made before anchoring existed, or both files deleted) waits for an operator's
-``antireplay audit reanchor PATH``.
+``antireplay audit reanchor PATH``.  A trail deleted while its checkpoint stays is
+refused by name before any file is created (a refused start leaves nothing behind); a
+running writer checks, before each group commit, that its path still names the file it
+opened, so rows are never appended to a deleted (or replaced) trail where they would be
+lost: those appends fail (``STATE_UNAVAILABLE``) instead.
 """
 
 from __future__ import annotations
@@ -368,6 +372,15 @@ def _connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
     return db
 
 
+def _identity(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the file at ``path`` now, ``None`` if there is none."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return st.st_dev, st.st_ino
+
+
 def _last(db: sqlite3.Connection) -> tuple[int, str]:
     row = db.execute("SELECT seq, hash FROM audit ORDER BY seq DESC LIMIT 1").fetchone()
     return (0, GENESIS) if row is None else (int(row[0]), str(row[1]))
@@ -409,7 +422,9 @@ class AuditLog:
         self._clock = resolve(clock)
         self._head_synced = self._clock.monotonic()
         self._head_dirty = False
+        self._refuse_deleted_trail()
         self._db = _connect(self.path, read_only=False)
+        self._file = _identity(self.path)  # the file this writer appends to, not just its name
         self._lock = threading.Lock()
         try:
             self._key = self._open_anchor()
@@ -419,6 +434,26 @@ class AuditLog:
         self._rows, self._head = _last(self._db)  # what this writer knows the chain to be
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
+        )
+
+    def _refuse_deleted_trail(self) -> None:
+        """A head checkpoint without its trail means the trail was deleted: refuse before
+        ``_connect`` would create an empty file in its place (a refused start creates
+        nothing), saying how many records the checkpoint says existed."""
+        if self.path.exists() or not self.anchor.path.exists():
+            return
+        try:
+            checkpoint = self.anchor.read(None)
+        except AuditFileError:
+            checkpoint = None  # unreadable too: still deleted, count unknown
+        held = "records" if checkpoint is None else f"{checkpoint.rows} records"
+        raise AuditFileError(
+            str(self.path),
+            f"deleted: its head checkpoint {self.anchor.path} says the trail held {held}",
+            recovery=(
+                f"restore {self.path} from a backup; or, to start a new trail and keep the "
+                f"evidence, move {self.anchor.path} and {self.anchor.key_path} aside"
+            ),
         )
 
     def _open_anchor(self) -> bytes:
@@ -516,6 +551,12 @@ class AuditLog:
         """Chain and commit a group of rows in one write transaction; one head checkpoint."""
         with self._lock:
             db = self._db
+            if _identity(self.path) != self._file:  # rows written now would be lost with it
+                log.error("audit trail %s deleted or replaced; refusing to append", self.path)
+                raise AuditFileError(
+                    str(self.path), "deleted or replaced under the running writer",
+                    recovery=f"stop it, restore {self.path} or see antireplay audit reanchor",
+                )  # fmt: skip
             db.execute("BEGIN IMMEDIATE")
             try:
                 # Rows deleted or rewritten under a running writer must not be adopted by

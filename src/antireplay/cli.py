@@ -52,7 +52,9 @@ from antireplay.counters import DEFAULT_WINDOW
 from antireplay.dds.cli import dds
 from antireplay.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.durable import read_kind, repair
+from antireplay.envelope import parse, safety_class
 from antireplay.errors import AntiReplayError, ConfigError, ReplayAttackError, StateFileError
+from antireplay.messages import MessageType
 from antireplay.wiring import Allowed
 
 if TYPE_CHECKING:
@@ -200,7 +202,11 @@ def preflight(config: AppConfig) -> None:
 
             check_readable(config.store[len("sqlite:") :])  # read-only: nothing used up
         else:
-            open_store(config.store).close()
+            store = open_store(config.store)
+            try:
+                store.ready()  # reaches it: the PING and eviction check serve's first commit runs
+            finally:
+                store.close()
     except ConfigError as exc:
         _fail(str(exc))
     except Exception as exc:  # any backend's own failure, named with its spec
@@ -480,11 +486,12 @@ def send(url: str, message: Any, bearer: str | None) -> None:
         headers["authorization"] = f"Bearer {bearer}"
     if not url.rstrip("/").endswith("/v1/messages"):
         url = url.rstrip("/") + "/v1/messages"
+    raw = message.read()
     try:
-        reply = httpx.post(url, content=message.read(), headers=headers, timeout=10)
+        reply = httpx.post(url, content=raw, headers=headers, timeout=10)
     except httpx.HTTPError as exc:
         _fail(f"cannot reach {url}: {exc}")
-    table = Table(title=f"{url} answered HTTP {reply.status_code}")
+    table = Table(title=f"{url} answered HTTP {reply.status_code}", caption=_sent_as(raw))
     table.add_column("field")
     table.add_column("value")
     try:
@@ -495,6 +502,21 @@ def send(url: str, message: Any, bearer: str | None) -> None:
         table.add_row(str(name), json.dumps(value) if not isinstance(value, str) else value)
     console.print(table)
     sys.exit(0 if reply.status_code < 300 else 1)
+
+
+def _sent_as(raw: bytes) -> str | None:
+    """How the gateway classes what was sent (``cmd ESTOP as SAFETY/ESTOP``): the answer
+    does not say, and the class sets the window and the scope a key needs."""
+    try:
+        env = parse(raw)
+    except ReplayAttackError:
+        return None  # the gateway's answer says what is wrong with it
+    kind, event = safety_class(env)
+    try:
+        name = MessageType(kind).name
+    except ValueError:
+        name = str(kind)
+    return f"sent cmd {env.cmd} as {name}" + (f"/{event}" if event else "")
 
 
 @main.group()
@@ -590,6 +612,10 @@ def config_check(path: Path) -> None:
         _fail(str(exc))
     preflight(cfg)
     console.print_json(data=cfg.model_dump())
+    if not cfg.keys:
+        click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
+                   "so every command will be refused", err=True)  # fmt: skip
+    click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
 
 
 @main.command()

@@ -11,7 +11,8 @@ open without touching the replay state, and an unauthenticated visitor changes n
 from it: ``/status.json`` is the dict, ``/`` is :func:`render` of it.  The counters are the
 samples ``/metrics`` exports, read by collecting the gateway's own Prometheus registry
 (:class:`~antireplay.gateway.Metrics` and its ``StateCollector``): accepted, rejected by
-code, warnings, store and upstream errors, replay refusals by cause, group-commit batches.
+code, warnings, store and upstream errors, the replay window's refusals by cause (fence and
+store failures included), group-commit batches.
 Store health is that collector's view of the backend in use (entries, watermark, fence,
 data-loss events) plus the reason :func:`antireplay.gateway.readiness` gives (``None``:
 ready).  The recent audit records are read by :func:`antireplay.audit.tail` (what
@@ -141,7 +142,15 @@ def _audit(receiver: Receiver, records: int) -> dict[str, Any]:
     path = str(receiver.audit.path)
     try:
         rows = [shown(r) for r in tail(path, records)]
-    except (StateFileError, sqlite3.Error, OSError) as exc:
+    except StateFileError as exc:  # its wording is for a refused start: this one runs
+        error = (
+            f"audit trail {path} deleted under the running gateway: every command is refused "
+            f"(503); stop the gateway and restore the file, or see `antireplay audit reanchor`"
+            if not receiver.audit.path.exists()
+            else f"audit file {exc.path}: {exc.problem}. Recover with: {exc.recovery}"
+        )
+        return {"path": path, "records": [], "error": error}
+    except (sqlite3.Error, OSError) as exc:
         return {"path": path, "records": [], "error": str(exc)}
     return {"path": path, "records": rows[::-1], "error": None}
 
@@ -160,6 +169,16 @@ def _when(seconds: object) -> str:
     except (OverflowError, OSError, ValueError):  # beyond the platform's calendar
         return _text(seconds)
     return f"{_text(iso)} ({_text(seconds)})"
+
+
+#: What ``antireplay_replay_refusals_total`` counts: the replay window's refusals (its
+#: fence, store failures, stale, replayed msg_id: receive steps 3 and 7), not every
+#: ``REPLAY_DETECTED``: a byte-identical copy refused at step 0 (or a QoS retransmission
+#: answered again) never reaches the window, and is counted under "Rejected by code" only.
+_WINDOW_REFUSALS = (
+    "Replay-window refusals by cause (steps 3 and 7, fence and store included; "
+    "byte-identical copies count under Rejected by code only)"
+)
 
 
 def _table(caption: str, rows: Iterable[tuple[object, str]]) -> str:
@@ -223,7 +242,7 @@ def render(data: dict[str, Any], nonce: str) -> str:
         + _table("Counters", totals)
         + _table("Rejected by code", _pairs(counters["rejected"]))
         + _table("Warnings", _pairs(counters["warnings"]))
-        + _table("Replay refusals by cause", _pairs(counters["replay_refusals"]))
+        + _table(_WINDOW_REFUSALS, _pairs(counters["replay_refusals"]))
         + _table("Store health", health)
         + _table("Group commit", commits)
         + "</section>"

@@ -199,9 +199,9 @@ class RedisStore:
             self.loss_reason = "redis lost or replaced our replay state"
             log.warning(
                 "redis %s lost or replaced our replay state (restart, failover, flush or "
-                "restore); fence raised to %s",
+                "restore); fence raised to %.6f",
                 self.url,
-                fence,
+                self._fence,
             )
         expiry = NEVER if cur is None or len(cur) == _codec.WIDTH else float(cur)
         return Seen(expiry, self._watermark, self._fence, bool(recorded), False, bool(lost))
