@@ -12,10 +12,15 @@ from __future__ import annotations
 import socket
 import sqlite3
 import subprocess
+import sys
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -69,3 +74,66 @@ def state_rows(state: Path) -> int:
         return int(db.execute("SELECT count(*) FROM seen").fetchone()[0])
     finally:
         db.close()
+
+
+@dataclass(frozen=True)
+class Request:
+    """One request a :func:`recording_upstream` received: its headers (lower-cased) and body."""
+
+    headers: dict[str, str]
+    body: bytes
+
+
+@contextmanager
+def recording_upstream(
+    before_answer: Callable[[], object] | None = None,
+) -> Iterator[tuple[str, list[Request]]]:
+    """A robot API on loopback (its URL) that keeps every POST it is handed and answers ``{}``
+    (after ``before_answer()`` returns: a test can hold requests there)."""
+    received: list[Request] = []
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_POST(self) -> None:
+            body = self.rfile.read(int(self.headers["content-length"]))
+            received.append(Request({k.lower(): v for k, v in self.headers.items()}, body))
+            if before_answer is not None:
+                before_answer()
+            self.send_response(200)
+            self.send_header("content-type", "application/json")
+            self.send_header("content-length", "2")
+            self.end_headers()
+            self.wfile.write(b"{}")
+
+        def log_message(self, *args: Any) -> None:
+            """Quiet."""
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{server.server_port}/", received
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+@contextmanager
+def metrics_router(tmp_path: Path, host: str | None = None) -> Iterator[int]:
+    """A real ``antireplay mavlink-router`` (UDP in and out, memory store) serving its metrics
+    on a free port (on ``host`` if given): yields that port once it says it runs."""
+    key = tmp_path / "link.key"
+    key.write_bytes(bytes(range(32)))
+    port = free_port()
+    args = [
+        sys.executable, "-m", "antireplay", "mavlink-router", "--listen",
+        f"udp:127.0.0.1:{free_port()}", "--forward", f"udp:127.0.0.1:{free_port()}",
+        "--key-file", str(key), "--store", "memory", "--audit", str(tmp_path / "router.db"),
+        "--metrics-port", str(port), *(["--metrics-host", host] if host else []),
+    ]  # fmt: skip
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert proc.stdout is not None
+        assert b"mavlink-router" in proc.stdout.readline(), proc.stderr
+        yield port
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)

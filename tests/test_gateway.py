@@ -9,9 +9,9 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
-from http.server import BaseHTTPRequestHandler, HTTPServer, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler, HTTPServer
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import httpx
 import pytest
@@ -29,7 +29,7 @@ from antireplay.envelope import SDK_SIGNED_FIELDS
 from antireplay.stores.redis_store import RedisStore
 from tests.conftest import run_threads
 from tests.fuzz.targets import http_app
-from tests.harness import GatewayProcess, free_port, state_rows
+from tests.harness import GatewayProcess, free_port, recording_upstream, state_rows
 
 
 @pytest.fixture(scope="module")
@@ -323,24 +323,6 @@ def test_http_upstream_and_upstream_failure(tmp_path: Path) -> None:
         robot.shutdown()
 
 
-class _RecordingRobot(BaseHTTPRequestHandler):
-    """An upstream that keeps every envelope it is handed."""
-
-    received: ClassVar[list[dict[str, Any]]] = []
-
-    def do_POST(self) -> None:
-        length = int(self.headers["content-length"])
-        self.received.append(json.loads(self.rfile.read(length)))
-        self.send_response(200)
-        self.send_header("content-type", "application/json")
-        self.send_header("content-length", "2")
-        self.end_headers()
-        self.wfile.write(b"{}")
-
-    def log_message(self, *args: Any) -> None:
-        """Quiet."""
-
-
 def test_sdk_compat_mitm_field_never_reaches_upstream(tmp_path: Path) -> None:
     pair = MLDSAKeyPair.generate()
     public = mldsa.MLDSA65PublicKey.from_public_bytes(pair.public_key)
@@ -349,31 +331,27 @@ def test_sdk_compat_mitm_field_never_reaches_upstream(tmp_path: Path) -> None:
             serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
         )
     )
-    robot = HTTPServer(("127.0.0.1", 0), _RecordingRobot)
-    threading.Thread(target=robot.serve_forever, daemon=True).start()
     sdk_key = {"kid": pair.key_id, "owner": "operator", "alg": "ml-dsa-65",
                "public_keys": [str(tmp_path / "sdk.pub.pem")], "scopes": ["control"]}  # fmt: skip
-    config = write_demo_config(
-        tmp_path, sdk_compat=True, keys=[sdk_key], upstream=f"http://127.0.0.1:{robot.server_port}/"
-    )
-    gw = GatewayProcess(config)
-    gw.start()
-    try:
-        msg = RCANMessage(cmd="move_forward", params={"distance_m": 1.0},
-                          target="rcan://registry.rcan.dev/acme/arm/v2/unit-001")  # fmt: skip
-        genuine = sign_message(msg, pair).to_dict()
-        for field, value in (("loa", 3), ("presence_verified", True), ("read_only", True)):
-            forged = json.dumps({**genuine, field: value}).encode()
-            reply = httpx.post(f"{gw.url}/v1/messages", content=forged, headers=JSON)
-            assert (reply.status_code, reply.json()["code"]) == (403, "SCOPE_DENIED")
-        assert _RecordingRobot.received == []
-        reply = httpx.post(f"{gw.url}/v1/messages", content=json.dumps(genuine), headers=JSON)
-        assert reply.status_code == 200, reply.text
-        (seen,) = _RecordingRobot.received
-        assert set(seen) == {*SDK_SIGNED_FIELDS, "rcan_version", "sig"}
-    finally:
-        gw.stop()
-        robot.shutdown()
+    with recording_upstream() as (url, received):
+        config = write_demo_config(tmp_path, sdk_compat=True, keys=[sdk_key], upstream=url)
+        gw = GatewayProcess(config)
+        gw.start()
+        try:
+            msg = RCANMessage(cmd="move_forward", params={"distance_m": 1.0},
+                              target="rcan://registry.rcan.dev/acme/arm/v2/unit-001")  # fmt: skip
+            genuine = sign_message(msg, pair).to_dict()
+            for field, value in (("loa", 3), ("presence_verified", True), ("read_only", True)):
+                forged = json.dumps({**genuine, field: value}).encode()
+                reply = httpx.post(f"{gw.url}/v1/messages", content=forged, headers=JSON)
+                assert (reply.status_code, reply.json()["code"]) == (403, "SCOPE_DENIED")
+            assert received == []
+            reply = httpx.post(f"{gw.url}/v1/messages", content=json.dumps(genuine), headers=JSON)
+            assert reply.status_code == 200, reply.text
+            (seen,) = received
+            assert set(json.loads(seen.body)) == {*SDK_SIGNED_FIELDS, "rcan_version", "sig"}
+        finally:
+            gw.stop()
 
 
 # --- two replicas on one Redis -------------------------------------------------------------------
@@ -408,26 +386,6 @@ def test_two_replicas_on_one_redis(tmp_path: Path, redis_url: str) -> None:
         b.stop()
 
 
-class _HeldRobot(BaseHTTPRequestHandler):
-    """An upstream that holds every request until the test releases it."""
-
-    arrived: ClassVar[threading.Semaphore] = threading.Semaphore(0)
-    release: ClassVar[threading.Event] = threading.Event()
-
-    def do_POST(self) -> None:
-        self.rfile.read(int(self.headers["content-length"]))
-        self.arrived.release()
-        self.release.wait(timeout=60)
-        self.send_response(200)
-        self.send_header("content-type", "application/json")
-        self.send_header("content-length", "2")
-        self.end_headers()
-        self.wfile.write(b"{}")
-
-    def log_message(self, *args: Any) -> None:
-        """Quiet."""
-
-
 def _refuses_connections(url: str) -> bool:
     host, port = url.removeprefix("http://").split(":")
     try:
@@ -442,42 +400,45 @@ def test_sigterm_with_requests_in_flight_answers_them_and_loses_no_record(
 ) -> None:
     """SIGTERM arrives while N requests are inside the gateway (held by the upstream)."""
     in_flight = 8
-    robot = ThreadingHTTPServer(("127.0.0.1", 0), _HeldRobot)
-    threading.Thread(target=robot.serve_forever, daemon=True).start()
-    gw = GatewayProcess(
-        write_demo_config(tmp_path, upstream=f"http://127.0.0.1:{robot.server_port}/")
-    )
-    gw.start()
-    key = load_operator_key(tmp_path)
-    replies: list[int] = []
+    arrived, release = threading.Semaphore(0), threading.Event()
 
-    def client() -> None:
-        raw = command(key)
-        replies.append(httpx.post(f"{gw.url}/v1/messages", content=raw, headers=JSON).status_code)
+    def hold() -> None:
+        arrived.release()
+        release.wait(timeout=60)
 
-    threads = [threading.Thread(target=client) for _ in range(in_flight)]
-    try:
-        for thread in threads:
-            thread.start()
-        for _ in range(in_flight):  # every request is now inside the gateway, awaiting upstream
-            if not _HeldRobot.arrived.acquire(timeout=30):
-                pytest.fail("requests did not reach the upstream")
-        assert gw.proc is not None
-        gw.proc.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + 30
-        while not _refuses_connections(gw.url):  # shutdown has begun: the listener is closed
-            if time.monotonic() > deadline or gw.proc.poll() is not None:
-                pytest.fail("gateway did not start a graceful shutdown")
-        assert replies == []  # still in flight when the signal was handled
-        _HeldRobot.release.set()
-        for thread in threads:
-            thread.join(timeout=30)
-        # uvicorn re-raises the signal once it has shut down gracefully
-        assert gw.proc.wait(timeout=30) in (0, -signal.SIGTERM)
-    finally:
-        _HeldRobot.release.set()
-        gw.stop()
-        robot.shutdown()
+    with recording_upstream(before_answer=hold) as (url, _):
+        gw = GatewayProcess(write_demo_config(tmp_path, upstream=url))
+        gw.start()
+        key = load_operator_key(tmp_path)
+        replies: list[int] = []
+
+        def client() -> None:
+            raw = command(key)
+            reply = httpx.post(f"{gw.url}/v1/messages", content=raw, headers=JSON)
+            replies.append(reply.status_code)
+
+        threads = [threading.Thread(target=client) for _ in range(in_flight)]
+        try:
+            for thread in threads:
+                thread.start()
+            for _ in range(in_flight):  # every request is now inside the gateway, awaiting upstream
+                if not arrived.acquire(timeout=30):
+                    pytest.fail("requests did not reach the upstream")
+            assert gw.proc is not None
+            gw.proc.send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + 30
+            while not _refuses_connections(gw.url):  # shutdown has begun: the listener is closed
+                if time.monotonic() > deadline or gw.proc.poll() is not None:
+                    pytest.fail("gateway did not start a graceful shutdown")
+            assert replies == []  # still in flight when the signal was handled
+            release.set()
+            for thread in threads:
+                thread.join(timeout=30)
+            # uvicorn re-raises the signal once it has shut down gracefully
+            assert gw.proc.wait(timeout=30) in (0, -signal.SIGTERM)
+        finally:
+            release.set()
+            gw.stop()
     assert replies == [200] * in_flight
     records = AuditLog(tmp_path / "audit.db").tail(1000)
     assert sum(r.outcome == "accepted" for r in records) == in_flight

@@ -11,9 +11,8 @@ import sys
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from http.server import BaseHTTPRequestHandler, HTTPServer
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any
 
 import httpx
 import pytest
@@ -31,7 +30,7 @@ from antireplay.envelope import encode, parse
 from antireplay.gateway import SIGNER_HEADERS, Guard, RcanGuard, Verified, create_app
 from antireplay.pipeline import Outcome
 from antireplay.wiring import build_receiver
-from tests.harness import free_port, state_rows, until
+from tests.harness import free_port, recording_upstream, state_rows, until
 
 NOW = 1_800_000_000.0
 LIMIT = 4096
@@ -300,30 +299,9 @@ def test_the_application_sees_the_verified_signer_never_the_clients_claim(
     assert dependency.handed[0][0].signer.owner == "operator"
 
 
-class _Upstream(BaseHTTPRequestHandler):
-    """A robot API on loopback that keeps the headers of every request."""
-
-    seen: ClassVar[list[dict[str, str]]] = []
-
-    def do_POST(self) -> None:
-        self.rfile.read(int(self.headers["content-length"]))
-        self.seen.append({k.lower(): v for k, v in self.headers.items()})
-        self.send_response(200)
-        self.send_header("content-type", "application/json")
-        self.send_header("content-length", "2")
-        self.end_headers()
-        self.wfile.write(b"{}")
-
-    def log_message(self, *args: Any) -> None:
-        """Quiet."""
-
-
 def test_http_upstream_gets_the_signer_headers_and_no_client_copies(tmp_path: Path) -> None:
-    robot = HTTPServer(("127.0.0.1", 0), _Upstream)
-    threading.Thread(target=robot.serve_forever, daemon=True).start()
-    try:
+    with recording_upstream() as (url, received):
         write_demo_config(tmp_path)
-        url = f"http://127.0.0.1:{robot.server_port}/"
         clock = ManualClock(wall=NOW)
         app = create_app(
             config(tmp_path / "gw", tmp_path / "operator.pub.pem", upstream=url), clock=clock
@@ -339,9 +317,8 @@ def test_http_upstream_gets_the_signer_headers_and_no_client_copies(tmp_path: Pa
         ]
         reply = asyncio.run(call(app, raw, forged_claims))
         assert reply.status == 200, reply.body
-    finally:
-        robot.shutdown()
-    (seen,) = _Upstream.seen
+    seen = received[0].headers
+    assert len(received) == 1
     assert seen["rcan-signer-owner"] == "operator"
     assert seen["rcan-signer-kid"] == "operator"
     assert seen["rcan-signer-scopes"] == "control,safety"

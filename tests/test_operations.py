@@ -29,7 +29,7 @@ from antireplay.audit import AuditLog, tail
 from antireplay.cli import main
 from antireplay.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.gateway import create_app, embedded_default
-from tests.harness import GatewayProcess, free_port, until
+from tests.harness import GatewayProcess, metrics_router, until
 from tests.redis_server import RedisServer
 from tests.test_gateway_redis import accepted_fresh, data_losses, post_after_cut, reencoded
 
@@ -223,23 +223,8 @@ def test_audit_tail_json_lines_and_a_full_table_off_a_terminal(tmp_path: Path) -
 
 def test_router_metrics_bind_the_address_given(tmp_path: Path) -> None:
     """``--metrics-host``: the router's metrics answer there, and not on 127.0.0.1."""
-    key = tmp_path / "link.key"
-    key.write_bytes(bytes(range(32)))
-    mport = free_port()
-    args = [
-        sys.executable, "-m", "antireplay", "mavlink-router", "--listen",
-        f"udp:127.0.0.1:{free_port()}", "--forward", f"udp:127.0.0.1:{free_port()}",
-        "--key-file", str(key), "--store", "memory", "--audit", str(tmp_path / "audit.db"),
-        "--metrics-port", str(mport), "--metrics-host", "127.0.0.2",
-    ]  # fmt: skip
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        assert proc.stdout is not None
-        assert b"mavlink-router" in proc.stdout.readline(), proc.stderr
+    with metrics_router(tmp_path, host="127.0.0.2") as mport:
         reply = httpx.get(f"http://127.0.0.2:{mport}/metrics", timeout=10)
         assert "antireplay_mavlink_forwarded_total" in reply.text
         with pytest.raises(httpx.ConnectError):
             httpx.get(f"http://127.0.0.1:{mport}/metrics", timeout=10)
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)

@@ -6,8 +6,6 @@ from __future__ import annotations
 import json
 import re
 import shutil
-import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -30,7 +28,7 @@ from antireplay.audit import sanitize, tail
 from antireplay.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.status import AUDIT_COLUMNS, render, security_headers
 from tests.conftest import ROOT
-from tests.harness import GatewayProcess, free_port
+from tests.harness import GatewayProcess, metrics_router
 from tests.redis_server import RedisServer
 
 DASH = "\u2014"
@@ -317,23 +315,8 @@ def _exported(metrics_text: str) -> set[str]:
 @contextmanager
 def router_metrics_text(tmp_path: Path) -> Iterator[str]:
     """What a real ``antireplay mavlink-router --metrics-port`` exports."""
-    key = tmp_path / "link.key"
-    key.write_bytes(bytes(range(32)))
-    port = free_port()
-    args = [
-        sys.executable, "-m", "antireplay", "mavlink-router", "--listen",
-        f"udp:127.0.0.1:{free_port()}", "--forward", f"udp:127.0.0.1:{free_port()}",
-        "--key-file", str(key), "--store", "memory", "--audit", str(tmp_path / "router.db"),
-        "--metrics-port", str(port),
-    ]  # fmt: skip
-    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        assert proc.stdout is not None
-        assert b"mavlink-router" in proc.stdout.readline(), proc.stderr
+    with metrics_router(tmp_path) as port:
         yield httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
 
 
 def _names(query: str) -> set[str]:
