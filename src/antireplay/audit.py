@@ -87,7 +87,7 @@ from pathlib import Path
 from typing import Any
 
 from antireplay.clock import Clock, resolve
-from antireplay.durable import atomic_write
+from antireplay.durable import atomic_write, file_identity
 from antireplay.errors import AuditFileError, StateUnavailableError
 from antireplay.groupcommit import GroupCommitter
 
@@ -372,15 +372,6 @@ def _connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
     return db
 
 
-def _identity(path: Path) -> tuple[int, int] | None:
-    """(device, inode) of the file at ``path`` now, ``None`` if there is none."""
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        return None
-    return st.st_dev, st.st_ino
-
-
 def _last(db: sqlite3.Connection) -> tuple[int, str]:
     row = db.execute("SELECT seq, hash FROM audit ORDER BY seq DESC LIMIT 1").fetchone()
     return (0, GENESIS) if row is None else (int(row[0]), str(row[1]))
@@ -424,7 +415,7 @@ class AuditLog:
         self._head_dirty = False
         self._refuse_deleted_trail()
         self._db = _connect(self.path, read_only=False)
-        self._file = _identity(self.path)  # the file this writer appends to, not just its name
+        self._file = file_identity(self.path)  # the file this writer appends to, not just its name
         self._lock = threading.Lock()
         try:
             self._key = self._open_anchor()
@@ -551,7 +542,7 @@ class AuditLog:
         """Chain and commit a group of rows in one write transaction; one head checkpoint."""
         with self._lock:
             db = self._db
-            if _identity(self.path) != self._file:  # rows written now would be lost with it
+            if file_identity(self.path) != self._file:  # rows written now would be lost with it
                 log.error("audit trail %s deleted or replaced; refusing to append", self.path)
                 raise AuditFileError(
                     str(self.path), "deleted or replaced under the running writer",

@@ -110,6 +110,17 @@ def atomic_write(path: Path, content: bytes, *, sync_dir: bool = True) -> None:
         os.close(dir_fd)
 
 
+def file_identity(path: Path) -> tuple[int, int] | None:
+    """Which file ``path`` names now (device, inode), ``None`` if none: a writer that keeps
+    its handle open compares this with what it opened, so a file deleted or replaced under
+    it is noticed before it writes into a file nobody can open again."""
+    try:
+        found = os.stat(path)
+    except FileNotFoundError:
+        return None
+    return found.st_dev, found.st_ino
+
+
 def as_int(value: object, name: str) -> int:
     """A non-negative JSON integer (not a bool, not a string), else ``TypeError``."""
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:

@@ -75,6 +75,7 @@ from pathlib import Path
 from typing import Any, Final, TypeVar
 
 from antireplay.clock import Clock, resolve
+from antireplay.durable import file_identity
 from antireplay.errors import StateFileError, StateUnavailableError
 from antireplay.groupcommit import GroupCommitter
 from antireplay.stores import _codec
@@ -169,7 +170,7 @@ class SqliteStore:
         self._clock = resolve(clock)
         self._lock = threading.Lock()
         self._db = self._open(timeout_s)
-        self._file = _identity(self.path)
+        self._file = file_identity(self.path)
         self._deployment = ""
         self._generation = 0
         self._wall_hw = _FLOOR
@@ -289,11 +290,7 @@ class SqliteStore:
         """Refuse to write once the file was deleted or replaced under this process: the
         writer would keep recording into a file nobody can open again (the restart that
         follows fences what it held, from the witness)."""
-        try:
-            found = _identity(self.path)
-        except FileNotFoundError:
-            found = None
-        if found != self._file:
+        if file_identity(self.path) != self._file:
             raise StateUnavailableError(
                 f"sqlite {self.path}: the state file was deleted or replaced while running; "
                 "restart (the restart fences what the lost file held)"
@@ -499,12 +496,6 @@ class SqliteStore:
             raise StateUnavailableError(f"sqlite {self.path}: {exc}") from None
         except OSError as exc:
             raise StateUnavailableError(f"sqlite witness {self.witness.path}: {exc}") from None
-
-
-def _identity(path: Path) -> tuple[int, int]:
-    """Which file ``path`` names now (device, inode)."""
-    found = path.stat()
-    return found.st_dev, found.st_ino
 
 
 def check_readable(path: str | Path) -> None:
