@@ -247,9 +247,50 @@ class Delivered:
 
     def __init__(self) -> None:
         self.frames: list[tuple[Peer | None, bytes]] = []
+        self.skipped: list[int] = []  # the bytes dropped, one entry per hand-over that had some
 
-    def __call__(self, _t: Transport, peer: Peer | None, frames: list[bytes], _s: int) -> None:
+    def __call__(self, _t: Transport, peer: Peer | None, frames: list[bytes], skipped: int) -> None:
         self.frames.extend((peer, frame) for frame in frames)
+        if skipped:
+            self.skipped.append(skipped)
+
+
+def test_a_datagram_is_whole_frames_or_dropped_whole() -> None:
+    """UDP: a datagram that is not exactly whole frames hands over no frame, and all of
+    its bytes as dropped; a datagram of two whole frames hands over both."""
+    mav, sink = encoder()
+    frames = [command_frame(mav, sink, param1=float(i)) for i in range(6)]
+    bad = [b"\x00" + frames[0], frames[1] + b"\xfd\x01", frames[2][:-1]]
+    transport = open_transport(parse_endpoint("udpin:127.0.0.1:0"))
+    delivered = Delivered()
+    transport.start(delivered)
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for datagram in [*bad, frames[3] + frames[4], frames[5]]:
+            sender.sendto(datagram, transport.address)
+        until("the last datagram", lambda: frames[5] in (f for _, f in delivered.frames))
+        assert [f for _, f in delivered.frames] == frames[3:]
+        assert delivered.skipped == [len(datagram) for datagram in bad]
+    finally:
+        sender.close()
+        transport.close()
+
+
+def test_a_stream_resynchronises_past_leading_garbage() -> None:
+    """TCP (as serial): bytes before a frame are skipped and counted, the frame passes."""
+    mav, sink = encoder()
+    frame = command_frame(mav, sink)
+    transport = open_transport(parse_endpoint("tcpin:127.0.0.1:0"))
+    delivered = Delivered()
+    transport.start(delivered)
+    try:
+        with socket.create_connection(transport.address) as client:
+            client.sendall(b"\x00garbage" + frame)
+            until("the frame", lambda: delivered.frames)
+        assert [f for _, f in delivered.frames] == [frame]
+        assert delivered.skipped == [8]
+    finally:
+        transport.close()
 
 
 def _thread_cpu_s(thread: threading.Thread) -> float:

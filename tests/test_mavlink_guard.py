@@ -21,6 +21,7 @@ from antireplay.errors import (
     WrongTargetError,
 )
 from antireplay.mavlink import TS_LIMIT, UNITS_PER_S, MavlinkGuard, mav_time
+from antireplay.mavlink.guard import Admission
 from antireplay.stores.sqlite import SqliteStore
 from tests.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
 
@@ -368,3 +369,30 @@ def test_stream_evicted_before_its_flush_stays_fenced(tmp_path: Path, clock: Man
     guard.open(frames_at(clock, [0], link_id=2)[0])  # evicts stream 1 before any flush
     with pytest.raises(MessageStaleError):
         guard.open(unflushed)
+
+
+def test_admission_of_a_routers_links(clock: ManualClock) -> None:
+    """A trusted tool's unsigned v2 frame is signed on its behalf; a frame carrying the
+    router's own link id is judged as it is from a trusted link, WRONG_DIRECTION from
+    any other (the router signed it for a link no guard commits for)."""
+    guard = MavlinkGuard(KEY, clock=clock)
+    plain, ours = unsigned_heartbeat(7), command_frame(*encoder(link_id=251))
+    assert guard.admit(plain, trusted=True, own_link_id=251) is Admission.SIGN
+    assert guard.admit(ours, trusted=True, own_link_id=251) is Admission.JUDGE
+    assert guard.admit(plain, trusted=False, own_link_id=251) is Admission.JUDGE
+    assert guard.admit(ours, trusted=False, own_link_id=250) is Admission.JUDGE
+    with pytest.raises(WrongDirectionError):
+        guard.admit(ours, trusted=False, own_link_id=251)
+    assert len(guard) == 0
+
+
+def test_direction_binding_learns_only_from_signed_frames(clock: ManualClock) -> None:
+    """A source system the other side authenticated is refused here from then on; an
+    unsigned (allow-listed) frame from the other side teaches nothing."""
+    vehicle_side = MavlinkGuard(KEY, clock=clock, allow_unsigned=frozenset({0}))
+    ground_side = MavlinkGuard(KEY, clock=clock, allow_unsigned=frozenset({0}))
+    ground_side.bind_direction(vehicle_side.open(command_frame(*encoder(sysid=1, link_id=7))))
+    ground_side.bind_direction(vehicle_side.open(unsigned_heartbeat(9)))
+    with pytest.raises(WrongDirectionError):
+        ground_side.open(command_frame(*encoder(sysid=1, link_id=2)))
+    assert not ground_side.open(unsigned_heartbeat(9)).signed

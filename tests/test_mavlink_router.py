@@ -183,6 +183,24 @@ def test_malformed_datagrams_counted_and_dropped(rig: Rig) -> None:
     assert rig.router.stats.dropped["inbound:INVALID_FRAME"] == 4
 
 
+def test_a_datagram_is_whole_frames_or_dropped(rig: Rig) -> None:
+    """An authentic frame with garbage before or after it, or cut short, in one datagram:
+    the datagram is dropped whole and counted (no resynchronising on a datagram); two
+    whole frames in one datagram both pass."""
+    mav, sink = signed_sender(254, KEY, ManualClock(time.time()))
+
+    def command(param1: float) -> bytes:
+        mav.command_long_send(1, 1, 400, 0, param1, 0, 0, 0, 0, 0, 0)
+        return sink.frames[-1]
+
+    for datagram in (b"\x00" + command(1.0), command(2.0) + b"\xfd\x01", command(3.0)[:-1]):
+        rig.inject(datagram)
+    rig.inject(command(4.0) + command(5.0))
+    rig.inject(command(6.0))
+    assert rig.commands_until(6.0) == [4.0, 5.0, 6.0]
+    assert rig.router.stats.dropped == {"inbound:INVALID_FRAME": 3}
+
+
 def test_replay_towards_a_second_vehicle_is_dropped(rig: Rig) -> None:
     captured = rig.send_command(1.0, target=1)
     rig.commands_until(1.0)

@@ -6,9 +6,10 @@ A signed MAVLink v2 frame ends with a 13-byte trailer: ``link_id`` (1 byte), a
 48-bit timestamp (10 µs units since 2015-01-01 UTC, little-endian) and the
 first 6 bytes of ``SHA-256(key | frame without those 6 bytes)``.
 
-:func:`split_frames` cuts a datagram into v2 frames and :func:`parse_frame` parses
-one strictly: known incompat flags, exact length, and the CRC with the dialect's
-``crc_extra`` when the message is known; anything else raises ``INVALID_FRAME``.
+:func:`split_frames` cuts a datagram into frames (all of it, or it is refused:
+a datagram is never resynchronised) and :func:`parse_frame` parses one strictly:
+known incompat flags, exact length, and the CRC with the dialect's ``crc_extra``
+when the message is known; anything else raises ``INVALID_FRAME``.
 A MAVLink v1 frame (``0xFE``) parses too, as an unsigned frame with
 ``version == 1`` (v1 cannot be signed; the guard takes it only where listed).
 :class:`FrameReader` cuts a byte stream (serial, TCP) into frames the way
@@ -89,19 +90,20 @@ class Frame:
 
 
 def split_frames(datagram: bytes) -> list[bytes]:
-    """Cut a datagram into v2 frames; anything malformed raises ``INVALID_FRAME``."""
+    """Cut a datagram into whole frames (v1 or v2), each parsed strictly.  A datagram is
+    judged alone, never resynchronised: a byte before, between or after its frames, or a
+    frame cut short, raises ``INVALID_FRAME`` for the whole datagram."""
     frames, at = [], 0
     while at < len(datagram):
-        if datagram[at] != STX_V2:
-            raise InvalidFrameError("not a MAVLink v2 frame (v1 frames cannot be signed)")
-        if len(datagram) - at < HEADER + 2:
-            raise InvalidFrameError("truncated header")
-        length, incompat = datagram[at + 1], datagram[at + 2]
-        total = HEADER + length + 2 + (SIG_LEN if incompat & SIGNED else 0)
-        if len(datagram) - at < total:
-            raise InvalidFrameError("truncated frame")
-        frames.append(bytes(datagram[at : at + total]))
-        at += total
+        if datagram[at] not in (STX_V2, STX_V1):
+            raise InvalidFrameError(f"byte {at} of the datagram is no MAVLink start marker")
+        length = frame_length(datagram, at)
+        if length is None or len(datagram) - at < length:
+            raise InvalidFrameError(f"truncated frame at byte {at} of the datagram")
+        raw = bytes(datagram[at : at + length])
+        parse_frame(raw)
+        frames.append(raw)
+        at += length
     if not frames:
         raise InvalidFrameError("empty datagram")
     return frames

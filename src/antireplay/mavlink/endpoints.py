@@ -11,9 +11,13 @@ alias of ``udpin``), ``tcp:HOST:PORT`` (connect, reconnecting), ``tcpin:HOST:POR
 bare device at 57,600 baud, MAVProxy's default).
 
 A :class:`Transport` moves bytes and nothing else: it cuts what it receives into
-frames (one :class:`~antireplay.mavlink.codec.FrameReader` per datagram, per TCP
-client, per serial port) and hands them, with the peer they came from and the
-count of garbage bytes skipped, to the router's ``deliver``.  It never decides
+frames and hands them, with the peer they came from and the count of garbage
+bytes dropped, to the router's ``deliver``.  A stream (a TCP client, a serial
+port) goes through its own :class:`~antireplay.mavlink.codec.FrameReader`, which
+resynchronises past garbage as flight stacks do; a UDP datagram is whole frames
+or nothing (:func:`~antireplay.mavlink.codec.split_frames`): one that is not is
+dropped whole, all its bytes counted, so an authentic frame wrapped in garbage
+never passes.  It never decides
 where to send: :meth:`Transport.send` writes to the peer the router names
 (``None`` for the fixed destination of ``udpout``, ``tcp`` and serial).  Which
 peers may receive is the router's: a peer is learned only from an authenticated
@@ -57,11 +61,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
-from antireplay.mavlink.codec import FrameReader
+from antireplay.errors import InvalidFrameError
+from antireplay.mavlink.codec import FrameReader, split_frames
 
 #: A ``udpin`` sender's address or a ``tcpin`` client's connection number.
 Peer = tuple[str, int] | int
-#: ``deliver(transport, peer, frames, skipped_bytes)``: what a transport hands the router.
+#: ``deliver(transport, peer, frames, dropped_bytes)``: what a transport hands the router.
 Deliver = Callable[["Transport", Peer | None, list[bytes], int], None]
 DEFAULT_BAUD = 57_600
 REOPEN_S, REOPEN_MAX_S = 0.05, 2.0  # a serial device's reopen backoff: first, longest
@@ -221,11 +226,12 @@ class UdpTransport(Transport):
                     self._error("read", exc)
                     self._stop.wait(_POLL_S)
                 continue
-            reader = FrameReader()  # a datagram is judged alone: leftovers are garbage
-            frames = reader.feed(datagram)
-            skipped = reader.skipped + reader.pending
+            try:
+                frames, dropped = split_frames(datagram), 0
+            except InvalidFrameError:  # garbage around a frame, a frame cut short
+                frames, dropped = [], len(datagram)
             if self._deliver is not None:
-                self._deliver(self, None if self.fixed else sender, frames, skipped)
+                self._deliver(self, None if self.fixed else sender, frames, dropped)
 
 
 class _StalledError(OSError):

@@ -105,9 +105,10 @@ them to differ on one network.  So a guard refuses, before any crypto, frames
 whose source system belongs to the other side: the vehicle's own id
 (``system_id``, when configured) and, in
 :class:`~antireplay.mavlink.router.MavlinkRouter`, every source
-system id that has *authenticated* in the other direction (learned only from
-signed, accepted frames; an unsigned allow-listed frame teaches nothing, or a
-spoofed unsigned heartbeat could silence the real vehicle).  A signed vehicle
+system id that has *authenticated* in the other direction (the router hands each
+accepted frame to the other side's guards, :meth:`MavlinkGuard.bind_direction`,
+which learn only from signed frames; an unsigned allow-listed frame teaches
+nothing, or a spoofed unsigned heartbeat could silence the real vehicle).  A signed vehicle
 frame reflected back from a ground link therefore gets ``WRONG_DIRECTION``,
 and stamps nothing in the inbound stream table.  Configure ``--system-id``:
 without it, a reflection is refused only once the vehicle has spoken through
@@ -122,6 +123,7 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
+from enum import StrEnum
 
 from antireplay.clock import Clock, resolve
 from antireplay.counters import CounterWindow, FencedTable
@@ -138,6 +140,9 @@ from antireplay.errors import (
 )
 from antireplay.mavlink.codec import (
     MAV_EPOCH,
+    SIG_LEN,
+    SIGNED,
+    STX_V2,
     TS_LIMIT,
     UNITS_PER_S,
     Frame,
@@ -162,6 +167,14 @@ class MavVerdict:
     timestamp: int
     signed: bool
     frame: Frame  # the parsed frame, so that an adapter routes without parsing it again
+
+
+class Admission(StrEnum):
+    """What a frame from a router's link needs before its guard judges it
+    (:meth:`MavlinkGuard.admit`)."""
+
+    JUDGE = "judge"  # as it came
+    SIGN = "sign"  # an unsigned v2 frame from a trusted tool: sign it on its behalf, then judge
 
 
 @dataclass
@@ -265,6 +278,30 @@ class MavlinkGuard:
         ):
             raise MessageStaleError(self._too_old(frame.timestamp, now))
         return frame
+
+    def admit(self, raw: bytes, *, trusted: bool, own_link_id: int) -> Admission:
+        """Records nothing: what a frame a router received for this guard needs before
+        :meth:`open`.  A trusted link's unsigned v2 frame is signed on its behalf; a frame
+        from an untrusted link carrying ``own_link_id`` (the link id the router signs with)
+        is ``WRONG_DIRECTION``: the router signed it for a link whose key has no guard
+        committing it, so a copy reflected back must not count as a new stream."""
+        signed_v2 = len(raw) > SIG_LEN and raw[0] == STX_V2 and bool(raw[2] & SIGNED)
+        if trusted:
+            unsigned_v2 = raw[:1] == bytes([STX_V2]) and not signed_v2
+            return Admission.SIGN if unsigned_v2 else Admission.JUDGE
+        if signed_v2 and raw[-SIG_LEN] == own_link_id:
+            raise WrongDirectionError(
+                f"wrong link: a frame this router signed (link id {own_link_id}) "
+                "came back from a ground link"
+            )
+        return Admission.JUDGE
+
+    def bind_direction(self, verdict: MavVerdict) -> None:
+        """The other side of the link authenticated ``verdict``: its source system belongs
+        there and is refused here from now on (*Direction binding*).  An unsigned frame
+        teaches nothing: a spoofed allow-listed heartbeat must not silence the real sender."""
+        if verdict.signed:
+            self.refused_sources.add(verdict.frame.sysid)
 
     def open(self, raw: bytes) -> MavVerdict:
         """Check, verify the signature, bind, commit: accept one frame or raise a typed

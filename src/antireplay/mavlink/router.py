@@ -30,6 +30,11 @@ in), so a ground link refuses every frame carrying the router's
 ``sign_link_id`` (``WRONG_DIRECTION``): otherwise a copy reflected back would
 be a new stream for that link's guard and reach the vehicle again.  Ground
 stations must therefore not sign with that link id (251 unless configured).
+These rules (sign on a trusted link's behalf, refuse the router's own link id
+from a ground link, bind a source system to its side) are the guard's
+(:meth:`~antireplay.mavlink.guard.MavlinkGuard.admit`,
+:meth:`~antireplay.mavlink.guard.MavlinkGuard.bind_direction`); the router acts
+on its answers: signs, forwards, drops, counts and reports.
 
 **Keys per link.**  Frames travel in the vehicle key's form: a frame from a ground
 link with its own key is signed again with the vehicle key (and committed, as
@@ -74,11 +79,8 @@ from antireplay.errors import (
     InvalidFrameError,
     NonceExhaustedError,
     ReplayAttackError,
-    WrongDirectionError,
 )
 from antireplay.mavlink.codec import (
-    SIGNED,
-    STX_V2,
     Frame,
     TimestampSource,
     claimed_source,
@@ -86,11 +88,9 @@ from antireplay.mavlink.codec import (
     target,
 )
 from antireplay.mavlink.endpoints import Peer, Transport
-from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
+from antireplay.mavlink.guard import Admission, MavlinkGuard, MavVerdict
 
 INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
-#: A v2 signature block: link id, 6-byte timestamp, 6-byte signature (the link id first).
-_SIGNATURE_LEN = 13
 Location = tuple["Link", Peer | None]
 
 
@@ -227,7 +227,7 @@ class MavlinkRouter:
                 direction,
                 link,
                 Code.INVALID_FRAME,
-                f"{skipped} bytes that are no MAVLink frame",
+                f"{skipped} bytes that are not whole MAVLink frames",
                 b"",
             )
         for raw in frames:
@@ -253,15 +253,11 @@ class MavlinkRouter:
         if link.role is Role.VEHICLE:
             return self.outbound.open(raw)
         key = self.vehicle_key if link.key is None else link.key  # None: a trusted link
-        signed_v2 = len(raw) > _SIGNATURE_LEN and raw[0] == STX_V2 and bool(raw[2] & SIGNED)
-        if link.role is Role.TRUSTED and raw[0] == STX_V2 and not signed_v2:
-            raw = self._sign(raw, key)  # an unsigned v2 frame from a trusted tool
-        elif link.role is Role.GROUND and signed_v2 and raw[-_SIGNATURE_LEN] == self.sign_link_id:
-            raise WrongDirectionError(
-                f"wrong link: a frame this router signed (link id {self.sign_link_id}) "
-                "came back from a ground link"
-            )
-        verdict = self.inbound[key].open(raw)
+        guard = self.inbound[key]
+        trusted = link.role is Role.TRUSTED
+        if guard.admit(raw, trusted=trusted, own_link_id=self.sign_link_id) is Admission.SIGN:
+            raw = self._sign(raw, key)
+        verdict = guard.open(raw)
         if key != self.vehicle_key and verdict.signed:  # a ground link with its own key
             return self.inbound[self.vehicle_key].open(self._sign(verdict.frame, self.vehicle_key))
         return verdict
@@ -293,7 +289,7 @@ class MavlinkRouter:
                 self._routes.popitem(last=False)
             others = [self.outbound] if link.role is not Role.VEHICLE else self.inbound.values()
             for guard in others:
-                guard.refused_sources.add(frame.sysid)
+                guard.bind_direction(verdict)
             key = (link.name, *verdict.stream)
             streams = self.stats.streams
             streams[key] = streams.get(key, 0) + 1
