@@ -9,7 +9,8 @@ import json
 import subprocess
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,8 +19,9 @@ import httpx
 import pytest
 import uvicorn
 from cryptography.hazmat.primitives.asymmetric import ed25519
-from fastapi import Depends, FastAPI, Request
-from starlette.types import ASGIApp, Message
+from fastapi import Depends, FastAPI, Header, Request, WebSocket
+from starlette.testclient import TestClient, WebSocketDenialResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from antireplay.audit import tail
 from antireplay.auth import Signer
@@ -290,13 +292,11 @@ def test_the_application_sees_the_verified_signer_never_the_clients_claim(
         await call(dependency.app, raw, lies)
 
     asyncio.run(both())
-    (verified, _, seen), (_, _, untouched) = middleware.handed[0], dependency.handed[0]
-    assert [seen[name] for name in SIGNER_HEADERS] == [
-        "operator", "operator", "control,safety", verified.msg_id
-    ]  # fmt: skip
-    # Behind the dependency nothing rewrites headers: the claim is there, Verified is the truth.
-    assert untouched["rcan-signer-owner"] == "admin"
-    assert dependency.handed[0][0].signer.owner == "operator"
+    for verified, _, seen in (middleware.handed[0], dependency.handed[0]):
+        assert [seen[name] for name in SIGNER_HEADERS] == [
+            "operator", "operator", "control,safety", verified.msg_id
+        ]  # fmt: skip
+        assert verified.signer.owner == "operator"
 
 
 def test_http_upstream_gets_the_signer_headers_and_no_client_copies(tmp_path: Path) -> None:
@@ -455,3 +455,137 @@ def test_a_qos_retransmission_gets_the_apps_original_answer_and_never_reaches_it
     assert len(target.handed) == 1  # executed once
     assert [a.status for a in behind_dependency] == [200, 409]
     assert len(dependency.handed) == 1
+
+
+LIES = {"rcan-signer-owner": "admin", "rcan-signer-scopes": "*", "rcan-msg-id": "other"}
+
+
+def _signer_claims(headers: dict[str, str]) -> dict[str, str]:
+    return {name: value for name, value in headers.items() if name in SIGNER_HEADERS}
+
+
+def test_a_websocket_is_refused_on_a_guarded_path_and_stripped_of_signer_claims_elsewhere(
+    tmp_path: Path,
+) -> None:
+    write_demo_config(tmp_path)
+    clock = ManualClock(wall=NOW)
+    started: list[bool] = []
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        started.append(True)
+        yield
+
+    api = FastAPI(lifespan=lifespan)
+    executed: list[str] = []
+
+    @api.websocket("/v1/messages")
+    async def commands(socket: WebSocket) -> None:
+        await socket.accept()
+        executed.append(await socket.receive_text())
+
+    @api.websocket("/ws")
+    async def echo(socket: WebSocket) -> None:
+        await socket.accept()
+        await socket.send_json(dict(socket.headers))
+        await socket.close()
+
+    @api.get("/whoami")
+    async def whoami(request: Request) -> dict[str, str]:
+        return dict(request.headers)
+
+    guard = Guard(api, config(tmp_path / "mw", tmp_path / "operator.pub.pem"), clock=clock)
+    unsigned = json.dumps({"cmd": "move_forward", "msg_id": "m-1"})
+    with TestClient(guard) as client:  # lifespan reaches the app untouched
+        with (
+            pytest.raises(WebSocketDenialResponse) as denied,
+            client.websocket_connect("/v1/messages", headers=JSON) as socket,
+        ):
+            socket.send_text(unsigned)
+        with client.websocket_connect("/ws", headers=LIES) as socket:
+            echoed = socket.receive_json()
+        plain = client.get("/whoami", headers=LIES).json()
+    assert (denied.value.status_code, denied.value.json()["code"]) == (405, "INVALID_ENVELOPE")
+    assert executed == []
+    assert _signer_claims(echoed) == {} and _signer_claims(plain) == {}
+    assert started == [True]
+    assert not any(t.is_alive() for t in guard.workers._threads)  # lifespan shutdown ran
+
+
+def test_a_websocket_on_a_guarded_path_is_closed_1008_by_a_server_without_denial_responses(
+    tmp_path: Path,
+) -> None:
+    write_demo_config(tmp_path)
+    reached: list[str] = []
+
+    async def app(scope: Scope, receive: Receive, send: Send) -> None:
+        reached.append(scope["type"])
+
+    guard = Guard(app, config(tmp_path / "mw", tmp_path / "operator.pub.pem"))
+    scope = {
+        "type": "websocket", "asgi": {"version": "3.0"}, "scheme": "ws", "path": "/v1/messages",
+        "raw_path": b"/v1/messages", "query_string": b"", "root_path": "", "headers": [],
+        "client": ("127.0.0.1", 1), "server": ("127.0.0.1", 80), "subprotocols": [],
+    }  # fmt: skip
+    incoming: list[Message] = [{"type": "websocket.connect"}]
+    sent: list[Message] = []
+
+    async def receive() -> Message:
+        return incoming.pop(0) if incoming else {"type": "websocket.disconnect", "code": 1000}
+
+    async def send(message: Message) -> None:
+        sent.append(message)
+
+    try:
+        asyncio.run(guard(scope, receive, send))
+    finally:
+        guard.close()
+    assert [(m["type"], m["code"]) for m in sent] == [("websocket.close", 1008)]
+    assert reached == []
+
+
+def test_behind_the_dependency_routes_see_the_verified_signer_never_the_clients_claim(
+    tmp_path: Path,
+) -> None:
+    write_demo_config(tmp_path)
+    clock = ManualClock(wall=NOW)
+    api = FastAPI()
+    guard = RcanGuard(config(tmp_path / "dep", tmp_path / "operator.pub.pem"), clock=clock)
+    guard.install(api)
+    seen: list[dict[str, str]] = []
+
+    @api.post("/v1/messages")
+    async def move(
+        request: Request,
+        verified: Verified = Depends(guard),  # noqa: B008 - a local guard: Annotated cannot see it
+        owner: str | None = Header(None, alias="rcan-signer-owner"),
+    ) -> dict[str, Any]:
+        seen.append({**dict(request.headers), "param": owner or ""})
+        return verified.ack
+
+    @api.get("/whoami")
+    async def whoami(request: Request) -> dict[str, str]:
+        return dict(request.headers)
+
+    @api.websocket("/ws")
+    async def echo(socket: WebSocket) -> None:
+        await socket.accept()
+        await socket.send_json(dict(socket.headers))
+        await socket.close()
+
+    raw = command(load_operator_key(tmp_path), timestamp=clock.wall())
+    try:
+        with TestClient(api) as client:
+            accepted = client.post("/v1/messages", content=raw, headers={**JSON, **LIES})
+            plain = client.get("/whoami", headers=LIES).json()
+            with client.websocket_connect("/ws", headers=LIES) as socket:
+                echoed = socket.receive_json()
+    finally:
+        guard.close()
+    assert accepted.status_code == 200, accepted.text
+    assert _signer_claims(seen[0]) == {
+        "rcan-signer-owner": "operator", "rcan-signer-kid": "operator",
+        "rcan-signer-scopes": "control,safety", "rcan-msg-id": json.loads(raw)["msg_id"],
+    }  # fmt: skip
+    assert seen[0]["param"] == "operator"
+    assert _signer_claims(plain) == {} and _signer_claims(echoed) == {}

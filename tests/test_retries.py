@@ -21,14 +21,25 @@ from rcan.signing import MLDSAKeyPair, sign_message
 
 from antireplay import ManualClock, SecurityConfig
 from antireplay.answers import MAX_BODY, MAX_TOTAL, AnswerMemo, Entry, HeldAnswer, marked
-from antireplay.audit import verify
-from antireplay.auth import Signer
+from antireplay.audit import AuditLog, verify
+from antireplay.auth import JwtVerifier, Signer
 from antireplay.cli import main
 from antireplay.envelope import parse
 from antireplay.errors import UpstreamFailedError
 from antireplay.pipeline import Outcome, Receiver
 from tests.conftest import fresh_receiver
-from tests.envelopes import ED, NOW, PQ, message, registry, sdk_message, sdk_registry, signed
+from tests.envelopes import (
+    ED,
+    JWT_KEY,
+    NOW,
+    PQ,
+    message,
+    registry,
+    sdk_message,
+    sdk_registry,
+    signed,
+    token,
+)
 from tests.harness import GatewayProcess, free_port
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
@@ -36,9 +47,14 @@ JSON = {"content-type": "application/json"}
 JSON_HEADERS = (("content-type", "application/json"),)
 
 
-def answered(receiver: Receiver, raw: bytes, result: object = "moved") -> Outcome:
+def answered(
+    receiver: Receiver,
+    raw: bytes,
+    result: object = "moved",
+    headers: dict[str, str] | None = None,
+) -> Outcome:
     """Receive ``raw`` and, if accepted, hold the answer a transport would have sent."""
-    outcome = receiver.receive(raw)
+    outcome = receiver.receive(raw, headers)
     if outcome.accepted:
         body = json.dumps({**(outcome.ack or {}), "result": result}).encode()
         receiver.hold_answer(outcome, 200, JSON_HEADERS, body)
@@ -151,6 +167,36 @@ def test_estop_is_unchanged_a_fresh_duplicate_is_processed(receiver: Receiver) -
     assert answered(receiver, raw).accepted
     again = receiver.receive(raw)
     assert (again.accepted, again.warning, again.retry) == (True, "REPLAY_DETECTED", None)
+
+
+def test_a_retransmission_without_the_required_bearer_token_gets_the_originals_refusal(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """The held answer carries content (the upstream's result): it goes only to a request
+    that passed the authentication an original needs, the token before anything is answered."""
+    verifier = JwtVerifier(
+        {"jwt-1": JWT_KEY.public_key()}, audience="robot-1", issuer="fleet", clock=clock
+    )
+    receiver = fresh_receiver(
+        SecurityConfig(), registry(), None, AuditLog(tmp_path / "audit.db"), clock,
+        jwt=verifier, jwt_required=True,
+    )  # fmt: skip
+    raw = signed(qos=1)
+    bearer = {"Authorization": f"Bearer {token()}"}
+    assert answered(receiver, raw, result="secret", headers=bearer).accepted
+    original_without_token = receiver.receive(signed(qos=1))
+    assert (original_without_token.status, original_without_token.code) == (401, "AUTH_FAILED")
+    forged = {"Authorization": f"Bearer {token(sub='intruder')}"}
+    on_loop = asyncio.run(receive_on_loop(receiver, raw))
+    for refused in (receiver.receive(raw), receiver.receive(raw, forged), on_loop):
+        assert (refused.status, refused.code, refused.retry) == (401, "AUTH_FAILED", None)
+        assert refused.nack is not None and "secret" not in json.dumps(refused.nack)
+    assert receiver.receive(raw).reason == original_without_token.reason
+    assert last_audit(receiver).code == "AUTH_FAILED"
+    assert receiver.stats.retries == 0
+    again = receiver.receive(raw, bearer)  # the same token an original needs: the answer
+    assert again.retry is not None and json.loads(again.retry.body)["result"] == "secret"
+    assert receiver.stats.retries == 1
 
 
 async def inline(fn: Callable[..., Any], *args: Any) -> Any:

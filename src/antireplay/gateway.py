@@ -52,7 +52,7 @@ import queue
 import sqlite3
 import threading
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Iterator
 from contextlib import asynccontextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -488,8 +488,9 @@ class Guard(_Checkpoint):
     gateway's NACK and status; an accepted message reaches ``app`` with the canonical
     envelope as its body, the verified signer in ``SIGNER_HEADERS`` and
     ``scope["state"]["antireplay"]``: a :class:`Verified` (Starlette:
-    ``request.state.antireplay``); another method on those paths is refused (405).  A
-    client's ``SIGNER_HEADERS`` are dropped from every request, on every route, and so is
+    ``request.state.antireplay``); another method on those paths is refused (405), and so
+    is a WebSocket (:func:`_refuse_websocket`).  A client's ``SIGNER_HEADERS`` are dropped
+    from every request (HTTP and WebSocket), on every route, and so is
     every request with both Content-Length and Transfer-Encoding (refused and closed: the
     request-smuggling shape).  The app's answer passes through as it is sent (streaming
     works); a copy is kept only for a message a QoS retransmission may repeat.  The hot
@@ -513,26 +514,19 @@ class Guard(_Checkpoint):
         self.accepted = app if accepted is None else accepted
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "lifespan":
+            return await self.app(scope, receive, self._closing(send))
         if scope["type"] != "http":
-            if scope["type"] == "lifespan":
-                send = self._closing(send)
-            await self.app(scope, receive, send)
-            return
+            return await self._not_http(scope, receive, send)
         framing = _framing(scope)
         refused = self.ambiguous(framing)
         if refused is not None:
             return await refused.answer(send)
-        if any(name.lower() in _SIGNER_HEADERS for name, _ in scope["headers"]):
-            # Only the guard speaks for the signer, on every route: a client's copies go.
-            kept = [(n, v) for n, v in scope["headers"] if n.lower() not in _SIGNER_HEADERS]
-            scope = {**scope, "headers": kept}
+        scope = _unclaimed(scope)
         if _route_path(scope) not in self.paths:
             return await self.app(scope, receive, send)
         if scope["method"] != "POST":
-            nack = InvalidEnvelopeError("method must be POST").to_nack(
-                None, nack_type=self.nack_type
-            )
-            return await Refused(405, nack).answer(send)
+            return await self._not_post().answer(send)
         result = await self.check(scope, receive, framing)
         if isinstance(result, Refused):
             return await result.answer(send)
@@ -547,6 +541,20 @@ class Guard(_Checkpoint):
             await self.accepted(inner, _replay(body, receive), relay)
         finally:
             finish()
+
+    async def _not_http(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """A WebSocket (or any other connection but HTTP and lifespan): a client's
+        ``SIGNER_HEADERS`` dropped on every route, and refused before the app on a guarded
+        path, where only a POSTed envelope is checked."""
+        scope = _unclaimed(scope)
+        if "path" in scope and _route_path(scope) not in self.paths:
+            return await self.app(scope, receive, send)
+        if scope["type"] == "websocket":
+            await _refuse_websocket(scope, receive, send, self._not_post())
+
+    def _not_post(self) -> Refused:
+        nack = InvalidEnvelopeError("method must be POST").to_nack(None, nack_type=self.nack_type)
+        return Refused(405, nack)
 
     def _holding(self, outcome: Outcome, send: Send) -> tuple[Send, Callable[[], None]]:
         """``send`` passing the answer through as it comes, and copying it (at most
@@ -629,11 +637,65 @@ class RcanGuard(_Checkpoint):
             # The route's answer is not seen here: a QoS retransmission is refused (409),
             # never run again, rather than kept waiting for an answer nobody holds.
             self.receiver.answers.drop(outcome.envelope.msg_id)
+        _speak_for_signer(request.scope, verified)
         return verified
 
     def install(self, app: Starlette) -> None:
-        """Answer :class:`Refused` with the NACK itself (not wrapped in ``detail``)."""
+        """Answer :class:`Refused` with the NACK itself (not wrapped in ``detail``), and drop
+        a client's ``SIGNER_HEADERS`` from every request (HTTP and WebSocket), on every
+        route (call it before the app starts)."""
         app.add_exception_handler(Refused, _refused_response)
+        app.add_middleware(_Unclaimed)
+
+
+class _Unclaimed:
+    """ASGI layer of :meth:`RcanGuard.install`: only the guard speaks for the signer."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        await self.app(_unclaimed(scope), receive, send)
+
+
+def _unclaimed(scope: Scope) -> Scope:
+    """``scope`` without a client's ``SIGNER_HEADERS`` (the same scope if it has none)."""
+    headers = scope.get("headers")
+    if headers is None or not any(name.lower() in _SIGNER_HEADERS for name, _ in headers):
+        return scope
+    return {**scope, "headers": _without_signer(headers)}
+
+
+def _without_signer(headers: Iterable[tuple[bytes, bytes]]) -> list[tuple[bytes, bytes]]:
+    return [(name, value) for name, value in headers if name.lower() not in _SIGNER_HEADERS]
+
+
+def _signer_pairs(verified: Verified) -> list[tuple[bytes, bytes]]:
+    return [(name.encode(), value.encode()) for name, value in verified.headers()]
+
+
+def _speak_for_signer(scope: Scope, verified: Verified) -> None:
+    """The route's request headers carry the verified signer, never a client's claim: the
+    header list is rewritten in place, so a ``Headers`` already read from it sees it too."""
+    rewritten = [*_without_signer(scope["headers"]), *_signer_pairs(verified)]
+    if isinstance(scope["headers"], list):
+        scope["headers"][:] = rewritten
+    else:
+        scope["headers"] = rewritten
+
+
+async def _refuse_websocket(scope: Scope, receive: Receive, send: Send, refusal: Refused) -> None:
+    """Refuse a WebSocket handshake: ``refusal`` as an HTTP answer where the server offers
+    denial responses, else a close before accepting (1008, policy violation; HTTP 403)."""
+    if (await receive())["type"] != "websocket.connect":
+        return  # the client is gone
+    if "websocket.http.response" in (scope.get("extensions") or {}):
+
+        async def denial(message: Message) -> None:
+            await send({**message, "type": f"websocket.{message['type']}"})
+
+        return await refusal.answer(denial)
+    await send({"type": "websocket.close", "code": 1008, "reason": "method must be POST"})
 
 
 async def _refused_response(_: Request, exc: Exception) -> Response:
@@ -663,9 +725,7 @@ def _verified_headers(
     """The request headers for the application: the new body's length, the signer's."""
     dropped = {b"content-length", b"transfer-encoding", *_SIGNER_HEADERS}
     kept = [(name, value) for name, value in headers if name.lower() not in dropped]
-    kept.append((b"content-length", b"%d" % length))
-    kept += [(name.encode(), value.encode()) for name, value in verified.headers()]
-    return kept
+    return [*kept, (b"content-length", b"%d" % length), *_signer_pairs(verified)]
 
 
 def _nothing() -> None:

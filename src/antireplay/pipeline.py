@@ -20,7 +20,8 @@ away before any cryptography:
    store's fence and watermark                              REPLAY_DETECTED 409
    (:meth:`ReplayCache.check`, records nothing);            or the original answer
    REPLAY_DETECTED for a QoS retransmission: the            (``Outcome.retry``)
-   retry rule below, no crypto
+   retry rule below, after step 4 (its answer has
+   content), no signature check
 4. JWT, if configured or presented (an unsigned or      -> AUTH_FAILED 401
    unknown-key envelope gets its own code, as at 5)
 5. signature over the canonical envelope                 -> SIGNATURE_REQUIRED /
@@ -51,7 +52,9 @@ and is refused ``REPLAY_DETECTED`` (step 3, or step 7 when two copies raced) is 
 *retransmission* when a digest of its authenticated content (signed bytes,
 signature alg, kid and value) equals the one kept for its msg_id when that
 message was accepted here: the same bytes under the same signature as a message
-verified here, so no second signature check.  It is answered with the original
+verified here, so no second signature check; but the bearer token (step 4) is checked
+first, as for an original: without a valid one the retry gets the original's refusal,
+``AUTH_FAILED``, never the held answer.  It is answered with the original
 answer (:attr:`Outcome.retry`: same status and body, ``"duplicate": true``, header
 ``rcan-duplicate: true``), audited as ``REPLAY_DETECTED`` with warning
 ``QOS_RETRY`` under the original's verified sender, counted (``stats.retries``),
@@ -349,7 +352,7 @@ class Receiver:
         same authenticated content as the message accepted under its msg_id: that
         message's answer entry (held or in flight; no signature check, answers.py).
         Otherwise ``None`` and the refusal to send."""
-        if error.code != Code.REPLAY_DETECTED or env is None or env.qos < 1:
+        if env is None or not _may_retry(error, env):
             return None, error
         entry = self.answers.find(env, self.clock.wall())
         return entry, error if entry is not None else _not_held("original answer not held here")
@@ -410,7 +413,12 @@ class Receiver:
             env = parse(raw, max_bytes=self.max_bytes)
             self._check_version(env)
             msg_type, event = safety_class(env)
-            self.cache.check(env.msg_id, env.seconds, msg_type, event)
+            try:
+                self.cache.check(env.msg_id, env.seconds, msg_type, event)
+            except ReplayAttackError as exc:
+                if _may_retry(exc, env):  # its answer has content: only after the token
+                    self._check_jwt(env, headers or {})
+                raise
             self._check_jwt(env, headers or {})
             signer = self.keys.verify(env)
             self._authorize(env, signer, msg_type)
@@ -617,6 +625,12 @@ class Receiver:
             "sender_verified": signer is not None,
             "msg_id": outcome.msg_id,
         }
+
+
+def _may_retry(error: ReplayAttackError, env: Envelope) -> bool:
+    """Whether the retry rule decides this refusal: ``REPLAY_DETECTED`` for a message that
+    declares ``qos`` >= 1 (answered with the original answer if its content matches)."""
+    return error.code == Code.REPLAY_DETECTED and env.qos >= 1
 
 
 def _not_held(why: str) -> ReplayDetectedError:
