@@ -314,7 +314,7 @@ def test_refused_new_prefix_evicts_no_live_sender(tmp_path: Path, clock: ManualC
     with pytest.raises(MessageStaleError, match="lowest mark") as refused:
         verifier.open(late)
     assert refused.value.detail == "fence"
-    table = verifier._tables[Kind.ANNOUNCEMENT]
+    table = verifier.policy.tables[Kind.ANNOUNCEMENT]
     assert (a.nonce_prefix in table, b.nonce_prefix in table) == (True, True)
     assert (table.fence, table.evictions) == (-1, 0)
     assert verifier.store.current("epoch:announcement:floor") is None
