@@ -5,10 +5,13 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+import sqlite3
+import uuid
 from pathlib import Path
 from typing import Any
 
 import pytest
+import redis
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -33,8 +36,10 @@ from antireplay.errors import (
     ReplayAttackError,
     SignatureInvalidError,
     StateFileError,
+    StateUnavailableError,
     WarningCode,
 )
+from antireplay.stores.redis_store import RedisStore
 from antireplay.stores.sqlite import SqliteStore
 from tests.conftest import assert_never_reused, kill9_runs, started_before
 
@@ -309,7 +314,7 @@ def test_refused_new_prefix_evicts_no_live_sender(tmp_path: Path, clock: ManualC
     with pytest.raises(MessageStaleError, match="lowest mark") as refused:
         verifier.open(late)
     assert refused.value.detail == "fence"
-    table = verifier._tables[Kind.ANNOUNCEMENT]
+    table = verifier.policy.tables[Kind.ANNOUNCEMENT]
     assert (a.nonce_prefix in table, b.nonce_prefix in table) == (True, True)
     assert (table.fence, table.evictions) == (-1, 0)
     assert verifier.store.current("epoch:announcement:floor") is None
@@ -579,3 +584,101 @@ def test_property_each_prefix_epoch_accepted_at_most_once(ops: list[tuple[str, i
         key = (got.nonce_prefix, got.epoch)
         assert key not in accepted
         accepted.add(key)
+
+
+class _FlakySqlite(SqliteStore):
+    """A real SQLite store whose writes fail while ``down`` (a full disk, a lost mount)."""
+
+    down = False
+
+    def advance(self, key: str, value: int) -> bool:
+        if self.down:
+            raise StateUnavailableError(f"sqlite {self.path}: disk I/O error")
+        return super().advance(key, value)
+
+
+def test_failed_store_write_moves_no_mark_and_redelivery_is_accepted(
+    tmp_path: Path, clock: ManualClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    store = _FlakySqlite(tmp_path / "verifier.db", clock=clock)
+    signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, store=store, clock=clock)
+    first = verifier.open(signer.seal(b"first"))
+    clock.advance(0.001)
+    second = signer.seal(b"second")
+    store.down = True
+    with pytest.raises(StateUnavailableError):
+        verifier.open(second)
+    assert verifier.last(signer.nonce_prefix) == first.epoch  # never believed what failed
+    store.down = False
+    got = verifier.open(second)  # the genuine redelivery, once the store is back
+    assert got.payload == b"second" and verifier.last(signer.nonce_prefix) == got.epoch
+    assert verifier.prefix_collisions == 0 and "collision" not in caplog.text
+    store.close()
+
+
+def test_failed_first_write_of_a_new_prefix_leaves_it_unknown(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    store = _FlakySqlite(tmp_path / "verifier.db", clock=clock)
+    signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, store=store, clock=clock)
+    sealed = signer.seal(b"hello")
+    store.down = True
+    with pytest.raises(StateUnavailableError):
+        verifier.open(sealed)
+    assert verifier.last(signer.nonce_prefix) is None
+    store.down = False
+    assert verifier.open(sealed).payload == b"hello"
+    store.close()
+
+
+def _poison_sqlite(db: Path, key: str) -> None:
+    with sqlite3.connect(db) as conn:
+        conn.execute("INSERT OR REPLACE INTO counters VALUES (?, 'x')", (key,))
+    conn.close()
+
+
+def test_wrong_typed_floor_in_sqlite_refuses_start_naming_the_file(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    db = tmp_path / "verifier.db"
+    EpochVerifier(PSK, store=f"sqlite:{db}", clock=clock).close()
+    _poison_sqlite(db, "epoch:announcement:floor")
+    store = SqliteStore(db, clock=clock)
+    with pytest.raises(StateFileError) as refused:
+        store.current("epoch:announcement:floor")
+    assert str(db) in str(refused.value) and refused.value.recovery
+    with pytest.raises(StateFileError, match=str(db)):
+        EpochVerifier(PSK, store=store, clock=clock)
+    with pytest.raises(StateFileError):
+        store.advance("epoch:announcement:floor", 5)
+    store.close()
+
+
+def test_wrong_typed_epoch_while_running_is_state_unavailable(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    db = tmp_path / "verifier.db"
+    signer = EpochSigner(PSK, clock=clock)
+    verifier = EpochVerifier(PSK, store=f"sqlite:{db}", clock=clock)
+    _poison_sqlite(db, f"epoch:announcement:{signer.nonce_prefix.hex()}")
+    with pytest.raises(StateUnavailableError, match=str(db)):
+        verifier.open(signer.seal(b"hello"))
+    assert verifier.last(signer.nonce_prefix, Kind.PING) is None
+    verifier.close()
+
+
+def test_wrong_typed_value_in_redis_is_a_state_file_error(
+    redis_url: str, clock: ManualClock
+) -> None:
+    prefix = f"poison{uuid.uuid4().hex}:"
+    store = RedisStore(redis_url, prefix=prefix, clock=clock)
+    EpochVerifier(PSK, store=store, clock=clock)
+    raw = redis.Redis.from_url(redis_url)
+    raw.set(f"{prefix}{{antireplay}}:c:epoch:announcement:floor", "x")
+    with pytest.raises(StateFileError) as refused:
+        EpochVerifier(PSK, store=store, clock=clock)
+    assert redis_url in str(refused.value) and refused.value.recovery
+    with pytest.raises(StateFileError, match=redis_url):
+        store.advance("epoch:announcement:floor", 5)
+    raw.close()
+    store.close()

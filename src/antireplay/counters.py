@@ -399,6 +399,23 @@ class FencedTable(Generic[K, E]):
             self._refuse(value, self._fence, "the eviction fence")
         return entry
 
+    def admit(self, key: K, value: int) -> K | None:
+        """Records nothing.  Refuses what :meth:`commit` would refuse; else the key a
+        commit of ``(key, value)`` would evict (its mark becomes the fence), or None.
+        An owner that persists the fence calls this first, then commits once it is
+        durable."""
+        if key in self._entries:
+            return None
+        if value <= self._fence:
+            self._refuse(value, self._fence, "the eviction fence")
+        if len(self._marks) < self.max_keys:
+            return None
+        marks = self._marks
+        lowest = min(marks, key=marks.__getitem__)
+        if value <= marks[lowest]:
+            self._refuse(value, marks[lowest], "the lowest mark of a full table")
+        return lowest
+
     def commit(self, key: K, value: int, new: Callable[[], E]) -> E:
         """Raise ``key``'s mark to ``value`` (never lowers it).  A key the table does not
         hold is admitted with entry ``new()`` only above the fence and, when the table is
@@ -406,14 +423,9 @@ class FencedTable(Generic[K, E]):
         raised to its mark.  A refused newcomer changes nothing."""
         entry = self._entries.get(key)
         if entry is None:
-            if value <= self._fence:
-                self._refuse(value, self._fence, "the eviction fence")
-            if len(self._marks) >= self.max_keys:
-                marks = self._marks
-                lowest = min(marks, key=marks.__getitem__)
-                if value <= marks[lowest]:
-                    self._refuse(value, marks[lowest], "the lowest mark of a full table")
-                self._fence = max(self._fence, marks.pop(lowest))
+            lowest = self.admit(key, value)
+            if lowest is not None:
+                self._fence = max(self._fence, self._marks.pop(lowest))
                 del self._entries[lowest]
                 self.evictions += 1
             entry = self._entries[key] = new()

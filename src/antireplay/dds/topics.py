@@ -76,6 +76,7 @@ from antireplay.epochs import (
     EpochVerifier,
     Kind,
 )
+from antireplay.epochs.policy import HEAD
 from antireplay.errors import (
     Code,
     EpochReplayedError,
@@ -92,7 +93,7 @@ from antireplay.stores import ReplayStore
 log = logging.getLogger("antireplay.dds")
 
 #: The documented announcement head (version, kind, nonce prefix, epoch), read before any crypto.
-_CLAIM = struct.Struct(">BB8sQ")
+_CLAIM = HEAD  # version, kind, nonce prefix, epoch
 _ILEN = struct.Struct(">H")
 MAX_INSTANCE = 256
 #: Type name bound in the MAC for topics whose samples are raw bytes.

@@ -54,7 +54,7 @@ import redis
 import redis.cluster
 
 from antireplay.clock import Clock, resolve
-from antireplay.errors import ConfigError, StateUnavailableError
+from antireplay.errors import ConfigError, StateFileError, StateUnavailableError
 from antireplay.stores import _codec
 from antireplay.window import NEVER, Seen
 
@@ -170,8 +170,10 @@ class RedisStore:
 
     def lookup(self, key: str) -> Seen:
         """A plain GET (records nothing); fence and watermark as of the last commit."""
-        value = self._call(lambda: self._redis.get(self.msg_key(key)))
-        return Seen(NEVER if value is None else float(value), self._watermark, self._fence)
+        entry = self.msg_key(key)
+        value = self._call(lambda: self._redis.get(entry))
+        expiry = NEVER if value is None else self._expiry(entry, value)
+        return Seen(expiry, self._watermark, self._fence)
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         return self._run("commit", self.msg_key(key), now, repr(expires_at), force)
@@ -180,7 +182,16 @@ class RedisStore:
         """Run the loss and eviction checks alone (start-up, a guard taking its lease)."""
         return self._run("verify", self._meta, self._clock.wall(), "", False)
 
-    def _run(self, mode: str, key: str, now: float, value: str, force: bool) -> Seen:
+    def _run(
+        self,
+        mode: str,
+        key: str,
+        now: float,
+        value: str,
+        force: bool,
+        *,
+        counter: str | None = None,
+    ) -> Seen:
         args = [mode, repr(now), self._skew, _FLOOR, value, "1" if force else "0"]
         reply = self._call(lambda: self._script(keys=[self._meta, key], args=args))
         if reply[0] == -1:
@@ -188,9 +199,10 @@ class RedisStore:
             raise StateUnavailableError(
                 f"redis {self.url}: {_evicting(policy)}; set it to noeviction"
             )
-        return self._seen(reply)
+        return self._seen(reply, key, counter)
 
-    def _seen(self, reply: list[Any]) -> Seen:
+    def _seen(self, reply: list[Any], entry: str, counter: str | None = None) -> Seen:
+        """The script's answer on ``entry``; ``counter`` names the key an ``advance`` ran on."""
         recorded, cur, fence, watermark, lost = reply
         self._fence = _floor(float(fence))
         self._watermark = _floor(float(watermark))
@@ -203,19 +215,46 @@ class RedisStore:
                 self.url,
                 self._fence,
             )
-        expiry = NEVER if cur is None or len(cur) == _codec.WIDTH else float(cur)
+        if counter is not None:
+            if cur is not None:
+                self._decode(counter, cur)  # refused: by a counter, never by garbage
+            return Seen(NEVER, self._watermark, self._fence, bool(recorded), False, bool(lost))
+        expiry = NEVER if cur is None else self._expiry(entry, cur)
         return Seen(expiry, self._watermark, self._fence, bool(recorded), False, bool(lost))
 
     def advance(self, key: str, value: int) -> bool:
         """Compare-and-advance, with the same loss and eviction checks as a commit."""
         seen = self._run(
-            "advance", f"{self._base}c:{key}", self._clock.wall(), _codec.encode(value), False
+            "advance",
+            f"{self._base}c:{key}",
+            self._clock.wall(),
+            _codec.encode(value),
+            False,
+            counter=key,
         )
         return seen.recorded
 
     def current(self, key: str) -> int | None:
         value = self._call(lambda: self._redis.get(f"{self._base}c:{key}"))
-        return None if value is None else _codec.decode(value)
+        return None if value is None else self._decode(key, value)
+
+    def _decode(self, key: str, value: bytes | str) -> int:
+        """A stored counter; one that does not decode names the key and the recovery (drop
+        it and the deployment's meta: the next operation raises the restart fence)."""
+        drop = f"redis-cli -u {self.url} DEL '{self._base}c:{key}' '{self._meta}'"
+        return _codec.decode(value, where=self.url, key=key, recovery=drop)
+
+    def _expiry(self, entry: str, value: bytes | str) -> float:
+        """A stored entry's expiry; an undecodable one is refused like an undecodable counter."""
+        try:
+            return float(value)
+        except ValueError:
+            raise StateFileError(
+                self.url,
+                f"replay entry {entry!r} holds {value!r}, not an expiry",
+                recovery=f"redis-cli -u {self.url} DEL '{entry}' '{self._meta}' (the next "
+                "operation raises the restart fence)",
+            ) from None
 
     def status(self) -> dict[str, float]:
         return {

@@ -216,11 +216,19 @@ class SqliteStore:
 
     def _unreadable(self, exc: Exception) -> StateFileError:
         return StateFileError(
-            str(self.path),
-            f"not a readable replay-state database ({exc})",
-            recovery=f"mv {self.path} {self.path}.corrupt (the next start re-creates it "
-            "behind a restart fence)",
+            str(self.path), f"not a readable replay-state database ({exc})", recovery=self._aside
         )
+
+    @property
+    def _aside(self) -> str:
+        """The recovery from a damaged database: the next start fences what it held."""
+        return (
+            f"mv {self.path} {self.path}.corrupt "
+            "(the next start re-creates it behind a restart fence)"
+        )
+
+    def _decode(self, key: str, text: object) -> int:
+        return _codec.decode(str(text), where=str(self.path), key=key, recovery=self._aside)
 
     def _verify(self) -> None:
         """At open: compare the database with its witness; fence on any sign of loss."""
@@ -434,7 +442,11 @@ class SqliteStore:
 
         def body(db: sqlite3.Connection) -> tuple[bool, _Meta]:
             meta = self._meta_checked(db)
-            return db.execute(_ADVANCE, (key, encoded)).rowcount == 1, meta
+            if db.execute(_ADVANCE, (key, encoded)).rowcount == 1:
+                return True, meta
+            (held,) = db.execute("SELECT value FROM counters WHERE key = ?", (key,)).fetchone()
+            self._decode(key, held)  # refused: by a counter, never by something undecodable
+            return False, meta
 
         def tx() -> bool:
             return self._transaction(body)
@@ -444,7 +456,7 @@ class SqliteStore:
 
     def current(self, key: str) -> int | None:
         row = self._fetch("SELECT value FROM counters WHERE key = ?", (key,))
-        return None if row is None else _codec.decode(str(row[0]))
+        return None if row is None else self._decode(key, row[0])
 
     def count(self) -> int:
         """Rows in the seen-set (live and not yet purged)."""
