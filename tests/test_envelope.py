@@ -103,3 +103,35 @@ def test_a_safety_cmd_and_a_contradicting_event_are_refused(fields: dict[str, An
     body = json.dumps({"msg_id": "m", "target": "t", "timestamp": 1, **fields}).encode()
     with pytest.raises(InvalidEnvelopeError, match="contradicts"):
         parse(body)
+
+
+@pytest.mark.parametrize(
+    ("fields", "reason"),
+    [
+        ({"cmd": "launch", "type": 6, "safety_event": "LAUNCH"}, "must be one of"),
+        ({"cmd": "halt", "type": 6, "safety_event": "estop"}, "must be one of"),
+        ({"cmd": "halt", "safety_event": "ESTOP"}, "only a SAFETY"),
+        ({"cmd": "halt", "type": 1, "safety_event": "STOP"}, "only a SAFETY"),
+        ({"cmd": "ESTOP", "type": 3, "safety_event": "ESTOP"}, "only a SAFETY"),
+    ],
+)
+def test_safety_event_is_a_known_event_on_a_safety_message_only(
+    fields: dict[str, Any], reason: str
+) -> None:
+    body = json.dumps({"msg_id": "m", "target": "t", "timestamp": 1, **fields}).encode()
+    with pytest.raises(InvalidEnvelopeError, match=reason):
+        parse(body)
+
+
+@pytest.mark.parametrize(
+    "fields",
+    [
+        {"cmd": "halt", "type": 6, "safety_event": "ESTOP"},
+        {"cmd": "resume", "type": 6, "safety_event": "RESUME"},
+        {"cmd": "ESTOP", "safety_event": "ESTOP"},  # a signed safety cmd is SAFETY
+        {"cmd": "STOP", "type": 6, "safety_event": "STOP"},
+    ],
+)
+def test_safety_event_on_a_safety_message_parses(fields: dict[str, Any]) -> None:
+    body = json.dumps({"msg_id": "m", "target": "t", "timestamp": 1, **fields}).encode()
+    assert safety_class(parse(body)) == (6, fields["safety_event"])

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import msgspec
 import pytest
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import mldsa
@@ -24,8 +25,9 @@ from rcan.signing import MLDSAKeyPair, sign_message
 
 from antireplay.audit import AuditLog, verify
 from antireplay.audit import tail as audit_tail
+from antireplay.auth import b64encode
 from antireplay.demo import JSON, command, load_operator_key, write_demo_config
-from antireplay.envelope import SDK_SIGNED_FIELDS
+from antireplay.envelope import SDK_SIGNED_FIELDS, Envelope, canonical_bytes
 from antireplay.stores.redis_store import RedisStore
 from tests.conftest import run_threads
 from tests.fuzz.targets import http_app
@@ -494,3 +496,60 @@ def test_concurrent_exact_replays_are_each_audited_before_their_answer(
     assert answers == [409] * 16
     assert sum(r.code == "REPLAY_DETECTED" for r in rows) - before == 16
     assert verify(state / "audit.db").chain_ok
+
+
+def test_estop_reaches_the_robot_with_its_audit_trail_and_state_deleted(tmp_path: Path) -> None:
+    """``rm audit.db`` under the running gateway, then ``rm state.db*`` too: a fresh ESTOP is
+    still forwarded (with a warning, counted, said once on stderr), a copy of it still as
+    the flagged duplicate; every other command gets 503 and never reaches the robot."""
+    with recording_upstream() as (url, received):
+        gw = GatewayProcess(write_demo_config(tmp_path, upstream=url))
+        gw.start()
+        key = load_operator_key(tmp_path)
+        try:
+            with httpx.Client(base_url=gw.url, timeout=10) as http:
+                assert post(http, command(key)).status_code == 200
+                (tmp_path / "audit.db").unlink()
+                estop = command(key, type=6, safety_event="ESTOP", cmd="estop")
+                answers = [post(http, estop), post(http, estop), post(http, command(key))]
+                for victim in tmp_path.glob("state.db*"):
+                    victim.unlink()
+                later = command(key, type=6, safety_event="ESTOP", cmd="halt")
+                answers += [post(http, later), post(http, command(key))]
+                assert metric(http, "antireplay_estops_unaudited_total") == 3
+                assert metric(http, "antireplay_audit_held_rows") == 3
+                labels = '{warning="AUDIT_UNAVAILABLE"}'
+                assert metric(http, "antireplay_warnings_total", labels) == 1
+        finally:
+            gw.stop()
+    said = [(a.status_code, a.json().get("warning") or a.json().get("code")) for a in answers]
+    assert said == [
+        (200, "AUDIT_UNAVAILABLE"), (200, "REPLAY_DETECTED"), (503, "STATE_UNAVAILABLE"),
+        (200, "STATE_UNAVAILABLE"), (503, "STATE_UNAVAILABLE"),
+    ]  # fmt: skip
+    assert [json.loads(r.body)["cmd"] for r in received] == ["move_forward", *["estop"] * 2, "halt"]
+    assert gw.stderr_text is not None and gw.stderr_text.count("audit trail unavailable (") == 1
+
+
+def test_a_command_carrying_a_safety_event_is_refused_and_never_forwarded(
+    tmp_path: Path,
+) -> None:
+    """A COMMAND (type 1) with ``safety_event: ESTOP``, signed by a trusted key (built past
+    the parser, which refuses to sign it), is malformed, not a command an upstream could
+    read as an ESTOP."""
+    with recording_upstream() as (url, received):
+        gw = GatewayProcess(write_demo_config(tmp_path, upstream=url))
+        gw.start()
+        try:
+            key = load_operator_key(tmp_path)
+            body = {**json.loads(command(key)), "cmd": "halt", "safety_event": "ESTOP"}
+            del body["sig"]
+            value = b64encode(key.sign(canonical_bytes(msgspec.convert(body, Envelope))))
+            sig = {"alg": "ed25519", "kid": "operator", "value": value}
+            raw = json.dumps({**body, "sig": sig}).encode()
+            reply = httpx.post(f"{gw.url}/v1/messages", content=raw, headers=JSON)
+        finally:
+            gw.stop()
+    assert (reply.status_code, reply.json()["code"]) == (400, "INVALID_ENVELOPE")
+    assert "only a SAFETY" in reply.json()["reason"]
+    assert received == []

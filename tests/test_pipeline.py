@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from antireplay import ManualClock, SecurityConfig
+from antireplay.audit import verify
 from antireplay.auth import JwtVerifier, sign_envelope
 from antireplay.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.pipeline import Outcome, Receiver
@@ -149,7 +151,6 @@ def test_forged_message_cannot_poison_the_cache(receiver: Receiver) -> None:
         ("qos", 2),
         ("scope", "admin"),
         ("type", 6),
-        ("safety_event", "ESTOP"),
         ("target", "rcan://other"),
         ("timestamp", NOW - 2),
         ("sender", "someone-else"),
@@ -161,6 +162,12 @@ def test_policy_fields_are_covered_by_the_signature(
 ) -> None:
     body = json.loads(signed())
     body[field] = value
+    assert receiver.receive(json.dumps(body).encode()).code == "SIGNATURE_INVALID"
+
+
+def test_the_safety_event_is_covered_by_the_signature(receiver: Receiver) -> None:
+    body = json.loads(signed(type=6, safety_event="STOP", cmd="halt"))
+    body["safety_event"] = "ESTOP"
     assert receiver.receive(json.dumps(body).encode()).code == "SIGNATURE_INVALID"
 
 
@@ -220,7 +227,9 @@ def test_compat_mode_refuses_every_field_the_sdk_does_not_sign(
     compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
     body = {**json.loads(raw), name: MITM_FIELDS[name]}
     out = compat.receive(json.dumps(body).encode())
-    assert (out.code, out.status) == ("SCOPE_DENIED", 403)
+    # A safety_event on the SDK's COMMAND is malformed before any signature is read.
+    refusal = ("INVALID_ENVELOPE", 400) if name == "safety_event" else ("SCOPE_DENIED", 403)
+    assert (out.code, out.status) == refusal
     assert name in (out.reason or "")
     assert compat.receive(raw).accepted  # the genuine message was not spent by the forgery
 
@@ -331,3 +340,39 @@ def test_unauditable_accept_is_refused_not_lost(tmp_path: Path, receiver: Receiv
     assert receiver.stats.accepted == 0
     assert receiver.stats.audit_failures == 2  # the accept, then its 503 answer
     assert receiver.receive(signed(timestamp=NOW - 100)).code == "MESSAGE_STALE"
+
+
+def test_an_estop_is_delivered_while_the_audit_trail_cannot_be_written(
+    tmp_path: Path, receiver: Receiver, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The trail moved away under its writer (which then refuses to append): a fresh ESTOP
+    is delivered with a warning, said once, counted, its row held; a duplicate copy is
+    still the flagged one; other messages get 503.  Back in place, the next durable row
+    brings the held rows into the trail."""
+    assert receiver.audit is not None and receiver.receive(signed()).accepted
+    trail, aside = tmp_path / "audit.db", tmp_path / "aside.db"
+    trail.rename(aside)
+    estop = signed(type=6, safety_event="ESTOP", cmd="estop")
+    with caplog.at_level(logging.WARNING, logger="antireplay.pipeline"):
+        first = receiver.receive(estop)
+        again = receiver.receive(estop)
+        other = receiver.receive(signed(type=6, safety_event="ESTOP", cmd="halt"))
+        refused = receiver.receive(signed())
+    assert (first.accepted, first.warning) == (True, "AUDIT_UNAVAILABLE")
+    assert first.ack is not None and first.ack["warning"] == "AUDIT_UNAVAILABLE"
+    assert (again.accepted, again.warning) == (True, "REPLAY_DETECTED")
+    assert (other.accepted, other.warning) == (True, "AUDIT_UNAVAILABLE")
+    assert (refused.accepted, refused.status, refused.code) == (False, 503, "STATE_UNAVAILABLE")
+    said = [r for r in caplog.records if r.name == "antireplay.pipeline" and r.levelno >= 40]
+    assert len(said) == 1 and "audit trail unavailable" in said[0].getMessage()
+    assert (receiver.stats.held_estops, receiver.held_rows) == (3, 3)
+    aside.rename(trail)
+    assert receiver.receive(signed()).accepted  # a durable row: the held ones are queued
+    assert receiver.held_rows == 0
+    assert receiver.receive(signed()).accepted  # queued behind them: they are durable now
+    rows = [r for r in receiver.audit.tail(20) if r.msg_type == 6]
+    assert [(r.outcome, r.warning) for r in rows] == [
+        ("accepted", "AUDIT_UNAVAILABLE"), ("accepted", "REPLAY_DETECTED"),
+        ("accepted", "AUDIT_UNAVAILABLE"),
+    ]  # fmt: skip
+    assert verify(trail).ok

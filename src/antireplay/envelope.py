@@ -58,7 +58,10 @@ SAFETY) message whose ``cmd`` is exactly ``ESTOP``, ``STOP`` or ``RESUME``
 ESTOP invariant apply, derived only from a signed field, for SDK and full
 signatures alike.  A ``safety_event`` field or parameter that contradicts such
 a ``cmd`` is ``INVALID_ENVELOPE``; any other ``cmd`` (``estop``, ``halt``)
-is an ordinary command unless ``type``/``safety_event`` say otherwise.
+is an ordinary command unless ``type``/``safety_event`` say otherwise.  A
+``safety_event`` field must name a :class:`~antireplay.messages.SafetyEvent` and
+sit on a SAFETY message (``type`` 6, or a safety ``cmd``); anything else is
+``INVALID_ENVELOPE``, so no upstream is ever handed an event no rule here applied.
 """
 
 from __future__ import annotations
@@ -184,6 +187,8 @@ def parse(raw: bytes, *, max_bytes: int = MAX_BYTES, max_depth: int = MAX_DEPTH)
             raise InvalidTimestampError("timestamp out of range")
     if env.cmd in SAFETY_COMMANDS:
         _check_safety_command(env)
+    if env.safety_event is not None:
+        _check_safety_event(env)
     deep = _nested(env.params) or bool(env.delegation_chain)
     if deep and max(_depth(env.params), _depth(env.delegation_chain)) > max_depth:
         raise InvalidEnvelopeError(f"nested deeper than {max_depth} levels")
@@ -213,6 +218,20 @@ def _check_safety_command(env: Envelope) -> None:
     for said in (env.safety_event, env.params.get("safety_event")):
         if said is not None and said != env.cmd:
             raise InvalidEnvelopeError(f"cmd {env.cmd} contradicts its safety_event")
+
+
+def _check_safety_event(env: Envelope) -> None:
+    """A ``safety_event`` is one of :class:`SafetyEvent` and only on a SAFETY message: on
+    anything else an upstream might act on a field no rule here applied."""
+    if env.safety_event not in SAFETY_COMMANDS:
+        raise InvalidEnvelopeError(
+            f"safety_event must be one of {', '.join(sorted(SAFETY_COMMANDS))}"
+        )
+    if safety_class(env)[0] != _SAFETY:
+        raise InvalidEnvelopeError(
+            f"safety_event on a type {env.type} message: only a SAFETY (type {_SAFETY}) "
+            "message carries one"
+        )
 
 
 #: ``rcan.safety.make_estop_message`` builds an unsigned dict (``message_type``, ``ruri``):

@@ -108,6 +108,8 @@ class WarningCode(StrEnum):
     REPLAY_DETECTED = "REPLAY_DETECTED"
     #: A fresh ESTOP admitted while the replay state could not be reached.
     STATE_UNAVAILABLE = "STATE_UNAVAILABLE"
+    #: A fresh ESTOP delivered while its audit row could not be written (held, written later).
+    AUDIT_UNAVAILABLE = "AUDIT_UNAVAILABLE"
     #: An epoch sender moved to its successor prefix after a forward clock glitch.
     EPOCH_SENDER_ROTATED = "EPOCH_SENDER_ROTATED"
     #: A second DDS relay publishes under this relay's service name.

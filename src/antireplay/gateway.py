@@ -364,6 +364,22 @@ class StateCollector(Collector):
                 operations.add_metric([name], committer.operations)
         yield batches
         yield operations
+        stats = self.receiver.stats
+        held = CounterMetricFamily(
+            "antireplay_estops_unaudited", "ESTOPs delivered while the audit trail failed"
+        )
+        held.add_metric([], stats.held_estops)
+        yield held
+        dropped = CounterMetricFamily(
+            "antireplay_audit_held_dropped", "Held ESTOP audit rows dropped (bound reached)"
+        )
+        dropped.add_metric([], stats.held_dropped)
+        yield dropped
+        waiting = GaugeMetricFamily(
+            "antireplay_audit_held_rows", "ESTOP audit rows held until the trail is writable"
+        )
+        waiting.add_metric([], self.receiver.held_rows)
+        yield waiting
 
 
 class Refused(HTTPException):

@@ -39,7 +39,15 @@ rejected at step 5 and the genuine message is still accepted afterwards.
 
 ESTOP invariant, end to end: a fresh, *authentic* SAFETY/ESTOP whose msg_id
 was already seen passes with ``warning="REPLAY_DETECTED"``; the warning is
-audited.  What is SAFETY/ESTOP is decided by
+audited.  The same ESTOP is delivered whatever the state and the audit trail
+can do (one rule, here): the replay store unreachable at step 7
+(``warning="STATE_UNAVAILABLE"``, :class:`~antireplay.replay.ReplayCache`), and its
+audit row not durable at :meth:`~Receiver.settle` (``warning="AUDIT_UNAVAILABLE"``
+unless the ESTOP already carries one: one stable code per answer, the §8.3 flag
+first).  Such a row is held in memory (bounded, :data:`HELD_ROWS`; an overflow is
+counted and logged), said once on the log per outage, counted
+(``stats.held_estops``), and appended to the trail by the next answer whose own row
+was durable.  What is SAFETY/ESTOP is decided by
 :func:`~antireplay.envelope.safety_class` from signed fields only: ``type`` and
 ``safety_event`` (covered by a full signature), or ``cmd`` ``ESTOP``/``STOP``/
 ``RESUME`` (covered by the RCAN SDK's signature too, whose unsigned ``type`` and
@@ -79,14 +87,17 @@ is :meth:`~Receiver.receive_later` (every step, the audit row *queued* for the
 trail's next group commit) followed by :meth:`~Receiver.settle` once that row
 is durable; :meth:`~Receiver.receive_async` runs the two halves on an event loop
 and awaits the row in between without holding a thread.  An accepted message
-whose row cannot be made durable is refused (``STATE_UNAVAILABLE``) at ``settle``.
+whose row cannot be made durable is refused (``STATE_UNAVAILABLE``) at ``settle``,
+except a fresh, authentic ESTOP (above).
 """
 
 from __future__ import annotations
 
 import asyncio
+import functools
+import logging
 import threading
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -122,6 +133,10 @@ from antireplay.stores import ReplayStore
 from antireplay.window import Seen, Verdict
 
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
+#: Audit rows of ESTOPs delivered while the trail could not take them, held until it can.
+HELD_ROWS = 1024
+
+log = logging.getLogger("antireplay.pipeline")
 
 
 @dataclass(slots=True)
@@ -167,6 +182,10 @@ class Pending:
     #: An accepted body, its expiry and whether it declared ``qos`` >= 1, remembered as a
     #: known copy once audited.
     memo: tuple[bytes, float, bool] | None = None
+    #: A fresh, authentic ESTOP: delivered even when its audit row cannot be made durable.
+    estop: bool = False
+    #: The audit row queued (kept to be held and appended later if it fails).
+    row: dict[str, Any] | None = None
 
 
 #: Runs ``fn(*args)`` in a thread; the event loop awaits the result.
@@ -213,6 +232,10 @@ class Stats:
     losses: int = 0
     #: QoS retransmissions answered with their original answer (also in ``rejected``).
     retries: int = 0
+    #: ESTOPs delivered while their audit row could not be written (held, appended later).
+    held_estops: int = 0
+    #: Held rows dropped unwritten because the bound was reached (each one logged).
+    held_dropped: int = 0
 
 
 class Receiver:
@@ -248,6 +271,8 @@ class Receiver:
         #: How long an event loop waits for the answer of an original still in flight.
         self.answer_wait_s = 5.0
         self._bucket = TokenBucket(invalid_audit_per_s, self.clock)
+        self._held: deque[dict[str, Any]] = deque()
+        self._held_lock = threading.Lock()
         reason = getattr(self.cache.store, "loss_reason", None)
         if reason is not None:  # noticed while the store opened (a lost or rolled-back file)
             self._audit_loss(str(reason))
@@ -442,7 +467,9 @@ class Receiver:
             True, 200, warning=verdict.warning, msg_id=sanitize(env.msg_id), envelope=env,
             signer=signer,
         )  # fmt: skip
-        pending = Pending(outcome, memo=(raw, verdict.expires_at, qos) if memo else None)
+        pending = Pending(
+            outcome, memo=(raw, verdict.expires_at, qos) if memo else None, estop=verdict.estop
+        )
         return self._queue_audit(pending, on_loop=on_loop)
 
     def settle(self, pending: Pending, failure: BaseException | None) -> Outcome:
@@ -452,7 +479,9 @@ class Receiver:
         outcome = pending.outcome
         if failure is not None:
             self.stats.audit_failures += 1
-            if outcome.accepted:
+            if outcome.accepted and pending.estop:  # safety beats the audit trail
+                self._hold(pending, failure)
+            elif outcome.accepted:
                 # Nothing accepted may be missing from the audit trail: refuse to act on it.
                 # Its msg_id is spent; the sender resends with a new one once the disk is back.
                 if outcome.envelope is not None and type(outcome.envelope.msg_id) is str:
@@ -460,7 +489,10 @@ class Receiver:
                 exc = StateUnavailableError(f"audit trail unavailable: {failure}")
                 refusal = self._reject(exc, outcome.envelope, outcome.signer)
                 return self.settle(refusal, _wait(refusal.audit))
-            return outcome  # the rejection stands; it could not be recorded
+            else:
+                return outcome  # the rejection stands; it could not be recorded
+        elif pending.audit is not None:
+            self._append_held()  # the trail took a row: it can take the held ones
         if outcome.accepted:
             self.stats.accepted += 1
             if outcome.warning:
@@ -468,6 +500,61 @@ class Receiver:
             elif pending.memo is not None and outcome.envelope is not None:
                 self._remember_copy(*pending.memo, outcome.envelope)
         return outcome
+
+    @property
+    def held_rows(self) -> int:
+        """Audit rows of delivered ESTOPs waiting for the trail to be writable."""
+        return len(self._held)
+
+    def _hold(self, pending: Pending, failure: BaseException) -> None:
+        """Deliver an ESTOP whose audit row failed: warn, keep the row for later, say so once."""
+        outcome = pending.outcome
+        if outcome.warning is None:
+            outcome.warning = WarningCode.AUDIT_UNAVAILABLE
+        self.stats.held_estops += 1
+        if pending.row is None:
+            return
+        if self._keep({**pending.row, "warning": outcome.warning}):
+            log.error(
+                "audit trail unavailable (%s): ESTOPs are delivered with a warning and their "
+                "audit rows held in memory until the trail takes a row again; other messages "
+                "get STATE_UNAVAILABLE",
+                failure,
+            )
+
+    def _append_held(self) -> None:
+        """After a row was made durable, queue the held ESTOP rows; one that fails again is
+        held again (its ``at`` keeps when it happened)."""
+        if not self._held or self.audit is None:
+            return
+        with self._held_lock:
+            rows = list(self._held)
+            self._held.clear()
+        log.warning("audit trail writable again: appending %d held ESTOP rows", len(rows))
+        for row in rows:
+            try:
+                future = self.audit.append_later(**row)
+            except RuntimeError:  # closing: nothing more will be written
+                self._keep(row)
+                continue
+            assert isinstance(future, Future)
+            future.add_done_callback(functools.partial(self._held_written, row))
+
+    def _held_written(self, row: dict[str, Any], done: Future[int]) -> None:
+        if done.exception() is not None:
+            self._keep(row)
+
+    def _keep(self, row: dict[str, Any]) -> bool:
+        """Hold one row (the oldest dropped beyond :data:`HELD_ROWS`, its log line then its
+        only record); ``True`` if none was held before."""
+        with self._held_lock:
+            first = not self._held
+            if len(self._held) >= HELD_ROWS:
+                dropped = self._held.popleft()
+                self.stats.held_dropped += 1
+                log.error("held audit row dropped (more than %d held): %s", HELD_ROWS, dropped)
+            self._held.append(row)
+        return first
 
     def _remember_copy(self, raw: bytes, expires_at: float, qos: bool, env: Envelope) -> None:
         """Memo of accepted bodies: a byte-identical copy is a replay, known before parsing.
@@ -598,6 +685,8 @@ class Receiver:
         if self.audit is not None:
             outcome = pending.outcome
             fields = self._audit_fields(outcome, outcome.envelope, outcome.signer, copy)
+            if pending.estop:
+                pending.row = fields
             try:
                 pending.audit = self.audit.append_later(**fields, on_loop=on_loop)
             except RuntimeError as exc:

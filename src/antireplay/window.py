@@ -50,7 +50,9 @@ the watermark, or the store is saturated, the verdict carries
 than the safety window) is refused; STOP and RESUME get no exemption.  The
 one exemption outside this file is the outage: when the store cannot be reached
 at all, :class:`~antireplay.replay.ReplayCache` admits a fresh ESTOP with
-``warning="STATE_UNAVAILABLE"`` and refuses everything else with 503.
+``warning="STATE_UNAVAILABLE"`` and refuses everything else with 503; the
+pipeline delivers the same ESTOP (``Verdict.estop``) when its audit row cannot be
+written (:mod:`antireplay.pipeline`).
 
 Timestamps are finite, non-negative Unix **seconds**: ``int``/``float`` or a
 plain decimal string (``"1700000000.25"``, as the RCAN SDK emits).  Rejected
