@@ -471,7 +471,8 @@ class EpochVerifier:
         if not new:
             return None
         self.store.advance(
-            self._key(kind, "after:" + successor_prefix(prefix).hex()), int.from_bytes(prefix)
+            self._key(kind, "after:" + successor_prefix(prefix).hex()),
+            int.from_bytes(prefix, "big"),
         )
         if not unseen:  # the store knew this prefix: any rotation to it was reported then
             return None
@@ -480,7 +481,7 @@ class EpochVerifier:
             return None
         self.rotations += 1
         self.warnings[WarningCode.EPOCH_SENDER_ROTATED] += 1
-        return before.to_bytes(PREFIX_LEN)
+        return before.to_bytes(PREFIX_LEN, "big")
 
     def _rotated(self, accepted: Announcement, previous: bytes) -> Announcement:
         """A sender left a stream that ran ahead of its clock: accept, count, log, audit."""

@@ -65,7 +65,6 @@ import threading
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Any
 
 from antireplay.errors import (
@@ -87,6 +86,7 @@ from antireplay.mavlink.codec import (
 )
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
+from antireplay.messages import StrEnum
 
 INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
 #: A v2 signature block: link id, 6-byte timestamp, 6-byte signature (the link id first).
