@@ -4,11 +4,12 @@ The package keeps only what ``antireplay demo`` runs
 (:func:`antireplay.demo.start_gateway` and :func:`~antireplay.demo.stop_gateway`);
 what tests need beyond it (a restartable process that remembers what it said on
 stderr, ports for other servers, the SQLite seen-set read directly, polling for an
-event under a deadline) lives here.
+event under a deadline, the rcan SDK's vocabulary over ours) lives here.
 """
 
 from __future__ import annotations
 
+import json
 import socket
 import sqlite3
 import subprocess
@@ -24,7 +25,9 @@ from typing import Any
 
 import pytest
 
+from antireplay import ManualClock, MessageType, ReplayAttackError, ReplayCache, safety_class
 from antireplay.demo import start_gateway, stop_gateway
+from antireplay.envelope import parse
 
 
 def until(what: str, done: Callable[[], object], timeout: float = 30.0) -> None:
@@ -137,3 +140,87 @@ def metrics_router(tmp_path: Path, host: str | None = None) -> Iterator[int]:
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+#: Where the SDK's conformance cases run: a fixed wall time on a manual clock.
+SDK_NOW = 1_800_000_000.0
+
+
+class SdkReplayAdapter:
+    """The rcan SDK's receive-side names over antireplay's public API, so its own test
+    cases can be restated against ours: ``check_and_record`` and ``validate_replay``
+    (``rcan.replay``), ``is_safety_message`` and ``validate_safety_message``
+    (``rcan.safety``).  Answers keep the SDK's shape: ``(allowed, reason)`` (the reason of
+    an admitted message is its warning, ``""`` for none) and a list of errors.
+
+    ``up_s``: how long the in-memory cache has been running at ``SDK_NOW``: the SDK's
+    cases assume a running receiver, while ours refuses whatever is stamped before its
+    start plus its skew (the restart fence; the conformance table's one case with
+    ``up_s=0`` states it)."""
+
+    def __init__(
+        self, window_s: float = 30.0, max_size: int = 10_000, *, up_s: float = 60.0
+    ) -> None:
+        self.clock = ManualClock(SDK_NOW - up_s)
+        self.cache = ReplayCache(window_s, max_size, clock=self.clock)
+        self.clock.step_wall(up_s)
+
+    @property
+    def window_s(self) -> float:
+        return self.cache.window_s
+
+    def __len__(self) -> int:
+        return len(self.cache)
+
+    def check_and_record(
+        self, msg_id: object, timestamp: object, is_safety: bool = False
+    ) -> tuple[bool, str]:
+        kind = MessageType.SAFETY if is_safety else MessageType.COMMAND
+        return self._record(msg_id, timestamp, kind, None)
+
+    def validate_replay(self, msg: dict[str, Any]) -> tuple[bool, str]:
+        """The SDK's ``validate_replay(msg, cache)``: ``msg`` (``RCANMessage.to_dict()``)
+        as our receiver classes it (envelope, then :func:`safety_class`)."""
+        try:
+            env = parse(json.dumps(msg).encode())
+        except ReplayAttackError as exc:
+            return False, str(exc)
+        kind, event = safety_class(env)
+        return self._record(env.msg_id, env.seconds, kind, event)
+
+    def is_safety_message(self, msg: dict[str, Any]) -> bool:
+        classed = self._classify(msg)
+        return isinstance(classed, tuple) and classed[0] == MessageType.SAFETY
+
+    def validate_safety_message(self, msg: dict[str, Any]) -> list[str]:
+        classed = self._classify(msg)
+        if isinstance(classed, str):
+            return [classed]
+        if classed[0] != MessageType.SAFETY:
+            return [f"message_type {classed[0]} is not SAFETY"]
+        return []
+
+    def _classify(self, msg: dict[str, Any]) -> tuple[int, str | None] | str:
+        """An ``rcan.safety`` dict in our envelope's names (``message_type`` -> ``type``,
+        ``message_id`` -> ``msg_id``, ``ruri`` -> ``target``, the event as ``cmd``, the
+        reason as a parameter), classed by :func:`safety_class`; a refusal's reason."""
+        names = {"message_type": "type", "message_id": "msg_id", "ruri": "target"}
+        ours = {names.get(k, k): v for k, v in msg.items() if k != "reason"}
+        ours.setdefault("cmd", msg.get("safety_event", ""))
+        if "reason" in msg:
+            ours["params"] = {"reason": msg["reason"]}
+        try:
+            return safety_class(parse(json.dumps(ours).encode()))
+        except ReplayAttackError as exc:
+            return str(exc)
+
+    def _record(
+        self, msg_id: object, timestamp: object, kind: int, event: str | None
+    ) -> tuple[bool, str]:
+        """Check (records nothing), then commit: the two phases with nothing to verify."""
+        try:
+            self.cache.check(msg_id, timestamp, kind, event)
+            verdict = self.cache.commit(msg_id, timestamp, kind, event)
+        except ReplayAttackError as exc:
+            return False, str(exc) + (f" ({exc.detail})" if exc.detail else "")
+        return True, verdict.warning or ""

@@ -18,6 +18,7 @@ from antireplay.counters import (
     CounterWindow,
     FencedTable,
     NonceCounter,
+    NonceTracker,
 )
 from antireplay.errors import (
     CounterExhaustedError,
@@ -72,6 +73,91 @@ def test_four_threads_offering_1_to_500_give_500_commits() -> None:
     run_threads(4, offer)
     assert sorted(committed) == list(range(1, 501))
     assert window.last == 500
+
+
+# --- the strict receiver (in-order links) ------------------------------------------------------
+
+
+def test_tracker_sequence_5_5_3_6() -> None:
+    tracker = NonceTracker()
+    assert [tracker.accept(n) for n in (5, 5, 3, 6)] == [True, False, False, True]
+    assert tracker.last_accepted() == 6
+
+
+def test_four_threads_racing_to_accept_1_to_500_give_500_acceptances() -> None:
+    tracker = NonceTracker()
+    accepted: list[int] = []
+    lock = threading.Lock()
+
+    def offer(_: int) -> None:
+        for n in range(1, 501):
+            if tracker.accept(n):
+                with lock:
+                    accepted.append(n)
+
+    run_threads(4, offer)
+    assert len(accepted) == 500
+    assert sorted(accepted) == list(range(1, 501))
+    assert tracker.last_accepted() == 500
+
+
+def test_tracker_check_records_nothing_and_names_the_refusal() -> None:
+    tracker = NonceTracker()
+    tracker.check(5)
+    tracker.check(5)  # still fresh: check recorded nothing
+    assert tracker.last_accepted() == 0
+    tracker.commit(5)
+    with pytest.raises(CounterReplayedError):
+        tracker.check(5)
+    with pytest.raises(CounterTooOldError):
+        tracker.check(3)
+    with pytest.raises(InvalidCounterError):
+        tracker.check(-1)
+    with pytest.raises(CounterExhaustedError):
+        tracker.check(COUNTER_LIMIT)
+    with pytest.raises(CounterTooOldError):
+        tracker.commit(4)
+    assert tracker.last_accepted() == 5
+
+
+def test_tracker_racing_commits_of_one_value_have_one_winner() -> None:
+    tracker = NonceTracker()
+    assert race(8, lambda: tracker.commit(7)) == (1, 7)
+    assert tracker.last_accepted() == 7
+
+
+def test_tracker_refuses_a_bad_start() -> None:
+    for bad in (-1, COUNTER_LIMIT, True):
+        with pytest.raises(ValueError, match="last"):
+            NonceTracker(bad)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(min_value=-2, max_value=40), max_size=60))
+def test_tracker_never_accepts_twice_nor_goes_backwards(offers: list[int]) -> None:
+    tracker = NonceTracker()
+    accepted: list[int] = []
+    for n in offers:
+        before = tracker.last_accepted()
+        if tracker.accept(n):
+            accepted.append(n)
+            assert n > before
+        assert tracker.last_accepted() >= before
+    assert all(a < b for a, b in itertools.pairwise(accepted))
+    assert tracker.last_accepted() == max(accepted, default=0)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.lists(st.integers(min_value=0, max_value=60), max_size=40), min_size=2,
+                max_size=4))  # fmt: skip
+def test_racing_threads_never_make_the_tracker_accept_twice(offers: list[list[int]]) -> None:
+    tracker = NonceTracker()
+    accepted: list[list[int]] = [[] for _ in offers]
+    run_threads(len(offers), lambda i: accepted[i].extend(filter(tracker.accept, offers[i])))
+    flat = [n for each in accepted for n in each]
+    assert len(flat) == len(set(flat))  # no value accepted twice, across threads
+    assert all(a < b for each in accepted for a, b in itertools.pairwise(each))  # no regression
+    assert tracker.last_accepted() == max(flat, default=0)
 
 
 # --- sender counter ---------------------------------------------------------------------------

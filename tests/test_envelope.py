@@ -12,10 +12,23 @@ from rcan import RCANMessage
 from rcan.signing import _canonical_message_bytes
 
 from antireplay.envelope import MAX_INT_TIMESTAMP, SDK_SIGNED_FIELDS, encode, parse, safety_class
-from antireplay.errors import InvalidEnvelopeError, InvalidTimestampError
+from antireplay.errors import Code, InvalidEnvelopeError, InvalidTimestampError, WarningCode
+from antireplay.messages import SafetyEvent
 from tests.envelopes import MITM_FIELDS
 
 BASE = b'{"msg_id":"m","cmd":"c","target":"t","rcan":"3.2",'
+
+
+@pytest.mark.parametrize("member", [*Code, *WarningCode, *SafetyEvent], ids=str)
+def test_wire_enums_print_and_encode_as_their_value(
+    member: Code | WarningCode | SafetyEvent,
+) -> None:
+    """Codes and events go into f-strings, logs and JSON: on every supported Python the
+    text is the value alone (a plain ``(str, Enum)`` prints ``Code.REPLAY_DETECTED``)."""
+    assert str(member) == f"{member}" == format(member, "") == member.value
+    assert f"{member:>40}" == f"{member.value:>40}"
+    assert json.dumps(member) == json.dumps(member.value)
+    assert member == member.value
 
 
 @pytest.mark.parametrize(

@@ -130,6 +130,12 @@ def rig() -> Iterator[Rig]:
     made.close()
 
 
+@pytest.mark.parametrize("role", list(Role), ids=str)
+def test_roles_print_as_their_value(role: Role) -> None:
+    """Roles are named in endpoint specs and log lines by their value."""
+    assert str(role) == f"{role}" == role.value
+
+
 def test_command_arrives_once_and_exact_replay_is_dropped(rig: Rig) -> None:
     captured = rig.send_command(1.0)
     assert rig.commands_until(1.0) == [1.0]

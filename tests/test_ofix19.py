@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import contextlib
 import inspect
 import logging
+import os
 from pathlib import Path
 from types import SimpleNamespace
 from typing import cast
@@ -107,8 +107,12 @@ def test_status_says_the_trail_was_deleted_under_the_running_gateway(tmp_path: P
 
 def _config_check(tmp_path: Path, yaml: str) -> Result:
     (tmp_path / "antireplay.yaml").write_text(yaml)
-    with contextlib.chdir(tmp_path):
+    here = Path.cwd()
+    os.chdir(tmp_path)  # the configuration's relative paths, as an operator runs it
+    try:
         return CliRunner().invoke(main, ["config", "check", "antireplay.yaml"])
+    finally:
+        os.chdir(here)
 
 
 def test_config_check_reaches_the_redis_store(tmp_path: Path) -> None:

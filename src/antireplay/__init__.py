@@ -21,8 +21,8 @@ unauthenticated message carries changes state.
 **Policies and primitives** (the lower layer: correct only when the caller
 authenticates between ``check`` and ``commit``): :class:`ReplayCache` (its
 ``commit`` records whatever it is given), :class:`Window`, the counter
-primitives :class:`NonceCounter`, :class:`CounterWindow` and
-:class:`FencedTable`, and the stores (:func:`antireplay.stores.open_store`).
+primitives :class:`NonceCounter`, :class:`CounterWindow`, :class:`NonceTracker`
+and :class:`FencedTable`, and the stores (:func:`antireplay.stores.open_store`).
 
 Errors are data (:mod:`antireplay.errors`): every refusal is a
 :class:`ReplayAttackError` whose :class:`Code` decides the HTTP status and NACK.
@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 from antireplay._native import IMPLEMENTATION as WINDOW_BUILD  # first: picks the window build
 from antireplay.clock import Clock, ManualClock, SystemClock
 from antireplay.config import SecurityConfig
-from antireplay.counters import CounterWindow, FencedTable, NonceCounter
+from antireplay.counters import CounterWindow, FencedTable, NonceCounter, NonceTracker
 from antireplay.envelope import safety_class
 from antireplay.errors import (
     AntiReplayError,
@@ -101,6 +101,7 @@ __all__ = [
     "MessageType",
     "NonceCounter",
     "NonceExhaustedError",
+    "NonceTracker",
     "RcanGuard",
     "Receiver",
     "ReplayAttackError",

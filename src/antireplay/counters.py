@@ -3,7 +3,7 @@
 Theory of operation
 -------------------
 A counter needs no clock synchronisation: the sender numbers its frames and the
-receiver accepts each number at most once.  Three small types, one job each;
+receiver accepts each number at most once.  Four small types, one job each;
 every receiver policy in antireplay is built from them:
 
 * :class:`NonceCounter` (sender): **the one sender source**: session counters
@@ -34,6 +34,10 @@ every receiver policy in antireplay is built from them:
   of 64-bit words indexed by ``c >> 6``; moving forward clears only the words
   skipped over, so each packet costs O(1) with no shifting.  Counter 0 is
   valid on a fresh window.
+* :class:`NonceTracker` (receiver, in-order links): accepts ``c`` iff it is
+  strictly above the last accepted value, a compare-and-swap under a lock, so
+  of racers exactly one wins.  An equal value is ``COUNTER_REPLAYED``, a lower
+  one ``COUNTER_TOO_OLD`` (a window of width zero).
 * :class:`FencedTable` (receiver, many streams): a bounded table of per-key
   high-water marks (a MAVLink stream's last timestamp, an epoch prefix's last
   epoch, a session's sequence) whose evictions raise a **fence**.  A key the
@@ -49,17 +53,24 @@ every receiver policy in antireplay is built from them:
   fence.  Per-key order (strictly above the mark, or within a window) stays
   with the policy that owns the table.
 
+Which receiver: where the link delivers in order (a serial link, one TCP
+stream, a single-threaded executor), :class:`NonceTracker`: the strictest
+rule, one integer of state, and any gap or regression is visible.  Where it
+may reorder or drop (UDP, radio with retries), :class:`CounterWindow`: a
+strict receiver there would refuse every frame overtaken by a later one.
+
 Two phases, one vocabulary (every receiver in antireplay):
 ``check`` raises the typed reason a value would be refused and **records
 nothing**; ``commit`` records it and is run only after the tag or signature
 verified, so a forged far-future counter cannot move anything (no jamming
 without the key).  ``commit`` re-checks, so of two racers exactly one wins; the
 loser gets the same typed error ``check`` would give.  ``open`` (sessions,
-epochs, the pipeline's ``receive``) is the recipe: check, authenticate, commit.
+epochs, the pipeline's ``receive``) is the recipe: check, authenticate, commit;
+``NonceTracker.accept`` is both phases at once, for a value already authenticated.
 
-Locking: :class:`NonceCounter` and :class:`CounterWindow` lock themselves; a
-:class:`FencedTable` does not (its owner serializes its commits, as
-WireGuard's replay filter does): every owner holds a lock around ``commit``,
+Locking: :class:`NonceCounter`, :class:`CounterWindow` and :class:`NonceTracker`
+lock themselves; a :class:`FencedTable` does not (its owner serializes its
+commits, as WireGuard's replay filter does): every owner holds a lock around ``commit``,
 which re-checks the key under it, while ``check`` may read without the lock
 (whatever it read, ``commit`` judges again).
 """
@@ -81,6 +92,7 @@ from antireplay.errors import (
     InvalidCounterError,
     MessageStaleError,
     NonceExhaustedError,
+    ReplayAttackError,
 )
 
 if TYPE_CHECKING:
@@ -343,6 +355,63 @@ class CounterWindow:
             old = ring[index]
             ring[index] = old | bit
             return not old & bit
+
+
+class NonceTracker:
+    """The strict receiver for in-order links: a value is accepted only if strictly above
+    the last one accepted (a :class:`CounterWindow` of width zero).  Locked: of racers on
+    one value exactly one wins."""
+
+    __slots__ = ("_last", "_lock", "limit")
+
+    def __init__(self, last: int = 0, limit: int = COUNTER_LIMIT) -> None:
+        if isinstance(last, bool) or not isinstance(last, int) or not 0 <= last < limit:
+            raise ValueError(f"last must be an int in [0, {limit}), got {last!r}")
+        self._last = last
+        self.limit = limit
+        self._lock = threading.Lock()
+
+    @property
+    def last(self) -> int:
+        """The last value accepted (``last`` as constructed when none was)."""
+        return self._last
+
+    def last_accepted(self) -> int:
+        """:attr:`last` under the name CleitonQ's receiver gives it."""
+        return self._last
+
+    def check(self, c: int) -> None:
+        """Raise the typed reason ``c`` would be refused; records nothing."""
+        refusal = self._refusal(c)
+        if refusal is not None:
+            raise refusal
+
+    def commit(self, c: int) -> None:
+        """Record ``c`` (after authentication): compare and swap under the lock, so a racer
+        on the same value gets the error ``check`` would now give."""
+        with self._lock:
+            self.check(c)
+            self._last = c
+
+    def accept(self, c: int) -> bool:
+        """``check`` and ``commit`` in one atomic step, for a value already authenticated:
+        True iff ``c`` was recorded."""
+        with self._lock:
+            if self._refusal(c) is not None:
+                return False
+            self._last = c
+            return True
+
+    def _refusal(self, c: int) -> ReplayAttackError | None:
+        if isinstance(c, bool) or not isinstance(c, int) or c < 0:
+            return InvalidCounterError(f"counter {c!r} is not a non-negative integer")
+        if c >= self.limit:
+            return CounterExhaustedError(f"counter {c} at or above the limit {self.limit}; rekey")
+        if c == self._last:
+            return CounterReplayedError(f"counter {c} is not above the last accepted ({c})")
+        if c < self._last:
+            return CounterTooOldError(f"counter {c} is below the last accepted ({self._last})")
+        return None
 
 
 K = TypeVar("K", bound=Hashable)

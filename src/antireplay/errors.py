@@ -33,8 +33,9 @@ are separate: they are not answers to a peer.
 
 from __future__ import annotations
 
-from enum import StrEnum
 from typing import Any, Literal
+
+from antireplay.messages import StrEnum
 
 
 class Code(StrEnum):

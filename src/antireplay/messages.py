@@ -8,7 +8,18 @@ calls its single source of truth): COMMAND=1, SAFETY=6, COMMAND_NACK=18.  The
 
 from __future__ import annotations
 
-from enum import IntEnum, StrEnum
+from enum import Enum, IntEnum
+
+
+class StrEnum(str, Enum):
+    """``enum.StrEnum`` (Python 3.11) for 3.10 too: members are str, and ``str()`` and
+    ``format()`` give the value (what goes on the wire, in f-strings and in JSON)."""
+
+    def __str__(self) -> str:
+        return str.__str__(self)
+
+    def __format__(self, spec: str) -> str:
+        return str.__format__(str.__str__(self), spec)
 
 
 class MessageType(IntEnum):

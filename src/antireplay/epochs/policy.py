@@ -213,7 +213,7 @@ def rotation(
     """A first accept anywhere of a prefix whose predecessor left its marker is a rotation."""
     if not (admission.new and unseen) or before is None:
         return None
-    return SenderRotated(before.to_bytes(PREFIX_LEN), claim.prefix, claim.epoch)
+    return SenderRotated(before.to_bytes(PREFIX_LEN, "big"), claim.prefix, claim.epoch)
 
 
 class EpochPolicy:

@@ -193,7 +193,7 @@ class EpochVerifier:
             self._write(self._key(kind, "floor"), admission.floor)
         if admission.new:
             self._write(self._key(kind, "after:" + successor_prefix(prefix).hex()),
-                        int.from_bytes(prefix))  # fmt: skip
+                        int.from_bytes(prefix, "big"))  # fmt: skip
         if not self._write(self._key(kind, prefix.hex()), epoch):
             raise EpochReplayedError(f"epoch {epoch} already committed to the shared state")
         if epoch <= self.restart_fence():  # the advance itself noticed lost state

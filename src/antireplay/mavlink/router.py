@@ -70,7 +70,6 @@ import threading
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from enum import StrEnum
 from typing import Any
 
 from antireplay.errors import (
@@ -89,6 +88,7 @@ from antireplay.mavlink.codec import (
 )
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.guard import Admission, MavlinkGuard, MavVerdict
+from antireplay.messages import StrEnum
 
 INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
 Location = tuple["Link", Peer | None]

@@ -1,0 +1,1 @@
+"""Conformance suites: other implementations' own test cases, restated against ours."""
