@@ -123,7 +123,6 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass
-from enum import StrEnum
 
 from antireplay.clock import Clock, resolve
 from antireplay.counters import CounterWindow, FencedTable
@@ -150,6 +149,7 @@ from antireplay.mavlink.codec import (
     parse_frame,
     target_system,
 )
+from antireplay.messages import StrEnum
 from antireplay.stores import ReplayStore
 from antireplay.window import NEVER
 
