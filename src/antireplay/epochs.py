@@ -17,7 +17,7 @@ verifier reports it when they do).  Test vectors: ``tests/vectors/epochs.json``.
 **Epochs are wall-anchored nanoseconds.**  ``epoch = max(last + 1, wall_ns)``:
 strictly increasing, and never below the current time.  The signer takes them
 from the one sender source, a wall-anchored
-:class:`~antireplay.counters.NonceCounter`.  Consequences:
+:class:`~antireplay.core.counters.NonceCounter`.  Consequences:
 
 * a verifier that has never heard of a sender can still refuse an
   announcement older than ``max_age_s`` (a capture from yesterday);
@@ -63,16 +63,16 @@ host restarted) is recovered the same way: the restored ``last`` is more than
 the bound ahead of the clock, so the first seal after the restart rotates.
 
 **Crash safety.**  With ``state_file`` the signer persists a reserved ceiling
-through :mod:`antireplay.durable` before emitting any epoch above the previous
+through :mod:`antireplay.state.durable` before emitting any epoch above the previous
 one, reserving ``reserve_s`` (default 1 s) of epochs at a time, so a busy
 sender fsyncs about once a second, not per message.  After a crash or a host
 reboot it starts above the ceiling, above anything it could have sent.  Choose
 ``max_forward_s`` at verifiers larger than ``reserve_s``.  The state file has
-one owner (an OS lock, :mod:`antireplay.durable`): two signers on one file
+one owner (an OS lock, :mod:`antireplay.state.durable`): two signers on one file
 would emit the same epochs.  Running out of epochs (``2**64`` ns, the year
-2554) is the signer's own :class:`~antireplay.errors.NonceExhaustedError`.
+2554) is the signer's own :class:`~antireplay.core.errors.NonceExhaustedError`.
 
-**The verifier keeps its state in a replay store** (:mod:`antireplay.stores`:
+**The verifier keeps its state in a replay store** (:mod:`antireplay.state`:
 ``memory``, ``sqlite:PATH``, Redis), the contract every receiver shares.  Each
 accepted epoch is **one** ``advance`` of the key ``NAMESPACE:KIND:PREFIX``
 (compare-and-advance, atomic on every backend, durable before ``open``
@@ -93,7 +93,7 @@ returned :class:`Announcement`: a replayed old announcement raises and renews
 nothing.
 
 **Fences.**  The in-memory prefix table (recent digests, the last epoch) is a
-bounded :class:`~antireplay.counters.FencedTable`: evicting the prefix with
+bounded :class:`~antireplay.core.counters.FencedTable`: evicting the prefix with
 the oldest epoch raises its fence (persisted as ``NAMESPACE:KIND:floor``), and
 an unknown prefix at or below it is refused with ``MESSAGE_STALE``
 (``detail="fence"``).  The store's own fence (a memory store's start, a lost
@@ -133,10 +133,9 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
-from antireplay.clock import Clock, resolve
-from antireplay.counters import FencedTable, NonceCounter
-from antireplay.durable import DurableState, as_hex, as_int, register_repair
-from antireplay.errors import (
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.counters import FencedTable, NonceCounter
+from antireplay.core.errors import (
     Code,
     ConfigError,
     EpochReplayedError,
@@ -147,8 +146,10 @@ from antireplay.errors import (
     StateFileError,
     WarningCode,
 )
-from antireplay.stores import ReplayStore, open_store
-from antireplay.stores.memory import MemoryStore
+from antireplay.state import ReplayStore, open_store
+from antireplay.state.ceilings import counter_on_state
+from antireplay.state.durable import DurableState, as_hex, as_int, register_repair
+from antireplay.state.memory import MemoryStore
 
 if TYPE_CHECKING:
     from antireplay.audit import AuditLog
@@ -281,7 +282,7 @@ class EpochSigner:
         if stored is not None:
             self.rotations = stored.rotations
             self.nonce_prefix, self.base_prefix = stored.prefix, stored.base
-        self._epochs = NonceCounter.on_state(
+        self._epochs = counter_on_state(
             state, 0 if stored is None else stored.ceiling, int(reserve_s * 1_000_000_000) + 1,
             limit=EPOCH_LIMIT, anchor=anchor, record=self._record,
         )  # fmt: skip

@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import Any
 
-from antireplay.errors import (
+from antireplay.core.errors import (
     AntiReplayError,
     Code,
     InvalidFrameError,
