@@ -26,7 +26,8 @@ from rcan.signing import MLDSAKeyPair
 from starlette.applications import Starlette
 
 from antireplay.audit import AuditLog, verify
-from antireplay.cli import importable_cwd, main
+from antireplay.cli import main
+from antireplay.cli._common import importable_cwd
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.config import AppConfig
 from antireplay.core.clock import Clock, ManualClock

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from antireplay.audit import GENESIS, AuditLog, _digest, reanchor, verify
+from antireplay.audit import GENESIS, AuditLog, reanchor, verify
+from antireplay.audit.chain import _digest
 from antireplay.cli import main
 from antireplay.core.clock import ManualClock
 from antireplay.core.errors import AuditFileError, StateUnavailableError

@@ -14,8 +14,9 @@ from click.testing import CliRunner, Result
 from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay.audit import AuditLog
-from antireplay.cli import _allowed, _link_key, _signing_keys, main
+from antireplay.cli import main
 from antireplay.cli.demo import write_demo_config
+from antireplay.cli.mavlink import _allowed, _link_key, _signing_keys
 from antireplay.core.errors import StateFileError
 from antireplay.mavlink import passphrase_key
 from antireplay.rcan.auth import write_key_pair

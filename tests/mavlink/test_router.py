@@ -24,7 +24,8 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
-from antireplay.cli import _signing_key, main
+from antireplay.cli import main
+from antireplay.cli.mavlink import _signing_key
 from antireplay.core.clock import SystemClock
 from antireplay.core.errors import StateUnavailableError
 from antireplay.mavlink import (

@@ -10,16 +10,14 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import click
 
+from antireplay.cli._common import stop_on_signal
 from antireplay.core.errors import AntiReplayError, ConfigError
 from antireplay.dds.config import DdsConfig, parse_udp
 
@@ -77,7 +75,7 @@ def read(config_path: Path, topic: str | None, count: int, timeout_s: float) -> 
     except (AntiReplayError, ValueError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"reading {reader.topic_name} on domain {cfg.domain_id}", err=True)
-    stop = _stop_on_signal()
+    stop = stop_on_signal()
     deadline = time.monotonic() + timeout_s if timeout_s > 0 else None
     seen = 0
     while not stop.is_set() and (count == 0 or seen < count):
@@ -191,7 +189,7 @@ def relay(config_path: Path, duration_s: float) -> None:
     except (AntiReplayError, ValueError, OSError) as exc:
         raise click.ClickException(str(exc)) from None
     click.echo(f"relay {cfg.relay.service_name!r} on domain {cfg.domain_id}", err=True)
-    stop = _stop_on_signal()
+    stop = stop_on_signal()
     deadline = time.monotonic() + duration_s if duration_s > 0 else None
     reported = 0
     while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
@@ -201,17 +199,6 @@ def relay(config_path: Path, duration_s: float) -> None:
             click.echo(twin.line())
         reported = len(service.twins)
     click.echo(f"relayed {service.relayed}; twins reported {reported}", err=True)
-
-
-def _stop_on_signal() -> threading.Event:
-    stop = threading.Event()
-
-    def handler(_signum: int, _frame: FrameType | None) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGTERM, handler)
-    signal.signal(signal.SIGINT, handler)
-    return stop
 
 
 def _wait_readers(writer: Any, count: int) -> None:

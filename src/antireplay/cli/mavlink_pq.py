@@ -12,8 +12,6 @@ counts when it stops.
 from __future__ import annotations
 
 import logging
-import signal
-import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -22,6 +20,7 @@ from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 
+from antireplay.cli._common import stop_on_signal
 from antireplay.core.clock import SystemClock
 from antireplay.core.ratelimit import TokenBucket
 
@@ -71,9 +70,7 @@ def _run(end: GroundEnd | VehicleEnd, local: str, air: str, what: str) -> None:
 
     link = PqLink(end, *transports, on_reject=report)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    done = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: done.set())
-    signal.signal(signal.SIGINT, lambda *_: done.set())
+    done = stop_on_signal()
     link.start()
     click.echo(f"mavlink-pq {what}: local {local}, air {air}", err=True)
     done.wait()

@@ -37,7 +37,8 @@ from typing import Any
 
 from antireplay.core.errors import AntiReplayError, Code, ReplayAttackError
 from antireplay.mavlink.endpoints import Peer, Transport
-from antireplay.mavlink.pq import GroundEnd, Output, PlainFrameError, VehicleEnd
+from antireplay.mavlink.pq.chunks import PlainFrameError
+from antireplay.mavlink.pq.ends import GroundEnd, Output, VehicleEnd
 from antireplay.mavlink.router import Refusal
 
 _HINTED = {Code.UNKNOWN_SESSION, Code.SESSION_CLOSED}
