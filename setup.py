@@ -4,7 +4,7 @@ Everything else is declared in pyproject.toml.  The hot modules (the window poli
 the memory store and the ReplayCache that joins them, ``HOT_MODULES``) are compiled
 from their own, unchanged sources (the same files the pure-Python fallback runs).
 Next to each extension the build writes the SHA-256 of the source it compiled, so
-that at import time :mod:`antireplay._native` can refuse a stale build (an editable
+that at import time :mod:`antireplay.core._native` can refuse a stale build (an editable
 install whose sources were edited after the build) and run the sources instead.
 
 mypyc runs inside ``build_ext`` only: pip imports this file several times (for its
@@ -25,9 +25,9 @@ from setuptools import Extension, setup
 from setuptools.command.build_ext import build_ext
 
 HOT_MODULES = [
-    Path("src", "antireplay", "window.py"),
-    Path("src", "antireplay", "stores", "memory.py"),
-    Path("src", "antireplay", "replay.py"),
+    Path("src", "antireplay", "core", "window.py"),
+    Path("src", "antireplay", "state", "memory.py"),
+    Path("src", "antireplay", "state", "replay.py"),
 ]
 PURE_ENV = "ANTIREPLAY_PURE_PYTHON"
 # While pip builds (build isolation) the third-party packages that window.py's own
@@ -84,6 +84,6 @@ class MypycBuildExt(build_ext):
 
 # A placeholder: it makes setuptools run build_ext and tag the wheel as
 # platform-specific; MypycBuildExt swaps it for mypyc's real extensions.
-PLACEHOLDER = Extension("antireplay.window", sources=[])
+PLACEHOLDER = Extension("antireplay.core.window", sources=[])
 
 setup(ext_modules=[PLACEHOLDER], cmdclass={"build_ext": MypycBuildExt})

@@ -10,9 +10,9 @@ import itertools
 
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 
-from antireplay.counters import CounterWindow, FencedTable
-from antireplay.errors import CounterReplayedError
-from antireplay.session import Initiator, Purpose, Responder
+from antireplay.core.counters import CounterWindow, FencedTable
+from antireplay.core.errors import CounterReplayedError
+from antireplay.pq.session import Initiator, Purpose, Responder
 from benchmarks._timing import per_op_ns, rate, rejected
 
 

@@ -13,7 +13,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from antireplay.clock import ManualClock
+from antireplay.core.clock import ManualClock
 from antireplay.epochs import EpochSigner, EpochVerifier
 from benchmarks._timing import per_op_ns, rate
 

@@ -35,8 +35,8 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from tests.harness import free_port
 
 from antireplay import ManualClock
-from antireplay.clock import SystemClock
-from antireplay.errors import CounterReplayedError
+from antireplay.core.clock import SystemClock
+from antireplay.core.errors import CounterReplayedError
 from antireplay.mavlink import MavlinkGuard, mav_time, passphrase_key
 from benchmarks._timing import per_op_ns, rate, rejected
 

@@ -41,9 +41,9 @@ from antireplay.audit import AuditLog
 from antireplay.mavlink import MavlinkGuard, Role, TimestampSource, passphrase_key, sign_frame
 from antireplay.mavlink.endpoints import open_transport, parse_endpoint
 from antireplay.mavlink.pq import GroundEnd, VehicleEnd
-from antireplay.mavlink.pq_link import PqLink
-from antireplay.session import Initiator, Responder
-from antireplay.stores.sqlite import SqliteStore
+from antireplay.mavlink.pq.link import PqLink
+from antireplay.pq.session import Initiator, Responder
+from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
 from benchmarks._timing import per_op_ns, rate
 

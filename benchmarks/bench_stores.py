@@ -31,9 +31,9 @@ import redis
 from tests.redis_server import RedisServer
 
 from antireplay import ManualClock, ReplayCache
-from antireplay.stores import open_store
-from antireplay.stores.redis_store import RedisStore
-from antireplay.stores.sqlite import SqliteStore
+from antireplay.state import open_store
+from antireplay.state.redis import RedisStore
+from antireplay.state.sqlite import SqliteStore
 from benchmarks._timing import Batch, interleaved_ns_per_op, rate
 
 LIVE = 10_000
@@ -60,7 +60,7 @@ class Stamps:
     def open(self, spec: str) -> ReplayCache:
         store = open_store(spec, clock=self.clock, max_entries=CAPACITY)
         if isinstance(store, RedisStore):  # first contact (it fences), before the clock moves on
-            quiet = logging.getLogger("antireplay.stores.redis")
+            quiet = logging.getLogger("antireplay.state.redis")
             quiet.disabled = True  # its "lost or replaced our replay state" is expected here
             store.verify()
             quiet.disabled = False

@@ -30,7 +30,7 @@ ENTRY_POINT = "CPyPy_replay___ReplayCache___commit"
 WORKLOAD = """
 import itertools, sys, time
 from antireplay import ReplayCache
-from antireplay.messages import MessageType
+from antireplay.core.messages import MessageType
 size, commits = int(sys.argv[1]), int(sys.argv[2])
 
 class StoppedClock:  # read through a C call; moved past the memory store's restart fence

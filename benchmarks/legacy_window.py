@@ -3,9 +3,9 @@
 ``bench_window`` compiles this file with mypyc (cached under ``.benchmarks/``) and times
 its store-less ``check`` beside today's ``ReplayCache.commit`` on the memory store: the
 issue's goal is that the new split (pure policy + memory store) stays within 1.5x of it.
-Nothing in the product imports this file.  It is the old ``src/antireplay/window.py``
+Nothing in the product imports this file.  It is the old ``src/antireplay/core/window.py``
 verbatim except that the store it could call is typed by :class:`LegacyStore` (the old
-store contract, gone from ``antireplay.stores``) so that it still type-checks.
+store contract, gone from ``antireplay.state``) so that it still type-checks.
 
 The original docstring follows.
 
@@ -15,7 +15,7 @@ Theory of operation
 -------------------
 Rule 1: everything that decides whether an RCAN message is fresh and unique
 lives in this file, in :meth:`ReplayCache._run`.  The cache takes values and a
-:class:`~antireplay.clock.Clock` and returns a verdict; it never reads the
+:class:`~antireplay.core.clock.Clock` and returns a verdict; it never reads the
 system time, sleeps or does I/O.
 
 A message with timestamp ``ts`` (Unix seconds, the *sender's* clock) and window
@@ -78,7 +78,7 @@ same rules and records nothing, so a pipeline can throw replays away before
 any cryptography and commit only after authentication.
 
 Speed: a normal install compiles this module with mypyc (``setup.py``;
-:mod:`antireplay._native` picks the build), so it is written in the style that
+:mod:`antireplay.core._native` picks the build), so it is written in the style that
 compiles to native code: ``Final`` constants, typed attributes, plain ``if``
 instead of generic builtins such as ``max``, and the lock's bound methods.  A
 slot is a dict of msg_ids (values ``None``); an entry that moves to a later
@@ -98,9 +98,8 @@ import threading
 from collections.abc import Callable
 from typing import Final, Protocol, SupportsFloat, SupportsIndex, final
 
-from antireplay.clock import Clock, resolve
-from antireplay.config import ALLOWED, SecurityConfig
-from antireplay.errors import (
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.errors import (
     ConfigError,
     InvalidMessageIdError,
     InvalidTimestampError,
@@ -109,7 +108,8 @@ from antireplay.errors import (
     ReplayDetectedError,
     StateUnavailableError,
 )
-from antireplay.messages import MessageType, SafetyEvent
+from antireplay.core.messages import MessageType, SafetyEvent
+from antireplay.core.settings import ALLOWED, SecurityConfig
 
 
 class LegacyStore(Protocol):

@@ -16,7 +16,7 @@ import pytest
 
 from antireplay import ManualClock, ReplayAttackError, ReplayCache, SecurityConfig
 from antireplay.audit import AuditLog
-from antireplay.pipeline import Receiver
+from antireplay.rcan.receive import Receiver
 from tests.envelopes import NOW, registry
 from tests.redis_server import RedisServer
 
@@ -69,7 +69,7 @@ def started_before(clock: ManualClock, build: Callable[[], T]) -> T:
 @pytest.fixture
 def impl() -> Callable[..., ReplayCache]:
     """Builds caches as tests need them.  The compiled build runs here; the pure-Python
-    build runs the same tests in a subprocess (tests/test_native.py)."""
+    build runs the same tests in a subprocess (tests/core/test_native.py)."""
     return _fresh_cache
 
 
@@ -121,7 +121,7 @@ def race(threads_n: int, action: Callable[[], object]) -> tuple[int, int]:
 
 def run_and_kill(args: list[str], lines: int, rng: random.Random) -> list[str]:
     """Start a Python helper, read ``lines`` lines of output, then SIGKILL it mid-stride."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / "src"), str(ROOT)]))
     proc = subprocess.Popen(
         [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True
     )

@@ -1,7 +1,7 @@
 """The test harness: gateway processes, free ports and direct reads of a gateway's state.
 
 The package keeps only what ``antireplay demo`` runs
-(:func:`antireplay.demo.start_gateway` and :func:`~antireplay.demo.stop_gateway`);
+(:func:`antireplay.cli.demo.start_gateway` and :func:`~antireplay.cli.demo.stop_gateway`);
 what tests need beyond it (a restartable process that remembers what it said on
 stderr, ports for other servers, the SQLite seen-set read directly, polling for an
 event under a deadline, the rcan SDK's vocabulary over ours) lives here.
@@ -26,8 +26,8 @@ from typing import Any
 import pytest
 
 from antireplay import ManualClock, MessageType, ReplayAttackError, ReplayCache, safety_class
-from antireplay.demo import start_gateway, stop_gateway
-from antireplay.envelope import parse
+from antireplay.cli.demo import start_gateway, stop_gateway
+from antireplay.rcan.envelope import parse
 
 
 def until(what: str, done: Callable[[], object], timeout: float = 30.0) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from antireplay import ConfigError, ManualClock, ReplayCache, SecurityConfig
-from antireplay.stores.memory import MemoryStore
+from antireplay.state.memory import MemoryStore
 
 
 def test_yaml_config_round_trip(impl: Callable[..., ReplayCache], tmp_path: Path) -> None:

@@ -26,18 +26,19 @@ from rcan.signing import MLDSAKeyPair
 from starlette.applications import Starlette
 
 from antireplay.audit import AuditLog, verify
-from antireplay.auth import write_key_pair
-from antireplay.cli import importable_cwd, main
-from antireplay.clock import Clock, ManualClock
+from antireplay.cli import main
+from antireplay.cli._common import importable_cwd
+from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.config import AppConfig
-from antireplay.demo import JSON, command, load_operator_key, write_demo_config
-from antireplay.errors import StateUnavailableError
-from antireplay.gateway import create_app, embedded_default
+from antireplay.core.clock import Clock, ManualClock
+from antireplay.core.errors import StateUnavailableError
+from antireplay.http.gateway import create_app, embedded_default
+from antireplay.rcan.auth import write_key_pair
+from tests.audit.test_audit import sql, trail
+from tests.cli.test_cli import one_line_error
 from tests.conftest import ROOT
 from tests.harness import free_port
 from tests.redis_server import RedisServer
-from tests.test_audit import sql, trail
-from tests.test_cli import one_line_error
 
 #: The default skew_s: a new deployment's fence refuses messages stamped up to this after it.
 SKEW_S = 5.0
@@ -216,7 +217,7 @@ def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(
         importable_cwd(upstream)
         assert str(tmp_path) not in sys.path, upstream
     config = yaml.safe_load(write_demo_config(tmp_path).read_text())
-    for upstream, added in (("http://127.0.0.1:9/x", False), ("antireplay.demo:robot", True)):
+    for upstream, added in (("http://127.0.0.1:9/x", False), ("antireplay.cli.demo:robot", True)):
         (tmp_path / "c.yaml").write_text(yaml.safe_dump({**config, "upstream": upstream}))
         result = CliRunner().invoke(main, ["config", "check", str(tmp_path / "c.yaml")])
         assert result.exit_code == 0, result.output

@@ -21,8 +21,8 @@ def test_recipes_are_exported_and_load_on_first_use(name: str) -> None:
 def test_importing_the_package_loads_no_recipe() -> None:
     code = (
         "import sys, antireplay; "
-        "print(sorted(m for m in ('antireplay.pipeline', 'antireplay.mavlink', "
-        "'antireplay.session', 'antireplay.epochs', 'pymavlink') if m in sys.modules))"
+        "print(sorted(m for m in ('antireplay.rcan.receive', 'antireplay.mavlink', "
+        "'antireplay.pq.session', 'antireplay.epochs', 'pymavlink') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"

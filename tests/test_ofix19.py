@@ -16,14 +16,14 @@ from click.testing import CliRunner, Result
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.cli import main
-from antireplay.errors import AuditFileError, StateUnavailableError
-from antireplay.pipeline import Receiver
-from antireplay.status import _audit, render
-from antireplay.stores import open_store
-from antireplay.stores.sqlite import SqliteStore
-from tests.test_readme import README
-from tests.test_status import _snapshot_with
-from tests.test_stores import NOW, _assert_fenced, _fresh_deployment, _replicas
+from antireplay.core.errors import AuditFileError, StateUnavailableError
+from antireplay.http.status import _audit, render
+from antireplay.rcan.receive import Receiver
+from antireplay.state import open_store
+from antireplay.state.sqlite import SqliteStore
+from tests.e2e.test_readme import README
+from tests.http.test_status import _snapshot_with
+from tests.state.test_stores import NOW, _assert_fenced, _fresh_deployment, _replicas
 
 
 def test_redis_fence_log_line_prints_a_number(

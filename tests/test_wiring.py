@@ -10,12 +10,12 @@ import pytest
 from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay.audit import AuditLog
-from antireplay.auth import write_key_pair
-from antireplay.clock import ManualClock
 from antireplay.config import AppConfig, KeyConfig
-from antireplay.errors import ConfigError
+from antireplay.core.clock import ManualClock
+from antireplay.core.errors import ConfigError
 from antireplay.mavlink import Refusal, Role, passphrase_key
-from antireplay.stores.memory import MemoryStore
+from antireplay.rcan.auth import write_key_pair
+from antireplay.state.memory import MemoryStore
 from antireplay.wiring import (
     MAVLINK_AUDIT_PER_S,
     Allowed,

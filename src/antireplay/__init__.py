@@ -6,13 +6,13 @@ Two layers, the way pyca/cryptography keeps its recipes apart from ``hazmat``:
 check (records nothing) → authenticate → commit (records), so nothing an
 unauthenticated message carries changes state.
 
-* :class:`Receiver` (:mod:`antireplay.pipeline`): RCAN envelopes over HTTP or
+* :class:`Receiver` (:mod:`antireplay.rcan.receive`): RCAN envelopes over HTTP or
   any transport: shape, freshness, msg_id, signature, scope, commit, audit.
-* :class:`Guard` / :class:`RcanGuard` (:mod:`antireplay.gateway`): the gateway's
+* :class:`Guard` / :class:`RcanGuard` (:mod:`antireplay.http.gateway`): the gateway's
   request path inside your own ASGI app, as middleware or a FastAPI dependency,
   handing the application a :class:`Verified` message and its signer.
 * :class:`MavlinkGuard` (:mod:`antireplay.mavlink`): signed MAVLink v2 frames.
-* :class:`Initiator` / :class:`Responder` (:mod:`antireplay.session`):
+* :class:`Initiator` / :class:`Responder` (:mod:`antireplay.pq.session`):
   post-quantum sessions with counter windows.
 * :class:`EpochSigner` / :class:`EpochVerifier` (:mod:`antireplay.epochs`):
   epoch-sealed announcements (DDS discovery style; :mod:`antireplay.dds` carries
@@ -22,9 +22,9 @@ unauthenticated message carries changes state.
 authenticates between ``check`` and ``commit``): :class:`ReplayCache` (its
 ``commit`` records whatever it is given), :class:`Window`, the counter
 primitives :class:`NonceCounter`, :class:`CounterWindow`, :class:`NonceTracker`
-and :class:`FencedTable`, and the stores (:func:`antireplay.stores.open_store`).
+and :class:`FencedTable`, and the stores (:func:`antireplay.state.open_store`).
 
-Errors are data (:mod:`antireplay.errors`): every refusal is a
+Errors are data (:mod:`antireplay.core.errors`): every refusal is a
 :class:`ReplayAttackError` whose :class:`Code` decides the HTTP status and NACK.
 
 The recipes load on first use, so ``import antireplay`` stays light.
@@ -36,12 +36,10 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from antireplay._native import IMPLEMENTATION as WINDOW_BUILD  # first: picks the window build
-from antireplay.clock import Clock, ManualClock, SystemClock
-from antireplay.config import SecurityConfig
-from antireplay.counters import CounterWindow, FencedTable, NonceCounter, NonceTracker
-from antireplay.envelope import safety_class
-from antireplay.errors import (
+from antireplay.core._native import IMPLEMENTATION as WINDOW_BUILD  # first: picks the window build
+from antireplay.core.clock import Clock, ManualClock, SystemClock
+from antireplay.core.counters import CounterWindow, FencedTable, NonceCounter, NonceTracker
+from antireplay.core.errors import (
     AntiReplayError,
     Code,
     ConfigError,
@@ -54,30 +52,32 @@ from antireplay.errors import (
     ReplayDetectedError,
     WarningCode,
 )
-from antireplay.messages import MessageType, SafetyEvent
-from antireplay.replay import ReplayCache
-from antireplay.window import Seen, Verdict, Window
+from antireplay.core.messages import MessageType, SafetyEvent
+from antireplay.core.settings import SecurityConfig
+from antireplay.core.window import Seen, Verdict, Window
+from antireplay.rcan.envelope import safety_class
+from antireplay.state.replay import ReplayCache
 
 if TYPE_CHECKING:
     from antireplay.epochs import EpochSigner, EpochVerifier
-    from antireplay.gateway import Guard, RcanGuard, Verified
+    from antireplay.http.gateway import Guard, RcanGuard, Verified
     from antireplay.mavlink import MavlinkGuard
-    from antireplay.pipeline import Receiver
-    from antireplay.session import Initiator, Responder
+    from antireplay.pq.session import Initiator, Responder
+    from antireplay.rcan.receive import Receiver
 
 __version__ = "0.1.0"
 
 #: The recipes: name -> module, loaded on first use.
 _RECIPES = {
-    "Receiver": "antireplay.pipeline",
+    "Receiver": "antireplay.rcan.receive",
     "MavlinkGuard": "antireplay.mavlink",
-    "Initiator": "antireplay.session",
-    "Responder": "antireplay.session",
+    "Initiator": "antireplay.pq.session",
+    "Responder": "antireplay.pq.session",
     "EpochSigner": "antireplay.epochs",
     "EpochVerifier": "antireplay.epochs",
-    "Guard": "antireplay.gateway",
-    "RcanGuard": "antireplay.gateway",
-    "Verified": "antireplay.gateway",
+    "Guard": "antireplay.http.gateway",
+    "RcanGuard": "antireplay.http.gateway",
+    "Verified": "antireplay.http.gateway",
 }
 
 __all__ = [

@@ -2,13 +2,13 @@
 
 Theory of operation
 -------------------
-The adapters own transport and process lifetime only: :mod:`antireplay.gateway`
+The adapters own transport and process lifetime only: :mod:`antireplay.http.gateway`
 speaks HTTP, :mod:`antireplay.cli` parses options, reports errors and waits for a
 signal.  What a configuration turns into is decided here, the same way for both:
 open the replay state, load the keys, open the audit trail, then build the policy
 object on them.
 
-* :func:`build_receiver` builds the gateway's :class:`~antireplay.pipeline.Receiver`
+* :func:`build_receiver` builds the gateway's :class:`~antireplay.rcan.receive.Receiver`
   from :class:`~antireplay.config.AppConfig`: the key registry
   (:func:`build_registry`), the JWT verifier when configured, the store (bounded and
   skewed as ``security`` says) checked for data loss at boot (``verify()``: a store
@@ -41,12 +41,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from antireplay.audit import AuditLog
-from antireplay.auth import JwtVerifier, KeyRegistry, load_public_key, sdk_key_id
-from antireplay.clock import Clock, resolve
 from antireplay.config import AppConfig
-from antireplay.errors import ConfigError, StateUnavailableError
-from antireplay.pipeline import Receiver, TokenBucket
-from antireplay.stores import ReplayStore, open_store
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.errors import ConfigError, StateUnavailableError
+from antireplay.core.ratelimit import TokenBucket
+from antireplay.rcan.auth import JwtVerifier, KeyRegistry, load_public_key, sdk_key_id
+from antireplay.rcan.receive import Receiver
+from antireplay.state import ReplayStore, open_store
 
 if TYPE_CHECKING:
     from prometheus_client.core import Metric
@@ -60,10 +61,10 @@ log = logging.getLogger("antireplay.mavlink")
 
 def build_registry(config: AppConfig) -> KeyRegistry:
     """The sender keys the configuration names, loaded by the one loader
-    (:func:`~antireplay.auth.load_public_key`: PEM or the RCAN SDK's raw key file; a bad
+    (:func:`~antireplay.rcan.auth.load_public_key`: PEM or the RCAN SDK's raw key file; a bad
     key file is a ConfigError), for ``config check`` and ``serve`` alike.  With
     ``sdk_compat``, an ML-DSA-65 key also answers to its SDK key id
-    (:func:`~antireplay.auth.sdk_key_id`), the kid the SDK always signs with."""
+    (:func:`~antireplay.rcan.auth.sdk_key_id`), the kid the SDK always signs with."""
     keys = KeyRegistry(sdk_compat=config.sdk_compat)
     added = []
     for entry in config.keys:

@@ -4,16 +4,16 @@ Each target is a function of raw bytes that raises only when the contract is
 broken: an exception outside the typed :class:`ReplayAttackError` family, an
 HTTP 5xx, or a typed answer with the wrong shape.  The same functions run under
 atheris (``python -m tests.fuzz``, coverage-guided, millions of inputs) and under
-pytest (``tests/test_fuzz_corpus.py`` replays ``tests/corpus/<target>/``), so a
+pytest (``tests/fuzz/test_corpus.py`` replays ``tests/corpus/<target>/``), so a
 finding, once saved in the corpus, is a regression test forever.
 
 Targets (the names are the corpus folders):
 
-* ``envelope``: :func:`antireplay.envelope.parse` and everything the pipeline
+* ``envelope``: :func:`antireplay.rcan.envelope.parse` and everything the pipeline
   then asks of an envelope (canonical bytes, re-encoding, ``sig``, SDK subset,
   window check);
 * ``receiver``: :meth:`Receiver.receive` with headers (JWT, SDK-compat keys);
-* ``http``: the real gateway app (:func:`antireplay.gateway.create_app` on its
+* ``http``: the real gateway app (:func:`antireplay.http.gateway.create_app` on its
   embedded default: SQLite state and audit in a temporary folder), called as
   ASGI with fuzzed headers and body;
 * ``mavlink``: :func:`split_frames`, :class:`FrameReader`, :func:`parse_frame`,
@@ -38,8 +38,14 @@ from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa, mlkem
 
 from antireplay import ManualClock, ReplayAttackError, SecurityConfig
 from antireplay.audit import sanitize
-from antireplay.auth import JwtVerifier, KeyRegistry, b64encode, sign_envelope, write_key_pair
-from antireplay.envelope import (
+from antireplay.core.errors import Code
+from antireplay.epochs import EpochSigner, EpochVerifier
+from antireplay.http.gateway import DEMO_KID, create_app, embedded_default
+from antireplay.mavlink import FrameReader, MavlinkGuard, parse_frame, split_frames
+from antireplay.mavlink.codec import MAX_FRAME
+from antireplay.pq.session import Initiator, Responder, parse_frame_head
+from antireplay.rcan.auth import JwtVerifier, KeyRegistry, b64encode, sign_envelope, write_key_pair
+from antireplay.rcan.envelope import (
     canonical_bytes,
     encode,
     parse,
@@ -48,15 +54,9 @@ from antireplay.envelope import (
     unsigned_policy_fields,
     without_delivery_hints,
 )
-from antireplay.epochs import EpochSigner, EpochVerifier
-from antireplay.errors import Code
-from antireplay.gateway import DEMO_KID, create_app, embedded_default
-from antireplay.mavlink import FrameReader, MavlinkGuard, parse_frame, split_frames
-from antireplay.mavlink.codec import MAX_FRAME
-from antireplay.pipeline import Receiver
-from antireplay.replay import ReplayCache
-from antireplay.session import Initiator, Responder, parse_frame_head
-from antireplay.stores.memory import MemoryStore
+from antireplay.rcan.receive import Receiver
+from antireplay.state.memory import MemoryStore
+from antireplay.state.replay import ReplayCache
 
 NOW = 1_800_000_000.0
 #: Fixed keys, so the seed corpus stays valid from one run to the next.

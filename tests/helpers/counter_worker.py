@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import sys
 
-from antireplay.counters import NonceCounter
+from antireplay.state.ceilings import persistent_counter
 from tests.helpers import emit_forever
 
 
 def main() -> None:
-    counter = NonceCounter.persistent(sys.argv[1], lease=int(sys.argv[2]))
+    counter = persistent_counter(sys.argv[1], lease=int(sys.argv[2]))
     emit_forever(counter.next)
 
 

@@ -7,10 +7,10 @@ from multiprocessing.synchronize import Barrier
 from typing import Any
 
 from antireplay import ManualClock, ReplayAttackError, ReplayCache, SecurityConfig
-from antireplay.auth import KeyRegistry, load_public_key
-from antireplay.pipeline import Receiver
-from antireplay.stores import open_store
-from antireplay.stores.redis_store import RedisStore
+from antireplay.rcan.auth import KeyRegistry, load_public_key
+from antireplay.rcan.receive import Receiver
+from antireplay.state import open_store
+from antireplay.state.redis import RedisStore
 
 WALL = 1_800_000_000.0
 

@@ -2,7 +2,7 @@
 
 Unknown keys are errors (a typo cannot leave a default in force; a key that was
 renamed says what it is called now), and every error names the dotted key, the
-value and what is allowed (:class:`~antireplay.errors.ConfigError`); when
+value and what is allowed (:class:`~antireplay.core.errors.ConfigError`); when
 several keys are wrong, the first is the error and the others follow in its
 text.  The pre-shared key is read from a file holding it in hex, never from the
 YAML itself.
@@ -18,7 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pydantic_core import ErrorDetails
 
 from antireplay.config import load_yaml
-from antireplay.errors import ConfigError
+from antireplay.core.errors import ConfigError
 
 MAX_DOMAIN_ID = 232  # Cyclone's port arithmetic; antireplay.dds.domain checks the same
 #: The freshness bounds every DDS endpoint defaults to: readers and listeners refuse a sample
@@ -31,7 +31,7 @@ class _Block(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
-#: The replay store specs a reader accepts (:func:`antireplay.stores.open_store`); a
+#: The replay store specs a reader accepts (:func:`antireplay.state.open_store`); a
 #: ``sqlite:`` path must not be blank nor start or end with blanks.
 STORE_SPEC = r"^(memory|sqlite:\S(.*\S)?|rediss?://.+|unix://.+|redis\+cluster://.+)$"
 #: What each constrained key allows, in words (pydantic's wording names no unit or spec).

@@ -23,12 +23,12 @@ import socket
 from collections import Counter
 
 from antireplay.audit import AuditLog
-from antireplay.clock import Clock, resolve
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.errors import Code
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.topics import RefusalAuditor, Verdict, open_judged
 from antireplay.epochs import MIN_LEN, EpochSigner, EpochVerifier, Kind
-from antireplay.errors import Code
-from antireplay.stores import ReplayStore
+from antireplay.state import ReplayStore
 
 #: A binding ping is small; anything larger is dropped before any crypto.
 MAX_PING = 1024

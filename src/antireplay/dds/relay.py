@@ -37,13 +37,13 @@ from dataclasses import dataclass
 from cyclonedds.domain import DomainParticipant
 
 from antireplay.audit import AuditLog
-from antireplay.clock import Clock, resolve
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.errors import InvalidFrameError, StateUnavailableError, WarningCode
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.ping import PingListener
 from antireplay.dds.topics import SealedReader, SealedWriter, Verdict
 from antireplay.dds.wire import SealedSample
-from antireplay.errors import InvalidFrameError, StateUnavailableError, WarningCode
-from antireplay.stores import ReplayStore
+from antireplay.state import ReplayStore
 
 log = logging.getLogger("antireplay.dds.relay")
 

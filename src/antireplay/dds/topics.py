@@ -30,14 +30,14 @@ cache does; a ``sqlite:PATH`` store that survived the restart sets no fence
 (and raises one when it finds it lost data).  An age bound is required
 (``max_age_s``): a reader that never heard of a writer still refuses a capture
 older than that.  Everything else becomes a :class:`Verdict` with a
-stable :class:`~antireplay.errors.Code` and an ``outcome`` word that is
+stable :class:`~antireplay.core.errors.Code` and an ``outcome`` word that is
 counted in :attr:`SealedReader.counts` and, with an audit log, appended to the
 hash-chained audit trail, rate-limited (:class:`RefusalAuditor`) so that a
 flood of garbage cannot grow it without bound.  Several writers share a topic: each has its own
 prefix (random, or restored from its state file), and the verifier keeps one
 epoch per prefix.  A writer restarted with its state file resumes above every
 epoch it could have used; one whose state file vanished while its witness
-remains refuses to start (:class:`~antireplay.errors.StateFileError` names
+remains refuses to start (:class:`~antireplay.core.errors.StateFileError` names
 the file).
 """
 
@@ -64,7 +64,18 @@ from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
 from antireplay.audit import AuditLog
-from antireplay.clock import Clock, resolve
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.errors import (
+    Code,
+    EpochReplayedError,
+    EpochTooFarAheadError,
+    InvalidFrameError,
+    MessageStaleError,
+    ReplayAttackError,
+    SignatureInvalidError,
+    StateUnavailableError,
+)
+from antireplay.core.ratelimit import TokenBucket
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.wire import SealedSample
 from antireplay.epochs import (
@@ -77,18 +88,7 @@ from antireplay.epochs import (
     Kind,
 )
 from antireplay.epochs.policy import HEAD
-from antireplay.errors import (
-    Code,
-    EpochReplayedError,
-    EpochTooFarAheadError,
-    InvalidFrameError,
-    MessageStaleError,
-    ReplayAttackError,
-    SignatureInvalidError,
-    StateUnavailableError,
-)
-from antireplay.pipeline import TokenBucket
-from antireplay.stores import ReplayStore
+from antireplay.state import ReplayStore
 
 log = logging.getLogger("antireplay.dds")
 

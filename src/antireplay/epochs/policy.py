@@ -12,7 +12,7 @@ Epochs are wall-anchored nanoseconds, strictly increasing per prefix.  A prefix 
 or derived from a unique service name; a signer whose stream ran ahead of its clock moves
 to the public successor ``SHA-256("antireplay/v1 rotate" | prefix)[:8]``.
 
-:class:`EpochPolicy` holds the marks (a bounded :class:`~antireplay.counters.FencedTable`
+:class:`EpochPolicy` holds the marks (a bounded :class:`~antireplay.core.counters.FencedTable`
 per kind, with the last (epoch, digest) pairs of each prefix) and judges values with a
 time the driver passes in.  A refusal comes back as :class:`Refused` (the typed error and,
 for an authentic frame, the evidence: :class:`TooFarAhead`, :class:`PrefixCollision`); an
@@ -37,8 +37,8 @@ from typing import NamedTuple
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
-from antireplay.counters import FencedTable
-from antireplay.errors import (
+from antireplay.core.counters import FencedTable
+from antireplay.core.errors import (
     ConfigError,
     EpochReplayedError,
     EpochTooFarAheadError,

@@ -3,7 +3,7 @@
 Theory of operation
 -------------------
 ``epoch = max(last + 1, wall_ns)`` from one wall-anchored
-:class:`~antireplay.counters.NonceCounter`: strictly increasing, never below the current
+:class:`~antireplay.core.counters.NonceCounter`: strictly increasing, never below the current
 time, so a verifier that never heard of a sender can still refuse a capture older than
 its ``max_age_s``, and a clock stepping back never makes epochs regress.
 
@@ -15,7 +15,7 @@ or below the verifiers', above ``reserve_s``), it **rotates** to
 time.  No epoch repeats or drops within a prefix; the old prefix is never used again.
 
 With ``state_file`` the signer reserves ``reserve_s`` of epochs at a time through
-:mod:`antireplay.durable` (one fsync a second for a busy sender) before emitting any of
+:mod:`antireplay.state.durable` (one fsync a second for a busy sender) before emitting any of
 them, so after a crash it starts above anything it could have sent.  The file records the
 current prefix, the one it started from (``base``, which ``nonce_prefix`` or
 ``service_name`` must match) and the rotation count; a rotation is saved before its first
@@ -31,9 +31,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from antireplay.clock import Clock, resolve
-from antireplay.counters import NonceCounter
-from antireplay.durable import DurableState, as_hex, as_int, register_repair
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.counters import NonceCounter
+from antireplay.core.errors import StateFileError
 from antireplay.epochs.policy import (
     EPOCH_LIMIT,
     PREFIX_LEN,
@@ -45,7 +45,8 @@ from antireplay.epochs.policy import (
     successor_prefix,
     to_ns,
 )
-from antireplay.errors import StateFileError
+from antireplay.state.ceilings import counter_on_state
+from antireplay.state.durable import DurableState, as_hex, as_int, register_repair
 
 log = logging.getLogger("antireplay.epochs")
 
@@ -118,7 +119,7 @@ class EpochSigner:
         if stored is not None:
             self.rotations = stored.rotations
             self.nonce_prefix, self.base_prefix = stored.prefix, stored.base
-        self._epochs = NonceCounter.on_state(
+        self._epochs = counter_on_state(
             state, 0 if stored is None else stored.ceiling, int(reserve_s * 1_000_000_000) + 1,
             limit=EPOCH_LIMIT, anchor=anchor, record=self._record,
         )  # fmt: skip

@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-The verifier keeps its state in a replay store (:mod:`antireplay.stores`: memory, SQLite,
+The verifier keeps its state in a replay store (:mod:`antireplay.state`: memory, SQLite,
 Redis).  Each accepted epoch is one compare-and-advance of ``NAMESPACE:KIND:PREFIX``
 (atomic on every backend, durable before ``open`` returns with SQLite or Redis), so a
 restarted verifier, or another one on the same store, refuses everything accepted or
@@ -33,7 +33,16 @@ from collections import Counter
 from collections.abc import Callable
 from typing import TYPE_CHECKING, TypeVar
 
-from antireplay.clock import Clock, resolve
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.errors import (
+    Code,
+    EpochReplayedError,
+    MessageStaleError,
+    SignatureInvalidError,
+    StateFileError,
+    StateUnavailableError,
+    WarningCode,
+)
 from antireplay.epochs.policy import (
     Admission,
     Announcement,
@@ -51,17 +60,8 @@ from antireplay.epochs.policy import (
     successor_prefix,
     to_ns,
 )
-from antireplay.errors import (
-    Code,
-    EpochReplayedError,
-    MessageStaleError,
-    SignatureInvalidError,
-    StateFileError,
-    StateUnavailableError,
-    WarningCode,
-)
-from antireplay.stores import ReplayStore, open_store
-from antireplay.stores.memory import MemoryStore
+from antireplay.state import ReplayStore, open_store
+from antireplay.state.memory import MemoryStore
 
 if TYPE_CHECKING:
     from antireplay.audit import AuditLog

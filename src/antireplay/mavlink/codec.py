@@ -46,11 +46,12 @@ from dataclasses import dataclass
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator.mavcrc import x25crc
 
-from antireplay.clock import Clock, resolve
-from antireplay.counters import NonceCounter, StoreCeiling
-from antireplay.errors import InvalidFrameError, NonceExhaustedError
-from antireplay.stores import ReplayStore
-from antireplay.window import NEVER
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.counters import NonceCounter
+from antireplay.core.errors import InvalidFrameError, NonceExhaustedError
+from antireplay.core.window import NEVER
+from antireplay.state import ReplayStore
+from antireplay.state.ceilings import StoreCeiling
 
 STX_V2 = 0xFD
 STX_V1 = 0xFE
@@ -241,7 +242,7 @@ def passphrase_key(passphrase: str) -> bytes:
 
 class TimestampSource(NonceCounter):
     """A sender's link timestamp: the project's one sender source
-    (:class:`~antireplay.counters.NonceCounter`) anchored to MAVLink time, never past
+    (:class:`~antireplay.core.counters.NonceCounter`) anchored to MAVLink time, never past
     ``2**48``; with a store, never repeating across restarts (module docstring)."""
 
     def __init__(

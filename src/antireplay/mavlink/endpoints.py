@@ -61,7 +61,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
-from antireplay.errors import InvalidFrameError
+from antireplay.core.errors import InvalidFrameError
 from antireplay.mavlink.codec import FrameReader, split_frames
 
 #: A ``udpin`` sender's address or a ``tcpin`` client's connection number.

@@ -20,7 +20,7 @@ is judged in this order:
    ``MESSAGE_FROM_FUTURE``; at or below the restart fence ``MESSAGE_STALE``; a
    held stream ``(system, component, link)`` needs ``ts > last`` (or, with
    ``reorder_window``, a fresh counter in an RFC 6479
-   :class:`~antireplay.counters.CounterWindow`) -> ``COUNTER_REPLAYED``; a
+   :class:`~antireplay.core.counters.CounterWindow`) -> ``COUNTER_REPLAYED``; a
    stream the table does not hold must be above the table's eviction fence
    (``MESSAGE_STALE``, ``detail="fence"``).  So a replay costs no HMAC.  This
    is :meth:`~MavlinkGuard.check`;
@@ -38,7 +38,7 @@ is judged in this order:
    a restart resets); then the stream's state advances in memory, and with a
    store it is persisted off the frame path (*Persistence* below).
 
-The stream table is a :class:`~antireplay.counters.FencedTable`: bounded; a
+The stream table is a :class:`~antireplay.core.counters.FencedTable`: bounded; a
 full table admits a new stream (at step 6; :meth:`~MavlinkGuard.check` tests
 only the fence) only above its lowest high-water, and only then evicts that
 stream and raises the fence to it; a new stream at or below it is refused
@@ -124,9 +124,9 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 
-from antireplay.clock import Clock, resolve
-from antireplay.counters import CounterWindow, FencedTable
-from antireplay.errors import (
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.counters import CounterWindow, FencedTable
+from antireplay.core.errors import (
     CounterReplayedError,
     MessageFromFutureError,
     MessageStaleError,
@@ -137,6 +137,8 @@ from antireplay.errors import (
     WrongDirectionError,
     WrongTargetError,
 )
+from antireplay.core.messages import StrEnum
+from antireplay.core.window import NEVER
 from antireplay.mavlink.codec import (
     MAV_EPOCH,
     SIG_LEN,
@@ -149,9 +151,7 @@ from antireplay.mavlink.codec import (
     parse_frame,
     target_system,
 )
-from antireplay.messages import StrEnum
-from antireplay.stores import ReplayStore
-from antireplay.window import NEVER
+from antireplay.state import ReplayStore
 
 _MS = UNITS_PER_S // 1000  # the lease's expiry is stored in milliseconds
 _GENERATION = 2**42  # lease value = generation * 2**42 + expiry (ms): 139 years of expiry

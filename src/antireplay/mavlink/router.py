@@ -72,13 +72,14 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from antireplay.errors import (
+from antireplay.core.errors import (
     AntiReplayError,
     Code,
     InvalidFrameError,
     NonceExhaustedError,
     ReplayAttackError,
 )
+from antireplay.core.messages import StrEnum
 from antireplay.mavlink.codec import (
     Frame,
     TimestampSource,
@@ -88,7 +89,6 @@ from antireplay.mavlink.codec import (
 )
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.guard import Admission, MavlinkGuard, MavVerdict
-from antireplay.messages import StrEnum
 
 INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
 Location = tuple["Link", Peer | None]

@@ -3,18 +3,18 @@ machinery (ACK timers, retries); antireplay is the receiver, so its cases become
 our receive side does with what that sender sends: a retransmission (same msg_id) is
 never admitted twice, a fresh duplicate ESTOP is processed and flagged, and ``qos`` is
 an integer hint read only by the retry rule (the gateway answers a ``qos >= 1``
-retransmission with the original answer; tests/test_retries.py)."""
+retransmission with the original answer; tests/rcan/test_retries.py)."""
 
 from __future__ import annotations
 
 import json
 
 import pytest
-from rcan import RCANMessage
 from rcan.qos import make_estop_with_qos
 
 from antireplay import MessageType, safety_class
-from antireplay.envelope import parse
+from antireplay.rcan.envelope import parse
+from rcan import RCANMessage
 from tests.harness import SDK_NOW, SdkReplayAdapter
 
 TARGET = "rcan://registry.rcan.dev/acme/arm/v1/unit-001"

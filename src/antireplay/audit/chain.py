@@ -1,0 +1,341 @@
+"""The audit trail's format: the schema, the hash chain, the head anchor, the sanitizer.
+
+Each row stores ``hash = SHA-256(prev_hash | canonical JSON of the row)``; the first
+row chains from :data:`GENESIS`.  The head ``(rows, last hash)`` is MACed with a key
+kept outside the database and checkpointed to a file beside it (:class:`HeadAnchor`).
+The writer (:mod:`.writer`), the reader (:mod:`.reader`) and the verifier
+(:mod:`.verifier`) share these definitions and nothing else.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import os
+import re
+import secrets
+import sqlite3
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from antireplay.core.errors import AuditFileError
+from antireplay.state.durable import atomic_write
+
+GENESIS = "0" * 64
+_SAFE = re.compile(r"[A-Za-z0-9._:@/-]{1,64}")
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS audit (
+    seq INTEGER PRIMARY KEY,
+    at REAL NOT NULL,
+    outcome TEXT NOT NULL,
+    code TEXT,
+    warning TEXT,
+    msg_type INTEGER,
+    sender TEXT,
+    sender_verified INTEGER NOT NULL,
+    msg_id TEXT,
+    prev_hash TEXT NOT NULL,
+    hash TEXT NOT NULL
+);
+"""
+_FIELDS = (
+    "seq",
+    "at",
+    "outcome",
+    "code",
+    "warning",
+    "msg_type",
+    "sender",
+    "sender_verified",
+    "msg_id",
+)
+_COLUMNS = ",".join(_FIELDS)  # constants only: no user input ever reaches SQL text
+_TAIL = f"SELECT {_COLUMNS} FROM audit ORDER BY seq DESC LIMIT ?"  # noqa: S608
+_ALL = f"SELECT {_COLUMNS}, prev_hash, hash FROM audit ORDER BY seq"  # noqa: S608
+_EXPECTED_COLUMNS = [*_FIELDS, "prev_hash", "hash"]
+_SQLITE_MAGIC = b"SQLite format 3\x00"
+HEAD_FORMAT = "antireplay-audit-head"
+HEAD_VERSION = 1
+#: Bytes of one head record: well inside a 512-byte sector, so an in-place rewrite is atomic.
+HEAD_RECORD = 256
+
+
+def sanitize(value: object) -> str | None:
+    """An identifier safe to store and print; anything suspicious becomes a short hash."""
+    if value is None:
+        return None
+    text = value if isinstance(value, str) else repr(value)
+    if _SAFE.fullmatch(text):
+        return text
+    return "sha256:" + hashlib.sha256(text.encode("utf-8", "surrogatepass")).hexdigest()[:16]
+
+
+def printable(value: object, limit: int = 200) -> str | None:
+    """Free text (a STATE_LOST reason) safe to print: every character that is not printable
+    (controls, escapes, bidi overrides) shown as its escape, at most ``limit`` characters."""
+    if value is None:
+        return None
+    text = value if isinstance(value, str) else repr(value)
+    shown = "".join(c if c.isprintable() else ascii(c)[1:-1] for c in text[: limit + 1])
+    return shown if len(shown) <= limit else shown[: limit - 1] + "…"
+
+
+#: Wall times antireplay can write: from the epoch to the end of year 9999.
+LATEST_AT = 253_402_300_799.0
+
+
+def valid_at(value: object) -> float | None:
+    """The row's time if it is one antireplay could have written (a finite real within the
+    years 1970-9999), else ``None`` (a tampered row: 1e300, NaN, a string)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    at = float(value)
+    return at if 0.0 <= at <= LATEST_AT else None
+
+
+def _wrongly_typed(row: dict[str, Any]) -> str | None:
+    """The first column holding a value antireplay never writes, or ``None``."""
+    for name, value in row.items():
+        if name == "at":
+            ok = valid_at(value) is not None
+        elif name in ("seq", "sender_verified", "msg_type"):
+            ok = (value is None and name == "msg_type") or (
+                type(value) is int and (name != "sender_verified" or value in (0, 1))
+            )
+        else:
+            ok = (value is None and name != "outcome") or isinstance(value, str)
+        if not ok:
+            return name
+    return None
+
+
+def _digest(prev: str, row: dict[str, Any]) -> str:
+    body = json.dumps(row, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256((prev + body).encode()).hexdigest()
+
+
+def _recovery(path: Path) -> str:
+    return f"antireplay audit verify {path}, then antireplay audit reanchor {path}"
+
+
+def _aside(path: Path) -> str:
+    return (
+        f"move {path} (and {path}.head) aside, keep them as evidence, and start a new trail; "
+        "or give the path of an audit trail"
+    )
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A MAC-verified chain head read from the checkpoint file."""
+
+    rows: int
+    hash: str
+
+
+class HeadAnchor:
+    """The chain head, MACed with a key kept outside the database, checkpointed outside it."""
+
+    def __init__(self, db: Path, key_path: Path | None = None, head_path: Path | None = None):
+        self.db = db
+        self.key_path = Path(key_path) if key_path else db.with_name(db.name + ".key")
+        self.path = Path(head_path) if head_path else db.with_name(db.name + ".head")
+
+    def _read(self, path: Path) -> bytes | None:
+        """A file's bytes, ``None`` if it does not exist; anything else unreadable refuses."""
+        try:
+            return path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError as exc:
+            raise AuditFileError(
+                str(path), f"unreadable ({exc.strerror})", recovery=_recovery(self.db)
+            ) from None
+
+    def load_key(self) -> bytes | None:
+        """The head key, ``None`` if there is none yet; a damaged or exposed key refuses."""
+        raw = self._read(self.key_path)
+        if raw is None:
+            return None
+        if self.key_path.stat().st_mode & 0o077:
+            raise AuditFileError(
+                str(self.key_path), "readable by other users",
+                recovery=f"chmod 600 {self.key_path}",
+            )  # fmt: skip
+        try:
+            key = bytes.fromhex(raw.strip().decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            key = b""
+        if len(key) != 32:
+            raise AuditFileError(
+                str(self.key_path), "not an audit head key (64 hex characters)",
+                recovery=_recovery(self.db),
+            )  # fmt: skip
+        return key
+
+    def create_key(self) -> bytes:
+        """Make the key (0600) on first use: written whole to a temporary file, then linked
+        into place, so nobody ever reads a half-written key; a concurrent creator's key wins."""
+        key = secrets.token_bytes(32)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.key_path.name}.", dir=self.key_path.parent)
+        try:
+            with os.fdopen(fd, "wb") as handle:  # mkstemp files are 0600
+                handle.write(key.hex().encode() + b"\n")
+                handle.flush()
+                os.fsync(handle.fileno())
+            os.link(tmp, self.key_path)
+        except FileExistsError:
+            existing = self.load_key()
+            assert existing is not None
+            return existing
+        finally:
+            os.unlink(tmp)
+        return key
+
+    @staticmethod
+    def mac(key: bytes, rows: int, head: str) -> str:
+        return hmac.new(
+            key, f"antireplay/v1 audit head|{rows}|{head}".encode(), "sha256"
+        ).hexdigest()
+
+    def record(self, key: bytes, rows: int, head: str) -> bytes:
+        """The checkpoint as one fixed-size record (JSON padded with spaces, then a newline)."""
+        body = {"format": HEAD_FORMAT, "version": HEAD_VERSION, "rows": rows, "hash": head,
+                "mac": self.mac(key, rows, head)}  # fmt: skip
+        return json.dumps(body, sort_keys=True).encode().ljust(HEAD_RECORD - 1) + b"\n"
+
+    def write(self, key: bytes, rows: int, head: str, *, sync: bool = True) -> None:
+        """Checkpoint the head: in place when the file already holds one record, so that
+        ``sync=False`` costs no fsync yet survives a ``kill -9``; whole files (first
+        write, an operator's edit) go through :func:`~antireplay.state.durable.atomic_write`."""
+        record = self.record(key, rows, head)
+        try:
+            fd = os.open(self.path, os.O_WRONLY)
+        except FileNotFoundError:
+            fd = -1
+        if fd >= 0:
+            try:
+                if os.fstat(fd).st_size == len(record):
+                    os.pwrite(fd, record, 0)
+                    if sync:
+                        os.fdatasync(fd)
+                    return
+            finally:
+                os.close(fd)
+        # An older checkpoint after a power cut only under-claims (rows after it are reported),
+        # so the directory fsync is skipped; the file's own fsync keeps it whole.
+        atomic_write(self.path, record, sync_dir=False)
+
+    def read(self, key: bytes | None) -> Checkpoint | None:
+        """The checkpoint (``None`` if missing); a garbage or forged checkpoint refuses.
+
+        Without a key the MAC cannot be checked and the checkpoint is returned unproven."""
+        raw = self._read(self.path)
+        if raw is None:
+            return None
+        try:
+            body = json.loads(raw)
+            ok = isinstance(body, dict) and body.get("format") == HEAD_FORMAT
+            rows, head, mac = (body["rows"], body["hash"], body["mac"]) if ok else (0, "", "")
+        except (ValueError, UnicodeDecodeError, KeyError):
+            ok = False
+        if not (ok and type(rows) is int and rows >= 0 and isinstance(head, str)
+                and isinstance(mac, str)):  # fmt: skip
+            raise AuditFileError(
+                str(self.path), "not an audit head checkpoint (corrupt or truncated)",
+                recovery=_recovery(self.db),
+            )  # fmt: skip
+        if key is not None and not hmac.compare_digest(mac, self.mac(key, rows, head)):
+            raise AuditFileError(
+                str(self.path), "head MAC does not verify (forged, or written with another key)",
+                recovery=_recovery(self.db),
+            )  # fmt: skip
+        return Checkpoint(rows, head)
+
+
+def _connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
+    """Open an audit trail, refusing anything that is not one (never creating a table in it)."""
+    try:
+        with path.open("rb") as handle:
+            magic = handle.read(len(_SQLITE_MAGIC))
+    except FileNotFoundError:
+        magic = b""
+        if read_only:
+            raise AuditFileError(str(path), "does not exist", recovery=_aside(path)) from None
+    except OSError as exc:
+        raise AuditFileError(
+            str(path), f"unreadable ({exc.strerror})", recovery=_aside(path)
+        ) from None
+    if magic and magic != _SQLITE_MAGIC:
+        raise AuditFileError(str(path), "not an SQLite database", recovery=_aside(path))
+    try:
+        if read_only:
+            db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, check_same_thread=False)
+        else:
+            db = sqlite3.connect(path, isolation_level=None, check_same_thread=False)
+        try:
+            tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            if "audit" in tables:
+                columns = [r[1] for r in db.execute("PRAGMA table_info(audit)")]
+                if columns != _EXPECTED_COLUMNS:
+                    raise AuditFileError(
+                        str(path), "has an audit table of another shape", recovery=_aside(path)
+                    )
+            elif tables or read_only:
+                raise AuditFileError(
+                    str(path), "is an SQLite database but not an audit trail",
+                    recovery=_aside(path),
+                )  # fmt: skip
+            if not read_only:
+                db.execute("PRAGMA journal_mode=WAL")
+                db.execute("PRAGMA synchronous=FULL")
+                db.executescript(_SCHEMA)
+        except BaseException:
+            db.close()
+            raise
+    except sqlite3.DatabaseError as exc:
+        raise AuditFileError(
+            str(path), f"not a usable SQLite database ({exc})", recovery=_aside(path)
+        ) from None
+    return db
+
+
+def _last(db: sqlite3.Connection) -> tuple[int, str]:
+    row = db.execute("SELECT seq, hash FROM audit ORDER BY seq DESC LIMIT 1").fetchone()
+    return (0, GENESIS) if row is None else (int(row[0]), str(row[1]))
+
+
+@dataclass(frozen=True)
+class Record:
+    """One audit row, as returned by :meth:`AuditLog.tail`."""
+
+    seq: int
+    at: float
+    outcome: str
+    code: str | None
+    warning: str | None
+    msg_type: int | None
+    sender: str | None
+    sender_verified: bool
+    msg_id: str | None
+
+
+def _records(rows: list[Any]) -> list[Record]:
+    return [
+        Record(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7] == 1, r[8]) for r in reversed(rows)
+    ]
+
+
+def _compare(db: sqlite3.Connection, checkpoint: Checkpoint) -> str | None:
+    """Why the database disagrees with a genuine checkpoint, or ``None``."""
+    if checkpoint.rows == 0:
+        return None
+    row = db.execute("SELECT hash FROM audit WHERE seq = ?", (checkpoint.rows,)).fetchone()
+    if row is None:
+        return f"truncated: the head checkpoint covers {checkpoint.rows} rows, they are gone"
+    if row[0] != checkpoint.hash:
+        return f"rewritten: row {checkpoint.rows} no longer has the checkpointed hash"
+    return None

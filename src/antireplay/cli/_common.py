@@ -1,0 +1,176 @@
+"""What every command shares: one error idiom, the config and audit preflight, a signal wait.
+
+An ordinary mistake is one line on stderr, ``antireplay: error: <what> (<what is
+allowed>)``, with exit status 2 (:func:`_fail`); ``config check`` runs the same
+:func:`preflight` as ``serve``, so a configuration that passes the check starts.
+"""
+
+from __future__ import annotations
+
+import signal
+import sqlite3
+import sys
+import threading
+from pathlib import Path
+from types import FrameType
+from typing import TYPE_CHECKING, Any, NoReturn
+
+import click
+from rich.console import Console
+
+from antireplay.audit import verify
+from antireplay.config import AppConfig
+from antireplay.core.errors import AntiReplayError, ConfigError, StateFileError
+from antireplay.rcan.auth import (
+    load_public_key,
+)
+
+if TYPE_CHECKING:
+    pass
+
+
+console = Console()
+
+
+class _Cli(click.Group):
+    """click's usage errors as one unwrapped line on stderr (status 2), like ours."""
+
+    def main(self, *args: Any, **kwargs: Any) -> Any:
+        kwargs["standalone_mode"] = False
+        try:
+            code = super().main(*args, **kwargs)
+        except click.exceptions.NoArgsIsHelpError as exc:
+            exc.show()  # a bare group prints its help, as click does
+            sys.exit(exc.exit_code)
+        except click.ClickException as exc:
+            _fail(exc.format_message(), exc.exit_code)
+        except click.Abort:
+            _fail("aborted", 1)
+        except (OSError, AntiReplayError) as exc:  # a file or port the command could not use
+            _fail(str(exc))
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+def _fail(message: str, code: int = 2) -> NoReturn:
+    """One line on stderr, never wrapped (newlines in a message are flattened)."""
+    click.echo("antireplay: error: " + " ".join(message.split()), err=True)
+    sys.exit(code)
+
+
+def _load_config(path: Path | None, state_dir: Path) -> AppConfig:
+    from antireplay.http.gateway import embedded_default  # noqa: PLC0415 - keeps `--help` fast
+
+    try:
+        return AppConfig.from_yaml(path) if path is not None else embedded_default(state_dir)
+    except ConfigError as exc:
+        _fail(str(exc))
+    except OSError as exc:
+        _fail(f"state directory {state_dir}: {exc.strerror or exc}")
+
+
+def _audit_problem(path: Path) -> str | None:
+    """Why ``path`` is not an antireplay audit trail (read only: nothing is created)."""
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    except sqlite3.Error as exc:
+        return f"cannot open it ({exc})"
+    try:
+        columns = {row[1] for row in db.execute("PRAGMA table_info(audit)")}
+    except sqlite3.DatabaseError as exc:
+        return f"not an SQLite database ({exc})"
+    finally:
+        db.close()
+    if not columns:
+        return "an SQLite database without an audit table"
+    missing = {"seq", "at", "outcome", "prev_hash", "hash"} - columns
+    return f"its audit table lacks {', '.join(sorted(missing))}" if missing else None
+
+
+def _check_audit_file(path: Path, remedy: str) -> None:
+    problem = _audit_problem(path) if path.exists() else None
+    if problem is not None:
+        _fail(f"{path} is not an antireplay audit trail: {problem}; {remedy}")
+
+
+_OPEN_ONLY_AUDIT = "audit verify and audit tail read only audit trails that antireplay wrote"
+_MOVE_ASIDE = "move it aside (a new trail is started) or configure another path"
+
+
+def _check_audit_anchor(path: Path) -> None:
+    """What opening the trail would refuse, found read-only (nothing written, nothing adopted)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        _fail(f"audit {path}: cannot create its directory ({exc.strerror or exc})")
+    if not path.exists():
+        return
+    try:
+        report = verify(path)
+    except StateFileError as exc:
+        _fail(str(exc))
+    if report.records and report.head != "match":
+        _fail(
+            f"audit {path}: head checkpoint {report.head}; see `antireplay audit verify {path}`, "
+            f"then `antireplay audit reanchor {path}` or move the trail aside"
+        )
+
+
+def importable_cwd(upstream: str | None) -> None:
+    """Put the working directory on ``sys.path`` (as ``python -m`` does), so a
+    ``module:function`` upstream in it imports without ``PYTHONPATH=.``; appended, so a
+    file there never shadows an installed package.  Only for such an upstream: otherwise
+    nothing is imported from the working directory at all."""
+    if upstream is None or upstream.startswith(("http://", "https://")):
+        return
+    cwd = str(Path.cwd())
+    if cwd not in sys.path and "" not in sys.path:
+        sys.path.append(cwd)
+
+
+def preflight(config: AppConfig) -> None:
+    """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
+    from antireplay.http.gateway import resolve_upstream  # noqa: PLC0415
+    from antireplay.state import open_store  # noqa: PLC0415
+    from antireplay.wiring import build_registry  # noqa: PLC0415
+
+    importable_cwd(config.upstream)
+    try:
+        build_registry(config)
+        for kid, pem in config.jwt.keys.items():
+            try:
+                load_public_key(Path(pem).read_bytes())
+            except (OSError, ValueError) as exc:
+                allowed = f"a readable PEM public key ({exc})"
+                raise ConfigError(f"jwt.keys.{kid}", pem, allowed) from None
+        resolve_upstream(config.upstream, config.upstream_timeout_s)
+    except ConfigError as exc:
+        _fail(str(exc))
+    _check_audit_file(Path(config.audit), f"audit: {_MOVE_ASIDE}")
+    _check_audit_anchor(Path(config.audit))
+    try:
+        if config.store.startswith("sqlite:"):
+            from antireplay.state.sqlite import check_readable  # noqa: PLC0415
+
+            check_readable(config.store[len("sqlite:") :])  # read-only: nothing used up
+        else:
+            store = open_store(config.store)
+            try:
+                store.ready()  # reaches it: the PING and eviction check serve's first commit runs
+            finally:
+                store.close()
+    except ConfigError as exc:
+        _fail(str(exc))
+    except Exception as exc:  # any backend's own failure, named with its spec
+        _fail(f"store {config.store}: cannot open it ({type(exc).__name__}: {exc})")
+
+
+def stop_on_signal() -> threading.Event:
+    """An event set by SIGINT or SIGTERM: a long-running command waits on it, then stops."""
+    stop = threading.Event()
+
+    def handler(_signum: int, _frame: FrameType | None) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+    return stop

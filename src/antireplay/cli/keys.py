@@ -1,0 +1,234 @@
+"""``keygen``, ``sign`` and ``send``: keys, signed envelopes, and sending one to a gateway."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import sys
+import time
+import uuid
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import click
+import httpx
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa, mlkem, x25519
+from rich.table import Table
+
+from antireplay.core.errors import ReplayAttackError
+from antireplay.core.messages import MessageType
+from antireplay.rcan.auth import (
+    SDK_PRIVATE_MAGIC,
+    PrivateKey,
+    SdkKeyPair,
+    UnsignedFieldsError,
+    sdk_key_id,
+    sign_envelope,
+    sign_sdk,
+    write_key_pair,
+)
+from antireplay.rcan.envelope import parse, safety_class
+
+if TYPE_CHECKING:
+    pass
+
+from antireplay.cli._common import _fail, console
+
+KEY_TYPES: dict[str, Any] = {
+    "ed25519": ed25519.Ed25519PrivateKey,
+    "ml-dsa-65": mldsa.MLDSA65PrivateKey,
+    "ml-dsa-87": mldsa.MLDSA87PrivateKey,
+    "ml-kem-1024": mlkem.MLKEM1024PrivateKey,  # a vehicle's key for `mavlink-pq`
+    "x25519": x25519.X25519PrivateKey,  # a vehicle's hybrid key for `mavlink-pq`
+}
+
+
+@click.command()
+@click.option("--alg", type=click.Choice(sorted(KEY_TYPES)), default="ed25519", show_default=True)
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="File prefix.")
+def keygen(alg: str, out: Path) -> None:
+    """Write PREFIX.key.pem (mode 0600) and PREFIX.pub.pem."""
+    key = KEY_TYPES[alg].generate()
+    private = out.with_name(out.name + ".key.pem")
+    public = out.with_name(out.name + ".pub.pem")
+    try:
+        write_key_pair(key, private, public)
+    except FileExistsError:
+        _fail(f"{private} exists; refusing to overwrite a key")
+    console.print(f"[green]{alg} key pair:[/green] {private} {public}")
+
+
+#: What ``sign --key`` accepts, for its errors.
+_SIGNING_KEYS = "an unencrypted PEM private key (Ed25519, ML-DSA-65 or ML-DSA-87)"
+_SDK_KEYS = "an unencrypted PEM ML-DSA-65 private key or an RCAN SDK key file (MLDSAKeyPair.save)"
+#: The sizes of an ML-DSA-65 key pair (FIPS 204), as the SDK's key file holds them.
+_SDK_KEY_SIZES = (1952, 4032)
+
+
+def _private_key(
+    paths: tuple[Path, ...], accepted: str = _SIGNING_KEYS
+) -> PrivateKey | tuple[PrivateKey, ...]:
+    keys = []
+    for path in paths:
+        try:
+            key = serialization.load_pem_private_key(path.read_bytes(), None)
+        except (ValueError, TypeError) as exc:
+            _fail(f"--key {path}: not {accepted} ({exc})")
+        if not isinstance(key, PrivateKey):
+            _fail(f"--key {path}: a {type(key).__name__}; accepted: {accepted}")
+        keys.append(key)
+    return keys[0] if len(keys) == 1 else tuple(keys)
+
+
+@click.command()
+@click.option(
+    "--key",
+    "key_paths",
+    multiple=True,
+    required=True,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+)
+@click.option("--kid", default=None, help="Required, except with --sdk (the key's SDK key id).")
+@click.option("--alg", default="ed25519", show_default=True)
+@click.option(
+    "--sdk",
+    is_flag=True,
+    help="Sign as the RCAN SDK's sign_message does (ML-DSA-65; its verify_message accepts it).",
+)
+@click.option("--json", "json_file", type=click.File("r"), help="Base message (JSON file or -).")
+@click.option("--cmd", default=None)
+@click.option("--target", default=None)
+@click.option(
+    "--param", "params", multiple=True, help="key=value (value parsed as JSON if it can be)"
+)
+@click.option("--type", "msg_type", type=int, default=None)
+@click.option("--safety-event", default=None)
+@click.option("--scope", default=None)
+def sign(  # noqa: PLR0917 - one option per envelope field
+    key_paths: tuple[Path, ...],
+    kid: str | None,
+    alg: str,
+    sdk: bool,
+    json_file: Any,
+    cmd: str | None,
+    target: str | None,
+    params: tuple[str, ...],
+    msg_type: int | None,
+    safety_event: str | None,
+    scope: str | None,
+) -> None:
+    """Build and sign an envelope (fresh msg_id and timestamp unless given); print it."""
+    try:
+        body: Any = json.load(json_file) if json_file is not None else {}
+    except ValueError as exc:
+        _fail(f"--json {json_file.name}: not JSON ({exc})")
+    if not isinstance(body, dict):
+        _fail(f"--json {json_file.name}: a JSON object is needed, got {type(body).__name__}")
+    body.setdefault("rcan", "3.2")
+    body.setdefault("rcan_version", "3.2")
+    body.setdefault("msg_id", str(uuid.uuid4()))
+    if "timestamp_ms" not in body:
+        body.setdefault("timestamp", round(time.time(), 6))
+    extra = {"cmd": cmd, "target": target, "type": msg_type, "safety_event": safety_event}
+    body.update({k: v for k, v in {**extra, "scope": scope}.items() if v is not None})
+    for item in params:
+        name, _, raw = item.partition("=")
+        try:
+            value: Any = json.loads(raw)
+        except ValueError:
+            value = raw
+        body.setdefault("params", {})[name] = value
+    try:
+        if sdk:
+            signed = sign_sdk(body, _sdk_key(key_paths, kid))
+        elif kid is None:
+            _fail("--kid is required (except with --sdk)")
+        else:
+            signed = sign_envelope(body, kid, alg, _private_key(key_paths))
+    except (ValueError, ReplayAttackError) as exc:
+        hint = ""
+        if isinstance(exc, UnsignedFieldsError) and {"type", "safety_event", "scope"} & set(
+            exc.fields
+        ):
+            hint = "; with --sdk, --cmd ESTOP/STOP/RESUME is a safety message"
+        _fail(f"cannot sign: {exc}{hint}")
+    click.echo(json.dumps(signed))
+
+
+def _sdk_key(paths: tuple[Path, ...], kid: str | None) -> mldsa.MLDSA65PrivateKey | SdkKeyPair:
+    """One ML-DSA-65 key for ``sign --sdk``: a PEM key, or the RCAN SDK's own key file
+    (``MLDSAKeyPair.save``; signed with the SDK, which must be installed)."""
+    if len(paths) != 1:
+        _fail("--sdk signs with exactly one --key (ML-DSA-65)")
+    data = paths[0].read_bytes()
+    key: mldsa.MLDSA65PrivateKey | SdkKeyPair
+    if data.startswith(SDK_PRIVATE_MAGIC):
+        size = int.from_bytes(data[4:6], "big")
+        if (size, len(data) - 6 - size) != _SDK_KEY_SIZES:
+            _fail(f"--key {paths[0]}: a damaged RCAN SDK key file; accepted: {_SDK_KEYS}")
+        try:  # the SDK signs its own files with dilithium-py (``rcan[pq]``)
+            from rcan.signing import MLDSAKeyPair  # noqa: PLC0415 - only for the SDK's files
+
+            importlib.import_module("dilithium_py.ml_dsa")
+        except ImportError as exc:
+            _fail(
+                f"--key {paths[0]}: an RCAN SDK key file, and the SDK cannot sign with it here "
+                f"({exc}); install it: pip install 'rcan[pq]' (or give a PEM ML-DSA-65 key)"
+            )
+        key = MLDSAKeyPair.load(paths[0])
+        key_id = key.key_id
+    else:
+        pem = _private_key(paths, _SDK_KEYS)
+        if not isinstance(pem, mldsa.MLDSA65PrivateKey):
+            _fail(
+                f"--key {paths[0]}: the RCAN SDK signs with ML-DSA-65 only; accepted: {_SDK_KEYS}"
+            )
+        key, key_id = pem, sdk_key_id(pem.public_key())
+    if kid is not None and kid != key_id:
+        _fail(f"--kid {kid}: the SDK signs with the key's SDK key id, {key_id}")
+    return key
+
+
+@click.command()
+@click.argument("url")
+@click.argument("message", type=click.File("rb"), default="-")
+@click.option("--bearer", default=None, help="JWT for the Authorization header.")
+def send(url: str, message: Any, bearer: str | None) -> None:
+    """POST a signed envelope to a gateway and print the verdict (exit 1 if refused)."""
+    headers = {"content-type": "application/json"}
+    if bearer:
+        headers["authorization"] = f"Bearer {bearer}"
+    if not url.rstrip("/").endswith("/v1/messages"):
+        url = url.rstrip("/") + "/v1/messages"
+    raw = message.read()
+    try:
+        reply = httpx.post(url, content=raw, headers=headers, timeout=10)
+    except httpx.HTTPError as exc:
+        _fail(f"cannot reach {url}: {exc}")
+    table = Table(title=f"{url} answered HTTP {reply.status_code}", caption=_sent_as(raw))
+    table.add_column("field")
+    table.add_column("value")
+    try:
+        body = reply.json()
+    except ValueError:
+        body = {"body": reply.text[:200]}
+    for name, value in body.items():
+        table.add_row(str(name), json.dumps(value) if not isinstance(value, str) else value)
+    console.print(table)
+    sys.exit(0 if reply.status_code < 300 else 1)
+
+
+def _sent_as(raw: bytes) -> str | None:
+    """How the gateway classes what was sent (``cmd ESTOP as SAFETY/ESTOP``): the answer
+    does not say, and the class sets the window and the scope a key needs."""
+    try:
+        env = parse(raw)
+    except ReplayAttackError:
+        return None  # the gateway's answer says what is wrong with it
+    kind, event = safety_class(env)
+    try:
+        name = MessageType(kind).name
+    except ValueError:
+        name = str(kind)
+    return f"sent cmd {env.cmd} as {name}" + (f"/{event}" if event else "")

@@ -1,0 +1,191 @@
+"""``serve``, ``config check``, ``demo`` and ``bench``: the gateway and its checks."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import click
+from rich.progress import Progress
+from rich.table import Table
+
+from antireplay.cli.demo import StepResult, run_gateway_demo, run_window_demo
+from antireplay.config import AppConfig
+from antireplay.core.errors import ConfigError
+
+if TYPE_CHECKING:
+    pass
+
+from antireplay.cli._common import _fail, _load_config, console, preflight
+
+
+@click.command()
+@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None)
+@click.option("--host", default="127.0.0.1", show_default=True)
+@click.option("--port", default=8080, show_default=True, type=click.IntRange(0, 65535))
+@click.option("--state-dir", default=Path(".antireplay"), type=click.Path(path_type=Path))
+@click.option("--access-log", is_flag=True, help="Log every request on stdout (uvicorn's log).")
+@click.option(
+    "--ssl-certfile",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Serve HTTPS with this PEM certificate (chain); needs --ssl-keyfile.",
+)
+@click.option(
+    "--ssl-keyfile",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="The certificate's PEM private key.",
+)
+def serve(  # noqa: PLR0917 - one option per knob
+    config_path: Path | None,
+    host: str,
+    port: int,
+    state_dir: Path,
+    access_log: bool,
+    ssl_certfile: Path | None,
+    ssl_keyfile: Path | None,
+) -> None:
+    """Run the HTTP gateway (embedded default without --config).
+
+    Prints one line once it listens: ``listening on http(s)://HOST:PORT (store ..., audit
+    ...)``; ``GET /healthz`` is liveness, ``GET /readyz`` readiness (store and audit)."""
+    import socket  # noqa: PLC0415
+
+    import uvicorn  # noqa: PLC0415
+    from uvicorn.config import LOGGING_CONFIG  # noqa: PLC0415
+
+    from antireplay.http.gateway import create_app  # noqa: PLC0415
+
+    if (ssl_certfile is None) != (ssl_keyfile is None):
+        raise click.UsageError("give --ssl-certfile and --ssl-keyfile together")
+    config = _load_config(config_path, state_dir)
+    preflight(config)
+    try:
+        app = create_app(config)
+    except ConfigError as exc:
+        _fail(str(exc))
+    except sqlite3.DatabaseError as exc:
+        _fail(f"{config.audit} or {config.store}: {exc}")
+    log_config: dict[str, Any] = json.loads(json.dumps(LOGGING_CONFIG))  # a deep copy
+    log_config["loggers"]["uvicorn.error"]["level"] = "WARNING"
+    settings = uvicorn.Config(
+        app,
+        log_config=log_config,
+        access_log=access_log,
+        timeout_graceful_shutdown=10,
+        ssl_certfile=None if ssl_certfile is None else str(ssl_certfile),
+        ssl_keyfile=None if ssl_keyfile is None else str(ssl_keyfile),
+    )
+    if ssl_certfile is not None:
+        try:  # a bad certificate or key fails here, as one line naming both, before listening
+            settings.load()
+        except (OSError, ValueError) as exc:
+            _fail(
+                f"--ssl-certfile {ssl_certfile} / --ssl-keyfile {ssl_keyfile}: not a PEM "
+                f"certificate (chain) and its unencrypted PEM private key ({exc})"
+            )
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.create_server((host, port), family=family)  # a busy port: one line (OSError)
+    bound = sock.getsockname()[1]
+    scheme = "https" if ssl_certfile is not None else "http"
+    where = f"[{host}]" if family == socket.AF_INET6 else host
+    click.echo(
+        f"listening on {scheme}://{where}:{bound} "
+        f"(store {_without_secrets(config.store)}, audit {config.audit})"
+    )
+    uvicorn.Server(settings).run(sockets=[sock])
+
+
+def _without_secrets(spec: str) -> str:
+    """A store spec fit to print: the user and password of a URL are masked."""
+    scheme, sep, rest = spec.partition("://")
+    userinfo, at, location = rest.rpartition("@")
+    return f"{scheme}{sep}***@{location}" if sep and at and userinfo else spec
+
+
+def _table(results: list[StepResult], title: str) -> Table:
+    table = Table(title=title)
+    for column in ("step", "expected", "got", ""):
+        table.add_column(column)
+    for r in results:
+        table.add_row(r.step, r.expected, r.got, "[green]ok[/green]" if r.ok else "[red]MISMATCH")
+    return table
+
+
+@click.command()
+@click.option("--in-process", is_flag=True, help="Only the §8.3 window, no gateway process.")
+def demo(in_process: bool) -> None:
+    """Play operator and attacker; exit non-zero if any answer differs."""
+    if in_process:
+        results = run_window_demo()
+        console.print(_table(results, "antireplay demo: RCAN §8.3 window (in process)"))
+        chain_ok = True
+    else:
+        with console.status("starting a gateway on a free loopback port…"):
+            results, report = run_gateway_demo()
+        console.print(_table(results, "antireplay demo: gateway on loopback, SQLite state"))
+        chain_ok = report.ok
+        verdict = "[green]intact[/green]" if report.ok else f"[red]broken at {report.broken_at}"
+        console.print(f"audit chain: {report.records} records, {verdict}")
+    failed = [r for r in results if not r.ok]
+    if failed or not chain_ok:
+        console.print(f"[red]{len(failed)} step(s) differ[/red]")
+        sys.exit(1)
+    console.print(f"[green]all {len(results)} steps behaved as expected[/green]")
+
+
+@click.group()
+def config() -> None:
+    """Configuration tools."""
+
+
+@config.command("check")
+@click.argument("path", type=click.Path(path_type=Path))
+def config_check(path: Path) -> None:
+    """Validate a YAML config: everything ``serve`` checks (keys, store, audit, upstream)."""
+    try:
+        cfg = AppConfig.from_yaml(path)
+    except ConfigError as exc:
+        _fail(str(exc))
+    preflight(cfg)
+    console.print_json(data=cfg.model_dump())
+    if not cfg.keys:
+        click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
+                   "so every command will be refused", err=True)  # fmt: skip
+    click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
+
+
+@click.command()
+@click.argument("names", nargs=-1)
+def bench(names: tuple[str, ...]) -> None:
+    """Run the benchmarks (from a source checkout) and print their ratio tables."""
+    available = sorted(p.stem for p in Path("benchmarks").glob("bench_*.py"))
+    if not available:
+        _fail("no benchmarks/ here: run `antireplay bench` from a source checkout")
+    unknown = [n for n in names if n not in available and f"bench_{n}" not in available]
+    if unknown:
+        _fail(f"unknown benchmark {', '.join(unknown)}; available: {', '.join(available)}")
+    chosen = [n for n in available if not names or n in names or n.removeprefix("bench_") in names]
+    outputs = []
+    with Progress(console=console) as progress:
+        task = progress.add_task("benchmarks", total=len(chosen))
+        for name in chosen:
+            progress.update(task, description=name)
+            run = subprocess.run(
+                [sys.executable, "-m", f"benchmarks.{name}"],
+                capture_output=True,
+                text=True,
+                check=False,
+            )
+            outputs.append((name, run.returncode, run.stdout + run.stderr[-2000:]))
+            progress.advance(task)
+    for name, code, text in outputs:
+        console.rule(f"{name} {'' if code == 0 else f'(exit {code})'}")
+        console.print(text, markup=False, highlight=False)
+    if any(code for _, code, _ in outputs):
+        sys.exit(1)

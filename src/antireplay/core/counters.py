@@ -1,0 +1,436 @@
+"""Counter-based freshness: the sender source, sliding windows, fenced high-water tables.
+
+Theory of operation
+-------------------
+A counter needs no clock synchronisation: the sender numbers its frames and the
+receiver accepts each number at most once.  Four small types, one job each;
+every receiver policy in antireplay is built from them:
+
+* :class:`NonceCounter` (sender): **the one sender source**: session counters
+  and sequences, epochs (:mod:`antireplay.epochs`) and MAVLink signing
+  timestamps (:class:`antireplay.mavlink.codec.TimestampSource` is a
+  ``NonceCounter`` anchored to MAVLink time).  ``next()`` hands out
+  unique, strictly increasing values under any number of threads and **never
+  wraps**: at ``limit`` (default ``2**64 - 2**13 - 1``,
+  which leaves room for a window of 8,128 below ``2**64``) it raises
+  :class:`~antireplay.core.errors.NonceExhaustedError`.  With an ``anchor`` (a
+  function returning the current wall time in the value's unit) each value is
+  ``max(last + 1, anchor())``: tied to real time, so a verifier that never
+  heard of the sender can still bound its age, and a wall-clock step
+  backwards never makes it repeat (``last + 1`` wins).  Given a :class:`Ceiling`
+  (:meth:`NonceCounter.on_ceiling`) it survives restarts and ``kill -9``: it has
+  the ceiling durably reserve ``lease`` values ahead before handing out any of
+  them, so after a crash it resumes above everything it could have handed out.
+  The ceilings that touch state (a locked state file, a replay store's
+  ``advance``) and :func:`~antireplay.state.ceilings.persistent_counter` live in
+  :mod:`antireplay.state.ceilings`; a ceiling has **one owner**.
+* :class:`CounterWindow` (receiver, lossy/reordering links): the RFC 6479
+  sliding bitmap, as WireGuard implements it.  A counter ``c`` is accepted
+  once iff ``0 <= c < limit`` and ``last - c <= size``.  The bitmap is a ring
+  of 64-bit words indexed by ``c >> 6``; moving forward clears only the words
+  skipped over, so each packet costs O(1) with no shifting.  Counter 0 is
+  valid on a fresh window.
+* :class:`NonceTracker` (receiver, in-order links): accepts ``c`` iff it is
+  strictly above the last accepted value, a compare-and-swap under a lock, so
+  of racers exactly one wins.  An equal value is ``COUNTER_REPLAYED``, a lower
+  one ``COUNTER_TOO_OLD`` (a window of width zero).
+* :class:`FencedTable` (receiver, many streams): a bounded table of per-key
+  high-water marks (a MAVLink stream's last timestamp, an epoch prefix's last
+  epoch, a session's sequence) whose evictions raise a **fence**.  A key the
+  table does not hold is admitted only above the fence, so forgetting a key
+  never re-opens a replay under it.  When the table is full, a newcomer is
+  admitted only above the **lowest** mark too: then, and only then, the key
+  with the lowest mark is evicted and the fence rises to that mark.  So a
+  refused newcomer evicts nothing (it cannot push out a live key, nor raise
+  the fence), and the fence never rises above an admitted key.  A newcomer
+  refused either way gets ``MESSAGE_STALE`` with ``detail="fence"``, the one
+  code of that event everywhere; a sender that is refused there starts a new
+  stream (a new prefix) or waits until its wall-anchored values pass the
+  fence.  Per-key order (strictly above the mark, or within a window) stays
+  with the policy that owns the table.
+
+Which receiver: where the link delivers in order (a serial link, one TCP
+stream, a single-threaded executor), :class:`NonceTracker`: the strictest
+rule, one integer of state, and any gap or regression is visible.  Where it
+may reorder or drop (UDP, radio with retries), :class:`CounterWindow`: a
+strict receiver there would refuse every frame overtaken by a later one.
+
+Two phases, one vocabulary (every receiver in antireplay):
+``check`` raises the typed reason a value would be refused and **records
+nothing**; ``commit`` records it and is run only after the tag or signature
+verified, so a forged far-future counter cannot move anything (no jamming
+without the key).  ``commit`` re-checks, so of two racers exactly one wins; the
+loser gets the same typed error ``check`` would give.  ``open`` (sessions,
+epochs, the pipeline's ``receive``) is the recipe: check, authenticate, commit;
+``NonceTracker.accept`` is both phases at once, for a value already authenticated.
+
+Locking: :class:`NonceCounter`, :class:`CounterWindow` and :class:`NonceTracker`
+lock themselves; a :class:`FencedTable` does not (its owner serializes its
+commits, as WireGuard's replay filter does): every owner holds a lock around ``commit``,
+which re-checks the key under it, while ``check`` may read without the lock
+(whatever it read, ``commit`` judges again).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Hashable
+from typing import Generic, Protocol, TypeVar
+
+from antireplay.core.errors import (
+    CounterExhaustedError,
+    CounterReplayedError,
+    CounterTooOldError,
+    InvalidCounterError,
+    MessageStaleError,
+    NonceExhaustedError,
+    ReplayAttackError,
+)
+
+#: Sender limit: below 2**64 with room for a full window (WireGuard uses 2**64 - 2**4 - 1).
+COUNTER_LIMIT = 2**64 - 2**13 - 1
+WORD_BITS = 64
+RING_WORDS = 128
+#: The RFC 6479 window that a 128-word ring supports: one word is always being recycled.
+DEFAULT_WINDOW = (RING_WORDS - 1) * WORD_BITS  # 8128
+#: The ``detail`` of a key refused at a table's eviction fence.
+FENCE = "fence"
+
+
+class Ceiling(Protocol):
+    """Where a :class:`NonceCounter` persists the ceiling it reserves ahead of its values."""
+
+    def claim(self, value: int, span: int) -> int:
+        """Durably reserve ``[v, v + span)`` for some ``v >= value`` before ``v`` is handed
+        out, and return ``v`` (above ``value`` when a co-owner already reserved past it)."""
+        ...
+
+    def release(self) -> None:
+        """Give up ownership (a file lock); a later owner resumes above the ceiling."""
+        ...
+
+
+class NonceCounter:
+    """The sender source: unique, strictly increasing, never wraps; optionally
+    wall-anchored and persisted (see the module docstring)."""
+
+    def __init__(
+        self,
+        start: int = 1,
+        *,
+        limit: int = COUNTER_LIMIT,
+        anchor: Callable[[], int] | None = None,
+    ) -> None:
+        if isinstance(start, bool) or not isinstance(start, int) or not 0 <= start < limit:
+            raise ValueError(f"start must be an int in [0, {limit}), got {start!r}")
+        self._next = start
+        self.limit = limit
+        self._anchor = anchor
+        self._lock = threading.Lock()
+        self._persist: Ceiling | None = None
+        self._ceiling = limit
+        self._lease = 0
+        #: Ceilings persisted so far (one per ``lease`` values): the write cost, observable.
+        self.reservations = 0
+
+    @classmethod
+    def from_time(cls, *, limit: int = COUNTER_LIMIT) -> NonceCounter:
+        """Seed from ``time.time_ns()``, so a restarted sender starts above its last run.
+
+        Only as good as the clock: use :meth:`persistent` where the clock may step back.
+        """
+        return cls(time.time_ns(), limit=limit)
+
+    @classmethod
+    def on_ceiling(
+        cls,
+        persist: Ceiling,
+        ceiling: int,
+        lease: int,
+        *,
+        limit: int = COUNTER_LIMIT,
+        anchor: Callable[[], int] | None = None,
+    ) -> NonceCounter:
+        """A counter resuming above ``ceiling`` that claims ``lease`` values ahead from
+        ``persist`` before handing out any value above what it claimed."""
+        if lease < 1:
+            persist.release()
+            raise ValueError("lease must be >= 1")
+        if ceiling + 1 >= limit:
+            persist.release()
+            raise NonceExhaustedError(f"persisted counter at {ceiling} has reached its limit")
+        counter = cls(ceiling + 1, limit=limit, anchor=anchor)
+        counter.attach(persist, lease)
+        return counter
+
+    def attach(self, persist: Ceiling, lease: int) -> None:
+        """Persist from now on: claim ``lease`` values ahead from ``persist`` before handing
+        out any value above the last one claimed (nothing is claimed yet)."""
+        with self._lock:
+            self._persist, self._lease, self._ceiling = persist, lease, self._next - 1
+
+    def close(self) -> None:
+        """Give up the persisted ceiling (a state file's lock); a later owner resumes above it."""
+        if self._persist is not None:
+            self._persist.release()
+
+    @property
+    def peek(self) -> int:
+        """The least value the next call to :meth:`next` can return (the anchor may add)."""
+        return self._next
+
+    @property
+    def last(self) -> int:
+        """The last value handed out (``peek - 1``)."""
+        return self._next - 1
+
+    def next(self) -> int:
+        """Hand out the next value; raises :class:`NonceExhaustedError` at the limit."""
+        with self._lock:
+            value = self._next
+            if self._anchor is not None:
+                value = max(value, self._anchor())
+            if value >= self.limit:
+                raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
+            if self._persist is not None and value > self._ceiling:
+                value = self._reserve(value)
+            self._next = value + 1
+            return value
+
+    def restart(self, start: int = 1) -> None:
+        """Start over at ``start`` for a **new binding** (the owner changed what the values
+        are bound to, e.g. an epoch signer's new prefix).  Values may repeat across
+        bindings, never within one; with a state file the next value is persisted first."""
+        with self._lock:
+            self._next = start
+            if self._persist is not None:
+                self._ceiling = start - 1
+
+    def _reserve(self, value: int) -> int:
+        """Persist a new ceiling *before* handing out any value under it; the value to hand
+        out (a co-owner of a store's key may already have reserved past ``value``)."""
+        assert self._persist is not None
+        value = self._persist.claim(value, min(self._lease, self.limit - value))
+        self.reservations += 1
+        if value >= self.limit:
+            raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
+        self._ceiling = min(value + self._lease - 1, self.limit - 1)
+        return value
+
+
+class CounterWindow:
+    """RFC 6479 sliding anti-replay window (WireGuard's layout, 128 words of 64 bits)."""
+
+    __slots__ = ("_last", "_lock", "_ring", "limit", "size")
+
+    def __init__(self, size: int = DEFAULT_WINDOW, limit: int = COUNTER_LIMIT) -> None:
+        if not 0 < size <= DEFAULT_WINDOW:
+            raise ValueError(f"size must be in 1..{DEFAULT_WINDOW}, got {size}")
+        self.size = size
+        self.limit = limit
+        self._last = 0
+        self._ring = [0] * RING_WORDS
+        self._lock = threading.Lock()
+
+    @property
+    def last(self) -> int:
+        """The highest counter committed so far (0 on a fresh window)."""
+        return self._last
+
+    def check(self, c: int) -> None:
+        """Raise the typed reason ``c`` would be refused; records nothing."""
+        if c < 0:
+            raise InvalidCounterError(f"counter {c} is negative")
+        if c >= self.limit:
+            raise CounterExhaustedError(f"counter {c} at or above the limit {self.limit}; rekey")
+        if c > self._last:
+            return
+        if self._last - c > self.size:
+            raise CounterTooOldError(f"counter {c} is behind the window ending at {self._last}")
+        if self._ring[(c >> 6) % RING_WORDS] >> (c & 63) & 1:
+            raise CounterReplayedError(f"counter {c} already accepted")
+
+    def commit(self, c: int) -> None:
+        """Record ``c`` (after authentication); a racing duplicate gets the error ``check``
+        would now give."""
+        if not self._record(c):
+            self.check(c)
+            raise CounterReplayedError(f"counter {c} already accepted")
+
+    def _record(self, c: int) -> bool:
+        """Set ``c``'s bit under the lock; True iff it was fresh and in range."""
+        if not 0 <= c < self.limit:
+            return False
+        with self._lock:
+            ring, last = self._ring, self._last
+            word = c >> 6
+            if c > last:
+                current = last >> 6
+                for i in range(current + 1, current + min(word - current, RING_WORDS) + 1):
+                    ring[i % RING_WORDS] = 0
+                self._last = c
+            elif last - c > self.size:
+                return False
+            index, bit = word % RING_WORDS, 1 << (c & 63)
+            old = ring[index]
+            ring[index] = old | bit
+            return not old & bit
+
+
+class NonceTracker:
+    """The strict receiver for in-order links: a value is accepted only if strictly above
+    the last one accepted (a :class:`CounterWindow` of width zero).  Locked: of racers on
+    one value exactly one wins."""
+
+    __slots__ = ("_last", "_lock", "limit")
+
+    def __init__(self, last: int = 0, limit: int = COUNTER_LIMIT) -> None:
+        if isinstance(last, bool) or not isinstance(last, int) or not 0 <= last < limit:
+            raise ValueError(f"last must be an int in [0, {limit}), got {last!r}")
+        self._last = last
+        self.limit = limit
+        self._lock = threading.Lock()
+
+    @property
+    def last(self) -> int:
+        """The last value accepted (``last`` as constructed when none was)."""
+        return self._last
+
+    def last_accepted(self) -> int:
+        """:attr:`last` under the name CleitonQ's receiver gives it."""
+        return self._last
+
+    def check(self, c: int) -> None:
+        """Raise the typed reason ``c`` would be refused; records nothing."""
+        refusal = self._refusal(c)
+        if refusal is not None:
+            raise refusal
+
+    def commit(self, c: int) -> None:
+        """Record ``c`` (after authentication): compare and swap under the lock, so a racer
+        on the same value gets the error ``check`` would now give."""
+        with self._lock:
+            self.check(c)
+            self._last = c
+
+    def accept(self, c: int) -> bool:
+        """``check`` and ``commit`` in one atomic step, for a value already authenticated:
+        True iff ``c`` was recorded."""
+        with self._lock:
+            if self._refusal(c) is not None:
+                return False
+            self._last = c
+            return True
+
+    def _refusal(self, c: int) -> ReplayAttackError | None:
+        if isinstance(c, bool) or not isinstance(c, int) or c < 0:
+            return InvalidCounterError(f"counter {c!r} is not a non-negative integer")
+        if c >= self.limit:
+            return CounterExhaustedError(f"counter {c} at or above the limit {self.limit}; rekey")
+        if c == self._last:
+            return CounterReplayedError(f"counter {c} is not above the last accepted ({c})")
+        if c < self._last:
+            return CounterTooOldError(f"counter {c} is below the last accepted ({self._last})")
+        return None
+
+
+K = TypeVar("K", bound=Hashable)
+E = TypeVar("E")
+
+
+class FencedTable(Generic[K, E]):
+    """A bounded table of per-key high-water marks (each with an owner's entry) whose
+    evictions raise a fence; see the module docstring.  Not locked: the owner serializes."""
+
+    __slots__ = ("_entries", "_fence", "_marks", "evictions", "max_keys", "what")
+
+    def __init__(self, max_keys: int, *, fence: int = -1, what: str = "stream") -> None:
+        if isinstance(max_keys, bool) or not isinstance(max_keys, int) or max_keys < 1:
+            raise ValueError("max_keys must be a positive integer")
+        self.max_keys = max_keys
+        self.what = what
+        self._marks: dict[K, int] = {}
+        self._entries: dict[K, E] = {}
+        self._fence = fence
+        self.evictions = 0
+
+    @property
+    def fence(self) -> int:
+        """Keys the table does not hold are admitted only with a value above this."""
+        return self._fence
+
+    def raise_fence(self, value: int) -> None:
+        """Raise the fence (restored from persisted state, or a store's loss fence)."""
+        self._fence = max(self._fence, value)
+
+    def __len__(self) -> int:
+        return len(self._marks)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._marks
+
+    def mark(self, key: K) -> int | None:
+        """The key's high-water mark, or None if the table does not hold it."""
+        return self._marks.get(key)
+
+    def get(self, key: K) -> E | None:
+        """The owner's entry for ``key``, or None."""
+        return self._entries.get(key)
+
+    def check(self, key: K, value: int) -> E | None:
+        """Records nothing.  The key's entry; for a key the table does not hold, None, and
+        ``value`` must be above the fence (else ``MESSAGE_STALE``, ``detail="fence"``).
+        The full-table test against the lowest mark is :meth:`commit`'s alone: it scans
+        the table, which only an authenticated newcomer may cost (and ``check`` may run
+        without the owner's lock, while a commit changes the table)."""
+        entry = self._entries.get(key)
+        if entry is None and value <= self._fence:
+            self._refuse(value, self._fence, "the eviction fence")
+        return entry
+
+    def admit(self, key: K, value: int) -> K | None:
+        """Records nothing.  Refuses what :meth:`commit` would refuse; else the key a
+        commit of ``(key, value)`` would evict (its mark becomes the fence), or None.
+        An owner that persists the fence calls this first, then commits once it is
+        durable."""
+        if key in self._entries:
+            return None
+        if value <= self._fence:
+            self._refuse(value, self._fence, "the eviction fence")
+        if len(self._marks) < self.max_keys:
+            return None
+        marks = self._marks
+        lowest = min(marks, key=marks.__getitem__)
+        if value <= marks[lowest]:
+            self._refuse(value, marks[lowest], "the lowest mark of a full table")
+        return lowest
+
+    def commit(self, key: K, value: int, new: Callable[[], E]) -> E:
+        """Raise ``key``'s mark to ``value`` (never lowers it).  A key the table does not
+        hold is admitted with entry ``new()`` only above the fence and, when the table is
+        full, above the lowest mark; only then is that lowest key evicted and the fence
+        raised to its mark.  A refused newcomer changes nothing."""
+        entry = self._entries.get(key)
+        if entry is None:
+            lowest = self.admit(key, value)
+            if lowest is not None:
+                self._fence = max(self._fence, self._marks.pop(lowest))
+                del self._entries[lowest]
+                self.evictions += 1
+            entry = self._entries[key] = new()
+            self._marks[key] = value
+        elif value > self._marks[key]:
+            self._marks[key] = value
+        return entry
+
+    def discard(self, key: K) -> E | None:
+        """Drop ``key`` *without* raising the fence: only for keys whose values can never
+        verify again (a session whose keys are dropped with it)."""
+        self._marks.pop(key, None)
+        return self._entries.pop(key, None)
+
+    def _refuse(self, value: int, floor: int, what: str) -> None:
+        raise MessageStaleError(
+            f"new {self.what} at {value}, at or below {what} ({floor})", detail=FENCE
+        )

@@ -1,0 +1,90 @@
+"""The RCAN ``security:`` block (§8.3): validated, never clamped.
+
+A misconfigured replay window is a security bug, so a value out of range is an
+error that names the key, the value and the allowed range
+(:class:`~antireplay.core.errors.ConfigError`), never a silent clamp (the RCAN SDK
+clamps ``replay_window_s=1000`` to 300 without a word).  Unknown keys are errors
+too, so a typo such as ``replay_windows_s`` cannot leave the default in force
+unnoticed.  pydantic does the type work; this module only turns its errors into
+ours.  The window policy reads these settings, so they live in the core; the
+whole application file (:mod:`antireplay.config`) builds on them.
+
+``nack_type`` is 18 (COMMAND_NACK in the current canonical RCAN numbering) or
+31, the number §8.3's text uses, which dates from RCAN v1.5/v1.6; set 31 only
+for peers that still speak that numbering.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from antireplay.core.errors import ConfigError
+
+#: Allowed range of each key, in words, for error messages and the docs.
+ALLOWED: dict[str, str] = {
+    "replay_window_s": "a number of seconds from 5 to 300",
+    "safety_window_s": "a number of seconds from 1 to 10",
+    "msg_id_cache_size": "an integer from 1 to 100000000",
+    "skew_s": "a number of seconds from 0 to 60",
+    "nack_type": "18 (current RCAN numbering) or 31 (RCAN v1.5/v1.6)",
+}
+
+
+class SecurityConfig(BaseModel):
+    """The §8.3 settings; every field is range-checked and strictly typed."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    replay_window_s: float = Field(default=30.0, ge=5, le=300)
+    safety_window_s: float = Field(default=10.0, ge=1, le=10)
+    msg_id_cache_size: int = Field(default=10_000, ge=1, le=100_000_000)
+    skew_s: float = Field(default=5.0, ge=0, le=60)
+    nack_type: Literal[18, 31] = 18
+
+    @classmethod
+    def from_mapping(cls, data: Any, *, section: str = "security") -> SecurityConfig:
+        """Validate a mapping, raising :class:`ConfigError` on the first bad key."""
+        if data is None:
+            data = {}
+        if not isinstance(data, dict):
+            raise ConfigError(section, data, "a mapping of settings")
+        for key, value in data.items():
+            if isinstance(value, bool):
+                raise ConfigError(f"{section}.{key}", value, ALLOWED.get(str(key), "no booleans"))
+        try:
+            return cls.model_validate(_widen_ints(data))
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            key = ".".join(str(p) for p in err["loc"]) or section
+            allowed = ALLOWED.get(key, "only " + ", ".join(sorted(cls.model_fields)))
+            raise ConfigError(f"{section}.{key}", err.get("input"), allowed) from None
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> SecurityConfig:
+        """Read the ``security:`` block of a YAML file."""
+        return cls.from_mapping(load_yaml(path).get("security"))
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """A YAML file's top-level mapping, or ConfigError."""
+    try:
+        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ConfigError("file", str(path), f"a readable YAML file ({exc.strerror})") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError("file", str(path), f"valid YAML ({exc})") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise ConfigError("file", str(path), "a YAML mapping at the top level")
+    return doc
+
+
+def _widen_ints(data: dict[Any, Any]) -> dict[Any, Any]:
+    """Strict mode refuses ``30`` for a float field; YAML users write ints for seconds."""
+    float_keys = {"replay_window_s", "safety_window_s", "skew_s"}
+    return {k: float(v) if k in float_keys and type(v) is int else v for k, v in data.items()}

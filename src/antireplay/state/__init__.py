@@ -1,0 +1,113 @@
+"""Replay state stores: one contract that carries the safety, three backends that keep it.
+
+Theory of operation
+-------------------
+The policies (:mod:`antireplay.core.window`, the MAVLink guard) decide; a store keeps
+their state and offers the few **atomic** operations they need, so that several
+threads, processes or gateway replicas sharing one store accept each message
+exactly once.  The contract (:class:`ReplayStore`) is also where the replay
+guarantees live, so every backend keeps them, and the product runs the same
+code the tests and benchmarks exercise:
+
+* ``lookup(key) -> Seen``: records nothing (the pipeline's pre-crypto check).
+* ``commit(key, expires_at, now, force) -> Seen``: atomically record ``key``
+  unless it has a live entry (``expiry >= now``); ``force`` (a fresh ESTOP)
+  extends a live entry instead.  Two racers for one key: exactly one gets
+  ``recorded``.  Data-loss detection runs *in the same atomic operation*.
+* ``advance(key, value) -> bool`` / ``current(key)``: compare-and-advance for
+  high-water counters (MAVLink stream state), with the same loss detection.
+* ``verify() -> Seen``: run the loss detection now (start-up; a MAVLink guard
+  taking its lease), returning the fence and watermark.
+* ``status()``: figures for ``/metrics`` (entries, watermark, fence,
+  evictions, data-loss events).
+* ``ready()``: raise ``STATE_UNAVAILABLE`` unless a commit could go through
+  now (``/readyz``); records nothing, so it never notices a loss in place of
+  the commit that fences and audits it.
+
+Every :class:`~antireplay.core.window.Seen` carries the store's **watermark** and
+**fence** as of that operation:
+
+* **An entry lives until its own expiry.**  Anything removed earlier on any
+  clock (saturation, a purge after a clock step) raises the watermark to its
+  expiry, persisted and shared with the entries.
+* **Possible data loss raises the fence** to the moment it was noticed, in the
+  shared state, so every replica applies it, not just the first to notice:
+  a new process (memory), a deleted, truncated, replaced or rolled-back file
+  (SQLite), a Redis that restarted, failed over, was flushed or restored from
+  older data (Redis, checked atomically with every commit).
+
+Backends: :class:`~antireplay.state.memory.MemoryStore` (one process, bounded
+by ``msg_id_cache_size``), :class:`~antireplay.state.sqlite.SqliteStore` (one
+machine, survives ``kill -9`` and reboots), :class:`~antireplay.state.redis.RedisStore`
+(many replicas, standalone Redis or Redis Cluster; fails closed with
+``STATE_UNAVAILABLE`` when Redis is down).  Select one with :func:`open_store`:
+``memory``, ``sqlite:PATH``, ``redis://HOST:PORT/DB`` or
+``redis+cluster://HOST:PORT``.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+from antireplay.core.clock import Clock
+from antireplay.core.errors import ConfigError
+from antireplay.core.window import Seen
+
+
+@runtime_checkable
+class ReplayStore(Protocol):
+    """Atomic replay state; see the module docstring for the contract."""
+
+    @property
+    def backend(self) -> str:
+        """``memory``, ``sqlite``, ``redis`` or ``redis-cluster`` (a metrics label)."""
+
+    def lookup(self, key: str) -> Seen: ...
+
+    def fence(self) -> float:
+        """The fence as last known to this process (no I/O)."""
+
+    def watermark(self) -> float:
+        """The watermark as last known to this process (no I/O)."""
+
+    def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen: ...
+
+    def verify(self) -> Seen:
+        """Run this backend's loss detection now; the fence and watermark it finds."""
+
+    def advance(self, key: str, value: int) -> bool: ...
+
+    def current(self, key: str) -> int | None: ...
+
+    def status(self) -> dict[str, float]: ...
+
+    def ready(self) -> None:
+        """Raise ``StateUnavailableError`` unless a commit could go through now; records nothing."""
+
+    def close(self) -> None: ...
+
+
+#: The store specs open_store understands, in words (for errors and the docs).
+STORE_SPECS = "memory, sqlite:PATH, redis://HOST:PORT/DB or redis+cluster://HOST:PORT"
+
+
+def open_store(
+    spec: str, *, clock: Clock | None = None, max_entries: int = 10_000, skew_s: float = 5.0
+) -> ReplayStore:
+    """Build a store from its spec; ``max_entries`` bounds the memory backend."""
+    if spec == "memory":
+        from antireplay.state.memory import MemoryStore  # noqa: PLC0415 - optional backends
+
+        return MemoryStore(max_entries=max_entries, clock=clock)
+    if spec.startswith("sqlite:") and len(spec) > len("sqlite:"):
+        from antireplay.state.sqlite import SqliteStore  # noqa: PLC0415
+
+        return SqliteStore(spec[len("sqlite:") :], clock=clock)
+    if spec.startswith(("redis://", "rediss://", "unix://", "redis+cluster://")):
+        from antireplay.state.redis import RedisStore  # noqa: PLC0415
+
+        return RedisStore(spec, clock=clock, skew_s=skew_s)
+    raise ConfigError("store", spec, STORE_SPECS)
+
+
+__all__ = ["STORE_SPECS", "ReplayStore", "Seen", "open_store"]

@@ -1,0 +1,205 @@
+"""MemoryStore: the seen-set in process memory, bounded, with a watermark and a restart fence.
+
+Theory of operation
+-------------------
+One process, the default for a store-less embed and the fastest backend.  It
+keeps the store contract (:mod:`antireplay.state`) with a bounded table:
+
+* **Entries live to their own expiry.**  Entries are grouped by expiry into
+  0.1 s slots (a timing wheel: O(1) insert and purge, no heap sifting); each
+  commit purges at most ``PURGE_BATCH`` entries from slots that ended before
+  ``now``, so the work per call is bounded.
+* **Forgetting raises the watermark.**  Every removal, whatever the reason
+  (expiry purge, a purge run while the wall clock had stepped forward,
+  saturation), raises the watermark to the removed entry's expiry; the window
+  refuses any message expiring at or below it.  So a clock step forward and
+  back never re-opens a replay, and in normal operation (removal after expiry)
+  the watermark stays below ``now`` and refuses nothing the freshness test
+  would accept.
+* **Bounded by** ``max_entries`` (``msg_id_cache_size``).  A full table evicts
+  from the soonest slot (raising the watermark) only for a newcomer that
+  outlives that whole slot; otherwise the commit answers ``full`` and the
+  window refuses the newcomer (fail closed).  A forced commit (a fresh ESTOP)
+  always records.
+* **Restart fence.**  A new process has forgotten everything the previous one
+  accepted, so the fence is the wall time at construction: the window refuses
+  anything stamped at or before ``fence + skew``, which covers every message
+  the previous process could have accepted.  The first start is treated the
+  same way (nobody can tell a first start from a restart).
+
+A lock makes ``commit`` and ``advance`` atomic across threads; it is never held
+across I/O (there is none).  Like the window, this module is compiled with
+mypyc in a normal install, hence its style (``Final`` constants, typed
+attributes, dicts of ``None`` that the garbage collector does not track).
+"""
+
+from __future__ import annotations
+
+import heapq
+import threading
+from collections.abc import Callable
+from typing import Final
+
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.window import NEVER, Seen
+
+#: At most this many expired entries are purged per commit: bounded work, no latency spikes.
+PURGE_BATCH: Final = 64
+#: Entries are grouped by expiry into slots of 1/SLOTS_PER_SECOND s (a timing wheel).
+SLOTS_PER_SECOND: Final = 10
+#: A horizon above every slot key: "forget from the soonest slot, whatever it is".
+ANY_SLOT: Final = 1 << 60
+
+
+class MemoryStore:
+    """The store contract in process memory (see the module docstring)."""
+
+    backend: Final = "memory"
+
+    def __init__(
+        self, *, max_entries: int = 10_000, clock: Clock | None = None, restart_fence: bool = True
+    ) -> None:
+        if isinstance(max_entries, bool) or not isinstance(max_entries, int) or max_entries < 1:
+            raise ValueError("max_entries must be a positive integer")
+        self.max_entries: Final = max_entries
+        self._fence: float = resolve(clock).wall() if restart_fence else NEVER
+        self._watermark: float = NEVER
+        self._expiry: dict[str, float] = {}  # msg_id -> expiry of its entry
+        # slot key -> {msg_id: None}.  Dicts of str and None hold no containers, so the
+        # garbage collector never tracks them: a full collection does not walk the entries.
+        self._slots: dict[int, dict[str, None]] = {}
+        self._slot_keys: list[int] = []  # min-heap of the keys of _slots
+        self._tail_key = -1  # the slot that took the last insert (most inserts hit it again)
+        self._tail: dict[str, None] = {}
+        self._head_key = -1  # the soonest slot, as last looked up by _forget
+        self._head: dict[str, None] = {}
+        self._counters: dict[str, int] = {}
+        lock = threading.Lock()
+        self._acquire: Callable[[], object] = lock.acquire
+        self._release: Callable[[], object] = lock.release
+        self.evictions = 0
+        self.data_loss_events = 0
+
+    def __len__(self) -> int:
+        return len(self._expiry)
+
+    def fence(self) -> float:
+        return self._fence
+
+    def watermark(self) -> float:
+        return self._watermark
+
+    def verify(self) -> Seen:
+        """Nothing to detect in process memory: the fence is the start."""
+        return Seen(NEVER, self._watermark, self._fence)
+
+    def lookup(self, key: str) -> Seen:
+        expiry = self._expiry.get(key)
+        return Seen(NEVER if expiry is None else expiry, self._watermark, self._fence)
+
+    def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
+        """Record ``key`` unless it has a live entry; a forced commit extends a live one."""
+        self._acquire()
+        try:
+            keys = self._slot_keys
+            if keys and keys[0] < now * SLOTS_PER_SECOND - 1:
+                self._forget(int(now * SLOTS_PER_SECOND), PURGE_BATCH)
+            seen = self._expiry.get(key)
+            if seen is not None and seen >= now:
+                if force and seen < expires_at:
+                    self._file(key, expires_at)
+                return Seen(seen, self._watermark, self._fence)
+            slot = int(expires_at * SLOTS_PER_SECOND)
+            watermark = self._watermark  # this commit's own eviction does not apply to itself
+            if seen is None and len(self._expiry) >= self.max_entries:
+                # Evicting helps only if the newcomer outlives the whole soonest slot.
+                if not force and slot <= keys[0]:
+                    return Seen(NEVER, self._watermark, self._fence, False, True)
+                self._forget(ANY_SLOT, 1)
+                self.evictions += 1
+            self._file(key, expires_at)
+            return Seen(NEVER if seen is None else seen, watermark, self._fence, True)
+        finally:
+            self._release()
+
+    def purge(self, now: float) -> int:
+        """Forget every entry expired at ``now``; returns how many were removed."""
+        self._acquire()
+        try:
+            return self._forget(int(now * SLOTS_PER_SECOND), len(self._expiry) + 1)
+        finally:
+            self._release()
+
+    def _file(self, key: str, expires: float) -> None:
+        """File the entry under its expiry slot (an entry moved later leaves its old filing)."""
+        slot_key = int(expires * SLOTS_PER_SECOND)
+        if slot_key == self._tail_key:
+            self._tail[key] = None
+        else:
+            slot = self._slots.get(slot_key)
+            if slot is None:
+                slot = self._slots[slot_key] = {}
+                heapq.heappush(self._slot_keys, slot_key)
+            slot[key] = None
+            self._tail_key, self._tail = slot_key, slot
+        self._expiry[key] = expires
+
+    def _forget(self, horizon: int, limit: int) -> int:
+        """Forget up to ``limit`` live entries, soonest slot first, from slots below ``horizon``.
+
+        The one way entries leave the table: every forgotten expiry raises the
+        watermark, and empty slots are dropped at once, so ``_slot_keys[0]`` always
+        names a non-empty slot.
+        """
+        table, slots, keys, removed = self._expiry, self._slots, self._slot_keys, 0
+        while keys and keys[0] < horizon and removed < limit:
+            key = keys[0]
+            if key != self._head_key:
+                self._head_key, self._head = key, slots[key]
+            slot = self._head
+            while slot and removed < limit:
+                mid = slot.popitem()[0]
+                expires = table.get(mid)
+                if expires is None or int(expires * SLOTS_PER_SECOND) != key:
+                    continue  # a filing left behind by an entry forgotten or moved later
+                del table[mid]
+                removed += 1
+                if expires > self._watermark:  # noqa: PLR1730 - max() is a slow generic call
+                    self._watermark = expires
+            if not slot:
+                del slots[heapq.heappop(keys)]
+                self._head_key = -1
+                if key == self._tail_key:
+                    self._tail_key = -1
+        return removed
+
+    def advance(self, key: str, value: int) -> bool:
+        """Set counter ``key`` to ``value`` iff it is above the current value (or none)."""
+        self._acquire()
+        try:
+            cur = self._counters.get(key)
+            if cur is not None and value <= cur:
+                return False
+            self._counters[key] = value
+            return True
+        finally:
+            self._release()
+
+    def current(self, key: str) -> int | None:
+        return self._counters.get(key)
+
+    def status(self) -> dict[str, float]:
+        """Figures for metrics: entries, watermark, fence, evictions, data-loss events."""
+        return {
+            "entries": float(len(self._expiry)),
+            "watermark": self._watermark,
+            "fence": self._fence,
+            "evictions": float(self.evictions),
+            "data_loss_events": float(self.data_loss_events),
+        }
+
+    def ready(self) -> None:
+        """Process memory always takes a commit (a full table refuses per message)."""
+
+    def close(self) -> None:
+        """Nothing to release."""

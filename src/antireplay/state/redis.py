@@ -1,0 +1,303 @@
+"""RedisStore: replay state shared by every gateway replica, failing closed, noticing loss.
+
+Theory of operation
+-------------------
+* **One script per commit.**  ``commit`` is one Lua script (atomic on the
+  server): it checks the deployment's ``meta`` hash against the identity of
+  the server process running it, reads the entry, records or refuses, and
+  returns the entry with the shared fence and watermark.  Detection therefore
+  happens on the very next commit, atomically with it, whether or not the
+  client saw a dropped connection (redis-py retries hide restarts).
+* **Data loss is detected, whatever caused it.**  ``meta`` records the
+  ``run_id`` of the server process that holds our state.  A restart (from an
+  RDB snapshot older than our last write, or from nothing), a failover to a
+  replica that missed writes, or a restore all put our keys in the hands of
+  another server process; ``FLUSHALL``/``FLUSHDB`` remove ``meta`` itself.
+  Either way the script raises the **fence** in ``meta`` to
+  ``max(the caller's now, the server's time)`` and counts a data-loss event.
+  The fence lives in Redis, so every replica applies it on its next commit,
+  not just the first to notice.  A restart that lost nothing (AOF with
+  ``appendfsync always``) is fenced too: one cannot tell it from one that lost
+  something, and a fence only costs ``skew_s`` seconds of refusals.
+* **Eviction is refused, at start and on every operation.**  A
+  ``maxmemory-policy`` other than ``noeviction`` could silently drop our keys,
+  so :class:`RedisStore` refuses such a server at start (``ConfigError``) and
+  every script checks the policy again (``STATE_UNAVAILABLE`` if someone
+  changed it at run time); a full Redis then answers errors, which fail
+  closed.  ``advance`` (MAVLink stream state) runs the same checks.
+* **Entry lifetimes do not depend on one replica's clock.**  An entry's TTL is
+  ``expiry - min(caller's now, server time) + skew_s``: a replica whose clock
+  runs ahead cannot shorten it, nor can a server clock that runs ahead, so an
+  entry lives until at least ``expiry + skew_s`` on the server's clock.  Hence
+  the **watermark** the script returns is ``server time - skew_s``: every
+  entry expiring after it is still there.  For a replica whose clock agrees
+  with the server's within ``skew_s`` it refuses nothing the freshness test
+  would accept; for one whose wall clock stepped back further, it refuses the
+  messages whose entries Redis may already have dropped.  An entry that exists
+  but has expired on the caller's clock is replaced atomically.
+* **Redis Cluster**: ``redis+cluster://HOST:PORT`` uses redis-py's cluster
+  client.  Keys are ``<prefix>{<hash tag>}:…``: the hash tag puts a
+  deployment's keys in one slot, so the script never crosses slots and the
+  node that owns the slot (and its identity) answers for all of them.
+* Any connection error, timeout or server error raises ``STATE_UNAVAILABLE``
+  (HTTP 503): the window then refuses everything but a fresh ESTOP.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Callable
+from typing import Any, Final, TypeVar
+
+import redis
+import redis.cluster
+
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
+from antireplay.core.window import NEVER, Seen
+from antireplay.state import _codec
+
+T = TypeVar("T")
+log = logging.getLogger("antireplay.state.redis")
+
+#: "No fence / nothing forgotten" in Redis (Lua's tonumber does not read "-inf").
+_FLOOR: Final = "-1e18"
+
+_SCRIPT = """
+-- ARGV: 1 mode (commit | advance | verify), 2 now, 3 skew, 4 floor ("nothing yet"),
+--       5 expiry or counter value, 6 force.  KEYS: 1 meta, 2 the entry or counter.
+local info = redis.call('INFO', 'server', 'memory')
+local run = string.match(info, 'run_id:(%w+)')
+local policy = string.match(info, 'maxmemory_policy:([%w-]+)')
+if policy ~= 'noeviction' then return {-1, policy or '?', '', '', 0} end
+local t = redis.call('TIME')
+local server_now = tonumber(t[1]) + tonumber(t[2]) / 1000000
+local now = tonumber(ARGV[2])
+local meta = redis.call('HMGET', KEYS[1], 'run', 'fence', 'wm')
+local fence, wm, lost = meta[2] or ARGV[4], meta[3] or ARGV[4], 0
+if meta[1] ~= run then
+  local f = math.max(tonumber(fence), now, server_now)
+  fence = string.format('%.6f', f + 0.000001)
+  redis.call('HSET', KEYS[1], 'run', run, 'fence', fence, 'wm', wm)
+  redis.call('HINCRBY', KEYS[1], 'losses', 1)
+  lost = 1
+end
+-- A key lives until server time >= its expiry + skew (see the TTL below), so at server
+-- time S every entry expiring after S - skew is still here: that is our watermark.  It
+-- refuses nothing for a caller whose clock agrees with the server's within skew, and
+-- covers a caller whose wall clock stepped back further than that.
+local floor = server_now - tonumber(ARGV[3])
+if tonumber(wm) < floor then wm = string.format('%.6f', floor) end
+if ARGV[1] == 'verify' then return {0, false, fence, wm, lost} end
+local cur = redis.call('GET', KEYS[2])
+if ARGV[1] == 'advance' then
+  if cur and cur >= ARGV[5] then return {0, cur, fence, wm, lost} end
+  redis.call('SET', KEYS[2], ARGV[5])
+  return {1, cur or false, fence, wm, lost}
+end
+local expiry = tonumber(ARGV[5])
+local ttl = math.ceil((expiry - math.min(now, server_now) + tonumber(ARGV[3])) * 1000) + 1
+if ttl < 1 then ttl = 1 end
+if cur and tonumber(cur) >= now then
+  if ARGV[6] == '1' and expiry > tonumber(cur) then
+    redis.call('SET', KEYS[2], ARGV[5], 'PX', ttl)
+  end
+  return {0, cur, fence, wm, lost}
+end
+redis.call('SET', KEYS[2], ARGV[5], 'PX', ttl)
+return {1, cur or false, fence, wm, lost}
+"""
+
+Client = redis.Redis | redis.cluster.RedisCluster
+
+
+class RedisStore:
+    """The store contract on Redis or Redis Cluster (see the module docstring)."""
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        prefix: str = "antireplay:",
+        hash_tag: str = "antireplay",
+        timeout_s: float = 0.5,
+        max_connections: int = 64,
+        skew_s: float = 5.0,
+        clock: Clock | None = None,
+    ) -> None:
+        self.url = url
+        options: dict[str, Any] = {
+            "socket_timeout": timeout_s,
+            "socket_connect_timeout": timeout_s,
+            "max_connections": max_connections,
+        }
+        self._redis: Client
+        self.backend = "redis"
+        if url.startswith("redis+cluster://"):
+            self.backend = "redis-cluster"
+            self._redis = redis.cluster.RedisCluster.from_url(
+                "redis://" + url[len("redis+cluster://") :], **options
+            )
+        else:
+            self._redis = redis.Redis.from_url(url, **options)
+        self._base = f"{prefix}{{{hash_tag}}}:"
+        self._meta = f"{self._base}meta"
+        self._script = self._redis.register_script(_SCRIPT)
+        self._clock = resolve(clock)
+        self._skew = repr(float(skew_s))
+        self._fence = NEVER
+        self._watermark = NEVER
+        self.data_loss_events = 0
+        self.loss_reason: str | None = None
+        # Refuse to start on an evicting Redis; if it is down now, every script checks the
+        # policy again on the first call that reaches it.
+        with contextlib.suppress(redis.ConnectionError, redis.TimeoutError):
+            policy = self._evicting_policy()
+            if policy is not None:
+                raise ConfigError(
+                    "store", self.url, f"a Redis with maxmemory-policy noeviction ({policy})"
+                )
+
+    def fence(self) -> float:
+        return self._fence
+
+    def watermark(self) -> float:
+        return self._watermark
+
+    def msg_key(self, key: str) -> str:
+        return f"{self._base}m:{key}"
+
+    def lookup(self, key: str) -> Seen:
+        """A plain GET (records nothing); fence and watermark as of the last commit."""
+        entry = self.msg_key(key)
+        value = self._call(lambda: self._redis.get(entry))
+        expiry = NEVER if value is None else self._expiry(entry, value)
+        return Seen(expiry, self._watermark, self._fence)
+
+    def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
+        return self._run("commit", self.msg_key(key), now, repr(expires_at), force)
+
+    def verify(self) -> Seen:
+        """Run the loss and eviction checks alone (start-up, a guard taking its lease)."""
+        return self._run("verify", self._meta, self._clock.wall(), "", False)
+
+    def _run(
+        self,
+        mode: str,
+        key: str,
+        now: float,
+        value: str,
+        force: bool,
+        *,
+        counter: str | None = None,
+    ) -> Seen:
+        args = [mode, repr(now), self._skew, _FLOOR, value, "1" if force else "0"]
+        reply = self._call(lambda: self._script(keys=[self._meta, key], args=args))
+        if reply[0] == -1:
+            policy = reply[1].decode() if isinstance(reply[1], bytes) else str(reply[1])
+            raise StateUnavailableError(
+                f"redis {self.url}: {_evicting(policy)}; set it to noeviction"
+            )
+        return self._seen(reply, key, counter)
+
+    def _seen(self, reply: list[Any], entry: str, counter: str | None = None) -> Seen:
+        """The script's answer on ``entry``; ``counter`` names the key an ``advance`` ran on."""
+        recorded, cur, fence, watermark, lost = reply
+        self._fence = _floor(float(fence))
+        self._watermark = _floor(float(watermark))
+        if lost:
+            self.data_loss_events += 1
+            self.loss_reason = "redis lost or replaced our replay state"
+            log.warning(
+                "redis %s lost or replaced our replay state (restart, failover, flush or "
+                "restore); fence raised to %.6f",
+                self.url,
+                self._fence,
+            )
+        if counter is not None:
+            if cur is not None:
+                self._decode(counter, cur)  # refused: by a counter, never by garbage
+            return Seen(NEVER, self._watermark, self._fence, bool(recorded), False, bool(lost))
+        expiry = NEVER if cur is None else self._expiry(entry, cur)
+        return Seen(expiry, self._watermark, self._fence, bool(recorded), False, bool(lost))
+
+    def advance(self, key: str, value: int) -> bool:
+        """Compare-and-advance, with the same loss and eviction checks as a commit."""
+        seen = self._run(
+            "advance",
+            f"{self._base}c:{key}",
+            self._clock.wall(),
+            _codec.encode(value),
+            False,
+            counter=key,
+        )
+        return seen.recorded
+
+    def current(self, key: str) -> int | None:
+        value = self._call(lambda: self._redis.get(f"{self._base}c:{key}"))
+        return None if value is None else self._decode(key, value)
+
+    def _decode(self, key: str, value: bytes | str) -> int:
+        """A stored counter; one that does not decode names the key and the recovery (drop
+        it and the deployment's meta: the next operation raises the restart fence)."""
+        drop = f"redis-cli -u {self.url} DEL '{self._base}c:{key}' '{self._meta}'"
+        return _codec.decode(value, where=self.url, key=key, recovery=drop)
+
+    def _expiry(self, entry: str, value: bytes | str) -> float:
+        """A stored entry's expiry; an undecodable one is refused like an undecodable counter."""
+        try:
+            return float(value)
+        except ValueError:
+            raise StateFileError(
+                self.url,
+                f"replay entry {entry!r} holds {value!r}, not an expiry",
+                recovery=f"redis-cli -u {self.url} DEL '{entry}' '{self._meta}' (the next "
+                "operation raises the restart fence)",
+            ) from None
+
+    def status(self) -> dict[str, float]:
+        return {
+            "entries": float("nan"),  # not counted: a SCAN per scrape would cost O(n)
+            "watermark": self._watermark,
+            "fence": self._fence,
+            "evictions": 0.0,
+            "data_loss_events": float(self.data_loss_events),
+        }
+
+    def close(self) -> None:
+        self._redis.close()
+
+    def ready(self) -> None:
+        """A read of the deployment's meta and the eviction check every commit's script runs
+        (``maxmemory-policy`` changed at run time): what a commit needs, recording nothing."""
+        self._call(lambda: self._redis.exists(self._meta))
+        policy = self._call(self._evicting_policy)
+        if policy is not None:
+            raise StateUnavailableError(f"redis {self.url}: {policy}; set it to noeviction")
+
+    def _evicting_policy(self) -> str | None:
+        """Why a node may evict our keys (``maxmemory-policy`` other than noeviction), or None."""
+        info: Any = self._redis.info("memory")
+        nodes = info.values() if isinstance(self._redis, redis.cluster.RedisCluster) else [info]
+        for node in nodes:
+            policy = node.get("maxmemory_policy", "noeviction") if isinstance(node, dict) else None
+            if policy is not None and policy != "noeviction":
+                return _evicting(policy)
+        return None
+
+    def _call(self, op: Callable[[], T]) -> T:
+        try:
+            return op()
+        except (redis.ConnectionError, redis.TimeoutError) as exc:
+            raise StateUnavailableError(f"redis unreachable: {exc}") from None
+        except redis.RedisError as exc:
+            raise StateUnavailableError(f"redis error: {exc}") from None
+
+
+def _evicting(policy: str) -> str:
+    return f"maxmemory-policy {policy} can silently evict replay state"
+
+
+def _floor(value: float) -> float:
+    return NEVER if value <= -1e17 else value

@@ -1,0 +1,553 @@
+"""SqliteStore: replay state on one machine that survives kill -9 and reboots, and notices loss.
+
+Theory of operation
+-------------------
+WAL journal with ``synchronous=FULL``: a ``commit`` returns only after its
+transaction is durable, so a message accepted before a crash is still
+remembered after it.  Commits are **group-committed**
+(:mod:`antireplay.state.groupcommit`): concurrent callers' records share one
+transaction, one WAL fsync and one witness write, each caller answered once its
+own record is durable.  Several processes may share one file; SQLite's write
+lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
+
+* **Entries live to their own expiry; early removal raises the watermark.**
+  Each commit purges at most ``PURGE_BATCH`` rows whose expiry is below the
+  caller's ``now`` and raises the persisted watermark (table ``meta``) to the
+  largest expiry it removed, in the same transaction.  A purge that runs while
+  the wall clock has stepped forward therefore never re-opens a replay when
+  the clock steps back.
+* **A lost, truncated, replaced or rolled-back file is detected.**  Beside the
+  database lives a small **witness** file (``<db>.witness``): a deployment id
+  and a generation (plus the highest wall time of any commit), rewritten in
+  place and ``fdatasync``-ed inside every write transaction, before its COMMIT.
+  Its name is hidden (``.state.db.witness``) so that ``rm state.db*`` does not
+  take it along.  While running, a database whose generation falls below the
+  one this process last wrote was rolled back under it (a live restore): also
+  a fence.  The database's ``meta`` row carries the
+  same two values.  At open:
+
+  ==========================================  =====================================
+  what is found                               what it means / what happens
+  ==========================================  =====================================
+  neither database nor witness                a new deployment: created, no fence
+  witness, database missing or empty          deleted or truncated: **fence**
+  witness of another deployment               the file was replaced: **fence**
+  database generation below the witness's     rolled back (a restored copy): **fence**
+  database with state but no witness          witness lost (or made by an older
+                                              version): **fence**
+  a file that is not a readable database      refused at start (``StateFileError``
+                                              names the file and the recovery:
+                                              move it aside; the next start fences)
+  ==========================================  =====================================
+
+  A fence is the wall time at which the loss was noticed (no lower than the
+  witness's highest commit time, in case the clock stepped back), persisted in
+  ``meta``; the window refuses anything stamped at or before ``fence + skew``,
+  which covers every message the lost state could have held, and counts it
+  (``data_loss_events``).  A crash between the witness write and the COMMIT
+  leaves the witness one generation ahead: the next start fences (a false
+  alarm that fails closed, never a silent loss).
+
+Deleting the database *and* its witness is indistinguishable from a new
+deployment; that is the documented way to reset.  Corruption found while
+running answers ``STATE_UNAVAILABLE`` (503; a fresh ESTOP still passes) and
+names the file and the recovery; so does a database deleted or replaced while
+running (each write transaction first checks that the path still names the
+file it opened), until the restart that fences.  Readers open the existing file
+only (``mode=rw``): a lookup or a readiness probe never creates a new empty one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import logging
+import os
+import queue
+import sqlite3
+import struct
+import threading
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Final, TypeVar
+
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.errors import StateFileError, StateUnavailableError
+from antireplay.core.window import NEVER, Seen
+from antireplay.state import _codec
+from antireplay.state.durable import file_identity
+from antireplay.state.groupcommit import GroupCommitter
+
+T = TypeVar("T")
+log = logging.getLogger("antireplay.state.sqlite")
+PURGE_BATCH: Final = 32
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS seen (key TEXT PRIMARY KEY, expires REAL NOT NULL) WITHOUT ROWID;
+CREATE INDEX IF NOT EXISTS seen_expires ON seen (expires);
+CREATE TABLE IF NOT EXISTS counters (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS meta (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    deployment TEXT NOT NULL,
+    generation INTEGER NOT NULL,
+    watermark REAL NOT NULL,
+    fence REAL NOT NULL,
+    data_loss_events INTEGER NOT NULL
+);
+"""
+_PURGE_SELECT = "SELECT key, expires FROM seen WHERE expires < ? ORDER BY expires LIMIT ?"
+_ADVANCE = """
+INSERT INTO counters (key, value) VALUES (?, ?)
+ON CONFLICT (key) DO UPDATE SET value = excluded.value WHERE excluded.value > counters.value
+"""
+#: One queued commit: key, expires_at, now, force.
+_Op = tuple[str, float, float, bool]
+#: The meta row as a transaction read it: generation, watermark, fence, data-loss events.
+_Meta = tuple[int, float, float, int]
+_FLOOR = -1e300  # SQLite REAL has no -inf literal that round-trips everywhere: "nothing yet"
+
+
+class Witness:
+    """The small file beside the database: deployment id, generation and the highest wall
+    time of any commit, checksummed (a fence after a loss starts no lower than that, even
+    if the wall clock stepped back across the restart).
+
+    It is rewritten in place (one ``pwrite`` of 64 bytes, well inside one disk
+    sector, then ``fdatasync``); a torn or foreign file reads as ``None``.
+    """
+
+    MAGIC: Final = b"ARWITN02"
+    _LAYOUT: Final = struct.Struct("<8s16sQd")
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._fd: int | None = None
+
+    def read(self) -> tuple[str, int, float] | bool | None:
+        """``(deployment, generation, wall)``, ``None`` if absent, ``False`` if unreadable."""
+        try:
+            raw = self.path.read_bytes()
+        except FileNotFoundError:
+            return None
+        except OSError:
+            return False
+        size = self._LAYOUT.size
+        if len(raw) < size + 16 or hashlib.sha256(raw[:size]).digest()[:16] != raw[size:][:16]:
+            return False
+        magic, deployment, generation, wall = self._LAYOUT.unpack_from(raw)
+        if magic != self.MAGIC:
+            return False
+        return uuid.UUID(bytes=deployment).hex, generation, wall
+
+    def write(self, deployment: str, generation: int, wall: float) -> None:
+        body = self._LAYOUT.pack(self.MAGIC, uuid.UUID(hex=deployment).bytes, generation, wall)
+        record = (body + hashlib.sha256(body).digest()[:16]).ljust(64, b"\0")
+        if self._fd is None:
+            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+        os.pwrite(self._fd, record, 0)
+        os.fdatasync(self._fd)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+class SqliteStore:
+    """The store contract on a SQLite file (WAL, synchronous commits, witness file)."""
+
+    backend: Final = "sqlite"
+
+    def __init__(
+        self, path: str | Path, *, timeout_s: float = 10.0, clock: Clock | None = None
+    ) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # A hidden name on purpose: ``rm state.db*`` must not take the witness with it.
+        self.witness = Witness(self.path.with_name(f".{self.path.name}.witness"))
+        self._clock = resolve(clock)
+        self._lock = threading.Lock()
+        self._db = self._open(timeout_s)
+        self._file = file_identity(self.path)
+        self._deployment = ""
+        self._generation = 0
+        self._wall_hw = _FLOOR
+        self._opened = False
+        self._lost_pending = False
+        self._watermark = NEVER
+        self._fence = NEVER
+        self.data_loss_events = 0
+        self.loss_reason: str | None = None
+        self._run(self._verify)
+        self._opened = True
+        # Reads (the pre-crypto check, metrics) use their own connections: WAL lets them run
+        # beside the writer, so no lookup ever waits behind a group commit's fsyncs, and one
+        # connection per concurrent reader lets lookups in several threads run side by side.
+        self._timeout_s = timeout_s
+        self._readers: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
+        self._committer: GroupCommitter[_Op, Seen] = GroupCommitter(
+            self._commit_batch, name=f"antireplay-state:{self.path.name}"
+        )
+
+    def _open(self, timeout_s: float) -> sqlite3.Connection:
+        """Connect and set up; processes opening one new file at once may briefly collide.
+
+        Switching to WAL and creating the schema need the write lock, and SQLite can
+        answer "database is locked" at once instead of waiting, so setup is retried.
+        """
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                db = sqlite3.connect(
+                    self.path, timeout=timeout_s, isolation_level=None, check_same_thread=False
+                )
+                db.execute("PRAGMA journal_mode=WAL")
+                db.execute("PRAGMA synchronous=FULL")
+                db.executescript(_SCHEMA)
+                return db
+            except sqlite3.OperationalError as exc:
+                if "locked" not in str(exc) or time.monotonic() > deadline:
+                    raise self._unreadable(exc) from None
+                time.sleep(0.01)
+            except sqlite3.Error as exc:
+                raise self._unreadable(exc) from None
+
+    def _unreadable(self, exc: Exception) -> StateFileError:
+        return StateFileError(
+            str(self.path), f"not a readable replay-state database ({exc})", recovery=self._aside
+        )
+
+    @property
+    def _aside(self) -> str:
+        """The recovery from a damaged database: the next start fences what it held."""
+        return (
+            f"mv {self.path} {self.path}.corrupt "
+            "(the next start re-creates it behind a restart fence)"
+        )
+
+    def _decode(self, key: str, text: object) -> int:
+        return _codec.decode(str(text), where=str(self.path), key=key, recovery=self._aside)
+
+    def _verify(self) -> None:
+        """At open: compare the database with its witness; fence on any sign of loss."""
+
+        def body(db: sqlite3.Connection) -> tuple[None, _Meta]:
+            row = db.execute(
+                "SELECT deployment, generation, watermark, fence, data_loss_events FROM meta"
+            ).fetchone()
+            rows = db.execute("SELECT count(*) FROM seen").fetchone()[0]
+            counters = db.execute("SELECT count(*) FROM counters").fetchone()[0]
+            found = self.witness.read()
+            reason = _loss_reason(row, found, bool(rows or counters))
+            if row is None:
+                deployment = found[0] if isinstance(found, tuple) else uuid.uuid4().hex
+                generation, watermark, fence, losses = 0, _FLOOR, _FLOOR, 0
+            else:
+                deployment, generation, watermark, fence, losses = row
+            if isinstance(found, tuple):
+                generation = max(generation, found[1])
+                self._wall_hw = max(self._wall_hw, found[2])
+            if reason is not None:
+                fence = max(fence, self._clock.wall(), self._wall_hw)
+                losses += 1
+                self.loss_reason = reason
+                log.warning("replay state %s: %s; fence raised to %s", self.path, reason, fence)
+            self._deployment = deployment
+            return None, (generation, watermark, fence, losses)
+
+        self._transaction(body)
+
+    def _transaction(self, body: Callable[[sqlite3.Connection], tuple[T, _Meta]]) -> T:
+        """One write transaction: ``body`` does its work and returns its result and the meta
+        it read; the meta row goes out with the next generation, the witness is written
+        *before* COMMIT (so a database that later goes back is noticed), and this
+        process's view moves only after COMMIT succeeded.  A failed COMMIT (a full disk)
+        puts the witness back to the committed generation, so it is not mistaken for a
+        rollback later; the original error is raised, not the ROLLBACK's."""
+        self._same_file()
+        db = self._db
+        db.execute("BEGIN IMMEDIATE")
+        written = False
+        try:
+            result, (generation, watermark, fence, losses) = body(db)
+            generation += 1
+            db.execute(
+                "INSERT OR REPLACE INTO meta VALUES (1, ?, ?, ?, ?, ?)",
+                (self._deployment, generation, watermark, fence, losses),
+            )
+            self._wall_hw = max(self._wall_hw, self._clock.wall())
+            written = True
+            self.witness.write(self._deployment, generation, self._wall_hw)
+            db.execute("COMMIT")
+        except BaseException:
+            with contextlib.suppress(sqlite3.Error):  # SQLite may have rolled back already
+                db.execute("ROLLBACK")
+            if written and self._generation:
+                with contextlib.suppress(OSError):  # if this fails too, the next open fences
+                    self.witness.write(self._deployment, self._generation, self._wall_hw)
+            raise
+        self._generation = generation
+        self._watermark = NEVER if watermark <= _FLOOR else watermark
+        self._fence = NEVER if fence <= _FLOOR else fence
+        self.data_loss_events = losses
+        return result
+
+    def _same_file(self) -> None:
+        """Refuse to write once the file was deleted or replaced under this process: the
+        writer would keep recording into a file nobody can open again (the restart that
+        follows fences what it held, from the witness)."""
+        if file_identity(self.path) != self._file:
+            raise StateUnavailableError(
+                f"sqlite {self.path}: the state file was deleted or replaced while running; "
+                "restart (the restart fences what the lost file held)"
+            )
+
+    def fence(self) -> float:
+        return self._fence
+
+    def watermark(self) -> float:
+        return self._watermark
+
+    def lookup(self, key: str) -> Seen:
+        def query(db: sqlite3.Connection) -> Seen:
+            row = db.execute(
+                "SELECT (SELECT expires FROM seen WHERE key = ?), watermark, fence FROM meta",
+                (key,),
+            ).fetchone()
+            expiry, watermark, fence = row
+            return Seen(
+                NEVER if expiry is None else float(expiry),
+                NEVER if watermark <= _FLOOR else float(watermark),
+                NEVER if fence <= _FLOOR else float(fence),
+            )
+
+        return self._read(query)
+
+    def _read(self, query: Callable[[sqlite3.Connection], T]) -> T:
+        """Run ``query`` on an idle reader connection (a new one if all are busy)."""
+        try:
+            db = self._readers.get_nowait()
+        except queue.Empty:
+            db = self._run(lambda: self._connect(self._timeout_s))
+        try:
+            return self._run(lambda: query(db))
+        finally:
+            self._readers.put(db)
+
+    def _connect(self, timeout_s: float) -> sqlite3.Connection:
+        """Another connection to the existing file (``mode=rw``): a deleted file is an error
+        (``STATE_UNAVAILABLE``), never a new empty database made behind the writer's back."""
+        uri = f"{self.path.resolve().as_uri()}?mode=rw"
+        return sqlite3.connect(uri, uri=True, timeout=timeout_s, check_same_thread=False)
+
+    def ready(self) -> None:
+        """What a commit needs, recording nothing: the file is still there with its meta row
+        and its write lock can be taken within a second (``BEGIN IMMEDIATE``, then
+        ``ROLLBACK``), on a connection of its own."""
+
+        def probe() -> None:
+            self._same_file()
+            db = self._connect(min(self._timeout_s, 1.0))
+            try:
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    if db.execute("SELECT generation FROM meta").fetchone() is None:
+                        raise sqlite3.DatabaseError("no meta row (replaced or truncated)")
+                finally:
+                    db.execute("ROLLBACK")
+            finally:
+                db.close()
+
+        self._run(probe)
+
+    def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
+        """Queue the record for the next group commit; return once it is durable."""
+        return self._committer.submit((key, expires_at, now, force))
+
+    def commit_async(
+        self, key: str, expires_at: float, now: float, force: bool = False
+    ) -> asyncio.Future[Seen]:
+        """:meth:`commit` from a running event loop: await the result, holding no thread."""
+        return self._committer.enqueue_async((key, expires_at, now, force))
+
+    def _commit_batch(self, ops: Sequence[_Op]) -> list[Seen]:
+        """One transaction for a batch: bounded purge (raising the watermark), each record
+        in order (racers on one key: one winner), meta + witness once, one COMMIT."""
+
+        def body(db: sqlite3.Connection) -> tuple[list[tuple[float, bool]], _Meta]:
+            generation, watermark, fence, losses = self._meta_checked(db)
+            now = min(op[2] for op in ops)  # no caller's entry is purged early
+            purged = db.execute(_PURGE_SELECT, (now, PURGE_BATCH + 2 * len(ops))).fetchall()
+            if purged:
+                db.executemany("DELETE FROM seen WHERE key = ?", [(k,) for k, _ in purged])
+                watermark = max(watermark, *(e for _, e in purged))
+            return [self._record(db, op) for op in ops], (generation, watermark, fence, losses)
+
+        def tx() -> list[Seen]:
+            results = self._transaction(body)
+            wm, fence_now, lost = self._watermark, self._fence, self._lost_pending
+            self._lost_pending = False
+            return [
+                Seen(seen, wm, fence_now, recorded, False, lost and i == 0)
+                for i, (seen, recorded) in enumerate(results)
+            ]
+
+        with self._lock:
+            return self._run(tx)
+
+    def _meta_checked(self, db: sqlite3.Connection) -> tuple[int, float, float, int]:
+        """The meta row, fenced first if the database went back under this process."""
+        row = db.execute(
+            "SELECT generation, watermark, fence, data_loss_events FROM meta"
+        ).fetchone()
+        if row is None or row[0] < self._generation:
+            reason = "database rolled back or replaced while running (a live restore?)"
+            fence = max(self._clock.wall(), self._wall_hw)
+            losses = (row[3] if row is not None else self.data_loss_events) + 1
+            log.warning("replay state %s: %s; fence raised to %s", self.path, reason, fence)
+            self.loss_reason = reason
+            self._lost_pending = True
+            generation = max(self._generation, row[0] if row is not None else 0)
+            watermark = row[1] if row is not None else _FLOOR
+            return generation, watermark, max(fence, row[2] if row is not None else fence), losses
+        generation, watermark, fence, losses = row
+        return int(generation), float(watermark), float(fence), int(losses)
+
+    def verify(self) -> Seen:
+        """Re-read the shared meta row (fence, watermark), checking for a live rollback."""
+
+        def tx() -> Seen:
+            self._transaction(lambda db: (None, self._meta_checked(db)))
+            return Seen(NEVER, self._watermark, self._fence)
+
+        with self._lock:
+            return self._run(tx)
+
+    @staticmethod
+    def _record(db: sqlite3.Connection, op: _Op) -> tuple[float, bool]:
+        key, expires_at, now, force = op
+        found = db.execute("SELECT expires FROM seen WHERE key = ?", (key,)).fetchone()
+        seen = NEVER if found is None else float(found[0])
+        recorded = not seen >= now
+        if recorded or (force and seen < expires_at):
+            db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (key, expires_at))
+        return seen, recorded
+
+    def advance(self, key: str, value: int) -> bool:
+        """Compare-and-advance a counter; like a commit, it moves the generation and witness
+        (so a restored copy of the counters is noticed too)."""
+        encoded = _codec.encode(value)
+
+        def body(db: sqlite3.Connection) -> tuple[bool, _Meta]:
+            meta = self._meta_checked(db)
+            if db.execute(_ADVANCE, (key, encoded)).rowcount == 1:
+                return True, meta
+            (held,) = db.execute("SELECT value FROM counters WHERE key = ?", (key,)).fetchone()
+            self._decode(key, held)  # refused: by a counter, never by something undecodable
+            return False, meta
+
+        def tx() -> bool:
+            return self._transaction(body)
+
+        with self._lock:
+            return self._run(tx)
+
+    def current(self, key: str) -> int | None:
+        row = self._fetch("SELECT value FROM counters WHERE key = ?", (key,))
+        return None if row is None else self._decode(key, row[0])
+
+    def count(self) -> int:
+        """Rows in the seen-set (live and not yet purged)."""
+        row = self._fetch("SELECT count(*) FROM seen", ())
+        return 0 if row is None else int(row[0])
+
+    def status(self) -> dict[str, float]:
+        return {
+            "entries": float(self.count()),
+            "watermark": self._watermark,
+            "fence": self._fence,
+            "evictions": 0.0,
+            "data_loss_events": float(self.data_loss_events),
+        }
+
+    @property
+    def group_commit(self) -> GroupCommitter[Any, Any]:
+        """The writer that batches this file's commits (its counters feed /metrics)."""
+        return self._committer
+
+    def close(self) -> None:
+        self._committer.close()
+        while True:
+            try:
+                self._readers.get_nowait().close()
+            except queue.Empty:
+                break
+        with self._lock:
+            self._db.close()
+            self.witness.close()
+
+    def _fetch(self, sql: str, params: tuple[object, ...]) -> tuple[Any, ...] | None:
+        def query(db: sqlite3.Connection) -> tuple[Any, ...] | None:
+            row: tuple[Any, ...] | None = db.execute(sql, params).fetchone()
+            return row
+
+        return self._read(query)
+
+    def _run(self, op: Callable[[], T]) -> T:
+        try:
+            return op()
+        except sqlite3.DatabaseError as exc:
+            if "malformed" in str(exc) or "not a database" in str(exc):
+                if not self._opened:
+                    raise self._unreadable(exc) from None
+                raise StateUnavailableError(  # while running: 503, never a traceback
+                    f"{self._unreadable(exc)}"
+                ) from None
+            raise StateUnavailableError(f"sqlite {self.path}: {exc}") from None
+        except OSError as exc:
+            raise StateUnavailableError(f"sqlite witness {self.witness.path}: {exc}") from None
+
+
+def check_readable(path: str | Path) -> None:
+    """Refuse a file that is not a readable database, without writing anything (so a
+    ``config check`` never uses up the loss detection of the store's next real open)."""
+    path = Path(path)
+    if not path.exists():
+        return
+    try:
+        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+        try:
+            db.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        finally:
+            db.close()
+    except sqlite3.Error as exc:
+        raise StateFileError(
+            str(path),
+            f"not a readable replay-state database ({exc})",
+            recovery=f"mv {path} {path}.corrupt (the next start re-creates it behind a restart "
+            "fence)",
+        ) from None
+
+
+def _loss_reason(  # noqa: PLR0911 - one answer per row of the table in the docstring
+    meta: tuple[Any, ...] | None, witness: tuple[str, int, float] | bool | None, has_state: bool
+) -> str | None:
+    """Why the database may have lost state (None: it provably has not)."""
+    if meta is None:
+        if witness is None and not has_state:
+            return None  # a new deployment
+        if witness is None:
+            return "state without meta or witness (made by an older version?)"
+        return "database missing, truncated or replaced (the witness says it existed)"
+    if witness is None:
+        return "witness file missing"
+    if witness is False:
+        return "witness file unreadable"
+    assert isinstance(witness, tuple)
+    if witness[0] != meta[0]:
+        return "database belongs to another deployment than its witness (replaced)"
+    if meta[1] < witness[1]:
+        return f"database generation {meta[1]} is behind its witness's {witness[1]} (rolled back)"
+    return None

@@ -1,0 +1,639 @@
+"""The post-quantum MAVLink carriage, sans I/O: dialect, chunks, reassembly, the two ends."""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import os
+import random
+import secrets
+import struct
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from antireplay import ManualClock
+from antireplay.core.counters import NonceCounter
+from antireplay.core.errors import (
+    CounterReplayedError,
+    InvalidFrameError,
+    MessageStaleError,
+    ReplayAttackError,
+    SignatureInvalidError,
+    UnknownSessionError,
+)
+from antireplay.mavlink.codec import parse_frame
+from antireplay.mavlink.pq import (
+    CHUNK_DATA,
+    DIALECT,
+    MAX_CHUNKS,
+    MSG_CHUNK,
+    REKEY_TRANSFERS,
+    TRANSFER_LIMIT,
+    ChunkSender,
+    GroundEnd,
+    Kind,
+    Reassembler,
+    VehicleEnd,
+    chunk_key,
+    compact,
+    inner_of,
+    open_compact,
+    pack_v2,
+    parse_chunk,
+)
+from antireplay.mavlink.pq.link import PqLink
+from antireplay.mavlink.router import Refusal
+from antireplay.pq.session import REKEY_AFTER, Initiator, Purpose, Responder
+from antireplay.pq.session import Direction as Dir
+from antireplay.pq.session import Opened as Open
+from antireplay.pq.session import Session as Sess
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+from pymavlink.generator import mavgen
+
+from tests.mavlink.test_router import FakeTransport
+
+GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
+ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
+ARM = 400
+
+
+class _Keep:
+    def __init__(self) -> None:
+        self.frames: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.frames.append(bytes(data))
+
+
+def plain(build: Callable[[dialect.MAVLink], None], sysid: int = 255) -> bytes:
+    """One unsigned MAVLink v2 frame built by pymavlink."""
+    keep = _Keep()
+    mav = dialect.MAVLink(keep, srcSystem=sysid, srcComponent=190)
+    build(mav)
+    return keep.frames[-1]
+
+
+def raw_chunk(fields: tuple[int, ...], data: bytes, sysid: int = 255, compid: int = 197) -> bytes:
+    """A PQ_CHUNK frame with any header fields (what an attacker can send)."""
+    payload = struct.pack("<HBBBB", *fields) + data
+    return pack_v2(MSG_CHUNK, payload, DIALECT[MSG_CHUNK][0], sysid=sysid, compid=compid, seq=0)
+
+
+def arm(target: int = 1, param1: float = 1.0) -> bytes:
+    return plain(lambda m: m.command_long_send(target, 1, ARM, 0, param1, 0, 0, 0, 0, 0, 0))
+
+
+class Link:
+    """Both ends, the air between them a list the test can reorder, drop or tamper with."""
+
+    def __init__(self, clock: ManualClock, max_sessions: int = 4) -> None:
+        self.clock = clock
+        self.responder = Responder(
+            ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock, max_sessions=max_sessions
+        )
+        self.ground = self.new_ground()
+        self.vehicle = VehicleEnd(self.responder, clock=clock)
+        self.delivered: list[bytes] = []  # plain frames at the flight controller
+        self.telemetry: list[bytes] = []  # plain frames at the ground station
+        self.refused: list[str] = []
+        self.captured: list[bytes] = []  # everything that went ground -> vehicle
+
+    def new_ground(self) -> GroundEnd:
+        return GroundEnd(
+            Initiator("gcs", GCS_KEY, self.clock), ROBOT_KEM.public_key(), clock=self.clock
+        )
+
+    def connect(self) -> None:
+        self.up(self.ground.handshake())
+        assert self.ground.session is not None
+
+    def up(self, frames: list[bytes]) -> None:
+        """Deliver ``frames`` to the vehicle end; answers go back down."""
+        for raw in frames:
+            self.captured.append(raw)
+            try:
+                out = self.vehicle.from_air(raw)
+            except ReplayAttackError as exc:
+                self.refused.append(str(exc.code))
+                continue
+            self.delivered += out.local
+            self.down(out.air)
+
+    def down(self, frames: list[bytes]) -> None:
+        for raw in frames:
+            try:
+                out = self.ground.from_air(raw)
+            except ReplayAttackError as exc:
+                self.refused.append(str(exc.code))
+                continue
+            self.telemetry += out.local
+            self.up(out.air)
+
+    def commands(self) -> list[dialect.MAVLink_command_long_message]:
+        decoder = dialect.MAVLink(_Keep())
+        return [
+            m
+            for raw in self.delivered
+            if (m := decoder.decode(bytearray(raw))).get_type() == "COMMAND_LONG"
+        ]
+
+
+@pytest.fixture
+def link(clock: ManualClock) -> Link:
+    made = Link(clock)
+    made.connect()
+    return made
+
+
+def test_dialect_xml_crc_extras_and_pymavlink_decodes_our_chunks(tmp_path: Path) -> None:
+    """The published XML generates a pymavlink dialect that decodes what we send."""
+    xml = Path(__file__).parents[2] / "src/antireplay/mavlink/antireplay_pq.xml"
+    opts = mavgen.Opts(str(tmp_path / "pqdialect.py"), wire_protocol="2.0", language="Python3")
+    assert mavgen.mavgen(opts, [str(xml)])
+    spec = importlib.util.spec_from_file_location("pqdialect", tmp_path / "pqdialect.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.mavlink_map[MSG_CHUNK].crc_extra == DIALECT[MSG_CHUNK][0]
+    frames = ChunkSender(255, 197).frames(bytes(range(256)) * 2, Kind.HS1)
+    decoder = module.MAVLink(_Keep())
+    decoded = [decoder.decode(bytearray(raw)) for raw in frames]
+    assert [(m.index, m.count, m.kind) for m in decoded] == [(0, 3, 1), (1, 3, 1), (2, 3, 1)]
+    assert b"".join(bytes(m.data[: m.len]) for m in decoded) == bytes(range(256)) * 2
+
+
+def test_arm_arrives_once_and_its_replay_is_dropped(link: Link) -> None:
+    frames = link.ground.from_local(arm())
+    assert len(frames) == 20  # 4,627-byte ML-DSA-87 signature: 20 chunks
+    link.up(frames)
+    (command,) = link.commands()
+    assert (command.command, command.target_system, command.param1) == (ARM, 1, 1.0)
+    assert command.get_srcSystem() == 255 and command.get_srcComponent() == 190
+    link.up(frames)  # the whole capture again: each chunk's transfer already opened
+    assert len(link.commands()) == 1
+    assert link.refused == ["REPLAY_DETECTED"] * 20
+
+
+def test_telemetry_both_ways_is_hmac_in_one_chunk(link: Link) -> None:
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    (frame,) = link.ground.from_local(beat)  # a GCS heartbeat: data purpose, one chunk
+    link.up([frame])
+    assert link.delivered == [beat]  # byte for byte
+    attitude = plain(lambda m: m.attitude_send(1, 0.1, 0.2, 0.3, 0, 0, 0), sysid=1)
+    air = link.vehicle.from_local(attitude)
+    assert len(air) == 1
+    link.down(air)
+    assert link.telemetry == [attitude]
+    link.down(air)  # replayed telemetry
+    assert link.telemetry == [attitude] and link.refused == ["COUNTER_REPLAYED"]
+
+
+def test_capture_from_a_previous_session_is_dropped(link: Link) -> None:
+    old = link.ground.from_local(arm())
+    link.up(old)
+    link.ground = link.new_ground()  # the ground end restarts: a new session
+    link.connect()
+    link.up(old)
+    assert len(link.commands()) == 1
+    link.up(link.ground.from_local(arm(param1=0.0)))
+    assert [c.param1 for c in link.commands()] == [1.0, 0.0]
+
+
+def test_reordered_duplicated_chunks_deliver_once(link: Link) -> None:
+    frames = link.ground.from_local(arm())
+    shuffled = frames + frames[:5]
+    random.Random(7).shuffle(shuffled)
+    link.up(shuffled)
+    assert len(link.commands()) == 1
+    assert link.vehicle.reassembly.duplicates == 5
+
+
+def test_lost_chunk_loses_that_command_only(link: Link, clock: ManualClock) -> None:
+    first = link.ground.from_local(arm(param1=1.0))
+    second = link.ground.from_local(arm(param1=0.0))
+    link.up(first[:7] + first[8:])  # chunk 7 lost
+    link.up(second)
+    assert [c.param1 for c in link.commands()] == [0.0]
+    clock.advance(11)  # the incomplete transfer expires
+    link.up(link.ground.from_local(arm(param1=2.0)))
+    assert [c.param1 for c in link.commands()] == [0.0, 2.0]
+    assert link.vehicle.reassembly.expired == 1
+
+
+def _tamper(raw: bytes, at: int, value: int) -> bytes:
+    """Rewrite one payload byte and fix the MAVLink CRC (a man in the middle would)."""
+    frame = parse_frame(raw)
+    payload = bytearray(frame.payload.ljust(DIALECT[MSG_CHUNK][1], b"\0"))
+    payload[at] = value
+    return pack_v2(
+        MSG_CHUNK,
+        bytes(payload),
+        DIALECT[MSG_CHUNK][0],
+        sysid=frame.sysid,
+        compid=frame.compid,
+        seq=0,
+    )
+
+
+def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> None:
+    # the target system sits in the first chunk: chunk header, compact header, inner header,
+    # then COMMAND_LONG's target_system at payload offset 30
+    target_at = 6 + 10 + 6 + 30
+    frames = link.ground.from_local(arm(target=1))
+    link.up([_tamper(frames[0], target_at, 2), *frames[1:]])
+    assert link.refused == ["SIGNATURE_INVALID"] and not link.commands()
+    # another message id in the outer header: the CRC extra no longer matches
+    header = bytearray(link.ground.from_local(arm())[0])
+    header[7] = dialect.MAVLINK_MSG_ID_COMMAND_LONG & 0xFF
+    link.up([bytes(header)])
+    assert link.refused[-1] == "INVALID_FRAME"
+    # splice: the chunks of two commands, the second renumbered to the first's transfer
+    first, second = link.ground.from_local(arm(param1=1.0)), link.ground.from_local(arm(param1=0.0))
+    transfer = struct.unpack_from("<H", parse_frame(first[0]).payload)[0]
+    renumbered = [_tamper(_tamper(raw, 0, transfer & 0xFF), 1, transfer >> 8) for raw in second]
+    link.up(first[:10] + renumbered[10:])
+    assert not link.commands() and link.refused.count("SIGNATURE_INVALID") == 11
+    # an insider holding the session's HMAC keys rewrites the target: ML-DSA-87 still fails
+    session = link.ground.session
+    assert session is not None
+    blob = bytearray(session.seal(inner_of(parse_frame(arm(target=1))), Purpose.COMMAND))
+    blob[28 + 6 + 30] = 2
+    key = chunk_key(session.send_key)
+    link.up(ChunkSender(255, 197, transfer=900).frames(compact(bytes(blob)), Kind.FRAME, key))
+    assert link.refused[-1] == "SIGNATURE_INVALID" and not link.commands()
+    link.up(frames[:1])  # the genuine first chunk completes the genuine command
+    assert [c.target_system for c in link.commands()] == [1]
+
+
+def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
+    link = Link(clock)
+    hs1 = link.ground.handshake()
+    link.up(hs1)
+    assert len(link.responder) == 1
+    link.up(hs1)
+    assert link.refused == ["REPLAY_DETECTED"] and len(link.responder) == 1
+    clock.advance(40)
+    link.up(hs1)
+    assert link.refused[-1] == "MESSAGE_STALE" and len(link.responder) == 1
+    with pytest.raises(MessageStaleError):  # the reassembled blob is the HS1 itself
+        link.responder.accept_handshake(_blob(hs1))
+    # a replayed HS2 at the ground end finishes nothing: no handshake is pending
+    session = link.ground.session
+    hs2 = ChunkSender(1, 197).frames(b"\xa2" + bytes(81), Kind.HS2)
+    link.down(hs2)
+    assert link.refused[-1] == "UNKNOWN_SESSION" and link.ground.session is session
+
+
+def _blob(frames: list[bytes]) -> bytes:
+    chunks = [parse_chunk(parse_frame(raw)) for raw in frames]
+    return b"".join(c.piece for c in sorted(chunks, key=lambda c: c.index))
+
+
+def test_chunk_flood_cannot_crowd_out_a_command(link: Link) -> None:
+    rng = random.Random(3)
+    flood = []
+    for transfer in range(500):  # session-frame chunks with made-up MACs: refused unbuffered
+        fields = (transfer, 0, 20, CHUNK_DATA, Kind.FRAME_CHUNKED)
+        flood.append(raw_chunk(fields, rng.randbytes(CHUNK_DATA)))
+    frames = link.ground.from_local(arm())
+    mixed = frames[:10] + flood + frames[10:]
+    link.up(mixed)
+    assert len(link.commands()) == 1
+    assert link.refused.count("SIGNATURE_INVALID") == 500
+
+
+def test_handshake_flood_keeps_the_almost_complete_handshake(clock: ManualClock) -> None:
+    link = Link(clock)
+    hs1 = link.ground.handshake()
+    link.up(hs1[:-1])
+    rng = random.Random(5)
+    for transfer in range(200):  # first chunks of made-up handshakes from other systems
+        fields = (transfer, 0, 26, CHUNK_DATA, Kind.HS1)
+        link.up([raw_chunk(fields, rng.randbytes(CHUNK_DATA), sysid=rng.randrange(256))])
+    link.up(hs1[-1:])
+    assert link.ground.session is not None
+    assert link.vehicle.reassembly.evicted == 199
+
+
+def test_memory_is_bounded(clock: ManualClock) -> None:
+    reassembler = Reassembler(clock=clock)
+    sender = ChunkSender(9, 9)
+    for _ in range(50):
+        for raw in sender.frames(os.urandom(31 * CHUNK_DATA), Kind.HS1)[:-1]:
+            reassembler.feed(parse_chunk(parse_frame(raw)))
+    assert reassembler.buffered <= 2 * MAX_CHUNKS * CHUNK_DATA
+
+
+@pytest.mark.parametrize(
+    ("fields", "why"),
+    [
+        ((1, 3, 3, 10, 1), "chunk 3 of 3"),
+        ((1, 0, 33, 10, 1), "at most 32"),
+        ((1, 0, 2, 250, 1), "length"),
+        ((1, 0, 2, 8, 4), "length"),
+        ((1, 0, 2, 10, 3), "one chunk"),
+        ((1, 0, 1, 10, 1), "several chunks"),
+        ((1, 0, 1, 10, 9), "unknown chunk kind"),
+    ],
+)
+def test_chunk_bounds(fields: tuple[int, ...], why: str) -> None:
+    raw = raw_chunk(fields, b"\x01" * CHUNK_DATA)
+    with pytest.raises(InvalidFrameError, match=why):
+        parse_chunk(parse_frame(raw))
+
+
+def test_rekey_before_the_counter_limit(link: Link) -> None:
+    session = link.ground.session
+    assert session is not None
+    session._send[Purpose.DATA] = NonceCounter(REKEY_AFTER)
+    out = link.ground.from_local(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4)))
+    assert len(out) > 1  # the frame and a new HS1
+    link.up(out)
+    assert link.ground.session is not session
+    link.up(link.ground.from_local(arm()))
+    assert len(link.commands()) == 1
+
+
+def test_vehicle_end_restart_the_ground_end_handshakes_again(
+    link: Link, clock: ManualClock
+) -> None:
+    link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
+    link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted: no session
+    with pytest.raises(UnknownSessionError):
+        link.vehicle.from_air(
+            link.ground.from_local(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4)))[0]
+        )
+    hint = link.vehicle.hint()
+    assert link.vehicle.hint() == []  # rate-limited
+    clock.advance(3)  # the ground end heard nothing authenticated for retry_s
+    link.down(hint)
+    link.up(link.ground.from_local(arm()))
+    assert len(link.commands()) == 1
+
+
+def test_forged_hint_is_ignored_while_telemetry_flows(link: Link) -> None:
+    link.down(link.vehicle.from_local(plain(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), sysid=1)))
+    session = link.ground.session
+    assert link.ground.from_air(link.vehicle.hint()[0]).air == []
+    assert link.ground.session is session
+
+
+def test_queued_commands_go_out_after_the_handshake(clock: ManualClock) -> None:
+    link = Link(clock)
+    hs1 = link.ground.from_local(arm())  # no session yet: queued, the handshake starts
+    link.up(hs1)
+    assert len(link.commands()) == 1
+
+
+@settings(max_examples=1_000, deadline=None)
+@given(st.binary(max_size=280))
+def test_fuzzed_air_frames_only_typed_errors(data: bytes) -> None:
+    with contextlib.suppress(ReplayAttackError):
+        FUZZ.vehicle.from_air(data)
+    with contextlib.suppress(ReplayAttackError):
+        FUZZ.ground.from_air(data)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(min_size=CHUNK_DATA + 6, max_size=CHUNK_DATA + 6))
+def test_fuzzed_chunk_payloads_only_typed_errors(payload: bytes) -> None:
+    raw = pack_v2(MSG_CHUNK, payload, DIALECT[MSG_CHUNK][0], sysid=255, compid=197, seq=0)
+    with contextlib.suppress(ReplayAttackError):
+        FUZZ.vehicle.from_air(raw)
+
+
+FUZZ = Link(ManualClock())
+FUZZ.connect()
+
+
+def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
+    vehicle_x25519 = x25519.X25519PrivateKey.generate()
+    link = Link(clock)
+    link.responder = Responder(
+        ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock, x25519_key=vehicle_x25519
+    )
+    link.vehicle = VehicleEnd(link.responder, clock=clock)
+    initiator = Initiator("gcs", GCS_KEY, clock)
+    hybrid = vehicle_x25519.public_key()
+    link.ground = GroundEnd(initiator, ROBOT_KEM.public_key(), hybrid=hybrid, clock=clock)
+    hs1 = link.ground.handshake()
+    assert len(hs1) == 26  # the X25519 share fits in the same 26 chunks
+    link.up(hs1)
+    frames = link.ground.from_local(arm())
+    link.up(frames + frames)
+    assert len(link.commands()) == 1 and link.refused == ["REPLAY_DETECTED"] * 20
+
+
+def test_a_frame_withheld_from_a_superseded_session_never_plays(link: Link) -> None:
+    withheld = link.ground.from_local(arm(param1=1.0))  # jammed and recorded, never delivered
+    link.connect()  # the ground end rekeys
+    link.up(link.ground.from_local(arm(param1=0.0)))  # the new session carries a frame
+    link.up(withheld)
+    assert [c.param1 for c in link.commands()] == [0.0]
+    assert link.refused[-20:] == ["SIGNATURE_INVALID"] * 20  # no live session's chunk key
+    beat = link.ground.session
+    assert beat is not None and len(link.responder) == 1  # the old session's keys are gone
+
+
+def test_heartbeats_do_not_push_a_queued_command_out(clock: ManualClock) -> None:
+    link = Link(clock)
+    hs1 = link.ground.from_local(arm())
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    for _ in range(50):
+        link.ground.from_local(beat)
+    link.up(hs1)
+    assert len(link.commands()) == 1 and link.ground.unsent == 50
+
+
+def test_unknown_local_message_is_refused_before_sealing(link: Link) -> None:
+    raw = bytearray(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4)))
+    raw[7:10] = (60999).to_bytes(3, "little")  # a message id nobody knows
+    with pytest.raises(InvalidFrameError, match="not in the dialect"):
+        link.ground.from_local(bytes(raw))
+
+
+class _Sessions:
+    """A receiver over several sessions (a responder's routing, without its table)."""
+
+    def __init__(self, *sessions: Sess) -> None:
+        self.by_id = {s.session_id: s for s in sessions}
+
+    def check(self, frame: bytes) -> None:
+        self.by_id[frame[4:20]].check(frame)
+
+    def open(self, frame: bytes) -> Open:
+        return self.by_id[frame[4:20]].open(frame)
+
+
+def _pair(sid: bytes) -> tuple[Sess, Sess]:
+    """The two sides of a session with id ``sid`` (keys of its own)."""
+    i2r, r2i = os.urandom(32), os.urandom(32)
+    initiator = Sess(sid, Dir.I2R, "responder", i2r, r2i, signing_key=GCS_KEY)
+    responder = Sess(sid, Dir.R2I, "gcs", r2i, i2r, peer_verify_key=GCS_KEY.public_key())
+    return initiator, responder
+
+
+def test_a_shared_handle_never_lets_one_session_refuse_the_others_frames() -> None:
+    old_i, old_r = _pair(b"\0" * 7 + b"\1" + b"o" * 7 + b"\x42")
+    new_i, new_r = _pair(b"\0" * 7 + b"\2" + b"n" * 7 + b"\x42")  # the same handle, 0x42
+    receiver = _Sessions(old_r, new_r)
+    sessions = [old_r, new_r]
+    for _ in range(3):  # the old session's counters run ahead
+        for purpose in Purpose:
+            old_r.open(old_i.seal(b"x" * 8, purpose))
+    for purpose in Purpose:  # the new session's first frames: counter 0, used in the old
+        opened = open_compact(compact(new_i.seal(b"y" * 8, purpose)), sessions, Dir.I2R, receiver)
+        assert (opened.session_id, opened.counter) == (new_r.session_id, 0)
+    replay = compact(old_i.seal(b"z" * 8))
+    open_compact(replay, sessions, Dir.I2R, receiver)
+    with pytest.raises(CounterReplayedError):  # the old session's replay names itself
+        open_compact(replay, sessions, Dir.I2R, receiver)
+    forged = bytearray(compact(old_i.seal(b"w" * 8)))  # counter 4: fresh in both windows
+    forged[-1] ^= 1
+    with pytest.raises(SignatureInvalidError):
+        open_compact(bytes(forged), sessions, Dir.I2R, receiver)
+
+
+def test_the_vehicle_end_draws_session_ids_whose_handles_differ(clock: ManualClock) -> None:
+    link = Link(clock, max_sessions=8)
+    for _ in range(8):  # eight live sessions, none carrying a frame (none superseded)
+        link.connect()
+    assert len({s.session_id[-1] for s in link.vehicle._sessions}) == 8
+    avoid = lambda sid: sid[-1] < 0xF0  # noqa: E731 - all but 16 handles taken
+    _, hs2 = link.responder.accept_handshake(
+        link.ground.initiator.start(ROBOT_KEM.public_key()), avoid
+    )
+    assert hs2[2 + 15] >= 0xF0
+
+
+def test_queued_commands_expire_and_every_drop_is_counted(clock: ManualClock) -> None:
+    link = Link(clock)
+    for p in range(10):  # no vehicle: every HS1 is lost, commands queue
+        link.ground.from_local(arm(param1=float(p)))
+    assert link.ground.drops == {"QUEUE_FULL": 2}
+    clock.advance(3)
+    link.ground.from_local(arm(param1=10.0))
+    clock.advance(3)  # all but the last are older than queue_ttl_s (5 s)
+    link.up(link.ground.handshake())
+    assert [c.param1 for c in link.commands()] == [10.0]
+    assert link.ground.drops == {"QUEUE_FULL": 3, "QUEUE_EXPIRED": 7}
+    assert link.ground.unsent == 10
+
+
+def test_a_message_that_must_be_signed_is_refused_in_a_data_frame(clock: ManualClock) -> None:
+    link = Link(clock)
+    link.ground = GroundEnd(
+        Initiator("gcs", GCS_KEY, clock), ROBOT_KEM.public_key(), clock=clock, signed=frozenset()
+    )
+    link.connect()
+    (frame,) = link.ground.from_local(arm())  # an HMAC data frame
+    link.up([frame])
+    assert not link.commands() and link.refused == ["SIGNATURE_REQUIRED"]
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda m: m.mission_item_send(1, 1, 0, 0, 16, 0, 1, 0, 0, 0, 0, 1.0, 2.0, 30.0),
+        lambda m: m.mission_write_partial_list_send(1, 1, 0, 3),
+        lambda m: m.param_ext_set_send(1, 1, b"ARMING_CHECK", b"0", 6),
+        lambda m: m.serial_control_send(10, 0, 0, 0, 4, [ord(c) for c in "rebo"] + [0] * 66),
+        lambda m: m.file_transfer_protocol_send(0, 1, 1, [0] * 251),
+        lambda m: m.set_position_target_local_ned_send(0, 1, 1, 1, 0, 1, 2, 3, *[0] * 8),
+        lambda m: m.set_position_target_global_int_send(0, 1, 1, 5, 0, 1, 2, 3, *[0] * 8),
+    ],
+)
+def test_command_carrying_messages_are_signed_by_default(
+    link: Link, build: Callable[[dialect.MAVLink], None]
+) -> None:
+    frames = link.ground.from_local(plain(build))
+    assert len(frames) > 1  # an ML-DSA-87 signature: several chunks
+    link.up(frames)
+    assert len(link.delivered) == 1 and link.refused == []
+
+
+def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: Link) -> None:
+    old = []
+    for _ in range(6):  # the attacker records six commands, all delivered
+        frames = link.ground.from_local(arm())
+        old.append(frames)
+        link.up(frames)
+    for t in range(4):  # and replays 19 of 20 chunks of four: none is buffered
+        link.up(old[t][:19])
+    assert link.refused == ["REPLAY_DETECTED"] * 76
+    fresh = link.ground.from_local(arm(param1=0.0))
+    for i, chunk in enumerate(fresh):
+        link.up([chunk, old[4 + i % 2][0]])
+    assert [c.param1 for c in link.commands()][-1] == 0.0
+    assert link.vehicle.reassembly.evicted == 0
+
+
+def test_a_silent_vehicle_end_gets_a_handshake_without_its_hint(
+    link: Link, clock: ManualClock
+) -> None:
+    link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
+    link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted; its hints stolen
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    for _ in range(6):  # the GCS heartbeat each second; nothing authenticated comes back
+        clock.advance(1)
+        link.up(link.ground.from_local(beat))
+    assert link.refused.count("UNKNOWN_SESSION") == 5  # the sixth carried a new HS1 too
+    link.up(link.ground.from_local(arm()))
+    assert len(link.commands()) == 1
+
+
+def test_the_ground_end_rekeys_before_its_transfer_numbers_wrap(link: Link) -> None:
+    session = link.ground.session
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    first = link.ground.sender.transfer  # where the session began
+    link.ground.sender.transfer = first + REKEY_TRANSFERS - 2
+    assert len(link.ground.from_local(beat)) == 1
+    out = link.ground.from_local(beat)  # the 30,000th transfer: a new handshake goes out
+    assert len(out) > 1
+    link.ground.sender.transfer = first + TRANSFER_LIMIT  # its HS1 lost meanwhile
+    link.ground.from_local(arm())  # no more sending in the old session: queued
+    assert link.ground.session is None
+    link.up(link.ground.handshake())
+    assert link.ground.session is not session and len(link.commands()) == 1
+
+
+def test_the_link_counts_plain_mavlink_quietly_and_exports_the_ends_drops(
+    clock: ManualClock,
+) -> None:
+    refusals: list[Refusal] = []
+    made = Link(clock)
+    local, air = FakeTransport("udpin:0.0.0.0:1", fixed=False), FakeTransport("udpout:1.2.3.4:5")
+    pq = PqLink(made.ground, local, air, on_reject=refusals.append)
+    pq.start()  # the first HS1 goes out, and is lost
+    for _ in range(9):
+        local.inject(arm(), ("10.0.0.1", 9))
+    clock.advance(6)
+    air.inject(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), sysid=1))  # MAVProxy's own
+    air.inject(raw_chunk((7, 0, 1, 1, 3), b"x"))
+    local.inject(arm(), ("10.0.0.1", 9))
+    assert pq.dropped == {
+        "air:PLAIN": 1,
+        "air:UNKNOWN_SESSION": 1,
+        "local:QUEUE_FULL": 1,
+        "local:QUEUE_EXPIRED": 8,
+    }
+    assert [r.code for r in refusals] == ["UNKNOWN_SESSION"]
+
+
+def test_a_chunk_planted_ahead_cannot_spoil_the_next_handshake(
+    clock: ManualClock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    link = Link(clock)
+    planted = link.ground.sender.transfer + 1  # the next transfer number, were it counted
+    # The handshake's number is random; pinned here to one the attacker did not guess.
+    monkeypatch.setattr(secrets, "randbelow", lambda n: (planted + 1) % n)
+    link.up([raw_chunk((planted, 0, 32, 1, Kind.HS1), b"x")])
+    link.up(link.ground.handshake())
+    assert link.ground.session is not None

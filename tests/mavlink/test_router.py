@@ -1,0 +1,574 @@
+"""MAVLink router: a ground link and a vehicle link, real pymavlink at both ends over UDP."""
+
+from __future__ import annotations
+
+import os
+import queue
+import random
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from click.testing import CliRunner
+
+os.environ["MAVLINK20"] = "1"  # pymavlink's mavutil speaks MAVLink 1 unless told otherwise
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from antireplay import ManualClock
+from antireplay.cli import main
+from antireplay.cli.mavlink import _signing_key
+from antireplay.core.clock import SystemClock
+from antireplay.core.errors import StateUnavailableError
+from antireplay.mavlink import (
+    TS_LIMIT,
+    Link,
+    MavlinkGuard,
+    MavlinkRouter,
+    Refusal,
+    Role,
+    TimestampSource,
+    mav_time,
+    open_transport,
+    parse_endpoint,
+    parse_frame,
+)
+from antireplay.mavlink.endpoints import Transport
+from tests.conftest import ROOT
+from tests.harness import free_port, until
+from tests.mavlink_frames import KEY, Sink, unsigned_heartbeat
+
+
+class Rig:
+    """GCS (pymavlink, signing) -> router -> vehicle (pymavlink, observing everything)."""
+
+    def __init__(
+        self,
+        system_id: int = 1,
+        *,
+        bind_system_id: bool = True,
+        allow_unsigned: frozenset[int] = frozenset(),
+    ) -> None:
+        vport = free_port()
+        self.vehicle = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{vport}", source_system=system_id, source_component=1
+        )
+        self.rejections: queue.Queue[tuple[str, str]] = queue.Queue()
+        self.ground = Link(open_transport(parse_endpoint("udpin:127.0.0.1:0")), Role.GROUND, KEY)
+        vehicle = open_transport(parse_endpoint(f"udpout:127.0.0.1:{vport}"))
+        inbound = MavlinkGuard(
+            KEY, system_id=system_id if bind_system_id else None, allow_unsigned=allow_unsigned
+        )
+        self.router = MavlinkRouter(
+            [self.ground, Link(vehicle, Role.VEHICLE, KEY)],
+            {KEY: inbound},
+            MavlinkGuard(KEY),
+            on_reject=self._rejected,
+        )
+        self.inbound = inbound
+        self.router.start()
+        self.address = self.ground.transport.address
+        host, port = self.address
+        self.gcs = mavutil.mavlink_connection(
+            f"udpout:{host}:{port}", source_system=255, source_component=190
+        )
+        self.gcs.setup_signing(KEY, sign_outgoing=True, link_id=1)
+        self.raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+
+    def send_command(self, param1: float, target: int = 1) -> bytes:
+        msg = self.gcs.mav.command_long_encode(target, 1, 400, 0, param1, 0, 0, 0, 0, 0, 0)
+        self.gcs.mav.send(msg)
+        return bytes(msg.get_msgbuf())
+
+    def _rejected(self, refusal: Refusal) -> None:
+        self.rejections.put((refusal.direction, refusal.code))
+
+    @property
+    def peer(self) -> tuple[str, int] | None:
+        """The ground peer that authenticated last (where telemetry goes)."""
+        peers = [peer for peer in self.ground.peers if isinstance(peer, tuple)]
+        return peers[-1] if peers else None
+
+    def inject(self, raw: bytes) -> None:
+        self.raw.sendto(raw, self.address)
+
+    def commands_until(self, sentinel: float) -> list[float]:
+        """Every COMMAND_LONG param1 the vehicle received, up to and including the sentinel."""
+        seen: list[float] = []
+        while True:
+            msg = self.vehicle.recv_match(type="COMMAND_LONG", blocking=True, timeout=10)
+            assert msg is not None, f"sentinel {sentinel} never arrived; got {seen}"
+            seen.append(float(msg.param1))
+            if msg.param1 == sentinel:
+                return seen
+
+    def rejected(self) -> tuple[str, str]:
+        """The next rejection the router reported (direction, code); the router calls back."""
+        try:
+            return self.rejections.get(timeout=10)
+        except queue.Empty:
+            pytest.fail("the router reported no rejection")
+
+    def close(self) -> None:
+        self.router.stop()
+        self.gcs.close()
+        self.vehicle.close()
+        self.raw.close()
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    made = Rig()
+    yield made
+    made.close()
+
+
+@pytest.mark.parametrize("role", list(Role), ids=str)
+def test_roles_print_as_their_value(role: Role) -> None:
+    """Roles are named in endpoint specs and log lines by their value."""
+    assert str(role) == f"{role}" == role.value
+
+
+def test_command_arrives_once_and_exact_replay_is_dropped(rig: Rig) -> None:
+    captured = rig.send_command(1.0)
+    assert rig.commands_until(1.0) == [1.0]
+    rig.inject(captured)
+    rig.send_command(2.0)
+    assert rig.commands_until(2.0) == [2.0]
+    assert rig.router.stats.dropped["inbound:COUNTER_REPLAYED"] == 1
+
+
+def test_jamming_through_the_router(rig: Rig) -> None:
+    frame = bytearray(rig.send_command(1.0))
+    rig.commands_until(1.0)
+    frame[-12:-6] = (TS_LIMIT - 1).to_bytes(6, "little")
+    rig.inject(bytes(frame))
+    rig.send_command(2.0)
+    assert rig.commands_until(2.0) == [2.0]
+    assert rig.router.stats.dropped["inbound:MESSAGE_FROM_FUTURE"] == 1  # before any crypto
+
+
+def test_thousand_forged_streams_through_the_router(rig: Rig) -> None:
+    rig.send_command(1.0)
+    rig.commands_until(1.0)
+    before = len(rig.inbound)
+    rng = random.Random(11)
+    for i in range(1_000):
+        forger = dialect.MAVLink(
+            Sink(), srcSystem=rng.randint(1, 250), srcComponent=rng.randint(1, 250)
+        )
+        forger.signing.secret_key = os.urandom(32)
+        forger.signing.sign_outgoing = True
+        forger.signing.link_id = rng.randint(0, 255)
+        forger.signing.timestamp = mav_time(ManualClock(time.time()))
+        forger.command_long_send(1, 1, 400, 0, 9.0, 0, 0, 0, 0, 0, 0)
+        rig.inject(forger.file.frames[-1])
+        if i % 100 == 99:  # paced: a loaded box must not lose datagrams in the socket buffer
+
+            def judged(n: int = i + 1) -> bool:
+                return sum(rig.router.stats.dropped.values()) >= n
+
+            until("forgeries judged", judged)
+    rig.send_command(2.0)
+    assert rig.commands_until(2.0) == [2.0]
+    assert len(rig.inbound) == before
+
+
+def test_malformed_datagrams_counted_and_dropped(rig: Rig) -> None:
+    for bad in (b"\xfd\x05", b"hello", bytes(3), b"\xfd\x09\x00\x00\x01\xff\xbe\x4c\x00\x00"):
+        rig.inject(bad)
+    rig.send_command(3.0)
+    assert rig.commands_until(3.0) == [3.0]
+    assert rig.router.stats.dropped["inbound:INVALID_FRAME"] == 4
+
+
+def test_a_datagram_is_whole_frames_or_dropped(rig: Rig) -> None:
+    """An authentic frame with garbage before or after it, or cut short, in one datagram:
+    the datagram is dropped whole and counted (no resynchronising on a datagram); two
+    whole frames in one datagram both pass."""
+    mav, sink = signed_sender(254, KEY, ManualClock(time.time()))
+
+    def command(param1: float) -> bytes:
+        mav.command_long_send(1, 1, 400, 0, param1, 0, 0, 0, 0, 0, 0)
+        return sink.frames[-1]
+
+    for datagram in (b"\x00" + command(1.0), command(2.0) + b"\xfd\x01", command(3.0)[:-1]):
+        rig.inject(datagram)
+    rig.inject(command(4.0) + command(5.0))
+    rig.inject(command(6.0))
+    assert rig.commands_until(6.0) == [4.0, 5.0, 6.0]
+    assert rig.router.stats.dropped == {"inbound:INVALID_FRAME": 3}
+
+
+def test_replay_towards_a_second_vehicle_is_dropped(rig: Rig) -> None:
+    captured = rig.send_command(1.0, target=1)
+    rig.commands_until(1.0)
+    second = Rig(system_id=2)
+    try:
+        second.inject(captured)
+        second.send_command(5.0, target=2)
+        assert second.commands_until(5.0) == [5.0]
+        assert second.router.stats.dropped["inbound:WRONG_TARGET"] == 1
+    finally:
+        second.close()
+
+
+def test_round_trip_both_directions_with_signing_everywhere() -> None:
+    rig = Rig()
+    try:
+        rig.vehicle.setup_signing(KEY, sign_outgoing=True, link_id=7)
+        rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        rig.vehicle.mav.heartbeat_send(2, 3, 0, 0, 4)
+        reply = rig.gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=10)
+        assert reply is not None and reply.get_srcSystem() == 1
+        assert rig.router.stats.forwarded["outbound"] >= 1
+    finally:
+        rig.close()
+
+
+def any_id(_mav: object, _msgid: int) -> bool:
+    """pymavlink's hook: the vehicle takes unsigned frames (the router's allow-list decides)."""
+    return True
+
+
+def forged_command() -> bytes:
+    forger = dialect.MAVLink(Sink(), srcSystem=255, srcComponent=190)
+    forger.signing.secret_key = bytes(32)  # not the link key
+    forger.signing.sign_outgoing = True
+    forger.signing.link_id = 1
+    forger.signing.timestamp = mav_time(ManualClock(time.time()))
+    forger.command_long_send(1, 1, 400, 0, 9.0, 0, 0, 0, 0, 0, 0)
+    return bytes(forger.file.frames[-1])
+
+
+@pytest.mark.parametrize("attack", ["garbage", "forged", "replayed", "unsigned-allow-listed"])
+def test_unauthenticated_datagram_cannot_steal_telemetry(attack: str) -> None:
+    """One datagram from an attacker's address must not move the ground peer."""
+    rig = Rig(allow_unsigned=frozenset({0}))  # HEARTBEAT may come unsigned
+    try:
+        rig.vehicle.setup_signing(
+            KEY, sign_outgoing=True, link_id=7, allow_unsigned_callback=any_id
+        )
+        captured = rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        gcs_address = ("127.0.0.1", rig.gcs.port.getsockname()[1])
+        assert rig.peer == gcs_address
+        if attack == "unsigned-allow-listed":
+            rig.inject(unsigned_heartbeat(sysid=200))
+            got = rig.vehicle.recv_match(type="HEARTBEAT", blocking=True, timeout=10)
+            assert got is not None and got.get_srcSystem() == 200  # forwarded, by policy
+        else:
+            datagram = {"garbage": b"hello", "forged": forged_command(), "replayed": captured}
+            rig.inject(datagram[attack])
+            code = {"garbage": "INVALID_FRAME", "forged": "SIGNATURE_INVALID"}
+            assert rig.rejected() == ("inbound", code.get(attack, "COUNTER_REPLAYED"))
+        assert rig.peer == gcs_address
+        rig.vehicle.mav.heartbeat_send(2, 3, 0, 0, 4)  # telemetry, signed by the vehicle
+        reply = rig.gcs.recv_match(type="HEARTBEAT", blocking=True, timeout=10)
+        assert reply is not None and reply.get_srcSystem() == 1
+        rig.raw.setblocking(False)
+        with pytest.raises(BlockingIOError):
+            rig.raw.recv(65_535)  # the attacker received nothing
+    finally:
+        rig.close()
+
+
+def test_no_telemetry_before_a_ground_station_authenticated() -> None:
+    rig = Rig(allow_unsigned=frozenset({0}))
+    try:
+        rig.vehicle.setup_signing(
+            KEY, sign_outgoing=True, link_id=7, allow_unsigned_callback=any_id
+        )
+        rig.inject(unsigned_heartbeat(sysid=200))  # an unsigned frame teaches no peer
+        assert rig.vehicle.recv_match(type="HEARTBEAT", blocking=True, timeout=10) is not None
+        assert rig.peer is None
+        rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        assert rig.peer == ("127.0.0.1", rig.gcs.port.getsockname()[1])
+    finally:
+        rig.close()
+
+
+@pytest.mark.parametrize("bind_system_id", [True, False])
+def test_reflected_vehicle_frame_is_dropped_with_a_typed_code(bind_system_id: bool) -> None:
+    """A signed frame the vehicle sent, sent back to the listen port, never reaches it."""
+    rig = Rig(bind_system_id=bind_system_id)
+    try:
+        rig.vehicle.setup_signing(KEY, sign_outgoing=True, link_id=7)
+        rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        rig.vehicle.mav.command_long_send(255, 190, 400, 0, 7.0, 0, 0, 0, 0, 0, 0)
+        reply = rig.gcs.recv_match(type="COMMAND_LONG", blocking=True, timeout=10)
+        assert reply is not None and reply.get_srcSystem() == 1
+        rig.inject(bytes(reply.get_msgbuf()))  # reflected to the ground side
+        assert rig.rejected() == ("inbound", "WRONG_DIRECTION")
+        rig.send_command(2.0)
+        assert rig.commands_until(2.0) == [2.0]  # the reflected 7.0 never arrived
+        assert rig.router.stats.forwarded["inbound"] == 2
+    finally:
+        rig.close()
+
+
+def test_ground_frame_echoed_by_the_vehicle_side_is_dropped() -> None:
+    """Radios and routers that echo: a ground frame coming back never reaches the ground."""
+    rig = Rig()
+    try:
+        captured = rig.send_command(1.0)
+        assert rig.commands_until(1.0) == [1.0]
+        rig.vehicle.write(captured)  # the vehicle side sends the ground station's frame back
+        assert rig.rejected() == ("outbound", "WRONG_DIRECTION")
+        assert rig.router.stats.forwarded["outbound"] == 0
+    finally:
+        rig.close()
+
+
+class _UdpWriter:
+    """pymavlink's output file: each packed frame goes out as one datagram, and is kept."""
+
+    def __init__(self, to: tuple[str, int]) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.to = to
+        self.sent: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.sent.append(bytes(data))
+        self.sock.sendto(data, self.to)
+
+
+def _paced(count: int, hz: float, send: Any) -> None:
+    """Call ``send(i)`` ``count`` times at ``hz`` (a load generator's pacing, not a wait)."""
+    start = time.perf_counter()
+    for i in range(count):
+        delay = start + i / hz - time.perf_counter()
+        if delay > 0:
+            time.sleep(delay)
+        send(i)
+
+
+def _dropped(metrics_port: int) -> dict[str, float]:
+    with urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10) as reply:
+        text = reply.read().decode()
+    found = {}
+    for line in text.splitlines():
+        if line.startswith("antireplay_mavlink_dropped_total{"):
+            labels, _, value = line.rpartition(" ")
+            found[labels.split('code="')[1].split('"')[0]] = float(value)
+    return found
+
+
+def _until_dropped(metrics_port: int, count: int) -> None:
+    """Poll the router's metrics until it has refused ``count`` frames (fail after 20 s)."""
+    deadline = time.monotonic() + 20
+    while sum(_dropped(metrics_port).values()) < count:
+        if time.monotonic() > deadline:
+            pytest.fail(f"the router judged fewer than {count} replays: {_dropped(metrics_port)}")
+        time.sleep(0.02)
+
+
+SENTINEL_MS = 4_000_000_000
+
+
+def test_cli_proxy_kill_9_at_1000_hz_then_every_capture_dropped(tmp_path: Path) -> None:
+    """A real proxy on its default SQLite store, signed ATTITUDE at 1,000 Hz from pymavlink,
+    SIGKILL mid-stream, restart, replay every capture: all dropped; the sender goes on."""
+    key_file = tmp_path / "key.hex"
+    key_file.write_text(KEY.hex())
+    vport, pport, mport = free_port(), free_port(), free_port()
+    vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    vehicle.bind(("127.0.0.1", vport))
+    vehicle.settimeout(0.2)
+    received: list[bytes] = []
+    sentinel_seen, closing = threading.Event(), threading.Event()
+
+    def vehicle_loop() -> None:
+        while not closing.is_set():
+            try:
+                datagram = vehicle.recv(65_535)
+            except TimeoutError:
+                continue
+            received.append(datagram)
+            if int.from_bytes(datagram[10:14], "little") == SENTINEL_MS:
+                sentinel_seen.set()
+
+    args = [
+        sys.executable, "-m", "antireplay", "mavlink-router", "--listen", f"udp:127.0.0.1:{pport}",
+        "--forward", f"udp:127.0.0.1:{vport}", "--key-file", str(key_file), "--system-id", "1",
+        "--store", f"sqlite:{tmp_path / 'mav.db'}", "--audit", str(tmp_path / "audit.db"),
+        "--metrics-port", str(mport),
+    ]  # fmt: skip
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+
+    def start() -> subprocess.Popen[bytes]:
+        proc = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert proc.stdout is not None
+        if b"mavlink-router" not in proc.stdout.readline():  # listening
+            pytest.fail(f"the router did not start: {proc.communicate()[1].decode()}")
+        return proc
+
+    out = _UdpWriter(("127.0.0.1", pport))
+    gcs = dialect.MAVLink(out, srcSystem=255, srcComponent=190)
+    gcs.signing.secret_key, gcs.signing.sign_outgoing, gcs.signing.link_id = KEY, True, 1
+    wall = SystemClock()
+
+    def send(time_boot_ms: int) -> None:
+        """Wall-anchored, as the spec asks (pymavlink alone only adds 1 per frame)."""
+        gcs.signing.timestamp = max(gcs.signing.timestamp, mav_time(wall))
+        gcs.attitude_send(time_boot_ms, 0.1, 0.2, 0.3, 0.0, 0.0, 0.0)
+
+    receiver = threading.Thread(target=vehicle_loop)
+    receiver.start()
+    proxy = start()
+    try:
+
+        def attitude(i: int) -> None:
+            send(i + 1)
+            if i == 1_500:
+                proxy.send_signal(signal.SIGKILL)  # mid-stream
+
+        _paced(2_000, 1_000, attitude)
+        proxy.wait()
+        forwarded_before = len(received)
+        assert forwarded_before >= 1_000, forwarded_before  # the stream was flowing
+        captures = list(out.sent)
+        proxy = start()
+        raw = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        for batch in range(0, len(captures), 100):  # each batch judged before the next one
+            size = min(100, len(captures) - batch)
+            _paced(size, 1_000, lambda i, at=batch: raw.sendto(captures[at + i], out.to))
+            _until_dropped(mport, batch + size)
+        raw.close()
+        _paced(50, 1_000, lambda i: send(10_000 + i))
+        send(SENTINEL_MS)
+        if not sentinel_seen.wait(10):
+            pytest.fail("the honest sender's frames never passed the restarted router")
+        after = received[forwarded_before:]
+        assert not set(after) & set(captures)  # not one capture got through
+        assert len(after) == 51  # every fresh frame did
+        dropped = _dropped(mport)
+        assert sum(dropped.values()) == len(captures), dropped
+        assert set(dropped) <= {"MESSAGE_STALE", "COUNTER_REPLAYED"}, dropped
+    finally:
+        proxy.terminate()
+        proxy.wait()
+        closing.set()
+        receiver.join()
+        vehicle.close()
+        out.sock.close()
+
+
+def test_signing_key_file_forms(tmp_path: Path) -> None:
+    raw = tmp_path / "raw.key"
+    raw.write_bytes(b"\n" + bytes(range(1, 31)) + b" ")  # a raw key may start/end with whitespace
+    assert _signing_key(raw) == b"\n" + bytes(range(1, 31)) + b" "
+    hexed = tmp_path / "hex.key"
+    hexed.write_text(KEY.hex() + "\n")
+    assert _signing_key(hexed) == KEY
+
+
+@pytest.mark.parametrize("content", [None, b"", b"zz" * 32, b"\xff" * 64, b"0" * 63])
+def test_cli_proxy_refuses_a_bad_key_file_naming_it(tmp_path: Path, content: bytes | None) -> None:
+    key = tmp_path / "link.key"
+    if content is None:
+        key.mkdir()  # a directory where the key should be
+    else:
+        key.write_bytes(content)
+    result = CliRunner().invoke(main, [
+        "mavlink-proxy", "--listen", "udp:127.0.0.1:9", "--forward", "udp:127.0.0.1:9",
+        "--key-file", str(key), "--audit", str(tmp_path / "audit.db"),
+    ])  # fmt: skip
+    assert result.exit_code == 2
+    said = " ".join(result.output.split())
+    assert str(key) in said and "Traceback" not in said
+    assert not (tmp_path / "audit.db").exists()
+
+
+def test_an_audit_trail_that_is_down_does_not_stop_the_forwarding(rig: Rig) -> None:
+    def audit_down(refusal: Refusal) -> None:
+        raise StateUnavailableError("audit trail: disk full")
+
+    rig.router.on_reject = audit_down
+    rig.inject(b"hello")
+    rig.send_command(4.0)
+    assert rig.commands_until(4.0) == [4.0]  # the receiving thread is alive
+    assert rig.router.stats.unaudited == 1
+    assert rig.router.stats.dropped["inbound:INVALID_FRAME"] == 1
+
+
+class FakeTransport(Transport):
+    """An in-process endpoint: frames are injected, writes are recorded."""
+
+    def __init__(self, text: str, *, fixed: bool = True) -> None:
+        super().__init__(parse_endpoint(text), fixed=fixed)
+        self.sent: list[tuple[bytes, Any]] = []
+        self._deliver: Any = None
+
+    def start(self, deliver: Any) -> None:
+        self._deliver = deliver
+
+    def _write(self, data: bytes, peer: Any) -> None:
+        self.sent.append((bytes(data), peer))
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def inject(self, raw: bytes, peer: Any = None) -> None:
+        self._deliver(self, peer, [raw], 0)
+
+
+def signed_sender(sysid: int, key: bytes, clock: ManualClock) -> tuple[Any, Sink]:
+    sink = Sink()
+    mav = dialect.MAVLink(sink, srcSystem=sysid, srcComponent=190)
+    mav.signing.secret_key, mav.signing.sign_outgoing = key, True
+    mav.signing.link_id, mav.signing.timestamp = 1, mav_time(clock)
+    return mav, sink
+
+
+def test_a_frame_the_router_signed_for_a_ground_link_cannot_be_reflected() -> None:
+    """Link B has its own key: the router signs what it forwards there afresh (link id
+    251).  An attacker on B who sends such a copy back gets WRONG_DIRECTION: it neither
+    reaches the vehicle twice nor steals the route of the station that sent it."""
+    clock, other_key = ManualClock(1_800_000_000.0), bytes(range(1, 33))
+    vehicle = FakeTransport("udpout:127.0.0.1:1")
+    a = FakeTransport("udpin:0.0.0.0:2", fixed=False)
+    b = FakeTransport("udpin:0.0.0.0:3", fixed=False)
+    router = MavlinkRouter(
+        [
+            Link(vehicle, Role.VEHICLE, KEY),
+            Link(a, Role.GROUND, KEY),
+            Link(b, Role.GROUND, other_key),
+        ],
+        {
+            KEY: MavlinkGuard(KEY, clock=clock, system_id=1),
+            other_key: MavlinkGuard(other_key, clock=clock, system_id=1),
+        },
+        MavlinkGuard(KEY, clock=clock),
+        signers={KEY: TimestampSource(clock), other_key: TimestampSource(clock)},
+    )
+    router.start()
+    station_b, sink_b = signed_sender(254, other_key, clock)
+    station_b.heartbeat_send(6, 8, 0, 0, 0)
+    b.inject(sink_b.frames[-1], ("10.0.0.2", 14550))  # B has a receiver from now on
+    station_a, sink_a = signed_sender(255, KEY, clock)
+    station_a.command_long_send(0, 0, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # ARM, broadcast
+    a.inject(sink_a.frames[-1], ("10.0.0.1", 14550))
+
+    def arms() -> list[bytes]:
+        return [d for d, _ in vehicle.sent if parse_frame(d).msgid == 76]
+
+    copies = [d for d, _ in b.sent if parse_frame(d).msgid == 76]
+    assert len(arms()) == 1 and len(copies) == 1
+    clock.advance(0.5)
+    b.inject(copies[0], ("6.6.6.6", 4444))
+    assert len(arms()) == 1
+    assert router.stats.dropped["inbound:WRONG_DIRECTION"] == 1
+    assert router.routes()[(255, 190)] == "udpin:0.0.0.0:2"
+    router.stop()

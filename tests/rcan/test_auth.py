@@ -1,0 +1,163 @@
+"""Authentication: JWT rules, signature encodings and the key registry's SDK-compat mode."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import jwt as pyjwt
+import pytest
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ec, mldsa
+from rcan.signing import MLDSAKeyPair, verify_message
+
+from antireplay import ManualClock, SecurityConfig
+from antireplay.core.errors import SignatureInvalidError
+from antireplay.rcan.auth import (
+    JwtVerifier,
+    b64decode,
+    b64encode,
+    load_public_key,
+    sdk_key_id,
+    sign_envelope,
+    sign_sdk,
+)
+from antireplay.rcan.receive import Receiver
+from rcan import RCANMessage
+from tests.conftest import fresh_receiver
+from tests.envelopes import (
+    ED,
+    JWT_KEY,
+    NOW,
+    PQ,
+    codes,
+    message,
+    registry,
+    sdk_message,
+    sdk_registry,
+    signed,
+    token,
+)
+
+
+@pytest.mark.parametrize(
+    "claims",
+    [
+        {"exp": math.nan}, {"exp": math.inf}, {"exp": 10**400}, {"exp": True},
+        {"nbf": math.nan}, {"nbf": -math.inf}, {"nbf": -(10**400)}, {"nbf": False},
+    ],
+    ids=lambda claims: "-".join(f"{k}={v!r}"[:24] for k, v in claims.items()),
+)  # fmt: skip
+def test_jwt_time_claims_must_be_finite_numbers(
+    jwt_receiver: Receiver, claims: dict[str, Any]
+) -> None:
+    out = jwt_receiver.receive(signed(), {"Authorization": f"Bearer {token(**claims)}"})
+    assert (out.code, out.status) == ("AUTH_FAILED", 401)
+
+
+@pytest.fixture
+def jwt_receiver(clock: ManualClock) -> Receiver:
+    verifier = JwtVerifier(
+        {"jwt-1": JWT_KEY.public_key()}, audience="robot-1", issuer="fleet", clock=clock
+    )
+    return fresh_receiver(
+        SecurityConfig(), registry(), None, None, clock, jwt=verifier, jwt_required=True
+    )
+
+
+@pytest.mark.parametrize(
+    ("tok", "code"),
+    [
+        (token, None),
+        (lambda: token(exp=NOW - 1), "AUTH_FAILED"),
+        (lambda: token(nbf=NOW + 30), "AUTH_FAILED"),
+        (lambda: token(aud="robot-2"), "AUTH_FAILED"),
+        (lambda: token(iss="elsewhere"), "AUTH_FAILED"),
+        (lambda: token(sub="viewer"), "AUTH_FAILED"),
+        (
+            lambda: pyjwt.encode({"sub": "operator", "exp": NOW + 60}, "s" * 32, "HS256"),
+            "AUTH_FAILED",
+        ),
+        (lambda: "garbage", "AUTH_FAILED"),
+        (lambda: None, "AUTH_FAILED"),
+    ],
+)
+def test_jwt_rules(jwt_receiver: Receiver, tok: Any, code: str | None) -> None:
+    value = tok()
+    headers = {} if value is None else {"Authorization": f"Bearer {value}"}
+    assert jwt_receiver.receive(signed(), headers).code == code
+
+
+def test_es256_tokens_and_algorithm_confusion(clock: ManualClock) -> None:
+    es_key = ec.generate_private_key(ec.SECP256R1())
+    verifier = JwtVerifier({"es": es_key.public_key(), "ed": JWT_KEY.public_key()}, clock=clock)
+    rx = fresh_receiver(SecurityConfig(), registry(), None, None, clock, jwt=verifier)
+    good = pyjwt.encode({"sub": "operator", "exp": NOW + 60}, es_key, "ES256", {"kid": "es"})
+    assert rx.receive(signed(), {"Authorization": f"Bearer {good}"}).accepted
+    wrong_key = pyjwt.encode({"sub": "operator", "exp": NOW + 60}, es_key, "ES256", {"kid": "ed"})
+    assert rx.receive(signed(), {"Authorization": f"Bearer {wrong_key}"}).code == "AUTH_FAILED"
+
+
+def test_jwt_in_envelope_field(jwt_receiver: Receiver) -> None:
+    body = sign_envelope(message(jwt=token()), "op-ed", "ed25519", ED)
+    assert jwt_receiver.receive(json.dumps(body).encode()).accepted
+
+
+def test_sdk_messages_parse_and_verify_only_in_compat_mode(clock: ManualClock) -> None:
+    raw, pair = sdk_message()
+    strict = fresh_receiver(SecurityConfig(), sdk_registry(pair, False), None, None, clock)
+    assert strict.receive(raw).code == "SIGNATURE_INVALID"
+    compat = fresh_receiver(SecurityConfig(), sdk_registry(pair, True), None, None, clock)
+    out = compat.receive(raw)
+    assert out.accepted and out.signer is not None and out.signer.subset
+    assert compat.receive(raw).code == "REPLAY_DETECTED"
+
+
+@pytest.mark.parametrize("value", ["a", "abcde", "\u00e9\u00e9\u00e9\u00e9", "AA=A"])
+def test_b64_helper_turns_garbage_into_signature_invalid(receiver: Receiver, value: str) -> None:
+    """Our base64url helper: padding optional, garbage a typed SIGNATURE_INVALID (401)."""
+    assert b64decode(b64encode(b"\0\xff\xfe")) == b"\0\xff\xfe"  # unpadded, url alphabet
+    with pytest.raises(SignatureInvalidError):
+        b64decode(value)
+    body = json.loads(signed())
+    body["sig"]["value"] = value
+    assert codes(receiver.receive(json.dumps(body).encode())) == (False, 401, "SIGNATURE_INVALID")
+
+
+def test_an_unsigned_or_unknown_key_envelope_gets_its_own_code_beside_a_token(
+    jwt_receiver: Receiver,
+) -> None:
+    """One event, one code: a valid bearer token does not turn 'unsigned' or 'unknown key'
+    into AUTH_FAILED (which stays the code of a missing or bad token)."""
+    unsigned = json.dumps(message()).encode()
+    unknown = json.dumps(sign_envelope(message(), "nobody", "ed25519", ED)).encode()
+    bearer = {"Authorization": f"Bearer {token()}"}
+    assert jwt_receiver.receive(unsigned, bearer).code == "SIGNATURE_REQUIRED"
+    assert jwt_receiver.receive(unknown, bearer).code == "UNKNOWN_SENDER"
+    assert jwt_receiver.receive(unsigned).code == "AUTH_FAILED"  # the token is required here
+
+
+def test_public_key_files_pem_or_the_sdk_s_raw_bytes() -> None:
+    """One loader: PEM (any supported type) and the SDK's raw ML-DSA keys; the rest by name."""
+    pq = mldsa.MLDSA65PrivateKey.generate().public_key()
+    pq87 = mldsa.MLDSA87PrivateKey.generate().public_key()
+    pem = pq.public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo
+    )
+    assert load_public_key(pem) == pq
+    assert load_public_key(pq.public_bytes_raw()) == pq
+    assert load_public_key(pq87.public_bytes_raw()) == pq87
+    with pytest.raises(ValueError, match="1952 or 2592 bytes"):
+        load_public_key(b"\x01" * 32)
+    with pytest.raises(ValueError, match="SDK private key file"):
+        load_public_key(b"MLDS" + b"\x00" * 5990)
+
+
+def test_sdk_signatures_made_here_verify_with_the_sdk() -> None:
+    body = sign_sdk(message(), PQ)
+    pair = MLDSAKeyPair.from_public_bytes(PQ.public_key().public_bytes_raw())
+    verify_message(RCANMessage.from_dict(body), [pair])
+    assert body["sig"]["kid"] == pair.key_id == sdk_key_id(PQ.public_key())
+    with pytest.raises(ValueError, match="does not cover scope"):
+        sign_sdk(message(scope="safety"), PQ)
