@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+import os
 import sqlite3
 import uuid
 from pathlib import Path
@@ -31,13 +32,16 @@ from antireplay.core.errors import (
     WarningCode,
 )
 from antireplay.epochs import (
+    OUTSTANDING,
     Announcement,
     EpochSigner,
     EpochVerifier,
     Kind,
+    derive_key,
     prefix_for_service,
     successor_prefix,
 )
+from antireplay.epochs.policy import seal
 from antireplay.state.durable import repair
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
@@ -682,3 +686,129 @@ def test_wrong_typed_value_in_redis_is_a_state_file_error(
         store.advance("epoch:announcement:floor", 5)
     raw.close()
     store.close()
+
+
+def fresh_pair(clock: ManualClock, **options: Any) -> tuple[EpochSigner, EpochVerifier, bytes]:
+    """A signer that has been sealing for a while, a verifier that just started without
+    state (its start fence ahead), and a sample captured before that start."""
+    signer = EpochSigner(PSK, clock=clock)
+    captured = signer.seal(b"captured before the verifier started")
+    clock.advance(0.5)
+    return signer, EpochVerifier(PSK, clock=clock, **options), captured
+
+
+def refused_by_fence(verifier: EpochVerifier, sealed: bytes) -> bool:
+    with pytest.raises(MessageStaleError) as refused:
+        verifier.open(sealed)
+    return refused.value.detail == "restart_fence"
+
+
+@pytest.mark.parametrize("forward_s", [5.0, 60.0])
+def test_answered_challenge_opens_the_fence_above_the_answer_at_once(
+    clock: ManualClock, forward_s: float
+) -> None:
+    signer, verifier, captured = fresh_pair(clock, max_forward_s=forward_s)
+    challenge = verifier.challenge()
+    assert challenge is not None
+    in_flight = signer.seal(b"sealed after the challenge, before the answer")
+    answered = verifier.open_answer(signer.answer(challenge))
+    assert (answered.nonce_prefix, answered.kind) == (signer.nonce_prefix, Kind.ANSWER)
+    clock.advance(0.001)  # no waiting for the fence: one millisecond later
+    assert verifier.open(signer.seal(b"fresh")).payload == b"fresh"
+    assert refused_by_fence(verifier, captured)  # its epoch is below the answered one
+    assert refused_by_fence(verifier, in_flight)
+    other = EpochSigner(PSK, clock=clock)  # a writer that did not answer stays fenced
+    assert refused_by_fence(verifier, other.seal(b"unanswered prefix"))
+
+
+def test_without_an_answer_the_start_fence_holds_as_before(clock: ManualClock) -> None:
+    signer, verifier, captured = fresh_pair(clock, max_forward_s=5)
+    assert verifier.challenge() is not None  # nobody answers
+    assert refused_by_fence(verifier, signer.seal(b"during the fence"))
+    clock.advance(5.001)
+    assert verifier.challenge() is None  # past the fence there is nothing to prove
+    assert verifier.open(signer.seal(b"after the fence")).payload == b"after the fence"
+    with pytest.raises(MessageStaleError):
+        verifier.open(captured)
+
+
+def test_answer_to_a_stale_nonce_is_refused_and_changes_nothing(clock: ManualClock) -> None:
+    signer, verifier, _ = fresh_pair(clock)
+    earlier_run = EpochVerifier(PSK, clock=clock)  # a previous run's challenge, captured
+    old_challenge = earlier_run.challenge()
+    assert old_challenge is not None
+    replayed_answer = signer.answer(old_challenge)
+    assert verifier.challenge() is not None
+    with pytest.raises(MessageStaleError) as refused:
+        verifier.open_answer(replayed_answer)
+    assert refused.value.detail == "challenge_nonce"
+    assert verifier.policy.answered == {}
+    assert refused_by_fence(verifier, signer.seal(b"still fenced"))
+
+
+def test_outstanding_nonces_are_bounded(clock: ManualClock) -> None:
+    signer, verifier, _ = fresh_pair(clock)
+    first = verifier.challenge()
+    assert first is not None
+    for _ in range(OUTSTANDING):  # retries, each with a new nonce
+        assert verifier.challenge() is not None
+    assert len(verifier.policy.nonces) == OUTSTANDING
+    with pytest.raises(MessageStaleError):
+        verifier.open_answer(signer.answer(first))
+
+
+@pytest.mark.parametrize("index", [1, 5, 12, 20, -1])  # kind, prefix, epoch, nonce, tag
+def test_forged_answer_is_refused_and_changes_nothing(clock: ManualClock, index: int) -> None:
+    signer, verifier, _ = fresh_pair(clock)
+    challenge = verifier.challenge()
+    assert challenge is not None
+    answer = bytearray(signer.answer(challenge))
+    answer[index] ^= 0x01
+    with pytest.raises((SignatureInvalidError, InvalidFrameError, MessageStaleError)):
+        verifier.open_answer(bytes(answer))
+    stranger = EpochSigner(os.urandom(32), nonce_prefix=signer.nonce_prefix, clock=clock)
+    with pytest.raises(SignatureInvalidError):  # a stranger's key: the challenge's MAC fails
+        stranger.answer(challenge)
+    with pytest.raises(SignatureInvalidError):  # and an answer under it fails here
+        verifier.open_answer(seal(derive_key(os.urandom(32), Kind.PING), Kind.ANSWER,
+                                  signer.nonce_prefix, 1, challenge[18:-32]))  # fmt: skip
+    assert verifier.policy.answered == {}
+    assert refused_by_fence(verifier, signer.seal(b"still fenced"))
+
+
+def test_signer_answers_only_authentic_timely_challenges(clock: ManualClock) -> None:
+    signer, verifier, _ = fresh_pair(clock, max_forward_s=5)
+    challenge = verifier.challenge()
+    assert challenge is not None
+    last = signer.last_epoch
+    forged = bytearray(challenge)
+    forged[-1] ^= 1
+    with pytest.raises(SignatureInvalidError):
+        signer.answer(bytes(forged))
+    with pytest.raises(InvalidFrameError):
+        signer.answer(signer.seal_ping(b"a ping is no challenge"))
+    last = signer.last_epoch
+    clock.advance(61)  # a challenge replayed a minute later gets no answer
+    with pytest.raises(MessageStaleError):
+        signer.answer(challenge)
+    assert signer.last_epoch == last  # refused challenges spend no epoch
+
+
+def test_a_store_that_loses_state_voids_the_answers(
+    clock: ManualClock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Answers prove freshness against the state the verifier had when it asked: a store
+    that reports a loss afterwards (a new fence) puts every prefix back on the fence."""
+    signer, verifier, _ = fresh_pair(clock)
+    challenge = verifier.challenge()
+    assert challenge is not None
+    verifier.open_answer(signer.answer(challenge))
+    accepted = signer.seal(b"accepted before the loss")
+    verifier.open(accepted)
+    clock.advance(1)
+    lost_at = clock.wall()
+    monkeypatch.setattr(verifier.store, "fence", lambda: lost_at)
+    assert refused_by_fence(verifier, signer.seal(b"after the loss"))
+    with pytest.raises(MessageStaleError):  # the old nonce is void too
+        verifier.open_answer(signer.answer(challenge))
+    assert verifier.policy.answered == {}

@@ -62,9 +62,18 @@ COLLISION_HORIZON_NS = 60 * 1_000_000_000
 class Kind(IntEnum):
     ANNOUNCEMENT = 1
     PING = 2
+    #: A fresh verifier's question (payload: its nonce) and a signer's answer binding that
+    #: nonce to its current (prefix, epoch); both sealed with the binding-ping key.
+    CHALLENGE = 3
+    ANSWER = 4
 
 
 LABELS = {Kind.ANNOUNCEMENT: "announcement", Kind.PING: "binding ping"}
+#: The kinds that carry epochs a verifier keeps marks for.
+STREAMS = (Kind.ANNOUNCEMENT, Kind.PING)
+NONCE_LEN = 16
+#: Challenge nonces a verifier keeps outstanding (the newest; a retry replaces the oldest).
+OUTSTANDING = 4
 
 
 @dataclass(frozen=True)
@@ -80,11 +89,19 @@ class Announcement:
 
 
 def derive_key(psk: bytes, kind: Kind) -> bytes:
-    """HKDF-SHA256 with a fixed label per kind."""
+    """HKDF-SHA256 with a fixed label per kind; challenges and answers use the ping key
+    (the kind byte under the MAC keeps the three apart)."""
     if not isinstance(psk, bytes) or len(psk) < 16:
         raise ValueError("psk must be at least 16 bytes")
-    info = b"antireplay/v1 epoch " + LABELS[kind].encode()
+    label = LABELS[kind if kind in STREAMS else Kind.PING]
+    info = b"antireplay/v1 epoch " + label.encode()
     return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(psk)
+
+
+def derive_keys(psk: bytes) -> dict[Kind, bytes]:
+    """The key of every kind (two HKDF runs: challenges and answers share the ping key)."""
+    keys = {k: derive_key(psk, k) for k in STREAMS}
+    return keys | {Kind.CHALLENGE: keys[Kind.PING], Kind.ANSWER: keys[Kind.PING]}
 
 
 def prefix_for_service(service_name: str) -> bytes:
@@ -222,11 +239,16 @@ class EpochPolicy:
     def __init__(
         self, psk: bytes, *, max_age_ns: int | None, max_forward_ns: int, max_prefixes: int
     ) -> None:
-        self.keys = {k: derive_key(psk, k) for k in Kind}
+        self.keys = derive_keys(psk)
         self.max_age_ns, self.max_forward_ns = max_age_ns, max_forward_ns
         self.tables: dict[Kind, FencedTable[bytes, Recent]] = {
-            k: FencedTable(max_prefixes, what=f"{LABELS[k]} prefix") for k in Kind
+            k: FencedTable(max_prefixes, what=f"{LABELS[k]} prefix") for k in STREAMS
         }
+        self.max_answered = max_prefixes
+        #: The nonces of this run's challenges, newest last (bounded).
+        self.nonces: deque[bytes] = deque(maxlen=OUTSTANDING)
+        #: Prefix -> the lowest epoch it answered one of those nonces with.
+        self.answered: dict[bytes, int] = {}
 
     def authentic(self, claim: Claim) -> bool:
         """The tag verifies (constant time)."""
@@ -247,7 +269,7 @@ class EpochPolicy:
         if epoch > now_ns + self.max_forward_ns:
             event = TooFarAhead(claim.prefix, epoch, epoch - now_ns) if authentic else None
             return Refused(EpochTooFarAheadError("epoch jumped beyond max_forward_s"), event)
-        if epoch <= restart_ns:
+        if epoch <= self.fence_for(claim.prefix, restart_ns):
             return Refused(
                 MessageStaleError(
                     "sealed before this verifier's state began "
@@ -300,3 +322,39 @@ class EpochPolicy:
         """Move the marks; the driver has persisted what :meth:`admit` asked for."""
         recent = self.tables[claim.kind].commit(claim.prefix, claim.epoch, Recent)
         recent.pairs.append((claim.epoch, digest))
+
+    def fence_for(self, prefix: bytes, restart_ns: int) -> int:
+        """The restart fence, or lower for a prefix that answered a challenge: its epochs
+        above the answered one were sealed after its signer saw a nonce of this run."""
+        answered = self.answered.get(prefix)
+        return restart_ns if answered is None else min(restart_ns, answered)
+
+    def challenge(self, nonce: bytes, prefix: bytes, now_ns: int) -> bytes:
+        """A sealed challenge for ``nonce`` (random, from the driver); the oldest nonce
+        outstanding is dropped once ``OUTSTANDING`` are held."""
+        if len(nonce) != NONCE_LEN:
+            raise ValueError(f"a challenge nonce is {NONCE_LEN} bytes")
+        self.nonces.append(nonce)
+        return seal(self.keys[Kind.CHALLENGE], Kind.CHALLENGE, prefix, now_ns, nonce)
+
+    def check_answer(self, claim: Claim) -> Refused | None:
+        """Cheap, before the MAC: an answer must bind a nonce this run holds outstanding
+        (a replayed answer binds a stale one)."""
+        if claim.payload in self.nonces:
+            return None
+        stale = "answer to a challenge this verifier is not waiting for"
+        return Refused(MessageStaleError(stale, detail="challenge_nonce"))
+
+    def commit_answer(self, claim: Claim) -> None:
+        """Record an authentic answer (checked first); a full map drops its oldest prefix,
+        which falls back to the restart fence (closed, never open)."""
+        previous = self.answered.get(claim.prefix)
+        if previous is None and len(self.answered) >= self.max_answered:
+            del self.answered[next(iter(self.answered))]
+        lowest = claim.epoch if previous is None else min(previous, claim.epoch)
+        self.answered[claim.prefix] = lowest
+
+    def forget_answers(self) -> None:
+        """The store lost state after the challenges: they prove nothing about it."""
+        self.nonces.clear()
+        self.answered.clear()

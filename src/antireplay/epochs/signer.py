@@ -24,6 +24,7 @@ epoch.  The file has one owner (an OS lock): two signers on it would repeat epoc
 
 from __future__ import annotations
 
+import hmac
 import logging
 import os
 import threading
@@ -33,16 +34,24 @@ from typing import Any
 
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.counters import NonceCounter
-from antireplay.core.errors import StateFileError
+from antireplay.core.errors import (
+    InvalidFrameError,
+    MessageStaleError,
+    SignatureInvalidError,
+    StateFileError,
+)
 from antireplay.epochs.policy import (
     EPOCH_LIMIT,
+    NONCE_LEN,
     PREFIX_LEN,
     Kind,
-    derive_key,
+    derive_keys,
+    parse,
     prefix_for_service,
     require_size,
     seal,
     successor_prefix,
+    tag,
     to_ns,
 )
 from antireplay.state.ceilings import counter_on_state
@@ -92,7 +101,7 @@ class EpochSigner:
             raise ValueError(f"nonce_prefix must be {PREFIX_LEN} bytes")
         if not max_forward_s > reserve_s:
             raise ValueError("max_forward_s must exceed reserve_s (else every restart rotates)")
-        self._keys = {k: derive_key(psk, k) for k in Kind}
+        self._keys = derive_keys(psk)
         self._clock = clock = resolve(clock)
         self._max_forward_ns = int(max_forward_s * 1_000_000_000)
         self._lock = threading.Lock()
@@ -170,6 +179,22 @@ class EpochSigner:
     def seal_ping(self, payload: bytes) -> bytes:
         """A binding ping: same discipline, separate key."""
         return self.seal(payload, kind=Kind.PING)
+
+    def answer(self, challenge: bytes) -> bytes:
+        """The answer to a fresh verifier's challenge: its nonce sealed at this signer's
+        next (prefix, epoch), above everything sealed before.  Cheap checks (shape, the
+        challenge's time within ``max_forward_s`` of ours) before the MAC; a refused
+        challenge raises its typed error and spends no epoch."""
+        claim = parse(challenge, Kind.CHALLENGE)
+        if len(claim.payload) != NONCE_LEN:
+            raise InvalidFrameError(f"a challenge carries a {NONCE_LEN}-byte nonce")
+        if abs(claim.epoch - to_ns(self._clock.wall())) > self._max_forward_ns:
+            raise MessageStaleError("challenge not sent within max_forward_s of now")
+        expected = tag(self._keys[Kind.CHALLENGE], Kind.CHALLENGE, claim.prefix, claim.epoch,
+                       claim.payload)  # fmt: skip
+        if not hmac.compare_digest(expected, claim.tag):
+            raise SignatureInvalidError("challenge tag does not verify")
+        return self.seal(claim.payload, kind=Kind.ANSWER)
 
 
 def _int_or(value: object, default: int) -> int:

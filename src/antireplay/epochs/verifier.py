@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 from collections import Counter
 from collections.abc import Callable
@@ -44,6 +45,8 @@ from antireplay.core.errors import (
     WarningCode,
 )
 from antireplay.epochs.policy import (
+    NONCE_LEN,
+    PREFIX_LEN,
     Admission,
     Announcement,
     Claim,
@@ -110,6 +113,8 @@ class EpochVerifier:
         self.rotations = 0
         self.warnings: Counter[WarningCode] = Counter()
         self._fence_seen, self._restart_ns = -math.inf, -1
+        #: The prefix this verifier's challenges carry (random per run; names the asker).
+        self.challenger = os.urandom(PREFIX_LEN)
         self.store.verify()  # loss detection now: a lost store raises its fence
         for kind, table in self.policy.tables.items():  # undecodable: StateFileError, no start
             table.raise_fence(self.store.current(self._key(kind, "floor")) or -1)
@@ -134,7 +139,35 @@ class EpochVerifier:
         if fence != self._fence_seen:  # rare: computed once per fence the store reports
             self._fence_seen = fence
             self._restart_ns = to_ns(fence + self.max_forward_s)
+            self.policy.forget_answers()  # answers given before a loss prove nothing after it
         return self._restart_ns
+
+    def fenced(self) -> bool:
+        """Whether the restart fence still lies ahead: only then is a challenge worth sending."""
+        return self._now() <= self.restart_fence()
+
+    def challenge(self) -> bytes | None:
+        """A sealed challenge with a new random nonce while :meth:`fenced` (else None);
+        at most ``OUTSTANDING`` nonces are held, the oldest dropped first."""
+        if not self.fenced():
+            return None
+        with self._lock:
+            return self.policy.challenge(os.urandom(NONCE_LEN), self.challenger, self._now())
+
+    def open_answer(self, sealed: bytes) -> Announcement:
+        """Check (shape, a nonce outstanding), authenticate, commit a signer's answer: from
+        now on its prefix's epochs above the answered one pass the restart fence."""
+        claim = parse(sealed, Kind.ANSWER)
+        self.restart_fence()  # a store that lost state since the challenge voids its nonces
+        self._judge(self.policy.check_answer(claim))
+        if not self.policy.authentic(claim):
+            raise SignatureInvalidError("answer tag does not verify")
+        with self._lock:
+            self._judge(self.policy.check_answer(claim))
+            self.policy.commit_answer(claim)
+        log.info("prefix %s answered a challenge: its epochs above %d are fresh",
+                 claim.prefix.hex(), claim.epoch)  # fmt: skip
+        return Announcement(claim.payload, claim.prefix, claim.epoch, Kind.ANSWER)
 
     def last(self, prefix: bytes, kind: Kind = Kind.ANNOUNCEMENT) -> int | None:
         """The last epoch committed from ``prefix`` (None if unknown)."""
@@ -196,7 +229,7 @@ class EpochVerifier:
                         int.from_bytes(prefix, "big"))  # fmt: skip
         if not self._write(self._key(kind, prefix.hex()), epoch):
             raise EpochReplayedError(f"epoch {epoch} already committed to the shared state")
-        if epoch <= self.restart_fence():  # the advance itself noticed lost state
+        if epoch <= self.policy.fence_for(prefix, self.restart_fence()):  # the advance noticed loss
             raise MessageStaleError("the verifier's store lost state", detail="restart_fence")
         self.policy.commit(claim, seen)
         event = rotation(claim, admission, unseen, before)
