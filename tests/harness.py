@@ -9,6 +9,7 @@ event under a deadline, the rcan SDK's vocabulary over ours) lives here.
 
 from __future__ import annotations
 
+import itertools
 import json
 import socket
 import sqlite3
@@ -224,3 +225,28 @@ class SdkReplayAdapter:
         except ReplayAttackError as exc:
             return False, str(exc) + (f" ({exc.detail})" if exc.detail else "")
         return True, verdict.warning or ""
+
+
+def dds_writer_process(
+    domain_id: int, psk: bytes, topic: str, *, period_s: float, max_forward_s: float
+) -> subprocess.Popen[str]:
+    """A second process with one sealed DDS writer (loopback domain ``domain_id``) that
+    writes ``#n`` every ``period_s`` and prints each sample's sealed hex (a capture)."""
+    args = [str(domain_id), psk.hex(), topic, str(period_s), str(max_forward_s)]
+    code = "from tests.harness import dds_writer_main; dds_writer_main()"
+    return subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+
+def dds_writer_main() -> None:
+    """The body of :func:`dds_writer_process` (runs until killed)."""
+    from antireplay.dds.domain import join_domain  # noqa: PLC0415 - the child's own imports
+    from antireplay.dds.topics import SealedWriter  # noqa: PLC0415
+
+    domain_id, psk, topic, period_s, forward_s = sys.argv[1:6]
+    writer = SealedWriter(join_domain(int(domain_id)), topic, bytes.fromhex(psk),
+                          max_forward_s=float(forward_s))  # fmt: skip
+    for n in itertools.count():
+        sample = writer.write(f"#{n}".encode(), instance="arm")
+        print(bytes(sample.sealed).hex(), flush=True)
+        time.sleep(float(period_s))

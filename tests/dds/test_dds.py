@@ -25,14 +25,23 @@ from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.core.errors import Code, ConfigError, StateFileError
 from antireplay.dds.config import DdsConfig
+from antireplay.epochs import EpochSigner, Kind, derive_key
+from antireplay.epochs.policy import seal
 from tests.conftest import started_before
+from tests.harness import dds_writer_process
 
 try:
     from antireplay.dds import relay as relay_module
     from antireplay.dds.domain import join_domain
     from antireplay.dds.ping import PingListener, PingSender
     from antireplay.dds.relay import AnnouncementRelay, RelayedAnnouncement
-    from antireplay.dds.topics import AUDIT_PER_S, SealedReader, SealedWriter, Verdict
+    from antireplay.dds.topics import (
+        AUDIT_PER_S,
+        PingChannel,
+        SealedReader,
+        SealedWriter,
+        Verdict,
+    )
     from antireplay.dds.wire import SealedSample
 except ImportError as exc:  # the dds extra is part of CI: missing means broken, not skipped
     pytest.fail(f"Cyclone DDS missing ({exc}): pip install -e '.[dev,dds]'", pytrace=False)
@@ -657,3 +666,96 @@ def test_config_forward_bound_leaves_room_for_the_writers_reservation() -> None:
     with pytest.raises(ConfigError, match="reserve 1 s") as refused:
         DdsConfig.from_mapping({"psk_file": "k", "max_forward_s": 1})
     assert refused.value.key == "dds.max_forward_s"
+
+
+def first_accepted(
+    reader: SealedReader, tick: Callable[[], object], timeout_s: float = 20.0
+) -> Verdict:
+    """Poll ``reader`` (``tick`` between polls: the writer's period) until it accepts."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        tick()
+        accepted = [v for v in reader.poll(0.05) if v.accepted]
+        if accepted:
+            return accepted[0]
+    pytest.fail(f"nothing accepted within {timeout_s} s: {dict(reader.counts)}")
+
+
+def test_fresh_reader_accepts_after_an_answer_without_waiting_out_its_fence(
+    participant: Any, clock: ManualClock
+) -> None:
+    """The manual clock stands still: only an answered challenge can open the fence."""
+    writer = SealedWriter(peer(participant), TOPIC, PSK, clock=clock)
+    captured = writer.seal(b"sealed before the reader started", instance="arm")
+    clock.advance(0.5)
+    reader = SealedReader(participant, TOPIC, PSK, clock=clock)  # memory store: fenced
+    until(lambda: writer.matched_readers() >= 1)
+    sent: list[SealedSample] = []
+    verdict = first_accepted(reader, lambda: sent.append(writer.write(b"tick", instance="arm")))
+    assert verdict.epoch is not None and verdict.epoch <= reader.verifier.restart_fence()
+    assert reader.counts["answer_accepted"] >= 1 and writer.counts["challenge_answered"] >= 1
+    rogue = rogue_writer(participant)
+    for sample in (captured, *sent):
+        rogue.publish(sample)
+    refused = collect(reader, len(sent) + 1)
+    assert not any(v.accepted for v in refused), [v.line() for v in refused]
+
+
+def test_forged_or_replayed_answer_leaves_the_reader_fenced(
+    participant: Any, clock: ManualClock
+) -> None:
+    reader = SealedReader(participant, TOPIC, PSK, clock=clock)
+    writer = SealedWriter(peer(participant), TOPIC, PSK, clock=clock)
+    challenge = reader.verifier.challenge()
+    assert challenge is not None
+    old_answer = writer.signer.answer(challenge)  # a previous run's exchange, captured
+    reader.verifier.policy.nonces.clear()  # that run is gone: its nonce with it
+    stranger = EpochSigner(os.urandom(32), nonce_prefix=writer.nonce_prefix, clock=clock)
+    rogue = PingChannel(peer(participant), TOPIC)
+    until(lambda: rogue.peers() >= 2)
+    reader.poll(0.05)  # the reader's own challenge goes out; we forge the answers to it
+
+    def forged_and_replayed() -> bool:
+        for nonce in list(reader.verifier.policy.nonces):
+            rogue.send(seal(derive_key(os.urandom(32), Kind.PING), Kind.ANSWER,
+                            writer.nonce_prefix, 1, nonce))  # fmt: skip
+        rogue.send(old_answer)
+        reader.poll(0.05)
+        return reader.counts["answer_forged"] >= 1 and reader.counts["answer_stale"] >= 1
+
+    until(forged_and_replayed)
+    assert reader.verifier.policy.answered == {} and stranger.rotations == 0
+    reader.judge(writer.seal(b"still fenced", instance="arm"))
+    assert reader.counts["stale"] == 1
+
+
+@pytest.mark.parametrize("forward_s", [5.0, 60.0])
+def test_fresh_reader_in_another_process_accepts_within_a_second(
+    forward_s: float, record_property: Callable[[str, object], None]
+) -> None:
+    """Two processes, real clocks, the memory store: the time from the reader's start to
+    its first accepted sample, and every capture refused."""
+    domain_id = next(_IDS)
+    writer = dds_writer_process(domain_id, PSK, TOPIC, period_s=0.1, max_forward_s=forward_s)
+    try:
+        assert writer.stdout is not None
+        captures = [bytes.fromhex(writer.stdout.readline()) for _ in range(3)]
+        participant = join_domain(domain_id)
+        start = time.monotonic()
+        reader = SealedReader(participant, TOPIC, PSK, max_forward_s=forward_s)
+        verdict = first_accepted(reader, lambda: None)
+        elapsed = time.monotonic() - start
+        record_property(f"time_to_first_accept_s[{forward_s}]", round(elapsed, 3))
+        print(f"max_forward_s={forward_s}: first accept after {elapsed:.3f} s")
+        assert verdict.epoch is not None and verdict.epoch <= reader.verifier.restart_fence()
+        captures += [bytes.fromhex(writer.stdout.readline()) for _ in range(2)]
+    finally:
+        writer.kill()
+        writer.communicate()
+    while reader.poll(0.5):  # the dead writer's last samples, if any are still in flight
+        pass
+    rogue = rogue_writer(participant)
+    for sealed in captures:
+        rogue.publish(SealedSample(instance="arm", sealed=sealed))
+    replayed = collect(reader, len(captures))
+    assert not any(v.accepted for v in replayed), [v.line() for v in replayed]

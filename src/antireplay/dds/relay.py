@@ -153,9 +153,11 @@ class AnnouncementRelay:
             part.close()
 
     def pump(self, timeout_s: float = 0.1) -> list[Verdict]:
-        """One round: judge waiting announcements, relay the accepted, look for a twin,
+        """One round: answer fresh subscribers' challenges, judge waiting announcements,
+        relay the accepted, look for a twin,
         judge at most ``PINGS_PER_PUMP`` waiting pings (a ping flood cannot stall the
         announcements)."""
+        self.egress.answer_challenges()  # subscribers that just started need no fence
         verdicts = self.ingress.poll(timeout_s)
         for verdict in verdicts:
             if verdict.accepted:

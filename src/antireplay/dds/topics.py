@@ -44,6 +44,7 @@ the file).
 from __future__ import annotations
 
 import logging
+import math
 import os
 import struct
 import threading
@@ -138,6 +139,47 @@ def _topic(participant: DomainParticipant, name: str, qos: Qos) -> Topic[SealedS
     return Topic(participant, name, SealedSample, qos=qos)
 
 
+#: The control topic of freshness challenges and answers; the instance names the topic asked
+#: about (a cheap filter: the MAC key already binds it).
+PING_TOPIC = "antireplay/ping"
+#: Seconds between a fenced reader's retries when no new peer matched (doubling up to the cap).
+RETRY_S, RETRY_MAX_S = 0.25, 2.0
+#: Ping samples one call judges at most (the rest wait in the reader's history).
+PINGS_PER_CALL = 64
+
+
+class PingChannel:
+    """A writer and a reader on :data:`PING_TOPIC` for one sealed topic's endpoint."""
+
+    def __init__(self, participant: DomainParticipant, topic: str) -> None:
+        qos = default_qos(PINGS_PER_CALL)
+        channel = _topic(participant, PING_TOPIC, qos)
+        self.topic = topic
+        self.writer = DataWriter(participant, channel, qos=qos)
+        self.reader = DataReader(participant, channel, qos=qos)
+        self.waiting = ReadCondition(
+            self.reader, ViewState.Any | InstanceState.Any | SampleState.NotRead
+        )
+
+    def send(self, sealed: bytes) -> None:
+        self.writer.write(SealedSample(instance=self.topic, sealed=sealed))
+
+    def take(self, kind: Kind) -> list[bytes]:
+        """The waiting frames of ``kind`` about this topic (others dropped: no crypto)."""
+        if not self.waiting.triggered:
+            return []
+        return [
+            sealed
+            for sample in self.reader.take(N=PINGS_PER_CALL)
+            if isinstance(sample, SealedSample) and sample.instance == self.topic
+            and len(sealed := bytes(sample.sealed)) > 1 and sealed[1] == kind
+        ]  # fmt: skip
+
+    def peers(self) -> int:
+        """Ping endpoints matched (a new one may answer, or need an answer)."""
+        return len(self.writer.get_matched_subscriptions())
+
+
 class SealedWriter:
     """A DDS writer whose every sample is sealed with a strictly increasing epoch."""
 
@@ -157,6 +199,7 @@ class SealedWriter:
         qos: Qos | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
+        self.counts: Counter[str] = Counter()
         # max_forward_s: the readers' bound (their default unless configured), so a forward
         # clock glitch the readers would refuse makes this writer rotate its prefix instead
         # of being refused until real time catches up.
@@ -171,10 +214,26 @@ class SealedWriter:
         )
         qos = qos or default_qos()
         self._writer = DataWriter(participant, _topic(participant, topic, qos), qos=qos)
+        self._pings = PingChannel(participant, topic)
 
     @property
     def nonce_prefix(self) -> bytes:
         return self.signer.nonce_prefix
+
+    def answer_challenges(self) -> int:
+        """Answer the waiting challenges of fresh readers (each at a new epoch); a refused
+        one is counted (``challenge_<outcome>``) and spends nothing.  :meth:`write` calls
+        this first, so a writer answers within one period of its own; returns the count."""
+        answered = 0
+        for challenge in self._pings.take(Kind.CHALLENGE):
+            try:
+                self._pings.send(self.signer.answer(challenge))
+            except ReplayAttackError as exc:
+                self.counts["challenge_" + _OUTCOMES.get(type(exc), "refused")] += 1
+                continue
+            answered += 1
+        self.counts["challenge_answered"] += answered
+        return answered
 
     def seal(self, value: bytes | IdlStruct, *, instance: str = "") -> SealedSample:
         """The sealed sample for ``value`` (not yet written): each call takes a new epoch."""
@@ -182,7 +241,8 @@ class SealedWriter:
         return SealedSample(instance=instance, sealed=self.signer.seal(_inner(instance, data)))
 
     def write(self, value: bytes | IdlStruct, *, instance: str = "") -> SealedSample:
-        """Seal and publish one sample; returns what went on the wire."""
+        """Answer waiting challenges, then seal and publish one sample."""
+        self.answer_challenges()
         sample = self.seal(value, instance=instance)
         self._writer.write(sample)
         return sample
@@ -268,6 +328,7 @@ class SealedReader:
         max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
         qos: Qos | None = None,
+        challenge: bool = True,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
         self._clock = resolve(clock)
@@ -290,6 +351,11 @@ class SealedReader:
         self._waitset.attach(
             ReadCondition(self._reader, ViewState.Any | InstanceState.Any | SampleState.NotRead)
         )
+        self._pings: PingChannel | None = None
+        if challenge and self.verifier.fenced():
+            self._pings = PingChannel(participant, topic)
+            self._waitset.attach(self._pings.waiting)
+        self._peers, self._retry_at, self._retry_s = -1, -math.inf, RETRY_S
 
     def matched_writers(self) -> int:
         return len(self._reader.get_matched_publications())
@@ -341,9 +407,42 @@ class SealedReader:
         return [verdict for _, verdict in self.take_judged(limit)]
 
     def take_judged(self, limit: int = 256) -> list[tuple[SealedSample, Verdict]]:
-        """Like :meth:`take`, keeping each wire sample beside its verdict."""
+        """Like :meth:`take`, keeping each wire sample beside its verdict (a fenced reader
+        first judges waiting answers and sends a challenge when one is due)."""
+        if self._pings is not None:
+            self._freshen(self._pings)
         samples = self._reader.take(N=limit)
         return [(s, self.judge(s)) for s in samples if isinstance(s, SealedSample)]
+
+    def _freshen(self, pings: PingChannel) -> None:
+        """Judge the answers waiting; challenge when a new ping peer matched or the retry
+        timer ran out; once past the start fence, leave the ping topic for good."""
+        for sealed in pings.take(Kind.ANSWER):
+            self._answer(sealed)
+        if not self.verifier.fenced():
+            self._waitset.detach(pings.waiting)
+            self._pings = None
+            return
+        peers, now = pings.peers(), self._clock.monotonic()
+        if peers > self._peers or now >= self._retry_at:
+            self._retry_s = RETRY_S if peers > self._peers else min(2 * self._retry_s, RETRY_MAX_S)
+            self._peers, self._retry_at = peers, now + self._retry_s
+            challenge = self.verifier.challenge()
+            if challenge is not None:
+                pings.send(challenge)
+                self.counts["challenge_sent"] += 1
+
+    def _answer(self, sealed: bytes) -> None:
+        """One answer: check, authenticate, commit (the verifier); a forged one is counted
+        and audited, one for a nonce we are not waiting for (another reader's) counted."""
+        with self._lock:
+            opened = open_judged(self.verifier, sealed, Kind.ANSWER, self.topic_name)
+        if isinstance(opened, Announcement):
+            self.counts["answer_accepted"] += 1
+            return
+        self.counts["answer_" + opened.outcome] += 1
+        if opened.outcome != "stale":
+            self._refusals.record(self.audit, opened)
 
     def wait(self, timeout_s: float) -> None:
         """Block until data may be waiting, or ``timeout_s``."""
@@ -406,6 +505,8 @@ def open_judged(
     prefix, epoch = claim(sealed)
     collisions = verifier.prefix_collisions
     try:
+        if kind is Kind.ANSWER:
+            return verifier.open_answer(sealed)
         return verifier.open(sealed, kind=kind)
     except ReplayAttackError as exc:
         outcome = _OUTCOMES.get(type(exc), "refused")
@@ -431,6 +532,8 @@ def _claimed_instance(sealed: bytes) -> str | None:
 
 
 __all__ = [
+    "PING_TOPIC",
+    "PingChannel",
     "RefusalAuditor",
     "SealedReader",
     "SealedSample",
