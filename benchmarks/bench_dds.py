@@ -7,9 +7,13 @@ batch, take until all arrived.  Latency: one sample at a time, write to hand-ove
 Both sides run in one process, so Cyclone delivers locally (no UDP hop): the ratio is
 the worst case, a network adds the same cost to both.  The sealed reader keeps its
 epochs in the default memory store (a ``sqlite:`` store adds one store write per
-accepted sample; see bench_epochs).  A reader on the memory store refuses everything
-sealed before it started plus ``max_forward_s`` (its restart fence), so the benchmark
-waits that long after creating the reader, as a deployment does after each start.
+accepted sample; see bench_epochs).
+
+Time to first accept: a reader on the memory store refuses everything sealed before it
+started plus ``max_forward_s`` (its restart fence) unless a writer answers its challenge.
+A writer on another participant writes every ``PERIOD_S``; a new reader polls until it
+accepts, with challenges off (the fence) and on, at ``max_forward_s`` 5 and 60 (the fence
+at 60 takes a minute of real time).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from __future__ import annotations
 import os
 import random
 import statistics
+import threading
 import time
 from collections.abc import Callable
 
@@ -25,7 +30,6 @@ from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 
-from antireplay.dds.config import MAX_FORWARD_S
 from antireplay.dds.domain import join_domain
 from antireplay.dds.topics import SealedReader, SealedWriter, default_qos
 from antireplay.dds.wire import SealedSample
@@ -33,6 +37,7 @@ from antireplay.dds.wire import SealedSample
 PSK = os.urandom(32)
 PAYLOAD = b"cmd_vel linear=0.50 angular=0.10 frame=base_link " * 2
 BATCH, SINGLES, ROUNDS = 2_000, 200, 5
+PERIOD_S = 0.1
 
 
 class Plain:
@@ -94,10 +99,52 @@ def latency_us(side: Plain | Sealed) -> float:
     return statistics.median(samples)
 
 
+def time_to_first_accept(domain_id: int, *, challenge: bool, forward_s: float) -> float:
+    """Seconds from a new reader's construction to its first accepted sample."""
+    writer = SealedWriter(join_domain(domain_id), "bench/fresh", PSK, max_forward_s=forward_s)
+    stop = threading.Event()
+
+    def write() -> None:
+        while not stop.wait(PERIOD_S):
+            writer.write(PAYLOAD, instance="arm")
+
+    thread = threading.Thread(target=write, daemon=True)
+    thread.start()
+    try:
+        time.sleep(0.5)  # the writer has been running: its earlier samples are captures
+        start = time.perf_counter()
+        reader = SealedReader(join_domain(domain_id), "bench/fresh", PSK,
+                              max_forward_s=forward_s, challenge=challenge)  # fmt: skip
+        while not any(v.accepted for v in reader.poll(0.05)):
+            if time.perf_counter() - start > forward_s + 30:
+                raise RuntimeError("no sample accepted")
+        return time.perf_counter() - start
+    finally:
+        stop.set()
+        thread.join()
+
+
+def warm_up(side: Sealed) -> None:
+    """Until the new reader accepts (its challenge answered by the first writes)."""
+    while not any(v.accepted for v in side.reader.poll(0.01)):
+        side.writer.write(PAYLOAD, instance="arm")
+    while side.reader.poll(0.2):
+        pass
+
+
 def main() -> None:
-    participant = join_domain(random.randrange(150, 230))
-    sides: dict[str, Plain | Sealed] = {"plain": Plain(participant), "sealed": Sealed(participant)}
-    time.sleep(MAX_FORWARD_S + 0.1)  # the memory store's start fence (module docstring)
+    domain_id = random.randrange(150, 225)
+    for forward_s in (5.0, 60.0):
+        fence, asked = (
+            time_to_first_accept(domain_id + i, challenge=c, forward_s=forward_s)
+            for i, c in ((1, False), (2, True))
+        )
+        print(f"time to first accept, max_forward_s={forward_s:>4.0f}: "
+              f"fence {fence:6.3f} s   challenge {asked:6.3f} s")  # fmt: skip
+    participant = join_domain(domain_id)
+    sealed = Sealed(participant)
+    warm_up(sealed)
+    sides: dict[str, Plain | Sealed] = {"plain": Plain(participant), "sealed": sealed}
     rates: dict[str, list[float]] = {name: [] for name in sides}
     lat: dict[str, list[float]] = {name: [] for name in sides}
     for _ in range(ROUNDS):

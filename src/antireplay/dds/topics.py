@@ -27,7 +27,11 @@ handed over.
 proves otherwise: the default ``memory`` store cannot know what a previous
 process accepted, so it fences at its construction, exactly as the replay
 cache does; a ``sqlite:PATH`` store that survived the restart sets no fence
-(and raises one when it finds it lost data).  An age bound is required
+(and raises one when it finds it lost data).  A fenced reader does not wait it out:
+it sends a challenge on :data:`PING_TOPIC` (again when a new peer matches, else on a
+doubling timer), every writer answers in its next :meth:`SealedWriter.write`, and the
+reader accepts that writer's epochs above the answer at once (captures stay refused;
+:mod:`antireplay.epochs.policy`).  An age bound is required
 (``max_age_s``): a reader that never heard of a writer still refuses a capture
 older than that.  Everything else becomes a :class:`Verdict` with a
 stable :class:`~antireplay.core.errors.Code` and an ``outcome`` word that is

@@ -13,14 +13,18 @@ or derived from a unique service name; a signer whose stream ran ahead of its cl
 to the public successor ``SHA-256("antireplay/v1 rotate" | prefix)[:8]``.
 
 :class:`EpochPolicy` holds the marks (a bounded :class:`~antireplay.core.counters.FencedTable`
-per kind, with the last (epoch, digest) pairs of each prefix) and judges values with a
-time the driver passes in.  A refusal comes back as :class:`Refused` (the typed error and,
-for an authentic frame, the evidence: :class:`TooFarAhead`, :class:`PrefixCollision`); an
-acceptable epoch as an :class:`Admission` saying what must be persisted (a raised floor, a
-new prefix).  The driver persists, then calls :meth:`EpochPolicy.commit`; nothing here
-moves a mark before that.  An authentic epoch at or below the last one, unseen and within
-``COLLISION_HORIZON_NS``, most likely comes from a second sender on the prefix.  Not safe
-for concurrent use: the driver serializes.  Test vectors: ``tests/vectors/epochs.json``.
+per kind, with recent (epoch, digest) pairs per prefix) and judges values with a time the
+driver passes in: a :class:`Refused` (typed error, and evidence for an authentic frame), or an
+:class:`Admission` saying what to persist before :meth:`EpochPolicy.commit` moves a mark.  An
+authentic, unseen epoch just below the last (``COLLISION_HORIZON_NS``) means a second sender.
+
+**Freshness challenges.**  A verifier without surviving state refuses all at or below its
+restart fence; instead of waiting, it seals a random nonce as a ``CHALLENGE`` (ping key, kind
+byte under the MAC) and a signer's ``ANSWER`` binds it to the signer's next (prefix, epoch).
+That prefix's epochs above the answered one were sealed after the nonce existed, so
+:meth:`EpochPolicy.fence_for` lowers its fence to it; every capture stays at or below.  An
+answer must bind one of the last ``OUTSTANDING`` nonces and verify before it is committed.
+Not safe for concurrent use: the driver serializes.  Vectors: ``tests/vectors/epochs.json``.
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ them, so after a crash it starts above anything it could have sent.  The file re
 current prefix, the one it started from (``base``, which ``nonce_prefix`` or
 ``service_name`` must match) and the rotation count; a rotation is saved before its first
 epoch.  The file has one owner (an OS lock): two signers on it would repeat epochs.
+:meth:`EpochSigner.answer` answers a fresh verifier's challenge at the next epoch.
 """
 
 from __future__ import annotations

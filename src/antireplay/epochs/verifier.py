@@ -21,7 +21,9 @@ accepted by state that is gone, and are refused (``detail="restart_fence"``).
 ``check`` records and counts nothing; ``open`` is parse, tag (HMAC, cheap, first: what an
 *authentic* old or far-ahead epoch means is counted and audited), checks, commit under a
 lock.  Stored data that does not decode refuses the start (``StateFileError``) and
-answers ``STATE_UNAVAILABLE`` while running.
+answers ``STATE_UNAVAILABLE`` while running.  While the fence lies ahead (:meth:`fenced`)
+the driver may send :meth:`challenge` frames and feed answers to :meth:`open_answer`; a
+store reporting a new fence voids every nonce and answer (they predate the loss).
 """
 
 from __future__ import annotations
