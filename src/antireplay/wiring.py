@@ -1,36 +1,28 @@
 """Wiring: the one place that turns configuration into the gateway and the MAVLink router.
 
-Theory of operation
--------------------
-The adapters own transport and process lifetime only: :mod:`antireplay.http`
-speaks HTTP on built objects, :mod:`antireplay.cli` parses options, reports errors and waits for a
-signal.  What a configuration turns into is decided here, the same way for both:
-open the replay state, load the keys, open the audit trail, then build the policy
-object on them.
+The adapters own transport and process lifetime only: :mod:`antireplay.http` speaks HTTP
+on built objects, :mod:`antireplay.cli` parses options, reports errors and waits for a
+signal.  What a configuration turns into is decided here, the same way for both: open the
+replay state, load the keys, open the audit trail, then build the adapter on them.
 
-* :func:`build_receiver` builds the gateway's :class:`~antireplay.rcan.receive.Receiver`
-  from :class:`~antireplay.config.AppConfig`: the key registry
-  (:func:`build_registry`), the JWT verifier when configured, the store (bounded and
-  skewed as ``security`` says) checked for data loss at boot (``verify()``: a store
-  that is down now is noticed on the first commit instead), and the audit trail.
+* :func:`build_receiver` builds the gateway's :class:`~antireplay.rcan.receive.Receiver`:
+  the key registry (:func:`build_registry`), the JWT verifier when configured, the store
+  (bounded and skewed as ``security`` says) checked for data loss at boot (a store that is
+  down now is noticed on the first commit instead), and the audit trail.
   :func:`create_app` hands it, the resolved upstream and its time budget to
   :func:`~antireplay.http.app.gateway_app`; :class:`Guard` and :class:`RcanGuard` are the
-  guard middleware and dependency built from a configuration (the embedded default,
-  :func:`embedded_default`, without one).
-* :func:`build_mavlink_router` builds the MAVLink router from the ``mavlink-router``
-  options on an opened store and audit trail: its endpoints, an inbound guard per
-  key (bound to ``system_id``), the outbound guard, each on its own store prefix
-  (``mav-in``, ``mav-out``), a durable timestamp source per key the router signs
-  with, and the refusal handler (:func:`mavlink_auditor`), which logs why each
-  dropped frame was refused and records it with its direction and the source its
-  header claims (``mav:inbound:255/190``; unverified, so ``sender_verified`` is
-  false), rate-limited so that a flood of
-  garbage cannot grow the trail or the log without bound.
-  :func:`serve_router_metrics` exposes the router's counters (:func:`router_metrics`)
-  to Prometheus.
+  guard middleware and dependency on a receiver built from a configuration (without one,
+  :func:`embedded_default`: SQLite under ``./.antireplay/`` and a demo key pair).
+* :func:`build_mavlink_router` builds the MAVLink router on an opened store and audit
+  trail: its endpoints, an inbound guard per key (bound to ``system_id``), the outbound
+  guard, each on its own store prefix, a durable timestamp source per key the router signs
+  with, and :func:`mavlink_auditor`, which logs and audits each dropped frame with its
+  direction and the source its header claims (unverified), rate-limited so that a flood
+  cannot grow the trail or the log without bound.  :func:`serve_router_metrics` exposes
+  the router's counters to Prometheus.
 
-The MAVLink stack is imported only when a router is built, so the gateway does not
-load the MAVLink dialect.
+The MAVLink stack is imported only when a router is built, so the gateway does not load
+the MAVLink dialect.
 """
 
 from __future__ import annotations
