@@ -55,8 +55,8 @@ from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 from tests.harness import free_port
 
-from antireplay.http.gateway import DEMO_KID
 from antireplay.rcan.auth import sign_envelope
+from antireplay.wiring import DEMO_KID
 
 ROUNDS = 3
 SECONDS = 3

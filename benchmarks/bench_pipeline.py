@@ -1,7 +1,7 @@
 """Messages per second through Receiver.receive: fresh signed vs replays, and the SDK baseline.
 
 Run: ``python -m benchmarks pipeline``.  The Receiver is wired as the gateway's default
-config wires it (:func:`antireplay.http.gateway.embedded_default`): replay state in SQLite on
+config wires it (:func:`antireplay.wiring.embedded_default`): replay state in SQLite on
 disk (WAL, synchronous commits) and the audit log beside it, in a temporary directory.
 A replay is rejected by the check before any cryptography (it reads the store and
 records nothing), but every rejection is audited, and an audit append is a synchronous
@@ -26,10 +26,10 @@ from rcan.signing import MLDSAKeyPair, sign_message, verify_message
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.core.errors import Code
-from antireplay.http.gateway import embedded_default
 from antireplay.rcan.auth import KeyRegistry, sign_envelope
 from antireplay.rcan.receive import Receiver
 from antireplay.state import open_store
+from antireplay.wiring import embedded_default
 from benchmarks._timing import per_op_ns, rate
 from rcan import RCANMessage
 

@@ -32,8 +32,8 @@ from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_con
 from antireplay.config import AppConfig
 from antireplay.core.clock import Clock, ManualClock
 from antireplay.core.errors import StateUnavailableError
-from antireplay.http.gateway import create_app, embedded_default
 from antireplay.rcan.auth import write_key_pair
+from antireplay.wiring import create_app, embedded_default
 from tests.audit.test_audit import sql, trail
 from tests.cli.test_cli import one_line_error
 from tests.conftest import ROOT

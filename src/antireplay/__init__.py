@@ -8,7 +8,7 @@ unauthenticated message carries changes state.
 
 * :class:`Receiver` (:mod:`antireplay.rcan.receive`): RCAN envelopes over HTTP or
   any transport: shape, freshness, msg_id, signature, scope, commit, audit.
-* :class:`Guard` / :class:`RcanGuard` (:mod:`antireplay.http.gateway`): the gateway's
+* :class:`Guard` / :class:`RcanGuard` (:mod:`antireplay.wiring`): the gateway's
   request path inside your own ASGI app, as middleware or a FastAPI dependency,
   handing the application a :class:`Verified` message and its signer.
 * :class:`MavlinkGuard` (:mod:`antireplay.mavlink`): signed MAVLink v2 frames.
@@ -60,10 +60,11 @@ from antireplay.state.replay import ReplayCache
 
 if TYPE_CHECKING:
     from antireplay.epochs import EpochSigner, EpochVerifier
-    from antireplay.http.gateway import Guard, RcanGuard, Verified
+    from antireplay.http.guard import Verified
     from antireplay.mavlink import MavlinkGuard
     from antireplay.pq.session import Initiator, Responder
     from antireplay.rcan.receive import Receiver
+    from antireplay.wiring import Guard, RcanGuard
 
 __version__ = "0.1.0"
 
@@ -75,9 +76,9 @@ _RECIPES = {
     "Responder": "antireplay.pq.session",
     "EpochSigner": "antireplay.epochs",
     "EpochVerifier": "antireplay.epochs",
-    "Guard": "antireplay.http.gateway",
-    "RcanGuard": "antireplay.http.gateway",
-    "Verified": "antireplay.http.gateway",
+    "Guard": "antireplay.wiring",
+    "RcanGuard": "antireplay.wiring",
+    "Verified": "antireplay.http.guard",
 }
 
 __all__ = [

@@ -1,32 +1,28 @@
-"""Wiring: the one place that turns configuration into the Receiver and the MAVLink router.
+"""Wiring: the one place that turns configuration into the gateway and the MAVLink router.
 
-Theory of operation
--------------------
-The adapters own transport and process lifetime only: :mod:`antireplay.http.gateway`
-speaks HTTP, :mod:`antireplay.cli` parses options, reports errors and waits for a
-signal.  What a configuration turns into is decided here, the same way for both:
-open the replay state, load the keys, open the audit trail, then build the policy
-object on them.
+The adapters own transport and process lifetime only: :mod:`antireplay.http` speaks HTTP
+on built objects, :mod:`antireplay.cli` parses options, reports errors and waits for a
+signal.  What a configuration turns into is decided here, the same way for both: open the
+replay state, load the keys, open the audit trail, then build the adapter on them.
 
-* :func:`build_receiver` builds the gateway's :class:`~antireplay.rcan.receive.Receiver`
-  from :class:`~antireplay.config.AppConfig`: the key registry
-  (:func:`build_registry`), the JWT verifier when configured, the store (bounded and
-  skewed as ``security`` says) checked for data loss at boot (``verify()``: a store
-  that is down now is noticed on the first commit instead), and the audit trail.
-* :func:`build_mavlink_router` builds the MAVLink router from the ``mavlink-router``
-  options on an opened store and audit trail: its endpoints, an inbound guard per
-  key (bound to ``system_id``), the outbound guard, each on its own store prefix
-  (``mav-in``, ``mav-out``), a durable timestamp source per key the router signs
-  with, and the refusal handler (:func:`mavlink_auditor`), which logs why each
-  dropped frame was refused and records it with its direction and the source its
-  header claims (``mav:inbound:255/190``; unverified, so ``sender_verified`` is
-  false), rate-limited so that a flood of
-  garbage cannot grow the trail or the log without bound.
-  :func:`serve_router_metrics` exposes the router's counters (:func:`router_metrics`)
-  to Prometheus.
+* :func:`build_receiver` builds the gateway's :class:`~antireplay.rcan.receive.Receiver`:
+  the key registry (:func:`build_registry`), the JWT verifier when configured, the store
+  (bounded and skewed as ``security`` says) checked for data loss at boot (a store that is
+  down now is noticed on the first commit instead), and the audit trail.
+  :func:`create_app` hands it, the resolved upstream and its time budget to
+  :func:`~antireplay.http.app.gateway_app`; :class:`Guard` and :class:`RcanGuard` are the
+  guard middleware and dependency on a receiver built from a configuration (without one,
+  :func:`embedded_default`: SQLite under ``./.antireplay/`` and a demo key pair).
+* :func:`build_mavlink_router` builds the MAVLink router on an opened store and audit
+  trail: its endpoints, an inbound guard per key (bound to ``system_id``), the outbound
+  guard, each on its own store prefix, a durable timestamp source per key the router signs
+  with, and :func:`mavlink_auditor`, which logs and audits each dropped frame with its
+  direction and the source its header claims (unverified), rate-limited so that a flood
+  cannot grow the trail or the log without bound.  :func:`serve_router_metrics` exposes
+  the router's counters to Prometheus.
 
-The MAVLink stack is imported only when a router is built, so the gateway does not
-load the MAVLink dialect.
+The MAVLink stack is imported only when a router is built, so the gateway does not load
+the MAVLink dialect.
 """
 
 from __future__ import annotations
@@ -40,12 +36,27 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from cryptography.hazmat.primitives.asymmetric import ed25519
+from starlette.applications import Starlette
+from starlette.types import ASGIApp
+
 from antireplay.audit import AuditLog
-from antireplay.config import AppConfig
+from antireplay.config import AppConfig, KeyConfig
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import ConfigError, StateUnavailableError
 from antireplay.core.ratelimit import TokenBucket
-from antireplay.rcan.auth import JwtVerifier, KeyRegistry, load_public_key, sdk_key_id
+from antireplay.http.app import gateway_app
+from antireplay.http.dependency import GuardDependency
+from antireplay.http.metrics import Metrics
+from antireplay.http.middleware import GuardMiddleware
+from antireplay.http.upstream import resolve_upstream
+from antireplay.rcan.auth import (
+    JwtVerifier,
+    KeyRegistry,
+    load_public_key,
+    sdk_key_id,
+    write_key_pair,
+)
 from antireplay.rcan.receive import Receiver
 from antireplay.state import ReplayStore, open_store
 
@@ -54,6 +65,9 @@ if TYPE_CHECKING:
 
     from antireplay.mavlink import MavlinkRouter, Refusal, Role
 
+DEMO_KID = "demo-operator"
+#: How much longer than the upstream budget a QoS retry waits for its original's answer.
+ANSWER_SLACK_S = 1.0
 #: Audit records and log lines per second for refused MAVLink frames (the rest are counted).
 MAVLINK_AUDIT_PER_S = 50.0
 log = logging.getLogger("antireplay.mavlink")
@@ -119,6 +133,82 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
         versions=frozenset(config.versions),
         max_bytes=config.max_body_bytes,
     )
+
+
+def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
+    """SQLite state and audit under ``state_dir`` and a demo Ed25519 key pair (made once)."""
+    state_dir.mkdir(parents=True, exist_ok=True)
+    private, public = state_dir / f"{DEMO_KID}.key.pem", state_dir / f"{DEMO_KID}.pub.pem"
+    if not private.exists():
+        write_key_pair(ed25519.Ed25519PrivateKey.generate(), private, public)
+    return AppConfig(
+        store=f"sqlite:{state_dir / 'state.db'}",
+        audit=str(state_dir / "audit.db"),
+        keys=[
+            KeyConfig(
+                kid=DEMO_KID,
+                owner="operator",
+                alg="ed25519",
+                public_keys=[str(public)],
+                scopes=["control", "safety"],
+            )
+        ],
+    )
+
+
+def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
+    """The gateway application for ``config`` (:func:`~antireplay.http.app.gateway_app`)."""
+    receiver = build_receiver(config, clock)
+    # A retry waits for its original while that is still within its upstream budget.
+    receiver.answer_wait_s = config.upstream_timeout_s + ANSWER_SLACK_S
+    upstream = resolve_upstream(config.upstream, config.upstream_timeout_s)
+    return gateway_app(receiver, upstream, config.upstream_timeout_s)
+
+
+def _guard_receiver(
+    config: AppConfig | None, clock: Clock | None, receiver: Receiver | None
+) -> tuple[Receiver, bool]:
+    """``receiver``, or one built from ``config`` (the embedded default without one) that
+    the guard then owns (its ``close`` closes the audit trail)."""
+    if receiver is not None:
+        return receiver, False
+    return build_receiver(config if config is not None else embedded_default(), clock), True
+
+
+class Guard(GuardMiddleware):
+    """:class:`~antireplay.http.middleware.GuardMiddleware` on ``receiver``, or on one built
+    from ``config`` (the embedded default without one; ``clock`` drives it)."""
+
+    def __init__(
+        self,
+        app: ASGIApp,
+        config: AppConfig | None = None,
+        *,
+        paths: tuple[str, ...] = ("/v1/messages",),
+        clock: Clock | None = None,
+        receiver: Receiver | None = None,
+        metrics: Metrics | None = None,
+        accepted: ASGIApp | None = None,
+    ) -> None:
+        built, owned = _guard_receiver(config, clock, receiver)
+        super().__init__(
+            app, built, paths=paths, metrics=metrics, accepted=accepted, owns_receiver=owned
+        )
+
+
+class RcanGuard(GuardDependency):
+    """:class:`~antireplay.http.dependency.GuardDependency` on ``receiver``, or on one built
+    from ``config`` (the embedded default without one; ``clock`` drives it)."""
+
+    def __init__(
+        self,
+        config: AppConfig | None = None,
+        *,
+        clock: Clock | None = None,
+        receiver: Receiver | None = None,
+    ) -> None:
+        built, owned = _guard_receiver(config, clock, receiver)
+        super().__init__(built, owns_receiver=owned)
 
 
 def mavlink_auditor(audit: AuditLog, clock: Clock | None = None) -> Callable[[Refusal], None]:

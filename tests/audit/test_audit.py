@@ -16,9 +16,8 @@ from antireplay.audit.chain import _digest
 from antireplay.cli import main
 from antireplay.core.clock import ManualClock
 from antireplay.core.errors import AuditFileError, StateUnavailableError
-from antireplay.http.gateway import embedded_default
 from antireplay.rcan.receive import Receiver
-from antireplay.wiring import build_receiver
+from antireplay.wiring import build_receiver, embedded_default
 from tests.envelopes import MARKER, NOW, message, signed
 
 

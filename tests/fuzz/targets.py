@@ -13,7 +13,7 @@ Targets (the names are the corpus folders):
   then asks of an envelope (canonical bytes, re-encoding, ``sig``, SDK subset,
   window check);
 * ``receiver``: :meth:`Receiver.receive` with headers (JWT, SDK-compat keys);
-* ``http``: the real gateway app (:func:`antireplay.http.gateway.create_app` on its
+* ``http``: the real gateway app (:func:`antireplay.wiring.create_app` on its
   embedded default: SQLite state and audit in a temporary folder), called as
   ASGI with fuzzed headers and body;
 * ``mavlink``: :func:`split_frames`, :class:`FrameReader`, :func:`parse_frame`,
@@ -40,7 +40,6 @@ from antireplay import ManualClock, ReplayAttackError, SecurityConfig
 from antireplay.audit import sanitize
 from antireplay.core.errors import Code
 from antireplay.epochs import EpochSigner, EpochVerifier
-from antireplay.http.gateway import DEMO_KID, create_app, embedded_default
 from antireplay.mavlink import FrameReader, MavlinkGuard, parse_frame, split_frames
 from antireplay.mavlink.codec import MAX_FRAME
 from antireplay.pq.session import Initiator, Responder, parse_frame_head
@@ -57,6 +56,7 @@ from antireplay.rcan.envelope import (
 from antireplay.rcan.receive import Receiver
 from antireplay.state.memory import MemoryStore
 from antireplay.state.replay import ReplayCache
+from antireplay.wiring import DEMO_KID, create_app, embedded_default
 
 NOW = 1_800_000_000.0
 #: Fixed keys, so the seed corpus stays valid from one run to the next.

@@ -27,11 +27,11 @@ from antireplay.audit import tail
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.config import AppConfig
 from antireplay.core.clock import ManualClock
-from antireplay.http.gateway import SIGNER_HEADERS, Guard, RcanGuard, Verified, create_app
+from antireplay.http.guard import SIGNER_HEADERS, Verified
 from antireplay.rcan.auth import Signer
 from antireplay.rcan.envelope import encode, parse
 from antireplay.rcan.receive import Outcome
-from antireplay.wiring import build_receiver
+from antireplay.wiring import Guard, RcanGuard, build_receiver, create_app
 from tests.harness import free_port, recording_upstream, state_rows, until
 
 NOW = 1_800_000_000.0
@@ -426,7 +426,7 @@ def test_add_middleware_form_guards_the_path_and_leaves_other_routes_alone(
 
 def test_fastapi_stays_optional() -> None:
     code = (
-        "import sys, antireplay, antireplay.http.gateway; "
+        "import sys, antireplay, antireplay.http.app, antireplay.http.dependency; "
         "print(antireplay.RcanGuard.__name__, 'fastapi' in sys.modules)"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

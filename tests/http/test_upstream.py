@@ -26,8 +26,11 @@ from antireplay.audit import verify
 from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.core.clock import ManualClock
-from antireplay.http.gateway import Guard, RcanGuard, Verified, _route_path, _takes_two, create_app
+from antireplay.http.guard import Verified
+from antireplay.http.middleware import route_path
+from antireplay.http.upstream import takes_signer
 from antireplay.rcan.auth import Signer
+from antireplay.wiring import Guard, RcanGuard, create_app
 from rcan import RCANResponse
 from tests.http.test_guard import NOW, Answer, call, config
 
@@ -337,10 +340,10 @@ def annotated(envelope: dict[str, Any], who: Signer) -> None: ...
 
 
 def test_only_a_second_parameter_named_signer_or_typed_signer_gets_the_signer() -> None:
-    assert not _takes_two(with_retries)
-    assert _takes_two(with_signer)
-    assert _takes_two(annotated)  # a string annotation here (future annotations)
-    assert not _takes_two(lambda envelope, *rest: None)
+    assert not takes_signer(with_retries)
+    assert takes_signer(with_signer)
+    assert takes_signer(annotated)  # a string annotation here (future annotations)
+    assert not takes_signer(lambda envelope, *rest: None)
 
 
 @pytest.mark.parametrize(
@@ -349,7 +352,7 @@ def test_only_a_second_parameter_named_signer_or_typed_signer_gets_the_signer() 
 )
 def test_the_guarded_path_is_the_one_starlette_routes(path: str, root: str) -> None:
     scope = {"type": "http", "path": path, "root_path": root}
-    assert _route_path(scope) == get_route_path(scope)
+    assert route_path(scope) == get_route_path(scope)
 
 
 def test_rcan_guard_without_install_still_answers_with_the_typed_status(

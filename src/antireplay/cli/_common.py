@@ -58,7 +58,7 @@ def _fail(message: str, code: int = 2) -> NoReturn:
 
 
 def _load_config(path: Path | None, state_dir: Path) -> AppConfig:
-    from antireplay.http.gateway import embedded_default  # noqa: PLC0415 - keeps `--help` fast
+    from antireplay.wiring import embedded_default  # noqa: PLC0415 - keeps `--help` fast
 
     try:
         return AppConfig.from_yaml(path) if path is not None else embedded_default(state_dir)
@@ -129,7 +129,7 @@ def importable_cwd(upstream: str | None) -> None:
 
 def preflight(config: AppConfig) -> None:
     """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
-    from antireplay.http.gateway import resolve_upstream  # noqa: PLC0415
+    from antireplay.http.upstream import resolve_upstream  # noqa: PLC0415
     from antireplay.state import open_store  # noqa: PLC0415
     from antireplay.wiring import build_registry  # noqa: PLC0415
 

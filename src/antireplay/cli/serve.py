@@ -59,7 +59,7 @@ def serve(  # noqa: PLR0917 - one option per knob
     import uvicorn  # noqa: PLC0415
     from uvicorn.config import LOGGING_CONFIG  # noqa: PLC0415
 
-    from antireplay.http.gateway import create_app  # noqa: PLC0415
+    from antireplay.wiring import create_app  # noqa: PLC0415
 
     if (ssl_certfile is None) != (ssl_keyfile is None):
         raise click.UsageError("give --ssl-certfile and --ssl-keyfile together")

@@ -10,11 +10,11 @@ open without touching the replay state, and an unauthenticated visitor changes n
 **One source of truth each.**  :func:`snapshot` builds one dict and both routes answer
 from it: ``/status.json`` is the dict, ``/`` is :func:`render` of it.  The counters are the
 samples ``/metrics`` exports, read by collecting the gateway's own Prometheus registry
-(:class:`~antireplay.http.gateway.Metrics` and its ``StateCollector``): accepted, rejected by
+(:class:`~antireplay.http.metrics.Metrics` and its ``StateCollector``): accepted, rejected by
 code, warnings, store and upstream errors, the replay window's refusals by cause (fence and
 store failures included), group-commit batches.
 Store health is that collector's view of the backend in use (entries, watermark, fence,
-data-loss events) plus the reason :func:`antireplay.http.gateway.readiness` gives (``None``:
+data-loss events) plus the reason :func:`antireplay.http.app.readiness` gives (``None``:
 ready).  The recent audit records are read by :func:`antireplay.audit.tail` (what
 ``antireplay audit tail`` runs: a fresh read-only connection, so the writer's lock is not
 taken) and shown as :func:`antireplay.audit.shown` shows them.  The audit trail holds no
