@@ -655,7 +655,7 @@ class Wire(FakeTransport):
 
 def _ends(clock: ManualClock) -> tuple[PqLink, PqLink, Wire, Wire, list[SessionEvent]]:
     """A ground and a vehicle link whose timers never fire on their own (the test ticks)."""
-    made, events = Link(clock), []
+    made, events = Link(clock), list[SessionEvent]()
     ground_air, vehicle_air = Wire("udpout:1.2.3.4:5"), Wire("udpout:1.2.3.4:6")
     ground = PqLink(
         made.ground, FakeTransport("udpin:0.0.0.0:1", fixed=False), ground_air,
