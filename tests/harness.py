@@ -143,6 +143,51 @@ def metrics_router(tmp_path: Path, host: str | None = None) -> Iterator[int]:
         proc.wait(timeout=30)
 
 
+def pq_keys(directory: Path) -> None:
+    """The post-quantum link's keys as ``antireplay keygen`` writes them: ``gcs.key.pem`` /
+    ``gcs.pub.pem`` (ML-DSA-87), ``vehicle.key.pem`` / ``vehicle.pub.pem`` (ML-KEM-1024)."""
+    from cryptography.hazmat.primitives import serialization as ser  # noqa: PLC0415
+    from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem  # noqa: PLC0415
+
+    keys: dict[str, Any] = {
+        "gcs": mldsa.MLDSA87PrivateKey.generate(),
+        "vehicle": mlkem.MLKEM1024PrivateKey.generate(),
+    }
+    for name, key in keys.items():
+        (directory / f"{name}.key.pem").write_bytes(
+            key.private_bytes(ser.Encoding.PEM, ser.PrivateFormat.PKCS8, ser.NoEncryption())
+        )
+        (directory / f"{name}.pub.pem").write_bytes(
+            key.public_key().public_bytes(ser.Encoding.PEM, ser.PublicFormat.SubjectPublicKeyInfo)
+        )
+
+
+@contextmanager
+def metrics_pq(tmp_path: Path) -> Iterator[int]:
+    """A real ``antireplay mavlink-pq ground`` (its air path leads nowhere) serving its
+    metrics on a free port: yields that port once it says it runs."""
+    pq_keys(tmp_path)
+    port = free_port()
+    args = [
+        sys.executable, "-m", "antireplay", "mavlink-pq", "ground",
+        "--local", f"udpin:127.0.0.1:{free_port()}", "--air", f"udpout:127.0.0.1:{free_port()}",
+        "--signing-key", str(tmp_path / "gcs.key.pem"),
+        "--vehicle-key", str(tmp_path / "vehicle.pub.pem"),
+        "--audit", str(tmp_path / "pq.db"), "--metrics-port", str(port),
+    ]  # fmt: skip
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stderr is not None
+        said = [proc.stderr.readline()]
+        while not said[-1].startswith("mavlink-pq ground") and said[-1]:
+            said.append(proc.stderr.readline())
+        assert said[-1], said
+        yield port
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
 #: Where the SDK's conformance cases run: a fixed wall time on a manual clock.
 SDK_NOW = 1_800_000_000.0
 

@@ -19,7 +19,8 @@ replay state, load the keys, open the audit trail, then build the adapter on the
   with, and :func:`mavlink_auditor`, which logs and audits each dropped frame with its
   direction and the source its header claims (unverified), rate-limited so that a flood
   cannot grow the trail or the log without bound.  :func:`serve_router_metrics` exposes
-  the router's counters to Prometheus.
+  the router's counters to Prometheus through :func:`serve_metrics`, which
+  serves any command's.
 
 The MAVLink stack is imported only when a router is built, so the gateway does not load
 the MAVLink dialect.
@@ -31,7 +32,7 @@ import contextlib
 import hashlib
 import logging
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -336,17 +337,25 @@ def _fingerprint(key: bytes) -> str:
     return hashlib.sha256(b"antireplay mavlink key" + key).hexdigest()[:12]
 
 
-def serve_router_metrics(router: MavlinkRouter, port: int, host: str = "127.0.0.1") -> None:
-    """Serve :func:`router_metrics` to Prometheus on ``host:port`` (loopback by default)."""
+def serve_metrics(
+    collect: Callable[[], Iterable[Metric]], port: int, host: str = "127.0.0.1"
+) -> None:
+    """Serve what ``collect()`` returns at each scrape to Prometheus on ``host:port``
+    (loopback by default): a long-running command's ``--metrics-port``."""
     from prometheus_client import REGISTRY, start_http_server  # noqa: PLC0415
     from prometheus_client.registry import Collector  # noqa: PLC0415
 
-    class RouterCollector(Collector):
+    class CommandCollector(Collector):
         def collect(self) -> Iterator[Metric]:
-            return iter(router_metrics(router))
+            return iter(collect())
 
-    REGISTRY.register(RouterCollector())
+    REGISTRY.register(CommandCollector())
     start_http_server(port, addr=host)
+
+
+def serve_router_metrics(router: MavlinkRouter, port: int, host: str = "127.0.0.1") -> None:
+    """Serve :func:`router_metrics` to Prometheus on ``host:port`` (loopback by default)."""
+    serve_metrics(lambda: router_metrics(router), port, host)
 
 
 def router_metrics(router: MavlinkRouter) -> list[Metric]:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
+import sqlite3
 import subprocess
 import sys
 import threading
@@ -11,8 +13,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 from click.testing import CliRunner
+from prometheus_client.parser import text_string_to_metric_families
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil
@@ -121,3 +125,130 @@ def test_bad_options_are_one_line_errors(keys: Path) -> None:
         result = runner.invoke(main, [*base, *extra])
         assert result.exit_code == 2, result.output
         assert expected in result.output
+
+
+class Relay:
+    """The air path (MAVProxy, say) on loopback: it drops everything until :attr:`opened`,
+    as a MAVProxy that has not bound its port yet would, then carries datagrams both ways."""
+
+    def __init__(self, vehicle_port: int) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.1)
+        self.port = int(self.sock.getsockname()[1])
+        self.vehicle = ("127.0.0.1", vehicle_port)
+        self.ground: tuple[str, int] | None = None
+        self.dropped, self.opened = 0, False
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data, peer = self.sock.recvfrom(65536)
+            except TimeoutError:
+                continue
+            if peer != self.vehicle:
+                self.ground = peer
+            if not self.opened:
+                self.dropped += 1
+            elif peer == self.vehicle and self.ground is not None:
+                self.sock.sendto(data, self.ground)
+            elif peer != self.vehicle:
+                self.sock.sendto(data, self.vehicle)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.sock.close()
+
+
+def _samples(port: int) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+    text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
+    return {
+        (s.name, tuple(sorted(s.labels.items()))): s.value
+        for family in text_string_to_metric_families(text)
+        for s in family.samples
+    }
+
+
+def _audited(path: Path) -> list[tuple[str, str]]:
+    db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        return [(o, c) for o, c in db.execute("SELECT outcome, code FROM audit ORDER BY seq")]
+    finally:
+        db.close()
+
+
+def test_a_lost_first_handshake_is_retried_and_each_end_reports_its_session(
+    keys: Path,
+) -> None:
+    """The README's start order: the ground end hand-shakes before the air path carries
+    anything, and no ground station sends.  The timer retries; each end logs and audits
+    the session once, counts (not logs) the telemetry it had no session for, serves its
+    metrics, and prints its counts at SIGTERM."""
+    air, fc_port, ground_metrics, vehicle_metrics = (free_port() for _ in range(4))
+    relay = Relay(air)
+    ground = Process(
+        [
+            "mavlink-pq", "ground", "--local", f"udpin:127.0.0.1:{free_port()}",
+            "--air", f"udpout:127.0.0.1:{relay.port}", "--signing-key", "gcs.key.pem",
+            "--vehicle-key", "vehicle.pub.pem", "--vehicle-x25519", "vehicle-x.pub.pem",
+            "--audit", "ground.db", "--metrics-port", str(ground_metrics),
+        ],
+        keys,
+    )  # fmt: skip
+    vehicle = Process(
+        [
+            "mavlink-pq", "vehicle", "--fc", f"udpin:127.0.0.1:{fc_port}",
+            "--air", f"udpin:127.0.0.1:{air}", "--kem-key", "vehicle.key.pem",
+            "--peer", "gcs=gcs.pub.pem", "--x25519-key", "vehicle-x.key.pem",
+            "--audit", "vehicle.db", "--metrics-port", str(vehicle_metrics),
+        ],
+        keys,
+    )  # fmt: skip
+    fc = mavutil.mavlink_connection(f"udpout:127.0.0.1:{fc_port}", source_system=1)
+    no_session = ("antireplay_mavlink_pq_dropped_total", (
+        ("end", "vehicle"), ("reason", "NO_SESSION"), ("side", "local"),
+    ))  # fmt: skip
+    try:
+        until("both ends running", lambda: ground.said("mavlink-pq ground") and vehicle.said(
+            "mavlink-pq vehicle"))  # fmt: skip
+        until("the first handshake lost", lambda: relay.dropped >= 26)  # HS1: 26 chunks
+
+        def telemetry_dropped() -> bool:
+            fc.mav.heartbeat_send(2, 3, 0, 0, 4)
+            return _samples(vehicle_metrics).get(no_session, 0) >= 20
+
+        until("telemetry without a session counted", telemetry_dropped)
+        relay.opened = True
+        until("the ground end's session", lambda: ground.said("session established"))
+        until("the vehicle end's session", lambda: vehicle.said("session established"))
+        fc.mav.heartbeat_send(2, 3, 0, 0, 4)
+        ground_counts = _samples(ground_metrics)
+        established = ("end", "ground"), ("event", "established")
+        assert ground_counts["antireplay_mavlink_pq_sessions_total", established] == 1
+        assert ground_counts["antireplay_mavlink_pq_session_up", (("end", "ground"),)] == 1
+        started = ground_counts[
+            "antireplay_mavlink_pq_handshakes_total", (("end", "ground"), ("outcome", "started"))
+        ]
+        assert started >= 2
+    finally:
+        fc.close()
+        ground_code, vehicle_code = ground.stop(), vehicle.stop()
+        relay.close()
+    assert ground_code == vehicle_code == 0
+    for end in (ground, vehicle):
+        assert sum("session established" in line for line in end.lines) == 1, end.lines
+        assert not any("no session" in line for line in end.lines), end.lines
+        assert end.said("sessions established=1"), end.lines  # the counts at SIGTERM
+    assert vehicle.said("local:NO_SESSION="), vehicle.lines
+    for trail in ("ground.db", "vehicle.db"):
+        assert _audited(keys / trail) == [("session", "ESTABLISHED")]
+
+
+def test_the_system_id_options_say_what_they_set() -> None:
+    for end in ("ground", "vehicle"):
+        result = CliRunner().invoke(main, ["mavlink-pq", end, "--help"])
+        assert "system id of the PQ_CHUNK frames this end sends" in " ".join(result.output.split())

@@ -28,7 +28,7 @@ from antireplay.audit import sanitize, tail
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.http.status import AUDIT_COLUMNS, render, security_headers
 from tests.conftest import ROOT
-from tests.harness import GatewayProcess, metrics_router
+from tests.harness import GatewayProcess, metrics_pq, metrics_router
 from tests.redis_server import RedisServer
 
 DASH = "\u2014"
@@ -319,6 +319,13 @@ def router_metrics_text(tmp_path: Path) -> Iterator[str]:
         yield httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
 
 
+@contextmanager
+def pq_metrics_text(tmp_path: Path) -> Iterator[str]:
+    """What a real ``antireplay mavlink-pq ground --metrics-port`` exports."""
+    with metrics_pq(tmp_path) as port:
+        yield httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
+
+
 def _names(query: str) -> set[str]:
     """The metrics a ``label_values(METRIC, label)`` variable query reads."""
     return set(re.findall(r"\bantireplay_[a-z0-9_]+\b", query))
@@ -341,7 +348,7 @@ def test_the_dashboard_queries_only_metrics_that_are_exported(
     gateway: GatewayProcess, tmp_path: Path
 ) -> None:
     """Every metric of every query is exported by a real gateway (a renamed metric fails
-    here), the MAVLink row's by a real router."""
+    here), the MAVLink row's by a real router, the post-quantum row's by a real PQ end."""
     dashboard = json.loads(DASHBOARD.read_text())
     assert dashboard["schemaVersion"] >= 38  # Grafana 10+
     variables = {v["name"]: v for v in dashboard["templating"]["list"]}
@@ -355,13 +362,18 @@ def test_the_dashboard_queries_only_metrics_that_are_exported(
     gateway_names = _exported(httpx.get(f"{gateway.url}/metrics", timeout=10).text)
     with router_metrics_text(tmp_path) as text:
         router_names = _exported(text)
+    with pq_metrics_text(tmp_path) as text:
+        pq_names = _exported(text)
     assert _names(variables["instance"]["definition"]) <= gateway_names
     assert _names(variables["router"]["definition"]) <= router_names
+    assert _names(variables["pq"]["definition"]) <= pq_names
     used: set[str] = set()
     exported = gateway_names
     for panel in panels:
         if panel["type"] == "row":
-            exported = router_names if panel["title"].startswith("MAVLink") else gateway_names
+            rows = {"MAVLink router": router_names, "Post-quantum MAVLink": pq_names}
+            title = panel["title"]
+            exported = next((v for k, v in rows.items() if title.startswith(k)), gateway_names)
             continue
         assert panel["datasource"]["uid"] == "${DS_PROMETHEUS}", panel["title"]
         assert panel["targets"], panel["title"]
@@ -378,6 +390,9 @@ def test_the_dashboard_queries_only_metrics_that_are_exported(
         "antireplay_state_watermark_seconds", "antireplay_cache_entries",
         "antireplay_group_commit_batches_total", "antireplay_group_commit_operations_total",
         "antireplay_replay_refusals_total", "antireplay_mavlink_forwarded_total",
-        "antireplay_mavlink_dropped_total",
+        "antireplay_mavlink_dropped_total", "antireplay_mavlink_pq_sessions_total",
+        "antireplay_mavlink_pq_session_up", "antireplay_mavlink_pq_handshakes_total",
+        "antireplay_mavlink_pq_chunks_total", "antireplay_mavlink_pq_refusals_total",
+        "antireplay_mavlink_pq_dropped_total", "antireplay_mavlink_pq_unaudited_total",
     }  # fmt: skip
     assert wanted <= used, sorted(wanted - used)

@@ -46,7 +46,7 @@ from antireplay.mavlink.pq import (
     pack_v2,
     parse_chunk,
 )
-from antireplay.mavlink.pq.link import PqLink
+from antireplay.mavlink.pq.link import PqLink, SessionEvent
 from antireplay.mavlink.router import Refusal
 from antireplay.pq.session import REKEY_AFTER, Initiator, Purpose, Responder
 from antireplay.pq.session import Direction as Dir
@@ -57,6 +57,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavgen
 
+from tests.harness import until
 from tests.mavlink.test_router import FakeTransport
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
@@ -637,3 +638,132 @@ def test_a_chunk_planted_ahead_cannot_spoil_the_next_handshake(
     link.up([raw_chunk((planted, 0, 32, 1, Kind.HS1), b"x")])
     link.up(link.ground.handshake())
     assert link.ground.session is not None
+
+
+class Wire(FakeTransport):
+    """A fake air transport whose writes reach another link's air side (when connected)."""
+
+    def __init__(self, text: str) -> None:
+        super().__init__(text)
+        self.peer: Wire | None = None
+
+    def _write(self, data: bytes, peer: object) -> None:
+        super()._write(data, peer)
+        if self.peer is not None:
+            self.peer.inject(bytes(data))
+
+
+def _ends(clock: ManualClock) -> tuple[PqLink, PqLink, Wire, Wire, list[SessionEvent]]:
+    """A ground and a vehicle link whose timers never fire on their own (the test ticks)."""
+    made, events = Link(clock), list[SessionEvent]()
+    ground_air, vehicle_air = Wire("udpout:1.2.3.4:5"), Wire("udpout:1.2.3.4:6")
+    ground = PqLink(
+        made.ground, FakeTransport("udpin:0.0.0.0:1", fixed=False), ground_air,
+        on_session=events.append, tick_s=3600,
+    )  # fmt: skip
+    vehicle = PqLink(
+        made.vehicle, FakeTransport("udpout:1.2.3.4:7"), vehicle_air,
+        on_session=events.append, tick_s=3600,
+    )  # fmt: skip
+    vehicle.start()
+    return ground, vehicle, ground_air, vehicle_air, events
+
+
+def test_the_ground_end_retries_a_lost_handshake_on_its_timer(clock: ManualClock) -> None:
+    """No local traffic at all: the timer alone hand-shakes again, every retry_s, until
+    a session answers, and then stops."""
+    ground, vehicle, ground_air, vehicle_air, events = _ends(clock)
+    ground.start()  # the vehicle's air is not connected yet: this HS1 is lost
+    first = len(ground_air.sent)
+    ground.tick()
+    assert len(ground_air.sent) == first  # not before retry_s
+    ground_air.peer, vehicle_air.peer = vehicle_air, ground_air
+    clock.advance(2)
+    ground.tick()
+    assert len(ground_air.sent) == 2 * first
+    ground_session = ground.end.live
+    assert ground_session is not None
+    assert sorted(map(str, events)) == [
+        f"pq ground: session established ({ground_session.session_id.hex()}, peer responder)",
+        f"pq vehicle: session established ({ground_session.session_id.hex()}, peer gcs)",
+    ]
+    clock.advance(2)
+    ground.tick()
+    assert len(ground_air.sent) == 2 * first  # a session: no more handshakes
+    assert ground.counts().handshakes == {"started": 2, "completed": 1, "failed": 1}
+    ground.stop()
+    vehicle.stop()
+
+
+def test_the_timer_thread_retries_without_being_asked(clock: ManualClock) -> None:
+    made = Link(clock)
+    air = FakeTransport("udpout:1.2.3.4:5")
+    ground = PqLink(made.ground, FakeTransport("udpin:0.0.0.0:1", fixed=False), air, tick_s=0.01)
+    ground.start()
+    first = len(air.sent)
+    clock.advance(2)
+    until("a second handshake from the timer", lambda: len(air.sent) == 2 * first)
+    ground.stop()
+
+
+def test_each_session_change_is_reported_once_and_counted(clock: ManualClock) -> None:
+    ground, vehicle, ground_air, vehicle_air, events = _ends(clock)
+    ground_air.peer, vehicle_air.peer = vehicle_air, ground_air
+    ground.start()
+    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), sysid=1)
+    for _ in range(3):  # telemetry and ticks change nothing while the session is live
+        vehicle.local.inject(beat)  # type: ignore[attr-defined]
+        ground.tick()
+        vehicle.tick()
+    assert sorted((e.end, e.kind) for e in events) == [
+        ("ground", "established"),
+        ("vehicle", "established"),
+    ]
+    clock.advance(5)  # nothing authenticated either way: both notice, once
+    vehicle.tick()
+    vehicle.tick()
+    vehicle_air.peer = None  # the downlink fails: the ground end's new handshake is unanswered
+    ground.tick()
+    ground.tick()
+    assert sorted((e.end, e.kind) for e in events[2:]) == [
+        ("ground", "lost"),
+        ("vehicle", "established"),  # that handshake's session, which the ground never gets
+        ("vehicle", "lost"),
+    ]
+    vehicle_air.peer = ground_air
+    clock.advance(2)
+    ground.tick()  # a new handshake, answered
+    assert sorted((e.end, e.kind) for e in events[5:]) == [
+        ("ground", "established"), ("vehicle", "rekeyed"),
+    ]  # fmt: skip
+    assert isinstance(ground.end, GroundEnd) and ground.end.session is not None
+    ground.end.session._send[Purpose.DATA] = NonceCounter(REKEY_AFTER)
+    gcs_beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
+    ground.local.inject(gcs_beat, ("10.0.0.1", 9))  # type: ignore[attr-defined]
+    assert sorted((e.end, e.kind) for e in events[7:]) == [
+        ("ground", "rekeyed"), ("vehicle", "rekeyed"),
+    ]  # fmt: skip
+    counts = ground.counts()
+    assert counts.up and counts.sessions == {"established": 2, "lost": 1, "rekeyed": 1}
+    assert counts.handshakes == {"started": 4, "completed": 3, "failed": 1}
+    assert counts.chunks["sent"] == len(ground_air.sent)
+    assert counts.chunks["received"] == counts.chunks["reassembled"] == 3 + 3  # HS2s, beats
+    ground.stop()
+    vehicle.stop()
+
+
+def test_telemetry_without_a_session_is_counted_not_refused(clock: ManualClock) -> None:
+    refusals: list[Refusal] = []
+    made = Link(clock)
+    fc = FakeTransport("udpout:1.2.3.4:7")
+    vehicle = PqLink(
+        made.vehicle, fc, FakeTransport("udpin:0.0.0.0:1", fixed=False),
+        on_reject=refusals.append, tick_s=3600,
+    )  # fmt: skip
+    vehicle.start()
+    for _ in range(84):
+        fc.inject(plain(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), sysid=1))
+    assert refusals == []
+    counts = vehicle.counts()
+    assert counts.dropped == {"local:NO_SESSION": 84} and counts.refused == {}
+    vehicle.stop()

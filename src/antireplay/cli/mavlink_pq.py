@@ -4,32 +4,110 @@ Registered by :mod:`antireplay.cli`; it lives outside :mod:`antireplay.mavlink` 
 the pymavlink dialect is imported only when a command runs.
 Keys are PEM files from ``antireplay keygen`` (``--alg ml-dsa-87`` for the operator,
 ``ml-kem-1024`` and, for the hybrid option, ``x25519`` for the vehicle).  Each command
-runs one :class:`~antireplay.mavlink.pq.link.PqLink` until SIGINT or SIGTERM, logs
-refusals (at most ``LOG_PER_S`` lines a second; the rest are counted) and prints the
-counts when it stops.
+runs one :class:`~antireplay.mavlink.pq.link.PqLink` until SIGINT or SIGTERM and prints
+the counts when it stops.  Refusals go to the rate-limited refusal auditor (an audit
+record and a log line each, the rest counted); a change of the session (established,
+rekeyed, lost, resumed) is logged at INFO and always audited (``--audit``).  With
+``--metrics-port`` the link's counts (:func:`pq_metrics`) are served to Prometheus.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import click
 from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 
-from antireplay.cli._common import stop_on_signal
+from antireplay.audit import AuditLog
+from antireplay.cli._common import _MOVE_ASIDE, _check_audit_file, _fail, stop_on_signal
 from antireplay.core.clock import SystemClock
-from antireplay.core.ratelimit import TokenBucket
+from antireplay.core.errors import StateFileError
 
 if TYPE_CHECKING:
-    from antireplay.mavlink.pq import GroundEnd, VehicleEnd
+    from prometheus_client.core import Metric
 
-LOG_PER_S = 10.0
+    from antireplay.mavlink.pq import GroundEnd, VehicleEnd
+    from antireplay.mavlink.pq.link import LinkCounts, SessionEvent
+
 log = logging.getLogger("antireplay.mavlink.pq")
 PEM = click.Path(path_type=Path, dir_okay=False, exists=True)
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _operations(end: str) -> Callable[[F], F]:
+    """The options every end shares: its audit trail and its metrics port."""
+
+    def apply(command: F) -> F:
+        for option in (
+            click.option(
+                "--audit", "audit_path", default=f".antireplay/mavlink-pq-{end}-audit.db",
+                show_default=True, help="The audit trail: refusals and session changes.",
+            ),
+            click.option(
+                "--metrics-port", type=click.IntRange(0, 65535), default=None,
+                help="Serve Prometheus metrics here.",
+            ),
+            click.option(
+                "--metrics-host", default="127.0.0.1", show_default=True,
+                help="The address the metrics port binds (0.0.0.0 for a Prometheus on "
+                "another host).",
+            ),
+        ):  # fmt: skip
+            command = option(command)
+        return command
+
+    return apply
+
+
+def pq_metrics(counts: LinkCounts) -> list[Metric]:
+    """A link's counts as Prometheus metrics, labelled with its end (ground, vehicle)."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily  # noqa: PLC0415
+
+    from antireplay.mavlink.pq.link import SESSION_EVENTS  # noqa: PLC0415
+
+    end = counts.end
+    up = GaugeMetricFamily(
+        "antireplay_mavlink_pq_session_up",
+        "1 while a session is live (the other end heard within its silence limit)",
+        labels=["end"],
+    )
+    up.add_metric([end], int(counts.up))
+    families: list[Metric] = [up]
+    for name, text, label, fixed, counter in (
+        ("sessions", "Session changes", "event", SESSION_EVENTS, counts.sessions),
+        ("handshakes", "Handshakes", "outcome", ("started", "completed", "failed"),
+         counts.handshakes),
+        ("chunks", "PQ_CHUNK frames", "what", ("sent", "received", "reassembled"),
+         counts.chunks),
+    ):  # fmt: skip
+        family = CounterMetricFamily(f"antireplay_mavlink_pq_{name}", text, labels=["end", label])
+        for key in fixed:
+            family.add_metric([end, key], counter[key])
+        families.append(family)
+    for name, text, label, counter in (
+        ("refusals", "Frames refused, by side and code", "code", counts.refused),
+        ("dropped", "Frames dropped without a refusal (no session, queue, reassembly, plain)",
+         "reason", counts.dropped),
+    ):  # fmt: skip
+        family = CounterMetricFamily(
+            f"antireplay_mavlink_pq_{name}", text, labels=["end", "side", label]
+        )
+        for key, n in sorted(counter.items()):
+            side, _, what = key.partition(":")
+            family.add_metric([end, side, what], n)
+        families.append(family)
+    unaudited = CounterMetricFamily(
+        "antireplay_mavlink_pq_unaudited",
+        "Refusals and session changes the audit trail could not record (it was down)",
+        labels=["end"],
+    )
+    unaudited.add_metric([end], counts.unaudited)
+    return [*families, unaudited]
 
 
 def _key(path: Path, kind: Any, option: str) -> Any:
@@ -51,33 +129,69 @@ def _key(path: Path, kind: Any, option: str) -> Any:
     return key
 
 
-def _run(end: GroundEnd | VehicleEnd, local: str, air: str, what: str) -> None:
+def _session_recorder(audit: AuditLog) -> Callable[[SessionEvent], None]:
+    """Log a session change at INFO and audit it (always: it is authentic, and rare)."""
+    clock = SystemClock()
+
+    def record(event: SessionEvent) -> None:
+        log.info("%s", event)
+        audit.append(
+            at=clock.wall(), outcome="session", code=event.kind.upper(), warning=None,
+            msg_type=None, sender=f"pq:{event.peer}", sender_verified=True,
+            msg_id=event.session_id.hex(),
+        )  # fmt: skip
+
+    return record
+
+
+def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
+    end: GroundEnd | VehicleEnd,
+    local: str,
+    air: str,
+    audit_path: str,
+    metrics_port: int | None,
+    metrics_host: str,
+) -> None:
     from antireplay.mavlink.endpoints import open_transport, parse_endpoint  # noqa: PLC0415
     from antireplay.mavlink.pq.link import PqLink  # noqa: PLC0415
-    from antireplay.mavlink.router import Refusal  # noqa: PLC0415
+    from antireplay.wiring import mavlink_auditor, serve_metrics  # noqa: PLC0415
 
+    _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")  # before opening anything
     try:
         transports = [open_transport(parse_endpoint(text)) for text in (local, air)]
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
     except OSError as exc:
         raise click.ClickException(f"{local} / {air}: {exc.strerror or exc}") from None
-    budget = TokenBucket(LOG_PER_S, SystemClock())
-
-    def report(refusal: Refusal) -> None:
-        if budget.take():
-            log.warning("%s", refusal)
-
-    link = PqLink(end, *transports, on_reject=report)
+    try:
+        audit_log = AuditLog(audit_path)
+    except StateFileError as exc:
+        _fail(str(exc))
+    refusals = mavlink_auditor(audit_log)
+    link = PqLink(end, *transports, on_reject=refusals, on_session=_session_recorder(audit_log))
+    if metrics_port is not None:
+        try:
+            serve_metrics(lambda: pq_metrics(link.counts()), metrics_port, metrics_host)
+        except (OSError, ValueError) as exc:  # an unknown host, a busy port, a bad name
+            _fail(
+                f"--metrics-host {metrics_host} --metrics-port {metrics_port}: cannot serve "
+                f"metrics there ({getattr(exc, 'strerror', None) or exc})"
+            )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = stop_on_signal()
     link.start()
-    click.echo(f"mavlink-pq {what}: local {local}, air {air}", err=True)
+    click.echo(f"mavlink-pq {link.name}: local {local}, air {air}", err=True)
     done.wait()
     link.stop()
+    audit_log.close()
     forwarded = " ".join(f"{k}={v}" for k, v in sorted(link.forwarded.items())) or "none"
     dropped = " ".join(f"{k}={v}" for k, v in sorted(link.dropped.items())) or "none"
-    click.echo(f"forwarded {forwarded}; dropped {dropped}; {link.air_bytes} bytes on air", err=True)
+    sessions = " ".join(f"{k}={v}" for k, v in sorted(link.sessions.items())) or "none"
+    click.echo(
+        f"forwarded {forwarded}; dropped {dropped}; sessions {sessions}; "
+        f"{link.air_bytes} bytes on air",
+        err=True,
+    )
 
 
 @click.group("mavlink-pq")
@@ -108,7 +222,13 @@ def mavlink_pq() -> None:
 @click.option(
     "--vehicle-x25519", type=PEM, help="The vehicle's X25519 public key: hybrid handshakes."
 )
-@click.option("--system-id", default=255, show_default=True, type=click.IntRange(1, 255))
+@click.option(
+    "--system-id",
+    default=255,
+    show_default=True,
+    type=click.IntRange(1, 255),
+    help="The MAVLink system id of the PQ_CHUNK frames this end sends (a ground station's).",
+)
 @click.option(
     "--queue-ttl",
     default=5.0,
@@ -116,6 +236,7 @@ def mavlink_pq() -> None:
     type=click.FloatRange(0, 600),
     help="Seconds a command waits for a session before it is dropped (counted).",
 )
+@_operations("ground")
 def ground(  # noqa: PLR0917 - one option per knob
     local: str,
     air: str,
@@ -125,6 +246,9 @@ def ground(  # noqa: PLR0917 - one option per knob
     vehicle_x25519: Path | None,
     system_id: int,
     queue_ttl: float,
+    audit_path: str,
+    metrics_port: int | None,
+    metrics_host: str,
 ) -> None:
     """The end next to the ground station: opens the session, wraps its peers' messages."""
     from antireplay.mavlink.pq import GroundEnd  # noqa: PLC0415
@@ -140,7 +264,7 @@ def ground(  # noqa: PLR0917 - one option per knob
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="'--identity'") from None
     end = GroundEnd(initiator, kem, system_id=system_id, hybrid=hybrid, queue_ttl_s=queue_ttl)
-    _run(end, local, air, "ground")
+    _run(end, local, air, audit_path, metrics_port, metrics_host)
 
 
 @mavlink_pq.command()
@@ -164,8 +288,15 @@ def ground(  # noqa: PLR0917 - one option per knob
 @click.option(
     "--x25519-key", type=PEM, help="The vehicle's X25519 private key: hybrid handshakes only."
 )
-@click.option("--system-id", default=1, show_default=True, type=click.IntRange(1, 255))
+@click.option(
+    "--system-id",
+    default=1,
+    show_default=True,
+    type=click.IntRange(1, 255),
+    help="The MAVLink system id of the PQ_CHUNK frames this end sends (the vehicle's).",
+)
 @click.option("--max-sessions", default=4, show_default=True, type=click.IntRange(1, 256))
+@_operations("vehicle")
 def vehicle(  # noqa: PLR0917 - one option per knob
     fc: str,
     air: str,
@@ -174,6 +305,9 @@ def vehicle(  # noqa: PLR0917 - one option per knob
     x25519_key: Path | None,
     system_id: int,
     max_sessions: int,
+    audit_path: str,
+    metrics_port: int | None,
+    metrics_host: str,
 ) -> None:
     """The end next to the autopilot: verifies, unwraps, delivers plain MAVLink to it."""
     from antireplay.mavlink.pq import VehicleEnd  # noqa: PLC0415
@@ -190,4 +324,5 @@ def vehicle(  # noqa: PLR0917 - one option per knob
     if x25519_key is not None:
         hybrid = _key(x25519_key, x25519.X25519PrivateKey, "'--x25519-key'")
     responder = Responder(kem, registry, max_sessions=max_sessions, x25519_key=hybrid)
-    _run(VehicleEnd(responder, system_id=system_id), fc, air, "vehicle")
+    end = VehicleEnd(responder, system_id=system_id)
+    _run(end, fc, air, audit_path, metrics_port, metrics_host)

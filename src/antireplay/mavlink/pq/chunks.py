@@ -152,8 +152,10 @@ class _Transfer:
 
 @dataclass
 class ReassemblyStats:
-    """What the reassembler threw away without an error to the caller."""
+    """What the reassembler threw away without an error to the caller, and the blobs it
+    completed (``reassembled``: each handed on, to be opened or refused)."""
 
+    reassembled: int = 0
     duplicates: int = 0
     evicted: int = 0
     expired: int = 0
@@ -192,6 +194,7 @@ class Reassembler:
         frames this end receives: a ``FRAME_CHUNKED`` chunk must carry a MAC under one.
         """
         if chunk.count == 1:
+            self.stats.reassembled += 1
             return chunk.kind, chunk.piece
         self._expire()
         pool = self._handshakes if chunk.kind is Kind.HS1 else self._frames
@@ -212,6 +215,7 @@ class Reassembler:
         if len(transfer.pieces) < transfer.count:
             return None
         del pool[chunk.key]
+        self.stats.reassembled += 1
         return transfer.kind, b"".join(transfer.pieces[i] for i in range(transfer.count))
 
     def opened(self, chunk: Chunk, key: bytes) -> None:

@@ -1,6 +1,11 @@
 """The two ends of a PQ link: the ground end (initiator) and the vehicle end (responder).
 
-Sans-I/O: bytes and a time in, frames out; :mod:`.link` drives them over transports.
+Sans-I/O: bytes and a time in, frames out; :mod:`.link` drives them over transports and
+calls :meth:`GroundEnd.tick` on a timer, so that a lost handshake is retried every
+``retry_s`` whether or not local traffic arrives.  Each end says which session is
+:attr:`~GroundEnd.live` (held, and something authenticated heard from the other end
+within ``silence_s``) and counts its handshakes (``started``, ``completed``, ``failed``:
+superseded unanswered, or refused) and the local frames it dropped (``NO_SESSION``...).
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from cryptography.hazmat.primitives.asymmetric import mlkem, x25519
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import (
     InvalidFrameError,
+    ReplayAttackError,
     SignatureInvalidError,
     SignatureRequiredError,
     UnknownSessionError,
@@ -104,10 +110,14 @@ class GroundEnd:
         #: session), ``QUEUE_FULL`` (the oldest queued command, pushed out by a newer one),
         #: ``QUEUE_EXPIRED`` (a command that waited longer than ``queue_ttl_s``).
         self.drops: Counter[str] = Counter()
+        self.handshakes: Counter[str] = Counter()
 
     def handshake(self) -> list[bytes]:
         """Start a new handshake (the current session keeps working until HS2 arrives).  Its
         transfer number is random: nobody can plant a conflicting chunk ahead of it."""
+        if self._pending is not None:
+            self.handshakes["failed"] += 1  # never answered: superseded
+        self.handshakes["started"] += 1
         hs1 = self.initiator.start(self.responder_key, self.hybrid)
         self._pending = (hs1, self._clock.monotonic())
         return self.sender.frames(hs1, Kind.HS1, transfer=secrets.randbelow(0x10000))
@@ -119,9 +129,8 @@ class GroundEnd:
         again, and must not push a command out of the queue.  Every drop is counted in
         :attr:`drops`."""
         frame = _parse(raw)
-        if self.session is not None and self._transfers_used() >= TRANSFER_LIMIT:
-            self.session = None  # its transfer numbers would wrap: wait for the new one
-        if self.session is None:
+        session = self._usable()
+        if session is None:
             if frame.msgid in self.signed:
                 self._expire_queue()
                 if len(self._queue) >= self.max_queued:
@@ -132,7 +141,25 @@ class GroundEnd:
                 self.drops["NO_SESSION"] += 1
             return self._retry()
         purpose = Purpose.COMMAND if frame.msgid in self.signed else Purpose.DATA
-        return self._seal(self.session, inner_of(frame), purpose) + self._renew(self.session)
+        return self._seal(session, inner_of(frame), purpose) + self._renew(session)
+
+    def tick(self) -> list[bytes]:
+        """What time alone calls for: expire queued commands, and hand-shake again (at most
+        every ``retry_s``) while there is no session or this one should end (:meth:`_renew`)."""
+        self._expire_queue()
+        session = self._usable()
+        return self._retry() if session is None else self._renew(session)
+
+    @property
+    def live(self) -> Session | None:
+        """The session, while the vehicle was heard within ``silence_s``."""
+        silent = self._clock.monotonic() - self._heard >= self.silence_s
+        return None if silent else self.session
+
+    def _usable(self) -> Session | None:
+        if self.session is not None and self._transfers_used() >= TRANSFER_LIMIT:
+            self.session = None  # its transfer numbers would wrap: wait for the new one
+        return self.session
 
     def _renew(self, session: Session) -> list[bytes]:
         """A new handshake (rate-limited by ``retry_s``) when this session should end: its
@@ -183,6 +210,7 @@ class GroundEnd:
         if self._pending is None:
             raise UnknownSessionError("HS2 with no handshake in progress")
         self.session = self.initiator.finish(self._pending[0], hs2)
+        self.handshakes["completed"] += 1
         self._pending, self._heard = None, self._clock.monotonic()
         self._first_transfer = self.sender.transfer
         out = Output(authenticated=True)
@@ -217,10 +245,12 @@ class VehicleEnd:
         system_id: int = 1,
         component_id: int = 197,
         hint_interval_s: float = 1.0,
+        silence_s: float = 5.0,
         signed: frozenset[int] = SIGNED_MESSAGES,
         clock: Clock | None = None,
     ) -> None:
         self.responder = responder
+        self.silence_s = silence_s
         self.signed = signed  # messages delivered only from a command (ML-DSA-87) frame
         self.sender = ChunkSender(system_id, component_id)
         self.hint_interval_s = hint_interval_s
@@ -229,6 +259,10 @@ class VehicleEnd:
         self._sessions: deque[Session] = deque(maxlen=responder.max_sessions)
         self.current: Session | None = None  # the newest session that authenticated
         self._hinted = float("-inf")
+        self._heard = float("-inf")  # when an authenticated blob last came from the ground
+        #: Telemetry dropped because no session carries it yet (``NO_SESSION``).
+        self.drops: Counter[str] = Counter()
+        self.handshakes: Counter[str] = Counter()
 
     def from_air(self, raw: bytes) -> Output:
         """One frame from the air: HS1 (answered with HS2) or a session frame for the FC."""
@@ -246,9 +280,15 @@ class VehicleEnd:
         kind, blob = done
         if kind is Kind.HS1:
             handles = {s.session_id[-1] for s in self._sessions}
-            session, hs2 = self.responder.accept_handshake(blob, lambda sid: sid[-1] in handles)
+            self.handshakes["started"] += 1
+            try:
+                session, hs2 = self.responder.accept_handshake(blob, lambda sid: sid[-1] in handles)
+            except ReplayAttackError:
+                self.handshakes["failed"] += 1
+                raise
+            self.handshakes["completed"] += 1
             self._sessions.append(session)
-            self.current = session
+            self.current, self._heard = session, self._clock.monotonic()
             return Output(air=self.sender.frames(hs2, Kind.HS2), authenticated=True)
         if kind is Kind.HS2:
             raise InvalidFrameError("HS2 travels to the ground end")
@@ -257,7 +297,7 @@ class VehicleEnd:
         session = next(s for s in self._sessions if s.session_id == opened.session_id)
         self._reassembler.opened(chunk, chunk_key(session.recv_key))
         self._supersede(session)
-        self.current = session
+        self.current, self._heard = session, self._clock.monotonic()
         return Output(local=[plain_frame(opened.payload)], authenticated=True)
 
     def _require_signature(self, air: bytes) -> None:
@@ -288,12 +328,25 @@ class VehicleEnd:
         return [status_frame(STATUS_NO_SESSION, self.sender.sysid, self.sender.compid)]
 
     def from_local(self, raw: bytes) -> list[bytes]:
-        """Wrap one telemetry frame from the flight controller (dropped with no session)."""
+        """Wrap one telemetry frame from the flight controller; with no session it is
+        dropped and counted (:attr:`drops`): the flight controller streams long before
+        the ground end connects, which is no fault."""
         frame = _parse(raw)
         if self.current is None:
-            raise UnknownSessionError("no session to carry telemetry yet")
+            self.drops["NO_SESSION"] += 1
+            return []
         blob = compact(self.current.seal(inner_of(frame), Purpose.DATA))
         return self.sender.frames(blob, Kind.FRAME, chunk_key(self.current.send_key))
+
+    def tick(self) -> list[bytes]:
+        """Nothing to send on time alone: the ground end opens sessions."""
+        return []
+
+    @property
+    def live(self) -> Session | None:
+        """The current session, while the ground end was heard within ``silence_s``."""
+        silent = self._clock.monotonic() - self._heard >= self.silence_s
+        return None if silent else self.current
 
     @property
     def reassembly(self) -> ReassemblyStats:

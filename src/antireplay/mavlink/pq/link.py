@@ -3,29 +3,25 @@
 Theory of operation
 -------------------
 A :class:`PqLink` moves bytes for one sans-I/O end of :mod:`antireplay.mavlink.pq`
-between two :class:`~antireplay.mavlink.endpoints.Transport` s:
+between two :class:`~antireplay.mavlink.endpoints.Transport` s.  The **ground** end's
+``local`` is where ground stations connect (a trusted ``udpin``: every peer that sends
+receives the telemetry), ``air`` the path to the vehicle; it hand-shakes at
+:meth:`~PqLink.start` and, from a timer (:meth:`~PqLink.tick`, every ``tick_s``), again
+every ``retry_s`` until a session answers, whether or not local traffic arrives.  The
+**vehicle** end's ``local`` is the flight controller, ``air`` the path to the ground; a
+``udpin`` air peer is learned only from a blob that authenticated, and plain MAVLink
+from the air never reaches the flight controller.
 
-* **ground** (:class:`~antireplay.mavlink.pq.GroundEnd`): ``local`` is where the
-  ground station and other plain-MAVLink tools connect (a ``udpin``: every peer that
-  sends a frame receives the telemetry; this side is trusted, as a router's
-  ``trusted`` link is), ``air`` the path to the vehicle (a radio, MAVProxy, a
-  router).  It starts the handshake at :meth:`start`.
-* **vehicle** (:class:`~antireplay.mavlink.pq.VehicleEnd`): ``local`` is the flight
-  controller (serial, or a router's ``trusted`` endpoint, which signs for it with the
-  MAVLink key), ``air`` the path to the ground.  A ``udpin`` air peer is learned only
-  from a blob that authenticated (an accepted HS1 or an opened frame), as the router
-  learns routes; plain MAVLink from the air never reaches the flight controller.
-
-Every refusal is counted in :attr:`PqLink.dropped` under ``side:CODE`` and handed to
-``on_reject`` as a :class:`~antireplay.mavlink.router.Refusal`, except plain MAVLink on
-the air (routers send their own heartbeats there; never carried, counted ``air:PLAIN``);
-what the end drops without an error (reassembly evictions and expiries, a ground end's
-expired or displaced queued commands) is counted there too.  A vehicle end that
-refuses a frame for a session it does not hold (``UNKNOWN_SESSION``,
-``SESSION_CLOSED``) answers with the rate-limited ``PQ_STATUS`` hint.  Bytes written
-to the air are counted (:attr:`PqLink.air_bytes`), and ``tap`` sees each air frame
-(a capture, the bytes-on-air figures).  One lock serialises the end; writes happen
-outside it.
+Every refusal is counted under ``side:CODE`` and handed to ``on_reject`` (the
+rate-limited refusal auditor the command gives it; a refusal it could not record is
+counted ``unaudited``), except plain MAVLink on the air (routers' heartbeats: counted
+``air:PLAIN``).  What an end drops without an error is counted too (:attr:`~PqLink.dropped`),
+telemetry with no session among it: never logged per frame.  A vehicle end answers a
+frame for a session it does not hold with the rate-limited ``PQ_STATUS`` hint.  Each
+change of the live session (``established``, ``rekeyed``, ``lost``: nothing
+authenticated from the other end for ``silence_s``, ``resumed``) is counted and handed
+once to ``on_session`` (authentic: always recorded).  :meth:`~PqLink.counts` is what
+the metrics export.  One lock serialises the end; writes happen outside it.
 """
 
 from __future__ import annotations
@@ -33,6 +29,7 @@ from __future__ import annotations
 import threading
 from collections import Counter
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from antireplay.core.errors import AntiReplayError, Code, ReplayAttackError
@@ -40,8 +37,38 @@ from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.pq.chunks import PlainFrameError
 from antireplay.mavlink.pq.ends import GroundEnd, Output, VehicleEnd
 from antireplay.mavlink.router import Refusal
+from antireplay.pq.session import Session
 
 _HINTED = {Code.UNKNOWN_SESSION, Code.SESSION_CLOSED}
+#: The kinds of :class:`SessionEvent`, in the order the metrics list them.
+SESSION_EVENTS = ("established", "rekeyed", "lost", "resumed")
+
+
+@dataclass(frozen=True)
+class SessionEvent:
+    """A change of an end's live session, logged and audited once."""
+
+    end: str  # ground or vehicle
+    kind: str  # one of SESSION_EVENTS
+    session_id: bytes
+    peer: str
+
+    def __str__(self) -> str:
+        return f"pq {self.end}: session {self.kind} ({self.session_id.hex()}, peer {self.peer})"
+
+
+@dataclass(frozen=True)
+class LinkCounts:
+    """A snapshot of everything a link counts (what its metrics export)."""
+
+    end: str
+    up: bool
+    sessions: Counter[str]
+    handshakes: Counter[str]
+    chunks: Counter[str]  # sent, received (not plain MAVLink), reassembled (whole blobs)
+    refused: Counter[str]  # side:CODE
+    dropped: Counter[str]  # side:REASON, dropped without a refusal
+    unaudited: int
 
 
 class PqLink:
@@ -54,32 +81,58 @@ class PqLink:
         air: Transport,
         *,
         on_reject: Callable[[Refusal], Any] | None = None,
+        on_session: Callable[[SessionEvent], Any] | None = None,
         tap: Callable[[bytes], Any] | None = None,
         max_local_peers: int = 8,
+        tick_s: float = 0.5,
     ) -> None:
         self.end, self.local, self.air = end, local, air
-        self.on_reject, self.tap = on_reject, tap
-        self.max_local_peers = max_local_peers
+        self.name = "ground" if isinstance(end, GroundEnd) else "vehicle"
+        self.on_reject, self.on_session, self.tap = on_reject, on_session, tap
+        self.max_local_peers, self.tick_s = max_local_peers, tick_s
         self._dropped: Counter[str] = Counter()
+        self._refused: Counter[str] = Counter()
         self.forwarded: Counter[str] = Counter()
+        self.sessions: Counter[str] = Counter()
+        self.chunks: Counter[str] = Counter()
         self.air_bytes = 0
         self._local_peers: dict[Peer, None] = {}
         self._air_peer: Peer | None = None
+        self._live: Session | None = None
+        self._last: Session | None = None  # the last session that was live
         self._lock = threading.Lock()
         self._count_lock = threading.Lock()
+        self._stopped = threading.Event()
+        self._ticker: threading.Thread | None = None
 
     def start(self) -> None:
-        """Start both transports; a ground end sends its first handshake."""
+        """Start both transports and the timer; a ground end sends its first handshake."""
         self.local.start(self._from_local)
         self.air.start(self._from_air)
         if isinstance(self.end, GroundEnd):
             with self._lock:
                 frames = self.end.handshake()
             self._to_air(frames, None)
+        self._ticker = threading.Thread(target=self._tick_loop, name="pq-tick", daemon=True)
+        self._ticker.start()
 
     def stop(self) -> None:
+        self._stopped.set()
+        if self._ticker is not None:
+            self._ticker.join()
         self.local.close()
         self.air.close()
+
+    def _tick_loop(self) -> None:
+        while not self._stopped.wait(self.tick_s):
+            self.tick()
+
+    def tick(self) -> None:
+        """What time alone calls for: the end's retries and expiries, a lost session noticed."""
+        with self._lock:
+            frames = self.end.tick()
+        self._to_air(frames, self._air_peer)
+        self._observe()
 
     def _from_local(
         self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
@@ -99,6 +152,7 @@ class PqLink:
                 continue
             self.forwarded["local"] += 1
             self._to_air(air, self._air_peer)
+        self._observe()
 
     def _from_air(
         self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
@@ -114,18 +168,45 @@ class PqLink:
                 self._count("air:PLAIN")
                 continue
             except ReplayAttackError as exc:
+                self._count("received", counter=self.chunks)
                 self._refuse("air", exc.code, exc.reason, raw)
                 if exc.code in _HINTED and isinstance(self.end, VehicleEnd):
                     with self._lock:
                         hint = self.end.hint()
                 self._to_air(hint, peer)
                 continue
+            self._count("received", counter=self.chunks)
             if out.authenticated:  # its sender is the air peer from now on
                 self._air_peer = peer
                 self.forwarded["air"] += 1
             for data in out.local:
                 self._to_local(data)
             self._to_air(out.air, peer if out.authenticated else self._air_peer)
+        self._observe()
+
+    def _observe(self) -> None:
+        """Hand a change of the live session to ``on_session``, once."""
+        with self._lock:
+            live, before = self.end.live, self._live
+            if live is before:
+                return
+            self._live = live
+            if live is None:
+                assert before is not None
+                kind, session = "lost", before
+            else:
+                kind = "rekeyed" if before is not None else "established"
+                if live is self._last:
+                    kind = "resumed"
+                self._last = session = live
+        self._count(kind, counter=self.sessions)
+        event = SessionEvent(self.name, kind, session.session_id, session.peer_id)
+        if self.on_session is None:
+            return
+        try:
+            self.on_session(event)
+        except AntiReplayError:
+            self._count("unaudited")
 
     def _to_local(self, data: bytes) -> None:
         peers: list[Peer | None] = [None] if self.local.fixed else list(self._local_peers)
@@ -139,6 +220,7 @@ class PqLink:
         if peer is None and not self.air.fixed:
             self._count("air:NO_PEER", len(frames))
             return
+        self._count("sent", len(frames), self.chunks)
         for data in frames:
             if self.tap is not None:
                 self.tap(data)
@@ -150,8 +232,8 @@ class PqLink:
     def dropped(self) -> Counter[str]:
         """Everything dropped, by ``side:REASON``: refusals (``side:CODE``), what the end
         threw away without an error (reassembly: ``air:EVICTED``, ``air:EXPIRED``,
-        ``air:DUPLICATE``; a ground end's local messages that never left:
-        ``local:NO_SESSION``, ``local:QUEUE_FULL``, ``local:QUEUE_EXPIRED``), plain
+        ``air:DUPLICATE``; local messages that never left: ``local:NO_SESSION`` at either
+        end, a ground end's ``local:QUEUE_FULL``, ``local:QUEUE_EXPIRED``), plain
         MAVLink on the air (``air:PLAIN``) and what could not be written."""
         with self._lock:
             stats = self.end.reassembly
@@ -162,18 +244,33 @@ class PqLink:
                     "air:DUPLICATE": stats.duplicates,
                 }
             )
-            if isinstance(self.end, GroundEnd):
-                out.update({f"local:{k}": v for k, v in self.end.drops.items()})
+            out.update({f"local:{k}": v for k, v in self.end.drops.items()})
         with self._count_lock:
             out.update(self._dropped)
+            out.update(self._refused)
         return +out  # the zero counts dropped
 
-    def _count(self, key: str, n: int = 1) -> None:
+    def counts(self) -> LinkCounts:
+        """Everything counted, now: refusals apart from the other drops."""
+        with self._lock:
+            handshakes = Counter(self.end.handshakes)
+            reassembled = self.end.reassembly.reassembled
+            up = self.end.live is not None
+        dropped = self.dropped
         with self._count_lock:
-            self._dropped[key] += n
+            refused = Counter(self._refused)
+            sessions, chunks = Counter(self.sessions), Counter(self.chunks)
+        chunks["reassembled"] = reassembled
+        unaudited = dropped.pop("unaudited", 0)
+        dropped.subtract(refused)
+        return LinkCounts(self.name, up, sessions, handshakes, chunks, refused, +dropped, unaudited)
+
+    def _count(self, key: str, n: int = 1, counter: Counter[str] | None = None) -> None:
+        with self._count_lock:
+            (self._dropped if counter is None else counter)[key] += n
 
     def _refuse(self, side: str, code: str, reason: str, raw: bytes) -> None:
-        self._count(f"{side}:{code}")
+        self._count(f"{side}:{code}", counter=self._refused)
         if self.on_reject is None:
             return
         try:
