@@ -330,7 +330,8 @@ def test_metrics_counters_keep_their_last_value_while_the_store_is_down(
 
 
 def test_readme_waits_for_readiness_in_bounded_loops_and_notes_the_upgrade() -> None:
-    readme = (ROOT / "README.md").read_text()
+    pages = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    readme = "\n".join(page.read_text() for page in pages)
     assert "until curl" not in readme
     assert readme.count("for i in $(seq 100); do curl -sf") == 2
     assert "**Upgrading:** a signed `cmd` `STOP` or `RESUME` is now SAFETY" in readme

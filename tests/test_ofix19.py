@@ -21,7 +21,7 @@ from antireplay.http.status import _audit, render
 from antireplay.rcan.receive import Receiver
 from antireplay.state import open_store
 from antireplay.state.sqlite import SqliteStore
-from tests.e2e.test_readme import README
+from tests.e2e.test_readme import DOCUMENTS
 from tests.http.test_status import _snapshot_with
 from tests.state.test_stores import NOW, _assert_fenced, _fresh_deployment, _replicas
 
@@ -57,10 +57,10 @@ def test_status_page_names_what_the_window_refusals_table_counts() -> None:
 
 
 def test_readme_states_the_sqlite_busy_timeout_the_store_uses() -> None:
-    """The README's number for how long a command waits on a locked state file is the
+    """The docs' number for how long a command waits on a locked state file is the
     store's own default (and open_store passes no other)."""
     default = inspect.signature(SqliteStore).parameters["timeout_s"].default
-    text = " ".join(README.read_text(encoding="utf-8").split())
+    text = " ".join(" ".join(d.read_text(encoding="utf-8") for d in DOCUMENTS).split())
     assert f"SQLite's busy timeout, {default:g} s (fixed: no configuration knob)" in text
     assert "timeout" not in inspect.getsource(open_store)
 
