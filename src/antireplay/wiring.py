@@ -35,16 +35,15 @@ import contextlib
 import hashlib
 import logging
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, RefusalAuditor
 from antireplay.config import AppConfig
-from antireplay.core.clock import Clock, resolve
+from antireplay.core.clock import Clock
 from antireplay.core.errors import ConfigError, StateUnavailableError
-from antireplay.core.ratelimit import TokenBucket
 from antireplay.rcan.auth import JwtVerifier, KeyRegistry, load_public_key, sdk_key_id
 from antireplay.rcan.receive import Receiver
 from antireplay.state import ReplayStore, open_store
@@ -121,32 +120,29 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
     )
 
 
-def mavlink_auditor(audit: AuditLog, clock: Clock | None = None) -> Callable[[Refusal], None]:
-    """The router's ``on_reject``: one audit record and one log line per dropped frame,
-    rate-limited; the log line after a gap says how many refusals it left out."""
-    from antireplay.mavlink import claimed_source  # noqa: PLC0415 - module docstring
+def mavlink_auditor(audit: AuditLog, clock: Clock | None = None) -> MavlinkRefusals:
+    """The router's ``on_reject``: an audit row and a log line per dropped frame, through
+    the rate-limited :class:`~antireplay.audit.RefusalAuditor`."""
+    return MavlinkRefusals(RefusalAuditor(audit, clock, per_s=MAVLINK_AUDIT_PER_S, log=log))
 
-    clock = resolve(clock)
-    bucket = TokenBucket(MAVLINK_AUDIT_PER_S, clock)
-    left_out = 0
 
-    def audit_reject(refusal: Refusal) -> None:
-        nonlocal left_out
-        if not bucket.take():
-            left_out += 1
-            return
+@dataclass(frozen=True)
+class MavlinkRefusals:
+    """A dropped frame on the record: its direction and the source its header claims
+    (``mav:inbound:255/190``, unverified).  The router cannot tell which refusals followed
+    a verified signature, so every frame spends the unauthenticated budget."""
+
+    auditor: RefusalAuditor
+
+    def __call__(self, refusal: Refusal) -> None:
+        from antireplay.mavlink import claimed_source  # noqa: PLC0415 - module docstring
+
         source = claimed_source(refusal.raw)
         claimed = "" if source is None else f":{source[0]}/{source[1]}"
-        audit.append(
-            at=clock.wall(), outcome="rejected", code=refusal.code, warning=None,
-            msg_type=None, sender=f"mav:{refusal.direction}{claimed}", sender_verified=False,
-            msg_id=None,
+        self.auditor.record(
+            code=refusal.code, sender=f"mav:{refusal.direction}{claimed}",
+            sender_verified=False, line=str(refusal),
         )  # fmt: skip
-        more = f" ({left_out} more refusals not logged)" if left_out else ""
-        left_out = 0
-        log.warning("%s%s", refusal, more)
-
-    return audit_reject
 
 
 @dataclass(frozen=True)
@@ -261,8 +257,8 @@ def serve_router_metrics(router: MavlinkRouter, port: int, host: str = "127.0.0.
 
 def router_metrics(router: MavlinkRouter) -> list[Metric]:
     """The router's counters now: frames forwarded per direction, dropped per direction
-    and code, accepted per stream, refusals left unaudited, transport errors per
-    endpoint and kind."""
+    and code, accepted per stream, refusals left unaudited (trail down) or folded by the
+    rate limit, transport errors per endpoint and kind."""
     from prometheus_client.core import CounterMetricFamily  # noqa: PLC0415
 
     stats = router.stats
@@ -297,4 +293,12 @@ def router_metrics(router: MavlinkRouter) -> list[Metric]:
     for link in router.links:
         for kind, n in list(link.transport.errors.items()):
             transport.add_metric([link.name, kind], n)
-    return [forwarded, dropped, streams, unaudited, transport]
+    folded = CounterMetricFamily(
+        "antireplay_mavlink_refusals_rate_limited",
+        "Refused frames left off the audit trail and the log by the rate limit, per class",
+        labels=["class"],
+    )
+    if isinstance(router.on_reject, MavlinkRefusals):
+        for cls in ("authenticated", "unauthenticated"):
+            folded.add_metric([cls], router.on_reject.auditor.folded[cls])
+    return [forwarded, dropped, streams, unaudited, folded, transport]

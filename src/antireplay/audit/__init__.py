@@ -63,10 +63,14 @@ refused by name before any file is created (a refused start leaves nothing behin
 running writer checks, before each group commit, that its path still names the file it
 opened, so rows are never appended to a deleted (or replaced) trail where they would be
 lost: those appends fail (``STATE_UNAVAILABLE``) instead.
+
+Refusals reach the trail through one rate-limited :class:`RefusalAuditor`
+(:mod:`antireplay.audit.refusals`); accepted messages always get their own row.
 """
 
 from antireplay.audit.chain import GENESIS, Checkpoint, HeadAnchor, Record, sanitize
 from antireplay.audit.reader import shown, tail
+from antireplay.audit.refusals import RefusalAuditor
 from antireplay.audit.verifier import ChainReport, reanchor, verify
 from antireplay.audit.writer import AuditLog
 
@@ -77,6 +81,7 @@ __all__ = [
     "Checkpoint",
     "HeadAnchor",
     "Record",
+    "RefusalAuditor",
     "reanchor",
     "sanitize",
     "shown",

@@ -5,8 +5,8 @@ the pymavlink dialect is imported only when a command runs.
 Keys are PEM files from ``antireplay keygen`` (``--alg ml-dsa-87`` for the operator,
 ``ml-kem-1024`` and, for the hybrid option, ``x25519`` for the vehicle).  Each command
 runs one :class:`~antireplay.mavlink.pq.link.PqLink` until SIGINT or SIGTERM, logs
-refusals (at most ``LOG_PER_S`` lines a second; the rest are counted) and prints the
-counts when it stops.
+refusals through a :class:`~antireplay.audit.RefusalAuditor` (at most ``LOG_PER_S``
+lines a second; the rest are counted) and prints the counts when it stops.
 """
 
 from __future__ import annotations
@@ -20,9 +20,8 @@ from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 
+from antireplay.audit.refusals import RefusalAuditor
 from antireplay.cli._common import stop_on_signal
-from antireplay.core.clock import SystemClock
-from antireplay.core.ratelimit import TokenBucket
 
 if TYPE_CHECKING:
     from antireplay.mavlink.pq import GroundEnd, VehicleEnd
@@ -62,11 +61,10 @@ def _run(end: GroundEnd | VehicleEnd, local: str, air: str, what: str) -> None:
         raise click.BadParameter(str(exc)) from None
     except OSError as exc:
         raise click.ClickException(f"{local} / {air}: {exc.strerror or exc}") from None
-    budget = TokenBucket(LOG_PER_S, SystemClock())
+    auditor = RefusalAuditor(per_s=LOG_PER_S, log=log)
 
     def report(refusal: Refusal) -> None:
-        if budget.take():
-            log.warning("%s", refusal)
+        auditor.record(code=refusal.code, sender=None, sender_verified=False, line=str(refusal))
 
     link = PqLink(end, *transports, on_reject=report)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
@@ -77,7 +75,11 @@ def _run(end: GroundEnd | VehicleEnd, local: str, air: str, what: str) -> None:
     link.stop()
     forwarded = " ".join(f"{k}={v}" for k, v in sorted(link.forwarded.items())) or "none"
     dropped = " ".join(f"{k}={v}" for k, v in sorted(link.dropped.items())) or "none"
-    click.echo(f"forwarded {forwarded}; dropped {dropped}; {link.air_bytes} bytes on air", err=True)
+    click.echo(
+        f"forwarded {forwarded}; dropped {dropped}; {link.air_bytes} bytes on air; "
+        f"{auditor.folded_total} refusals not logged",
+        err=True,
+    )
 
 
 @click.group("mavlink-pq")

@@ -40,9 +40,8 @@ Backends: :class:`~antireplay.state.memory.MemoryStore` (one process, bounded
 by ``msg_id_cache_size``), :class:`~antireplay.state.sqlite.SqliteStore` (one
 machine, survives ``kill -9`` and reboots), :class:`~antireplay.state.redis.RedisStore`
 (many replicas, standalone Redis or Redis Cluster; fails closed with
-``STATE_UNAVAILABLE`` when Redis is down).  Select one with :func:`open_store`:
-``memory``, ``sqlite:PATH``, ``redis://HOST:PORT/DB`` or
-``redis+cluster://HOST:PORT``.
+``STATE_UNAVAILABLE`` when Redis is down).  One grammar names them
+(:meth:`StoreSpec.parse`, :mod:`antireplay.state.spec`); :func:`open_store` opens one.
 """
 
 from __future__ import annotations
@@ -50,8 +49,8 @@ from __future__ import annotations
 from typing import Protocol, runtime_checkable
 
 from antireplay.core.clock import Clock
-from antireplay.core.errors import ConfigError
 from antireplay.core.window import Seen
+from antireplay.state.spec import ALLOWED, StoreSpec
 
 
 @runtime_checkable
@@ -87,27 +86,21 @@ class ReplayStore(Protocol):
     def close(self) -> None: ...
 
 
-#: The store specs open_store understands, in words (for errors and the docs).
-STORE_SPECS = "memory, sqlite:PATH, redis://HOST:PORT/DB or redis+cluster://HOST:PORT"
+#: The store specs :meth:`StoreSpec.parse` accepts, in words (for errors and the docs).
+STORE_SPECS = ALLOWED
 
 
 def open_store(
-    spec: str, *, clock: Clock | None = None, max_entries: int = 10_000, skew_s: float = 5.0
+    spec: str | StoreSpec,
+    *,
+    clock: Clock | None = None,
+    max_entries: int = 10_000,
+    skew_s: float = 5.0,
 ) -> ReplayStore:
-    """Build a store from its spec; ``max_entries`` bounds the memory backend."""
-    if spec == "memory":
-        from antireplay.state.memory import MemoryStore  # noqa: PLC0415 - optional backends
-
-        return MemoryStore(max_entries=max_entries, clock=clock)
-    if spec.startswith("sqlite:") and len(spec) > len("sqlite:"):
-        from antireplay.state.sqlite import SqliteStore  # noqa: PLC0415
-
-        return SqliteStore(spec[len("sqlite:") :], clock=clock)
-    if spec.startswith(("redis://", "rediss://", "unix://", "redis+cluster://")):
-        from antireplay.state.redis import RedisStore  # noqa: PLC0415
-
-        return RedisStore(spec, clock=clock, skew_s=skew_s)
-    raise ConfigError("store", spec, STORE_SPECS)
+    """Build a store from its spec (:meth:`StoreSpec.parse`); ``max_entries`` bounds the
+    memory backend."""
+    parsed = spec if isinstance(spec, StoreSpec) else StoreSpec.parse(spec)
+    return parsed.open(clock=clock, max_entries=max_entries, skew_s=skew_s)
 
 
-__all__ = ["STORE_SPECS", "ReplayStore", "Seen", "open_store"]
+__all__ = ["STORE_SPECS", "ReplayStore", "Seen", "StoreSpec", "open_store"]

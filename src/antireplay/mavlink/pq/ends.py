@@ -35,7 +35,7 @@ from antireplay.mavlink.pq.wire import (
     SIGNED_MESSAGES,
     STATUS_NO_SESSION,
     TRANSFER_LIMIT,
-    Kind,
+    ChunkKind,
     compact,
     inner_of,
     open_compact,
@@ -110,7 +110,7 @@ class GroundEnd:
         transfer number is random: nobody can plant a conflicting chunk ahead of it."""
         hs1 = self.initiator.start(self.responder_key, self.hybrid)
         self._pending = (hs1, self._clock.monotonic())
-        return self.sender.frames(hs1, Kind.HS1, transfer=secrets.randbelow(0x10000))
+        return self.sender.frames(hs1, ChunkKind.HS1, transfer=secrets.randbelow(0x10000))
 
     def from_local(self, raw: bytes) -> list[bytes]:
         """Wrap one plain frame from a local peer.  While there is no session, commands wait
@@ -150,7 +150,7 @@ class GroundEnd:
 
     def _seal(self, session: Session, inner: bytes, purpose: Purpose) -> list[bytes]:
         blob = compact(session.seal(inner, purpose))
-        return self.sender.frames(blob, Kind.FRAME, chunk_key(session.send_key))
+        return self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
 
     def _retry(self) -> list[bytes]:
         if self._pending is not None and self._clock.monotonic() - self._pending[1] < self.retry_s:
@@ -170,9 +170,9 @@ class GroundEnd:
         if done is None:
             return Output()
         kind, blob = done
-        if kind is Kind.HS2:
+        if kind is ChunkKind.HS2:
             return self._finish(blob)
-        if kind not in (Kind.FRAME, Kind.FRAME_CHUNKED) or self.session is None:
+        if kind not in (ChunkKind.FRAME, ChunkKind.FRAME_CHUNKED) or self.session is None:
             raise UnknownSessionError(f"{kind.name} blob with no session to take it")
         opened = open_compact(blob, [self.session], Direction.R2I, self.session)
         self._reassembler.opened(chunk, keys[0])
@@ -244,13 +244,13 @@ class VehicleEnd:
         if done is None:
             return Output()
         kind, blob = done
-        if kind is Kind.HS1:
+        if kind is ChunkKind.HS1:
             handles = {s.session_id[-1] for s in self._sessions}
             session, hs2 = self.responder.accept_handshake(blob, lambda sid: sid[-1] in handles)
             self._sessions.append(session)
             self.current = session
-            return Output(air=self.sender.frames(hs2, Kind.HS2), authenticated=True)
-        if kind is Kind.HS2:
+            return Output(air=self.sender.frames(hs2, ChunkKind.HS2), authenticated=True)
+        if kind is ChunkKind.HS2:
             raise InvalidFrameError("HS2 travels to the ground end")
         self._require_signature(blob)
         opened = open_compact(blob, self._sessions, Direction.I2R, self.responder)
@@ -293,7 +293,7 @@ class VehicleEnd:
         if self.current is None:
             raise UnknownSessionError("no session to carry telemetry yet")
         blob = compact(self.current.seal(inner_of(frame), Purpose.DATA))
-        return self.sender.frames(blob, Kind.FRAME, chunk_key(self.current.send_key))
+        return self.sender.frames(blob, ChunkKind.FRAME, chunk_key(self.current.send_key))
 
     @property
     def reassembly(self) -> ReassemblyStats:
