@@ -19,9 +19,8 @@ object on them.
   (``mav-in``, ``mav-out``), a durable timestamp source per key the router signs
   with, and the refusal handler (:func:`mavlink_auditor`), which logs why each
   dropped frame was refused and records it with its direction and the source its
-  header claims (``mav:inbound:255/190``; unverified, so ``sender_verified`` is
-  false), rate-limited so that a flood of
-  garbage cannot grow the trail or the log without bound.
+  header claims (``mav:inbound:255/190``, unverified) through the one rate-limited
+  :class:`~antireplay.audit.RefusalAuditor`; what it folds is a metric.
   :func:`serve_router_metrics` exposes the router's counters (:func:`router_metrics`)
   to Prometheus.
 
