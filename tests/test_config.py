@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from antireplay import ConfigError, ManualClock, ReplayCache, SecurityConfig
+from antireplay.config import AppConfig
 from antireplay.state.memory import MemoryStore
 
 
@@ -61,3 +62,11 @@ def test_missing_and_broken_yaml_are_config_errors(tmp_path: Path) -> None:
     empty = tmp_path / "empty.yaml"
     empty.write_text("")
     assert SecurityConfig.from_yaml(empty).replay_window_s == 30
+
+
+@pytest.mark.parametrize("spec", ["memroy", "sqlite:", "sqlite: state.db", "postgres://h"])
+def test_app_config_store_is_checked_by_the_store_grammar(spec: str) -> None:
+    with pytest.raises(ConfigError) as refused:
+        AppConfig.from_mapping({"store": spec})
+    assert (refused.value.key, refused.value.value) == ("store", spec)
+    assert "sqlite:PATH" in refused.value.allowed

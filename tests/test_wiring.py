@@ -5,6 +5,8 @@ from __future__ import annotations
 import logging
 import socket
 from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
 
 import pytest
 from cryptography.hazmat.primitives.asymmetric import ed25519
@@ -14,6 +16,7 @@ from antireplay.config import AppConfig, KeyConfig
 from antireplay.core.clock import ManualClock
 from antireplay.core.errors import ConfigError
 from antireplay.mavlink import Refusal, Role, passphrase_key
+from antireplay.mavlink.router import RouterStats
 from antireplay.rcan.auth import write_key_pair
 from antireplay.state.memory import MemoryStore
 from antireplay.wiring import (
@@ -23,6 +26,7 @@ from antireplay.wiring import (
     build_mavlink_router,
     build_registry,
     mavlink_auditor,
+    router_metrics,
 )
 from tests.harness import free_port
 from tests.mavlink_frames import KEY
@@ -137,3 +141,21 @@ def test_two_keys_under_one_kid_are_a_config_error(tmp_path: Path) -> None:
         entries.append(key)
     with pytest.raises(ConfigError, match=r"keys\.operator\.kid"):
         build_registry(AppConfig(keys=entries))
+
+
+def test_mavlink_refusals_folded_by_the_rate_limit_are_a_metric(tmp_path: Path) -> None:
+    log = AuditLog(tmp_path / "audit.db")
+    audit = mavlink_auditor(log, ManualClock())
+    flood = int(MAVLINK_AUDIT_PER_S) + 7
+    for _ in range(flood):
+        audit(Refusal("inbound", "udpin:0.0.0.0:14550", "INVALID_FRAME", "x", b"\xfd"))
+    router: Any = SimpleNamespace(stats=RouterStats(), links=[], on_reject=audit)
+    folded = {
+        sample.labels["class"]: sample.value
+        for family in router_metrics(router)
+        if family.name == "antireplay_mavlink_refusals_rate_limited"
+        for sample in family.samples
+    }
+    assert folded == {"authenticated": 0, "unauthenticated": 7}
+    assert log.count() + folded["unauthenticated"] == flood
+    log.close()

@@ -4,7 +4,8 @@ Theory of operation
 -------------------
 Every value is range-checked and strictly typed, and an unknown key is an error
 (:class:`~antireplay.core.errors.ConfigError` names the dotted key, the value and
-what is allowed), never a silent default.  The ``security:`` block and the YAML
+what is allowed), never a silent default; the store spec is checked by the one
+grammar (:meth:`~antireplay.state.StoreSpec.parse`).  The ``security:`` block and the YAML
 reader live in :mod:`antireplay.core.settings` (the window policy reads them);
 they are re-exported here.  Only :mod:`antireplay.wiring` and the adapters read
 this object; it is never handed to a core.
@@ -15,10 +16,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from antireplay.core.errors import ConfigError
 from antireplay.core.settings import ALLOWED, SecurityConfig, load_yaml
+from antireplay.state.spec import StoreSpec
 
 __all__ = ["ALLOWED", "AppConfig", "JwtConfig", "KeyConfig", "SecurityConfig", "load_yaml"]
 
@@ -64,6 +66,12 @@ class AppConfig(BaseModel):
     upstream_timeout_s: float = Field(default=5.0, gt=0, le=120)
     max_body_bytes: int = Field(default=65_536, ge=256, le=16_777_216)
 
+    @field_validator("store")
+    @classmethod
+    def _store_spec(cls, value: str) -> str:
+        StoreSpec.parse(value)  # the one grammar; its ConfigError names what is allowed
+        return value
+
     @classmethod
     def from_mapping(cls, data: dict[str, Any]) -> AppConfig:
         """Validate the whole file; errors name the dotted key, the value and what is allowed."""
@@ -73,6 +81,9 @@ class AppConfig(BaseModel):
             return cls.model_validate({**data, "security": security})
         except ValidationError as exc:
             err = exc.errors()[0]
+            cause = err.get("ctx", {}).get("error")
+            if isinstance(cause, ConfigError):
+                raise cause from None
             key = ".".join(str(p) for p in err["loc"]) or "config"
             raise ConfigError(key, err.get("input"), err["msg"]) from None
 

@@ -5,22 +5,25 @@ on built objects, :mod:`antireplay.cli` parses options, reports errors and waits
 signal.  What a configuration turns into is decided here, the same way for both: open the
 replay state, load the keys, open the audit trail, then build the adapter on them.
 
-* :func:`build_receiver` builds the gateway's :class:`~antireplay.rcan.receive.Receiver`:
-  the key registry (:func:`build_registry`), the JWT verifier when configured, the store
-  (bounded and skewed as ``security`` says) checked for data loss at boot (a store that is
-  down now is noticed on the first commit instead), and the audit trail.
-  :func:`create_app` hands it, the resolved upstream and its time budget to
+* :func:`build_receiver` builds the gateway's :class:`~antireplay.rcan.receive.Receiver`
+  from :class:`~antireplay.config.AppConfig`: the key registry
+  (:func:`build_registry`), the JWT verifier when configured, the store (bounded and
+  skewed as ``security`` says) checked for data loss at boot (``verify()``: a store
+  that is down now is noticed on the first commit instead), and the audit trail.
+* :func:`build_mavlink_router` builds the MAVLink router from the ``mavlink-router``
+  options on an opened store and audit trail: its endpoints, an inbound guard per
+  key (bound to ``system_id``), the outbound guard, each on its own store prefix
+  (``mav-in``, ``mav-out``), a durable timestamp source per key the router signs
+  with, and the refusal handler (:func:`mavlink_auditor`), which logs why each
+  dropped frame was refused and records it with its direction and the source its
+  header claims (``mav:inbound:255/190``, unverified) through the one rate-limited
+  :class:`~antireplay.audit.RefusalAuditor`; what it folds is a metric.
+  :func:`serve_router_metrics` exposes the router's counters (:func:`router_metrics`)
+  to Prometheus through :func:`serve_metrics`, which serves any command's.
+* :func:`create_app` hands the receiver, the resolved upstream and its time budget to
   :func:`~antireplay.http.app.gateway_app`; :class:`Guard` and :class:`RcanGuard` are the
   guard middleware and dependency on a receiver built from a configuration (without one,
   :func:`embedded_default`: SQLite under ``./.antireplay/`` and a demo key pair).
-* :func:`build_mavlink_router` builds the MAVLink router on an opened store and audit
-  trail: its endpoints, an inbound guard per key (bound to ``system_id``), the outbound
-  guard, each on its own store prefix, a durable timestamp source per key the router signs
-  with, and :func:`mavlink_auditor`, which logs and audits each dropped frame with its
-  direction and the source its header claims (unverified), rate-limited so that a flood
-  cannot grow the trail or the log without bound.  :func:`serve_router_metrics` exposes
-  the router's counters to Prometheus through :func:`serve_metrics`, which
-  serves any command's.
 
 The MAVLink stack is imported only when a router is built, so the gateway does not load
 the MAVLink dialect.
@@ -41,11 +44,10 @@ from cryptography.hazmat.primitives.asymmetric import ed25519
 from starlette.applications import Starlette
 from starlette.types import ASGIApp
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, RefusalAuditor
 from antireplay.config import AppConfig, KeyConfig
-from antireplay.core.clock import Clock, resolve
+from antireplay.core.clock import Clock
 from antireplay.core.errors import ConfigError, StateUnavailableError
-from antireplay.core.ratelimit import TokenBucket
 from antireplay.http.app import gateway_app
 from antireplay.http.dependency import GuardDependency
 from antireplay.http.metrics import Metrics
@@ -212,32 +214,29 @@ class RcanGuard(GuardDependency):
         super().__init__(built, owns_receiver=owned)
 
 
-def mavlink_auditor(audit: AuditLog, clock: Clock | None = None) -> Callable[[Refusal], None]:
-    """The router's ``on_reject``: one audit record and one log line per dropped frame,
-    rate-limited; the log line after a gap says how many refusals it left out."""
-    from antireplay.mavlink import claimed_source  # noqa: PLC0415 - module docstring
+def mavlink_auditor(audit: AuditLog, clock: Clock | None = None) -> MavlinkRefusals:
+    """The router's ``on_reject``: an audit row and a log line per dropped frame, through
+    the rate-limited :class:`~antireplay.audit.RefusalAuditor`."""
+    return MavlinkRefusals(RefusalAuditor(audit, clock, per_s=MAVLINK_AUDIT_PER_S, log=log))
 
-    clock = resolve(clock)
-    bucket = TokenBucket(MAVLINK_AUDIT_PER_S, clock)
-    left_out = 0
 
-    def audit_reject(refusal: Refusal) -> None:
-        nonlocal left_out
-        if not bucket.take():
-            left_out += 1
-            return
+@dataclass(frozen=True)
+class MavlinkRefusals:
+    """A dropped frame on the record: its direction and the source its header claims
+    (``mav:inbound:255/190``, unverified).  The router cannot tell which refusals followed
+    a verified signature, so every frame spends the unauthenticated budget."""
+
+    auditor: RefusalAuditor
+
+    def __call__(self, refusal: Refusal) -> None:
+        from antireplay.mavlink import claimed_source  # noqa: PLC0415 - module docstring
+
         source = claimed_source(refusal.raw)
         claimed = "" if source is None else f":{source[0]}/{source[1]}"
-        audit.append(
-            at=clock.wall(), outcome="rejected", code=refusal.code, warning=None,
-            msg_type=None, sender=f"mav:{refusal.direction}{claimed}", sender_verified=False,
-            msg_id=None,
+        self.auditor.record(
+            code=refusal.code, sender=f"mav:{refusal.direction}{claimed}",
+            sender_verified=False, line=str(refusal),
         )  # fmt: skip
-        more = f" ({left_out} more refusals not logged)" if left_out else ""
-        left_out = 0
-        log.warning("%s%s", refusal, more)
-
-    return audit_reject
 
 
 @dataclass(frozen=True)
@@ -360,8 +359,8 @@ def serve_router_metrics(router: MavlinkRouter, port: int, host: str = "127.0.0.
 
 def router_metrics(router: MavlinkRouter) -> list[Metric]:
     """The router's counters now: frames forwarded per direction, dropped per direction
-    and code, accepted per stream, refusals left unaudited, transport errors per
-    endpoint and kind."""
+    and code, accepted per stream, refusals left unaudited (trail down) or folded by the
+    rate limit, transport errors per endpoint and kind."""
     from prometheus_client.core import CounterMetricFamily  # noqa: PLC0415
 
     stats = router.stats
@@ -396,4 +395,12 @@ def router_metrics(router: MavlinkRouter) -> list[Metric]:
     for link in router.links:
         for kind, n in list(link.transport.errors.items()):
             transport.add_metric([link.name, kind], n)
-    return [forwarded, dropped, streams, unaudited, transport]
+    folded = CounterMetricFamily(
+        "antireplay_mavlink_refusals_rate_limited",
+        "Refused frames left off the audit trail and the log by the rate limit, per class",
+        labels=["class"],
+    )
+    if isinstance(router.on_reject, MavlinkRefusals):
+        for cls in ("authenticated", "unauthenticated"):
+            folded.add_metric([cls], router.on_reject.auditor.folded[cls])
+    return [forwarded, dropped, streams, unaudited, folded, transport]

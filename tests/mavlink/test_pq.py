@@ -34,9 +34,9 @@ from antireplay.mavlink.pq import (
     MSG_CHUNK,
     REKEY_TRANSFERS,
     TRANSFER_LIMIT,
+    ChunkKind,
     ChunkSender,
     GroundEnd,
-    Kind,
     Reassembler,
     VehicleEnd,
     chunk_key,
@@ -163,7 +163,7 @@ def test_dialect_xml_crc_extras_and_pymavlink_decodes_our_chunks(tmp_path: Path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     assert module.mavlink_map[MSG_CHUNK].crc_extra == DIALECT[MSG_CHUNK][0]
-    frames = ChunkSender(255, 197).frames(bytes(range(256)) * 2, Kind.HS1)
+    frames = ChunkSender(255, 197).frames(bytes(range(256)) * 2, ChunkKind.HS1)
     decoder = module.MAVLink(_Keep())
     decoded = [decoder.decode(bytearray(raw)) for raw in frames]
     assert [(m.index, m.count, m.kind) for m in decoded] == [(0, 3, 1), (1, 3, 1), (2, 3, 1)]
@@ -267,7 +267,7 @@ def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> No
     blob = bytearray(session.seal(inner_of(parse_frame(arm(target=1))), Purpose.COMMAND))
     blob[28 + 6 + 30] = 2
     key = chunk_key(session.send_key)
-    link.up(ChunkSender(255, 197, transfer=900).frames(compact(bytes(blob)), Kind.FRAME, key))
+    link.up(ChunkSender(255, 197, transfer=900).frames(compact(bytes(blob)), ChunkKind.FRAME, key))
     assert link.refused[-1] == "SIGNATURE_INVALID" and not link.commands()
     link.up(frames[:1])  # the genuine first chunk completes the genuine command
     assert [c.target_system for c in link.commands()] == [1]
@@ -287,7 +287,7 @@ def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
         link.responder.accept_handshake(_blob(hs1))
     # a replayed HS2 at the ground end finishes nothing: no handshake is pending
     session = link.ground.session
-    hs2 = ChunkSender(1, 197).frames(b"\xa2" + bytes(81), Kind.HS2)
+    hs2 = ChunkSender(1, 197).frames(b"\xa2" + bytes(81), ChunkKind.HS2)
     link.down(hs2)
     assert link.refused[-1] == "UNKNOWN_SESSION" and link.ground.session is session
 
@@ -301,7 +301,7 @@ def test_chunk_flood_cannot_crowd_out_a_command(link: Link) -> None:
     rng = random.Random(3)
     flood = []
     for transfer in range(500):  # session-frame chunks with made-up MACs: refused unbuffered
-        fields = (transfer, 0, 20, CHUNK_DATA, Kind.FRAME_CHUNKED)
+        fields = (transfer, 0, 20, CHUNK_DATA, ChunkKind.FRAME_CHUNKED)
         flood.append(raw_chunk(fields, rng.randbytes(CHUNK_DATA)))
     frames = link.ground.from_local(arm())
     mixed = frames[:10] + flood + frames[10:]
@@ -316,7 +316,7 @@ def test_handshake_flood_keeps_the_almost_complete_handshake(clock: ManualClock)
     link.up(hs1[:-1])
     rng = random.Random(5)
     for transfer in range(200):  # first chunks of made-up handshakes from other systems
-        fields = (transfer, 0, 26, CHUNK_DATA, Kind.HS1)
+        fields = (transfer, 0, 26, CHUNK_DATA, ChunkKind.HS1)
         link.up([raw_chunk(fields, rng.randbytes(CHUNK_DATA), sysid=rng.randrange(256))])
     link.up(hs1[-1:])
     assert link.ground.session is not None
@@ -327,7 +327,7 @@ def test_memory_is_bounded(clock: ManualClock) -> None:
     reassembler = Reassembler(clock=clock)
     sender = ChunkSender(9, 9)
     for _ in range(50):
-        for raw in sender.frames(os.urandom(31 * CHUNK_DATA), Kind.HS1)[:-1]:
+        for raw in sender.frames(os.urandom(31 * CHUNK_DATA), ChunkKind.HS1)[:-1]:
             reassembler.feed(parse_chunk(parse_frame(raw)))
     assert reassembler.buffered <= 2 * MAX_CHUNKS * CHUNK_DATA
 
@@ -635,7 +635,7 @@ def test_a_chunk_planted_ahead_cannot_spoil_the_next_handshake(
     planted = link.ground.sender.transfer + 1  # the next transfer number, were it counted
     # The handshake's number is random; pinned here to one the attacker did not guess.
     monkeypatch.setattr(secrets, "randbelow", lambda n: (planted + 1) % n)
-    link.up([raw_chunk((planted, 0, 32, 1, Kind.HS1), b"x")])
+    link.up([raw_chunk((planted, 0, 32, 1, ChunkKind.HS1), b"x")])
     link.up(link.ground.handshake())
     assert link.ground.session is not None
 

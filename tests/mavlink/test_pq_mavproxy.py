@@ -29,8 +29,8 @@ from antireplay.mavlink.endpoints import open_transport, parse_endpoint
 from antireplay.mavlink.pq import (
     DIALECT,
     MSG_CHUNK,
+    ChunkKind,
     GroundEnd,
-    Kind,
     VehicleEnd,
     pack_v2,
     parse_chunk,
@@ -157,7 +157,7 @@ def test_pq_commands_through_mavproxy(setup: Setup) -> None:
     handshakes = [
         group
         for group in transfers(setup.captured).values()
-        if parse_chunk(parse_frame(group[0])).kind is Kind.HS1
+        if parse_chunk(parse_frame(group[0])).kind is ChunkKind.HS1
     ]
     hs1 = handshakes[-1]  # the one that opened the session (MAVProxy may start later)
     assert len(hs1) == 26

@@ -130,7 +130,7 @@ def importable_cwd(upstream: str | None) -> None:
 def preflight(config: AppConfig) -> None:
     """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
     from antireplay.http.upstream import resolve_upstream  # noqa: PLC0415
-    from antireplay.state import open_store  # noqa: PLC0415
+    from antireplay.state import StoreSpec  # noqa: PLC0415
     from antireplay.wiring import build_registry  # noqa: PLC0415
 
     importable_cwd(config.upstream)
@@ -148,12 +148,13 @@ def preflight(config: AppConfig) -> None:
     _check_audit_file(Path(config.audit), f"audit: {_MOVE_ASIDE}")
     _check_audit_anchor(Path(config.audit))
     try:
-        if config.store.startswith("sqlite:"):
+        spec = StoreSpec.parse(config.store)
+        if spec.backend == "sqlite":
             from antireplay.state.sqlite import check_readable  # noqa: PLC0415
 
-            check_readable(config.store[len("sqlite:") :])  # read-only: nothing used up
+            check_readable(spec.target)  # read-only: opening would use up the loss detection
         else:
-            store = open_store(config.store)
+            store = spec.open()
             try:
                 store.ready()  # reaches it: the PING and eviction check serve's first commit runs
             finally:

@@ -16,6 +16,7 @@ from rich.table import Table
 from antireplay.cli.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.config import AppConfig
 from antireplay.core.errors import ConfigError
+from antireplay.state import StoreSpec
 
 if TYPE_CHECKING:
     pass
@@ -96,16 +97,9 @@ def serve(  # noqa: PLR0917 - one option per knob
     where = f"[{host}]" if family == socket.AF_INET6 else host
     click.echo(
         f"listening on {scheme}://{where}:{bound} "
-        f"(store {_without_secrets(config.store)}, audit {config.audit})"
+        f"(store {StoreSpec.parse(config.store).redacted()}, audit {config.audit})"
     )
     uvicorn.Server(settings).run(sockets=[sock])
-
-
-def _without_secrets(spec: str) -> str:
-    """A store spec fit to print: the user and password of a URL are masked."""
-    scheme, sep, rest = spec.partition("://")
-    userinfo, at, location = rest.rpartition("@")
-    return f"{scheme}{sep}***@{location}" if sep and at and userinfo else spec
 
 
 def _table(results: list[StepResult], title: str) -> Table:

@@ -14,11 +14,12 @@ import math
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pydantic_core import ErrorDetails
 
 from antireplay.config import load_yaml
 from antireplay.core.errors import ConfigError
+from antireplay.state import STORE_SPECS, StoreSpec
 
 MAX_DOMAIN_ID = 232  # Cyclone's port arithmetic; antireplay.dds.domain checks the same
 #: The freshness bounds every DDS endpoint defaults to: readers and listeners refuse a sample
@@ -31,15 +32,16 @@ class _Block(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
-#: The replay store specs a reader accepts (:func:`antireplay.state.open_store`); a
-#: ``sqlite:`` path must not be blank nor start or end with blanks.
-STORE_SPEC = r"^(memory|sqlite:\S(.*\S)?|rediss?://.+|unix://.+|redis\+cluster://.+)$"
+def _store_spec(value: str) -> str:
+    """A replay store spec, checked by the one grammar (:meth:`StoreSpec.parse`)."""
+    StoreSpec.parse(value)
+    return value
+
+
 #: What each constrained key allows, in words (pydantic's wording names no unit or spec).
 ALLOWED: dict[str, str] = {
-    "store": "a store spec: memory, sqlite:PATH (a non-blank path), redis://HOST:PORT, "
-    "rediss://..., unix://PATH or redis+cluster://...",
-    "verifier_store": "a store spec: sqlite:PATH (a non-blank path), redis://HOST:PORT, "
-    "rediss://..., unix://PATH, redis+cluster://... or memory",
+    "store": STORE_SPECS,
+    "verifier_store": STORE_SPECS,
     "max_age_s": "a number of seconds above 0 and at most 86400",
     "max_forward_s": "a number of seconds above 1 (writers reserve 1 s of epochs at a time) "
     "and at most 3600",
@@ -54,7 +56,12 @@ RENAMED: dict[str, str] = {
 class ReaderConfig(_Block):
     topic: str = Field(default="antireplay/commands", min_length=1, max_length=256)
     #: ``memory`` fences at start (module docstring of antireplay.dds.topics).
-    store: str = Field(default="memory", pattern=STORE_SPEC)
+    store: str = "memory"
+
+    @field_validator("store")
+    @classmethod
+    def _spec(cls, value: str) -> str:
+        return _store_spec(value)
 
 
 class WriterConfig(_Block):
@@ -65,8 +72,13 @@ class WriterConfig(_Block):
 class RelayConfig(_Block):
     service_name: str = Field(min_length=1, max_length=128)
     signer_state: str
-    verifier_store: str = Field(pattern=STORE_SPEC)
+    verifier_store: str
     ping_listen: str | None = None  # host:port, UDP
+
+    @field_validator("verifier_store")
+    @classmethod
+    def _spec(cls, value: str) -> str:
+        return _store_spec(value)
 
 
 class DdsConfig(_Block):
@@ -141,7 +153,12 @@ def _explain(err: ErrorDetails) -> tuple[str, object, str]:
         renamed = RENAMED.get(path)
         allowed = "no such key" + (f": it was renamed to {renamed}" if renamed else "")
         return f"dds.{path}", value, allowed
-    allowed = ALLOWED.get(str(err["loc"][-1]), err["msg"])
+    cause = err.get("ctx", {}).get("error")
+    allowed = (
+        cause.allowed
+        if isinstance(cause, ConfigError)
+        else ALLOWED.get(str(err["loc"][-1]), err["msg"])
+    )
     if isinstance(value, float) and math.isnan(value):
         allowed = f"{allowed} (.nan is not a number)"
     return f"dds.{path}", value, allowed

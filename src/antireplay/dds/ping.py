@@ -12,7 +12,7 @@ the sender's address for that prefix.  A replayed
 or forged ping from an attacker's address is refused with a typed verdict and
 changes nothing: no address is learned from unauthenticated traffic.  Every
 verdict is counted; refusals are audited at a bounded rate
-(:class:`~antireplay.dds.topics.RefusalAuditor`), and :meth:`PingListener.drain`
+(:class:`~antireplay.audit.RefusalAuditor`), and :meth:`PingListener.drain`
 judges a bounded number of datagrams per call.
 """
 
@@ -26,7 +26,7 @@ from antireplay.audit import AuditLog
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import Code
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
-from antireplay.dds.topics import RefusalAuditor, Verdict, open_judged
+from antireplay.dds.topics import Verdict, open_judged, record_refusal, refusal_auditor
 from antireplay.epochs import MIN_LEN, EpochSigner, EpochVerifier, Kind
 from antireplay.state import ReplayStore
 
@@ -97,7 +97,7 @@ class PingListener:
         self.sock.bind(bind)
         self.peers: dict[bytes, tuple[str, int]] = {}
         self.counts: Counter[str] = Counter()
-        self._refusals = RefusalAuditor(self._clock, "dds ping", self.counts)
+        self._refusals = refusal_auditor(self._clock, audit, self.counts)
 
     @property
     def address(self) -> tuple[str, int]:
@@ -120,7 +120,7 @@ class PingListener:
                 )
         self.counts[verdict.outcome] += 1
         if not verdict.accepted:
-            self._refusals.record(self.audit, verdict)
+            record_refusal(self._refusals, verdict, "dds ping", self.counts)
         return verdict
 
     def receive(self, timeout_s: float) -> Verdict | None:

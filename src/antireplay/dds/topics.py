@@ -2,47 +2,31 @@
 
 Theory of operation
 -------------------
-On the wire a sealed topic has one DDS type, :class:`SealedSample`: the
-instance key (a DDS key field, so keyed instances work as usual) and the bytes
-of an :mod:`antireplay.epochs` announcement whose payload is ::
+On the wire a sealed topic has one DDS type, :class:`SealedSample`: the instance key
+(a DDS key field) and an :mod:`antireplay.epochs` announcement whose payload is
+``instance_len u16 | instance utf-8 | data``.  The topic's HMAC key is
+``HKDF(psk, info="antireplay/v1 dds topic" | domain | topic | type)``, so a sample
+captured on one domain, topic or type fails the MAC on any other, and the instance
+key is inside the MAC (the DDS key field is only a routing copy, compared first).
 
-    instance_len u16 | instance utf-8 | data
+A reader judges each sample cheapest first: size and shape, the claimed instance
+against the DDS key field (no crypto, no state), then :meth:`EpochVerifier.open`
+(MAC, freshness, ``epoch > last[prefix]``, then one ``advance`` on the replay
+store, durable before it returns).  Only then is the data decoded and handed over.
 
-``data`` is the application's sample (raw bytes, or an IDL struct serialized
-to CDR).  The HMAC key of a topic is
-``HKDF(psk, info="antireplay/v1 dds topic" | len|topic name | len|type name)``,
-so a sample captured on one topic fails the MAC on any other topic or type,
-and the instance key is inside the MAC, so a sample cannot move to another
-instance either (the DDS key field is only a routing copy, compared first).
-
-A reader judges each sample in the house order: size and shape, the claimed
-instance against the DDS key field (no crypto, no state), then
-:meth:`EpochVerifier.open` (MAC, freshness, ``epoch > last[prefix]``, then the
-commit: one ``advance`` on the reader's replay store, durable before it
-returns with a ``sqlite:`` or Redis store).  Only then is the data decoded and
-handed over.
-
-**Start fence.**  A reader refuses every sample sealed before it started
-(plus ``max_forward_s``, the furthest ahead a writer may run) unless its store
-proves otherwise: the default ``memory`` store cannot know what a previous
-process accepted, so it fences at its construction, exactly as the replay
-cache does; a ``sqlite:PATH`` store that survived the restart sets no fence
-(and raises one when it finds it lost data).  A fenced reader does not wait it out:
-it sends a challenge on :data:`PING_TOPIC` (again when a new peer matches, else on a
-doubling timer), every writer answers in its next :meth:`SealedWriter.write`, and the
-reader accepts that writer's epochs above the answer at once (captures stay refused;
-:mod:`antireplay.epochs.policy`).  An age bound is required
-(``max_age_s``): a reader that never heard of a writer still refuses a capture
-older than that.  Everything else becomes a :class:`Verdict` with a
-stable :class:`~antireplay.core.errors.Code` and an ``outcome`` word that is
-counted in :attr:`SealedReader.counts` and, with an audit log, appended to the
-hash-chained audit trail, rate-limited (:class:`RefusalAuditor`) so that a
-flood of garbage cannot grow it without bound.  Several writers share a topic: each has its own
-prefix (random, or restored from its state file), and the verifier keeps one
-epoch per prefix.  A writer restarted with its state file resumes above every
-epoch it could have used; one whose state file vanished while its witness
-remains refuses to start (:class:`~antireplay.core.errors.StateFileError` names
-the file).
+**Start fence.**  A reader refuses every sample sealed before it started (plus
+``max_forward_s``) unless its store proves otherwise: ``memory`` cannot know what a
+previous process accepted; a ``sqlite:PATH`` store that survived sets no fence.
+A fenced reader does not wait it out: it sends a challenge on :data:`PING_TOPIC`, every
+writer answers in its next :meth:`SealedWriter.write`, and the reader accepts that
+writer's epochs above the answer at once (captures stay refused;
+:mod:`antireplay.epochs.policy`).  ``max_age_s`` bounds a writer it never heard of.
+Every refusal is a :class:`Verdict`
+with a stable :class:`~antireplay.core.errors.Code`, counted in
+:attr:`SealedReader.counts` and recorded through the rate-limited
+:class:`~antireplay.audit.RefusalAuditor` (authentic refusals on their own budget).
+Several writers share a topic, each under its own prefix; a writer restarted with
+its state file resumes above every epoch it could have used.
 """
 
 from __future__ import annotations
@@ -68,7 +52,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, RefusalAuditor
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import (
     Code,
@@ -80,7 +64,6 @@ from antireplay.core.errors import (
     SignatureInvalidError,
     StateUnavailableError,
 )
-from antireplay.core.ratelimit import TokenBucket
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.wire import SealedSample
 from antireplay.epochs import (
@@ -103,7 +86,7 @@ _ILEN = struct.Struct(">H")
 MAX_INSTANCE = 256
 #: Type name bound in the MAC for topics whose samples are raw bytes.
 RAW = "octets"
-#: Refusals audited per second, per class (see :class:`RefusalAuditor`); as the MAVLink proxy.
+#: Refusals audited per second, per class (:class:`~antireplay.audit.RefusalAuditor`).
 AUDIT_PER_S = 50.0
 
 
@@ -347,7 +330,7 @@ class SealedReader:
         )
         self.audit = audit
         self.counts: Counter[str] = Counter()
-        self._refusals = RefusalAuditor(self._clock, f"dds {topic}", self.counts)
+        self._refusals = refusal_auditor(self._clock, audit, self.counts)
         self._lock = threading.Lock()
         qos = qos or default_qos()
         self._reader = DataReader(participant, _topic(participant, topic, qos), qos=qos)
@@ -375,7 +358,7 @@ class SealedReader:
         self.counts[verdict.outcome] += 1
         if not verdict.accepted:
             log.debug("refused sample on %s: %s", self.topic_name, verdict.line())
-            self._refusals.record(self.audit, verdict)
+            record_refusal(self._refusals, verdict, f"dds {self.topic_name}", self.counts)
         return verdict
 
     def _judge(self, sample: SealedSample) -> Verdict:
@@ -446,7 +429,7 @@ class SealedReader:
             return
         self.counts["answer_" + opened.outcome] += 1
         if opened.outcome != "stale":
-            self._refusals.record(self.audit, opened)
+            record_refusal(self._refusals, opened, self.topic_name, self.counts)
 
     def wait(self, timeout_s: float) -> None:
         """Block until data may be waiting, or ``timeout_s``."""
@@ -461,39 +444,28 @@ class SealedReader:
         return verdicts
 
 
-class RefusalAuditor:
-    """Appends refused samples (or pings) to an audit trail, at most ``AUDIT_PER_S`` a
-    second for unauthenticated refusals and as many again for authentic ones (a replayed
-    or stale sample), as the MAVLink proxy's auditor does: a flood of garbage can neither
-    grow the trail (and its fsyncs) without bound nor crowd out the record of a replay.
-    Every refusal is still counted in ``counts``, the skipped records as
-    ``audit_rate_limited``."""
+def refusal_auditor(clock: Clock, audit: AuditLog | None, counts: Counter[str]) -> RefusalAuditor:
+    """The rate-limited auditor of a reader's or listener's refusals; what it folds is
+    counted in ``counts`` as ``audit_rate_limited``."""
+    return RefusalAuditor(audit, clock, per_s=AUDIT_PER_S, counts=counts)
 
-    def __init__(self, clock: Clock, where: str, counts: Counter[str]) -> None:
-        self._clock, self._where, self._counts = clock, where, counts
-        self._budget = {authentic: TokenBucket(AUDIT_PER_S, clock) for authentic in (False, True)}
 
-    def record(self, audit: AuditLog | None, verdict: Verdict) -> None:
-        """One record for a refusal (sender = claimed prefix; never the payload)."""
-        if audit is None:
-            return
-        if not self._budget[verdict.authentic].take():
-            self._counts["audit_rate_limited"] += 1
-            return
-        try:
-            audit.append(
-                at=self._clock.wall(),
-                outcome="rejected",
-                code=str(verdict.code),
-                warning=f"{self._where}: {verdict.outcome}",
-                msg_type=None,
-                sender=None if verdict.nonce_prefix is None else verdict.nonce_prefix.hex(),
-                sender_verified=verdict.authentic,
-                msg_id=None if verdict.epoch is None else str(verdict.epoch),
-            )
-        except StateUnavailableError:
-            self._counts["audit_unavailable"] += 1
-            log.error("audit trail unavailable; a %s refusal was not recorded", self._where)
+def record_refusal(
+    auditor: RefusalAuditor, verdict: Verdict, where: str, counts: Counter[str]
+) -> None:
+    """One row for a refusal (sender = claimed prefix; never the payload), authentic
+    refusals on their own budget; a trail that is down is counted and logged."""
+    try:
+        auditor.record(
+            code=str(verdict.code),
+            sender=None if verdict.nonce_prefix is None else verdict.nonce_prefix.hex(),
+            sender_verified=verdict.authentic,
+            warning=f"{where}: {verdict.outcome}",
+            msg_id=None if verdict.epoch is None else str(verdict.epoch),
+        )
+    except StateUnavailableError:
+        counts["audit_unavailable"] += 1
+        log.error("audit trail unavailable; a %s refusal was not recorded", where)
 
 
 def claim(sealed: bytes) -> tuple[bytes, int]:
@@ -538,11 +510,12 @@ def _claimed_instance(sealed: bytes) -> str | None:
 __all__ = [
     "PING_TOPIC",
     "PingChannel",
-    "RefusalAuditor",
     "SealedReader",
     "SealedSample",
     "SealedWriter",
     "Verdict",
     "claim",
+    "record_refusal",
+    "refusal_auditor",
     "topic_key",
 ]

@@ -103,7 +103,7 @@ from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
-from antireplay.audit import AuditLog, sanitize
+from antireplay.audit import AuditLog, RefusalAuditor, sanitize
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import (
     AuthFailedError,
@@ -117,7 +117,6 @@ from antireplay.core.errors import (
     command_ack,
 )
 from antireplay.core.messages import MessageType
-from antireplay.core.ratelimit import TokenBucket
 from antireplay.core.settings import SecurityConfig
 from antireplay.core.window import Seen, Verdict
 from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer, digest
@@ -271,7 +270,7 @@ class Receiver:
         self.answers = AnswerMemo(config.msg_id_cache_size)
         #: How long an event loop waits for the answer of an original still in flight.
         self.answer_wait_s = 5.0
-        self._bucket = TokenBucket(invalid_audit_per_s, self.clock)
+        self._refusals = RefusalAuditor(clock=self.clock, per_s=invalid_audit_per_s)
         self._held: deque[dict[str, Any]] = deque()
         self._held_lock = threading.Lock()
         reason = getattr(self.cache.store, "loss_reason", None)
@@ -639,7 +638,7 @@ class Receiver:
         """The NACK outcome for ``exc``; ``copy`` describes a memo hit (no envelope parsed)."""
         outcome = self._outcome(exc, env, signer, copy)
         self.stats.rejected[exc.code] += 1
-        if exc.code in SHAPE_ERRORS and not self._bucket.take():
+        if exc.code in SHAPE_ERRORS and not self._refusals.admit(authentic=False):
             self.stats.unaudited += 1
             return Pending(outcome)
         return self._queue_audit(Pending(outcome), copy, on_loop=on_loop)

@@ -2,47 +2,28 @@
 
 Theory of operation
 -------------------
-The policies (:mod:`antireplay.core.window`, the MAVLink guard) decide; a store keeps
-their state and offers the few **atomic** operations they need, so that several
-threads, processes or gateway replicas sharing one store accept each message
-exactly once.  The contract (:class:`ReplayStore`) is also where the replay
-guarantees live, so every backend keeps them, and the product runs the same
-code the tests and benchmarks exercise:
+The policies decide; a store keeps their state and offers the few **atomic**
+operations they need, so threads, processes or replicas sharing one store accept
+each message exactly once (:class:`ReplayStore`):
 
-* ``lookup(key) -> Seen``: records nothing (the pipeline's pre-crypto check).
-* ``commit(key, expires_at, now, force) -> Seen``: atomically record ``key``
-  unless it has a live entry (``expiry >= now``); ``force`` (a fresh ESTOP)
-  extends a live entry instead.  Two racers for one key: exactly one gets
-  ``recorded``.  Data-loss detection runs *in the same atomic operation*.
-* ``advance(key, value) -> bool`` / ``current(key)``: compare-and-advance for
-  high-water counters (MAVLink stream state), with the same loss detection.
-* ``verify() -> Seen``: run the loss detection now (start-up; a MAVLink guard
-  taking its lease), returning the fence and watermark.
-* ``status()``: figures for ``/metrics`` (entries, watermark, fence,
-  evictions, data-loss events).
-* ``ready()``: raise ``STATE_UNAVAILABLE`` unless a commit could go through
-  now (``/readyz``); records nothing, so it never notices a loss in place of
-  the commit that fences and audits it.
+* ``lookup`` records nothing (the pre-crypto check); ``commit`` atomically records a
+  key unless it has a live entry (``force``, a fresh ESTOP, extends it); two racers:
+  exactly one ``recorded``.  ``advance``/``current``: compare-and-advance counters.
+* ``verify`` runs the loss detection now; ``status`` gives figures for ``/metrics``.
+* ``ready`` is the one readiness probe: it raises ``STATE_UNAVAILABLE`` unless a
+  commit could go through now, and records nothing (it never notices a loss in
+  place of the commit that fences and audits it).
 
-Every :class:`~antireplay.core.window.Seen` carries the store's **watermark** and
-**fence** as of that operation:
+Every :class:`~antireplay.core.window.Seen` carries the **watermark** (an entry
+removed before its expiry raises it to that expiry) and the **fence** (possible
+data loss, noticed atomically with a commit, raises it to that moment, in the
+shared state so every replica applies it).
 
-* **An entry lives until its own expiry.**  Anything removed earlier on any
-  clock (saturation, a purge after a clock step) raises the watermark to its
-  expiry, persisted and shared with the entries.
-* **Possible data loss raises the fence** to the moment it was noticed, in the
-  shared state, so every replica applies it, not just the first to notice:
-  a new process (memory), a deleted, truncated, replaced or rolled-back file
-  (SQLite), a Redis that restarted, failed over, was flushed or restored from
-  older data (Redis, checked atomically with every commit).
-
-Backends: :class:`~antireplay.state.memory.MemoryStore` (one process, bounded
-by ``msg_id_cache_size``), :class:`~antireplay.state.sqlite.SqliteStore` (one
-machine, survives ``kill -9`` and reboots), :class:`~antireplay.state.redis.RedisStore`
-(many replicas, standalone Redis or Redis Cluster; fails closed with
-``STATE_UNAVAILABLE`` when Redis is down).  Select one with :func:`open_store`:
-``memory``, ``sqlite:PATH``, ``redis://HOST:PORT/DB`` or
-``redis+cluster://HOST:PORT``.
+Backends: :mod:`.memory` (one process), :mod:`.sqlite` (one machine, survives
+``kill -9`` and reboots), :mod:`.redis` (replicas; standalone or Cluster, fails
+closed).  One grammar names them, :meth:`StoreSpec.parse` (:mod:`.spec`:
+``memory``, ``sqlite:PATH``, ``redis://``, ``rediss://``, ``unix://``,
+``redis+cluster://``); :func:`open_store` opens one.
 """
 
 from __future__ import annotations
@@ -50,8 +31,8 @@ from __future__ import annotations
 from typing import Protocol, runtime_checkable
 
 from antireplay.core.clock import Clock
-from antireplay.core.errors import ConfigError
 from antireplay.core.window import Seen
+from antireplay.state.spec import ALLOWED, StoreSpec
 
 
 @runtime_checkable
@@ -87,27 +68,21 @@ class ReplayStore(Protocol):
     def close(self) -> None: ...
 
 
-#: The store specs open_store understands, in words (for errors and the docs).
-STORE_SPECS = "memory, sqlite:PATH, redis://HOST:PORT/DB or redis+cluster://HOST:PORT"
+#: The store specs :meth:`StoreSpec.parse` accepts, in words (for errors and the docs).
+STORE_SPECS = ALLOWED
 
 
 def open_store(
-    spec: str, *, clock: Clock | None = None, max_entries: int = 10_000, skew_s: float = 5.0
+    spec: str | StoreSpec,
+    *,
+    clock: Clock | None = None,
+    max_entries: int = 10_000,
+    skew_s: float = 5.0,
 ) -> ReplayStore:
-    """Build a store from its spec; ``max_entries`` bounds the memory backend."""
-    if spec == "memory":
-        from antireplay.state.memory import MemoryStore  # noqa: PLC0415 - optional backends
-
-        return MemoryStore(max_entries=max_entries, clock=clock)
-    if spec.startswith("sqlite:") and len(spec) > len("sqlite:"):
-        from antireplay.state.sqlite import SqliteStore  # noqa: PLC0415
-
-        return SqliteStore(spec[len("sqlite:") :], clock=clock)
-    if spec.startswith(("redis://", "rediss://", "unix://", "redis+cluster://")):
-        from antireplay.state.redis import RedisStore  # noqa: PLC0415
-
-        return RedisStore(spec, clock=clock, skew_s=skew_s)
-    raise ConfigError("store", spec, STORE_SPECS)
+    """Build a store from its spec (:meth:`StoreSpec.parse`); ``max_entries`` bounds the
+    memory backend."""
+    parsed = spec if isinstance(spec, StoreSpec) else StoreSpec.parse(spec)
+    return parsed.open(clock=clock, max_entries=max_entries, skew_s=skew_s)
 
 
-__all__ = ["STORE_SPECS", "ReplayStore", "Seen", "open_store"]
+__all__ = ["STORE_SPECS", "ReplayStore", "Seen", "StoreSpec", "open_store"]

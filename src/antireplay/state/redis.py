@@ -57,6 +57,7 @@ from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
 from antireplay.core.window import NEVER, Seen
 from antireplay.state import _codec
+from antireplay.state.spec import StoreSpec
 
 T = TypeVar("T")
 log = logging.getLogger("antireplay.state.redis")
@@ -134,11 +135,10 @@ class RedisStore:
         }
         self._redis: Client
         self.backend = "redis"
-        if url.startswith("redis+cluster://"):
+        spec = StoreSpec.parse(url)
+        if spec.backend == "redis-cluster":
             self.backend = "redis-cluster"
-            self._redis = redis.cluster.RedisCluster.from_url(
-                "redis://" + url[len("redis+cluster://") :], **options
-            )
+            self._redis = redis.cluster.RedisCluster.from_url(spec.target, **options)
         else:
             self._redis = redis.Redis.from_url(url, **options)
         self._base = f"{prefix}{{{hash_tag}}}:"

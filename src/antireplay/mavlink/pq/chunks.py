@@ -25,7 +25,7 @@ from antireplay.mavlink.pq.wire import (
     MAX_CHUNKS,
     MAX_SENDER_KEYS,
     MSG_CHUNK,
-    Kind,
+    ChunkKind,
     _payload_of,
     pack_v2,
 )
@@ -40,7 +40,7 @@ class Chunk:
     transfer: int
     index: int
     count: int
-    kind: Kind
+    kind: ChunkKind
     data: bytes  # data[:len]: the piece, and for FRAME_CHUNKED its chunk MAC
 
     @property
@@ -49,14 +49,14 @@ class Chunk:
 
     @property
     def piece(self) -> bytes:
-        return self.data[:-CHUNK_MAC] if self.kind is Kind.FRAME_CHUNKED else self.data
+        return self.data[:-CHUNK_MAC] if self.kind is ChunkKind.FRAME_CHUNKED else self.data
 
     def mac_input(self) -> bytes:
         head = _CHUNK.pack(self.transfer, self.index, self.count, len(self.data), self.kind)
         return bytes([self.sysid, self.compid]) + head + self.piece
 
 
-_KINDS = {int(k): k for k in Kind}
+_KINDS = {int(k): k for k in ChunkKind}
 
 
 class PlainFrameError(InvalidFrameError):
@@ -77,11 +77,11 @@ def parse_chunk(frame: Frame) -> Chunk:
         raise InvalidFrameError("unknown chunk kind")
     if not index < count <= MAX_CHUNKS:
         raise InvalidFrameError(f"chunk {index} of {count} (at most {MAX_CHUNKS})")
-    if length > CHUNK_DATA or (k is Kind.FRAME_CHUNKED and length <= CHUNK_MAC):
+    if length > CHUNK_DATA or (k is ChunkKind.FRAME_CHUNKED and length <= CHUNK_MAC):
         raise InvalidFrameError("chunk data length out of bounds")
-    if k in (Kind.HS2, Kind.FRAME) and count != 1:
+    if k in (ChunkKind.HS2, ChunkKind.FRAME) and count != 1:
         raise InvalidFrameError(f"a {k.name} blob travels in one chunk")
-    if k in (Kind.HS1, Kind.FRAME_CHUNKED) and count == 1:
+    if k in (ChunkKind.HS1, ChunkKind.FRAME_CHUNKED) and count == 1:
         raise InvalidFrameError(f"a {k.name} blob travels in several chunks")
     data = payload[_CHUNK.size : _CHUNK.size + length]
     return Chunk(frame.sysid, frame.compid, transfer, index, count, k, data)
@@ -106,24 +106,28 @@ class ChunkSender:
     seq: int = 0
 
     def frames(
-        self, blob: bytes, kind: Kind, mac_key: bytes | None = None, transfer: int | None = None
+        self,
+        blob: bytes,
+        kind: ChunkKind,
+        mac_key: bytes | None = None,
+        transfer: int | None = None,
     ) -> list[bytes]:
         """``blob`` as chunk frames; a session frame needing several chunks gets chunk MACs.
         ``transfer``: this number instead of the next one (an HS1's unpredictable one)."""
-        if kind is Kind.FRAME and len(blob) > CHUNK_DATA:
-            kind = Kind.FRAME_CHUNKED
-        room = CHUNK_DATA - (CHUNK_MAC if kind is Kind.FRAME_CHUNKED else 0)
+        if kind is ChunkKind.FRAME and len(blob) > CHUNK_DATA:
+            kind = ChunkKind.FRAME_CHUNKED
+        room = CHUNK_DATA - (CHUNK_MAC if kind is ChunkKind.FRAME_CHUNKED else 0)
         pieces = [blob[at : at + room] for at in range(0, len(blob), room)] or [b""]
         if len(pieces) > MAX_CHUNKS:
             raise ValueError(f"blob of {len(blob)} bytes needs more than {MAX_CHUNKS} chunks")
-        if kind is Kind.FRAME_CHUNKED and mac_key is None:
+        if kind is ChunkKind.FRAME_CHUNKED and mac_key is None:
             raise ValueError("a chunked session frame needs the chunk key")
         if transfer is None:
             self.transfer = transfer = (self.transfer + 1) & 0xFFFF
         out = []
         for index, piece in enumerate(pieces):
             data = piece
-            if kind is Kind.FRAME_CHUNKED:
+            if kind is ChunkKind.FRAME_CHUNKED:
                 assert mac_key is not None
                 length = len(piece) + CHUNK_MAC
                 head = _CHUNK.pack(transfer, index, len(pieces), length, kind)
@@ -144,7 +148,7 @@ class ChunkSender:
 @dataclass
 class _Transfer:
     count: int
-    kind: Kind
+    kind: ChunkKind
     started: float
     key: bytes | None
     pieces: dict[int, bytes] = field(default_factory=dict)
@@ -187,7 +191,7 @@ class Reassembler:
         pools = (self._frames, self._handshakes)
         return sum(len(p) for pool in pools for t in pool.values() for p in t.pieces.values())
 
-    def feed(self, chunk: Chunk, keys: Iterable[bytes] = ()) -> tuple[Kind, bytes] | None:
+    def feed(self, chunk: Chunk, keys: Iterable[bytes] = ()) -> tuple[ChunkKind, bytes] | None:
         """Take one parsed chunk; the completed blob, or None; typed errors for bad chunks.
 
         ``keys`` are the chunk keys (:func:`chunk_key`) of the live sessions whose
@@ -197,7 +201,7 @@ class Reassembler:
             self.stats.reassembled += 1
             return chunk.kind, chunk.piece
         self._expire()
-        pool = self._handshakes if chunk.kind is Kind.HS1 else self._frames
+        pool = self._handshakes if chunk.kind is ChunkKind.HS1 else self._frames
         transfer = pool.get(chunk.key)
         key = self._authenticate(chunk, keys if transfer is None else (transfer.key,))
         if transfer is None:
@@ -238,7 +242,7 @@ class Reassembler:
             )
 
     def _authenticate(self, chunk: Chunk, keys: Iterable[bytes | None]) -> bytes | None:
-        if chunk.kind is not Kind.FRAME_CHUNKED:
+        if chunk.kind is not ChunkKind.FRAME_CHUNKED:
             return None
         mac, data = chunk.data[-CHUNK_MAC:], chunk.mac_input()
         for key in keys:

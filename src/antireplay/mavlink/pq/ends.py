@@ -41,7 +41,7 @@ from antireplay.mavlink.pq.wire import (
     SIGNED_MESSAGES,
     STATUS_NO_SESSION,
     TRANSFER_LIMIT,
-    Kind,
+    ChunkKind,
     compact,
     inner_of,
     open_compact,
@@ -120,7 +120,7 @@ class GroundEnd:
         self.handshakes["started"] += 1
         hs1 = self.initiator.start(self.responder_key, self.hybrid)
         self._pending = (hs1, self._clock.monotonic())
-        return self.sender.frames(hs1, Kind.HS1, transfer=secrets.randbelow(0x10000))
+        return self.sender.frames(hs1, ChunkKind.HS1, transfer=secrets.randbelow(0x10000))
 
     def from_local(self, raw: bytes) -> list[bytes]:
         """Wrap one plain frame from a local peer.  While there is no session, commands wait
@@ -177,7 +177,7 @@ class GroundEnd:
 
     def _seal(self, session: Session, inner: bytes, purpose: Purpose) -> list[bytes]:
         blob = compact(session.seal(inner, purpose))
-        return self.sender.frames(blob, Kind.FRAME, chunk_key(session.send_key))
+        return self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
 
     def _retry(self) -> list[bytes]:
         if self._pending is not None and self._clock.monotonic() - self._pending[1] < self.retry_s:
@@ -197,9 +197,9 @@ class GroundEnd:
         if done is None:
             return Output()
         kind, blob = done
-        if kind is Kind.HS2:
+        if kind is ChunkKind.HS2:
             return self._finish(blob)
-        if kind not in (Kind.FRAME, Kind.FRAME_CHUNKED) or self.session is None:
+        if kind not in (ChunkKind.FRAME, ChunkKind.FRAME_CHUNKED) or self.session is None:
             raise UnknownSessionError(f"{kind.name} blob with no session to take it")
         opened = open_compact(blob, [self.session], Direction.R2I, self.session)
         self._reassembler.opened(chunk, keys[0])
@@ -278,7 +278,7 @@ class VehicleEnd:
         if done is None:
             return Output()
         kind, blob = done
-        if kind is Kind.HS1:
+        if kind is ChunkKind.HS1:
             handles = {s.session_id[-1] for s in self._sessions}
             self.handshakes["started"] += 1
             try:
@@ -289,8 +289,8 @@ class VehicleEnd:
             self.handshakes["completed"] += 1
             self._sessions.append(session)
             self.current, self._heard = session, self._clock.monotonic()
-            return Output(air=self.sender.frames(hs2, Kind.HS2), authenticated=True)
-        if kind is Kind.HS2:
+            return Output(air=self.sender.frames(hs2, ChunkKind.HS2), authenticated=True)
+        if kind is ChunkKind.HS2:
             raise InvalidFrameError("HS2 travels to the ground end")
         self._require_signature(blob)
         opened = open_compact(blob, self._sessions, Direction.I2R, self.responder)
@@ -336,7 +336,7 @@ class VehicleEnd:
             self.drops["NO_SESSION"] += 1
             return []
         blob = compact(self.current.seal(inner_of(frame), Purpose.DATA))
-        return self.sender.frames(blob, Kind.FRAME, chunk_key(self.current.send_key))
+        return self.sender.frames(blob, ChunkKind.FRAME, chunk_key(self.current.send_key))
 
     def tick(self) -> list[bytes]:
         """Nothing to send on time alone: the ground end opens sessions."""

@@ -56,7 +56,7 @@ DIALECT = _load_dialect()
 DIALECT_XML = "antireplay_pq.xml"
 
 
-class Kind(IntEnum):
+class ChunkKind(IntEnum):
     """What a chunked blob is (module docstring)."""
 
     HS1 = 1
@@ -176,7 +176,7 @@ def expand(air: bytes, sessions: Iterable[Session], direction: Direction) -> lis
     ]
 
 
-class Receiver(Protocol):
+class FrameOpener(Protocol):
     """What opens session frames: a :class:`~antireplay.pq.session.Session` or a
     :class:`~antireplay.pq.session.Responder` (``check`` records nothing, ``open`` commits)."""
 
@@ -186,7 +186,7 @@ class Receiver(Protocol):
 
 
 def open_compact(
-    air: bytes, sessions: Iterable[Session], direction: Direction, receiver: Receiver
+    air: bytes, sessions: Iterable[Session], direction: Direction, receiver: FrameOpener
 ) -> Opened:
     """Open a compact frame under the live session its tag verifies in; typed errors
     otherwise.  A handle shared by two sessions (the vehicle end avoids it, but cannot
