@@ -14,6 +14,9 @@ code the tests and benchmarks exercise:
   unless it has a live entry (``expiry >= now``); ``force`` (a fresh ESTOP)
   extends a live entry instead.  Two racers for one key: exactly one gets
   ``recorded``.  Data-loss detection runs *in the same atomic operation*.
+  ``commit_async`` is the same commit for an event loop: a group-committing store
+  awaits its batch holding no thread, the others run ``commit`` through the
+  caller's ``offload`` (:func:`offloaded`).
 * ``advance(key, value) -> bool`` / ``current(key)``: compare-and-advance for
   high-water counters (MAVLink stream state), with the same loss detection.
 * ``verify() -> Seen``: run the loss detection now (start-up; a MAVLink guard
@@ -47,11 +50,28 @@ machine, survives ``kill -9`` and reboots), :class:`~antireplay.state.redis.Redi
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+import asyncio
+from collections.abc import Awaitable, Callable
+from typing import Any, Protocol, runtime_checkable
 
 from antireplay.core.clock import Clock
 from antireplay.core.errors import ConfigError
 from antireplay.core.window import Seen
+
+#: Runs ``fn(*args)`` in a thread for a running event loop to await: the one hand-off to a
+#: thread (the gateway passes its worker pool; :func:`in_executor` by default).
+Offload = Callable[..., Awaitable[Any]]
+
+
+def in_executor(fn: Callable[..., Any], *args: Any) -> Awaitable[Any]:
+    """The default :data:`Offload`: the running loop's default executor."""
+    return asyncio.get_running_loop().run_in_executor(None, fn, *args)
+
+
+def offloaded(offload: Offload | None, commit: Callable[..., Seen], *args: Any) -> Awaitable[Seen]:
+    """``commit_async`` of a store whose ``commit`` blocks: ``commit(*args)`` in a thread."""
+    result: Awaitable[Seen] = (offload or in_executor)(commit, *args)
+    return result
 
 
 @runtime_checkable
@@ -71,6 +91,16 @@ class ReplayStore(Protocol):
         """The watermark as last known to this process (no I/O)."""
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen: ...
+
+    def commit_async(
+        self,
+        key: str,
+        expires_at: float,
+        now: float,
+        force: bool = False,
+        offload: Offload | None = None,
+    ) -> Awaitable[Seen]:
+        """:meth:`commit` from a running event loop (a blocking one runs in ``offload``)."""
 
     def verify(self) -> Seen:
         """Run this backend's loss detection now; the fence and watermark it finds."""
@@ -110,4 +140,12 @@ def open_store(
     raise ConfigError("store", spec, STORE_SPECS)
 
 
-__all__ = ["STORE_SPECS", "ReplayStore", "Seen", "open_store"]
+__all__ = [
+    "STORE_SPECS",
+    "Offload",
+    "ReplayStore",
+    "Seen",
+    "in_executor",
+    "offloaded",
+    "open_store",
+]
