@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import asyncio
+import concurrent.futures
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -376,3 +379,37 @@ def test_an_estop_is_delivered_while_the_audit_trail_cannot_be_written(
         ("accepted", "AUDIT_UNAVAILABLE"),
     ]  # fmt: skip
     assert verify(trail).ok
+
+
+class _NoThreads(concurrent.futures.ThreadPoolExecutor):
+    """A default executor that refuses work: any hand-off but the given offload fails."""
+
+    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
+        raise AssertionError(f"{fn!r} went to the loop's default executor")
+
+
+def test_the_event_loop_driver_hands_work_only_to_its_offload_and_keeps_the_estop_rule(
+    receiver: Receiver,
+) -> None:
+    """On a loop, with the audit trail closed: an ESTOP is delivered flagged, anything else
+    is refused 503, as on a thread; every thread hand-off goes through ``offload``."""
+    assert receiver.audit is not None
+    receiver.audit.close()
+    handed: list[Callable[..., Any]] = []
+
+    async def offload(fn: Callable[..., Any], *args: Any) -> Any:
+        handed.append(fn)
+        return fn(*args)
+
+    async def scenario() -> tuple[Outcome, Outcome]:
+        asyncio.get_running_loop().set_default_executor(_NoThreads(1))
+        estop = signed(type=6, safety_event="ESTOP", cmd="estop")
+        return (
+            await receiver.receive_async(estop, None, offload),
+            await receiver.receive_async(signed(), None, offload),
+        )
+
+    estop, other = asyncio.run(scenario())
+    assert (estop.accepted, estop.warning) == (True, "AUDIT_UNAVAILABLE")
+    assert (other.accepted, other.status, other.code) == (False, 503, "STATE_UNAVAILABLE")
+    assert len(handed) >= 4  # each: its steps 1-6 and its commit; the 503's settle

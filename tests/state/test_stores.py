@@ -4,6 +4,7 @@ loss of every kind, multi-process races and kill -9."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import multiprocessing
@@ -33,7 +34,7 @@ from antireplay import (
 from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
 from antireplay.mavlink import MavlinkGuard, mav_time
 from antireplay.rcan.auth import sign_envelope
-from antireplay.state import ReplayStore, open_store
+from antireplay.state import ReplayStore, Seen, open_store
 from antireplay.state.memory import MemoryStore
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
@@ -623,6 +624,42 @@ def test_redis_down_fails_closed_but_estop_passes_and_recovery(tmp_path: Path) -
             cache.commit("before", clock.wall() - 1)
         clock.advance(cache.policy.skew_s + 1)
         cache.commit("after", clock.wall())
+    finally:
+        server.stop()
+
+
+def test_commit_async_is_the_same_atomic_commit_on_every_backend(store: ReplayStore) -> None:
+    """The event loop's commit: racers on one key, one winner; the entry as ``commit``'s."""
+
+    async def race_twice() -> list[Seen]:
+        return list(
+            await asyncio.gather(
+                store.commit_async("a", NOW + 30, NOW), store.commit_async("a", NOW + 40, NOW)
+            )
+        )
+
+    assert sorted(seen.recorded for seen in asyncio.run(race_twice())) == [False, True]
+    assert store.lookup("a").expiry in {NOW + 30, NOW + 40}
+
+
+def test_redis_down_commit_async_fails_closed_but_estop_passes(tmp_path: Path) -> None:
+    """The event loop's commit path keeps the outage rule: only a fresh ESTOP passes."""
+    server = RedisServer(tmp_path)
+    server.start()
+    try:
+        clock = ManualClock(wall=NOW)
+        (cache,) = _replicas(server.url, 1, clock)
+        _fresh_deployment(cache, clock)
+        assert asyncio.run(cache.commit_async("before", clock.wall())).warning is None
+        server.stop()
+        with pytest.raises(StateUnavailableError):
+            asyncio.run(cache.commit_async("during", clock.wall()))
+        verdict = asyncio.run(
+            cache.commit_async("estop", clock.wall(), MessageType.SAFETY, "ESTOP")
+        )
+        assert (verdict.warning, verdict.estop) == ("STATE_UNAVAILABLE", True)
+        with pytest.raises(StateUnavailableError):
+            asyncio.run(cache.commit_async("stop", clock.wall(), MessageType.SAFETY, "STOP"))
     finally:
         server.stop()
 

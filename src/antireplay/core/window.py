@@ -48,11 +48,12 @@ the watermark, or the store is saturated, the verdict carries
 ``warning="REPLAY_DETECTED"`` (to be audited), and the store records it anyway
 (``force``), extending the entry of a later duplicate.  A stale ESTOP (older
 than the safety window) is refused; STOP and RESUME get no exemption.  The
-one exemption outside this file is the outage: when the store cannot be reached
-at all, :class:`~antireplay.state.replay.ReplayCache` admits a fresh ESTOP with
-``warning="STATE_UNAVAILABLE"`` and refuses everything else with 503; the
-pipeline delivers the same ESTOP (``Verdict.estop``) when its audit row cannot be
-written (:mod:`antireplay.rcan.receive`).
+same exemption covers every failure of state or audit, as one rule,
+:func:`estop_survives`: a store that cannot be reached
+(:class:`~antireplay.state.replay.ReplayCache`, ``STATE_UNAVAILABLE``) or an audit
+row that cannot be made durable (:mod:`antireplay.rcan.receive`,
+``AUDIT_UNAVAILABLE``) refuses everything except a fresh, authentic ESTOP, which is
+delivered flagged.
 
 Timestamps are finite, non-negative Unix **seconds**: ``int``/``float`` or a
 plain decimal string (``"1700000000.25"``, as the RCAN SDK emits).  Rejected
@@ -104,6 +105,16 @@ _REPLAY: Final = "REPLAY_DETECTED"
 def is_estop(msg_type: int, safety_event: str | None) -> bool:
     """The ESTOP invariant covers SAFETY messages with the ESTOP event only."""
     return msg_type == _SAFETY and safety_event == _ESTOP
+
+
+def estop_survives(estop: bool, warning: str | None, failure: str) -> str | None:
+    """Safety beats availability: the warning a fresh ESTOP (``Verdict.estop``) is
+    delivered with despite ``failure`` (a state or audit outage's code), keeping a
+    warning it already carries (one code per answer, the §8.3 flag first); ``None``:
+    anything else fails closed."""
+    if not estop:
+        return None
+    return failure if warning is None else warning
 
 
 _DECIMAL = re.compile(r"[0-9]{1,12}(?:\.[0-9]{1,9})?")

@@ -6,13 +6,24 @@ The policies decide; a store keeps their state and offers the few **atomic**
 operations they need, so threads, processes or replicas sharing one store accept
 each message exactly once (:class:`ReplayStore`):
 
-* ``lookup`` records nothing (the pre-crypto check); ``commit`` atomically records a
-  key unless it has a live entry (``force``, a fresh ESTOP, extends it); two racers:
-  exactly one ``recorded``.  ``advance``/``current``: compare-and-advance counters.
-* ``verify`` runs the loss detection now; ``status`` gives figures for ``/metrics``.
-* ``ready`` is the one readiness probe: it raises ``STATE_UNAVAILABLE`` unless a
-  commit could go through now, and records nothing (it never notices a loss in
-  place of the commit that fences and audits it).
+* ``lookup(key) -> Seen``: records nothing (the pipeline's pre-crypto check).
+* ``commit(key, expires_at, now, force) -> Seen``: atomically record ``key``
+  unless it has a live entry (``expiry >= now``); ``force`` (a fresh ESTOP)
+  extends a live entry instead.  Two racers for one key: exactly one gets
+  ``recorded``.  Data-loss detection runs *in the same atomic operation*.
+  ``commit_async`` is the same commit for an event loop: a group-committing store
+  awaits its batch holding no thread, the others run ``commit`` through the
+  caller's ``offload`` (:func:`offloaded`).
+* ``advance(key, value) -> bool`` / ``current(key)``: compare-and-advance for
+  high-water counters (MAVLink stream state), with the same loss detection.
+* ``verify() -> Seen``: run the loss detection now (start-up; a MAVLink guard
+  taking its lease), returning the fence and watermark.
+* ``status()``: figures for ``/metrics`` (entries, watermark, fence,
+  evictions, data-loss events).
+* ``StoreSpec.parse`` (:mod:`antireplay.state.spec`) is the one grammar of store specs.
+* ``ready()``: the one readiness probe: raise ``STATE_UNAVAILABLE`` unless a commit could go through
+  now (``/readyz``); records nothing, so it never notices a loss in place of
+  the commit that fences and audits it.
 
 Every :class:`~antireplay.core.window.Seen` carries the **watermark** (an entry
 removed before its expiry raises it to that expiry) and the **fence** (possible
@@ -28,11 +39,28 @@ closed).  One grammar names them, :meth:`StoreSpec.parse` (:mod:`.spec`:
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+import asyncio
+from collections.abc import Awaitable, Callable
+from typing import Any, Protocol, runtime_checkable
 
 from antireplay.core.clock import Clock
 from antireplay.core.window import Seen
 from antireplay.state.spec import ALLOWED, StoreSpec
+
+#: Runs ``fn(*args)`` in a thread for a running event loop to await: the one hand-off to a
+#: thread (the gateway passes its worker pool; :func:`in_executor` by default).
+Offload = Callable[..., Awaitable[Any]]
+
+
+def in_executor(fn: Callable[..., Any], *args: Any) -> Awaitable[Any]:
+    """The default :data:`Offload`: the running loop's default executor."""
+    return asyncio.get_running_loop().run_in_executor(None, fn, *args)
+
+
+def offloaded(offload: Offload | None, commit: Callable[..., Seen], *args: Any) -> Awaitable[Seen]:
+    """``commit_async`` of a store whose ``commit`` blocks: ``commit(*args)`` in a thread."""
+    result: Awaitable[Seen] = (offload or in_executor)(commit, *args)
+    return result
 
 
 @runtime_checkable
@@ -52,6 +80,16 @@ class ReplayStore(Protocol):
         """The watermark as last known to this process (no I/O)."""
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen: ...
+
+    def commit_async(
+        self,
+        key: str,
+        expires_at: float,
+        now: float,
+        force: bool = False,
+        offload: Offload | None = None,
+    ) -> Awaitable[Seen]:
+        """:meth:`commit` from a running event loop (a blocking one runs in ``offload``)."""
 
     def verify(self) -> Seen:
         """Run this backend's loss detection now; the fence and watermark it finds."""
@@ -85,4 +123,13 @@ def open_store(
     return parsed.open(clock=clock, max_entries=max_entries, skew_s=skew_s)
 
 
-__all__ = ["STORE_SPECS", "ReplayStore", "Seen", "StoreSpec", "open_store"]
+__all__ = [
+    "STORE_SPECS",
+    "Offload",
+    "ReplayStore",
+    "Seen",
+    "StoreSpec",
+    "in_executor",
+    "offloaded",
+    "open_store",
+]

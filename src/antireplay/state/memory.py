@@ -37,11 +37,12 @@ from __future__ import annotations
 
 import heapq
 import threading
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Final
 
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.window import NEVER, Seen
+from antireplay.state import Offload, offloaded
 
 #: At most this many expired entries are purged per commit: bounded work, no latency spikes.
 PURGE_BATCH: Final = 64
@@ -121,6 +122,17 @@ class MemoryStore:
             return Seen(NEVER if seen is None else seen, watermark, self._fence, True)
         finally:
             self._release()
+
+    def commit_async(
+        self,
+        key: str,
+        expires_at: float,
+        now: float,
+        force: bool = False,
+        offload: Offload | None = None,
+    ) -> Awaitable[Seen]:
+        """:meth:`commit` from an event loop: run in ``offload`` (it takes the store's lock)."""
+        return offloaded(offload, self.commit, key, expires_at, now, force)
 
     def purge(self, now: float) -> int:
         """Forget every entry expired at ``now``; returns how many were removed."""

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from typing import Any, Final, TypeVar
 
 import redis
@@ -56,7 +56,7 @@ import redis.cluster
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
 from antireplay.core.window import NEVER, Seen
-from antireplay.state import _codec
+from antireplay.state import Offload, _codec, offloaded
 from antireplay.state.spec import StoreSpec
 
 T = TypeVar("T")
@@ -177,6 +177,17 @@ class RedisStore:
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         return self._run("commit", self.msg_key(key), now, repr(expires_at), force)
+
+    def commit_async(
+        self,
+        key: str,
+        expires_at: float,
+        now: float,
+        force: bool = False,
+        offload: Offload | None = None,
+    ) -> Awaitable[Seen]:
+        """:meth:`commit` from an event loop: run in ``offload`` (it waits for Redis)."""
+        return offloaded(offload, self.commit, key, expires_at, now, force)
 
     def verify(self) -> Seen:
         """Run the loss and eviction checks alone (start-up, a guard taking its lease)."""

@@ -15,12 +15,13 @@ embedder uses directly:
   does not spend its msg_id), performs the store's one atomic ``commit``
   (which also notices data loss) and judges what it returned.  Run it only
   after the message authenticated; of two racers on one msg_id exactly one is
-  admitted.
+  admitted.  :meth:`ReplayCache.commit_async` is the same two halves around the
+  store's ``commit_async``, for an event loop.
 
 No lock is held here: the store's commit is the only atomic step.  A store that
 cannot be reached fails closed (``STATE_UNAVAILABLE``, 503) for everything
-except a fresh ESTOP, which is admitted with ``warning="STATE_UNAVAILABLE"``:
-safety beats the replay check's availability.
+except a fresh ESTOP, which is admitted with ``warning="STATE_UNAVAILABLE"``
+(:func:`~antireplay.core.window.estop_survives`, the rule for every outage).
 
 Without a ``store`` the cache uses a :class:`~antireplay.state.memory.MemoryStore`
 bounded by ``max_size``, with its restart fence: a new process refuses anything
@@ -42,8 +43,8 @@ from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import ConfigError, ReplayAttackError, StateUnavailableError
 from antireplay.core.messages import MessageType
 from antireplay.core.settings import ALLOWED, SecurityConfig
-from antireplay.core.window import NEVER, Seen, Verdict, Window
-from antireplay.state import ReplayStore
+from antireplay.core.window import NEVER, Seen, Verdict, Window, estop_survives
+from antireplay.state import Offload, ReplayStore
 from antireplay.state.memory import MemoryStore
 
 _STATE_UNAVAILABLE = "STATE_UNAVAILABLE"
@@ -136,6 +137,26 @@ class ReplayCache:
             seen = exc
         return self.finish_commit(plan, now, seen)
 
+    async def commit_async(
+        self,
+        msg_id: object,
+        timestamp: object,
+        msg_type: int = MessageType.COMMAND,
+        safety_event: str | None = None,
+        offload: Offload | None = None,
+    ) -> Verdict:
+        """:meth:`commit` for an event loop: the store's ``commit_async`` is awaited
+        between the same two halves (a blocking store's runs in ``offload``)."""
+        plan, now = self.begin_commit(msg_id, timestamp, msg_type, safety_event)
+        seen: Seen | StateUnavailableError
+        try:
+            seen = await self.store.commit_async(
+                plan.msg_id, plan.expires_at, now, plan.estop, offload
+            )
+        except StateUnavailableError as exc:
+            seen = exc
+        return self.finish_commit(plan, now, seen)
+
     def begin_commit(
         self,
         msg_id: object,
@@ -146,8 +167,8 @@ class ReplayCache:
         """:meth:`commit` up to the store's: the plan on a fresh ``now`` (both returned, for
         the store's ``commit(plan.msg_id, plan.expires_at, now, plan.estop)`` and
         :meth:`finish_commit`), refusing what the known fence or watermark already refuses
-        *before* recording it: a refused message must not spend its msg_id.  An event loop
-        awaits the store's commit between the halves instead of blocking on it."""
+        *before* recording it: a refused message must not spend its msg_id.  :meth:`commit`
+        and :meth:`commit_async` perform the store's commit between the halves."""
         now = self.clock.wall()
         policy = self.policy
         try:
@@ -172,16 +193,12 @@ class ReplayCache:
 
     def _judge(self, plan: Verdict, now: float, seen: Seen | StateUnavailableError) -> Verdict:
         if isinstance(seen, StateUnavailableError):
-            if plan.estop:  # safety beats the replay check's availability
-                return Verdict(
-                    plan.msg_id,
-                    plan.timestamp,
-                    plan.window_s,
-                    plan.expires_at,
-                    _STATE_UNAVAILABLE,
-                    True,
-                )
-            raise seen
+            warning = estop_survives(plan.estop, plan.warning, _STATE_UNAVAILABLE)
+            if warning is None:
+                raise seen
+            return Verdict(
+                plan.msg_id, plan.timestamp, plan.window_s, plan.expires_at, warning, True
+            )
         if seen.lost:
             self.losses += 1
             if self.on_loss is not None:

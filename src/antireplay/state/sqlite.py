@@ -77,7 +77,7 @@ from typing import Any, Final, TypeVar
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.core.window import NEVER, Seen
-from antireplay.state import _codec
+from antireplay.state import Offload, _codec
 from antireplay.state.durable import file_identity
 from antireplay.state.groupcommit import GroupCommitter
 
@@ -367,9 +367,14 @@ class SqliteStore:
         return self._committer.submit((key, expires_at, now, force))
 
     def commit_async(
-        self, key: str, expires_at: float, now: float, force: bool = False
+        self,
+        key: str,
+        expires_at: float,
+        now: float,
+        force: bool = False,
+        offload: Offload | None = None,
     ) -> asyncio.Future[Seen]:
-        """:meth:`commit` from a running event loop: await the result, holding no thread."""
+        """:meth:`commit` from a running event loop: await the batch, holding no thread."""
         return self._committer.enqueue_async((key, expires_at, now, force))
 
     def _commit_batch(self, ops: Sequence[_Op]) -> list[Seen]:
