@@ -25,7 +25,7 @@ from antireplay.wiring import (
     mavlink_auditor,
 )
 from tests.harness import free_port
-from tests.mavlink_frames import KEY
+from tests.harness.mavlink_frames import KEY
 
 
 def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(

@@ -25,7 +25,7 @@ from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.core.errors import Code, ConfigError, StateFileError
 from antireplay.dds.config import DdsConfig
-from tests.conftest import started_before
+from tests.harness import started_before, until
 
 try:
     from antireplay.dds import relay as relay_module
@@ -55,15 +55,6 @@ def peer(participant: Any) -> Any:
     return join_domain(int(participant.domain_id))
 
 
-def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    """Bounded polling: DDS delivery is asynchronous; the outcome is asserted afterwards."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() >= deadline:
-            pytest.fail(f"condition not met within {timeout_s} s")
-        time.sleep(0.01)
-
-
 def collect(reader: SealedReader, count: int, timeout_s: float = 10.0) -> list[Verdict]:
     """Judge samples until ``count`` verdicts arrived (bounded)."""
     verdicts: list[Verdict] = []
@@ -82,14 +73,14 @@ def pair(
         clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock, **reader_opts)
     )
     writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
-    until(lambda: writer.matched_readers() >= 1)
+    until("DDS discovery", lambda: writer.matched_readers() >= 1)
     return writer, reader
 
 
 def rogue_writer(participant: Any, topic: str = TOPIC) -> SealedWriter:
     """A participant without the fleet key that republishes what it captured."""
     rogue = SealedWriter(peer(participant), topic, os.urandom(32))
-    until(lambda: rogue.matched_readers() >= 1)
+    until("DDS discovery", lambda: rogue.matched_readers() >= 1)
     return rogue
 
 
@@ -105,7 +96,7 @@ def test_round_trip_keyed_instances_and_several_writers(
     reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     writers = [SealedWriter(peer(participant), TOPIC, PSK, clock=clock) for _ in range(2)]
     for writer in writers:
-        until(lambda w=writer: w.matched_readers() >= 1)  # type: ignore[misc]
+        until("DDS discovery", lambda w=writer: w.matched_readers() >= 1)  # type: ignore[misc]
     for n in range(3):
         for i, writer in enumerate(writers):
             writer.write(f"w{i} #{n}".encode(), instance=f"arm-{i}")
@@ -183,7 +174,7 @@ def test_sample_replayed_onto_another_topic_is_refused(
     cmd_reader = started_before(
         clock, lambda: SealedReader(participant, "robot/cmd", PSK, clock=clock)
     )
-    until(lambda: cmd_writer.matched_readers() >= 1)
+    until("DDS discovery", lambda: cmd_writer.matched_readers() >= 1)
     captured = cmd_writer.write(b"RESUME", instance="arm")
     assert collect(cmd_reader, 1)[0].accepted
     rogue = rogue_writer(participant, "robot/cmd_vel")
@@ -214,7 +205,7 @@ def test_writer_restarted_with_its_state_file_is_accepted(
     state = tmp_path / "writer.state"
     reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     first = SealedWriter(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
-    until(lambda: first.matched_readers() >= 1)
+    until("DDS discovery", lambda: first.matched_readers() >= 1)
     for n in range(3):
         first.write(f"before #{n}".encode(), instance="arm")
     assert all(v.accepted for v in collect(reader, 3))
@@ -223,7 +214,7 @@ def test_writer_restarted_with_its_state_file_is_accepted(
     # the same host, the clock not moved on: only the state file keeps epochs above the old ones
     second = SealedWriter(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
     assert second.nonce_prefix == prefix
-    until(lambda: second.matched_readers() >= 1)
+    until("DDS discovery", lambda: second.matched_readers() >= 1)
     second.write(b"after restart", instance="arm")
     (verdict,) = collect(reader, 1)
     assert verdict.accepted and verdict.value == b"after restart"
@@ -235,7 +226,7 @@ def test_writer_whose_state_file_is_missing_is_refused_naming_the_file(
     state = tmp_path / "writer.state"
     reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     first = SealedWriter(participant, TOPIC, PSK, clock=clock, state_file=state, service_name="arm")
-    until(lambda: first.matched_readers() >= 1)
+    until("DDS discovery", lambda: first.matched_readers() >= 1)
     first.write(b"before", instance="arm")
     assert collect(reader, 1)[0].accepted
     first.close()  # the process stops
@@ -250,7 +241,7 @@ def test_writer_whose_state_file_is_missing_is_refused_naming_the_file(
     Path(str(state) + ".gen").unlink()
     amnesiac = SealedWriter(peer(participant), TOPIC, PSK, clock=clock, state_file=state,
                             service_name="arm")  # fmt: skip
-    until(lambda: amnesiac.matched_readers() >= 1)
+    until("DDS discovery", lambda: amnesiac.matched_readers() >= 1)
     amnesiac.write(b"after losing state", instance="arm")
     (verdict,) = collect(reader, 1)
     assert verdict.code == Code.EPOCH_REPLAYED and verdict.outcome == "prefix_collision"
@@ -264,7 +255,7 @@ def test_reader_restarted_with_its_state_file_still_refuses_old_samples(
     first = started_before(
         clock, lambda: SealedReader(peer(participant), TOPIC, PSK, clock=clock, store=state)
     )
-    until(lambda: writer.matched_readers() >= 1)
+    until("DDS discovery", lambda: writer.matched_readers() >= 1)
     captured = [writer.write(f"cmd {n}".encode(), instance="arm") for n in range(3)]
     assert all(v.accepted for v in collect(first, 3))
     first.close()  # the process stops
@@ -275,7 +266,10 @@ def test_reader_restarted_with_its_state_file_still_refuses_old_samples(
     # captures too (it cannot know what a previous process accepted)
     forgetful = SealedReader(peer(participant), TOPIC, PSK, clock=clock)
     rogue = rogue_writer(participant)
-    until(lambda: restarted.matched_writers() >= 2 and forgetful.matched_writers() >= 2)
+    until(
+        "DDS discovery",
+        lambda: restarted.matched_writers() >= 2 and forgetful.matched_writers() >= 2,
+    )
     for sample in captured:
         rogue.publish(sample)
     assert [v.code for v in collect(restarted, 3)] == [Code.EPOCH_REPLAYED] * 3
@@ -289,7 +283,7 @@ def test_reader_restarted_with_its_state_file_still_refuses_old_samples(
 
 def pump_until(relay: AnnouncementRelay, condition: Callable[[], bool]) -> None:
     """Run the relay's loop (as its serve() does) until ``condition`` holds (bounded)."""
-    until(lambda: relay.pump(0.02) is not None and condition())
+    until("the relay's loop", lambda: relay.pump(0.02) is not None and condition())
 
 
 def relay_at(
@@ -316,7 +310,10 @@ def test_relay_reannounces_authentic_announcements_only(
     subscriber = started_before(
         clock, lambda: SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
     )
-    until(lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 2)
+    until(
+        "DDS discovery",
+        lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 2,
+    )
     sealed = announcer.write(b"participant guid=01 locator=udpv4://127.0.0.1:7410", instance="01")
     pump_until(relay, lambda: relay.relayed == 1)
     rogue = rogue_writer(participant, "antireplay/announce")
@@ -338,13 +335,19 @@ def test_relay_resumes_above_its_epochs_after_a_restart(
     )
     announcer = SealedWriter(participant, "antireplay/announce", PSK, clock=clock)
     relay = relay_at(peer(participant), tmp_path, "cds-1", clock, "a")
-    until(lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 1)
+    until(
+        "DDS discovery",
+        lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 1,
+    )
     announcer.write(b"first", instance="p")
     pump_until(relay, lambda: relay.relayed == 1)
     before = collect(subscriber, 1)[0]
     relay.close()  # the process stops
     restarted = relay_at(peer(participant), tmp_path, "cds-1", clock, "a")
-    until(lambda: announcer.matched_readers() >= 1 and restarted.egress.matched_readers() >= 1)
+    until(
+        "DDS discovery",
+        lambda: announcer.matched_readers() >= 1 and restarted.egress.matched_readers() >= 1,
+    )
     announcer.write(b"second", instance="p")
     pump_until(restarted, lambda: restarted.relayed == 1)
     after = collect(subscriber, 1)[0]
@@ -363,7 +366,10 @@ def test_two_relays_with_one_service_name_are_reported(
         clock, lambda: SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
     )
     announcer = SealedWriter(peer(participant), "antireplay/announce", PSK, clock=clock)
-    until(lambda: announcer.matched_readers() >= 2 and one.egress.matched_readers() >= 3)
+    until(
+        "DDS discovery",
+        lambda: announcer.matched_readers() >= 2 and one.egress.matched_readers() >= 3,
+    )
     for n in range(3):
         announcer.write(f"participant {n}".encode(), instance=str(n))
         clock.advance(0.001)
@@ -470,7 +476,7 @@ def test_relay_pump_judges_a_bounded_number_of_pings(
             assert listener.counts.total() - before <= 3
             return listener.counts.total() >= 10
 
-        until(pumped_within_bound)
+        until("the relay's loop", pumped_within_bound)
         assert listener.counts["malformed"] == 10
     finally:
         relay.close()
@@ -531,7 +537,11 @@ def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:
             participant, "antireplay/relayed", psk, store=f"sqlite:{tmp_path / 'sub.db'}"
         )
         announcer = SealedWriter(participant, "antireplay/announce", psk)
-        until(lambda: announcer.matched_readers() >= 1 and subscriber.matched_writers() >= 1, 20)
+        until(
+            "DDS discovery",
+            lambda: announcer.matched_readers() >= 1 and subscriber.matched_writers() >= 1,
+            20.0,
+        )
         announcer.write(b"participant guid=02", instance="02")
         (verdict,) = collect(subscriber, 1, 20)
         assert verdict.accepted and verdict.nonce_prefix != announcer.nonce_prefix
@@ -551,7 +561,7 @@ def test_writer_on_the_readers_forward_bound_recovers_from_a_short_glitch(
     until real time caught up (review finding 4)."""
     reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
-    until(lambda: writer.matched_readers() >= 1)
+    until("DDS discovery", lambda: writer.matched_readers() >= 1)
     clock.step_wall(30)
     writer.seal(b"during the glitch", instance="a")  # never delivered: NTP corrects the clock
     clock.step_wall(-30)

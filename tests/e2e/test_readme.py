@@ -28,6 +28,9 @@ from pathlib import Path
 
 import pytest
 
+from antireplay.state import open_store
+from antireplay.state.sqlite import SqliteStore
+
 README = Path(__file__).resolve().parents[2] / "README.md"
 FENCE = re.compile(r"^```(bash|python)$", re.MULTILINE)
 MARKED = re.compile(
@@ -125,3 +128,23 @@ def test_readme_followed_in_order_in_one_shell(tmp_path: Path) -> None:
     assert code == 0, f"exited {code}; still listening: {left!r}\n{said[-4000:]}"
     for wanted in (w for snippet in blocks for w in snippet.expect):
         assert wanted in said, f"{wanted!r} not in:\n{said[-4000:]}"
+
+
+def test_readme_waits_for_readiness_in_bounded_loops_and_notes_the_upgrade() -> None:
+    readme = README.read_text(encoding="utf-8")
+    assert "until curl" not in readme
+    assert readme.count("for i in $(seq 100); do curl -sf") == 2
+    assert "**Upgrading:** a signed `cmd` `STOP` or `RESUME` is now SAFETY" in readme
+
+
+def test_readme_states_the_sqlite_busy_timeout_a_configured_store_uses(tmp_path: Path) -> None:
+    """The README's number for how long a command waits on a locked state file is the busy
+    timeout of the store a configuration's ``sqlite:`` spec opens."""
+    store = open_store(f"sqlite:{tmp_path / 'state.db'}")
+    try:
+        assert isinstance(store, SqliteStore)
+        waits_ms = store._db.execute("PRAGMA busy_timeout").fetchone()[0]
+    finally:
+        store.close()
+    text = " ".join(README.read_text(encoding="utf-8").split())
+    assert f"SQLite's busy timeout, {waits_ms / 1000:g} s (fixed: no configuration knob)" in text

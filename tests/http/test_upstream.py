@@ -29,7 +29,7 @@ from antireplay.core.clock import ManualClock
 from antireplay.http.gateway import Guard, RcanGuard, Verified, _route_path, _takes_two, create_app
 from antireplay.rcan.auth import Signer
 from rcan import RCANResponse
-from tests.http.test_guard import NOW, Answer, call, config
+from tests.harness.asgi import NOW, Answer, call, config
 
 #: Released by the test: the blocking module:function upstream waits for it.
 RELEASE = threading.Event()

@@ -57,7 +57,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavgen
 
-from tests.mavlink.test_router import FakeTransport
+from tests.harness.mavlink_frames import FakeTransport
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
