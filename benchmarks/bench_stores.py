@@ -28,7 +28,7 @@ from itertools import count
 from pathlib import Path
 
 import redis
-from tests.redis_server import RedisServer
+from tests.harness.redis_server import RedisServer
 
 from antireplay import ManualClock, ReplayCache
 from antireplay.state import open_store

@@ -29,7 +29,7 @@ from antireplay.wiring import (
     router_metrics,
 )
 from tests.harness import free_port
-from tests.mavlink_frames import KEY
+from tests.harness.mavlink_frames import KEY
 
 
 def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(

@@ -18,25 +18,8 @@ from antireplay.core.clock import ManualClock
 from antireplay.core.errors import AuditFileError, StateUnavailableError
 from antireplay.rcan.receive import Receiver
 from antireplay.wiring import build_receiver, embedded_default
-from tests.envelopes import MARKER, NOW, message, signed
-
-
-def trail(path: Path, rows: int) -> None:
-    log = AuditLog(path)
-    for i in range(rows):
-        log.append(
-            at=1_800_000_000.0 + i, outcome="accepted", code=None, warning=None, msg_type=1,
-            sender="op", sender_verified=True, msg_id=f"m{i}",
-        )  # fmt: skip
-    log.close()
-
-
-def sql(path: Path, *statements: str) -> None:
-    db = sqlite3.connect(path)
-    for statement in statements:
-        db.execute(statement)
-    db.commit()
-    db.close()
+from tests.harness.audit import sql, trail
+from tests.harness.envelopes import MARKER, NOW, message, signed
 
 
 @pytest.fixture

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 import yaml
 from benchmarks.__main__ import MODULES
-from click.testing import CliRunner, Result
+from click.testing import CliRunner
 from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay.audit import AuditLog
@@ -22,8 +22,7 @@ from antireplay.mavlink import passphrase_key
 from antireplay.rcan.auth import write_key_pair
 from antireplay.state.ceilings import persistent_counter
 from antireplay.wiring import Allowed
-from tests.conftest import ROOT
-from tests.harness import GatewayProcess
+from tests.harness import ROOT, GatewayProcess, one_line_error
 
 
 @pytest.mark.parametrize("args", [["demo", "--in-process"], ["demo"]])
@@ -119,20 +118,6 @@ def test_bench_outside_a_checkout_says_so(tmp_path: Path, monkeypatch: pytest.Mo
 
 
 # --- ordinary mistakes: one line on stderr, exit 2, no traceback ---------------------------------
-
-
-def one_line_error(result: Result, *needles: str) -> str:
-    """The mistake is one unwrapped stderr line naming the input; nothing on stdout."""
-    assert result.exit_code == 2, (result.exit_code, result.output)
-    assert isinstance(result.exception, SystemExit), result.exception
-    assert result.stdout == ""
-    lines = result.stderr.splitlines()
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("antireplay: error: ")
-    assert "Traceback" not in result.stderr
-    for needle in needles:
-        assert needle in lines[0], (needle, lines[0])
-    return lines[0]
 
 
 def garbage(path: Path) -> Path:

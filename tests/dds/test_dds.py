@@ -27,8 +27,7 @@ from antireplay.core.errors import Code, ConfigError, StateFileError
 from antireplay.dds.config import DdsConfig
 from antireplay.epochs import EpochSigner, Kind, derive_key
 from antireplay.epochs.policy import seal
-from tests.conftest import started_before
-from tests.harness import dds_writer_process
+from tests.harness import dds_writer_process, started_before, until
 
 try:
     from antireplay.dds import relay as relay_module
@@ -64,15 +63,6 @@ def peer(participant: Any) -> Any:
     return join_domain(int(participant.domain_id))
 
 
-def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    """Bounded polling: DDS delivery is asynchronous; the outcome is asserted afterwards."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() >= deadline:
-            pytest.fail(f"condition not met within {timeout_s} s")
-        time.sleep(0.01)
-
-
 def collect(reader: SealedReader, count: int, timeout_s: float = 10.0) -> list[Verdict]:
     """Judge samples until ``count`` verdicts arrived (bounded)."""
     verdicts: list[Verdict] = []
@@ -91,14 +81,14 @@ def pair(
         clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock, **reader_opts)
     )
     writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
-    until(lambda: writer.matched_readers() >= 1)
+    until("DDS discovery", lambda: writer.matched_readers() >= 1)
     return writer, reader
 
 
 def rogue_writer(participant: Any, topic: str = TOPIC) -> SealedWriter:
     """A participant without the fleet key that republishes what it captured."""
     rogue = SealedWriter(peer(participant), topic, os.urandom(32))
-    until(lambda: rogue.matched_readers() >= 1)
+    until("DDS discovery", lambda: rogue.matched_readers() >= 1)
     return rogue
 
 
@@ -114,7 +104,7 @@ def test_round_trip_keyed_instances_and_several_writers(
     reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     writers = [SealedWriter(peer(participant), TOPIC, PSK, clock=clock) for _ in range(2)]
     for writer in writers:
-        until(lambda w=writer: w.matched_readers() >= 1)  # type: ignore[misc]
+        until("DDS discovery", lambda w=writer: w.matched_readers() >= 1)  # type: ignore[misc]
     for n in range(3):
         for i, writer in enumerate(writers):
             writer.write(f"w{i} #{n}".encode(), instance=f"arm-{i}")
@@ -192,7 +182,7 @@ def test_sample_replayed_onto_another_topic_is_refused(
     cmd_reader = started_before(
         clock, lambda: SealedReader(participant, "robot/cmd", PSK, clock=clock)
     )
-    until(lambda: cmd_writer.matched_readers() >= 1)
+    until("DDS discovery", lambda: cmd_writer.matched_readers() >= 1)
     captured = cmd_writer.write(b"RESUME", instance="arm")
     assert collect(cmd_reader, 1)[0].accepted
     rogue = rogue_writer(participant, "robot/cmd_vel")
@@ -223,7 +213,7 @@ def test_writer_restarted_with_its_state_file_is_accepted(
     state = tmp_path / "writer.state"
     reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     first = SealedWriter(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
-    until(lambda: first.matched_readers() >= 1)
+    until("DDS discovery", lambda: first.matched_readers() >= 1)
     for n in range(3):
         first.write(f"before #{n}".encode(), instance="arm")
     assert all(v.accepted for v in collect(reader, 3))
@@ -232,7 +222,7 @@ def test_writer_restarted_with_its_state_file_is_accepted(
     # the same host, the clock not moved on: only the state file keeps epochs above the old ones
     second = SealedWriter(peer(participant), TOPIC, PSK, clock=clock, state_file=state)
     assert second.nonce_prefix == prefix
-    until(lambda: second.matched_readers() >= 1)
+    until("DDS discovery", lambda: second.matched_readers() >= 1)
     second.write(b"after restart", instance="arm")
     (verdict,) = collect(reader, 1)
     assert verdict.accepted and verdict.value == b"after restart"
@@ -244,7 +234,7 @@ def test_writer_whose_state_file_is_missing_is_refused_naming_the_file(
     state = tmp_path / "writer.state"
     reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     first = SealedWriter(participant, TOPIC, PSK, clock=clock, state_file=state, service_name="arm")
-    until(lambda: first.matched_readers() >= 1)
+    until("DDS discovery", lambda: first.matched_readers() >= 1)
     first.write(b"before", instance="arm")
     assert collect(reader, 1)[0].accepted
     first.close()  # the process stops
@@ -259,7 +249,7 @@ def test_writer_whose_state_file_is_missing_is_refused_naming_the_file(
     Path(str(state) + ".gen").unlink()
     amnesiac = SealedWriter(peer(participant), TOPIC, PSK, clock=clock, state_file=state,
                             service_name="arm")  # fmt: skip
-    until(lambda: amnesiac.matched_readers() >= 1)
+    until("DDS discovery", lambda: amnesiac.matched_readers() >= 1)
     amnesiac.write(b"after losing state", instance="arm")
     (verdict,) = collect(reader, 1)
     assert verdict.code == Code.EPOCH_REPLAYED and verdict.outcome == "prefix_collision"
@@ -273,7 +263,7 @@ def test_reader_restarted_with_its_state_file_still_refuses_old_samples(
     first = started_before(
         clock, lambda: SealedReader(peer(participant), TOPIC, PSK, clock=clock, store=state)
     )
-    until(lambda: writer.matched_readers() >= 1)
+    until("DDS discovery", lambda: writer.matched_readers() >= 1)
     captured = [writer.write(f"cmd {n}".encode(), instance="arm") for n in range(3)]
     assert all(v.accepted for v in collect(first, 3))
     first.close()  # the process stops
@@ -284,7 +274,10 @@ def test_reader_restarted_with_its_state_file_still_refuses_old_samples(
     # captures too (it cannot know what a previous process accepted)
     forgetful = SealedReader(peer(participant), TOPIC, PSK, clock=clock)
     rogue = rogue_writer(participant)
-    until(lambda: restarted.matched_writers() >= 2 and forgetful.matched_writers() >= 2)
+    until(
+        "DDS discovery",
+        lambda: restarted.matched_writers() >= 2 and forgetful.matched_writers() >= 2,
+    )
     for sample in captured:
         rogue.publish(sample)
     assert [v.code for v in collect(restarted, 3)] == [Code.EPOCH_REPLAYED] * 3
@@ -298,7 +291,7 @@ def test_reader_restarted_with_its_state_file_still_refuses_old_samples(
 
 def pump_until(relay: AnnouncementRelay, condition: Callable[[], bool]) -> None:
     """Run the relay's loop (as its serve() does) until ``condition`` holds (bounded)."""
-    until(lambda: relay.pump(0.02) is not None and condition())
+    until("the relay's loop", lambda: relay.pump(0.02) is not None and condition())
 
 
 def relay_at(
@@ -325,7 +318,10 @@ def test_relay_reannounces_authentic_announcements_only(
     subscriber = started_before(
         clock, lambda: SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
     )
-    until(lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 2)
+    until(
+        "DDS discovery",
+        lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 2,
+    )
     sealed = announcer.write(b"participant guid=01 locator=udpv4://127.0.0.1:7410", instance="01")
     pump_until(relay, lambda: relay.relayed == 1)
     rogue = rogue_writer(participant, "antireplay/announce")
@@ -347,13 +343,19 @@ def test_relay_resumes_above_its_epochs_after_a_restart(
     )
     announcer = SealedWriter(participant, "antireplay/announce", PSK, clock=clock)
     relay = relay_at(peer(participant), tmp_path, "cds-1", clock, "a")
-    until(lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 1)
+    until(
+        "DDS discovery",
+        lambda: announcer.matched_readers() >= 1 and relay.egress.matched_readers() >= 1,
+    )
     announcer.write(b"first", instance="p")
     pump_until(relay, lambda: relay.relayed == 1)
     before = collect(subscriber, 1)[0]
     relay.close()  # the process stops
     restarted = relay_at(peer(participant), tmp_path, "cds-1", clock, "a")
-    until(lambda: announcer.matched_readers() >= 1 and restarted.egress.matched_readers() >= 1)
+    until(
+        "DDS discovery",
+        lambda: announcer.matched_readers() >= 1 and restarted.egress.matched_readers() >= 1,
+    )
     announcer.write(b"second", instance="p")
     pump_until(restarted, lambda: restarted.relayed == 1)
     after = collect(subscriber, 1)[0]
@@ -372,7 +374,10 @@ def test_two_relays_with_one_service_name_are_reported(
         clock, lambda: SealedReader(peer(participant), "antireplay/relayed", PSK, clock=clock)
     )
     announcer = SealedWriter(peer(participant), "antireplay/announce", PSK, clock=clock)
-    until(lambda: announcer.matched_readers() >= 2 and one.egress.matched_readers() >= 3)
+    until(
+        "DDS discovery",
+        lambda: announcer.matched_readers() >= 2 and one.egress.matched_readers() >= 3,
+    )
     for n in range(3):
         announcer.write(f"participant {n}".encode(), instance=str(n))
         clock.advance(0.001)
@@ -479,7 +484,7 @@ def test_relay_pump_judges_a_bounded_number_of_pings(
             assert listener.counts.total() - before <= 3
             return listener.counts.total() >= 10
 
-        until(pumped_within_bound)
+        until("the relay's loop", pumped_within_bound)
         assert listener.counts["malformed"] == 10
     finally:
         relay.close()
@@ -540,7 +545,11 @@ def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:
             participant, "antireplay/relayed", psk, store=f"sqlite:{tmp_path / 'sub.db'}"
         )
         announcer = SealedWriter(participant, "antireplay/announce", psk)
-        until(lambda: announcer.matched_readers() >= 1 and subscriber.matched_writers() >= 1, 20)
+        until(
+            "DDS discovery",
+            lambda: announcer.matched_readers() >= 1 and subscriber.matched_writers() >= 1,
+            20.0,
+        )
         announcer.write(b"participant guid=02", instance="02")
         (verdict,) = collect(subscriber, 1, 20)
         assert verdict.accepted and verdict.nonce_prefix != announcer.nonce_prefix
@@ -560,7 +569,7 @@ def test_writer_on_the_readers_forward_bound_recovers_from_a_short_glitch(
     until real time caught up (review finding 4)."""
     reader = started_before(clock, lambda: SealedReader(participant, TOPIC, PSK, clock=clock))
     writer = SealedWriter(participant, TOPIC, PSK, clock=clock)
-    until(lambda: writer.matched_readers() >= 1)
+    until("DDS discovery", lambda: writer.matched_readers() >= 1)
     clock.step_wall(30)
     writer.seal(b"during the glitch", instance="a")  # never delivered: NTP corrects the clock
     clock.step_wall(-30)
@@ -689,7 +698,7 @@ def test_fresh_reader_accepts_after_an_answer_without_waiting_out_its_fence(
     captured = writer.seal(b"sealed before the reader started", instance="arm")
     clock.advance(0.5)
     reader = SealedReader(participant, TOPIC, PSK, clock=clock)  # memory store: fenced
-    until(lambda: writer.matched_readers() >= 1)
+    until("the writer matches a reader", lambda: writer.matched_readers() >= 1)
     sent: list[SealedSample] = []
     verdict = first_accepted(reader, lambda: sent.append(writer.write(b"tick", instance="arm")))
     assert verdict.epoch is not None and verdict.epoch <= reader.verifier.restart_fence()
@@ -712,7 +721,7 @@ def test_forged_or_replayed_answer_leaves_the_reader_fenced(
     reader.verifier.policy.nonces.clear()  # that run is gone: its nonce with it
     stranger = EpochSigner(os.urandom(32), nonce_prefix=writer.nonce_prefix, clock=clock)
     rogue = PingChannel(peer(participant), TOPIC)
-    until(lambda: rogue.peers() >= 2)
+    until("the rogue writer sees both peers", lambda: rogue.peers() >= 2)
     reader.poll(0.05)  # the reader's own challenge goes out; we forge the answers to it
 
     def forged_and_replayed() -> bool:
@@ -723,7 +732,7 @@ def test_forged_or_replayed_answer_leaves_the_reader_fenced(
         reader.poll(0.05)
         return reader.counts["answer_forged"] >= 1 and reader.counts["answer_stale"] >= 1
 
-    until(forged_and_replayed)
+    until("the forged and replayed answers are refused", forged_and_replayed)
     assert reader.verifier.policy.answered == {} and stranger.rotations == 0
     reader.judge(writer.seal(b"still fenced", instance="arm"))
     assert reader.counts["stale"] == 1

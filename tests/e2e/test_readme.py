@@ -36,11 +36,14 @@ import pytest
 import yaml
 
 from antireplay.cli import main as cli
+from antireplay.state import open_store
+from antireplay.state.sqlite import SqliteStore
 
 ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 DOCUMENTS = [README, *sorted(DOCS.rglob("*.md"))]
+
 FENCE = re.compile(r"^```(bash|python)$", re.MULTILINE)
 MARKED = re.compile(
     r"<!-- test: (?P<mode>run(?P<after> after the block above)?|manual \([^)]*\))"
@@ -195,3 +198,23 @@ def test_every_command_is_in_the_cli_reference() -> None:
     assert isinstance(cli, click.Group)
     missing = [c for c in commands(cli, "antireplay") if f"`{c}`" not in reference]
     assert not missing, f"docs/cli.md lacks {missing}"
+
+
+def test_readme_waits_for_readiness_in_bounded_loops_and_notes_the_upgrade() -> None:
+    readme = "\n".join(page.read_text(encoding="utf-8") for page in DOCUMENTS)
+    assert "until curl" not in readme
+    assert readme.count("for i in $(seq 100); do curl -sf") == 2
+    assert "**Upgrading:** a signed `cmd` `STOP` or `RESUME` is now SAFETY" in readme
+
+
+def test_readme_states_the_sqlite_busy_timeout_a_configured_store_uses(tmp_path: Path) -> None:
+    """The README's number for how long a command waits on a locked state file is the busy
+    timeout of the store a configuration's ``sqlite:`` spec opens."""
+    store = open_store(f"sqlite:{tmp_path / 'state.db'}")
+    try:
+        assert isinstance(store, SqliteStore)
+        waits_ms = store._db.execute("PRAGMA busy_timeout").fetchone()[0]
+    finally:
+        store.close()
+    text = " ".join(" ".join(d.read_text(encoding="utf-8") for d in DOCUMENTS).split())
+    assert f"SQLite's busy timeout, {waits_ms / 1000:g} s (fixed: no configuration knob)" in text

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
 from antireplay import ManualClock, MessageType, ReplayAttackError, ReplayCache
-from tests.conftest import _fresh_cache
+from tests.harness import fresh_cache
 
 WINDOW, SAFETY_WINDOW, SKEW, MAX_SIZE = 30.0, 10.0, 5.0, 8
 IDS = st.sampled_from([f"id{i}" for i in range(6)])
@@ -46,7 +46,7 @@ class CacheVsModel(RuleBasedStateMachine):
     def __init__(self) -> None:
         super().__init__()
         self.clock = ManualClock(wall=1_800_000_000.0)
-        self.cache: ReplayCache = _fresh_cache(WINDOW, MAX_SIZE, SKEW, self.clock)
+        self.cache: ReplayCache = fresh_cache(WINDOW, MAX_SIZE, SKEW, self.clock)
         self.model = Model()
         self.stepped_back = False
 

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import signal
 import socket
+import sqlite3
 import threading
 import time
 from collections.abc import Iterator
@@ -22,16 +24,29 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from rcan.signing import MLDSAKeyPair, sign_message
 
+from antireplay import ManualClock, SecurityConfig
 from antireplay.audit import AuditLog, verify
 from antireplay.audit import tail as audit_tail
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
+from antireplay.core.errors import StateUnavailableError
 from antireplay.rcan.auth import b64encode
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, Envelope, canonical_bytes
 from antireplay.state.redis import RedisStore
+from antireplay.wiring import create_app, embedded_default
 from rcan import RCANMessage
-from tests.conftest import run_threads
 from tests.fuzz.targets import http_app
-from tests.harness import GatewayProcess, free_port, recording_upstream, state_rows
+from tests.harness import (
+    GatewayProcess,
+    free_port,
+    metric,
+    post,
+    recording_upstream,
+    run_threads,
+    serving,
+    state_rows,
+)
+from tests.harness.asgi import demo_app, request, send_command
+from tests.harness.redis_server import RedisServer
 
 
 @pytest.fixture(scope="module")
@@ -41,27 +56,14 @@ def state(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def gateway(state: Path) -> Iterator[GatewayProcess]:
-    gw = GatewayProcess(write_demo_config(state))
-    gw.start()
-    yield gw
-    gw.stop()
+    with serving(write_demo_config(state)) as gw:
+        yield gw
 
 
 @pytest.fixture
 def http(gateway: GatewayProcess) -> Iterator[httpx.Client]:
     with httpx.Client(base_url=gateway.url, timeout=10) as client:
         yield client
-
-
-def post(http: httpx.Client, raw: bytes, **headers: str) -> httpx.Response:
-    return http.post("/v1/messages", content=raw, headers={**JSON, **headers})
-
-
-def metric(http: httpx.Client, name: str, labels: str = "") -> float:
-    text = http.get("/metrics").text
-    pattern = rf"^{re.escape(name)}{re.escape(labels)} ([0-9.e+]+)$"
-    found = re.search(pattern, text, re.MULTILINE)
-    return float(found.group(1)) if found else 0.0
 
 
 def test_accept_forwards_to_upstream(http: httpx.Client, state: Path) -> None:
@@ -553,3 +555,86 @@ def test_a_command_carrying_a_safety_event_is_refused_and_never_forwarded(
     assert (reply.status_code, reply.json()["code"]) == (400, "INVALID_ENVELOPE")
     assert "only a SAFETY" in reply.json()["reason"]
     assert received == []
+
+
+# --- readiness and metrics of a gateway in process ----------------------------------------------
+
+
+def test_readyz_is_503_when_redis_may_evict_and_so_is_a_command(tmp_path: Path) -> None:
+    skew_s = SecurityConfig().skew_s  # a new deployment's fence refuses messages stamped up to this
+    server = RedisServer(tmp_path)
+    server.start()
+    try:
+        clock = ManualClock(wall=time.time())
+        with demo_app(tmp_path, clock, store=server.url) as app:  # a new deployment: fenced
+            clock.advance(skew_s + 1)  # messages stamped this far ahead pass that fence
+            assert request(app, "GET", "/readyz").status_code == 200
+            server.client().config_set("maxmemory-policy", "allkeys-lru")
+            probe = request(app, "GET", "/readyz")
+            assert probe.status_code == 503, probe.text
+            assert "maxmemory-policy allkeys-lru" in probe.json()["reason"]
+            refused = send_command(app, tmp_path, -(skew_s + 1))
+            assert (refused.status_code, refused.json()["code"]) == (503, "STATE_UNAVAILABLE")
+            server.client().config_set("maxmemory-policy", "noeviction")
+            assert request(app, "GET", "/readyz").status_code == 200
+            assert send_command(app, tmp_path, -(skew_s + 1)).status_code == 200
+    finally:
+        server.stop()
+
+
+def test_readyz_is_503_while_another_process_holds_the_state_write_lock(tmp_path: Path) -> None:
+    with demo_app(tmp_path, store=f"sqlite:{tmp_path / 'state.db'}") as app:
+        assert request(app, "GET", "/readyz").status_code == 200
+        holder = sqlite3.connect(tmp_path / "state.db", timeout=0)
+        holder.execute("BEGIN IMMEDIATE")
+        try:
+            blocked = request(app, "GET", "/readyz")
+        finally:
+            holder.execute("ROLLBACK")
+            holder.close()
+        assert blocked.status_code == 503
+        assert blocked.json()["reason"].endswith("state.db: database is locked")
+        assert request(app, "GET", "/readyz").status_code == 200
+        assert send_command(app, tmp_path).status_code == 200
+
+
+def test_a_deleted_state_file_stays_missing_and_unready_and_commands_are_refused(
+    tmp_path: Path,
+) -> None:
+    db = tmp_path / "state.db"
+    with demo_app(tmp_path) as app:
+        assert send_command(app, tmp_path).status_code == 200  # readers and the writer are open
+        assert request(app, "GET", "/readyz").status_code == 200
+        shutil.copy(db, tmp_path / "copy.db")
+        db.unlink()
+        for restored in (False, False, True):  # then a copy put in its place: still refused
+            if restored:
+                shutil.copy(tmp_path / "copy.db", db)
+            probe = request(app, "GET", "/readyz")
+            assert probe.status_code == 503, probe.text
+            assert "deleted or replaced while running" in probe.json()["reason"]
+            refused = send_command(app, tmp_path)
+            assert (refused.status_code, refused.json()["code"]) == (503, "STATE_UNAVAILABLE")
+            metrics = request(app, "GET", "/metrics")
+            assert metrics.status_code == 200
+            assert db.exists() is restored  # no probe, lookup or scrape made a new database
+
+
+def test_metrics_counters_keep_their_last_value_while_the_store_is_down(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    app = create_app(embedded_default(tmp_path))
+    loss = 'antireplay_state_data_loss_total{backend="sqlite"}'
+    assert f"{loss} 0.0" in request(app, "GET", "/metrics").text
+
+    def down() -> dict[str, float]:
+        raise StateUnavailableError("sqlite: down")
+
+    monkeypatch.setattr(app.state.receiver.cache.store, "status", down)
+    text = request(app, "GET", "/metrics").text
+    assert (
+        f"{loss} 0.0" in text and 'antireplay_watermark_raises_total{backend="sqlite"} 0.0' in text
+    )
+    assert 'antireplay_cache_entries{backend="sqlite"} NaN' in text  # a gauge may be unknown
+    counters = [line for line in text.splitlines() if "_total{" in line]
+    assert counters and not any(line.endswith("NaN") for line in counters), counters

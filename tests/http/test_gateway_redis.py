@@ -10,19 +10,25 @@ messages are signed with real time; a fence is waited out by polling fresh messa
 from __future__ import annotations
 
 import json
-import re
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
-import pytest
 
 from antireplay.audit import AuditLog, Record
-from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
-from tests.harness import GatewayProcess
-from tests.redis_server import RedisServer, primary_and_replica, wait_replicated
+from antireplay.cli.demo import command, load_operator_key, write_demo_config
+from tests.harness import (
+    GatewayProcess,
+    accepted_fresh,
+    data_losses,
+    metric,
+    post,
+    post_after_cut,
+    reencoded,
+    serving,
+)
+from tests.harness.redis_server import RedisServer, primary_and_replica, wait_replicated
 
 #: A short skew keeps the fence a fresh deployment (or a loss) raises short.
 SKEW_S = 1
@@ -35,70 +41,16 @@ def two_gateways(tmp_path: Path, store: str) -> Iterator[tuple[GatewayProcess, G
     a_dir.mkdir()
     b_dir.mkdir()
     overrides = {"store": store, "security": {"skew_s": SKEW_S}}
-    a = GatewayProcess(write_demo_config(a_dir, **overrides))
-    b = GatewayProcess(write_demo_config(b_dir, **overrides))
+    a_config = write_demo_config(a_dir, **overrides)
+    b_config = write_demo_config(b_dir, **overrides)
     (b_dir / "operator.pub.pem").write_bytes((a_dir / "operator.pub.pem").read_bytes())
-    a.start()
-    try:
-        b.start()
-        try:
-            yield a, b
-        finally:
-            b.stop()
-    finally:
-        a.stop()
-
-
-def post(gateway: GatewayProcess, raw: bytes) -> httpx.Response:
-    return httpx.post(f"{gateway.url}/v1/messages", content=raw, headers=JSON, timeout=10)
-
-
-def post_after_cut(gateway: GatewayProcess, raw: bytes) -> httpx.Response:
-    """The first request after Redis went away may meet the pooled connection it cut
-    (503 STATE_UNAVAILABLE, fail closed); exactly that, once, is tolerated."""
-    reply = post(gateway, raw)
-    if reply.status_code == 503:
-        assert reply.json()["code"] == "STATE_UNAVAILABLE", reply.text
-        reply = post(gateway, raw)
-    assert reply.status_code != 503, reply.text
-    return reply
-
-
-def accepted_fresh(gateway: GatewayProcess, state: Path, timeout_s: float = 20.0) -> bytes:
-    """Send fresh commands until one is accepted (a fence lasts about SKEW_S seconds)."""
-    key = load_operator_key(state)
-    deadline = time.monotonic() + timeout_s
-    refusals: list[str] = []
-    while time.monotonic() < deadline:
-        raw = command(key)
-        reply = post_after_cut(gateway, raw)
-        if reply.status_code == 200:
-            return raw
-        body = reply.json()
-        assert (reply.status_code, body.get("detail")) == (408, "restart_fence"), reply.text
-        refusals.append(reply.text)
-        time.sleep(0.05)
-    pytest.fail(f"no fresh message was accepted within {timeout_s}s: {refusals[-3:]}")
-
-
-def reencoded(raw: bytes) -> bytes:
-    """The same signed message in other bytes (gets past a gateway's memo of accepted bodies)."""
-    return json.dumps(json.loads(raw), indent=1, sort_keys=True).encode()
+    with serving(a_config) as a, serving(b_config) as b:
+        yield a, b
 
 
 def answer(reply: httpx.Response) -> tuple[int, str | None, str | None]:
     body = reply.json()
     return reply.status_code, body.get("code"), body.get("detail")
-
-
-def metric(gateway: GatewayProcess, name: str, labels: str) -> float:
-    text = httpx.get(f"{gateway.url}/metrics", timeout=10).text
-    found = re.search(rf"^{re.escape(name + labels)} ([0-9.e+]+)$", text, re.MULTILINE)
-    return float(found.group(1)) if found else 0.0
-
-
-def data_losses(gateway: GatewayProcess) -> float:
-    return metric(gateway, "antireplay_state_data_loss_total", '{backend="redis"}')
 
 
 def fence_refusals(gateway: GatewayProcess) -> float:

@@ -33,9 +33,8 @@ from antireplay.rcan.envelope import encode, parse
 from antireplay.rcan.receive import Outcome
 from antireplay.wiring import Guard, RcanGuard, build_receiver, create_app
 from tests.harness import free_port, recording_upstream, state_rows, until
+from tests.harness.asgi import LIMIT, NOW, Answer, call, config
 
-NOW = 1_800_000_000.0
-LIMIT = 4096
 #: What the module:function upstream of the gateway under test was called with.
 CALLS: list[tuple[dict[str, Any], Signer]] = []
 
@@ -44,67 +43,6 @@ def record(envelope: dict[str, Any], signer: Signer) -> dict[str, Any]:
     """The gateway's ``module:function`` upstream: takes the signer as its second parameter."""
     CALLS.append((envelope, signer))
     return {"executed": envelope["cmd"]}
-
-
-def config(state: Path, public: Path, **overrides: Any) -> AppConfig:
-    """The default deployment's shape: SQLite seen-set and audit trail on disk."""
-    state.mkdir(exist_ok=True)
-    return AppConfig.from_mapping({
-        "store": f"sqlite:{state / 'state.db'}", "audit": str(state / "audit.db"),
-        "max_body_bytes": LIMIT,
-        "keys": [{"kid": "operator", "owner": "operator", "alg": "ed25519",
-                  "public_keys": [str(public)], "scopes": ["control", "safety"]}],
-        **overrides,
-    })  # fmt: skip
-
-
-@dataclass
-class Answer:
-    status: int
-    headers: dict[bytes, bytes]
-    body: bytes
-
-    def json(self) -> dict[str, Any]:
-        loaded: dict[str, Any] = json.loads(self.body)
-        return loaded
-
-
-async def call(
-    app: ASGIApp,
-    body: bytes,
-    headers: list[tuple[bytes, bytes]] | None = None,
-    *,
-    length: bool = True,
-    method: str = "POST",
-    path: str = "/v1/messages",
-) -> Answer:
-    """One request through ``app`` as an ASGI server hands it over (body in two chunks)."""
-    given = [(b"content-type", b"application/json")] if headers is None else headers
-    if length:
-        given = [*given, (b"content-length", b"%d" % len(body))]
-    scope = {
-        "type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1", "method": method,
-        "scheme": "http", "path": path, "raw_path": path.encode(), "query_string": b"",
-        "root_path": "", "headers": given, "client": ("127.0.0.1", 1),
-        "server": ("127.0.0.1", 80),
-    }  # fmt: skip
-    chunks = [body[:7], body[7:]]
-    sent: list[Message] = []
-
-    async def receive() -> Message:
-        if chunks:
-            chunk = chunks.pop(0)
-            return {"type": "http.request", "body": chunk, "more_body": bool(chunks)}
-        await asyncio.Event().wait()  # the client stays connected
-        raise AssertionError
-
-    async def send(message: Message) -> None:
-        sent.append(message)
-
-    await app(scope, receive, send)
-    start = next(m for m in sent if m["type"] == "http.response.start")
-    answer = b"".join(m.get("body", b"") for m in sent if m["type"] == "http.response.body")
-    return Answer(start["status"], dict(start["headers"]), answer)
 
 
 @dataclass

@@ -29,9 +29,16 @@ from antireplay.audit import AuditLog, tail
 from antireplay.cli import main
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.wiring import create_app, embedded_default
-from tests.harness import GatewayProcess, metrics_router, until
-from tests.http.test_gateway_redis import accepted_fresh, data_losses, post_after_cut, reencoded
-from tests.redis_server import RedisServer
+from tests.harness import (
+    GatewayProcess,
+    accepted_fresh,
+    data_losses,
+    metrics_router,
+    post_after_cut,
+    reencoded,
+    until,
+)
+from tests.harness.redis_server import RedisServer
 
 
 def get(app: Starlette, path: str) -> httpx.Response:

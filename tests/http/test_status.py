@@ -12,7 +12,8 @@ from contextlib import contextmanager
 from html.parser import HTMLParser
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from typing import Any, ClassVar
+from types import SimpleNamespace
+from typing import Any, ClassVar, cast
 
 import httpx
 import promql_parser
@@ -24,12 +25,13 @@ from selenium.webdriver.chrome.options import Options
 from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
 
-from antireplay.audit import sanitize, tail
+from antireplay.audit import AuditLog, sanitize, tail
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
-from antireplay.http.status import AUDIT_COLUMNS, render, security_headers
-from tests.conftest import ROOT
-from tests.harness import GatewayProcess, metrics_pq, metrics_router
-from tests.redis_server import RedisServer
+from antireplay.http.status import AUDIT_COLUMNS, _audit, render, security_headers
+from antireplay.rcan.receive import Receiver
+from tests.harness import ROOT, GatewayProcess, metrics_pq, metrics_router, post, serving
+from tests.harness.audit import trail
+from tests.harness.redis_server import RedisServer
 
 DASH = "\u2014"
 CHROMIUM = "/usr/bin/chromium"
@@ -84,10 +86,6 @@ def table(driver: webdriver.Chrome, ident: str) -> dict[str, str]:
     }
 
 
-def post(gateway: GatewayProcess, raw: bytes) -> httpx.Response:
-    return httpx.post(f"{gateway.url}/v1/messages", content=raw, headers=JSON, timeout=10)
-
-
 @pytest.fixture(scope="module")
 def state(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("status") / HOSTILE_DIR
@@ -99,9 +97,7 @@ def state(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def gateway(state: Path) -> Iterator[GatewayProcess]:
     """A real ``antireplay serve`` that has accepted one command, refused its replay, accepted
     one with a markup msg_id and refused a forgery claiming a markup sender."""
-    process = GatewayProcess(write_demo_config(state))
-    process.start()
-    try:
+    with serving(write_demo_config(state)) as process:
         key = load_operator_key(state)
         accepted = command(key)
         assert post(process, accepted).status_code == 200
@@ -110,8 +106,6 @@ def gateway(state: Path) -> Iterator[GatewayProcess]:
         forged = {**json.loads(command(key, sender=HOSTILE_SENDER)), "cmd": "self_destruct"}
         assert post(process, json.dumps(forged).encode()).status_code == 401
         yield process
-    finally:
-        process.stop()
 
 
 def test_status_page_renders_in_chromium_without_console_errors(
@@ -396,3 +390,27 @@ def test_the_dashboard_queries_only_metrics_that_are_exported(
         "antireplay_mavlink_pq_dropped_total", "antireplay_mavlink_pq_unaudited_total",
     }  # fmt: skip
     assert wanted <= used, sorted(wanted - used)
+
+
+def test_status_page_names_what_the_window_refusals_table_counts() -> None:
+    """The table shows the window's refusals (fence and store included), not every replay:
+    a byte-identical copy refused at step 0 is in "Rejected by code" only, so the heading
+    says so instead of claiming "Replay refusals"."""
+    page = render(_snapshot_with("x"), "nonce")
+    assert "Replay refusals by cause" not in page
+    assert "Replay-window refusals by cause" in page
+    assert "byte-identical copies count under Rejected by code only" in page
+
+
+def test_status_says_the_trail_was_deleted_under_the_running_gateway(tmp_path: Path) -> None:
+    """Deleted while serving: the status page speaks of the running gateway, not of a start."""
+    trail(tmp_path / "audit.db", 1)
+    log = AuditLog(tmp_path / "audit.db")
+    try:
+        (tmp_path / "audit.db").unlink()
+        said = _audit(cast(Receiver, SimpleNamespace(audit=log)), 5)["error"]
+    finally:
+        log.close()
+    assert "deleted under the running gateway" in said
+    assert "refusing to start" not in said
+    assert "audit reanchor" in said

@@ -32,7 +32,7 @@ from antireplay.http.upstream import takes_signer
 from antireplay.rcan.auth import Signer
 from antireplay.wiring import Guard, RcanGuard, create_app
 from rcan import RCANResponse
-from tests.http.test_guard import NOW, Answer, call, config
+from tests.harness.asgi import NOW, Answer, call, config
 
 #: Released by the test: the blocking module:function upstream waits for it.
 RELEASE = threading.Event()

@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from pymavlink.dialects.v10 import ardupilotmega as dialect_v1
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
@@ -28,7 +27,7 @@ from antireplay.mavlink import (
     sign_frame,
 )
 from antireplay.state.sqlite import SqliteStore
-from tests.mavlink_frames import KEY, Sink, command_frame, encoder
+from tests.harness.mavlink_frames import KEY, Sink, command_frame, encoder, v1_radio_status
 
 
 @pytest.mark.parametrize(
@@ -67,13 +66,6 @@ def test_passphrase_key_is_mavproxys() -> None:
 
     for phrase in ("secret", "correct-horse-battery-staple"):
         assert passphrase_key(phrase) == SigningModule.passphrase_to_key(None, phrase)
-
-
-def v1_radio_status() -> bytes:
-    """A SiK radio's RADIO_STATUS as MAVLink v1 (system 51), as the radio injects it."""
-    radio = dialect_v1.MAVLink(Sink(), srcSystem=51, srcComponent=68)
-    radio.radio_status_send(200, 180, 90, 40, 30, 0, 0)
-    return bytes(radio.file.frames[-1])
 
 
 def test_v1_frames_parse_unsigned_and_pass_only_where_listed(clock: ManualClock) -> None:

@@ -40,8 +40,13 @@ from antireplay.mavlink.endpoints import (
 )
 from antireplay.wiring import router_metrics
 from tests.harness import free_port, until
-from tests.mavlink.test_codec import v1_radio_status
-from tests.mavlink_frames import KEY, command_frame, encoder, unsigned_heartbeat
+from tests.harness.mavlink_frames import (
+    KEY,
+    command_frame,
+    encoder,
+    unsigned_heartbeat,
+    v1_radio_status,
+)
 
 RADIO_KEY = passphrase_key("the radio link's own passphrase")
 

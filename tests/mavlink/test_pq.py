@@ -58,7 +58,7 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavgen
 
 from tests.harness import until
-from tests.mavlink.test_router import FakeTransport
+from tests.harness.mavlink_frames import FakeTransport
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
@@ -395,7 +395,7 @@ def test_queued_commands_go_out_after_the_handshake(clock: ManualClock) -> None:
 
 @settings(max_examples=1_000, deadline=None)
 @given(st.binary(max_size=280))
-def test_fuzzed_air_frames_only_typed_errors(data: bytes) -> None:
+def test_fuzzed_air_frames_raise_only_typed_errors(data: bytes) -> None:
     with contextlib.suppress(ReplayAttackError):
         FUZZ.vehicle.from_air(data)
     with contextlib.suppress(ReplayAttackError):
@@ -404,7 +404,7 @@ def test_fuzzed_air_frames_only_typed_errors(data: bytes) -> None:
 
 @settings(max_examples=300, deadline=None)
 @given(st.binary(min_size=CHUNK_DATA + 6, max_size=CHUNK_DATA + 6))
-def test_fuzzed_chunk_payloads_only_typed_errors(payload: bytes) -> None:
+def test_fuzzed_chunk_payloads_raise_only_typed_errors(payload: bytes) -> None:
     raw = pack_v2(MSG_CHUNK, payload, DIALECT[MSG_CHUNK][0], sysid=255, compid=197, seq=0)
     with contextlib.suppress(ReplayAttackError):
         FUZZ.vehicle.from_air(raw)

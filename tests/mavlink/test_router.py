@@ -41,10 +41,8 @@ from antireplay.mavlink import (
     parse_endpoint,
     parse_frame,
 )
-from antireplay.mavlink.endpoints import Transport
-from tests.conftest import ROOT
-from tests.harness import free_port, until
-from tests.mavlink_frames import KEY, Sink, unsigned_heartbeat
+from tests.harness import ROOT, free_port, until
+from tests.harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
 
 
 class Rig:
@@ -501,27 +499,6 @@ def test_an_audit_trail_that_is_down_does_not_stop_the_forwarding(rig: Rig) -> N
     assert rig.commands_until(4.0) == [4.0]  # the receiving thread is alive
     assert rig.router.stats.unaudited == 1
     assert rig.router.stats.dropped["inbound:INVALID_FRAME"] == 1
-
-
-class FakeTransport(Transport):
-    """An in-process endpoint: frames are injected, writes are recorded."""
-
-    def __init__(self, text: str, *, fixed: bool = True) -> None:
-        super().__init__(parse_endpoint(text), fixed=fixed)
-        self.sent: list[tuple[bytes, Any]] = []
-        self._deliver: Any = None
-
-    def start(self, deliver: Any) -> None:
-        self._deliver = deliver
-
-    def _write(self, data: bytes, peer: Any) -> None:
-        self.sent.append((bytes(data), peer))
-
-    def close(self) -> None:
-        """Nothing to release."""
-
-    def inject(self, raw: bytes, peer: Any = None) -> None:
-        self._deliver(self, peer, [raw], 0)
 
 
 def signed_sender(sysid: int, key: bytes, clock: ManualClock) -> tuple[Any, Sink]:

@@ -223,7 +223,7 @@ def test_rekey_threshold_and_hard_limit(clock: ManualClock) -> None:
 
 @settings(max_examples=2_000, deadline=None)
 @given(st.binary(max_size=200))
-def test_fuzzed_frames_only_typed_errors(data: bytes) -> None:
+def test_fuzzed_frames_are_all_refused_with_typed_errors(data: bytes) -> None:
     with pytest.raises(ReplayAttackError):
         FUZZ_ROBOT.open(data)
     with pytest.raises(ReplayAttackError):

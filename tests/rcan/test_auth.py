@@ -25,8 +25,8 @@ from antireplay.rcan.auth import (
 )
 from antireplay.rcan.receive import Receiver
 from rcan import RCANMessage
-from tests.conftest import fresh_receiver
-from tests.envelopes import (
+from tests.harness import fresh_receiver
+from tests.harness.envelopes import (
     ED,
     JWT_KEY,
     NOW,

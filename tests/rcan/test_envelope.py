@@ -20,7 +20,7 @@ from antireplay.rcan.envelope import (
     safety_class,
 )
 from rcan import RCANMessage
-from tests.envelopes import MITM_FIELDS
+from tests.harness.envelopes import MITM_FIELDS
 
 BASE = b'{"msg_id":"m","cmd":"c","target":"t","rcan":"3.2",'
 

@@ -19,8 +19,8 @@ from antireplay.audit import verify
 from antireplay.rcan.auth import JwtVerifier, sign_envelope
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.rcan.receive import Outcome, Receiver
-from tests.conftest import fresh_receiver, race
-from tests.envelopes import (
+from tests.harness import fresh_receiver, race
+from tests.harness.envelopes import (
     ED,
     JWT_KEY,
     MITM_FIELDS,

@@ -38,10 +38,18 @@ from antireplay.state import ReplayStore, Seen, open_store
 from antireplay.state.memory import MemoryStore
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
-from tests.conftest import kill9_runs, run_threads
-from tests.helpers import store_worker
-from tests.mavlink_frames import KEY, command_frame, encoder
-from tests.redis_server import RedisCluster, RedisServer, primary_and_replica, wait_replicated
+from tests.harness import kill9_runs, run_threads
+from tests.harness.mavlink_frames import KEY, command_frame, encoder
+from tests.harness.redis_server import (
+    RedisCluster,
+    RedisServer,
+    primary_and_replica,
+    wait_replicated,
+)
+from tests.harness.stores import assert_fenced as _assert_fenced
+from tests.harness.stores import fresh_deployment as _fresh_deployment
+from tests.harness.stores import redis_replicas as _replicas
+from tests.harness.workers import store_worker
 
 BACKENDS = ["memory", "sqlite", "redis", "redis-cluster"]
 NOW = 2_000_000_000.0  # 2033: after any Redis server's real time in these tests
@@ -271,12 +279,6 @@ def _sqlite_session(path: Path, clock: ManualClock) -> tuple[SqliteStore, Replay
     return store, ReplayCache(clock=clock, store=store)
 
 
-def _assert_fenced(cache: ReplayCache, mid: str, ts: float) -> None:
-    with pytest.raises(MessageStaleError) as err:
-        cache.commit(mid, ts)
-    assert err.value.detail == "restart_fence"
-
-
 def test_sqlite_deleted_database_is_fenced(tmp_path: Path) -> None:
     clock, db = ManualClock(wall=NOW), tmp_path / "state.db"
     store, cache = _sqlite_session(db, clock)
@@ -425,22 +427,6 @@ def test_sqlite_corrupted_while_running_answers_503_and_estop_still_passes(
 
 
 # --- Redis: restart, restore, flush, failover, eviction, clock skew -----------------------------
-
-
-def _replicas(url: str, n: int, clock: ManualClock) -> list[ReplayCache]:
-    prefix = f"t-{uuid.uuid4().hex}:"
-    caches = []
-    for _ in range(n):
-        store = RedisStore(url, prefix=prefix, clock=clock, timeout_s=0.5)
-        caches.append(ReplayCache(clock=clock, store=store))
-    return caches
-
-
-def _fresh_deployment(cache: ReplayCache, clock: ManualClock) -> None:
-    """The first contact with a new Redis fences (a new deployment looks like a flush)."""
-    assert isinstance(cache.store, RedisStore)
-    cache.store.verify()
-    clock.advance(cache.policy.skew_s + 1)
 
 
 def test_redis_flush_is_noticed_by_every_replica(redis_url: str) -> None:
@@ -708,7 +694,7 @@ def test_two_processes_one_redis_exactly_one_acceptance(redis_url: str) -> None:
 
 def test_sqlite_kill9_under_load_never_accepts_twice(tmp_path: Path) -> None:
     runs = kill9_runs(
-        ["-m", "tests.helpers.store_worker", str(tmp_path / "receiver.db")], 15, 60, 5
+        ["-m", "tests.harness.workers.store_worker", str(tmp_path / "receiver.db")], 15, 60, 5
     )
     accepted = [msg_id for run in runs for msg_id in run]
     assert accepted, "nothing was accepted"

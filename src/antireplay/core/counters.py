@@ -1,74 +1,27 @@
 """Counter-based freshness: the sender source, sliding windows, fenced high-water tables.
 
-Theory of operation
--------------------
-A counter needs no clock synchronisation: the sender numbers its frames and the
-receiver accepts each number at most once.  Four small types, one job each;
-every receiver policy in antireplay is built from them:
+A counter needs no clock synchronisation: the sender numbers its frames, the receiver accepts
+each number at most once.  Four types, one job each; every receiver policy is built from them:
 
-* :class:`NonceCounter` (sender): **the one sender source**: session counters
-  and sequences, epochs (:mod:`antireplay.epochs`) and MAVLink signing
-  timestamps (:class:`antireplay.mavlink.codec.TimestampSource` is a
-  ``NonceCounter`` anchored to MAVLink time).  ``next()`` hands out
-  unique, strictly increasing values under any number of threads and **never
-  wraps**: at ``limit`` (default ``2**64 - 2**13 - 1``,
-  which leaves room for a window of 8,128 below ``2**64``) it raises
-  :class:`~antireplay.core.errors.NonceExhaustedError`.  With an ``anchor`` (a
-  function returning the current wall time in the value's unit) each value is
-  ``max(last + 1, anchor())``: tied to real time, so a verifier that never
-  heard of the sender can still bound its age, and a wall-clock step
-  backwards never makes it repeat (``last + 1`` wins).  Given a :class:`Ceiling`
-  (:meth:`NonceCounter.on_ceiling`) it survives restarts and ``kill -9``: it has
-  the ceiling durably reserve ``lease`` values ahead before handing out any of
-  them, so after a crash it resumes above everything it could have handed out.
-  The ceilings that touch state (a locked state file, a replay store's
-  ``advance``) and :func:`~antireplay.state.ceilings.persistent_counter` live in
-  :mod:`antireplay.state.ceilings`; a ceiling has **one owner**.
-* :class:`CounterWindow` (receiver, lossy/reordering links): the RFC 6479
-  sliding bitmap, as WireGuard implements it.  A counter ``c`` is accepted
-  once iff ``0 <= c < limit`` and ``last - c <= size``.  The bitmap is a ring
-  of 64-bit words indexed by ``c >> 6``; moving forward clears only the words
-  skipped over, so each packet costs O(1) with no shifting.  Counter 0 is
-  valid on a fresh window.
-* :class:`NonceTracker` (receiver, in-order links): accepts ``c`` iff it is
-  strictly above the last accepted value, a compare-and-swap under a lock, so
-  of racers exactly one wins.  An equal value is ``COUNTER_REPLAYED``, a lower
-  one ``COUNTER_TOO_OLD`` (a window of width zero).
-* :class:`FencedTable` (receiver, many streams): a bounded table of per-key
-  high-water marks (a MAVLink stream's last timestamp, an epoch prefix's last
-  epoch, a session's sequence) whose evictions raise a **fence**.  A key the
-  table does not hold is admitted only above the fence, so forgetting a key
-  never re-opens a replay under it.  When the table is full, a newcomer is
-  admitted only above the **lowest** mark too: then, and only then, the key
-  with the lowest mark is evicted and the fence rises to that mark.  So a
-  refused newcomer evicts nothing (it cannot push out a live key, nor raise
-  the fence), and the fence never rises above an admitted key.  A newcomer
-  refused either way gets ``MESSAGE_STALE`` with ``detail="fence"``, the one
-  code of that event everywhere; a sender that is refused there starts a new
-  stream (a new prefix) or waits until its wall-anchored values pass the
-  fence.  Per-key order (strictly above the mark, or within a window) stays
-  with the policy that owns the table.
+* :class:`NonceCounter` (sender): unique, strictly increasing values under any number of
+  threads, **never wrapping** (``NonceExhaustedError`` at ``limit``); with an ``anchor``
+  each value is ``max(last + 1, anchor())`` (tied to wall time, never repeating on a step
+  back); with a :class:`Ceiling` it reserves ``lease`` values durably before handing any
+  out, so it resumes above them after ``kill -9`` (ceilings: :mod:`antireplay.state.ceilings`).
+* :class:`CounterWindow` (lossy, reordering links): the RFC 6479 bitmap as WireGuard has it;
+  ``c`` is accepted once iff ``0 <= c < limit`` and ``last - c <= size``, O(1) per packet.
+* :class:`NonceTracker` (in-order links): strictly above the last accepted value; equal is
+  ``COUNTER_REPLAYED``, lower ``COUNTER_TOO_OLD``.
+* :class:`FencedTable` (many streams): bounded per-key high-water marks whose evictions raise
+  a **fence**; a key not held is admitted only above it, and a full table admits a newcomer
+  only above its lowest mark (evicting that key, raising the fence to it), so forgetting
+  never re-opens a replay and a refused newcomer evicts nothing (``MESSAGE_STALE``,
+  ``detail="fence"``).
 
-Which receiver: where the link delivers in order (a serial link, one TCP
-stream, a single-threaded executor), :class:`NonceTracker`: the strictest
-rule, one integer of state, and any gap or regression is visible.  Where it
-may reorder or drop (UDP, radio with retries), :class:`CounterWindow`: a
-strict receiver there would refuse every frame overtaken by a later one.
-
-Two phases, one vocabulary (every receiver in antireplay):
-``check`` raises the typed reason a value would be refused and **records
-nothing**; ``commit`` records it and is run only after the tag or signature
-verified, so a forged far-future counter cannot move anything (no jamming
-without the key).  ``commit`` re-checks, so of two racers exactly one wins; the
-loser gets the same typed error ``check`` would give.  ``open`` (sessions,
-epochs, the pipeline's ``receive``) is the recipe: check, authenticate, commit;
-``NonceTracker.accept`` is both phases at once, for a value already authenticated.
-
-Locking: :class:`NonceCounter`, :class:`CounterWindow` and :class:`NonceTracker`
-lock themselves; a :class:`FencedTable` does not (its owner serializes its
-commits, as WireGuard's replay filter does): every owner holds a lock around ``commit``,
-which re-checks the key under it, while ``check`` may read without the lock
-(whatever it read, ``commit`` judges again).
+Two phases everywhere: ``check`` raises the typed refusal and **records nothing**; ``commit``
+runs only after the tag or signature verified (no jamming without the key) and re-checks, so
+of two racers exactly one wins.  ``open`` is check, authenticate, commit.  The first three
+types lock themselves; a :class:`FencedTable`'s owner holds a lock around ``commit``.
 """
 
 from __future__ import annotations

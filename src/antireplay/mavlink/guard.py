@@ -1,118 +1,27 @@
 """MAVLink v2 signing guard: verify, bind to this vehicle, timestamp rules, commit.
 
-Theory of operation
--------------------
-The frame format and the strict parse are :mod:`antireplay.mavlink.codec`'s.
-Two phases, as everywhere: :meth:`MavlinkGuard.check` records nothing,
-:meth:`MavlinkGuard.open` is the recipe (check, authenticate, commit).  A frame
-is judged in this order:
+Two phases, as everywhere: :meth:`MavlinkGuard.check` records nothing, :meth:`MavlinkGuard.open`
+checks, authenticates, commits.  A frame is judged in this order: strict **parse**
+(:mod:`~antireplay.mavlink.codec`) -> ``INVALID_FRAME``; **direction**: a source system of the
+other side (the vehicle's ``system_id``, any id authenticated the other way) ->
+``WRONG_DIRECTION``, unsigned frames only if allow-listed -> ``SIGNATURE_REQUIRED``;
+**timestamp rules** from memory only (ahead of ``max_forward_s``, at or below the restart fence,
+not above the stream's last, below the table's eviction fence), so a replay costs no HMAC;
+constant-time **verify** -> ``SIGNATURE_INVALID`` (nothing before it touches the stream table,
+so a forged ``2**48 - 1`` jams nothing); **bind** ``target_system`` -> ``WRONG_TARGET``;
+**commit** under a lock (rules again; a new stream starts above its persisted high-water or
+within ``new_stream_max_age_s`` of the receiver's wall clock).  Streams live in a bounded
+:class:`~antireplay.core.counters.FencedTable`.
 
-1. **parse** strictly (v2 only, known incompat flags, exact length, CRC with
-   the dialect's ``crc_extra`` when the message is known) -> ``INVALID_FRAME``;
-2. **direction**: a frame whose *source* system is in ``refused_sources`` is
-   refused with ``WRONG_DIRECTION`` (see *Direction binding* below); a
-   guard built with ``system_id`` refuses that id as a source from the start;
-   **unsigned** frames pass only if their message id is on the explicit
-   allow-list (else ``SIGNATURE_REQUIRED``), MAVLink v1 frames only if it is
-   also on ``allow_v1``; a frame carrying the signed flag never falls back to it;
-3. **timestamp rules**, reading only memory: any timestamp more than
-   ``max_forward_s`` ahead of the receiver's wall clock is
-   ``MESSAGE_FROM_FUTURE``; at or below the restart fence ``MESSAGE_STALE``; a
-   held stream ``(system, component, link)`` needs ``ts > last`` (or, with
-   ``reorder_window``, a fresh counter in an RFC 6479
-   :class:`~antireplay.core.counters.CounterWindow`) -> ``COUNTER_REPLAYED``; a
-   stream the table does not hold must be above the table's eviction fence
-   (``MESSAGE_STALE``, ``detail="fence"``).  So a replay costs no HMAC.  This
-   is :meth:`~MavlinkGuard.check`;
-4. **verify** the signature in constant time -> ``SIGNATURE_INVALID``.  Nothing
-   before this point touches the stream table, so a forged frame with
-   timestamp ``2**48 - 1`` changes nothing (pymavlink records it first and is
-   jammed until restart), and forged frames cannot grow the table;
-5. **bind** to this vehicle: with ``system_id`` set, a frame whose
-   ``target_system`` is another vehicle is ``WRONG_TARGET`` (0 = broadcast
-   passes);
-6. **commit** under a lock: step 3 again on a fresh clock; a *new* stream reads
-   its persisted high-water from the store (a floor) and, without one, its
-   first timestamp must be within ``new_stream_max_age_s`` (60 s) of the
-   **receiver's wall clock** (pymavlink compares it with its own counter, which
-   a restart resets); then the stream's state advances in memory, and with a
-   store it is persisted off the frame path (*Persistence* below).
-
-The stream table is a :class:`~antireplay.core.counters.FencedTable`: bounded; a
-full table admits a new stream (at step 6; :meth:`~MavlinkGuard.check` tests
-only the fence) only above its lowest high-water, and only then evicts that
-stream and raises the fence to it; a new stream at or below it is refused
-(``MESSAGE_STALE``, ``detail="fence"``) and evicts nothing.  A stream the table
-does not hold must come back above the fence, even when the store holds a
-(possibly older, not yet flushed) high-water for it.
-
-Persistence: a periodic flush and a restart fence, not an fsync per frame
-------------------------------------------------------------------------
-Writing every accepted timestamp through to a durable store costs one fsync per
-frame (at 1,000 Hz the SQLite store dropped 3-6 % of legitimate frames).  MAVLink
-timestamps are wall-anchored, which bounds what a guard can have accepted: a frame
-accepted at receiver time ``now`` had ``ts <= now + ahead``, ``ahead`` being how far
-the sender ran ahead of the receiver.  So a guard with a store (``write_through=False``,
-the default) keeps three things in it:
-
-* a **lease** ``{prefix}:lease`` = generation and expiry (receiver wall time,
-  milliseconds).  The guard accepts a frame only while ``now <= lease``; a
-  background flusher renews it every ``persist_interval_s`` (1 s) to
-  ``now + 2 * persist_interval_s``; the frame path renews it itself only when the
-  flusher is over an interval late.  A clean stop releases it at the stop time;
-* ``{prefix}:ahead``: the largest ``ts - now`` ever accepted (0 or more), written
-  **synchronously, before** accepting a frame that exceeds it, rounded up to 0.1 s
-  so that it is written a handful of times in a run (honest senders run at ``now``);
-* each stream's high-water ``{prefix}:SYS:COMP:LINK``, written by the flusher for
-  the streams that moved (the MAVLink spec asks for at least once a minute).
-
-At start the guard claims the lease and sets the **restart fence** to
-``previous lease expiry + persisted ahead`` (MAVLink units): every frame accepted
-before the stop, crash or ``kill -9`` is at or below it, whatever the wall clock did
-since, and is refused (``MESSAGE_STALE``, "restart fence") on every stream, old or
-new; persisted stream high-waters stay floors.  The brief's ``max(now, ...)`` is not
-needed: the lease already bounds every accept time, and leaving ``now`` out lets
-frames still in flight at a clean restart through.  After a crash the new guard
-waits until the old lease has expired (at most ``2 * persist_interval_s`` plus
-``lease_skew_s``; :meth:`MavlinkGuard.start` blocks, the lazy claim on a first
-frame refuses it with ``STATE_UNAVAILABLE``), by which time honest senders
-(``ts ~ now``) are above the fence and pass at once.  If the store reports lost data
-(its fence), the lease and ``ahead`` may be gone too: the fence is then the loss
-time plus ``max_forward_s``, the most any sender could have run ahead.
-
-**Two guards on one store** (issue 12): the lease is exclusive.  Claims take the
-next odd generation with ``advance`` (atomic on every backend), releases the next
-even one, so a guard whose lease was taken over can never renew it again; a second
-guard on the same prefix refuses frames with ``STATE_UNAVAILABLE`` while the first
-holds the lease, and takes over behind the fence once it expired (active/standby
-routers on one Redis work this way).  Deployments that want several guards
-*active at once* on one prefix pass ``write_through=True``: every accepted
-timestamp is then written through (``advance``) before the frame is forwarded, and
-a refused ``advance`` is a replay, at one store write per frame.  All guards on one
-prefix must use the same mode.  Without a store nothing is persisted.
-
-Direction binding
------------------
-Both directions of a link share one key: ground stations (MAVProxy, QGC,
-pymavlink's ``setup_signing``) sign and verify with a single secret per link,
-so separate keys per direction would break every stock ground station.  The
-``link_id`` cannot carry the direction either: each sender picks its own
-(QGC uses its link number), so the router cannot pin it.  What does separate
-the directions is the **source system id** in the frame header, which the
-signature covers: the vehicle (and its components) send as the vehicle's
-system id, a ground station as its own (255 by default), and MAVLink requires
-them to differ on one network.  So a guard refuses, before any crypto, frames
-whose source system belongs to the other side: the vehicle's own id
-(``system_id``, when configured) and, in
-:class:`~antireplay.mavlink.router.MavlinkRouter`, every source
-system id that has *authenticated* in the other direction (the router hands each
-accepted frame to the other side's guards, :meth:`MavlinkGuard.bind_direction`,
-which learn only from signed frames; an unsigned allow-listed frame teaches
-nothing, or a spoofed unsigned heartbeat could silence the real vehicle).  A signed vehicle
-frame reflected back from a ground link therefore gets ``WRONG_DIRECTION``,
-and stamps nothing in the inbound stream table.  Configure ``--system-id``:
-without it, a reflection is refused only once the vehicle has spoken through
-this router process.
+Persistence: a lease and a restart fence, not an fsync per frame.  MAVLink timestamps are
+wall-anchored, so the store keeps a **lease** (accepts only while ``now <= lease``, renewed
+by a flusher every ``persist_interval_s``), ``ahead`` (the largest ``ts - now`` accepted,
+written before accepting a frame that exceeds it) and each stream's high-water.  At start the
+restart fence is ``previous lease expiry + ahead``: everything accepted before a stop or
+``kill -9`` is refused; after a crash the guard waits for the old lease to expire.  A lost
+store fences at the loss time plus ``max_forward_s``.  The lease is exclusive (odd/even
+generations through ``advance``): a second guard on one prefix is ``STATE_UNAVAILABLE`` until
+it takes over; guards *active at once* use ``write_through=True`` (one store write per frame).
 """
 
 from __future__ import annotations

@@ -8,9 +8,9 @@ refuses what is stamped before its start plus its skew (its restart fence), whic
 from __future__ import annotations
 
 import pytest
-from rcan import RCANMessage
 
 from antireplay import ConfigError
+from rcan import RCANMessage
 from tests.harness import SDK_NOW, SdkReplayAdapter
 
 TARGET = "rcan://registry.rcan.dev/acme/arm/v1/unit-001"

@@ -1,16 +1,26 @@
-"""The test harness: gateway processes, free ports and direct reads of a gateway's state.
+"""The test harness: one place for what tests share besides fixtures (those are in
+``tests/conftest.py``).
 
 The package keeps only what ``antireplay demo`` runs
 (:func:`antireplay.cli.demo.start_gateway` and :func:`~antireplay.cli.demo.stop_gateway`);
-what tests need beyond it (a restartable process that remembers what it said on
-stderr, ports for other servers, the SQLite seen-set read directly, polling for an
-event under a deadline, the rcan SDK's vocabulary over ours) lives here.
+what tests need beyond it lives here: polling for an event under a deadline, free ports,
+gateway processes and what is said to them, threads released together, helpers killed
+mid-stride, caches and receivers started before the test's "now", and the rcan SDK's
+vocabulary over ours.  Submodules: :mod:`~tests.harness.envelopes` (signed RCAN
+messages), :mod:`~tests.harness.asgi` (a gateway in process), :mod:`~tests.harness.audit`
+(trails), :mod:`~tests.harness.stores` (Redis replicas), :mod:`~tests.harness.mavlink_frames`
+and :mod:`~tests.harness.mavproxy` (MAVLink links), :mod:`~tests.harness.redis_server`
+(a real Redis), :mod:`~tests.harness.workers` (subprocesses for kill -9 tests).
 """
 
 from __future__ import annotations
 
 import itertools
 import json
+import os
+import random
+import re
+import signal
 import socket
 import sqlite3
 import subprocess
@@ -22,13 +32,16 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
+import httpx
 import pytest
+from click.testing import Result
 
 from antireplay import ManualClock, MessageType, ReplayAttackError, ReplayCache, safety_class
-from antireplay.cli.demo import start_gateway, stop_gateway
+from antireplay.cli.demo import JSON, command, load_operator_key, start_gateway, stop_gateway
 from antireplay.rcan.envelope import parse
+from antireplay.rcan.receive import Receiver
 
 
 def until(what: str, done: Callable[[], object], timeout: float = 30.0) -> None:
@@ -44,6 +57,13 @@ def until(what: str, done: Callable[[], object], timeout: float = 30.0) -> None:
 def free_port() -> int:
     """A loopback TCP port nothing listens on now."""
     with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def free_udp_port() -> int:
+    """A loopback UDP port nothing is bound to now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
 
@@ -69,6 +89,72 @@ class GatewayProcess:
         if self.proc is not None:
             self.stderr_text = stop_gateway(self.proc)
             self.proc = None
+
+
+@contextmanager
+def serving(config: Path) -> Iterator[GatewayProcess]:
+    """A started :class:`GatewayProcess` on ``config``, stopped afterwards."""
+    process = GatewayProcess(config)
+    process.start()
+    try:
+        yield process
+    finally:
+        process.stop()
+
+
+def post(to: GatewayProcess | httpx.Client, raw: bytes, **headers: str) -> httpx.Response:
+    """POST ``raw`` to ``/v1/messages`` of a gateway process or through a client bound to one."""
+    sent = {**JSON, **headers}
+    if isinstance(to, GatewayProcess):
+        return httpx.post(f"{to.url}/v1/messages", content=raw, headers=sent, timeout=10)
+    return to.post("/v1/messages", content=raw, headers=sent)
+
+
+def metric(of: GatewayProcess | httpx.Client, name: str, labels: str = "") -> float:
+    """One sample of a gateway's ``/metrics`` (0 when absent)."""
+    if isinstance(of, GatewayProcess):
+        text = httpx.get(f"{of.url}/metrics", timeout=10).text
+    else:
+        text = of.get("/metrics").text
+    found = re.search(rf"^{re.escape(name + labels)} ([0-9.e+]+)$", text, re.MULTILINE)
+    return float(found.group(1)) if found else 0.0
+
+
+def post_after_cut(gateway: GatewayProcess, raw: bytes) -> httpx.Response:
+    """The first request after Redis went away may meet the pooled connection it cut
+    (503 STATE_UNAVAILABLE, fail closed); exactly that, once, is tolerated."""
+    reply = post(gateway, raw)
+    if reply.status_code == 503:
+        assert reply.json()["code"] == "STATE_UNAVAILABLE", reply.text
+        reply = post(gateway, raw)
+    assert reply.status_code != 503, reply.text
+    return reply
+
+
+def accepted_fresh(gateway: GatewayProcess, state: Path, timeout_s: float = 20.0) -> bytes:
+    """Send fresh commands until one is accepted (a fence lasts about the gateway's skew_s)."""
+    key = load_operator_key(state)
+    deadline = time.monotonic() + timeout_s
+    refusals: list[str] = []
+    while time.monotonic() < deadline:
+        raw = command(key)
+        reply = post_after_cut(gateway, raw)
+        if reply.status_code == 200:
+            return raw
+        body = reply.json()
+        assert (reply.status_code, body.get("detail")) == (408, "restart_fence"), reply.text
+        refusals.append(reply.text)
+        time.sleep(0.05)
+    pytest.fail(f"no fresh message was accepted within {timeout_s}s: {refusals[-3:]}")
+
+
+def reencoded(raw: bytes) -> bytes:
+    """The same signed message in other bytes (gets past a gateway's memo of accepted bodies)."""
+    return json.dumps(json.loads(raw), indent=1, sort_keys=True).encode()
+
+
+def data_losses(gateway: GatewayProcess) -> float:
+    return metric(gateway, "antireplay_state_data_loss_total", '{backend="redis"}')
 
 
 def state_rows(state: Path) -> int:
@@ -143,6 +229,12 @@ def metrics_router(tmp_path: Path, host: str | None = None) -> Iterator[int]:
         proc.wait(timeout=30)
 
 
+ROOT = Path(__file__).resolve().parents[2]
+
+
+T = TypeVar("T")
+
+
 def pq_keys(directory: Path) -> None:
     """The post-quantum link's keys as ``antireplay keygen`` writes them: ``gcs.key.pem`` /
     ``gcs.pub.pem`` (ML-DSA-87), ``vehicle.key.pem`` / ``vehicle.pub.pem`` (ML-KEM-1024)."""
@@ -186,6 +278,139 @@ def metrics_pq(tmp_path: Path) -> Iterator[int]:
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+def fresh_cache(*args: Any, **kwargs: Any) -> ReplayCache:
+    """A ReplayCache whose ManualClock is moved past its restart fence (start + skew + window).
+
+    A new in-memory cache refuses anything stamped at or before its start plus skew
+    (it cannot know what a previous process accepted); tests that are not about
+    that fence start just after it.
+    """
+    cache = ReplayCache(*args, **kwargs)
+    clock = kwargs.get("clock", args[3] if len(args) > 3 else None)
+    if isinstance(clock, ManualClock):
+        clock.advance(cache.policy.window_s + cache.policy.skew_s + 1)
+    return cache
+
+
+#: How long before a test's "now" its receiver's in-memory store started (> window + skew).
+STARTED_BEFORE_S = 400.0
+
+
+def fresh_receiver(*args: Any, **kwargs: Any) -> Receiver:
+    """A Receiver whose in-memory store started long enough ago that its restart fence
+    refuses nothing the test sends (the fence has its own tests)."""
+    clock = kwargs.get("clock", args[4] if len(args) > 4 else None)
+    if not isinstance(clock, ManualClock):
+        return Receiver(*args, **kwargs)
+    clock.step_wall(-STARTED_BEFORE_S)
+    try:
+        return Receiver(*args, **kwargs)
+    finally:
+        clock.step_wall(STARTED_BEFORE_S)
+
+
+def started_before(clock: ManualClock, build: Callable[[], T]) -> T:
+    """``build()`` on ``clock`` stepped ``STARTED_BEFORE_S`` back: an epoch verifier or DDS
+    reader whose in-memory store (and start fence) began long before the test's "now"
+    (the fence has its own tests)."""
+    clock.step_wall(-STARTED_BEFORE_S)
+    try:
+        return build()
+    finally:
+        clock.step_wall(STARTED_BEFORE_S)
+
+
+def run_threads(threads_n: int, work: Callable[[int], object]) -> None:
+    """Run ``work(index)`` in ``threads_n`` real threads released together by a barrier."""
+    barrier = threading.Barrier(threads_n)
+
+    def worker(index: int) -> None:
+        barrier.wait()
+        work(index)
+
+    threads = [threading.Thread(target=worker, args=(i,)) for i in range(threads_n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+
+
+def race(threads_n: int, action: Callable[[], object]) -> tuple[int, int]:
+    """Start ``threads_n`` threads behind a barrier; count successes and typed rejections."""
+    results: list[bool] = []
+    lock = threading.Lock()
+
+    def attempt(_: int) -> None:
+        try:
+            action()
+            ok = True
+        except ReplayAttackError:
+            ok = False
+        with lock:
+            results.append(ok)
+
+    run_threads(threads_n, attempt)
+    return results.count(True), results.count(False)
+
+
+def run_and_kill(args: list[str], lines: int, rng: random.Random) -> list[str]:
+    """Start a Python helper, read ``lines`` lines of output, then SIGKILL it mid-stride."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT / "src"), str(ROOT)]))
+    proc = subprocess.Popen(
+        [sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True
+    )
+    assert proc.stdout is not None
+    out: list[str] = []
+    for _ in range(lines):
+        line = proc.stdout.readline()
+        if not line:
+            break
+        out.append(line.strip())
+    if rng.random() < 0.5:  # sometimes let it run a little further before the kill
+        for _ in range(rng.randint(1, 50)):
+            line = proc.stdout.readline()
+            if line:
+                out.append(line.strip())
+    proc.send_signal(signal.SIGKILL)
+    rest, err = proc.communicate(timeout=30)
+    out.extend(x for x in rest.split("\n") if x.strip())
+    if proc.returncode != -signal.SIGKILL:
+        raise AssertionError(f"helper exited {proc.returncode}: {err}")
+    return out
+
+
+def kill9_runs(args: list[str], rounds: int, max_lines: int, seed: int) -> list[list[str]]:
+    """Run a helper ``rounds`` times on the same state, SIGKILLing each at a random moment."""
+    rng = random.Random(seed)
+    return [run_and_kill(args, rng.randint(1, max_lines), rng) for _ in range(rounds)]
+
+
+def assert_never_reused(runs: list[list[str]], what: str) -> None:
+    """Each run starts above everything earlier runs printed, and no value ever repeats."""
+    seen: list[int] = []
+    for lines in runs:
+        values = [int(x) for x in lines]
+        assert values, "worker produced nothing"
+        if seen:
+            assert values[0] > max(seen), f"a restarted {what} reused a value"
+        seen.extend(values)
+    assert len(seen) == len(set(seen))
+
+
+def one_line_error(result: Result, *needles: str) -> str:
+    """The mistake is one unwrapped stderr line naming the input; nothing on stdout."""
+    assert result.exit_code == 2, (result.exit_code, result.output)
+    assert isinstance(result.exception, SystemExit), result.exception
+    assert result.stdout == ""
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("antireplay: error: ")
+    assert "Traceback" not in result.stderr
+    for needle in needles:
+        assert needle in lines[0], (needle, lines[0])
+    return lines[0]
 
 
 #: Where the SDK's conformance cases run: a fixed wall time on a manual clock.

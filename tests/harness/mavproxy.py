@@ -1,10 +1,10 @@
-"""The router in a real setup: MAVProxy (from PyPI) as the ground station, signing by
-passphrase; a pymavlink vehicle on a serial pseudo-terminal; a tool that cannot sign on a
-trusted UDP endpoint; an attacker on the untrusted link.
+"""MAVProxy test beds: a pymavlink vehicle on a serial pseudo-terminal, MAVProxy headless
+(from PyPI), and the two rigs built from them.
 
-MAVProxy takes its key from ``$HOME/.mavproxy/signing.keys`` (``ENDPOINT PASSPHRASE``),
-as its users set it up, and forwards what an operator sends to its ``--out`` port, signed
-(``mavfwd_signing``).  Every wait polls an observable event under a deadline.
+:class:`RouterRig`: the router (SQLite store) between the vehicle, MAVProxy signing by
+passphrase with an operator behind it, an unsigning tool on a trusted endpoint and an
+attacker's socket on the ground port.  :class:`PqRig`: ground station -> ground end ->
+MAVProxy (no key, no dialect of ours) -> vehicle end -> vehicle, an attacker on the air.
 """
 
 from __future__ import annotations
@@ -16,11 +16,12 @@ import subprocess
 import sys
 import threading
 import tty
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
+from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 
 os.environ["MAVLINK20"] = "1"  # pymavlink's mavutil speaks MAVLink 1 unless told otherwise
 from pymavlink import mavutil
@@ -29,13 +30,20 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from antireplay.audit import AuditLog
 from antireplay.core.clock import SystemClock
 from antireplay.mavlink import MavlinkRouter, Refusal, Role, mav_time, passphrase_key
+from antireplay.mavlink.endpoints import open_transport, parse_endpoint
+from antireplay.mavlink.pq import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.link import PqLink
+from antireplay.pq.session import Initiator, Responder
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
-from tests.harness import free_port, until
+from tests.harness import free_port
 
 PASSPHRASE = "correct-horse-battery-staple"
+
+
 KEY = passphrase_key(PASSPHRASE)
-ARM = 400  # MAV_CMD_COMPONENT_ARM_DISARM
+
+
 TOOL_SYSTEM = 200
 
 
@@ -136,7 +144,7 @@ def mavproxy(
     )
 
 
-class Setup:
+class RouterRig:
     """Vehicle on a pty, the router (a SQLite store), MAVProxy, an operator behind it,
     an unsigning tool on the trusted endpoint, an attacker's socket on the ground port."""
 
@@ -217,82 +225,73 @@ class Setup:
         self.vehicle.close()
 
 
-@pytest.fixture
-def setup(tmp_path: Path) -> Iterator[Setup]:
-    made = Setup(tmp_path)
-    try:
-        yield made
-    finally:
-        made.close()
+GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 
 
-def test_mavproxy_ground_station_pty_vehicle_and_an_unsigning_tool(setup: Setup) -> None:
-    vehicle, router = setup.vehicle, setup.router
-    # Telemetry reaches every ground station once it has authenticated.
-    until("vehicle telemetry at the operator behind MAVProxy", setup.heard(setup.operator, 1))
-    setup.tool.mav.heartbeat_send(18, 8, 0, 0, 0)  # unsigned; the router signs it
-    until("vehicle telemetry at the trusted tool", setup.heard(setup.tool, 1))
-
-    # ARM from the operator, signed by MAVProxy with the passphrase's key, arrives once.
-    setup.operator.mav.command_long_send(1, 1, ARM, 0, 1, 0, 0, 0, 0, 0, 0)
-    until("ARM at the vehicle", lambda: vehicle.commands(ARM))
-    arm = vehicle.commands(ARM)[0]
-    assert arm.get_signed() and arm.get_srcSystem() == 255
-    captured = bytes(arm.get_msgbuf())
-
-    # Its replay from the untrusted link is dropped, and counted with its reason.
-    setup.inject(captured)
-    until("the replay refused", lambda: router.stats.dropped["inbound:COUNTER_REPLAYED"])
-
-    # The tool's unsigned command reaches the vehicle signed, and pymavlink verifies it.
-    setup.tool.mav.command_long_send(1, 1, 183, 0, 42, 0, 0, 0, 0, 0, 0)  # DO_SET_SERVO
-    until("the tool's command at the vehicle", lambda: vehicle.commands(183))
-    (servo,) = vehicle.commands(183)
-    assert servo.get_signed() and servo.get_link_id() == 251
-    assert servo.get_srcSystem() == TOOL_SYSTEM and servo.param1 == 42
-    assert len(vehicle.commands(ARM)) == 1  # ARM arrived once
-
-    # Frames injected on the untrusted link learn no route (forged, and unsigned).
-    forger = dialect.MAVLink(_Keep(), srcSystem=77, srcComponent=1)
-    forger.signing.secret_key, forger.signing.sign_outgoing = bytes(32), True
-    forger.signing.timestamp = mav_time(SystemClock())
-    forger.heartbeat_send(6, 8, 0, 0, 0)
-    plain = dialect.MAVLink(_Keep(), srcSystem=78, srcComponent=1)
-    plain.heartbeat_send(6, 8, 0, 0, 0)
-    injected = [forger.file.frames[-1], plain.file.frames[-1]]
-    for raw in injected:
-        setup.inject(raw)
-    until("both injected frames refused", lambda: len(setup.refusals_of(injected)) == 2)
-    refused = [r.code for r in setup.refusals_of(injected)]
-    assert refused == ["SIGNATURE_INVALID", "SIGNATURE_REQUIRED"]
-    systems = {system for system, _ in router.routes()}
-    assert {1, 255, TOOL_SYSTEM} <= systems and not {77, 78} & systems
-    assert not any(m.get_srcSystem() in {77, 78} for m in vehicle.received)
-
-    # Restart the router; replay every capture: all dropped.  The honest tool goes on.
-    captures = [bytes(m.get_msgbuf()) for m in list(vehicle.received)]
-    assert len(captures) >= 3
-    setup.stop_router()
-    setup.router = router = setup.start_router()
-    for raw in captures:
-        setup.inject(raw)
-    until("every capture refused", lambda: len(setup.refusals_of(captures)) == len(captures))
-    codes = {refusal.code for refusal in setup.refusals_of(captures)}
-    assert codes <= {"MESSAGE_STALE", "COUNTER_REPLAYED", "WRONG_DIRECTION"}, codes
-    seen = len(vehicle.received)
-    setup.tool.mav.command_long_send(1, 1, 183, 0, 43, 0, 0, 0, 0, 0, 0)
-    until("the tool's command after the restart", lambda: len(vehicle.commands(183)) == 2)
-    assert vehicle.commands(183)[1].param1 == 43
-    assert not {bytes(m.get_msgbuf()) for m in vehicle.received[len(captures) :]} & set(captures)
-    assert vehicle.rejected == 0  # the vehicle's own check never had to refuse anything
-    assert len(vehicle.received) > seen
+ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
 
 
-class _Keep:
-    """pymavlink's output file, kept in a list."""
+class PqRig:
+    """GCS -> ground end -> MAVProxy -> vehicle end -> pty vehicle, an attacker on the air."""
 
-    def __init__(self) -> None:
-        self.frames: list[bytes] = []
+    def __init__(self, tmp: Path) -> None:
+        self.vehicle = PtyVehicle(key=None)  # the vehicle end is its only link
+        self.ground_port, self.proxy_port, self.air_port = free_port(), free_port(), free_port()
+        self.captured: list[bytes] = []  # every frame the ground end put on the air
+        self.vehicle_link = self.start_vehicle_end()
+        self.ground_link = self.start_ground_end()
+        master, out = f"udpout:127.0.0.1:{self.air_port}", f"udpin:127.0.0.1:{self.proxy_port}"
+        self.proxy = mavproxy(tmp, master, out, passphrase=None)  # no key, no dialect of ours
+        self.gcs = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{self.ground_port}", source_system=255, source_component=190
+        )
+        self.attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._stop = threading.Event()
+        self._beat = threading.Thread(target=self._gcs_beat)
+        self._beat.start()
 
-    def write(self, data: bytes) -> None:
-        self.frames.append(bytes(data))
+    def start_vehicle_end(self) -> PqLink:
+        self.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, max_sessions=4)
+        link = PqLink(
+            VehicleEnd(self.responder),
+            open_transport(parse_endpoint(f"{self.vehicle.device},57600")),
+            open_transport(parse_endpoint(f"udpin:127.0.0.1:{self.air_port}")),
+        )
+        link.start()
+        return link
+
+    def start_ground_end(self) -> PqLink:
+        end = GroundEnd(Initiator("gcs", GCS_KEY), ROBOT_KEM.public_key())
+        link = PqLink(
+            end,
+            open_transport(parse_endpoint(f"udpin:127.0.0.1:{self.ground_port}")),
+            open_transport(parse_endpoint(f"udpout:127.0.0.1:{self.proxy_port}")),
+            tap=self.captured.append,
+        )
+        link.start()
+        return link
+
+    def _gcs_beat(self) -> None:
+        while not self._stop.wait(0.1):  # a ground station's heartbeat at 10 Hz
+            self.gcs.mav.heartbeat_send(6, 8, 0, 0, 0)
+
+    def heard_vehicle(self) -> bool:
+        while (msg := self.gcs.recv_match(type="HEARTBEAT", blocking=False)) is not None:
+            if msg.get_srcSystem() == 1:
+                return True
+        return False
+
+    def inject(self, frames: list[bytes]) -> None:
+        for raw in frames:
+            self.attacker.sendto(raw, ("127.0.0.1", self.air_port))
+
+    def close(self) -> None:
+        self._stop.set()
+        self._beat.join()
+        self.proxy.terminate()
+        self.proxy.wait(timeout=30)
+        self.ground_link.stop()
+        self.vehicle_link.stop()
+        self.gcs.close()
+        self.attacker.close()
+        self.vehicle.close()

@@ -11,8 +11,6 @@ event under a deadline.
 from __future__ import annotations
 
 import os
-import socket
-import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -40,82 +38,14 @@ from antireplay.pq.session import Initiator, Responder
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
 from tests.harness import free_port, until
-from tests.mavlink.test_mavproxy import KEY, PtyVehicle, mavproxy
+from tests.harness.mavproxy import KEY, PqRig, PtyVehicle
 
-GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
-ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
 ARM, SERVO = 400, 183
 
 
-class Setup:
-    """GCS -> ground end -> MAVProxy -> vehicle end -> pty vehicle, an attacker on the air."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.vehicle = PtyVehicle(key=None)  # the vehicle end is its only link
-        self.ground_port, self.proxy_port, self.air_port = free_port(), free_port(), free_port()
-        self.captured: list[bytes] = []  # every frame the ground end put on the air
-        self.vehicle_link = self.start_vehicle_end()
-        self.ground_link = self.start_ground_end()
-        master, out = f"udpout:127.0.0.1:{self.air_port}", f"udpin:127.0.0.1:{self.proxy_port}"
-        self.proxy = mavproxy(tmp, master, out, passphrase=None)  # no key, no dialect of ours
-        self.gcs = mavutil.mavlink_connection(
-            f"udpout:127.0.0.1:{self.ground_port}", source_system=255, source_component=190
-        )
-        self.attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._stop = threading.Event()
-        self._beat = threading.Thread(target=self._gcs_beat)
-        self._beat.start()
-
-    def start_vehicle_end(self) -> PqLink:
-        self.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, max_sessions=4)
-        link = PqLink(
-            VehicleEnd(self.responder),
-            open_transport(parse_endpoint(f"{self.vehicle.device},57600")),
-            open_transport(parse_endpoint(f"udpin:127.0.0.1:{self.air_port}")),
-        )
-        link.start()
-        return link
-
-    def start_ground_end(self) -> PqLink:
-        end = GroundEnd(Initiator("gcs", GCS_KEY), ROBOT_KEM.public_key())
-        link = PqLink(
-            end,
-            open_transport(parse_endpoint(f"udpin:127.0.0.1:{self.ground_port}")),
-            open_transport(parse_endpoint(f"udpout:127.0.0.1:{self.proxy_port}")),
-            tap=self.captured.append,
-        )
-        link.start()
-        return link
-
-    def _gcs_beat(self) -> None:
-        while not self._stop.wait(0.1):  # a ground station's heartbeat at 10 Hz
-            self.gcs.mav.heartbeat_send(6, 8, 0, 0, 0)
-
-    def heard_vehicle(self) -> bool:
-        while (msg := self.gcs.recv_match(type="HEARTBEAT", blocking=False)) is not None:
-            if msg.get_srcSystem() == 1:
-                return True
-        return False
-
-    def inject(self, frames: list[bytes]) -> None:
-        for raw in frames:
-            self.attacker.sendto(raw, ("127.0.0.1", self.air_port))
-
-    def close(self) -> None:
-        self._stop.set()
-        self._beat.join()
-        self.proxy.terminate()
-        self.proxy.wait(timeout=30)
-        self.ground_link.stop()
-        self.vehicle_link.stop()
-        self.gcs.close()
-        self.attacker.close()
-        self.vehicle.close()
-
-
 @pytest.fixture
-def setup(tmp_path: Path) -> Iterator[Setup]:
-    made = Setup(tmp_path)
+def setup(tmp_path: Path) -> Iterator[PqRig]:
+    made = PqRig(tmp_path)
     try:
         yield made
     finally:
@@ -150,7 +80,7 @@ def drops(link: PqLink, code: str) -> Callable[[], int]:
     return lambda: link.dropped[f"air:{code}"]
 
 
-def test_pq_commands_through_mavproxy(setup: Setup) -> None:
+def test_pq_commands_through_mavproxy(setup: PqRig) -> None:
     vehicle = setup.vehicle
     # The handshake went through MAVProxy; wrapped telemetry comes back, unwrapped.
     until("vehicle telemetry at the ground station", setup.heard_vehicle)

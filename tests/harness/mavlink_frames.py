@@ -1,13 +1,16 @@
-"""Signed MAVLink v2 frames for the tests: pymavlink encoders that sign into a list."""
+"""MAVLink for the tests: pymavlink encoders that sign into a list, frames as a SiK radio
+sends them, and an in-process transport."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from pymavlink.dialects.v10 import ardupilotmega as dialect_v1
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
 from antireplay.mavlink import mav_time
+from antireplay.mavlink.endpoints import Transport, parse_endpoint
 
 KEY = bytes(range(32))
 NOW = 1_800_000_000.0  # the wall time of the ``clock`` fixture (tests/conftest.py)
@@ -43,3 +46,31 @@ def unsigned_heartbeat(sysid: int) -> bytes:
     plain = dialect.MAVLink(Sink(), srcSystem=sysid, srcComponent=1)
     plain.heartbeat_send(6, 8, 0, 0, 0)
     return bytes(plain.file.frames[-1])
+
+
+def v1_radio_status() -> bytes:
+    """A SiK radio's RADIO_STATUS as MAVLink v1 (system 51), as the radio injects it."""
+    radio = dialect_v1.MAVLink(Sink(), srcSystem=51, srcComponent=68)
+    radio.radio_status_send(200, 180, 90, 40, 30, 0, 0)
+    return bytes(radio.file.frames[-1])
+
+
+class FakeTransport(Transport):
+    """An in-process endpoint: frames are injected, writes are recorded."""
+
+    def __init__(self, text: str, *, fixed: bool = True) -> None:
+        super().__init__(parse_endpoint(text), fixed=fixed)
+        self.sent: list[tuple[bytes, Any]] = []
+        self._deliver: Any = None
+
+    def start(self, deliver: Any) -> None:
+        self._deliver = deliver
+
+    def _write(self, data: bytes, peer: Any) -> None:
+        self.sent.append((bytes(data), peer))
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+    def inject(self, raw: bytes, peer: Any = None) -> None:
+        self._deliver(self, peer, [raw], 0)

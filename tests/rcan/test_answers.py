@@ -27,8 +27,8 @@ from antireplay.rcan.auth import JwtVerifier, Signer
 from antireplay.rcan.envelope import parse
 from antireplay.rcan.receive import Outcome, Receiver
 from rcan import RCANMessage, RCANResponse
-from tests.conftest import fresh_receiver
-from tests.envelopes import (
+from tests.harness import GatewayProcess, free_port, fresh_receiver
+from tests.harness.envelopes import (
     ED,
     JWT_KEY,
     NOW,
@@ -40,7 +40,6 @@ from tests.envelopes import (
     signed,
     token,
 )
-from tests.harness import GatewayProcess, free_port
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 JSON = {"content-type": "application/json"}

@@ -25,9 +25,8 @@ from antireplay.rcan.auth import load_public_key, sdk_key_id, write_key_pair
 from antireplay.rcan.receive import Receiver
 from antireplay.wiring import build_registry
 from rcan import RCANMessage, RCANResponse
-from tests.conftest import fresh_receiver
-from tests.envelopes import NOW
-from tests.harness import GatewayProcess
+from tests.harness import GatewayProcess, fresh_receiver
+from tests.harness.envelopes import NOW
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 JSON = {"content-type": "application/json"}

@@ -1,0 +1,73 @@
+"""``antireplay serve`` and ``config check``: the working directory on ``sys.path``, TLS
+files, and a check that opens the store as ``serve`` would."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from click.testing import CliRunner, Result
+
+from antireplay.cli import main
+from antireplay.cli._common import importable_cwd
+from antireplay.cli.demo import write_demo_config
+from tests.harness import one_line_error
+
+
+def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
+    for upstream in (None, "http://robot:8000/cmd", "https://robot/cmd"):
+        importable_cwd(upstream)
+        assert str(tmp_path) not in sys.path, upstream
+    config = yaml.safe_load(write_demo_config(tmp_path).read_text())
+    for upstream, added in (("http://127.0.0.1:9/x", False), ("antireplay.cli.demo:robot", True)):
+        (tmp_path / "c.yaml").write_text(yaml.safe_dump({**config, "upstream": upstream}))
+        result = CliRunner().invoke(main, ["config", "check", str(tmp_path / "c.yaml")])
+        assert result.exit_code == 0, result.output
+        assert (str(tmp_path) in sys.path) is added, upstream
+
+
+def test_a_bad_tls_certificate_or_key_is_one_line_naming_both(tmp_path: Path) -> None:
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    cert.write_text("not a certificate\n")
+    key.write_text("not a key\n")
+    args = ["serve", "--state-dir", str(tmp_path / "state"), "--port", "0"]
+    result = CliRunner().invoke(
+        main, [*args, "--ssl-certfile", str(cert), "--ssl-keyfile", str(key)]
+    )
+    one_line_error(result, "--ssl-certfile", str(cert), "--ssl-keyfile", str(key), "PEM")
+
+
+def config_check(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, text: str) -> Result:
+    """``config check`` on ``text`` run from ``tmp_path`` (its relative paths, as an operator
+    runs it)."""
+    (tmp_path / "antireplay.yaml").write_text(text)
+    monkeypatch.chdir(tmp_path)
+    return CliRunner().invoke(main, ["config", "check", "antireplay.yaml"])
+
+
+def test_config_check_reaches_the_redis_store(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``config check`` opens the store as ``serve`` does: an unreachable Redis fails it
+    with one line naming the store, instead of passing a configuration that cannot start."""
+    said = config_check(tmp_path, monkeypatch, "store: redis://127.0.0.1:1/0\naudit: audit.db\n")
+    assert said.exit_code == 2, said.output
+    errors = [line for line in said.stderr.splitlines() if line.strip()]
+    assert len(errors) == 1 and "store redis://127.0.0.1:1/0" in errors[0], said.stderr
+
+
+def test_config_check_ends_with_a_verdict_and_warns_without_keys(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, redis_url: str
+) -> None:
+    """A reachable store passes; the last line is the verdict, and a configuration without
+    keys (a gateway that refuses everything) is warned about on stderr, still exit 0."""
+    said = config_check(tmp_path, monkeypatch, f"store: {redis_url}\naudit: audit.db\n")
+    assert said.exit_code == 0, said.output
+    assert said.stdout.strip().splitlines()[-1] == f"ok: 0 keys, store {redis_url}, audit audit.db"
+    assert "warning" in said.stderr and "no keys" in said.stderr

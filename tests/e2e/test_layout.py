@@ -1,0 +1,93 @@
+"""The house rules of the tree, checked mechanically: tests mirror modules, no test file
+imports another, module docstrings carry no project history, modules stay small or say why."""
+
+from __future__ import annotations
+
+import ast
+import re
+from pathlib import Path
+
+from tests.harness import ROOT
+
+SRC = ROOT / "src" / "antireplay"
+TESTS = ROOT / "tests"
+#: Suites about the whole system rather than one module.
+CROSS_CUTTING = {"e2e", "conformance", "fuzz"}
+#: A module longer than this says why in a docstring line starting with "Size:".
+MAX_LINES = 500
+TEST_MODULE = re.compile(r"^tests(\.\w+)*\.test_\w+$")
+HISTORY = re.compile(r"\bissues?\s*#?\d+", re.IGNORECASE)
+
+
+def every_test_file() -> list[Path]:
+    return sorted(TESTS.rglob("test_*.py"))
+
+
+def mirrors_a_module(test: Path) -> bool:
+    """``tests/<pkg>/test_<name>.py`` for ``src/antireplay/<pkg>/<name>.py`` (or ``_<name>.py``,
+    the subpackage ``<name>/``, the package ``<pkg>`` itself as ``test_<pkg>.py``), optionally
+    narrowed to one aspect as ``test_<name>_<aspect>.py``; ``tests/test_init.py`` is the
+    top-level ``__init__``."""
+    package = SRC.joinpath(*test.parent.relative_to(TESTS).parts)
+    stem = test.stem.removeprefix("test_")
+    names = {p.stem.lstrip("_") for p in package.glob("*.py")} - {"init"}
+    names |= {p.name for p in package.iterdir() if (p / "__init__.py").exists()}
+    names |= {package.name} if package != SRC else {"init"}
+    return any(stem == name or stem.startswith(name + "_") for name in names)
+
+
+def test_every_test_file_mirrors_a_module_or_is_cross_cutting() -> None:
+    stray = [
+        str(test.relative_to(TESTS))
+        for test in every_test_file()
+        if test.relative_to(TESTS).parts[0] not in CROSS_CUTTING and not mirrors_a_module(test)
+    ]
+    assert stray == [], f"test files that mirror no module: {stray}"
+
+
+def imported_modules(path: Path) -> set[str]:
+    modules: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            modules |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            module = node.module or ""
+            if node.level:  # relative: resolved against the file's package
+                package = path.relative_to(ROOT).parent.parts
+                anchor = package[: len(package) - node.level + 1]
+                module = ".".join([*anchor, *filter(None, [module])])
+            modules.add(module)
+            modules |= {f"{module}.{alias.name}" for alias in node.names}
+    return modules
+
+
+def test_no_test_file_imports_another() -> None:
+    offenders = {
+        str(path.relative_to(TESTS)): sorted(
+            m for m in imported_modules(path) if TEST_MODULE.match(m)
+        )
+        for path in sorted(TESTS.rglob("*.py"))
+    }
+    assert {k: v for k, v in offenders.items() if v} == {}
+
+
+def docstring(path: Path) -> str:
+    return ast.get_docstring(ast.parse(path.read_text(encoding="utf-8"))) or ""
+
+
+def test_no_module_docstring_tells_project_history() -> None:
+    told = {
+        str(path.relative_to(SRC)): HISTORY.findall(docstring(path))
+        for path in sorted(SRC.rglob("*.py"))
+    }
+    assert {k: v for k, v in told.items() if v} == {}
+
+
+def test_no_module_exceeds_the_size_limit_without_saying_why() -> None:
+    oversized = {
+        str(path.relative_to(SRC)): lines
+        for path in sorted(SRC.rglob("*.py"))
+        if (lines := len(path.read_text(encoding="utf-8").splitlines())) > MAX_LINES
+        and not any(line.startswith("Size:") for line in docstring(path).splitlines())
+    }
+    assert oversized == {}, f"modules over {MAX_LINES} lines without a 'Size:' line: {oversized}"

@@ -1,0 +1,28 @@
+"""Audit trails written for a test, and raw SQL on them (what an attacker with the file can do)."""
+
+from __future__ import annotations
+
+import sqlite3
+from pathlib import Path
+
+from antireplay.audit import AuditLog
+
+
+def trail(path: Path, rows: int) -> None:
+    """A closed trail at ``path`` of ``rows`` accepted records, a second apart."""
+    log = AuditLog(path)
+    for i in range(rows):
+        log.append(
+            at=1_800_000_000.0 + i, outcome="accepted", code=None, warning=None, msg_type=1,
+            sender="op", sender_verified=True, msg_id=f"m{i}",
+        )  # fmt: skip
+    log.close()
+
+
+def sql(path: Path, *statements: str) -> None:
+    """Statements run on the file directly, bypassing the writer and its chain."""
+    db = sqlite3.connect(path)
+    for statement in statements:
+        db.execute(statement)
+    db.commit()
+    db.close()
