@@ -1,5 +1,8 @@
 """Sealed topics: every DDS sample carries its sender's nonce prefix, epoch and HMAC.
 
+Size: the reader, the writer and the challenge channel share the sealed wire
+format and one lock discipline; they stay together so the judging order reads in one place.
+
 Theory of operation
 -------------------
 On the wire a sealed topic has one DDS type, :class:`SealedSample`: the instance key

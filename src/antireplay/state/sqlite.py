@@ -1,5 +1,9 @@
 """SqliteStore: replay state on one machine that survives kill -9 and reboots, and notices loss.
 
+Size: one file on purpose: the open-time loss detection, the witness and the commit
+path share one SQLite connection and one lock, and splitting them would spread that
+invariant across modules.
+
 Theory of operation
 -------------------
 WAL journal with ``synchronous=FULL``: a ``commit`` returns only after its
