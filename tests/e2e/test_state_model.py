@@ -259,7 +259,7 @@ class MemoryVsModel(StoreVsModel):
 class SqliteVsModel(StoreVsModel):
     def open(self) -> ReplayStore:
         # tmpfs when there is one: this test is about the logic, and fsync on a shared disk
-        # would make it slow (durability under kill -9 has its own tests in tests/state/test_state.py).
+        # would make it slow (durability under kill -9: tests/state/test_state.py).
         shm = Path("/dev/shm")
         where = shm if shm.is_dir() else None
         self.dir = Path(tempfile.mkdtemp(prefix="antireplay-model-", dir=where))
