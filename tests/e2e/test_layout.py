@@ -91,3 +91,20 @@ def test_no_module_exceeds_the_size_limit_without_saying_why() -> None:
         and not any(line.startswith("Size:") for line in docstring(path).splitlines())
     }
     assert oversized == {}, f"modules over {MAX_LINES} lines without a 'Size:' line: {oversized}"
+
+
+def test_the_package_has_no_import_cycle() -> None:
+    """Layers hold only if no module reaches itself through its imports (import-linter checks
+    the direction between layers; this checks every pair of modules)."""
+    import grimp  # noqa: PLC0415 - import-linter's graph builder, a dev dependency
+
+    graph = grimp.build_graph("antireplay")
+    cycles = sorted(
+        {
+            tuple(sorted((module, imported)))
+            for module in graph.modules
+            for imported in graph.find_modules_directly_imported_by(module)
+            if graph.chain_exists(importer=imported, imported=module)
+        }
+    )
+    assert cycles == [], f"import cycles: {cycles}"

@@ -130,7 +130,7 @@ def importable_cwd(upstream: str | None) -> None:
 def preflight(config: AppConfig) -> None:
     """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
     from antireplay.http.upstream import resolve_upstream  # noqa: PLC0415
-    from antireplay.state import StoreSpec  # noqa: PLC0415
+    from antireplay.state import StoreSpec, open_store  # noqa: PLC0415
     from antireplay.wiring import build_registry  # noqa: PLC0415
 
     importable_cwd(config.upstream)
@@ -154,7 +154,7 @@ def preflight(config: AppConfig) -> None:
 
             check_readable(spec.target)  # read-only: opening would use up the loss detection
         else:
-            store = spec.open()
+            store = open_store(spec)
             try:
                 store.ready()  # reaches it: the PING and eviction check serve's first commit runs
             finally:

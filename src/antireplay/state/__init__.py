@@ -39,72 +39,10 @@ closed).  One grammar names them, :meth:`StoreSpec.parse` (:mod:`.spec`:
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import Awaitable, Callable
-from typing import Any, Protocol, runtime_checkable
-
 from antireplay.core.clock import Clock
 from antireplay.core.window import Seen
+from antireplay.state.contract import Offload, ReplayStore, in_executor, offloaded
 from antireplay.state.spec import ALLOWED, StoreSpec
-
-#: Runs ``fn(*args)`` in a thread for a running event loop to await: the one hand-off to a
-#: thread (the gateway passes its worker pool; :func:`in_executor` by default).
-Offload = Callable[..., Awaitable[Any]]
-
-
-def in_executor(fn: Callable[..., Any], *args: Any) -> Awaitable[Any]:
-    """The default :data:`Offload`: the running loop's default executor."""
-    return asyncio.get_running_loop().run_in_executor(None, fn, *args)
-
-
-def offloaded(offload: Offload | None, commit: Callable[..., Seen], *args: Any) -> Awaitable[Seen]:
-    """``commit_async`` of a store whose ``commit`` blocks: ``commit(*args)`` in a thread."""
-    result: Awaitable[Seen] = (offload or in_executor)(commit, *args)
-    return result
-
-
-@runtime_checkable
-class ReplayStore(Protocol):
-    """Atomic replay state; see the module docstring for the contract."""
-
-    @property
-    def backend(self) -> str:
-        """``memory``, ``sqlite``, ``redis`` or ``redis-cluster`` (a metrics label)."""
-
-    def lookup(self, key: str) -> Seen: ...
-
-    def fence(self) -> float:
-        """The fence as last known to this process (no I/O)."""
-
-    def watermark(self) -> float:
-        """The watermark as last known to this process (no I/O)."""
-
-    def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen: ...
-
-    def commit_async(
-        self,
-        key: str,
-        expires_at: float,
-        now: float,
-        force: bool = False,
-        offload: Offload | None = None,
-    ) -> Awaitable[Seen]:
-        """:meth:`commit` from a running event loop (a blocking one runs in ``offload``)."""
-
-    def verify(self) -> Seen:
-        """Run this backend's loss detection now; the fence and watermark it finds."""
-
-    def advance(self, key: str, value: int) -> bool: ...
-
-    def current(self, key: str) -> int | None: ...
-
-    def status(self) -> dict[str, float]: ...
-
-    def ready(self) -> None:
-        """Raise ``StateUnavailableError`` unless a commit could go through now; records nothing."""
-
-    def close(self) -> None: ...
-
 
 #: The store specs :meth:`StoreSpec.parse` accepts, in words (for errors and the docs).
 STORE_SPECS = ALLOWED
@@ -120,7 +58,17 @@ def open_store(
     """Build a store from its spec (:meth:`StoreSpec.parse`); ``max_entries`` bounds the
     memory backend."""
     parsed = spec if isinstance(spec, StoreSpec) else StoreSpec.parse(spec)
-    return parsed.open(clock=clock, max_entries=max_entries, skew_s=skew_s)
+    if parsed.backend == "memory":
+        from antireplay.state.memory import MemoryStore  # noqa: PLC0415 - optional backends
+
+        return MemoryStore(max_entries=max_entries, clock=clock)
+    if parsed.backend == "sqlite":
+        from antireplay.state.sqlite import SqliteStore  # noqa: PLC0415
+
+        return SqliteStore(parsed.target, clock=clock)
+    from antireplay.state.redis import RedisStore  # noqa: PLC0415
+
+    return RedisStore(parsed.text, clock=clock, skew_s=skew_s)
 
 
 __all__ = [

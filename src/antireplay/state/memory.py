@@ -42,7 +42,7 @@ from typing import Final
 
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.window import NEVER, Seen
-from antireplay.state import Offload, offloaded
+from antireplay.state.contract import Offload, offloaded
 
 #: At most this many expired entries are purged per commit: bounded work, no latency spikes.
 PURGE_BATCH: Final = 64

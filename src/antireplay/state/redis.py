@@ -56,7 +56,8 @@ import redis.cluster
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
 from antireplay.core.window import NEVER, Seen
-from antireplay.state import Offload, _codec, offloaded
+from antireplay.state import _codec
+from antireplay.state.contract import Offload, offloaded
 from antireplay.state.spec import StoreSpec
 
 T = TypeVar("T")

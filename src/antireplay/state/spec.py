@@ -22,13 +22,9 @@ forms allowed.  Parsing opens nothing; :meth:`StoreSpec.open` builds the store.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import Literal
 
 from antireplay.core.errors import ConfigError
-
-if TYPE_CHECKING:
-    from antireplay.core.clock import Clock
-    from antireplay.state import ReplayStore
 
 Backend = Literal["memory", "sqlite", "redis", "redis-cluster"]
 
@@ -73,22 +69,6 @@ class StoreSpec:
         scheme, sep, rest = self.text.partition("://")
         userinfo, at, location = rest.rpartition("@")
         return f"{scheme}{sep}***@{location}" if sep and at and userinfo else self.text
-
-    def open(
-        self, *, clock: Clock | None = None, max_entries: int = 10_000, skew_s: float = 5.0
-    ) -> ReplayStore:
-        """Build the store (``max_entries`` bounds the memory backend)."""
-        if self.backend == "memory":
-            from antireplay.state.memory import MemoryStore  # noqa: PLC0415 - optional backends
-
-            return MemoryStore(max_entries=max_entries, clock=clock)
-        if self.backend == "sqlite":
-            from antireplay.state.sqlite import SqliteStore  # noqa: PLC0415
-
-            return SqliteStore(self.target, clock=clock)
-        from antireplay.state.redis import RedisStore  # noqa: PLC0415
-
-        return RedisStore(self.text, clock=clock, skew_s=skew_s)
 
     def __str__(self) -> str:
         return self.text

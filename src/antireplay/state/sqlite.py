@@ -81,7 +81,8 @@ from typing import Any, Final, TypeVar
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.core.window import NEVER, Seen
-from antireplay.state import Offload, _codec
+from antireplay.state import _codec
+from antireplay.state.contract import Offload
 from antireplay.state.durable import file_identity
 from antireplay.state.groupcommit import GroupCommitter
 
