@@ -59,6 +59,7 @@ from antireplay.rcan.envelope import safety_class
 from antireplay.state.replay import ReplayCache
 
 if TYPE_CHECKING:
+    from antireplay.config import AppConfig
     from antireplay.epochs import EpochSigner, EpochVerifier
     from antireplay.http.gateway import Guard, RcanGuard, Verified
     from antireplay.mavlink import MavlinkGuard
@@ -78,11 +79,13 @@ _RECIPES = {
     "Guard": "antireplay.http.gateway",
     "RcanGuard": "antireplay.http.gateway",
     "Verified": "antireplay.http.gateway",
+    "AppConfig": "antireplay.config",  # the gateway's whole file: AppConfig.from_yaml(path)
 }
 
 __all__ = [
     "WINDOW_BUILD",
     "AntiReplayError",
+    "AppConfig",
     "Clock",
     "Code",
     "ConfigError",

@@ -75,6 +75,50 @@ def test_config_check_reports_key_value_range(tmp_path: Path) -> None:
     assert CliRunner().invoke(main, ["config", "check", str(good)]).exit_code == 0
 
 
+def test_config_check_speaks_of_keys_and_files_not_pydantic(tmp_path: Path) -> None:
+    run = CliRunner().invoke
+    top = tmp_path / "top.yaml"
+    top.write_text("replay_window_s: 30\n")
+    line = one_line_error(run(main, ["config", "check", str(top)]))
+    assert line == "antireplay: error: unknown key `replay_window_s` " + (
+        "(did you mean `security.replay_window_s`?)"
+    )
+    missing = tmp_path / "missing-key.yaml"
+    missing.write_text("keys: [{kid: a, owner: o, alg: ed25519, public_keys: [gone.pem]}]\n")
+    line = one_line_error(run(main, ["config", "check", str(missing)]))
+    assert line == "antireplay: error: keys.a.public_keys: file not found: gone.pem"
+
+
+def test_config_check_is_a_short_verdict_and_verbose_shows_the_rest(tmp_path: Path) -> None:
+    write_demo_config(tmp_path)
+    path = str(tmp_path / "antireplay.yaml")
+    short = CliRunner().invoke(main, ["config", "check", path])
+    assert short.exit_code == 0, short.output
+    assert short.stdout.splitlines() == [
+        f"ok: 1 keys, store sqlite:{tmp_path}/state.db, audit {tmp_path}/audit.db"
+    ]
+    verbose = CliRunner().invoke(main, ["config", "check", "--verbose", path])
+    assert '"replay_window_s": 30.0' in verbose.stdout
+    assert verbose.stdout.splitlines()[-1] == short.stdout.splitlines()[0]
+
+
+def test_config_check_probes_an_http_upstream(tmp_path: Path) -> None:
+    closed = socket.socket()
+    closed.bind(("127.0.0.1", 0))
+    port = closed.getsockname()[1]  # bound, never listening: a connection is refused
+    path = tmp_path / "up.yaml"
+    path.write_text(f"upstream: http://127.0.0.1:{port}/robot\n")
+    try:
+        line = one_line_error(CliRunner().invoke(main, ["config", "check", str(path)]))
+        assert line.startswith(f"antireplay: error: upstream http://127.0.0.1:{port}/robot: ")
+        assert "refused" in line
+        closed.listen()
+        alive = CliRunner().invoke(main, ["config", "check", str(path)])
+        assert alive.exit_code == 0, alive.output
+    finally:
+        closed.close()
+
+
 def test_state_repair_reseeds_a_corrupt_counter(tmp_path: Path) -> None:
     path = tmp_path / "c.state"
     counter = persistent_counter(path, lease=4)
