@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import socket
 import sqlite3
 from pathlib import Path
 from typing import Any
 
+import click
 import pytest
 import yaml
 from benchmarks.__main__ import MODULES
@@ -19,11 +21,13 @@ from antireplay.cli.demo import write_demo_config
 from antireplay.cli.mavlink import _allowed, _link_key, _signing_keys
 from antireplay.core.errors import StateFileError
 from antireplay.mavlink import passphrase_key
-from antireplay.rcan.auth import write_key_pair
+from antireplay.rcan.auth import SDK_PRIVATE_MAGIC, write_key_pair
 from antireplay.state.ceilings import persistent_counter
 from antireplay.wiring import Allowed
 from tests.conftest import ROOT
 from tests.harness import GatewayProcess
+
+ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 
 
 @pytest.mark.parametrize("args", [["demo", "--in-process"], ["demo"]])
@@ -205,7 +209,7 @@ def test_serve_bad_inputs(tmp_path: Path) -> None:
 
 def test_sign_bad_inputs(tmp_path: Path) -> None:
     run = CliRunner().invoke
-    base = ["sign", "--kid", "op", "--cmd", "c", "--target", "t"]
+    base = ["sign", "--kid", "op", "--cmd", "c", "--target", ROBOT]
     one_line_error(run(main, [*base, "--key", str(tmp_path / "missing.pem")]), "--key", "missing")
     not_pem = tmp_path / "not.pem"
     not_pem.write_text("hello")
@@ -217,11 +221,36 @@ def test_sign_bad_inputs(tmp_path: Path) -> None:
     one_line_error(run(main, args), "--json", "m.json", "not JSON")
     bad_json.write_text("[1, 2]")
     one_line_error(run(main, args), "--json", "JSON object")
-    no_kid = ["sign", "--key", str(tmp_path / "k.pem"), "--cmd", "c", "--target", "t"]
+    no_kid = ["sign", "--key", str(tmp_path / "k.pem"), "--cmd", "c", "--target", ROBOT]
     one_line_error(run(main, no_kid), "--kid", "--sdk")
     sdk = [*no_kid, "--sdk"]
     one_line_error(run(main, sdk), "--key", "k.pem", "ML-DSA-65")
     one_line_error(run(main, [*sdk, "--key", str(tmp_path / "k.pem")]), "exactly one --key")
+
+
+def test_sign_refuses_what_it_would_mislabel(tmp_path: Path) -> None:
+    """A key of another algorithm than --alg, an SDK key file without --sdk, a target that
+    is no robot URI, a qos outside 0..2: one line each, nothing signed."""
+    run = CliRunner().invoke
+    write_key_pair(ed25519.Ed25519PrivateKey.generate(), tmp_path / "k.pem", tmp_path / "p.pem")
+    base = ["sign", "--key", str(tmp_path / "k.pem"), "--kid", "op", "--cmd", "c"]
+    line = one_line_error(run(main, [*base, "--alg", "ml-dsa-65", "--target", ROBOT]))
+    assert line == (
+        "antireplay: error: --alg ml-dsa-65: the --key given is ed25519; give --alg matching "
+        "the key"
+    )
+    one_line_error(run(main, [*base, "--alg", "rsa"]), "--alg", "'ed25519', 'ed25519+ml-dsa-65'")
+    one_line_error(run(main, [*base, "--target", "robot-7"]), "--target robot-7", "rcan://")
+    one_line_error(run(main, [*base, "--qos", "3"]), "--qos", "0<=x<=2")
+    sdk_file = tmp_path / "sdk.key"
+    sdk_file.write_bytes(SDK_PRIVATE_MAGIC + bytes(64))
+    line = one_line_error(run(main, ["sign", "--key", str(sdk_file), "--kid", "op"]))
+    assert (
+        line
+        == f"antireplay: error: --key {sdk_file}: an RCAN SDK key file; sign with it using --sdk"
+    )
+    signed = run(main, [*base, "--qos", "1", "--target", ROBOT])
+    assert signed.exit_code == 0 and json.loads(signed.stdout)["qos"] == 1
 
 
 def test_mavlink_proxy_bad_inputs(tmp_path: Path) -> None:
@@ -347,3 +376,44 @@ def test_usage_errors_are_one_line_and_help_still_shows() -> None:
     bare = run(main, [])
     assert "Usage: " in bare.output and "Commands:" in bare.output and "error" not in bare.output
     assert run(main, ["--help"]).exit_code == 0
+
+
+# --- help: every option explained, plain text, one name per command ------------------------------
+
+#: Its options' help is written with that command (mavlink-pq is documented on its own).
+_HELP_ELSEWHERE = {"mavlink-pq"}
+
+
+def _commands(
+    command: click.Command, path: tuple[str, ...] = ("antireplay",)
+) -> list[tuple[tuple[str, ...], click.Command]]:
+    found = [(path, command)]
+    if isinstance(command, click.Group):
+        for name, sub in command.commands.items():
+            found += _commands(sub, (*path, name))
+    return found
+
+
+def test_every_option_of_every_command_has_help() -> None:
+    missing = [
+        f"{' '.join(path)} {param.opts[0]}"
+        for path, command in _commands(main)
+        if not _HELP_ELSEWHERE & set(path)
+        for param in command.params
+        if isinstance(param, click.Option) and not (param.help or "").strip()
+    ]
+    assert missing == []
+
+
+def test_help_is_plain_text_without_markup() -> None:
+    for path, _ in _commands(main):
+        shown = CliRunner().invoke(main, [*path[1:], "--help"])
+        assert shown.exit_code == 0, path
+        assert "``" not in shown.output and ":func:" not in shown.output, path
+
+
+def test_each_command_is_listed_once_and_its_old_name_still_runs() -> None:
+    listed = CliRunner().invoke(main, ["--help"]).output
+    assert "mavlink-router" in listed and "mavlink-proxy" not in listed
+    old = CliRunner().invoke(main, ["mavlink-proxy", "--help"])
+    assert old.exit_code == 0 and "--vehicle" in old.output

@@ -16,6 +16,8 @@ One click group, :func:`main`; each module holds one family of commands: ``serve
 
 from __future__ import annotations
 
+import copy
+
 import click
 
 from antireplay.cli import audit, dds, keys, mavlink, mavlink_pq, serve, state
@@ -45,4 +47,7 @@ for command in (
     dds.dds,
 ):
     main.add_command(command)
-main.add_command(mavlink.mavlink_router, "mavlink-proxy")  # the command's first name, kept
+# The command's first name still works, unlisted: one name per command in the help.
+_alias = copy.copy(mavlink.mavlink_router)
+_alias.hidden = True
+main.add_command(_alias, "mavlink-proxy")

@@ -193,8 +193,20 @@ def _router_endpoints(  # noqa: PLR0917 - the endpoint and key options, as given
     help="This vehicle's system id: frames addressed elsewhere, and frames from it reflected "
     "back from a ground link, are refused.",
 )
-@click.option("--store", "store_spec", default="sqlite:.antireplay/mavlink.db", show_default=True)
-@click.option("--audit", "audit_path", default=".antireplay/mavlink-audit.db", show_default=True)
+@click.option(
+    "--store",
+    "store_spec",
+    default="sqlite:.antireplay/mavlink.db",
+    show_default=True,
+    help="Where each stream's last timestamp is kept (memory, sqlite:PATH, redis://...).",
+)
+@click.option(
+    "--audit",
+    "audit_path",
+    default=".antireplay/mavlink-audit.db",
+    show_default=True,
+    help="The audit trail of refusals and first authentications (SQLite).",
+)
 @click.option(
     "--metrics-port",
     type=click.IntRange(0, 65535),

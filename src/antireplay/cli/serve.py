@@ -26,10 +26,28 @@ from antireplay.cli._common import _fail, _load_config, console, preflight
 
 
 @click.command()
-@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None)
-@click.option("--host", default="127.0.0.1", show_default=True)
-@click.option("--port", default=8080, show_default=True, type=click.IntRange(0, 65535))
-@click.option("--state-dir", default=Path(".antireplay"), type=click.Path(path_type=Path))
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="YAML configuration (keys, store, audit, upstream); without it, the embedded default.",
+)
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to listen on.")
+@click.option(
+    "--port",
+    default=8080,
+    show_default=True,
+    type=click.IntRange(0, 65535),
+    help="Port to listen on (0: any free port, printed).",
+)
+@click.option(
+    "--state-dir",
+    default=Path(".antireplay"),
+    show_default=True,
+    type=click.Path(path_type=Path),
+    help="Where the embedded default keeps its store, audit trail and demo keys.",
+)
 @click.option("--access-log", is_flag=True, help="Log every request on stdout (uvicorn's log).")
 @click.option(
     "--ssl-certfile",
@@ -54,8 +72,8 @@ def serve(  # noqa: PLR0917 - one option per knob
 ) -> None:
     """Run the HTTP gateway (embedded default without --config).
 
-    Prints one line once it listens: ``listening on http(s)://HOST:PORT (store ..., audit
-    ...)``; ``GET /healthz`` is liveness, ``GET /readyz`` readiness (store and audit)."""
+    Prints one line once it listens: "listening on http(s)://HOST:PORT (store ..., audit
+    ...)"; GET /healthz is liveness, GET /readyz readiness (store and audit)."""
     import socket  # noqa: PLC0415
 
     import uvicorn  # noqa: PLC0415
