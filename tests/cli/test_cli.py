@@ -14,6 +14,7 @@ import yaml
 from benchmarks.__main__ import MODULES
 from click.testing import CliRunner, Result
 from cryptography.hazmat.primitives.asymmetric import ed25519
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from antireplay.audit import AuditLog
 from antireplay.cli import main
@@ -21,6 +22,7 @@ from antireplay.cli.demo import write_demo_config
 from antireplay.cli.mavlink import _allowed, _link_key, _signing_keys
 from antireplay.core.errors import StateFileError
 from antireplay.mavlink import passphrase_key
+from antireplay.mavlink.sim import SimVehicle
 from antireplay.rcan.auth import SDK_PRIVATE_MAGIC, write_key_pair
 from antireplay.state.ceilings import persistent_counter
 from antireplay.wiring import Allowed
@@ -417,3 +419,52 @@ def test_each_command_is_listed_once_and_its_old_name_still_runs() -> None:
     assert "mavlink-router" in listed and "mavlink-proxy" not in listed
     old = CliRunner().invoke(main, ["mavlink-proxy", "--help"])
     assert old.exit_code == 0 and "--vehicle" in old.output
+
+
+def test_mavlink_keys_add_is_idempotent(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Run twice, the file holds one line; a new passphrase replaces the endpoint's line,
+    other lines stay; --signing-keys reads the result."""
+    run = CliRunner().invoke
+    path = tmp_path / "mavproxy" / "signing.keys"
+    monkeypatch.setenv("MAV_PASSPHRASE", "first-pass")
+    add = ["mavlink-keys", "add", "udpout:127.0.0.1:14550", "--file", str(path)]
+    assert run(main, add).stdout == f"{path}: udpout:127.0.0.1:14550 added\n"
+    again = run(main, add)
+    assert again.stdout == f"{path}: udpout:127.0.0.1:14550 already has this passphrase\n"
+    assert path.read_text() == "udpout:127.0.0.1:14550 first-pass\n"
+    assert path.stat().st_mode & 0o777 == 0o600
+    path.write_text(path.read_text() + "udpin:0.0.0.0:14551 other\n")
+    monkeypatch.setenv("MAV_PASSPHRASE", "second-pass")
+    assert run(main, add).stdout == f"{path}: udpout:127.0.0.1:14550 replaced\n"
+    assert path.read_text() == "udpin:0.0.0.0:14551 other\nudpout:127.0.0.1:14550 second-pass\n"
+    assert _link_key("udpout:127.0.0.1:14550", _signing_keys(path), None) == passphrase_key(
+        "second-pass"
+    )
+    monkeypatch.setenv("MAV_PASSPHRASE", "two words")
+    one_line_error(run(main, add), "one word")
+    monkeypatch.delenv("MAV_PASSPHRASE")
+    one_line_error(run(main, add), "MAV_PASSPHRASE", "not set")
+
+
+def test_mavlink_sim_on_a_pty_signs_its_telemetry(tmp_path: Path) -> None:
+    """The simulated vehicle on a pseudo-terminal: what the router would read from the
+    printed path verifies with the key (wall-anchored, increasing timestamps)."""
+    key = bytes(range(32))
+    sim = SimVehicle(key, pty=True)
+    try:
+        assert sim.pty_path is not None and sim.where == f"{sim.pty_path},115200"
+        reader = open(sim.pty_path, "rb", buffering=0)  # noqa: SIM115 - closed below
+        try:
+            sim.telemetry()
+            sim.telemetry()
+            ground = mavlink2.MAVLink(None)
+            ground.signing.secret_key = key
+            got: list[str] = []
+            while len(got) < 4:
+                got += [m.get_type() for m in ground.parse_buffer(reader.read(512)) or []]
+        finally:
+            reader.close()
+    finally:
+        sim.close()
+    assert got == ["HEARTBEAT", "ATTITUDE", "HEARTBEAT", "ATTITUDE"]
+    assert sim.counts == {"heartbeat": 2, "attitude": 2}

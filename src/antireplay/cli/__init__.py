@@ -10,8 +10,8 @@ preflight as ``serve``, so a configuration that passes the check starts.
 One click group, :func:`main`; each module holds one family of commands: ``serve``,
 ``config check``, ``demo``, ``bench`` (:mod:`.serve`), ``keygen``, ``sign``, ``send``
 (:mod:`.keys`), ``audit`` (:mod:`.audit`), ``state`` (:mod:`.state`),
-``mavlink-router`` (:mod:`.mavlink`), ``mavlink-pq`` (:mod:`.mavlink_pq`), ``dds``
-(:mod:`.dds`).
+``mavlink-router``, ``mavlink-sim``, ``mavlink-keys`` (:mod:`.mavlink`), ``mavlink-pq``
+(:mod:`.mavlink_pq`), ``dds`` (:mod:`.dds`).
 """
 
 from __future__ import annotations
@@ -43,6 +43,8 @@ for command in (
     audit.audit,
     state.state,
     mavlink.mavlink_router,
+    mavlink.mavlink_sim,
+    mavlink.mavlink_keys,
     mavlink_pq.mavlink_pq,
     dds.dds,
 ):
