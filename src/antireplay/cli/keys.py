@@ -147,7 +147,7 @@ def sign(  # noqa: PLR0917 - one option per envelope field
     scope: str | None,
 ) -> None:
     """Build and sign an envelope (fresh msg_id and timestamp unless given); print it."""
-    if target is not None and not _robot_uri(target):
+    if not sdk and target is not None and not _robot_uri(target):  # --sdk: the SDK's parser
         _fail(f"--target {target}: not a robot URI (rcan://REGISTRY/MANUFACTURER/MODEL/...)")
     try:
         body: Any = json.load(json_file) if json_file is not None else {}
@@ -189,7 +189,7 @@ def sign(  # noqa: PLR0917 - one option per envelope field
 
 def _robot_uri(text: str) -> bool:
     url = urlsplit(text)
-    return url.scheme == "rcan" and bool(url.netloc) and " " not in text
+    return url.scheme == "rcan" and bool(url.netloc) and not any(c.isspace() for c in text)
 
 
 def _matching(
