@@ -7,8 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from antireplay import ConfigError, ManualClock, ReplayCache, SecurityConfig
-from antireplay.config import AppConfig
+from antireplay import AppConfig, ConfigError, ManualClock, ReplayCache, SecurityConfig
 from antireplay.state.memory import MemoryStore
 
 
@@ -28,7 +27,6 @@ def test_yaml_config_round_trip(impl: Callable[..., ReplayCache], tmp_path: Path
         ("security:\n  replay_window_s: 2\n", "security.replay_window_s", 2),
         ("security:\n  replay_window_s: fast\n", "security.replay_window_s", "fast"),
         ("security:\n  msg_id_cache_size: -5\n", "security.msg_id_cache_size", -5),
-        ("security:\n  replay_windows_s: 30\n", "security.replay_windows_s", 30),
         ("security:\n  nack_type: 19\n", "security.nack_type", 19),
         ("security:\n  skew_s: true\n", "security.skew_s", True),
         ("security: 5\n", "security", 5),
@@ -70,3 +68,33 @@ def test_app_config_store_is_checked_by_the_store_grammar(spec: str) -> None:
         AppConfig.from_mapping({"store": spec})
     assert (refused.value.key, refused.value.value) == ("store", spec)
     assert "sqlite:PATH" in refused.value.allowed
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "message"),
+    [
+        ("replay_window_s: 30\n",
+         "unknown key `replay_window_s` (did you mean `security.replay_window_s`?)"),
+        ("security:\n  replay_windows_s: 30\n",
+         "unknown key `security.replay_windows_s` (did you mean `security.replay_window_s`?)"),
+        ("stor: memory\n", "unknown key `stor` (did you mean `store`?)"),
+        ("jwt: {requird: true}\n", "unknown key `jwt.requird` (did you mean `jwt.required`?)"),
+        ("keys: [{kid: a, owner: o, alg: ed25519, public_key: [p.pem]}]\n",
+         "unknown key `keys[].public_key` (did you mean `keys[].public_keys`?)"),
+        ("frobnicate: 1\n", "unknown key `frobnicate`"),
+    ],
+)  # fmt: skip
+def test_unknown_keys_name_the_key_they_resemble_at_any_level(
+    tmp_path: Path, yaml_text: str, message: str
+) -> None:
+    path = tmp_path / "antireplay.yaml"
+    path.write_text(yaml_text)
+    with pytest.raises(ConfigError) as err:
+        AppConfig.from_yaml(path)
+    assert str(err.value) == message
+
+
+def test_a_missing_file_is_said_in_those_words(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError) as err:
+        AppConfig.from_yaml(tmp_path / "absent.yaml")
+    assert str(err.value) == f"config: file not found: {tmp_path / 'absent.yaml'}"

@@ -59,6 +59,7 @@ from antireplay.rcan.envelope import safety_class
 from antireplay.state.replay import ReplayCache
 
 if TYPE_CHECKING:
+    from antireplay.config import AppConfig
     from antireplay.epochs import EpochSigner, EpochVerifier
     from antireplay.http.guard import Verified
     from antireplay.mavlink import MavlinkGuard
@@ -79,11 +80,13 @@ _RECIPES = {
     "Guard": "antireplay.wiring",
     "RcanGuard": "antireplay.wiring",
     "Verified": "antireplay.http.guard",
+    "AppConfig": "antireplay.config",  # the gateway's whole file: AppConfig.from_yaml(path)
 }
 
 __all__ = [
     "WINDOW_BUILD",
     "AntiReplayError",
+    "AppConfig",
     "Clock",
     "Code",
     "ConfigError",

@@ -19,7 +19,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from antireplay.core.errors import ConfigError
-from antireplay.core.settings import ALLOWED, SecurityConfig, load_yaml
+from antireplay.core.settings import ALLOWED, SecurityConfig, load_yaml, unknown_key
 from antireplay.state.spec import StoreSpec
 
 __all__ = ["ALLOWED", "AppConfig", "JwtConfig", "KeyConfig", "SecurityConfig", "load_yaml"]
@@ -75,6 +75,8 @@ class AppConfig(BaseModel):
     @classmethod
     def from_mapping(cls, data: dict[str, Any]) -> AppConfig:
         """Validate the whole file; errors name the dotted key, the value and what is allowed."""
+        known = sorted(_known_keys(cls))
+        _check_keys(cls, data, "", known)
         data = dict(data)
         security = SecurityConfig.from_mapping(data.pop("security", None))
         try:
@@ -90,3 +92,43 @@ class AppConfig(BaseModel):
     @classmethod
     def from_yaml(cls, path: str | Path) -> AppConfig:
         return cls.from_mapping(load_yaml(path))
+
+
+def _nested(annotation: Any) -> tuple[type[BaseModel] | None, bool]:
+    """The model a field holds (and whether as a list of them), else ``(None, False)``."""
+    args = getattr(annotation, "__args__", ())
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation, False
+    if getattr(annotation, "__origin__", None) is list and args:
+        inner, _ = _nested(args[0])
+        return inner, inner is not None
+    return None, False
+
+
+def _known_keys(model: type[BaseModel], prefix: str = "") -> list[str]:
+    """Every key the file may hold, dotted (``keys[].kid`` for an entry of a list)."""
+    found = []
+    for name, field in model.model_fields.items():
+        found.append(prefix + name)
+        inner, many = _nested(field.annotation)
+        if inner is not None:
+            found += _known_keys(inner, f"{prefix}{name}{'[]' if many else ''}.")
+    return found
+
+
+def _check_keys(model: type[BaseModel], data: Any, prefix: str, known: list[str]) -> None:
+    """Refuse an unknown key at any level, naming the known key it most resembles."""
+    if not isinstance(data, dict):
+        return  # pydantic names the wrong type
+    for key, value in data.items():
+        field = model.model_fields.get(str(key))
+        if field is None:
+            raise unknown_key(prefix + str(key), known)
+        inner, many = _nested(field.annotation)
+        if inner is None:
+            continue
+        if not many:
+            _check_keys(inner, value, f"{prefix}{key}.", known)
+        elif isinstance(value, list):
+            for item in value:
+                _check_keys(inner, item, f"{prefix}{key}[].", known)

@@ -90,6 +90,10 @@ def build_registry(config: AppConfig) -> KeyRegistry:
         try:
             loaded = tuple(load_public_key(Path(p).read_bytes()) for p in entry.public_keys)
             added.append(keys.add(entry.kid, entry.owner, entry.alg, loaded, set(entry.scopes)))
+        except FileNotFoundError as exc:
+            raise ConfigError.file_not_found(
+                f"keys.{entry.kid}.public_keys", exc.filename
+            ) from None
         except (OSError, ValueError) as exc:
             raise ConfigError(
                 f"keys.{entry.kid}.public_keys", entry.public_keys, str(exc)

@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import json
 import socket
 import sqlite3
 from pathlib import Path
 from typing import Any
 
+import click
 import pytest
 import yaml
 from benchmarks.__main__ import MODULES
 from click.testing import CliRunner
 from cryptography.hazmat.primitives.asymmetric import ed25519
+from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from antireplay.audit import AuditLog
 from antireplay.cli import main
@@ -19,10 +22,13 @@ from antireplay.cli.demo import write_demo_config
 from antireplay.cli.mavlink import _allowed, _link_key, _signing_keys
 from antireplay.core.errors import StateFileError
 from antireplay.mavlink import passphrase_key
-from antireplay.rcan.auth import write_key_pair
+from antireplay.mavlink.sim import SimVehicle
+from antireplay.rcan.auth import SDK_PRIVATE_MAGIC, write_key_pair
 from antireplay.state.ceilings import persistent_counter
 from antireplay.wiring import Allowed
 from tests.harness import ROOT, GatewayProcess, one_line_error
+
+ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 
 
 @pytest.mark.parametrize("args", [["demo", "--in-process"], ["demo"]])
@@ -72,6 +78,50 @@ def test_config_check_reports_key_value_range(tmp_path: Path) -> None:
     good = tmp_path / "good.yaml"
     good.write_text("security:\n  replay_window_s: 60\n")
     assert CliRunner().invoke(main, ["config", "check", str(good)]).exit_code == 0
+
+
+def test_config_check_speaks_of_keys_and_files_not_pydantic(tmp_path: Path) -> None:
+    run = CliRunner().invoke
+    top = tmp_path / "top.yaml"
+    top.write_text("replay_window_s: 30\n")
+    line = one_line_error(run(main, ["config", "check", str(top)]))
+    assert line == "antireplay: error: unknown key `replay_window_s` " + (
+        "(did you mean `security.replay_window_s`?)"
+    )
+    missing = tmp_path / "missing-key.yaml"
+    missing.write_text("keys: [{kid: a, owner: o, alg: ed25519, public_keys: [gone.pem]}]\n")
+    line = one_line_error(run(main, ["config", "check", str(missing)]))
+    assert line == "antireplay: error: keys.a.public_keys: file not found: gone.pem"
+
+
+def test_config_check_is_a_short_verdict_and_verbose_shows_the_rest(tmp_path: Path) -> None:
+    write_demo_config(tmp_path)
+    path = str(tmp_path / "antireplay.yaml")
+    short = CliRunner().invoke(main, ["config", "check", path])
+    assert short.exit_code == 0, short.output
+    assert short.stdout.splitlines() == [
+        f"ok: 1 keys, store sqlite:{tmp_path}/state.db, audit {tmp_path}/audit.db"
+    ]
+    verbose = CliRunner().invoke(main, ["config", "check", "--verbose", path])
+    assert '"replay_window_s": 30.0' in verbose.stdout
+    assert verbose.stdout.splitlines()[-1] == short.stdout.splitlines()[0]
+
+
+def test_config_check_probes_an_http_upstream(tmp_path: Path) -> None:
+    closed = socket.socket()
+    closed.bind(("127.0.0.1", 0))
+    port = closed.getsockname()[1]  # bound, never listening: a connection is refused
+    path = tmp_path / "up.yaml"
+    path.write_text(f"upstream: http://127.0.0.1:{port}/robot\n")
+    try:
+        line = one_line_error(CliRunner().invoke(main, ["config", "check", str(path)]))
+        assert line.startswith(f"antireplay: error: upstream http://127.0.0.1:{port}/robot: ")
+        assert "refused" in line
+        closed.listen()
+        alive = CliRunner().invoke(main, ["config", "check", str(path)])
+        assert alive.exit_code == 0, alive.output
+    finally:
+        closed.close()
 
 
 def test_state_repair_reseeds_a_corrupt_counter(tmp_path: Path) -> None:
@@ -146,7 +196,7 @@ def test_serve_bad_inputs(tmp_path: Path) -> None:
 
 def test_sign_bad_inputs(tmp_path: Path) -> None:
     run = CliRunner().invoke
-    base = ["sign", "--kid", "op", "--cmd", "c", "--target", "t"]
+    base = ["sign", "--kid", "op", "--cmd", "c", "--target", ROBOT]
     one_line_error(run(main, [*base, "--key", str(tmp_path / "missing.pem")]), "--key", "missing")
     not_pem = tmp_path / "not.pem"
     not_pem.write_text("hello")
@@ -158,11 +208,36 @@ def test_sign_bad_inputs(tmp_path: Path) -> None:
     one_line_error(run(main, args), "--json", "m.json", "not JSON")
     bad_json.write_text("[1, 2]")
     one_line_error(run(main, args), "--json", "JSON object")
-    no_kid = ["sign", "--key", str(tmp_path / "k.pem"), "--cmd", "c", "--target", "t"]
+    no_kid = ["sign", "--key", str(tmp_path / "k.pem"), "--cmd", "c", "--target", ROBOT]
     one_line_error(run(main, no_kid), "--kid", "--sdk")
     sdk = [*no_kid, "--sdk"]
     one_line_error(run(main, sdk), "--key", "k.pem", "ML-DSA-65")
     one_line_error(run(main, [*sdk, "--key", str(tmp_path / "k.pem")]), "exactly one --key")
+
+
+def test_sign_refuses_what_it_would_mislabel(tmp_path: Path) -> None:
+    """A key of another algorithm than --alg, an SDK key file without --sdk, a target that
+    is no robot URI, a qos outside 0..2: one line each, nothing signed."""
+    run = CliRunner().invoke
+    write_key_pair(ed25519.Ed25519PrivateKey.generate(), tmp_path / "k.pem", tmp_path / "p.pem")
+    base = ["sign", "--key", str(tmp_path / "k.pem"), "--kid", "op", "--cmd", "c"]
+    line = one_line_error(run(main, [*base, "--alg", "ml-dsa-65", "--target", ROBOT]))
+    assert line == (
+        "antireplay: error: --alg ml-dsa-65: the --key given is ed25519; give --alg matching "
+        "the key"
+    )
+    one_line_error(run(main, [*base, "--alg", "rsa"]), "--alg", "'ed25519', 'ed25519+ml-dsa-65'")
+    one_line_error(run(main, [*base, "--target", "robot-7"]), "--target robot-7", "rcan://")
+    one_line_error(run(main, [*base, "--qos", "3"]), "--qos", "0<=x<=2")
+    sdk_file = tmp_path / "sdk.key"
+    sdk_file.write_bytes(SDK_PRIVATE_MAGIC + bytes(64))
+    line = one_line_error(run(main, ["sign", "--key", str(sdk_file), "--kid", "op"]))
+    assert (
+        line
+        == f"antireplay: error: --key {sdk_file}: an RCAN SDK key file; sign with it using --sdk"
+    )
+    signed = run(main, [*base, "--qos", "1", "--target", ROBOT])
+    assert signed.exit_code == 0 and json.loads(signed.stdout)["qos"] == 1
 
 
 def test_mavlink_proxy_bad_inputs(tmp_path: Path) -> None:
@@ -288,3 +363,93 @@ def test_usage_errors_are_one_line_and_help_still_shows() -> None:
     bare = run(main, [])
     assert "Usage: " in bare.output and "Commands:" in bare.output and "error" not in bare.output
     assert run(main, ["--help"]).exit_code == 0
+
+
+# --- help: every option explained, plain text, one name per command ------------------------------
+
+#: Its options' help is written with that command (mavlink-pq is documented on its own).
+_HELP_ELSEWHERE = {"mavlink-pq"}
+
+
+def _commands(
+    command: click.Command, path: tuple[str, ...] = ("antireplay",)
+) -> list[tuple[tuple[str, ...], click.Command]]:
+    found = [(path, command)]
+    if isinstance(command, click.Group):
+        for name, sub in command.commands.items():
+            found += _commands(sub, (*path, name))
+    return found
+
+
+def test_every_option_of_every_command_has_help() -> None:
+    missing = [
+        f"{' '.join(path)} {param.opts[0]}"
+        for path, command in _commands(main)
+        if not _HELP_ELSEWHERE & set(path)
+        for param in command.params
+        if isinstance(param, click.Option) and not (param.help or "").strip()
+    ]
+    assert missing == []
+
+
+def test_help_is_plain_text_without_markup() -> None:
+    for path, _ in _commands(main):
+        shown = CliRunner().invoke(main, [*path[1:], "--help"])
+        assert shown.exit_code == 0, path
+        assert "``" not in shown.output and ":func:" not in shown.output, path
+
+
+def test_each_command_is_listed_once_and_its_old_name_still_runs() -> None:
+    listed = CliRunner().invoke(main, ["--help"]).output
+    assert "mavlink-router" in listed and "mavlink-proxy" not in listed
+    old = CliRunner().invoke(main, ["mavlink-proxy", "--help"])
+    assert old.exit_code == 0 and "--vehicle" in old.output
+
+
+def test_mavlink_keys_add_is_idempotent(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Run twice, the file holds one line; a new passphrase replaces the endpoint's line,
+    other lines stay; --signing-keys reads the result."""
+    run = CliRunner().invoke
+    path = tmp_path / "mavproxy" / "signing.keys"
+    monkeypatch.setenv("MAV_PASSPHRASE", "first-pass")
+    add = ["mavlink-keys", "add", "udpout:127.0.0.1:14550", "--file", str(path)]
+    assert run(main, add).stdout == f"{path}: udpout:127.0.0.1:14550 added\n"
+    again = run(main, add)
+    assert again.stdout == f"{path}: udpout:127.0.0.1:14550 already has this passphrase\n"
+    assert path.read_text() == "udpout:127.0.0.1:14550 first-pass\n"
+    assert path.stat().st_mode & 0o777 == 0o600
+    path.write_text(path.read_text() + "udpin:0.0.0.0:14551 other\n")
+    monkeypatch.setenv("MAV_PASSPHRASE", "second-pass")
+    assert run(main, add).stdout == f"{path}: udpout:127.0.0.1:14550 replaced\n"
+    assert path.read_text() == "udpin:0.0.0.0:14551 other\nudpout:127.0.0.1:14550 second-pass\n"
+    assert _link_key("udpout:127.0.0.1:14550", _signing_keys(path), None) == passphrase_key(
+        "second-pass"
+    )
+    monkeypatch.setenv("MAV_PASSPHRASE", "two words")
+    one_line_error(run(main, add), "one word")
+    monkeypatch.delenv("MAV_PASSPHRASE")
+    one_line_error(run(main, add), "MAV_PASSPHRASE", "not set")
+
+
+def test_mavlink_sim_on_a_pty_signs_its_telemetry(tmp_path: Path) -> None:
+    """The simulated vehicle on a pseudo-terminal: what the router would read from the
+    printed path verifies with the key (wall-anchored, increasing timestamps)."""
+    key = bytes(range(32))
+    sim = SimVehicle(key, pty=True)
+    try:
+        assert sim.pty_path is not None and sim.where == f"{sim.pty_path},115200"
+        reader = open(sim.pty_path, "rb", buffering=0)  # noqa: SIM115 - closed below
+        try:
+            sim.telemetry()
+            sim.telemetry()
+            ground = mavlink2.MAVLink(None)
+            ground.signing.secret_key = key
+            got: list[str] = []
+            while len(got) < 4:
+                got += [m.get_type() for m in ground.parse_buffer(reader.read(512)) or []]
+        finally:
+            reader.close()
+    finally:
+        sim.close()
+    assert got == ["HEARTBEAT", "ATTITUDE", "HEARTBEAT", "ATTITUDE"]
+    assert sim.counts == {"heartbeat": 2, "attitude": 2}

@@ -3,6 +3,7 @@ files, and a check that opens the store as ``serve`` would."""
 
 from __future__ import annotations
 
+import socket
 import sys
 from pathlib import Path
 
@@ -25,11 +26,15 @@ def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(
         importable_cwd(upstream)
         assert str(tmp_path) not in sys.path, upstream
     config = yaml.safe_load(write_demo_config(tmp_path).read_text())
-    for upstream, added in (("http://127.0.0.1:9/x", False), ("antireplay.cli.demo:robot", True)):
-        (tmp_path / "c.yaml").write_text(yaml.safe_dump({**config, "upstream": upstream}))
-        result = CliRunner().invoke(main, ["config", "check", str(tmp_path / "c.yaml")])
-        assert result.exit_code == 0, result.output
-        assert (str(tmp_path) in sys.path) is added, upstream
+    with socket.socket() as robot:  # config check connects to an HTTP upstream: one listens
+        robot.bind(("127.0.0.1", 0))
+        robot.listen()
+        http = f"http://127.0.0.1:{robot.getsockname()[1]}/x"
+        for upstream, added in ((http, False), ("antireplay.cli.demo:robot", True)):
+            (tmp_path / "c.yaml").write_text(yaml.safe_dump({**config, "upstream": upstream}))
+            result = CliRunner().invoke(main, ["config", "check", str(tmp_path / "c.yaml")])
+            assert result.exit_code == 0, result.output
+            assert (str(tmp_path) in sys.path) is added, upstream
 
 
 def test_a_bad_tls_certificate_or_key_is_one_line_naming_both(tmp_path: Path) -> None:

@@ -155,6 +155,7 @@ def test_bit_flip_anywhere_is_refused(participant: Any, clock: ManualClock) -> N
         Code.SIGNATURE_INVALID, Code.SIGNATURE_INVALID,
     ]  # fmt: skip
     assert not any(v.accepted for v in verdicts)
+    assert verdicts[1].reason == "sample tag does not verify"  # named as its reader knows it
     writer.publish(originals[0])  # the untouched sample still passes: nothing was committed
     assert collect(reader, 1)[0].accepted
 
@@ -418,6 +419,7 @@ def test_binding_ping_learns_an_address_only_from_an_authentic_fresh_ping(
             (Code.INVALID_FRAME, "malformed"),
             (Code.INVALID_FRAME, "malformed"),
         ]
+        assert refused[1] is not None and refused[1].reason == "binding ping tag does not verify"
         assert listener.peers == {sender.signer.nonce_prefix: sender.address}
     finally:
         for endpoint in (listener, sender, attacker):
@@ -508,6 +510,7 @@ def test_cli_reader_prints_verdicts_across_processes(tmp_path: Path) -> None:
         f"  writer: {{topic: robot/cmd, state_file: {tmp_path / 'writer.state'}}}\n"
     )
     cfg = ["--config", str(config)]
+    (tmp_path / "cap.jsonl").write_text('{"left": "by an earlier run"}\n')
     reader = _antireplay("read", *cfg, "--count", "4", "--timeout", "60")
     try:
         writer = _antireplay("write", *cfg, "--instance", "arm-1", "--capture",
@@ -524,7 +527,30 @@ def test_cli_reader_prints_verdicts_across_processes(tmp_path: Path) -> None:
         "ACCEPTED", "ACCEPTED", "REFUSED EPOCH_REPLAYED replayed", "REFUSED EPOCH_REPLAYED replayed"
     ]  # fmt: skip
     assert "'move 1'" not in lines[2] and "verdicts: accepted=2, replayed=2" in err
-    assert len(json.loads((tmp_path / "cap.jsonl").read_text().splitlines()[0])["sealed"]) > 0
+    captured = (tmp_path / "cap.jsonl").read_text().splitlines()
+    assert len(captured) == 2 and len(json.loads(captured[0])["sealed"]) > 0  # this run's only
+
+
+@pytest.mark.parametrize(
+    ("command", "block"),
+    [
+        ("read", "psk_file: gone.psk\n  max_age_s: 30"),
+        ("write", "psk_file: gone.psk\n  max_age_s: 30"),
+        ("relay", "psk_file: gone.psk\n  max_age_s: 30"),
+        ("replay", "max_age_s: fast"),
+    ],
+)
+def test_cli_config_mistakes_are_one_line_with_status_2(
+    tmp_path: Path, command: str, block: str
+) -> None:
+    config = tmp_path / "dds.yaml"
+    config.write_text(f"dds:\n  domain_id: 1\n  {block}\n")
+    (tmp_path / "cap.jsonl").write_text("")
+    extra = {"write": ["hello"], "replay": [str(tmp_path / "cap.jsonl")]}.get(command, [])
+    run = _antireplay(command, "--config", str(config), *extra)
+    out, err = run.communicate(timeout=60)
+    assert (run.returncode, out) == (2, ""), err
+    assert len(err.splitlines()) == 1 and err.startswith("antireplay: error: "), err
 
 
 def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:

@@ -220,6 +220,8 @@ def test_nack_and_ack_read_back_with_the_sdk_classes(sdk_receiver: Receiver, pai
         response = RCANResponse.from_dict(wire)
         assert (response.msg_id, response.status) == (msg_id, status)
     assert RCANResponse.from_dict(nack).message == nack["reason"]
+    # The SDK keeps only ``message``: the code leads it, so an SDK user sees why.
+    assert nack["reason"] == "REPLAY_DETECTED: an identical message was already accepted"
     # What RCAN §8.3 and the README rely on is all still there.
     assert (nack["type"], nack["code"], nack["ref_msg_id"]) == (18, "REPLAY_DETECTED", msg_id)
     assert (ack["type"], ack["accepted"], ack["ref_msg_id"]) == (17, True, msg_id)

@@ -549,3 +549,67 @@ def test_a_frame_the_router_signed_for_a_ground_link_cannot_be_reflected() -> No
     assert router.stats.dropped["inbound:WRONG_DIRECTION"] == 1
     assert router.routes()[(255, 190)] == "udpin:0.0.0.0:2"
     router.stop()
+
+
+def test_cli_router_and_simulated_vehicle_answer_a_signed_command(tmp_path: Path) -> None:
+    """``mavlink-sim`` behind ``mavlink-router`` on loopback: a ground station's signed
+    COMMAND_LONG reaches the simulated vehicle, its signed COMMAND_ACK comes back; the router
+    logs the station's first authentication once and both print their counts on SIGTERM."""
+    key_file = tmp_path / "key.hex"
+    key_file.write_text(KEY.hex())
+    vport, gport = free_port(), free_port()
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    router = subprocess.Popen(
+        [sys.executable, "-m", "antireplay", "mavlink-router",
+         "--vehicle", f"udpin:127.0.0.1:{vport}", "--ground", f"udpin:127.0.0.1:{gport}",
+         "--key-file", str(key_file), "--store", f"sqlite:{tmp_path / 'mav.db'}",
+         "--audit", str(tmp_path / "audit.db")],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert router.stdout is not None
+    started = router.stdout.readline()
+    sim = subprocess.Popen(
+        [sys.executable, "-m", "antireplay", "mavlink-sim", "--udp", f"127.0.0.1:{vport}",
+         "--key", str(key_file), "--rate", "10"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    gcs_out = _UdpWriter(("127.0.0.1", gport))
+    gcs_out.sock.settimeout(0.2)
+    gcs = dialect.MAVLink(gcs_out, srcSystem=255, srcComponent=190)
+    gcs.signing.secret_key, gcs.signing.sign_outgoing, gcs.signing.link_id = KEY, True, 1
+    acks: list[Any] = []
+
+    def command_acknowledged() -> bool:
+        gcs.signing.timestamp = max(gcs.signing.timestamp, mav_time(SystemClock()))
+        gcs.command_long_send(1, 1, dialect.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+        listen_until = time.monotonic() + 0.5  # telemetry keeps coming: read for a while
+        while not acks and time.monotonic() < listen_until:
+            try:
+                datagram = gcs_out.sock.recv(65_535)
+            except TimeoutError:
+                continue
+            acks.extend(
+                m for m in gcs.parse_buffer(datagram) or [] if m.get_type() == "COMMAND_ACK"
+            )
+        return bool(acks)
+
+    try:
+        assert started.startswith("mavlink-router vehicle udpin:") and started.endswith(
+            "(system id 1)\n"
+        ), started
+        until("a COMMAND_ACK from the simulated vehicle", command_acknowledged, 60)
+    finally:
+        sim.send_signal(signal.SIGTERM)
+        sim_out, sim_err = sim.communicate(timeout=30)
+        router.send_signal(signal.SIGTERM)
+        _, router_err = router.communicate(timeout=30)
+        gcs_out.sock.close()
+    assert acks[0].command == dialect.MAV_CMD_COMPONENT_ARM_DISARM
+    assert acks[0].result == dialect.MAV_RESULT_ACCEPTED and acks[0].target_system == 255
+    assert sim_out.startswith(
+        f"mavlink-sim system 1: router option --vehicle udpin:127.0.0.1:{vport}"
+    )
+    assert "ack " in sim_err and "command " in sim_err and "heartbeat " in sim_err
+    greeted = [line for line in router_err.splitlines() if "authenticated" in line]
+    assert len(greeted) == 1 and "ground station system 255 authenticated" in greeted[0]
+    assert router_err.splitlines()[-1].startswith("forwarded inbound ")

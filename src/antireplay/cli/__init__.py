@@ -10,11 +10,13 @@ preflight as ``serve``, so a configuration that passes the check starts.
 One click group, :func:`main`; each module holds one family of commands: ``serve``,
 ``config check``, ``demo``, ``bench`` (:mod:`.serve`), ``keygen``, ``sign``, ``send``
 (:mod:`.keys`), ``audit`` (:mod:`.audit`), ``state`` (:mod:`.state`),
-``mavlink-router`` (:mod:`.mavlink`), ``mavlink-pq`` (:mod:`.mavlink_pq`), ``dds``
-(:mod:`.dds`).
+``mavlink-router``, ``mavlink-sim``, ``mavlink-keys`` (:mod:`.mavlink`), ``mavlink-pq``
+(:mod:`.mavlink_pq`), ``dds`` (:mod:`.dds`).
 """
 
 from __future__ import annotations
+
+import copy
 
 import click
 
@@ -41,8 +43,13 @@ for command in (
     audit.audit,
     state.state,
     mavlink.mavlink_router,
+    mavlink.mavlink_sim,
+    mavlink.mavlink_keys,
     mavlink_pq.mavlink_pq,
     dds.dds,
 ):
     main.add_command(command)
-main.add_command(mavlink.mavlink_router, "mavlink-proxy")  # the command's first name, kept
+# The command's first name still works, unlisted: one name per command in the help.
+_alias = copy.copy(mavlink.mavlink_router)
+_alias.hidden = True
+main.add_command(_alias, "mavlink-proxy")

@@ -139,6 +139,8 @@ def preflight(config: AppConfig) -> None:
         for kid, pem in config.jwt.keys.items():
             try:
                 load_public_key(Path(pem).read_bytes())
+            except FileNotFoundError:
+                raise ConfigError.file_not_found(f"jwt.keys.{kid}", pem) from None
             except (OSError, ValueError) as exc:
                 allowed = f"a readable PEM public key ({exc})"
                 raise ConfigError(f"jwt.keys.{kid}", pem, allowed) from None

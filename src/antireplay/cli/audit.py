@@ -71,7 +71,14 @@ def audit_reanchor(path: Path, head_key: Path | None, head_file: Path | None) ->
 
 @audit.command("tail")
 @click.argument("path", type=click.Path(exists=True, path_type=Path))
-@click.option("-n", "count", default=20, show_default=True, type=click.IntRange(min=0))
+@click.option(
+    "-n",
+    "count",
+    default=20,
+    show_default=True,
+    type=click.IntRange(min=0),
+    help="How many of the latest records to show.",
+)
 @click.option("--json", "as_json", is_flag=True, help="One JSON object per line.")
 def audit_tail(path: Path, count: int, as_json: bool) -> None:
     """Print the most recent records (a table, never truncated; or JSON lines)."""

@@ -17,12 +17,16 @@ from typing import Any
 
 import click
 
-from antireplay.cli._common import stop_on_signal
+from antireplay.cli._common import _fail, stop_on_signal
 from antireplay.core.errors import AntiReplayError, ConfigError
 from antireplay.dds.config import DdsConfig, parse_udp
 
 CONFIG = click.option(
-    "--config", "config_path", required=True, type=click.Path(path_type=Path, dir_okay=False)
+    "--config",
+    "config_path",
+    required=True,
+    type=click.Path(path_type=Path, dir_okay=False),
+    help="YAML file with a dds: block (domain, fleet key, reader, writer, relay).",
 )
 
 
@@ -30,14 +34,14 @@ def _load(path: Path) -> DdsConfig:
     try:
         return DdsConfig.from_yaml(path)
     except ConfigError as exc:
-        raise click.ClickException(str(exc)) from None
+        _fail(str(exc))
 
 
 def _participant(cfg: DdsConfig) -> Any:
     try:
         from antireplay.dds.domain import join_domain  # noqa: PLC0415 - needs the dds extra
     except ImportError as exc:
-        raise click.ClickException(str(exc)) from None
+        _fail(f"{exc}; install the dds extra: pip install 'antireplay[dds]'")
     return join_domain(cfg.domain_id, loopback=cfg.loopback_only)
 
 
@@ -73,7 +77,7 @@ def read(config_path: Path, topic: str | None, count: int, timeout_s: float) -> 
             audit=_audit(cfg),
         )
     except (AntiReplayError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
+        _fail(str(exc))
     click.echo(f"reading {reader.topic_name} on domain {cfg.domain_id}", err=True)
     stop = stop_on_signal()
     deadline = time.monotonic() + timeout_s if timeout_s > 0 else None
@@ -94,8 +98,18 @@ def read(config_path: Path, topic: str | None, count: int, timeout_s: float) -> 
 @CONFIG
 @click.option("--topic", default=None, help="Topic to write (default: dds.writer.topic).")
 @click.option("--instance", default="", help="Instance key of the samples.")
-@click.option("--wait-readers", default=1, type=int, show_default=True)
-@click.option("--capture", type=click.Path(path_type=Path), help="Also append samples here.")
+@click.option(
+    "--wait-readers",
+    default=1,
+    type=click.IntRange(0),
+    show_default=True,
+    help="Publish once this many readers matched (0: at once; DDS drops unmatched samples).",
+)
+@click.option(
+    "--capture",
+    type=click.Path(path_type=Path, dir_okay=False),
+    help="Also write this run's sealed samples here, one JSON line each (the file is replaced).",
+)
 @click.argument("messages", nargs=-1, required=True)
 def write(  # noqa: PLR0917 - one option per knob
     config_path: Path,
@@ -118,8 +132,10 @@ def write(  # noqa: PLR0917 - one option per knob
             max_forward_s=cfg.max_forward_s,
         )
     except (AntiReplayError, ValueError) as exc:
-        raise click.ClickException(str(exc)) from None
+        _fail(str(exc))
     _wait_readers(writer, wait_readers)
+    if capture is not None:
+        capture.write_text("", encoding="ascii")  # this run's samples only: re-runnable
     for message in messages:
         sample = writer.write(message.encode(), instance=instance)
         if capture is not None:
@@ -133,7 +149,13 @@ def write(  # noqa: PLR0917 - one option per knob
 
 @dds.command()
 @CONFIG
-@click.option("--wait-readers", default=1, type=int, show_default=True)
+@click.option(
+    "--wait-readers",
+    default=1,
+    type=click.IntRange(0),
+    show_default=True,
+    help="Republish once this many readers matched.",
+)
 @click.argument("captured", type=click.Path(path_type=Path, exists=True, dir_okay=False))
 def replay(config_path: Path, wait_readers: int, captured: Path) -> None:
     """Play the attacker: republish captured samples from a participant without the key."""
@@ -166,7 +188,7 @@ def relay(config_path: Path, duration_s: float) -> None:
 
     cfg = _load(config_path)
     if cfg.relay is None:
-        raise click.ClickException("config has no dds.relay block")
+        _fail(f"{config_path} has no dds.relay block (service_name, signer_state, verifier_store)")
     try:
         psk = cfg.psk()
         audit = _audit(cfg)
@@ -187,7 +209,7 @@ def relay(config_path: Path, duration_s: float) -> None:
             ping=ping,
         )
     except (AntiReplayError, ValueError, OSError) as exc:
-        raise click.ClickException(str(exc)) from None
+        _fail(str(exc))
     click.echo(f"relay {cfg.relay.service_name!r} on domain {cfg.domain_id}", err=True)
     stop = stop_on_signal()
     deadline = time.monotonic() + duration_s if duration_s > 0 else None
@@ -204,4 +226,4 @@ def relay(config_path: Path, duration_s: float) -> None:
 def _wait_readers(writer: Any, count: int) -> None:
     """DDS drops samples that no reader matched yet: wait (bounded) for the readers."""
     if count and not writer.wait_for_readers(count, 20.0):
-        raise click.ClickException(f"no {count} reader(s) matched within 20 s")
+        _fail(f"no {count} reader(s) matched within 20 s", 1)

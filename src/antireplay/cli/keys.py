@@ -9,6 +9,7 @@ import time
 import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+from urllib.parse import urlsplit
 
 import click
 import httpx
@@ -19,6 +20,7 @@ from rich.table import Table
 from antireplay.core.errors import ReplayAttackError
 from antireplay.core.messages import MessageType
 from antireplay.rcan.auth import (
+    ALGORITHMS,
     SDK_PRIVATE_MAGIC,
     PrivateKey,
     SdkKeyPair,
@@ -45,7 +47,13 @@ KEY_TYPES: dict[str, Any] = {
 
 
 @click.command()
-@click.option("--alg", type=click.Choice(sorted(KEY_TYPES)), default="ed25519", show_default=True)
+@click.option(
+    "--alg",
+    type=click.Choice(sorted(KEY_TYPES)),
+    default="ed25519",
+    show_default=True,
+    help="The key's algorithm (ml-kem-1024 and x25519 are vehicle keys for mavlink-pq).",
+)
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="File prefix.")
 def keygen(alg: str, out: Path) -> None:
     """Write PREFIX.key.pem (mode 0600) and PREFIX.pub.pem."""
@@ -71,10 +79,14 @@ def _private_key(
 ) -> PrivateKey | tuple[PrivateKey, ...]:
     keys = []
     for path in paths:
+        data = path.read_bytes()
+        if data.startswith(SDK_PRIVATE_MAGIC) and accepted == _SIGNING_KEYS:
+            _fail(f"--key {path}: an RCAN SDK key file; sign with it using --sdk")
         try:
-            key = serialization.load_pem_private_key(path.read_bytes(), None)
+            key = serialization.load_pem_private_key(data, None)
         except (ValueError, TypeError) as exc:
-            _fail(f"--key {path}: not {accepted} ({exc})")
+            why = str(exc).split(". See https://", 1)[0]  # not cryptography's FAQ link
+            _fail(f"--key {path}: not {accepted} ({why})")
         if not isinstance(key, PrivateKey):
             _fail(f"--key {path}: a {type(key).__name__}; accepted: {accepted}")
         keys.append(key)
@@ -88,23 +100,38 @@ def _private_key(
     multiple=True,
     required=True,
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Private key (PEM); twice for ed25519+ml-dsa-65, Ed25519 first.",
 )
 @click.option("--kid", default=None, help="Required, except with --sdk (the key's SDK key id).")
-@click.option("--alg", default="ed25519", show_default=True)
+@click.option(
+    "--alg",
+    type=click.Choice(sorted(ALGORITHMS)),
+    default="ed25519",
+    show_default=True,
+    help="Signature algorithm; must match the --key type(s).",
+)
 @click.option(
     "--sdk",
     is_flag=True,
     help="Sign as the RCAN SDK's sign_message does (ML-DSA-65; its verify_message accepts it).",
 )
 @click.option("--json", "json_file", type=click.File("r"), help="Base message (JSON file or -).")
-@click.option("--cmd", default=None)
-@click.option("--target", default=None)
+@click.option("--cmd", default=None, help="Command name (ESTOP, STOP and RESUME are safety).")
+@click.option("--target", default=None, help="Robot URI the message is for (rcan://…).")
+@click.option(
+    "--qos",
+    type=click.IntRange(0, 2),
+    default=None,
+    help="Delivery hint: 0 at most once, 1 at least once, 2 exactly once.",
+)
 @click.option(
     "--param", "params", multiple=True, help="key=value (value parsed as JSON if it can be)"
 )
-@click.option("--type", "msg_type", type=int, default=None)
-@click.option("--safety-event", default=None)
-@click.option("--scope", default=None)
+@click.option("--type", "msg_type", type=int, default=None, help="RCAN message type number.")
+@click.option(
+    "--safety-event", default=None, help="Safety event of a SAFETY message (ESTOP, STOP, RESUME)."
+)
+@click.option("--scope", default=None, help="Scope the message needs of its key.")
 def sign(  # noqa: PLR0917 - one option per envelope field
     key_paths: tuple[Path, ...],
     kid: str | None,
@@ -113,12 +140,15 @@ def sign(  # noqa: PLR0917 - one option per envelope field
     json_file: Any,
     cmd: str | None,
     target: str | None,
+    qos: int | None,
     params: tuple[str, ...],
     msg_type: int | None,
     safety_event: str | None,
     scope: str | None,
 ) -> None:
     """Build and sign an envelope (fresh msg_id and timestamp unless given); print it."""
+    if not sdk and target is not None and not _robot_uri(target):  # --sdk: the SDK's parser
+        _fail(f"--target {target}: not a robot URI (rcan://REGISTRY/MANUFACTURER/MODEL/...)")
     try:
         body: Any = json.load(json_file) if json_file is not None else {}
     except ValueError as exc:
@@ -130,7 +160,8 @@ def sign(  # noqa: PLR0917 - one option per envelope field
     body.setdefault("msg_id", str(uuid.uuid4()))
     if "timestamp_ms" not in body:
         body.setdefault("timestamp", round(time.time(), 6))
-    extra = {"cmd": cmd, "target": target, "type": msg_type, "safety_event": safety_event}
+    extra = {"cmd": cmd, "target": target, "type": msg_type, "safety_event": safety_event,
+             "qos": qos}  # fmt: skip
     body.update({k: v for k, v in {**extra, "scope": scope}.items() if v is not None})
     for item in params:
         name, _, raw = item.partition("=")
@@ -145,7 +176,7 @@ def sign(  # noqa: PLR0917 - one option per envelope field
         elif kid is None:
             _fail("--kid is required (except with --sdk)")
         else:
-            signed = sign_envelope(body, kid, alg, _private_key(key_paths))
+            signed = sign_envelope(body, kid, alg, _matching(_private_key(key_paths), alg))
     except (ValueError, ReplayAttackError) as exc:
         hint = ""
         if isinstance(exc, UnsignedFieldsError) and {"type", "safety_event", "scope"} & set(
@@ -154,6 +185,30 @@ def sign(  # noqa: PLR0917 - one option per envelope field
             hint = "; with --sdk, --cmd ESTOP/STOP/RESUME is a safety message"
         _fail(f"cannot sign: {exc}{hint}")
     click.echo(json.dumps(signed))
+
+
+def _robot_uri(text: str) -> bool:
+    url = urlsplit(text)
+    return url.scheme == "rcan" and bool(url.netloc) and not any(c.isspace() for c in text)
+
+
+def _matching(
+    keys: PrivateKey | tuple[PrivateKey, ...], alg: str
+) -> PrivateKey | tuple[PrivateKey, ...]:
+    """The keys, if they are the ones ``alg`` signs with (in its order); else one line."""
+    given = keys if isinstance(keys, tuple) else (keys,)
+    wanted = ALGORITHMS[alg]
+    names = ", ".join(_KEY_NAMES.get(type(k).__name__, type(k).__name__) for k in given)
+    if len(given) != len(wanted) or not all(
+        isinstance(k.public_key(), w) for k, w in zip(given, wanted, strict=True)
+    ):
+        _fail(f"--alg {alg}: the --key given is {names}; give --alg matching the key")
+    return keys
+
+
+#: A private key's class name -> the --alg that signs with it.
+_KEY_NAMES = {"Ed25519PrivateKey": "ed25519", "MLDSA65PrivateKey": "ml-dsa-65",
+              "MLDSA87PrivateKey": "ml-dsa-87"}  # fmt: skip
 
 
 def _sdk_key(paths: tuple[Path, ...], kid: str | None) -> mldsa.MLDSA65PrivateKey | SdkKeyPair:

@@ -16,7 +16,7 @@ from antireplay.wiring import Allowed
 if TYPE_CHECKING:
     from antireplay.mavlink import Role
 
-from antireplay.cli._common import _MOVE_ASIDE, _check_audit_file, _fail, console, stop_on_signal
+from antireplay.cli._common import _MOVE_ASIDE, _check_audit_file, _fail, stop_on_signal
 
 
 def _signing_key(path: Path) -> bytes:
@@ -189,12 +189,25 @@ def _router_endpoints(  # noqa: PLR0917 - the endpoint and key options, as given
 @click.option(
     "--system-id",
     type=click.IntRange(1, 255),
-    default=None,
-    help="This vehicle's system id: frames addressed elsewhere, and frames from it reflected "
-    "back from a ground link, are refused.",
+    default=1,
+    show_default=True,
+    help="This vehicle's system id (ArduPilot's and PX4's default is 1): frames addressed "
+    "elsewhere, and frames from it reflected back from a ground link, are refused.",
 )
-@click.option("--store", "store_spec", default="sqlite:.antireplay/mavlink.db", show_default=True)
-@click.option("--audit", "audit_path", default=".antireplay/mavlink-audit.db", show_default=True)
+@click.option(
+    "--store",
+    "store_spec",
+    default="sqlite:.antireplay/mavlink.db",
+    show_default=True,
+    help="Where each stream's last timestamp is kept (memory, sqlite:PATH, redis://...).",
+)
+@click.option(
+    "--audit",
+    "audit_path",
+    default=".antireplay/mavlink-audit.db",
+    show_default=True,
+    help="The audit trail of refusals and first authentications (SQLite).",
+)
 @click.option(
     "--metrics-port",
     type=click.IntRange(0, 65535),
@@ -258,7 +271,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     key_file: Path | None,
     passphrase_env: str | None,
     signing_keys: Path | None,
-    system_id: int | None,
+    system_id: int,
     store_spec: str,
     audit_path: str,
     metrics_port: int | None,
@@ -323,11 +336,15 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     except ReplayAttackError as exc:
         _fail(f"--store {store_spec}: {exc}")
     roles = ", ".join(f"{role} {text}" for role, text, _ in endpoints)
-    console.print(f"[green]mavlink-router {roles} (system id {system_id})[/green]")
+    click.echo(f"mavlink-router {roles} (system id {system_id})")  # one line, never wrapped
     done.wait()
     router.stop()
     audit_log.close()
     store.close()
+    stats = router.stats
+    forwarded = ", ".join(f"{k} {v}" for k, v in sorted(stats.forwarded.items())) or "none"
+    dropped = ", ".join(f"{k} {v}" for k, v in sorted(stats.dropped.items())) or "none"
+    click.echo(f"forwarded {forwarded}; dropped {dropped}", err=True)
 
 
 def _udp_shorthand(spec: str, kind: str, option: str) -> str:
@@ -344,3 +361,136 @@ def _udp_shorthand(spec: str, kind: str, option: str) -> str:
             f"{spec!r}: expected udp:HOST:PORT with PORT 0..65535", param_hint=f"'{option}'"
         )
     return f"{kind}:{rest}"
+
+
+def _sim_key(value: str | None, passphrase_env: str | None) -> bytes:
+    """``--key``: 64 hex digits, or a key file as ``--key-file`` reads it; or a passphrase."""
+    from antireplay.mavlink import passphrase_key  # noqa: PLC0415
+
+    if (value is None) == (passphrase_env is None):
+        raise click.UsageError("give --key or --passphrase-env (one of them)")
+    if passphrase_env is not None:
+        phrase = os.environ.get(passphrase_env)
+        if not phrase:
+            raise click.BadParameter(
+                f"{passphrase_env} is not set", param_hint="'--passphrase-env'"
+            )
+        return passphrase_key(phrase)
+    assert value is not None
+    try:
+        return bytes.fromhex(value) if len(value) == 64 else _signing_key(Path(value))
+    except ValueError:
+        return _signing_key(Path(value))
+
+
+@click.command("mavlink-sim")
+@click.option(
+    "--udp",
+    default="127.0.0.1:14555",
+    show_default=True,
+    metavar="HOST:PORT",
+    help="Send to this address (the router's --vehicle udpin:HOST:PORT); answers come back "
+    "to the simulator's own port.",
+)
+@click.option(
+    "--pty",
+    is_flag=True,
+    help="Use a pseudo-terminal instead of UDP; its path is printed (the router's "
+    "--vehicle PATH,115200).",
+)
+@click.option(
+    "--key",
+    default=None,
+    help="The vehicle's signing key: 64 hex digits, or a key file (32 raw bytes or 64 hex).",
+)
+@click.option(
+    "--passphrase-env",
+    default=None,
+    metavar="VAR",
+    help="Or the key as SHA-256 of this environment variable's passphrase.",
+)
+@click.option(
+    "--system-id",
+    type=click.IntRange(1, 255),
+    default=1,
+    show_default=True,
+    help="The simulated vehicle's system id.",
+)
+@click.option(
+    "--rate",
+    type=click.FloatRange(0.1, 50),
+    default=4.0,
+    show_default=True,
+    help="HEARTBEAT and ATTITUDE per second.",
+)
+def mavlink_sim(  # noqa: PLR0917 - one option per knob
+    udp: str, pty: bool, key: str | None, passphrase_env: str | None, system_id: int, rate: float
+) -> None:
+    """A simulated signing vehicle: MAVLink 2 telemetry, and a COMMAND_ACK for each
+    COMMAND_LONG that verifies; prints its counts when stopped (SIGTERM or Ctrl-C)."""
+    from antireplay.mavlink.sim import SimVehicle  # noqa: PLC0415
+
+    secret = _sim_key(key, passphrase_env)
+    host, _, port = udp.rpartition(":")
+    if not host or not (port.isascii() and port.isdigit()) or not 0 < int(port) < 65536:
+        raise click.BadParameter(f"{udp!r}: expected HOST:PORT", param_hint="'--udp'")
+    try:
+        sim = SimVehicle(secret, system_id=system_id, udp=(host, int(port)), pty=pty, rate_hz=rate)
+    except OSError as exc:
+        _fail(f"--udp {udp}: {exc.strerror or exc}")
+    click.echo(f"mavlink-sim system {system_id}: router option --vehicle {sim.where}")
+    done = stop_on_signal()
+    try:
+        sim.run(done)
+    finally:
+        sim.close()
+    counts = ", ".join(f"{k} {v}" for k, v in sorted(sim.counts.items()))
+    click.echo(f"sent and received: {counts or 'nothing'}", err=True)
+
+
+@click.group("mavlink-keys")
+def mavlink_keys() -> None:
+    """MAVProxy's signing.keys file (ENDPOINT PASSPHRASE per line), which --signing-keys reads."""
+
+
+@mavlink_keys.command("add")
+@click.argument("endpoint")
+@click.option(
+    "--file",
+    "path",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=Path("~/.mavproxy/signing.keys"),
+    show_default=True,
+    help="The signing.keys file (created, mode 0600, if missing).",
+)
+@click.option(
+    "--passphrase-env",
+    default="MAV_PASSPHRASE",
+    show_default=True,
+    metavar="VAR",
+    help="The environment variable holding the passphrase (never on the command line).",
+)
+def mavlink_keys_add(endpoint: str, path: Path, passphrase_env: str) -> None:
+    """Give ENDPOINT the passphrase: adds its line once (running it again changes nothing;
+    a different passphrase replaces the endpoint's line)."""
+    phrase = os.environ.get(passphrase_env)
+    if not phrase:
+        _fail(f"--passphrase-env {passphrase_env}: not set")
+    if len(phrase.split()) != 1 or phrase != phrase.strip() or len(endpoint.split()) != 1:
+        _fail("the endpoint and the passphrase must be one word each (MAVProxy skips other lines)")
+    path = path.expanduser()
+    try:
+        lines = path.read_text().splitlines() if path.exists() else []
+    except (OSError, UnicodeDecodeError) as exc:
+        _fail(f"--file {path}: unreadable ({exc})")
+    entry = f"{endpoint} {phrase}"
+    mine = [i for i, line in enumerate(lines) if line.split()[:1] == [endpoint]]
+    if [lines[i] for i in mine] == [entry]:
+        click.echo(f"{path}: {endpoint} already has this passphrase")
+        return
+    kept = [line for i, line in enumerate(lines) if i not in mine]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as handle:
+        handle.write("\n".join([*kept, entry]) + "\n")
+    click.echo(f"{path}: {endpoint} {'replaced' if mine else 'added'}")

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import socket
 import sqlite3
 import subprocess
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+from urllib.parse import urlsplit
 
 import click
 from rich.progress import Progress
@@ -25,10 +27,28 @@ from antireplay.cli._common import _fail, _load_config, console, preflight
 
 
 @click.command()
-@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None)
-@click.option("--host", default="127.0.0.1", show_default=True)
-@click.option("--port", default=8080, show_default=True, type=click.IntRange(0, 65535))
-@click.option("--state-dir", default=Path(".antireplay"), type=click.Path(path_type=Path))
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="YAML configuration (keys, store, audit, upstream); without it, the embedded default.",
+)
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to listen on.")
+@click.option(
+    "--port",
+    default=8080,
+    show_default=True,
+    type=click.IntRange(0, 65535),
+    help="Port to listen on (0: any free port, printed).",
+)
+@click.option(
+    "--state-dir",
+    default=Path(".antireplay"),
+    show_default=True,
+    type=click.Path(path_type=Path),
+    help="Where the embedded default keeps its store, audit trail and demo keys.",
+)
 @click.option("--access-log", is_flag=True, help="Log every request on stdout (uvicorn's log).")
 @click.option(
     "--ssl-certfile",
@@ -53,8 +73,8 @@ def serve(  # noqa: PLR0917 - one option per knob
 ) -> None:
     """Run the HTTP gateway (embedded default without --config).
 
-    Prints one line once it listens: ``listening on http(s)://HOST:PORT (store ..., audit
-    ...)``; ``GET /healthz`` is liveness, ``GET /readyz`` readiness (store and audit)."""
+    Prints one line once it listens: "listening on http(s)://HOST:PORT (store ..., audit
+    ...)"; GET /healthz is liveness, GET /readyz readiness (store and audit)."""
     import socket  # noqa: PLC0415
 
     import uvicorn  # noqa: PLC0415
@@ -140,18 +160,37 @@ def config() -> None:
 
 @config.command("check")
 @click.argument("path", type=click.Path(path_type=Path))
-def config_check(path: Path) -> None:
-    """Validate a YAML config: everything ``serve`` checks (keys, store, audit, upstream)."""
+@click.option(
+    "--verbose", is_flag=True, help="Also print the whole configuration, defaults filled in."
+)
+def config_check(path: Path, verbose: bool) -> None:
+    """Validate a YAML config: everything serve checks (keys, store, audit), and that an
+    HTTP upstream answers a connection."""
     try:
         cfg = AppConfig.from_yaml(path)
     except ConfigError as exc:
         _fail(str(exc))
     preflight(cfg)
-    console.print_json(data=cfg.model_dump())
+    _probe_upstream(cfg.upstream, cfg.upstream_timeout_s)
+    if verbose:
+        console.print_json(data=cfg.model_dump())
     if not cfg.keys:
         click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
                    "so every command will be refused", err=True)  # fmt: skip
     click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
+
+
+def _probe_upstream(upstream: str | None, timeout_s: float) -> None:
+    """An ``http(s)://`` upstream must accept a connection (``serve`` starts without it, but
+    every accepted message would then be answered ``UPSTREAM_FAILED``)."""
+    if upstream is None or not upstream.startswith(("http://", "https://")):
+        return
+    url = urlsplit(upstream)
+    try:
+        port = url.port or (443 if url.scheme == "https" else 80)
+        socket.create_connection((url.hostname or "", port), timeout=min(timeout_s, 3.0)).close()
+    except (OSError, ValueError) as exc:
+        _fail(f"upstream {upstream}: cannot connect ({getattr(exc, 'strerror', None) or exc})")
 
 
 @click.command()

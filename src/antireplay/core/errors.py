@@ -175,6 +175,11 @@ class ReplayAttackError(AntiReplayError):
         return f"{self.code}: {self.reason}"
 
     @property
+    def coded_reason(self) -> str:
+        """The reason as a NACK carries it, led by its code (``REPLAY_DETECTED: …``)."""
+        return f"{self.code}: {self.reason}"
+
+    @property
     def http_status(self) -> int:
         """HTTP status for HTTP transports (see :data:`HTTP_STATUS`)."""
         return HTTP_STATUS[self.code]
@@ -183,19 +188,21 @@ class ReplayAttackError(AntiReplayError):
         """The COMMAND_NACK body answering the rejected message: ``type``, ``code``,
         ``ref_msg_id``, ``reason`` (and ``detail``) for RCAN §8.3, plus what the RCAN SDK's
         ``RCANMessage.from_dict`` and ``RCANResponse.from_dict`` read (``status: "error"``,
-        ``message`` = the reason, ``msg_id`` = ``ref_msg_id`` or ``""``).
+        ``message`` = the reason, ``msg_id`` = ``ref_msg_id`` or ``""``).  The reason starts
+        with the code (:attr:`coded_reason`): the SDK's ``RCANResponse`` keeps only ``message``.
 
         ``msg_id`` must already be sanitized by the caller when it came from an
         unauthenticated peer; the NACK never echoes the payload.
         """
+        reason = self.coded_reason
         body: dict[str, Any] = {
             "type": nack_type,
             "code": str(self.code),
             "ref_msg_id": msg_id,
-            "reason": self.reason,
+            "reason": reason,
             **_NACK_FIELDS,
             "msg_id": msg_id or "",
-            "message": self.reason,
+            "message": reason,
         }
         if self.detail is not None:
             body["detail"] = self.detail
@@ -388,11 +395,18 @@ class UpstreamFailedError(ReplayAttackError):
 class ConfigError(AntiReplayError, ValueError):
     """Invalid configuration; names the key, the value and what is allowed. Never clamped."""
 
-    def __init__(self, key: str, value: object, allowed: str) -> None:
-        super().__init__(f"invalid config {key}={value!r}: allowed {allowed}")
+    def __init__(
+        self, key: str, value: object, allowed: str, *, message: str | None = None
+    ) -> None:
+        super().__init__(message or f"invalid config {key}={value!r}: allowed {allowed}")
         self.key = key
         self.value = value
         self.allowed = allowed
+
+    @classmethod
+    def file_not_found(cls, key: str, path: str) -> ConfigError:
+        """A file the configuration names is not there: said in those words."""
+        return cls(key, path, "an existing file", message=f"{key}: file not found: {path}")
 
 
 class NonceExhaustedError(AntiReplayError):

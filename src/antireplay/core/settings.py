@@ -16,6 +16,8 @@ for peers that still speak that numbering.
 
 from __future__ import annotations
 
+import difflib
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -52,6 +54,9 @@ class SecurityConfig(BaseModel):
             data = {}
         if not isinstance(data, dict):
             raise ConfigError(section, data, "a mapping of settings")
+        for key in data:
+            if key not in cls.model_fields:
+                raise unknown_key(f"{section}.{key}", [f"{section}.{k}" for k in cls.model_fields])
         for key, value in data.items():
             if isinstance(value, bool):
                 raise ConfigError(f"{section}.{key}", value, ALLOWED.get(str(key), "no booleans"))
@@ -69,10 +74,26 @@ class SecurityConfig(BaseModel):
         return cls.from_mapping(load_yaml(path).get("security"))
 
 
+def unknown_key(path: str, known: Iterable[str]) -> ConfigError:
+    """An unknown key, with the known one it most resembles: the same name at another level
+    (``replay_window_s`` at the top is ``security.replay_window_s``), else a near spelling."""
+    known = list(known)
+    leaf = path.rpartition(".")[2]
+    same_name = [k for k in known if k.rpartition(".")[2] == leaf]
+    close = same_name or difflib.get_close_matches(path, known, 1, 0.7)
+    if not close:
+        leaves = {k.rpartition(".")[2]: k for k in known}
+        close = [leaves[m] for m in difflib.get_close_matches(leaf, list(leaves), 1, 0.7)]
+    hint = f" (did you mean `{close[0]}`?)" if close else ""
+    return ConfigError(path, path, "a known key", message=f"unknown key `{path}`{hint}")
+
+
 def load_yaml(path: str | Path) -> dict[str, Any]:
     """A YAML file's top-level mapping, or ConfigError."""
     try:
         doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError.file_not_found("config", str(path)) from None
     except OSError as exc:
         raise ConfigError("file", str(path), f"a readable YAML file ({exc.strerror})") from None
     except yaml.YAMLError as exc:

@@ -34,6 +34,7 @@ its state file resumes above every epoch it could have used.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import os
@@ -78,7 +79,7 @@ from antireplay.epochs import (
     EpochVerifier,
     Kind,
 )
-from antireplay.epochs.policy import HEAD
+from antireplay.epochs.policy import HEAD, LABELS
 from antireplay.state import ReplayStore
 
 log = logging.getLogger("antireplay.dds")
@@ -283,6 +284,14 @@ class Verdict:
         """True when the MAC verified (accepted, or refused only for freshness or order)."""
         return self.outcome in {"accepted", "replayed", "prefix_collision", "stale", "ahead"}
 
+    def named(self, noun: str) -> Verdict:
+        """This verdict with its reason naming what was refused (a topic's sealed value is
+        an epoch announcement underneath; its reader calls it a ``sample``)."""
+        head = LABELS[Kind.ANNOUNCEMENT]
+        if not self.reason.startswith(head):
+            return self
+        return dataclasses.replace(self, reason=noun + self.reason[len(head) :])
+
     def line(self) -> str:
         """One printable line (what ``antireplay dds read`` prints)."""
         who = "-" if self.nonce_prefix is None else self.nonce_prefix.hex()
@@ -382,7 +391,7 @@ class SealedReader:
             )
         opened = open_judged(self.verifier, sealed, Kind.ANNOUNCEMENT, instance)
         if isinstance(opened, Verdict):
-            return opened
+            return opened.named("sample")
         data = opened.payload[_ILEN.size + len(instance.encode()) :]
         if self.data_type is None:
             return Verdict("accepted", None, "", instance, prefix, epoch, data)

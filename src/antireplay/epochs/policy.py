@@ -160,9 +160,9 @@ class Claim(NamedTuple):
 def parse(sealed: bytes, kind: Kind) -> Claim:
     """The frame's fields, or ``INVALID_FRAME``."""
     if not isinstance(sealed, bytes):
-        raise InvalidFrameError("announcement must be bytes")
+        raise InvalidFrameError(f"{LABELS[kind]} must be bytes")
     if not MIN_LEN <= len(sealed) <= MAX_LEN:
-        raise InvalidFrameError(f"announcement must be {MIN_LEN}..{MAX_LEN} bytes")
+        raise InvalidFrameError(f"{LABELS[kind]} must be {MIN_LEN}..{MAX_LEN} bytes")
     version, got_kind, prefix, epoch = HEAD.unpack_from(sealed)
     if version != VERSION:
         raise InvalidFrameError(f"unsupported version {version}")
@@ -269,7 +269,7 @@ class EpochPolicy:
         """Freshness against ``now_ns`` and the restart fence (the driver's store's)."""
         epoch = claim.epoch
         if self.max_age_ns is not None and epoch < now_ns - self.max_age_ns:
-            return Refused(MessageStaleError("announcement older than max_age_s"))
+            return Refused(MessageStaleError(f"{LABELS[claim.kind]} older than max_age_s"))
         if epoch > now_ns + self.max_forward_ns:
             event = TooFarAhead(claim.prefix, epoch, epoch - now_ns) if authentic else None
             return Refused(EpochTooFarAheadError("epoch jumped beyond max_forward_s"), event)

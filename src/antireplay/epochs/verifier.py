@@ -47,6 +47,7 @@ from antireplay.core.errors import (
     WarningCode,
 )
 from antireplay.epochs.policy import (
+    LABELS,
     NONCE_LEN,
     PREFIX_LEN,
     Admission,
@@ -194,7 +195,7 @@ class EpochVerifier:
         old or far-ahead epoch means (a collision, a glitch) is counted and audited."""
         claim = parse(sealed, kind)
         if not self.policy.authentic(claim):
-            raise SignatureInvalidError("announcement tag does not verify")
+            raise SignatureInvalidError(f"{LABELS[kind]} tag does not verify")
         self._judge(self.policy.check_time(claim, self._now(), self.restart_fence(),
                                            authentic=True))  # fmt: skip
         seen = digest(claim.payload)

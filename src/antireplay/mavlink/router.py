@@ -66,6 +66,7 @@ outside it, so a slow TCP client cannot stall the other links.
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -89,6 +90,8 @@ from antireplay.mavlink.codec import (
 )
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.guard import Admission, MavlinkGuard, MavVerdict
+
+log = logging.getLogger("antireplay.mavlink")
 
 INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
 Location = tuple["Link", Peer | None]
@@ -144,6 +147,8 @@ class RouterStats:
     unaudited: int = 0
     #: Accepted frames per stream ``(link name, system, component, link id)``, bounded.
     streams: OrderedDict[tuple[str, int, int, int], int] = field(default_factory=OrderedDict)
+    #: Ground stations ``(link name, peer, system)`` whose first authentication was logged.
+    stations: OrderedDict[tuple[str, Peer | None, int], None] = field(default_factory=OrderedDict)
 
 
 class MavlinkRouter:
@@ -276,6 +281,8 @@ class MavlinkRouter:
         """Learn from an authenticated frame; count the stream (caller holds ``_lock``)."""
         frame = verdict.frame
         if verdict.signed:
+            if link.role is Role.GROUND:
+                self._greet(link, peer, frame.sysid)
             if peer is not None:
                 link.peers[peer] = None
                 link.peers.move_to_end(peer)
@@ -296,6 +303,25 @@ class MavlinkRouter:
             streams.move_to_end(key)
             if len(streams) > self.max_stream_stats:
                 streams.popitem(last=False)
+
+    def _greet(self, link: Link, peer: Peer | None, system: int) -> None:
+        """Log a ground station's first authenticated frame, once per station (bounded)."""
+        station = (link.name, peer, system)
+        stations = self.stats.stations
+        if station in stations:
+            stations.move_to_end(station)
+            return
+        stations[station] = None
+        if len(stations) > self.max_routes:
+            stations.popitem(last=False)
+        where = (
+            ""
+            if peer is None
+            else f" from {peer[0]}:{peer[1]}"
+            if isinstance(peer, tuple)
+            else f" (client {peer})"
+        )
+        log.info("%s: ground station system %d authenticated%s", link.name, system, where)
 
     def _destinations(self, source: Link, frame: Frame) -> list[Location]:
         """Where ``frame`` goes (module docstring); caller holds ``_lock``."""

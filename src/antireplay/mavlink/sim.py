@@ -1,0 +1,154 @@
+"""A simulated signing vehicle: what the MAVLink guides run when no flight controller is at hand.
+
+It speaks MAVLink 2 with signing, as a flight controller with a key does: every frame it
+sends is signed with a wall-anchored, strictly increasing timestamp
+(:class:`~antireplay.mavlink.codec.TimestampSource`, the router's own sender source), so
+the router's vehicle guard accepts it as it would a real autopilot's.  It sends HEARTBEAT
+and ATTITUDE at a few hertz, and answers each COMMAND_LONG that verifies with a
+COMMAND_ACK addressed to its sender.  Frames that do not verify (unsigned, another key, a
+replayed timestamp: pymavlink's own signing checks) are counted and ignored.
+
+Two transports: UDP (it sends to ``HOST:PORT``, the router's ``--vehicle udpin:HOST:PORT``,
+and hears the answers on its own port) or a pseudo-terminal (the router opens its path as
+a serial ``--vehicle PATH,115200``).  :meth:`SimVehicle.run` loops until its stop event is
+set; :attr:`SimVehicle.counts` says what it did.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import select
+import socket
+import threading
+import time
+import tty
+from collections import Counter
+from typing import Any
+
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from antireplay.core.clock import Clock
+from antireplay.mavlink.codec import TimestampSource
+
+__all__ = ["DEFAULT_UDP", "SimVehicle"]
+
+#: Where the simulated vehicle sends by default: the router's ``--vehicle udpin:127.0.0.1:14555``.
+DEFAULT_UDP = ("127.0.0.1", 14555)
+
+
+class _Out:
+    """pymavlink's output file: each encoded frame goes straight to the transport."""
+
+    def __init__(self, send: Any) -> None:
+        self.send = send
+
+    def write(self, data: bytes) -> None:
+        self.send(bytes(data))
+
+
+class SimVehicle:
+    """One simulated autopilot (module docstring); ``udp`` or ``pty``, not both."""
+
+    def __init__(
+        self,
+        key: bytes,
+        *,
+        system_id: int = 1,
+        udp: tuple[str, int] | None = None,
+        pty: bool = False,
+        rate_hz: float = 4.0,
+        clock: Clock | None = None,
+    ) -> None:
+        if len(key) != 32:
+            raise ValueError("a MAVLink signing key is 32 bytes")
+        self.counts: Counter[str] = Counter()
+        self.rate_hz = rate_hz
+        self.timestamps = TimestampSource(clock)
+        self._sock: socket.socket | None = None
+        self._master: int | None = None
+        self.pty_path: str | None = None
+        self._to = udp or DEFAULT_UDP
+        if pty:
+            self._master, slave = os.openpty()
+            tty.setraw(slave)
+            self.pty_path = os.ttyname(slave)
+            self._slave = slave
+        else:
+            self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self._sock.bind((self._to[0], 0))
+        self.mav = dialect.MAVLink(_Out(self._send), srcSystem=system_id, srcComponent=1)
+        self.mav.signing.secret_key = key
+        self.mav.signing.sign_outgoing = True
+        self.mav.signing.link_id = 0
+        self.mav.signing.timestamp = self.timestamps.next()
+        self._started = time.monotonic()
+
+    @property
+    def where(self) -> str:
+        """What the router's ``--vehicle`` option should name."""
+        if self.pty_path is not None:
+            return f"{self.pty_path},115200"
+        return f"udpin:{self._to[0]}:{self._to[1]}"
+
+    def _send(self, data: bytes) -> None:
+        if self._sock is not None:
+            self._sock.sendto(data, self._to)
+        elif self._master is not None:
+            os.write(self._master, data)
+
+    def _stamp(self) -> None:
+        """Before each frame: the wall-anchored timestamp (pymavlink only adds one per frame)."""
+        self.mav.signing.timestamp = max(self.mav.signing.timestamp, self.timestamps.next())
+
+    def telemetry(self) -> None:
+        """One HEARTBEAT and one ATTITUDE (a slow roll, so a ground station sees it move)."""
+        boot_ms = int((time.monotonic() - self._started) * 1000) % 2**32
+        self._stamp()
+        self.mav.heartbeat_send(
+            dialect.MAV_TYPE_QUADROTOR, dialect.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4
+        )
+        self._stamp()
+        roll = 0.2 * math.sin(boot_ms / 1000)
+        self.mav.attitude_send(boot_ms, roll, 0.0, 0.0, 0.0, 0.0, 0.0)
+        self.counts["heartbeat"] += 1
+        self.counts["attitude"] += 1
+
+    def handle(self, data: bytes) -> None:
+        """Frames from the router: answer each verified COMMAND_LONG, count the rest."""
+        for message in self.mav.parse_buffer(data) or []:
+            kind = message.get_type()
+            if kind == "BAD_DATA":
+                self.counts["refused"] += 1
+            elif kind == "COMMAND_LONG":
+                self.counts["command"] += 1
+                self._stamp()
+                self.mav.command_ack_send(
+                    message.command, dialect.MAV_RESULT_ACCEPTED, 0, 0,
+                    message.get_srcSystem(), message.get_srcComponent(),
+                )  # fmt: skip
+                self.counts["ack"] += 1
+            else:
+                self.counts["other"] += 1
+
+    def run(self, stop: threading.Event) -> None:
+        """Telemetry every ``1 / rate_hz`` seconds, answers as frames come, until ``stop``."""
+        period = 1.0 / self.rate_hz
+        due = time.monotonic()
+        source = self._sock.fileno() if self._sock is not None else self._master
+        assert source is not None
+        while not stop.is_set():
+            now = time.monotonic()
+            if now >= due:
+                self.telemetry()
+                due = max(due + period, now)
+            ready, _, _ = select.select([source], [], [], min(max(due - now, 0.0), 0.1))
+            if ready:
+                self.handle(os.read(source, 65_535))
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+        if self._master is not None:
+            os.close(self._master)
+            os.close(self._slave)
