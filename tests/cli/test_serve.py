@@ -4,6 +4,8 @@ files, and a check that opens the store as ``serve`` would."""
 from __future__ import annotations
 
 import socket
+import sqlite3
+import subprocess
 import sys
 from pathlib import Path
 
@@ -14,6 +16,7 @@ from click.testing import CliRunner, Result
 from antireplay.cli import main
 from antireplay.cli._common import importable_cwd
 from antireplay.cli.demo import write_demo_config
+from antireplay.state.sqlite import SqliteStore
 from tests.harness import one_line_error
 
 
@@ -76,3 +79,29 @@ def test_config_check_ends_with_a_verdict_and_warns_without_keys(
     assert said.exit_code == 0, said.output
     assert said.stdout.strip().splitlines()[-1] == f"ok: 0 keys, store {redis_url}, audit audit.db"
     assert "warning" in said.stderr and "no keys" in said.stderr
+
+
+def test_a_state_file_whose_meta_does_not_decode_refuses_serve_and_config_check(
+    tmp_path: Path,
+) -> None:
+    """A hand-edited meta row: ``serve`` (a real process) refuses to start with one line
+    naming the file and the recovery, exit 2; ``config check`` refuses it the same way."""
+    config = write_demo_config(tmp_path)
+    db = tmp_path / "state.db"
+    SqliteStore(db).close()
+    edited = sqlite3.connect(db)
+    edited.execute("UPDATE meta SET watermark = 'abc'")
+    edited.commit()
+    edited.close()
+    one_line_error(CliRunner().invoke(main, ["config", "check", str(config)]), str(db), "mv ")
+    served = subprocess.run(
+        [sys.executable, "-m", "antireplay", "serve", "--config", str(config), "--port", "0"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert served.returncode == 2, served.stderr
+    lines = served.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("antireplay: error: "), served.stderr
+    assert str(db) in lines[0] and "mv " in lines[0]

@@ -76,8 +76,13 @@ if policy ~= 'noeviction' then return {-1, policy or '?', '', '', 0} end
 local t = redis.call('TIME')
 local server_now = tonumber(t[1]) + tonumber(t[2]) / 1000000
 local now = tonumber(ARGV[2])
-local meta = redis.call('HMGET', KEYS[1], 'run', 'fence', 'wm')
+local meta = redis.call('HMGET', KEYS[1], 'run', 'fence', 'wm', 'losses')
 local fence, wm, lost = meta[2] or ARGV[4], meta[3] or ARGV[4], 0
+-- A stored value that is not a number is never computed with: the client refuses it (-2).
+local function number(v) local n = tonumber(v) return n ~= nil and n == n end
+if not number(fence) then return {-2, 'fence', fence, '', 0} end
+if not number(wm) then return {-2, 'wm', wm, '', 0} end
+if meta[4] and not string.match(meta[4], '^%d+$') then return {-2, 'losses', meta[4], '', 0} end
 if meta[1] ~= run then
   local f = math.max(tonumber(fence), now, server_now)
   fence = string.format('%.6f', f + 0.000001)
@@ -98,6 +103,7 @@ if ARGV[1] == 'advance' then
   redis.call('SET', KEYS[2], ARGV[5])
   return {1, cur or false, fence, wm, lost}
 end
+if cur and not number(cur) then return {-2, 'entry', cur, '', 0} end
 local expiry = tonumber(ARGV[5])
 local ttl = math.ceil((expiry - math.min(now, server_now) + tonumber(ARGV[3])) * 1000) + 1
 if ttl < 1 then ttl = 1 end
@@ -173,11 +179,12 @@ class RedisStore:
         """A plain GET (records nothing); fence and watermark as of the last commit."""
         entry = self.msg_key(key)
         value = self._call(lambda: self._redis.get(entry))
-        expiry = NEVER if value is None else self._expiry(entry, value)
+        expiry = NEVER if value is None else _codec.serving(lambda: self._expiry(entry, value))
         return Seen(expiry, self._watermark, self._fence)
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
-        return self._run("commit", self.msg_key(key), now, repr(expires_at), force)
+        key = self.msg_key(key)
+        return _codec.serving(lambda: self._run("commit", key, now, repr(expires_at), force))
 
     def commit_async(
         self,
@@ -211,13 +218,18 @@ class RedisStore:
             raise StateUnavailableError(
                 f"redis {self.url}: {_evicting(policy)}; set it to noeviction"
             )
+        if reply[0] == -2:
+            field = _text(reply[1])
+            if field == "entry":
+                raise self._undecodable(key, reply[2], "an expiry", also_meta=True)
+            raise self._undecodable(f"{self._meta} {field}", reply[2], "a number")
         return self._seen(reply, key, counter)
 
     def _seen(self, reply: list[Any], entry: str, counter: str | None = None) -> Seen:
         """The script's answer on ``entry``; ``counter`` names the key an ``advance`` ran on."""
         recorded, cur, fence, watermark, lost = reply
-        self._fence = _floor(float(fence))
-        self._watermark = _floor(float(watermark))
+        self._fence = _floor(self._number(f"{self._meta} fence", fence))
+        self._watermark = _floor(self._number(f"{self._meta} wm", watermark))
         if lost:
             self.data_loss_events += 1
             self.loss_reason = "redis lost or replaced our replay state"
@@ -258,15 +270,25 @@ class RedisStore:
 
     def _expiry(self, entry: str, value: bytes | str) -> float:
         """A stored entry's expiry; an undecodable one is refused like an undecodable counter."""
-        try:
-            return float(value)
-        except ValueError:
-            raise StateFileError(
-                self.url,
-                f"replay entry {entry!r} holds {value!r}, not an expiry",
-                recovery=f"redis-cli -u {self.url} DEL '{entry}' '{self._meta}' (the next "
-                "operation raises the restart fence)",
-            ) from None
+        drop = self._drop(entry, self._meta)
+        return _codec.decode_float(_text(value), where=self.url, key=entry, recovery=drop)
+
+    def _number(self, key: str, value: object) -> float:
+        """A number of the deployment's meta hash (fence, watermark)."""
+        drop = self._drop(self._meta)
+        return _codec.decode_float(_text(value), where=self.url, key=key, recovery=drop)
+
+    def _undecodable(
+        self, key: str, value: object, expected: str, *, also_meta: bool = False
+    ) -> StateFileError:
+        """What the script refused to compute with: the entry (dropped with the meta) or
+        a field of the meta hash (dropped alone); either way the next operation fences."""
+        drop = self._drop(key, self._meta) if also_meta else self._drop(self._meta)
+        return _codec.undecodable(_text(value), expected, where=self.url, key=key, recovery=drop)
+
+    def _drop(self, *keys: str) -> str:
+        shown = " ".join(f"'{k}'" for k in keys)
+        return f"redis-cli -u {self.url} DEL {shown} (the next operation raises the restart fence)"
 
     def status(self) -> dict[str, float]:
         return {
@@ -281,12 +303,23 @@ class RedisStore:
         self._redis.close()
 
     def ready(self) -> None:
-        """A read of the deployment's meta and the eviction check every commit's script runs
-        (``maxmemory-policy`` changed at run time): what a commit needs, recording nothing."""
-        self._call(lambda: self._redis.exists(self._meta))
+        """A read of the deployment's meta (its numbers must decode) and the eviction check
+        every commit's script runs (``maxmemory-policy`` changed at run time): what a commit
+        needs, recording nothing."""
+        meta = self._call(lambda: self._redis.hmget(self._meta, "fence", "wm", "losses"))
+        _codec.serving(lambda: self._check_meta(*meta))
         policy = self._call(self._evicting_policy)
         if policy is not None:
             raise StateUnavailableError(f"redis {self.url}: {policy}; set it to noeviction")
+
+    def _check_meta(self, fence: object, wm: object, losses: object) -> None:
+        for name, value in (("fence", fence), ("wm", wm)):
+            if value is not None:
+                self._number(f"{self._meta} {name}", value)
+        if losses is not None:
+            drop = self._drop(self._meta)
+            where, key = self.url, f"{self._meta} losses"
+            _codec.decode_int(_text(losses), where=where, key=key, recovery=drop)
 
     def _evicting_policy(self) -> str | None:
         """Why a node may evict our keys (``maxmemory-policy`` other than noeviction), or None."""
@@ -313,3 +346,8 @@ def _evicting(policy: str) -> str:
 
 def _floor(value: float) -> float:
     return NEVER if value <= -1e17 else value
+
+
+def _text(value: object) -> object:
+    """A Redis value (bytes) as the text it holds, for the one decoder of stored values."""
+    return value.decode("ascii", "replace") if isinstance(value, bytes) else value

@@ -39,9 +39,9 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
   database generation below the witness's     rolled back (a restored copy): **fence**
   database with state but no witness          witness lost (or made by an older
                                               version): **fence**
-  a file that is not a readable database      refused at start (``StateFileError``
-                                              names the file and the recovery:
-                                              move it aside; the next start fences)
+  a file that is not a readable database,     refused at start (``StateFileError``
+  or a stored value that does not decode      names the file and the recovery:
+  (a hand-edited row)                         move it aside; the next start fences)
   ==========================================  =====================================
 
   A fence is the wall time at which the loss was noticed (no lower than the
@@ -55,9 +55,10 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
 Deleting the database *and* its witness is indistinguishable from a new
 deployment; that is the documented way to reset.  Corruption found while
 running answers ``STATE_UNAVAILABLE`` (503; a fresh ESTOP still passes) and
-names the file and the recovery; so does a database deleted or replaced while
-running (each write transaction first checks that the path still names the
-file it opened), until the restart that fences.  Readers open the existing file
+names the file and the recovery; so does a lookup or commit that reads a value
+that does not decode, and a database deleted or replaced while running (each
+write transaction first checks that the path still names the file it opened),
+until the restart that fences.  Readers open the existing file
 only (``mode=rw``): a lookup or a readiness probe never creates a new empty one.
 """
 
@@ -107,10 +108,16 @@ _ADVANCE = """
 INSERT INTO counters (key, value) VALUES (?, ?)
 ON CONFLICT (key) DO UPDATE SET value = excluded.value WHERE excluded.value > counters.value
 """
+_META_SELECT = "SELECT deployment, generation, watermark, fence, data_loss_events FROM meta"
+#: Stored expiries that are not numbers: SQLite orders every number before any text or
+#: blob, so the index finds them at once (a REAL column keeps what it cannot convert).
+_SEEN_UNDECODABLE = "SELECT key, expires FROM seen WHERE expires >= '' LIMIT 1"
 #: One queued commit: key, expires_at, now, force.
 _Op = tuple[str, float, float, bool]
 #: The meta row as a transaction read it: generation, watermark, fence, data-loss events.
 _Meta = tuple[int, float, float, int]
+#: The whole meta row, decoded: deployment id, then :data:`_Meta`.
+_MetaRow = tuple[str, int, float, float, int]
 _FLOOR = -1e300  # SQLite REAL has no -inf literal that round-trips everywhere: "nothing yet"
 
 
@@ -175,6 +182,7 @@ class SqliteStore:
         self._clock = resolve(clock)
         self._lock = threading.Lock()
         self._db = self._open(timeout_s)
+        check_readable(self.path)  # stored values that do not decode refuse the start
         self._file = file_identity(self.path)
         self._deployment = ""
         self._generation = 0
@@ -226,22 +234,20 @@ class SqliteStore:
 
     @property
     def _aside(self) -> str:
-        """The recovery from a damaged database: the next start fences what it held."""
-        return (
-            f"mv {self.path} {self.path}.corrupt "
-            "(the next start re-creates it behind a restart fence)"
-        )
+        return _move_aside(self.path)
 
     def _decode(self, key: str, text: object) -> int:
         return _codec.decode(str(text), where=str(self.path), key=key, recovery=self._aside)
+
+    def _time(self, key: str, value: object) -> float:
+        return _codec.decode_float(value, where=str(self.path), key=key, recovery=self._aside)
 
     def _verify(self) -> None:
         """At open: compare the database with its witness; fence on any sign of loss."""
 
         def body(db: sqlite3.Connection) -> tuple[None, _Meta]:
-            row = db.execute(
-                "SELECT deployment, generation, watermark, fence, data_loss_events FROM meta"
-            ).fetchone()
+            meta = db.execute(_META_SELECT).fetchone()
+            row = None if meta is None else _decode_meta(meta, self.path, self._aside)
             rows = db.execute("SELECT count(*) FROM seen").fetchone()[0]
             counters = db.execute("SELECT count(*) FROM counters").fetchone()[0]
             found = self.witness.read()
@@ -322,13 +328,15 @@ class SqliteStore:
                 (key,),
             ).fetchone()
             expiry, watermark, fence = row
+            watermark = self._time("meta watermark", watermark)
+            fence = self._time("meta fence", fence)
             return Seen(
-                NEVER if expiry is None else float(expiry),
-                NEVER if watermark <= _FLOOR else float(watermark),
-                NEVER if fence <= _FLOOR else float(fence),
+                NEVER if expiry is None else self._time(f"seen {key!r} expiry", expiry),
+                NEVER if watermark <= _FLOOR else watermark,
+                NEVER if fence <= _FLOOR else fence,
             )
 
-        return self._read(query)
+        return _codec.serving(lambda: self._read(query))
 
     def _read(self, query: Callable[[sqlite3.Connection], T]) -> T:
         """Run ``query`` on an idle reader connection (a new one if all are busy)."""
@@ -358,14 +366,16 @@ class SqliteStore:
             try:
                 db.execute("BEGIN IMMEDIATE")
                 try:
-                    if db.execute("SELECT generation FROM meta").fetchone() is None:
+                    row = db.execute(_META_SELECT).fetchone()
+                    if row is None:
                         raise sqlite3.DatabaseError("no meta row (replaced or truncated)")
+                    _decode_meta(row, self.path, self._aside)
                 finally:
                     db.execute("ROLLBACK")
             finally:
                 db.close()
 
-        self._run(probe)
+        _codec.serving(lambda: self._run(probe))
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         """Queue the record for the next group commit; return once it is durable."""
@@ -405,13 +415,12 @@ class SqliteStore:
             ]
 
         with self._lock:
-            return self._run(tx)
+            return _codec.serving(lambda: self._run(tx))
 
     def _meta_checked(self, db: sqlite3.Connection) -> tuple[int, float, float, int]:
         """The meta row, fenced first if the database went back under this process."""
-        row = db.execute(
-            "SELECT generation, watermark, fence, data_loss_events FROM meta"
-        ).fetchone()
+        found = db.execute(_META_SELECT).fetchone()
+        row = None if found is None else _decode_meta(found, self.path, self._aside)[1:]
         if row is None or row[0] < self._generation:
             reason = "database rolled back or replaced while running (a live restore?)"
             fence = max(self._clock.wall(), self._wall_hw)
@@ -422,8 +431,7 @@ class SqliteStore:
             generation = max(self._generation, row[0] if row is not None else 0)
             watermark = row[1] if row is not None else _FLOOR
             return generation, watermark, max(fence, row[2] if row is not None else fence), losses
-        generation, watermark, fence, losses = row
-        return int(generation), float(watermark), float(fence), int(losses)
+        return row
 
     def verify(self) -> Seen:
         """Re-read the shared meta row (fence, watermark), checking for a live rollback."""
@@ -435,11 +443,10 @@ class SqliteStore:
         with self._lock:
             return self._run(tx)
 
-    @staticmethod
-    def _record(db: sqlite3.Connection, op: _Op) -> tuple[float, bool]:
+    def _record(self, db: sqlite3.Connection, op: _Op) -> tuple[float, bool]:
         key, expires_at, now, force = op
         found = db.execute("SELECT expires FROM seen WHERE key = ?", (key,)).fetchone()
-        seen = NEVER if found is None else float(found[0])
+        seen = NEVER if found is None else self._time(f"seen {key!r} expiry", found[0])
         recorded = not seen >= now
         if recorded or (force and seen < expires_at):
             db.execute("INSERT OR REPLACE INTO seen VALUES (?, ?)", (key, expires_at))
@@ -521,24 +528,54 @@ class SqliteStore:
 
 
 def check_readable(path: str | Path) -> None:
-    """Refuse a file that is not a readable database, without writing anything (so a
-    ``config check`` never uses up the loss detection of the store's next real open)."""
+    """Refuse a file that is not a readable database, or whose meta row or expiries do not
+    decode, without writing anything (so a ``config check`` never uses up the loss
+    detection of the store's next real open)."""
     path = Path(path)
     if not path.exists():
         return
+    recovery = _move_aside(path)
     try:
         db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
         try:
-            db.execute("SELECT count(*) FROM sqlite_master").fetchone()
+            tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master")}
+            if {"meta", "seen"} <= tables:
+                _check_rows(db, path, recovery)
         finally:
             db.close()
     except sqlite3.Error as exc:
         raise StateFileError(
-            str(path),
-            f"not a readable replay-state database ({exc})",
-            recovery=f"mv {path} {path}.corrupt (the next start re-creates it behind a restart "
-            "fence)",
+            str(path), f"not a readable replay-state database ({exc})", recovery=recovery
         ) from None
+
+
+def _move_aside(path: Path) -> str:
+    """The recovery from a damaged database: the next start fences what it held."""
+    return f"mv {path} {path}.corrupt (the next start re-creates it behind a restart fence)"
+
+
+def _check_rows(db: sqlite3.Connection, path: Path, recovery: str) -> None:
+    """Every stored expiry is a number and the meta row decodes (or ``StateFileError``)."""
+    bad = db.execute(_SEEN_UNDECODABLE).fetchone()
+    if bad is not None:
+        key = f"seen {bad[0]!r} expiry"
+        raise _codec.undecodable(bad[1], "a number", where=str(path), key=key, recovery=recovery)
+    row = db.execute(_META_SELECT).fetchone()
+    if row is not None:
+        _decode_meta(row, path, recovery)
+
+
+def _decode_meta(row: tuple[object, ...], path: Path, recovery: str) -> _MetaRow:
+    """The meta row's values, each what its column holds (or ``StateFileError``)."""
+    deployment, generation, watermark, fence, losses = row
+    where = str(path)
+    return (
+        _codec.decode_hex(deployment, 32, where=where, key="meta deployment", recovery=recovery),
+        _codec.decode_int(generation, where=where, key="meta generation", recovery=recovery),
+        _codec.decode_float(watermark, where=where, key="meta watermark", recovery=recovery),
+        _codec.decode_float(fence, where=where, key="meta fence", recovery=recovery),
+        _codec.decode_int(losses, where=where, key="meta data_loss_events", recovery=recovery),
+    )
 
 
 def _loss_reason(  # noqa: PLR0911 - one answer per row of the table in the docstring

@@ -1,0 +1,96 @@
+"""SqliteStore: a stored value that does not decode (a hand-edited row) refuses the start,
+or answers 503 while serving, naming the file and the recovery, never a bare error."""
+
+from __future__ import annotations
+
+import sqlite3
+from functools import partial
+from pathlib import Path
+
+import pytest
+
+from antireplay import ManualClock, MessageType, ReplayCache
+from antireplay.core.errors import StateFileError, StateUnavailableError
+from antireplay.state.sqlite import SqliteStore, check_readable
+
+NOW = 2_000_000_000.0
+
+#: Hand edits of a valid file, each leaving a value its column cannot mean.
+EDITS = {
+    "seen expiry as text": "UPDATE seen SET expires = 'abc'",
+    "seen expiry as a blob": "UPDATE seen SET expires = x'00ff'",
+    "meta watermark": "UPDATE meta SET watermark = 'abc'",
+    "meta fence": "UPDATE meta SET fence = 'abc'",
+    "meta generation": "UPDATE meta SET generation = 'abc'",
+    "meta data_loss_events": "UPDATE meta SET data_loss_events = 1.5",
+    "meta deployment": "UPDATE meta SET deployment = 42",
+}
+
+
+def edit(db: Path, sql: str) -> None:
+    conn = sqlite3.connect(db)
+    try:
+        conn.execute(sql)
+        conn.commit()
+    finally:
+        conn.close()
+
+
+def written(db: Path, clock: ManualClock) -> SqliteStore:
+    """A store on ``db`` holding one live entry, ``cmd``."""
+    store = SqliteStore(db, clock=clock)
+    store.commit("cmd", NOW + 60, NOW)
+    return store
+
+
+@pytest.mark.parametrize("sql", EDITS.values(), ids=EDITS.keys())
+def test_an_undecodable_value_refuses_the_open_and_the_check_naming_the_file(
+    tmp_path: Path, sql: str
+) -> None:
+    db, clock = tmp_path / "state.db", ManualClock(wall=NOW)
+    written(db, clock).close()
+    edit(db, sql)
+    before = db.read_bytes()
+    with pytest.raises(StateFileError) as checked:
+        check_readable(db)  # what ``config check`` runs: read-only
+    assert db.read_bytes() == before
+    with pytest.raises(StateFileError) as opened:
+        SqliteStore(db, clock=clock)
+    for refused in (checked.value, opened.value):
+        assert refused.path == str(db)
+        assert refused.recovery.startswith(f"mv {db} ")
+
+
+@pytest.mark.parametrize(
+    "sql", [EDITS["seen expiry as text"], EDITS["seen expiry as a blob"]], ids=["text", "blob"]
+)
+def test_an_undecodable_expiry_while_serving_is_503_naming_the_file(
+    tmp_path: Path, sql: str
+) -> None:
+    db, clock = tmp_path / "state.db", ManualClock(wall=NOW)
+    store = written(db, clock)
+    edit(db, sql)
+    for op in (partial(store.lookup, "cmd"), partial(store.commit, "cmd", NOW + 60, NOW)):
+        with pytest.raises(StateUnavailableError) as err:
+            op()
+        assert str(db) in err.value.reason and "mv " in err.value.reason
+    store.close()
+
+
+@pytest.mark.parametrize("field", ["watermark", "fence", "generation"])
+def test_an_undecodable_meta_while_serving_is_503_and_estop_still_passes(
+    tmp_path: Path, field: str
+) -> None:
+    db, clock = tmp_path / "state.db", ManualClock(wall=NOW)
+    store = written(db, clock)
+    edit(db, f"UPDATE meta SET {field} = 'abc'")
+    cache = ReplayCache(clock=clock, store=store)
+    with pytest.raises(StateUnavailableError) as err:
+        cache.commit("other", NOW)
+    assert str(db) in err.value.reason
+    with pytest.raises(StateUnavailableError):
+        store.ready()
+    with pytest.raises(StateFileError, match=str(db)):
+        store.verify()
+    assert cache.commit("estop", NOW, MessageType.SAFETY, "ESTOP").warning == "STATE_UNAVAILABLE"
+    store.close()
