@@ -161,7 +161,7 @@ def preflight(config: AppConfig) -> None:
                 store.ready()  # reaches it: the PING and eviction check serve's first commit runs
             finally:
                 store.close()
-    except ConfigError as exc:
+    except (ConfigError, StateFileError) as exc:  # each names its input and the recovery
         _fail(str(exc))
     except Exception as exc:  # any backend's own failure, named with its spec
         _fail(f"store {config.store}: cannot open it ({type(exc).__name__}: {exc})")
