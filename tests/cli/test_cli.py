@@ -367,9 +367,6 @@ def test_usage_errors_are_one_line_and_help_still_shows() -> None:
 
 # --- help: every option explained, plain text, one name per command ------------------------------
 
-#: Its options' help is written with that command (mavlink-pq is documented on its own).
-_HELP_ELSEWHERE = {"mavlink-pq"}
-
 
 def _commands(
     command: click.Command, path: tuple[str, ...] = ("antireplay",)
@@ -385,7 +382,6 @@ def test_every_option_of_every_command_has_help() -> None:
     missing = [
         f"{' '.join(path)} {param.opts[0]}"
         for path, command in _commands(main)
-        if not _HELP_ELSEWHERE & set(path)
         for param in command.params
         if isinstance(param, click.Option) and not (param.help or "").strip()
     ]

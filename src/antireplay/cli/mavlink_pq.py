@@ -295,7 +295,13 @@ def ground(  # noqa: PLR0917 - one option per knob
     type=click.IntRange(1, 255),
     help="The MAVLink system id of the PQ_CHUNK frames this end sends (the vehicle's).",
 )
-@click.option("--max-sessions", default=4, show_default=True, type=click.IntRange(1, 256))
+@click.option(
+    "--max-sessions",
+    default=4,
+    show_default=True,
+    type=click.IntRange(1, 256),
+    help="Sessions held at once (operators, rekeys); a new one evicts the oldest with its keys.",
+)
 @_operations("vehicle")
 def vehicle(  # noqa: PLR0917 - one option per knob
     fc: str,
