@@ -116,7 +116,12 @@ class SimVehicle:
 
     def handle(self, data: bytes) -> None:
         """Frames from the router: answer each verified COMMAND_LONG, count the rest."""
-        for message in self.mav.parse_buffer(data) or []:
+        try:
+            messages = self.mav.parse_buffer(data) or []
+        except dialect.MAVError:  # an unsigned frame or another key's: pymavlink raises
+            self.counts["refused"] += 1
+            return
+        for message in messages:
             kind = message.get_type()
             if kind == "BAD_DATA":
                 self.counts["refused"] += 1
