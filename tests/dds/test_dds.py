@@ -532,16 +532,16 @@ def test_cli_reader_prints_verdicts_across_processes(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
-    ("command", "block"),
+    ("command", "block", "said"),
     [
-        ("read", "psk_file: gone.psk\n  max_age_s: 30"),
-        ("write", "psk_file: gone.psk\n  max_age_s: 30"),
-        ("relay", "psk_file: gone.psk\n  max_age_s: 30"),
-        ("replay", "max_age_s: fast"),
+        ("read", "psk_file: gone.psk\n  max_age_s: 30", "dds.psk_file: file not found: gone.psk"),
+        ("write", "psk_file: gone.psk\n  max_age_s: 30", "dds.psk_file: file not found: gone.psk"),
+        ("relay", "psk_file: gone.psk\n  max_age_s: 30", "has no dds.relay block"),
+        ("replay", "max_age_s: fast", "max_age_s"),
     ],
 )
 def test_cli_config_mistakes_are_one_line_with_status_2(
-    tmp_path: Path, command: str, block: str
+    tmp_path: Path, command: str, block: str, said: str
 ) -> None:
     config = tmp_path / "dds.yaml"
     config.write_text(f"dds:\n  domain_id: 1\n  {block}\n")
@@ -551,6 +551,7 @@ def test_cli_config_mistakes_are_one_line_with_status_2(
     out, err = run.communicate(timeout=60)
     assert (run.returncode, out) == (2, ""), err
     assert len(err.splitlines()) == 1 and err.startswith("antireplay: error: "), err
+    assert said in err, err
 
 
 def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:

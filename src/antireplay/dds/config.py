@@ -113,6 +113,8 @@ class DdsConfig(_Block):
         """The pre-shared key from ``psk_file`` (hex, at least 16 bytes)."""
         try:
             text = Path(self.psk_file).read_text(encoding="ascii").strip()
+        except FileNotFoundError:
+            raise ConfigError.file_not_found("dds.psk_file", self.psk_file) from None
         except (OSError, UnicodeDecodeError) as exc:
             raise ConfigError("dds.psk_file", self.psk_file, f"a readable file ({exc})") from None
         try:

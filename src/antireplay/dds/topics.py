@@ -139,6 +139,19 @@ RETRY_S, RETRY_MAX_S = 0.25, 2.0
 PINGS_PER_CALL = 64
 
 
+def matched_readers(writer: DataWriter[Any]) -> int:
+    """How many readers match ``writer``, from its matched status: the list call races a
+    peer joining (its count can outgrow the list it filled) and raises IndexError."""
+    status = writer.get_publication_matched_status()  # type: ignore[no-untyped-call]
+    return int(status.current_count)
+
+
+def matched_writers(reader: DataReader[Any]) -> int:
+    """How many writers match ``reader`` (the status, as :func:`matched_readers`)."""
+    status = reader.get_subscription_matched_status()  # type: ignore[no-untyped-call]
+    return int(status.current_count)
+
+
 class PingChannel:
     """A writer and a reader on :data:`PING_TOPIC` for one sealed topic's endpoint."""
 
@@ -168,7 +181,7 @@ class PingChannel:
 
     def peers(self) -> int:
         """Ping endpoints matched (a new one may answer, or need an answer)."""
-        return len(self.writer.get_matched_subscriptions())
+        return matched_readers(self.writer)
 
 
 class SealedWriter:
@@ -247,7 +260,7 @@ class SealedWriter:
         return bool(self._writer.wait_for_acks(duration(seconds=timeout_s)))
 
     def matched_readers(self) -> int:
-        return len(self._writer.get_matched_subscriptions())
+        return matched_readers(self._writer)
 
     def close(self) -> None:
         """Release the signer's state file (its owner lock), as a stopping process does."""
@@ -357,7 +370,7 @@ class SealedReader:
         self._peers, self._retry_at, self._retry_s = -1, -math.inf, RETRY_S
 
     def matched_writers(self) -> int:
-        return len(self._reader.get_matched_publications())
+        return matched_writers(self._reader)
 
     def close(self) -> None:
         """Close the verifier's store if the reader opened it, as a stopping process does."""
