@@ -16,6 +16,9 @@ each message exactly once (:class:`ReplayStore`):
   caller's ``offload`` (:func:`offloaded`).
 * ``advance(key, value) -> bool`` / ``current(key)``: compare-and-advance for
   high-water counters (MAVLink stream state), with the same loss detection.
+* ``forget(keys, fence_key, fence)``: one atomic step that raises counter ``fence_key``
+  to ``fence`` and deletes the counters ``keys``: bounded counter state (the epoch
+  verifier's evicted prefixes) that never re-opens a replay, as the fence covers them.
 * ``verify() -> Seen``: run the loss detection now (start-up; a MAVLink guard
   taking its lease), returning the fence and watermark.
 * ``status()``: figures for ``/metrics`` (entries, watermark, fence,
@@ -34,15 +37,22 @@ Backends: :mod:`.memory` (one process), :mod:`.sqlite` (one machine, survives
 ``kill -9`` and reboots), :mod:`.redis` (replicas; standalone or Cluster, fails
 closed).  One grammar names them, :meth:`StoreSpec.parse` (:mod:`.spec`:
 ``memory``, ``sqlite:PATH``, ``redis://``, ``rediss://``, ``unix://``,
-``redis+cluster://``); :func:`open_store` opens one.
+``redis+cluster://``); :func:`open_store` opens one.  A SQLite store may keep a
+:mod:`.anchor` outside its directory, so that a restored copy of the whole directory is a
+detected loss too.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 from antireplay.core.clock import Clock
 from antireplay.core.window import Seen
 from antireplay.state.contract import Offload, ReplayStore, in_executor, offloaded
 from antireplay.state.spec import ALLOWED, StoreSpec
+
+if TYPE_CHECKING:
+    from antireplay.state.anchor import StateAnchor
 
 #: The store specs :meth:`StoreSpec.parse` accepts, in words (for errors and the docs).
 STORE_SPECS = ALLOWED
@@ -54,10 +64,13 @@ def open_store(
     clock: Clock | None = None,
     max_entries: int = 10_000,
     skew_s: float = 5.0,
+    anchor: StateAnchor | None = None,
 ) -> ReplayStore:
     """Build a store from its spec (:meth:`StoreSpec.parse`); ``max_entries`` bounds the
-    memory backend."""
+    memory backend; ``anchor`` (:mod:`.anchor`) is a SQLite store's, outside its directory."""
     parsed = spec if isinstance(spec, StoreSpec) else StoreSpec.parse(spec)
+    if anchor is not None and parsed.backend != "sqlite":
+        raise ValueError(f"a state anchor is a sqlite store's, not a {parsed.backend} store's")
     if parsed.backend == "memory":
         from antireplay.state.memory import MemoryStore  # noqa: PLC0415 - optional backends
 
@@ -65,7 +78,7 @@ def open_store(
     if parsed.backend == "sqlite":
         from antireplay.state.sqlite import SqliteStore  # noqa: PLC0415
 
-        return SqliteStore(parsed.target, clock=clock)
+        return SqliteStore(parsed.target, clock=clock, anchor=anchor)
     from antireplay.state.redis import RedisStore  # noqa: PLC0415
 
     return RedisStore(parsed.text, clock=clock, skew_s=skew_s)

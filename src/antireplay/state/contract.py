@@ -1,7 +1,7 @@
 """The store contract: the :class:`ReplayStore` protocol every backend keeps, and the one
 hand-off of a blocking commit to a thread (:data:`Offload`).
 
-The contract itself (what ``lookup``, ``commit``, ``advance``, ``verify`` and ``ready``
+The contract itself (what ``lookup``, ``commit``, ``advance``, ``forget``, ``verify`` and ``ready``
 promise, and how loss is detected) is described in :mod:`antireplay.state`; it lives in
 this module, apart from the package, so that the backends and the spec grammar import it
 without importing the package that imports them.
@@ -10,7 +10,7 @@ without importing the package that imports them.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Any, Protocol, runtime_checkable
 
 from antireplay.core.window import Seen
@@ -65,6 +65,9 @@ class ReplayStore(Protocol):
     def advance(self, key: str, value: int) -> bool: ...
 
     def current(self, key: str) -> int | None: ...
+
+    def forget(self, keys: Sequence[str], fence_key: str, fence: int) -> None:
+        """Atomically advance counter ``fence_key`` to at least ``fence`` and delete the counters ``keys`` (missing ones are no-ops), with the same loss detection as ``advance``; forgetting never re-opens a replay because the fence covers what was dropped."""  # noqa: E501
 
     def status(self) -> dict[str, float]: ...
 

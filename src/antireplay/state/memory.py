@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import heapq
 import threading
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Final
 
 from antireplay.core.clock import Clock, resolve
@@ -189,11 +189,26 @@ class MemoryStore:
         """Set counter ``key`` to ``value`` iff it is above the current value (or none)."""
         self._acquire()
         try:
-            cur = self._counters.get(key)
-            if cur is not None and value <= cur:
-                return False
-            self._counters[key] = value
-            return True
+            return self._advance(key, value)
+        finally:
+            self._release()
+
+    def _advance(self, key: str, value: int) -> bool:
+        cur = self._counters.get(key)
+        if cur is not None and value <= cur:
+            return False
+        self._counters[key] = value
+        return True
+
+    def forget(self, keys: Sequence[str], fence_key: str, fence: int) -> None:
+        """Raise counter ``fence_key`` to ``fence`` and drop the counters ``keys``, under
+        one lock (the fence itself is never dropped)."""
+        self._acquire()
+        try:
+            self._advance(fence_key, fence)
+            for key in keys:
+                if key != fence_key:
+                    self._counters.pop(key, None)
         finally:
             self._release()
 

@@ -39,6 +39,10 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
   database generation below the witness's     rolled back (a restored copy): **fence**
   database with state but no witness          witness lost (or made by an older
                                               version): **fence**
+  with an anchor (:mod:`.anchor`, outside     a restored copy of the whole directory
+  the directory): the database behind it,     or the anchor lost: **fence** (a lazy
+  of another deployment, missing, or no       anchor also raises a restart fence to
+  anchor for existing state                   its lease's end)
   a file that is not a readable database,     refused at start (``StateFileError``
   or a stored value that does not decode      names the file and the recovery:
   (a hand-edited row)                         move it aside; the next start fences)
@@ -66,12 +70,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import hashlib
 import logging
-import os
 import queue
 import sqlite3
-import struct
 import threading
 import time
 import uuid
@@ -83,8 +84,9 @@ from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.core.window import NEVER, Seen
 from antireplay.state import _codec
+from antireplay.state.anchor import Anchored, Read, StateAnchor
 from antireplay.state.contract import Offload
-from antireplay.state.durable import file_identity
+from antireplay.state.durable import Witness, file_identity
 from antireplay.state.groupcommit import GroupCommitter
 
 T = TypeVar("T")
@@ -121,61 +123,21 @@ _MetaRow = tuple[str, int, float, float, int]
 _FLOOR = -1e300  # SQLite REAL has no -inf literal that round-trips everywhere: "nothing yet"
 
 
-class Witness:
-    """The small file beside the database: deployment id, generation and the highest wall
-    time of any commit, checksummed (a fence after a loss starts no lower than that, even
-    if the wall clock stepped back across the restart).
-
-    It is rewritten in place (one ``pwrite`` of 64 bytes, well inside one disk
-    sector, then ``fdatasync``); a torn or foreign file reads as ``None``.
-    """
-
-    MAGIC: Final = b"ARWITN02"
-    _LAYOUT: Final = struct.Struct("<8s16sQd")
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self._fd: int | None = None
-
-    def read(self) -> tuple[str, int, float] | bool | None:
-        """``(deployment, generation, wall)``, ``None`` if absent, ``False`` if unreadable."""
-        try:
-            raw = self.path.read_bytes()
-        except FileNotFoundError:
-            return None
-        except OSError:
-            return False
-        size = self._LAYOUT.size
-        if len(raw) < size + 16 or hashlib.sha256(raw[:size]).digest()[:16] != raw[size:][:16]:
-            return False
-        magic, deployment, generation, wall = self._LAYOUT.unpack_from(raw)
-        if magic != self.MAGIC:
-            return False
-        return uuid.UUID(bytes=deployment).hex, generation, wall
-
-    def write(self, deployment: str, generation: int, wall: float) -> None:
-        body = self._LAYOUT.pack(self.MAGIC, uuid.UUID(hex=deployment).bytes, generation, wall)
-        record = (body + hashlib.sha256(body).digest()[:16]).ljust(64, b"\0")
-        if self._fd is None:
-            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
-        os.pwrite(self._fd, record, 0)
-        os.fdatasync(self._fd)
-
-    def close(self) -> None:
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
-
-
 class SqliteStore:
     """The store contract on a SQLite file (WAL, synchronous commits, witness file)."""
 
     backend: Final = "sqlite"
 
     def __init__(
-        self, path: str | Path, *, timeout_s: float = 10.0, clock: Clock | None = None
+        self,
+        path: str | Path,
+        *,
+        timeout_s: float = 10.0,
+        clock: Clock | None = None,
+        anchor: StateAnchor | None = None,
     ) -> None:
         self.path = Path(path)
+        self.anchor = anchor
         self.path.parent.mkdir(parents=True, exist_ok=True)
         # A hidden name on purpose: ``rm state.db*`` must not take the witness with it.
         self.witness = Witness(self.path.with_name(f".{self.path.name}.witness"))
@@ -251,15 +213,25 @@ class SqliteStore:
             rows = db.execute("SELECT count(*) FROM seen").fetchone()[0]
             counters = db.execute("SELECT count(*) FROM counters").fetchone()[0]
             found = self.witness.read()
+            anchored = None if self.anchor is None else self.anchor.read()
             reason = _loss_reason(row, found, bool(rows or counters))
+            if reason is None and self.anchor is not None:
+                reason = anchor_reason(row, found, anchored)
             if row is None:
                 deployment = found[0] if isinstance(found, tuple) else uuid.uuid4().hex
+                if isinstance(anchored, Anchored):  # the deployment continues, fenced
+                    deployment = anchored.deployment
                 generation, watermark, fence, losses = 0, _FLOOR, _FLOOR, 0
             else:
                 deployment, generation, watermark, fence, losses = row
             if isinstance(found, tuple):
                 generation = max(generation, found[1])
                 self._wall_hw = max(self._wall_hw, found[2])
+            if isinstance(anchored, Anchored):
+                generation = max(generation, anchored.generation)
+                self._wall_hw = max(self._wall_hw, anchored.time)
+                if self.anchor is not None and self.anchor.lazy:  # commits since its last write
+                    fence = max(fence, anchored.time)
             if reason is not None:
                 fence = max(fence, self._clock.wall(), self._wall_hw)
                 losses += 1
@@ -291,6 +263,8 @@ class SqliteStore:
             self._wall_hw = max(self._wall_hw, self._clock.wall())
             written = True
             self.witness.write(self._deployment, generation, self._wall_hw)
+            if self.anchor is not None:
+                self.anchor.advance(self._deployment, generation, self._wall_hw)
             db.execute("COMMIT")
         except BaseException:
             with contextlib.suppress(sqlite3.Error):  # SQLite may have rolled back already
@@ -455,21 +429,35 @@ class SqliteStore:
     def advance(self, key: str, value: int) -> bool:
         """Compare-and-advance a counter; like a commit, it moves the generation and witness
         (so a restored copy of the counters is noticed too)."""
-        encoded = _codec.encode(value)
 
         def body(db: sqlite3.Connection) -> tuple[bool, _Meta]:
             meta = self._meta_checked(db)
-            if db.execute(_ADVANCE, (key, encoded)).rowcount == 1:
-                return True, meta
-            (held,) = db.execute("SELECT value FROM counters WHERE key = ?", (key,)).fetchone()
-            self._decode(key, held)  # refused: by a counter, never by something undecodable
-            return False, meta
-
-        def tx() -> bool:
-            return self._transaction(body)
+            return self._advance(db, key, value), meta
 
         with self._lock:
-            return self._run(tx)
+            return self._run(lambda: self._transaction(body))
+
+    def _advance(self, db: sqlite3.Connection, key: str, value: int) -> bool:
+        """Compare-and-advance inside the caller's transaction."""
+        if db.execute(_ADVANCE, (key, _codec.encode(value))).rowcount == 1:
+            return True
+        (held,) = db.execute("SELECT value FROM counters WHERE key = ?", (key,)).fetchone()
+        self._decode(key, held)  # refused: by a counter, never by something undecodable
+        return False
+
+    def forget(self, keys: Sequence[str], fence_key: str, fence: int) -> None:
+        """Raise counter ``fence_key`` to ``fence`` and delete the counters ``keys``, in one
+        transaction with :meth:`advance`'s loss detection (the fence itself is kept)."""
+        dropped = [(key,) for key in keys if key != fence_key]
+
+        def body(db: sqlite3.Connection) -> tuple[None, _Meta]:
+            meta = self._meta_checked(db)
+            self._advance(db, fence_key, fence)
+            db.executemany("DELETE FROM counters WHERE key = ?", dropped)
+            return None, meta
+
+        with self._lock:
+            self._run(lambda: self._transaction(body))
 
     def current(self, key: str) -> int | None:
         row = self._fetch("SELECT value FROM counters WHERE key = ?", (key,))
@@ -504,6 +492,8 @@ class SqliteStore:
         with self._lock:
             self._db.close()
             self.witness.close()
+            if self.anchor is not None:
+                self.anchor.close()
 
     def _fetch(self, sql: str, params: tuple[object, ...]) -> tuple[Any, ...] | None:
         def query(db: sqlite3.Connection) -> tuple[Any, ...] | None:
@@ -597,4 +587,30 @@ def _loss_reason(  # noqa: PLR0911 - one answer per row of the table in the docs
         return "database belongs to another deployment than its witness (replaced)"
     if meta[1] < witness[1]:
         return f"database generation {meta[1]} is behind its witness's {witness[1]} (rolled back)"
+    return None
+
+
+def anchor_reason(  # noqa: PLR0911 - one answer per anchor row of the docstring's table
+    meta: tuple[Any, ...] | None, witness: tuple[str, int, float] | bool | None, anchor: Read
+) -> str | None:
+    """Why a database its witness vouches for may still have lost state, by its anchor
+    (:mod:`antireplay.state.anchor`): what a restored copy of the whole directory shows."""
+    if anchor is False:
+        return "state anchor unreadable"
+    if anchor is None:
+        if meta is None and witness is None:
+            return None  # a new deployment, anchored from its first commit
+        return "no state anchor for existing state (the anchor was lost, or is new here)"
+    if meta is None:
+        return (
+            f"database and witness missing but the state anchor vouches for generation "
+            f"{anchor.generation} (deleted, or restored from before the anchor)"
+        )
+    if meta[0] != anchor.deployment:
+        return "database belongs to another deployment than its state anchor (replaced)"
+    if meta[1] < anchor.generation:
+        return (
+            f"database generation {meta[1]} is behind its state anchor's {anchor.generation} "
+            "(the state directory was restored from an older copy)"
+        )
     return None
