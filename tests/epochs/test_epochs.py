@@ -824,3 +824,60 @@ def test_a_store_that_loses_state_voids_the_answers(clock: ManualClock) -> None:
     with pytest.raises(MessageStaleError):  # the old nonce is void too
         verifier.open_answer(signer.answer(challenge))
     assert verifier.policy.answered == {}
+
+
+def _stored_counters(store: SqliteStore) -> dict[str, str]:
+    """Every counter the SQLite file holds (read-only, on a connection of its own)."""
+    db = sqlite3.connect(f"file:{store.path}?mode=ro", uri=True)
+    try:
+        return dict(db.execute("SELECT key, value FROM counters").fetchall())
+    finally:
+        db.close()
+
+
+def test_forgotten_prefixes_leave_no_counters_and_stay_refused(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """Many more authentic prefixes than the table holds: the store keeps a bounded number
+    of counters (the table's prefixes, their markers, the floor), and every forgotten
+    prefix's epoch is still refused, by this verifier and by one restarted on the file."""
+    table, senders = 4, 60
+    store = SqliteStore(tmp_path / "verifier.db", clock=clock)
+    verifier = EpochVerifier(PSK, store=store, clock=clock, max_prefixes=table)
+    sent = []
+    for _ in range(senders):
+        clock.advance(0.01)
+        sealed = EpochSigner(PSK, clock=clock).seal(b"hi")
+        verifier.open(sealed)
+        sent.append(sealed)
+    counters = _stored_counters(store)
+    assert len(counters) <= 3 * table + 1, sorted(counters)
+    assert "epoch:announcement:floor" in counters
+    for sealed in sent[:-table]:  # every forgotten prefix: refused, never accepted again
+        with pytest.raises(MessageStaleError):
+            verifier.open(sealed)
+    verifier.close()
+    store.close()
+    reopened = SqliteStore(tmp_path / "verifier.db", clock=clock)
+    restarted = EpochVerifier(PSK, store=reopened, clock=clock, max_prefixes=table)
+    for sealed in sent:
+        with pytest.raises(ReplayAttackError):
+            restarted.open(sealed)
+    assert _stored_counters(reopened).keys() == counters.keys()
+    reopened.close()
+
+
+def test_forget_persists_the_floor_before_the_table_moves(clock: ManualClock) -> None:
+    """Persist, then believe: a failed forget leaves the table holding the old prefix."""
+    verifier = verifier_on(clock, max_prefixes=1)
+    first, second = EpochSigner(PSK, clock=clock), EpochSigner(PSK, clock=clock)
+    held = verifier.open(first.seal(b"a")).nonce_prefix
+    clock.advance(1)
+
+    def down(keys: object, fence_key: str, fence: int) -> None:
+        raise StateUnavailableError("store down")
+
+    verifier.store.forget = down  # type: ignore[method-assign]
+    with pytest.raises(StateUnavailableError):
+        verifier.open(second.seal(b"b"))
+    assert verifier.last(held) is not None

@@ -155,6 +155,36 @@ def test_advance_race_highest_wins(store: ReplayStore) -> None:
     assert store.current("race") == 40
 
 
+def test_forget_raises_the_fence_and_drops_the_counters(store: ReplayStore) -> None:
+    """``forget``: the fence counter only rises, the named counters go (missing ones are
+    no-ops), the fence itself is never dropped, other counters stay."""
+    for key, value in (("p:a", 7), ("p:b", 9), ("p:keep", 3), ("p:floor", 5)):
+        assert store.advance(key, value)
+    store.forget(["p:a", "p:b", "p:missing", "p:floor"], "p:floor", 9)
+    assert [store.current(k) for k in ("p:a", "p:b", "p:missing")] == [None, None, None]
+    assert store.current("p:floor") == 9 and store.current("p:keep") == 3
+    store.forget(["p:keep"], "p:floor", 4)  # a lower fence never lowers it
+    assert store.current("p:floor") == 9 and store.current("p:keep") is None
+    store.forget([], "p:new", 2)  # a fence counter that did not exist yet
+    assert store.current("p:new") == 2
+
+
+def test_forget_racing_advances_keeps_the_highest_fence(store: ReplayStore) -> None:
+    values = list(range(1, 31))
+    random.Random(3).shuffle(values)
+    threads = [
+        threading.Thread(target=store.forget, args=([f"f:{v}"], "f:fence", v))
+        if v % 2
+        else threading.Thread(target=store.advance, args=("f:fence", v))
+        for v in values
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert store.current("f:fence") == 30
+
+
 def test_status_reports_the_backend_in_use(store: ReplayStore) -> None:
     store.commit("a", NOW + 30, NOW)
     status = store.status()
@@ -318,6 +348,26 @@ def test_sqlite_rolled_back_database_is_fenced(tmp_path: Path) -> None:
     store, cache = _sqlite_session(db, clock)
     assert store.loss_reason is not None and "rolled back" in store.loss_reason
     _assert_fenced(cache, "cmd", NOW - 1)
+
+
+def test_sqlite_forget_on_a_database_rolled_back_under_it_is_fenced(tmp_path: Path) -> None:
+    """``forget`` runs the loss detection of ``advance``: a live restore under a running
+    store raises the fence in the same step."""
+    clock, db = ManualClock(wall=NOW), tmp_path / "state.db"
+    store = SqliteStore(db, clock=clock)
+    store.advance("k", 1)
+    backup = sqlite3.connect(tmp_path / "backup.db")
+    with sqlite3.connect(db) as source:
+        source.backup(backup)
+    store.advance("k", 2)
+    with sqlite3.connect(db) as target:
+        backup.backup(target)  # restored under the running store
+    backup.close()
+    fence_before = store.fence()
+    store.forget(["k"], "floor", 3)
+    assert store.fence() > fence_before and store.data_loss_events == 1
+    assert store.current("k") is None and store.current("floor") == 3
+    store.close()
 
 
 def test_sqlite_database_of_another_deployment_is_fenced(tmp_path: Path) -> None:

@@ -219,6 +219,8 @@ class Admission:
     floor: int | None
     #: The prefix is new to the table (its successor's marker is due).
     new: bool
+    #: The prefix the commit evicts (its stored state is forgotten under ``floor``), or None.
+    evicted: bytes | None = None
 
 
 @dataclass
@@ -320,7 +322,7 @@ class EpochPolicy:
         except MessageStaleError as exc:
             return Refused(exc)
         floor = None if evicted is None else max(table.fence, table.mark(evicted) or -1)
-        return Admission(floor, claim.prefix not in table)
+        return Admission(floor, claim.prefix not in table, evicted)
 
     def commit(self, claim: Claim, digest: bytes) -> None:
         """Move the marks; the driver has persisted what :meth:`admit` asked for."""

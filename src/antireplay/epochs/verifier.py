@@ -9,7 +9,9 @@ restarted verifier, or another one on the same store, refuses everything accepte
 superseded.  A prefix's first accept also advances ``NAMESPACE:KIND:after:SUCCESSOR`` to
 the prefix: that is how a rotated sender is recognised (``EPOCH_SENDER_ROTATED``, counted,
 logged, audited once), even by a restarted verifier.  Evicting a prefix from the bounded
-table raises its fence, persisted as ``NAMESPACE:KIND:floor``.
+table raises its fence, persisted as ``NAMESPACE:KIND:floor`` in the same store step
+(``forget``) that deletes the prefix's counters: the store holds at most the table's
+prefixes (and their successor markers), and the floor refuses every epoch forgotten.
 
 **Persist, then believe.**  Every store write an accept needs (floor, successor marker,
 the epoch) happens before the policy moves any mark; a failed write leaves memory as it
@@ -226,7 +228,7 @@ class EpochVerifier:
         if admission.new and unseen:  # read before any write: a failed read changes nothing
             before = self._current(self._key(kind, "after:" + prefix.hex()))
         if admission.floor is not None:
-            self._write(self._key(kind, "floor"), admission.floor)
+            self._forget(kind, admission.evicted, admission.floor)
         if admission.new:
             self._write(self._key(kind, "after:" + successor_prefix(prefix).hex()),
                         int.from_bytes(prefix, "big"))  # fmt: skip
@@ -240,6 +242,19 @@ class EpochVerifier:
             self.rotations += 1
             self.warnings[WarningCode.EPOCH_SENDER_ROTATED] += 1
         return event
+
+    def _forget(self, kind: Kind, evicted: bytes | None, floor: int) -> None:
+        """Raise the floor and drop the evicted prefix's counters in one store step: its
+        epoch, the marker naming it and the marker it left for its successor (a rotation
+        to that successor is then no longer recognised; the floor refuses every epoch the
+        prefix had)."""
+        keys = [] if evicted is None else [
+            self._key(kind, name)
+            for name in (evicted.hex(), "after:" + evicted.hex(),
+                         "after:" + successor_prefix(evicted).hex())
+        ]  # fmt: skip
+        floor_key = self._key(kind, "floor")
+        self._store_op(lambda: self.store.forget(keys, floor_key, floor))
 
     def _current(self, key: str) -> int | None:
         return self._store_op(lambda: self.store.current(key))
