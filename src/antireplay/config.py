@@ -5,7 +5,8 @@ Theory of operation
 Every value is range-checked and strictly typed, and an unknown key is an error
 (:class:`~antireplay.core.errors.ConfigError` names the dotted key, the value and
 what is allowed), never a silent default; the store spec is checked by the one
-grammar (:meth:`~antireplay.state.StoreSpec.parse`).  The ``security:`` block and the YAML
+grammar (:meth:`~antireplay.state.StoreSpec.parse`); ``state.anchor`` (a SQLite store's
+anchor outside its directory) is refused with any other store.  The ``security:`` block and the YAML
 reader live in :mod:`antireplay.core.settings` (the window policy reads them);
 they are re-exported here.  Only :mod:`antireplay.wiring` and the adapters read
 this object; it is never handed to a core.
@@ -16,13 +17,28 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from antireplay.core.errors import ConfigError
 from antireplay.core.settings import ALLOWED, SecurityConfig, load_yaml, unknown_key
 from antireplay.state.spec import StoreSpec
 
-__all__ = ["ALLOWED", "AppConfig", "JwtConfig", "KeyConfig", "SecurityConfig", "load_yaml"]
+__all__ = [
+    "ALLOWED",
+    "AnchorConfig",
+    "AppConfig",
+    "JwtConfig",
+    "KeyConfig",
+    "SecurityConfig",
+    "load_yaml",
+]
 
 
 class KeyConfig(BaseModel):
@@ -50,6 +66,36 @@ class JwtConfig(BaseModel):
     leeway_s: float = Field(default=0.0, ge=0, le=300)
 
 
+class AnchorConfig(BaseModel):
+    """``state.anchor``: where the SQLite store's anchor lives, outside its directory
+    (:mod:`antireplay.state.anchor`): a file on another volume, a Redis URL, or both."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    path: str | None = Field(default=None, min_length=1)
+    redis: str | None = None
+    every_ms: int = Field(default=0, ge=0, le=60_000)  # 0: every commit; else a lease
+
+    @field_validator("redis")
+    @classmethod
+    def _redis_url(cls, value: str | None) -> str | None:
+        if value is not None and StoreSpec.parse(value, "state.anchor.redis").backend != "redis":
+            raise ConfigError("state.anchor.redis", value, "a redis://, rediss:// or unix:// URL")
+        return value
+
+    @property
+    def configured(self) -> bool:
+        return self.path is not None or self.redis is not None
+
+
+class StateConfig(BaseModel):
+    """``state:``: what keeps the replay state honest beyond the store itself."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    anchor: AnchorConfig = Field(default_factory=AnchorConfig)
+
+
 class AppConfig(BaseModel):
     """The whole gateway configuration file; ``security:`` is the §8.3 block."""
 
@@ -57,6 +103,7 @@ class AppConfig(BaseModel):
 
     security: SecurityConfig = Field(default_factory=SecurityConfig)
     store: str = "sqlite:.antireplay/state.db"
+    state: StateConfig = Field(default_factory=StateConfig)
     audit: str = ".antireplay/audit.db"
     keys: list[KeyConfig] = Field(default_factory=list)
     sdk_compat: bool = False
@@ -71,6 +118,16 @@ class AppConfig(BaseModel):
     def _store_spec(cls, value: str) -> str:
         StoreSpec.parse(value)  # the one grammar; its ConfigError names what is allowed
         return value
+
+    @model_validator(mode="after")
+    def _anchor_backend(self) -> AppConfig:
+        backend = StoreSpec.parse(self.store).backend
+        if self.state.anchor.configured and backend != "sqlite":
+            raise ConfigError(
+                "state.anchor", self.state.anchor.model_dump(exclude_defaults=True),
+                f"only with a sqlite store (store is {backend}: it has no directory to restore)",
+            )  # fmt: skip
+        return self
 
     @classmethod
     def from_mapping(cls, data: dict[str, Any]) -> AppConfig:

@@ -9,7 +9,10 @@ replay state, load the keys, open the audit trail, then build the adapter on the
   from :class:`~antireplay.config.AppConfig`: the key registry
   (:func:`build_registry`), the JWT verifier when configured, the store (bounded and
   skewed as ``security`` says) checked for data loss at boot (``verify()``: a store
-  that is down now is noticed on the first commit instead), and the audit trail.
+  that is down now is noticed on the first commit instead), with its anchor outside the
+  state directory when ``state.anchor`` names one (:func:`build_anchor`;
+  :func:`anchor_warnings` says what a snapshot restore re-opens without it), and the
+  audit trail.
 * :func:`build_mavlink_router` builds the MAVLink router from the ``mavlink-router``
   options on an opened store and audit trail: its endpoints, an inbound guard per
   key (bound to ``system_id``), the outbound guard, each on its own store prefix
@@ -61,7 +64,8 @@ from antireplay.rcan.auth import (
     write_key_pair,
 )
 from antireplay.rcan.receive import Receiver
-from antireplay.state import ReplayStore, open_store
+from antireplay.state import ReplayStore, StoreSpec, open_store
+from antireplay.state.anchor import StateAnchor
 
 if TYPE_CHECKING:
     from prometheus_client.core import Metric
@@ -126,6 +130,7 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
         clock=clock,
         max_entries=config.security.msg_id_cache_size,
         skew_s=config.security.skew_s,
+        anchor=build_anchor(config),
     )
     with contextlib.suppress(StateUnavailableError):  # down now: noticed on the first commit
         store.verify()  # loss detection at boot, not on the first command
@@ -140,6 +145,67 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
         versions=frozenset(config.versions),
         max_bytes=config.max_body_bytes,
     )
+
+
+def build_anchor(config: AppConfig) -> StateAnchor | None:
+    """The SQLite store's anchor outside its directory (``state.anchor``), if configured."""
+    anchor = config.state.anchor
+    if not anchor.configured:
+        return None
+    return StateAnchor(
+        StoreSpec.parse(config.store).target,
+        path=anchor.path,
+        redis_url=anchor.redis,
+        every_s=anchor.every_ms / 1000,
+    )
+
+
+def anchor_summary(config: AppConfig) -> str:
+    """What guards the store against a restored copy, for the startup line."""
+    anchor = config.state.anchor
+    if StoreSpec.parse(config.store).backend != "sqlite":
+        return ""
+    if not anchor.configured:
+        return "no state anchor, "
+    places = [
+        p for p in (anchor.path, anchor.redis and StoreSpec.parse(anchor.redis).redacted()) if p
+    ]
+    lazy = f" every {anchor.every_ms} ms" if anchor.every_ms else ""
+    return f"anchor {' + '.join(places)}{lazy}, "
+
+
+def anchor_warnings(config: AppConfig) -> list[str]:
+    """What a snapshot restore could re-open with this configuration (``config check``,
+    ``serve``): a SQLite store without an anchor, or an anchor file beside the state."""
+    spec = StoreSpec.parse(config.store)
+    if spec.backend != "sqlite":
+        return []
+    anchor, window = config.state.anchor, config.security.replay_window_s
+    if not anchor.configured:
+        return [
+            f"store {config.store} has no state anchor (state.anchor): restoring a snapshot "
+            f"or backup of its directory within replay_window_s ({window:g} s) of a command "
+            "re-opens that command's replay (deleting or restoring the database alone is "
+            "detected)"
+        ]
+    if anchor.path is not None and _same_volume(Path(anchor.path), Path(spec.target)):
+        return [
+            f"state.anchor.path {anchor.path} is on the same filesystem as {spec.target}: "
+            "a snapshot of that volume restores both, which the anchor cannot notice"
+        ]
+    return []
+
+
+def _same_volume(one: Path, other: Path) -> bool:
+    """Both paths' nearest existing directories are on one filesystem."""
+
+    def device(path: Path) -> int:
+        for parent in (path.absolute(), *path.absolute().parents):
+            if parent.exists():
+                return parent.stat().st_dev
+        return -1
+
+    return device(one) == device(other)
 
 
 def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:

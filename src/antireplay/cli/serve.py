@@ -73,14 +73,15 @@ def serve(  # noqa: PLR0917 - one option per knob
 ) -> None:
     """Run the HTTP gateway (embedded default without --config).
 
-    Prints one line once it listens: "listening on http(s)://HOST:PORT (store ..., audit
-    ...)"; GET /healthz is liveness, GET /readyz readiness (store and audit)."""
+    Prints one line once it listens: "listening on http(s)://HOST:PORT (store ..., anchor
+    ..., audit ...)" ("no state anchor" and a warning for a SQLite store without one);
+    GET /healthz is liveness, GET /readyz readiness (store and audit)."""
     import socket  # noqa: PLC0415
 
     import uvicorn  # noqa: PLC0415
     from uvicorn.config import LOGGING_CONFIG  # noqa: PLC0415
 
-    from antireplay.wiring import create_app  # noqa: PLC0415
+    from antireplay.wiring import anchor_summary, anchor_warnings, create_app  # noqa: PLC0415
 
     if (ssl_certfile is None) != (ssl_keyfile is None):
         raise click.UsageError("give --ssl-certfile and --ssl-keyfile together")
@@ -117,8 +118,11 @@ def serve(  # noqa: PLR0917 - one option per knob
     where = f"[{host}]" if family == socket.AF_INET6 else host
     click.echo(
         f"listening on {scheme}://{where}:{bound} "
-        f"(store {StoreSpec.parse(config.store).redacted()}, audit {config.audit})"
+        f"(store {StoreSpec.parse(config.store).redacted()}, {anchor_summary(config)}"
+        f"audit {config.audit})"
     )
+    for warning in anchor_warnings(config):
+        click.echo(f"antireplay: warning: {warning}", err=True)
     uvicorn.Server(settings).run(sockets=[sock])
 
 
@@ -177,6 +181,10 @@ def config_check(path: Path, verbose: bool) -> None:
     if not cfg.keys:
         click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
                    "so every command will be refused", err=True)  # fmt: skip
+    from antireplay.wiring import anchor_warnings  # noqa: PLC0415
+
+    for warning in anchor_warnings(cfg):
+        click.echo(f"antireplay: warning: {warning}", err=True)
     click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
 
 
