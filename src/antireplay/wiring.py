@@ -152,6 +152,8 @@ def build_anchor(config: AppConfig) -> StateAnchor | None:
     anchor = config.state.anchor
     if not anchor.configured:
         return None
+    if anchor.path is not None and not Path(anchor.path).parent.is_dir():  # not mounted?
+        raise ConfigError("state.anchor.path", anchor.path, "a file in an existing directory")
     return StateAnchor(
         StoreSpec.parse(config.store).target,
         path=anchor.path,

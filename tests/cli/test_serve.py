@@ -3,6 +3,7 @@ files, and a check that opens the store as ``serve`` would."""
 
 from __future__ import annotations
 
+import shutil
 import socket
 import sqlite3
 import subprocess
@@ -13,11 +14,12 @@ import pytest
 import yaml
 from click.testing import CliRunner, Result
 
+from antireplay.audit import AuditLog
 from antireplay.cli import main
 from antireplay.cli._common import importable_cwd
-from antireplay.cli.demo import write_demo_config
+from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import one_line_error
+from tests.harness import GatewayProcess, metric, one_line_error, post
 
 
 def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(
@@ -105,3 +107,88 @@ def test_a_state_file_whose_meta_does_not_decode_refuses_serve_and_config_check(
     lines = served.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith("antireplay: error: "), served.stderr
     assert str(db) in lines[0] and "mv " in lines[0]
+
+
+def _restore_after_accepting(tmp_path: Path, anchor: dict[str, object] | None) -> tuple[int, str]:
+    """Gateway A accepts a command, then X; the whole state directory is copied between
+    the two (a VM snapshot, a backup) and restored after A stopped; gateway B, a new
+    ``antireplay serve`` on the restored directory, is sent X again.  Returns B's answer
+    to X and what B said on stderr."""
+    state, snapshot = tmp_path / "state", tmp_path / "snapshot"
+    state.mkdir()
+    config = write_demo_config(state)
+    if anchor is not None:
+        written = yaml.safe_load(config.read_text())
+        config.write_text(yaml.safe_dump({**written, "state": {"anchor": anchor}}))
+    key = load_operator_key(state)
+    a = GatewayProcess(config)
+    a.start()
+    try:
+        assert post(a, command(key)).status_code == 200
+        shutil.copytree(state, snapshot)  # everything in it: database, WAL, witness, audit
+        x = command(key)
+        assert post(a, x).status_code == 200
+    finally:
+        a.stop()
+    shutil.rmtree(state)
+    shutil.copytree(snapshot, state)
+    b = GatewayProcess(config)
+    b.start()
+    try:
+        replay = post(b, x)
+        estop = post(b, command(key, type=6, safety_event="ESTOP", cmd="estop"))
+        assert estop.status_code == 200, estop.text  # a fresh ESTOP passes whatever else
+        losses = metric(b, "antireplay_state_data_loss_total", '{backend="sqlite"}')
+    finally:
+        b.stop()
+    codes = [r.code for r in AuditLog(state / "audit.db").tail(50)]
+    assert (losses == 1) is (anchor is not None) and ("STATE_LOST" in codes) is (losses == 1)
+    return replay.status_code, b.stderr_text or ""
+
+
+def test_a_restored_state_directory_is_fenced_by_its_anchor(tmp_path: Path) -> None:
+    """With ``state.anchor`` on another path (volume), the restored copy is behind its
+    anchor: B refuses the replay (the loss fence), audits STATE_LOST and counts it."""
+    (tmp_path / "other-volume").mkdir()
+    anchor = str(tmp_path / "other-volume" / "state.anchor")
+    status, said = _restore_after_accepting(tmp_path, {"path": anchor})
+    assert status == 408, said
+    assert "behind its state anchor" in said
+
+
+def test_without_an_anchor_a_restored_state_directory_reopens_the_replay(
+    tmp_path: Path,
+) -> None:
+    """The documented limitation, shown: without an anchor the restored directory agrees
+    with itself and B accepts X again; the startup says so (and config check warns)."""
+    status, said = _restore_after_accepting(tmp_path, None)
+    assert status == 200
+    assert "no state anchor" in said and "replay_window_s (30 s)" in said, said
+    checked = CliRunner().invoke(
+        main, ["config", "check", str(tmp_path / "state" / "antireplay.yaml")]
+    )
+    assert checked.exit_code == 0, checked.output
+    assert "no state anchor" in checked.stderr and "re-opens" in checked.stderr
+
+
+def test_config_check_names_the_anchor_and_refuses_a_bad_one(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An anchor passes without the no-anchor warning (one on the state's own filesystem
+    is warned about); an unknown key under it, a memory store or a directory that is not
+    there (a volume not mounted) fails with one line."""
+    other = tmp_path / "other"
+    other.mkdir()
+    said = config_check(
+        tmp_path, monkeypatch,
+        f"store: sqlite:state.db\naudit: audit.db\nstate:\n  anchor:\n    path: {other}/a\n",
+    )  # fmt: skip
+    assert said.exit_code == 0, said.output
+    assert "no state anchor" not in said.stderr and "same filesystem" in said.stderr
+    for bad, needle in (
+        ("state:\n  anchor:\n    pth: a\n", "state.anchor.path"),
+        ("store: memory\nstate:\n  anchor:\n    path: a\n", "only with a sqlite store"),
+        ("state:\n  anchor:\n    path: /not/mounted/a\n", "an existing directory"),
+    ):
+        said = config_check(tmp_path, monkeypatch, bad)
+        one_line_error(said, needle)

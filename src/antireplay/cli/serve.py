@@ -170,10 +170,15 @@ def config() -> None:
 def config_check(path: Path, verbose: bool) -> None:
     """Validate a YAML config: everything serve checks (keys, store, audit), and that an
     HTTP upstream answers a connection."""
+    from antireplay.wiring import anchor_warnings, build_anchor  # noqa: PLC0415
+
     try:
         cfg = AppConfig.from_yaml(path)
+        anchor = build_anchor(cfg)
     except ConfigError as exc:
         _fail(str(exc))
+    if anchor is not None:
+        anchor.close()
     preflight(cfg)
     _probe_upstream(cfg.upstream, cfg.upstream_timeout_s)
     if verbose:
@@ -181,8 +186,6 @@ def config_check(path: Path, verbose: bool) -> None:
     if not cfg.keys:
         click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
                    "so every command will be refused", err=True)  # fmt: skip
-    from antireplay.wiring import anchor_warnings  # noqa: PLC0415
-
     for warning in anchor_warnings(cfg):
         click.echo(f"antireplay: warning: {warning}", err=True)
     click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
