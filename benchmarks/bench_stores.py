@@ -11,7 +11,12 @@ commit) on the store its config names, opened by ``open_store`` as the gateway o
 * ``redis://`` on a real redis-server, beside a **bare redis-py** ``SET key 1 NX PX``
   on the same server (our commit is one script call: identity check, duplicate test,
   record);
-* ``memory`` (no baseline client; see ``bench_window`` for its baseline).
+* ``memory`` (no baseline client; see ``bench_window`` for its baseline);
+* the same SQLite commit with a **state anchor** (:mod:`antireplay.state.anchor`) written
+  in every commit (a file: one more 64-byte ``pwrite`` + ``fdatasync``; a Redis key: one
+  ``GET``-free ``SET``), and written lazily (a file, ``every_s=0.5``: at most two writes a
+  second), each against the SQLite commit without one (here on the same disk; in
+  production the anchor file is on another volume).
 
 Each store holds ``LIVE`` entries before the timing.  Batches are interleaved (batch r
 of every contender before batch r + 1 of any) and the figures are medians.
@@ -32,6 +37,7 @@ from tests.harness.redis_server import RedisServer
 
 from antireplay import ManualClock, ReplayCache
 from antireplay.state import open_store
+from antireplay.state.anchor import StateAnchor
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
 from benchmarks._timing import Batch, interleaved_ns_per_op, rate
@@ -57,8 +63,8 @@ class Stamps:
         self.clock = ManualClock(wall=self.t0)
         self._next = count()
 
-    def open(self, spec: str) -> ReplayCache:
-        store = open_store(spec, clock=self.clock, max_entries=CAPACITY)
+    def open(self, spec: str, anchor: StateAnchor | None = None) -> ReplayCache:
+        store = open_store(spec, clock=self.clock, max_entries=CAPACITY, anchor=anchor)
         if isinstance(store, RedisStore):  # first contact (it fences), before the clock moves on
             quiet = logging.getLogger("antireplay.state.redis")
             quiet.disabled = True  # its "lost or replaced our replay state" is expected here
@@ -140,22 +146,38 @@ def main() -> None:
         server.start()
         try:
             stamps = Stamps()
+            (Path(tmp) / "anchors").mkdir()
+
+            def anchored(
+                name: str, redis_url: str | None = None, every_s: float = 0.0
+            ) -> ReplayCache:
+                db, file = Path(tmp) / f"{name}.db", Path(tmp) / "anchors" / name
+                where = {"redis_url": redis_url} if redis_url else {"path": file}
+                return stamps.open(f"sqlite:{db}", StateAnchor(db, every_s=every_s, **where))
+
             caches = {
                 "sqlite": stamps.open(f"sqlite:{Path(tmp) / 'state.db'}"),
+                "anchor-file": anchored("af"),
+                "anchor-redis": anchored("ar", server.url),
+                "anchor-lazy": anchored("al", every_s=0.5),
                 "redis": stamps.open(server.url),
                 "memory": stamps.open("memory"),
             }
             stamps.start()
             for name, cache in caches.items():
                 fill(name, cache, stamps)
+            sqlite_like = ["sqlite", "anchor-file", "anchor-redis", "anchor-lazy"]
             contenders = [
-                (ours(caches["sqlite"], stamps, "sq", BATCH["sqlite"]), BATCH["sqlite"]),
+                *(
+                    (ours(caches[n], stamps, n, BATCH["sqlite"]), BATCH["sqlite"])
+                    for n in sqlite_like
+                ),
                 (bare_sqlite(Path(tmp) / "bare.db", BATCH["sqlite"]), BATCH["sqlite"]),
                 (ours(caches["redis"], stamps, "rd", BATCH["redis"]), BATCH["redis"]),
                 (bare_redis(server.url, BATCH["redis"]), BATCH["redis"]),
                 (ours(caches["memory"], stamps, "mm", BATCH["memory"]), BATCH["memory"]),
             ]
-            sq, sq_bare, rd, rd_bare, mem = interleaved_ns_per_op(contenders, REPEATS)
+            sq, af, ar, al, sq_bare, rd, rd_bare, mem = interleaved_ns_per_op(contenders, REPEATS)
             for cache in caches.values():
                 assert cache.refusals.total() == 0, cache.refusals
                 cache.store.close()
@@ -164,6 +186,9 @@ def main() -> None:
     print(f"{LIVE:,} live entries per store; medians of {REPEATS} interleaved batches")
     rows = [
         ("sqlite: ReplayCache.commit (gateway path)", sq),
+        ("sqlite + anchor file, every commit", af),
+        ("sqlite + anchor Redis key, every commit", ar),
+        ("sqlite + anchor file, lazy (every_s=0.5)", al),
         ("sqlite: bare insert, WAL, sync=FULL (baseline)", sq_bare),
         ("redis: ReplayCache.commit (gateway path)", rd),
         ("redis: bare redis-py SET NX PX (baseline)", rd_bare),
@@ -172,6 +197,8 @@ def main() -> None:
     for name, ns in rows:
         print(f"{name:<48} {ns:>12,.0f} ns {rate(ns)}")
     print(f"sqlite: gateway path / bare insert: {sq / sq_bare:.2f}x")
+    for name, ns in (("file", af), ("Redis key", ar), ("file, lazy", al)):
+        print(f"sqlite: with anchor ({name}) / without: {ns / sq:.2f}x")
     print(f"redis:  gateway path / bare SET NX PX: {rd / rd_bare:.2f}x")
 
 
