@@ -180,7 +180,8 @@ def test_serve_says_where_it_listens_over_tls_with_access_log_and_a_local_upstre
         prefix = "listening on https://127.0.0.1:"
         assert line.startswith(prefix), (line, proc.stderr.read() if proc.poll() else "")
         port = int(line[len(prefix) :].split()[0])
-        assert line.endswith(f"(store sqlite:{tmp_path}/state.db, audit {tmp_path}/audit.db)")
+        store = f"store sqlite:{tmp_path}/state.db, no state anchor"
+        assert line.endswith(f"({store}, audit {tmp_path}/audit.db)")
         with httpx.Client(base_url=f"https://127.0.0.1:{port}", verify=trusting(cert)) as http:
             until("readiness", lambda: http.get("/readyz").status_code == 200)
             raw = command(load_operator_key(tmp_path))
