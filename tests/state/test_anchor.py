@@ -45,6 +45,17 @@ def session(tmp_path: Path, clock: ManualClock, anchor: StateAnchor | None) -> R
     return ReplayCache(clock=clock, store=store)
 
 
+def restarted(
+    tmp_path: Path, clock: ManualClock, make_anchor: MakeAnchor, between: Callable[[], object]
+) -> ReplayCache:
+    """Accept X, stop, do ``between`` to the state directory, start again."""
+    cache = session(tmp_path, clock, make_anchor())
+    cache.commit("X", NOW - 1)
+    cache.store.close()
+    between()
+    return session(tmp_path, clock, make_anchor())
+
+
 def accept_then_restore(
     tmp_path: Path, clock: ManualClock, make_anchor: MakeAnchor, every_s: float = 0.0
 ) -> ReplayCache:
@@ -89,10 +100,7 @@ def test_a_clean_restart_on_an_exact_anchor_raises_no_fence(
     tmp_path: Path, make_anchor: MakeAnchor
 ) -> None:
     clock = ManualClock(wall=NOW)
-    cache = session(tmp_path, clock, make_anchor())
-    cache.commit("a", NOW - 1)
-    cache.store.close()
-    cache = session(tmp_path, clock, make_anchor())
+    cache = restarted(tmp_path, clock, make_anchor, lambda: None)
     assert cache.store.status()["data_loss_events"] == 0
     assert cache.store.fence() == float("-inf")
     assert cache.commit("b", NOW - 0.5).warning is None
@@ -104,11 +112,7 @@ def test_state_deleted_with_its_witness_is_a_loss_when_anchored(
 ) -> None:
     """Without an anchor, ``rm -r`` of the directory looks like a new deployment."""
     clock = ManualClock(wall=NOW)
-    cache = session(tmp_path, clock, make_anchor())
-    cache.commit("X", NOW - 1)
-    cache.store.close()
-    shutil.rmtree(tmp_path / "state")
-    cache = session(tmp_path, clock, make_anchor())
+    cache = restarted(tmp_path, clock, make_anchor, lambda: shutil.rmtree(tmp_path / "state"))
     assert "database and witness missing" in str(getattr(cache.store, "loss_reason", ""))
     assert_fenced(cache, "X", NOW - 1)
     cache.store.close()
