@@ -192,3 +192,15 @@ def test_config_check_names_the_anchor_and_refuses_a_bad_one(
     ):
         said = config_check(tmp_path, monkeypatch, bad)
         one_line_error(said, needle)
+
+
+def test_an_unreachable_redis_anchor_fails_serve_and_config_check_with_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Without its anchor the store cannot run its open-time loss check: no start."""
+    config = write_demo_config(tmp_path)
+    written = yaml.safe_load(config.read_text())
+    anchor = {"state": {"anchor": {"redis": "redis://127.0.0.1:1/0"}}}
+    config.write_text(yaml.safe_dump({**written, **anchor}))
+    for args in (["config", "check", str(config)], ["serve", "--config", str(config)]):
+        one_line_error(CliRunner().invoke(main, args), "state anchor", "127.0.0.1:1")

@@ -17,7 +17,7 @@ from rich.table import Table
 
 from antireplay.cli.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.config import AppConfig
-from antireplay.core.errors import ConfigError
+from antireplay.core.errors import ConfigError, StateUnavailableError
 from antireplay.state import StoreSpec
 
 if TYPE_CHECKING:
@@ -93,6 +93,8 @@ def serve(  # noqa: PLR0917 - one option per knob
         _fail(str(exc))
     except sqlite3.DatabaseError as exc:
         _fail(f"{config.audit} or {config.store}: {exc}")
+    except StateUnavailableError as exc:  # the state anchor cannot be read: no loss check
+        _fail(str(exc))
     log_config: dict[str, Any] = json.loads(json.dumps(LOGGING_CONFIG))  # a deep copy
     log_config["loggers"]["uvicorn.error"]["level"] = "WARNING"
     settings = uvicorn.Config(
@@ -175,10 +177,13 @@ def config_check(path: Path, verbose: bool) -> None:
     try:
         cfg = AppConfig.from_yaml(path)
         anchor = build_anchor(cfg)
-    except ConfigError as exc:
+        if anchor is not None:
+            try:
+                anchor.read()  # reaches it, read-only, as serve's open-time loss check does
+            finally:
+                anchor.close()
+    except (ConfigError, StateUnavailableError) as exc:
         _fail(str(exc))
-    if anchor is not None:
-        anchor.close()
     preflight(cfg)
     _probe_upstream(cfg.upstream, cfg.upstream_timeout_s)
     if verbose:

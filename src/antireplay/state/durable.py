@@ -22,6 +22,9 @@ state files.
   image) and is refused.  Restoring *both* files together cannot be detected
   locally; epochs anchored to wall time (see :mod:`antireplay.epochs`) still
   bound the damage.
+* **Witness records.**  :class:`Witness` is the other shape: one 64-byte checksummed
+  record (deployment, generation, time) rewritten in place and ``fdatasync``-ed, for
+  writes too frequent for a rename (a SQLite store's witness, a state anchor file).
 * **Refuse, never reset.** Any problem raises
   :class:`~antireplay.core.errors.StateFileError`, which names the file and the
   recovery command, ``antireplay state repair PATH``.  That includes a file
