@@ -227,11 +227,12 @@ class SqliteStore:
             if isinstance(found, tuple):
                 generation = max(generation, found[1])
                 self._wall_hw = max(self._wall_hw, found[2])
-            if isinstance(anchored, Anchored):
+            if isinstance(anchored, Anchored) and self.anchor is not None:
                 generation = max(generation, anchored.generation)
-                self._wall_hw = max(self._wall_hw, anchored.time)
-                if self.anchor is not None and self.anchor.lazy:  # commits since its last write
+                if self.anchor.lazy:  # a lease: commits since its last write came before it
                     fence = max(fence, anchored.time)
+                else:  # the last commit's time
+                    self._wall_hw = max(self._wall_hw, anchored.time)
             if reason is not None:
                 fence = max(fence, self._clock.wall(), self._wall_hw)
                 losses += 1
