@@ -1,17 +1,23 @@
-"""The Redis store: what it tells an operator when it notices a loss."""
+"""The Redis store: what it tells an operator when it notices a loss, and the losses only
+Redis can cause (eviction under a policy put back, a REPLICAOF round trip, a server clock
+step forward), each staged on real redis-server processes and replayed to two replicas."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import uuid
+from collections.abc import Iterator
 from functools import partial
+from pathlib import Path
 
 import pytest
 import redis
 
-from antireplay import ManualClock
+from antireplay import ManualClock, MessageStaleError, ReplayCache
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.state.redis import RedisStore
+from tests.harness.redis_server import RedisServer, wait_replicated
 from tests.harness.stores import assert_fenced, fresh_deployment, redis_replicas
 
 NOW = 2_000_000_000.0  # 2033: after any Redis server's real time in these tests
@@ -80,3 +86,108 @@ def test_an_undecodable_entry_is_503_naming_the_key(redis_url: str) -> None:
             op()
         assert redis_url in err.value.reason and store.msg_key("cmd") in err.value.reason
     store.close()
+
+
+@pytest.fixture
+def server(tmp_path: Path) -> Iterator[RedisServer]:
+    """A redis-server of this test's own (its configuration, role and clock get changed)."""
+    started = RedisServer(tmp_path, stepped_clock=True)
+    started.start()
+    yield started
+    started.stop()
+
+
+def _losses(*caches: ReplayCache) -> int:
+    return sum(int(c.store.status()["data_loss_events"]) for c in caches)
+
+
+def test_an_eviction_under_a_policy_put_back_is_fenced_on_every_replica(
+    server: RedisServer,
+) -> None:
+    """Our entries are the only keys with a TTL: ``volatile-ttl`` and a low ``maxmemory``
+    evict them first; with ``noeviction`` and no limit put back, the policy check passes,
+    ``meta`` survived, and only the server's eviction count tells."""
+    clock = ManualClock(wall=NOW)
+    a, b = redis_replicas(server.url, 2, clock)
+    fresh_deployment(a, clock)
+    captured = clock.wall()
+    a.commit("cmd", captured)
+    raw = server.client()
+    used = int(raw.info("memory")["used_memory"])
+    raw.config_set("maxmemory-policy", "volatile-ttl")
+    raw.config_set("maxmemory", str(used + 256 * 1024))
+    assert isinstance(a.store, RedisStore)
+    entry = a.store.msg_key("cmd")
+    for i in range(10_000):  # fill (keys without TTL) until Redis evicts our entry
+        if not raw.exists(entry):
+            break
+        with contextlib.suppress(redis.OutOfMemoryError):  # nothing more it may evict
+            raw.set(f"filler:{i}", "x" * 4096)
+    assert not raw.exists(entry) and raw.exists(f"{a.store.msg_key('')[:-2]}meta")
+    raw.config_set("maxmemory", "0")
+    raw.config_set("maxmemory-policy", "noeviction")
+    clock.advance(1)
+    assert_fenced(b, "cmd", captured)  # the other replica, first
+    assert_fenced(a, "cmd", captured)  # and the one that accepted it
+    assert _losses(a, b) == 2  # the first contact, then the eviction
+    assert b.store.status()["data_loss_events"] == 1
+    assert "evicted" in str(getattr(b.store, "loss_reason", ""))
+
+
+def test_a_replicaof_round_trip_is_fenced_on_every_replica(
+    server: RedisServer, tmp_path: Path
+) -> None:
+    """The server copies another master's older data set (REPLICAOF there) and is made a
+    master again: the same process (``run_id``), a new replication history."""
+    (tmp_path / "other").mkdir()
+    other = RedisServer(tmp_path / "other")
+    other.start()
+    try:
+        clock = ManualClock(wall=NOW)
+        a, b = redis_replicas(server.url, 2, clock)
+        fresh_deployment(a, clock)
+        a.commit("synced", clock.wall())
+        other.client().replicaof("127.0.0.1", server.port)
+        wait_replicated(server, other)  # the other holds our meta, and "synced"
+        other.client().replicaof("no", "one")
+        captured = clock.wall()
+        a.commit("cmd", captured)  # the other never sees this
+        run_id = server.client().info("server")["run_id"]
+        server.client().replicaof("127.0.0.1", other.port)  # takes the other's data set ...
+        wait_replicated(other, server)
+        server.client().replicaof("no", "one")  # ... and is a master again
+        assert server.client().info("server")["run_id"] == run_id
+        clock.advance(1)
+        assert_fenced(b, "cmd", captured)
+        assert_fenced(a, "cmd", captured)
+        assert _losses(a, b) == 2  # the first contact, then the round trip
+    finally:
+        other.stop()
+
+
+def test_a_server_clock_step_forward_never_reopens_what_expired_early(
+    server: RedisServer,
+) -> None:
+    """The server's wall clock jumps an hour ahead: Redis expires our entry early.  The next
+    operation (any replica) sees the server ahead of its own clock beyond skew and keeps the
+    watermark in Redis, counted as a loss: once the clock is stepped back, the copy of the
+    command is still refused, by every replica."""
+    real = float(server.client().time()[0])
+    clock = ManualClock(wall=real)
+    a, b = redis_replicas(server.url, 2, clock)
+    fresh_deployment(a, clock)
+    captured = clock.wall()
+    a.commit("cmd", captured)
+    assert isinstance(a.store, RedisStore)
+    server.step_clock(3600)
+    assert not server.client().exists(a.store.msg_key("cmd"))  # expired, an hour early
+    with pytest.raises(MessageStaleError):  # fail closed while the server runs ahead
+        b.commit("other", clock.wall())
+    server.step_clock(0)
+    clock.advance(1)
+    for replica in (b, a):
+        with pytest.raises(MessageStaleError) as err:
+            replica.commit("cmd", captured)
+        assert err.value.detail == "watermark"
+    assert _losses(a, b) == 2  # the first contact, then the clock step
+    assert "clock" in str(getattr(b.store, "loss_reason", ""))
