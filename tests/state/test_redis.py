@@ -13,11 +13,15 @@ from pathlib import Path
 
 import pytest
 import redis
+import yaml
 
 from antireplay import ManualClock, MessageStaleError, ReplayCache
+from antireplay.audit import tail
+from antireplay.cli.demo import write_demo_config
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.state.redis import RedisStore
-from tests.harness.redis_server import RedisServer, wait_replicated
+from tests.harness import accepted_fresh, data_losses, post_after_cut, reencoded, serving
+from tests.harness.redis_server import RedisCluster, RedisServer, wait_replicated
 from tests.harness.stores import assert_fenced, fresh_deployment, redis_replicas
 
 NOW = 2_000_000_000.0  # 2033: after any Redis server's real time in these tests
@@ -97,6 +101,25 @@ def server(tmp_path: Path) -> Iterator[RedisServer]:
     started.stop()
 
 
+def _evict_every_entry(server: RedisServer) -> None:
+    """``volatile-ttl`` and a low ``maxmemory``; fill (keys without TTL) until Redis has
+    evicted every key with a TTL (our entries, and only them); then ``noeviction`` and no
+    limit again, as if nothing had happened."""
+    raw = server.client()
+    used = int(raw.info("memory")["used_memory"])
+    raw.config_set("maxmemory-policy", "volatile-ttl")
+    raw.config_set("maxmemory", str(used + 256 * 1024))
+    for i in range(10_000):
+        if raw.info("keyspace")["db0"].get("expires", 0) == 0:
+            break
+        with contextlib.suppress(redis.OutOfMemoryError):  # nothing more it may evict
+            raw.set(f"filler:{i}", "x" * 4096)
+    assert raw.info("keyspace")["db0"].get("expires", 0) == 0
+    raw.config_set("maxmemory", "0")
+    raw.config_set("maxmemory-policy", "noeviction")
+    raw.close()
+
+
 def _losses(*caches: ReplayCache) -> int:
     return sum(int(c.store.status()["data_loss_events"]) for c in caches)
 
@@ -112,20 +135,10 @@ def test_an_eviction_under_a_policy_put_back_is_fenced_on_every_replica(
     fresh_deployment(a, clock)
     captured = clock.wall()
     a.commit("cmd", captured)
-    raw = server.client()
-    used = int(raw.info("memory")["used_memory"])
-    raw.config_set("maxmemory-policy", "volatile-ttl")
-    raw.config_set("maxmemory", str(used + 256 * 1024))
     assert isinstance(a.store, RedisStore)
-    entry = a.store.msg_key("cmd")
-    for i in range(10_000):  # fill (keys without TTL) until Redis evicts our entry
-        if not raw.exists(entry):
-            break
-        with contextlib.suppress(redis.OutOfMemoryError):  # nothing more it may evict
-            raw.set(f"filler:{i}", "x" * 4096)
-    assert not raw.exists(entry) and raw.exists(f"{a.store.msg_key('')[:-2]}meta")
-    raw.config_set("maxmemory", "0")
-    raw.config_set("maxmemory-policy", "noeviction")
+    _evict_every_entry(server)
+    raw = server.client()
+    assert not raw.exists(a.store.msg_key("cmd")) and raw.exists(f"{a.store.msg_key('')[:-2]}meta")
     clock.advance(1)
     assert_fenced(b, "cmd", captured)  # the other replica, first
     assert_fenced(a, "cmd", captured)  # and the one that accepted it
@@ -165,6 +178,27 @@ def test_a_replicaof_round_trip_is_fenced_on_every_replica(
         other.stop()
 
 
+def test_a_first_replica_attaching_is_not_a_loss(server: RedisServer, tmp_path: Path) -> None:
+    """A master's first replica starts a new replication history over the same data (the
+    old id is dropped, not kept as a promotion keeps it): no fence, nothing refused."""
+    (tmp_path / "other").mkdir()
+    other = RedisServer(tmp_path / "other")
+    other.start()
+    try:
+        clock = ManualClock(wall=NOW)
+        a, b = redis_replicas(server.url, 2, clock)
+        fresh_deployment(a, clock)
+        a.commit("before", clock.wall())
+        replid = server.client().info("replication")["master_replid"]
+        other.client().replicaof("127.0.0.1", server.port)
+        wait_replicated(server, other)
+        assert server.client().info("replication")["master_replid"] != replid
+        b.commit("after", clock.wall())
+        assert _losses(a, b) == 1  # the first contact only
+    finally:
+        other.stop()
+
+
 def test_a_server_clock_step_forward_never_reopens_what_expired_early(
     server: RedisServer,
 ) -> None:
@@ -172,10 +206,11 @@ def test_a_server_clock_step_forward_never_reopens_what_expired_early(
     operation (any replica) sees the server ahead of its own clock beyond skew and keeps the
     watermark in Redis, counted as a loss: once the clock is stepped back, the copy of the
     command is still refused, by every replica."""
-    real = float(server.client().time()[0])
-    clock = ManualClock(wall=real)
+    seconds, micros = server.client().time()
+    clock = ManualClock(wall=seconds + micros / 1e6)  # the real time, like the server's
     a, b = redis_replicas(server.url, 2, clock)
     fresh_deployment(a, clock)
+    clock.advance(1)  # past the fence (the server's time at the first contact) plus skew
     captured = clock.wall()
     a.commit("cmd", captured)
     assert isinstance(a.store, RedisStore)
@@ -191,3 +226,64 @@ def test_a_server_clock_step_forward_never_reopens_what_expired_early(
         assert err.value.detail == "watermark"
     assert _losses(a, b) == 2  # the first contact, then the clock step
     assert "clock" in str(getattr(b.store, "loss_reason", ""))
+
+
+def test_a_command_replayed_to_another_gateway_process_after_an_eviction_is_refused(
+    server: RedisServer, tmp_path: Path
+) -> None:
+    """Two ``antireplay serve`` processes on one Redis: A accepts a command; Redis evicts
+    it under a policy put back since; the copy sent to B is 408 restart_fence, the loss
+    counted and audited, and A refuses it too."""
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    config_a = write_demo_config(tmp_path / "a", store=server.url)
+    config = yaml.safe_load(config_a.read_text())
+    config["audit"] = str(tmp_path / "b" / "audit.db")
+    config_b = tmp_path / "b" / "antireplay.yaml"
+    config_b.write_text(yaml.safe_dump(config))
+    with serving(config_a) as gateway_a, serving(config_b) as gateway_b:
+        captured = accepted_fresh(gateway_a, tmp_path / "a")
+        _evict_every_entry(server)
+        losses = data_losses(gateway_b)
+        replay = post_after_cut(gateway_b, reencoded(captured))
+        assert (replay.status_code, replay.json().get("detail")) == (408, "restart_fence")
+        again = post_after_cut(gateway_a, reencoded(captured))  # its own memo may answer first
+        assert again.status_code in {408, 409}, again.text
+        assert data_losses(gateway_b) == losses + 1
+    records = tail(tmp_path / "b" / "audit.db", 1000)
+    assert any(r.code == "STATE_LOST" for r in records), records
+
+
+@pytest.fixture(scope="module")
+def cluster_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    cluster = RedisCluster(tmp_path_factory.mktemp("cluster"))
+    cluster.start()
+    yield cluster.url
+    cluster.stop()
+
+
+@pytest.mark.parametrize("kind", ["redis", "redis-cluster"])
+def test_forget_drops_counters_and_raises_the_fence_in_one_script(
+    request: pytest.FixtureRequest, kind: str
+) -> None:
+    """``forget`` deletes the counters (missing ones are no-ops), never lowers the fence
+    counter, and runs the loss checks of ``advance`` (a flushed meta is a loss)."""
+    url = request.getfixturevalue("redis_url" if kind == "redis" else "cluster_url")
+    prefix = f"t-{uuid.uuid4().hex}:"
+    store = RedisStore(url, prefix=prefix, clock=ManualClock(wall=NOW))
+    store.verify()
+    assert store.advance("p:a", 5) and store.advance("p:b", 7) and store.advance("fence", 3)
+    store.forget(["p:a", "p:b", "p:missing", "fence"], "fence", 10)
+    assert (store.current("p:a"), store.current("p:b"), store.current("fence")) == (None, None, 10)
+    store.forget([], "fence", 4)
+    assert store.current("fence") == 10
+    raw = (
+        redis.Redis.from_url(url)
+        if kind == "redis"
+        else redis.cluster.RedisCluster.from_url(url.replace("redis+cluster://", "redis://"))
+    )
+    raw.delete(f"{prefix}{{antireplay}}:meta")  # flushed
+    store.forget(["p:c"], "fence", 11)
+    assert store.current("fence") == 11
+    assert store.data_loss_events == 2  # the first contact, then the flush
+    store.close()
