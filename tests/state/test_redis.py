@@ -101,11 +101,10 @@ def server(tmp_path: Path) -> Iterator[RedisServer]:
     started.stop()
 
 
-def _evict_every_entry(server: RedisServer) -> None:
-    """``volatile-ttl`` and a low ``maxmemory``; fill (keys without TTL) until Redis has
-    evicted every key with a TTL (our entries, and only them); then ``noeviction`` and no
-    limit again, as if nothing had happened."""
-    raw = server.client()
+def _evict_every_entry(raw: redis.Redis) -> None:
+    """``volatile-ttl`` and a low ``maxmemory``; fill (keys without TTL, in our hash slot)
+    until the server has evicted every key with a TTL (our entries, and only them); then
+    ``noeviction`` and no limit again, as if nothing had happened."""
     used = int(raw.info("memory")["used_memory"])
     raw.config_set("maxmemory-policy", "volatile-ttl")
     raw.config_set("maxmemory", str(used + 256 * 1024))
@@ -113,7 +112,7 @@ def _evict_every_entry(server: RedisServer) -> None:
         if raw.info("keyspace")["db0"].get("expires", 0) == 0:
             break
         with contextlib.suppress(redis.OutOfMemoryError):  # nothing more it may evict
-            raw.set(f"filler:{i}", "x" * 4096)
+            raw.set(f"{{antireplay}}filler:{i}", "x" * 4096)
     assert raw.info("keyspace")["db0"].get("expires", 0) == 0
     raw.config_set("maxmemory", "0")
     raw.config_set("maxmemory-policy", "noeviction")
@@ -136,7 +135,7 @@ def test_an_eviction_under_a_policy_put_back_is_fenced_on_every_replica(
     captured = clock.wall()
     a.commit("cmd", captured)
     assert isinstance(a.store, RedisStore)
-    _evict_every_entry(server)
+    _evict_every_entry(server.client())
     raw = server.client()
     assert not raw.exists(a.store.msg_key("cmd")) and raw.exists(f"{a.store.msg_key('')[:-2]}meta")
     clock.advance(1)
@@ -145,6 +144,25 @@ def test_an_eviction_under_a_policy_put_back_is_fenced_on_every_replica(
     assert _losses(a, b) == 2  # the first contact, then the eviction
     assert b.store.status()["data_loss_events"] == 1
     assert "evicted" in str(getattr(b.store, "loss_reason", ""))
+
+
+def test_an_eviction_on_the_cluster_node_owning_our_slot_is_fenced(cluster_url: str) -> None:
+    """In a cluster the script runs on the node that owns our slot, and reads that node's
+    own eviction count."""
+    clock = ManualClock(wall=NOW)
+    a, b = redis_replicas(cluster_url, 2, clock)
+    fresh_deployment(a, clock)
+    captured = clock.wall()
+    a.commit("cmd", captured)
+    assert isinstance(a.store, RedisStore)
+    cluster = redis.cluster.RedisCluster.from_url(cluster_url.replace("+cluster", ""))
+    owner = cluster.get_node_from_key(a.store.msg_key("cmd"))  # type: ignore[no-untyped-call]
+    cluster.close()
+    _evict_every_entry(redis.Redis(host=owner.host, port=owner.port))
+    clock.advance(1)
+    assert_fenced(b, "cmd", captured)
+    assert_fenced(a, "cmd", captured)
+    assert _losses(a, b) == 2
 
 
 def test_a_replicaof_round_trip_is_fenced_on_every_replica(
@@ -243,7 +261,7 @@ def test_a_command_replayed_to_another_gateway_process_after_an_eviction_is_refu
     config_b.write_text(yaml.safe_dump(config))
     with serving(config_a) as gateway_a, serving(config_b) as gateway_b:
         captured = accepted_fresh(gateway_a, tmp_path / "a")
-        _evict_every_entry(server)
+        _evict_every_entry(server.client())
         losses = data_losses(gateway_b)
         replay = post_after_cut(gateway_b, reencoded(captured))
         assert (replay.status_code, replay.json().get("detail")) == (408, "restart_fence")

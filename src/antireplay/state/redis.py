@@ -3,33 +3,33 @@
 Theory of operation
 -------------------
 * **One script per operation**, atomic on the server: it checks the deployment's
-  ``meta`` hash against the server that runs it, then reads and records the entry
-  (or counter), returning it with the shared fence and watermark.  Loss is found
-  on the very next operation, whether or not the client saw a dropped connection.
-* **Loss is detected, whatever caused it, and fenced for every replica.**  ``meta``
-  records who holds our state: the server process (``run_id``: a restart, a
-  failover, a restore, a resharded slot change it) and its replication history
-  (``master_replid``: ``REPLICAOF`` elsewhere and back keeps the process but
-  replaces the data); ``FLUSHALL`` removes ``meta`` itself.  It also records the
-  server's ``evicted_keys``: eviction is per key and could drop entries but keep
-  ``meta``, and any change of that count (an eviction under a policy set and put
-  back meanwhile, or a reset) is a loss too.  A loss raises the **fence** in
-  ``meta`` to ``max(caller's now, server time)``, counted once; the fence lives in
-  Redis, so every replica applies it.  ``CONFIG RESETSTAT`` after an eviction, or
-  ``DEL`` of one entry, are not detectable: they need admin rights on Redis.
+  ``meta`` hash against the server running it, then reads and records the entry or
+  counter, returning it with the shared fence and watermark.  So loss is found on
+  the very next operation, whether or not the client saw a dropped connection.
+* **Loss is detected whatever caused it, and fenced for every replica.**  ``meta``
+  records who holds our state: the process (``run_id``: a restart, failover,
+  restore or slot move changes it) and its replication history (``master_replid``:
+  ``REPLICAOF`` elsewhere and back keeps the process, not the data; a first replica
+  attaching renews the id over the same data, which a cleared ``master_replid2``
+  tells apart); ``FLUSHALL`` removes ``meta``.  It records the server's
+  ``evicted_keys`` too: eviction is per key, so entries could go and ``meta`` stay;
+  any change of that count (a policy that evicted, put back since) is a loss.  A
+  loss raises the **fence** in ``meta`` to ``max(caller's now, server time)``,
+  counted once; the fence lives in Redis, so every replica applies it.  Not
+  detectable (they need admin rights on Redis): ``DEL`` of one entry, and
+  ``CONFIG RESETSTAT`` after an eviction.
 * **Eviction is refused**: a ``maxmemory-policy`` other than ``noeviction`` is a
   ``ConfigError`` at start and ``STATE_UNAVAILABLE`` in every script.
-* **Lifetimes run on the server's clock, which may step.**  An entry's TTL is
-  ``expiry - min(caller's now, server time) + skew_s``, so it lives until at least
-  ``expiry + skew_s`` server time, and the **watermark** ``server time - skew_s``
-  refuses whatever Redis may have dropped.  A server clock ahead of the caller's
-  beyond ``skew_s`` may be expiring entries early: the script then persists that
-  watermark (counted as a loss once), so it still refuses them after the clock
-  steps back.  A step forward and back between two operations leaves no trace.
-* **Cluster** (``redis+cluster://``): a hash tag puts every key in one slot, so the
-  script runs on the one node (and checks the identity and counts) that owns them.
-  Any connection or server error is ``STATE_UNAVAILABLE`` (503): the window then
-  refuses everything but a fresh ESTOP.
+* **TTLs run on the server's clock.**  An entry lives until server time
+  ``expiry + skew_s`` at least (TTL ``expiry - min(caller's now, server time) +
+  skew_s``), so the **watermark** ``server time - skew_s`` covers whatever Redis
+  dropped.  A server clock ahead of the caller's beyond ``skew_s`` may expire
+  entries early: the script then keeps that watermark in ``meta`` (a loss, counted
+  once), so it holds after the clock steps back.  A step forward and back between
+  two operations leaves no trace Redis shows us: keep its clock slewed, not stepped.
+* **Cluster** (``redis+cluster://``): a hash tag puts all our keys in one slot, so
+  the script runs on, and checks, the one node that owns them.  Any connection or
+  server error is ``STATE_UNAVAILABLE`` (503): only a fresh ESTOP then passes.
 """
 
 from __future__ import annotations
