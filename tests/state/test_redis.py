@@ -101,6 +101,16 @@ def server(tmp_path: Path) -> Iterator[RedisServer]:
     started.stop()
 
 
+@pytest.fixture
+def other(tmp_path: Path) -> Iterator[RedisServer]:
+    """A second redis-server: another master to replicate from, or a replica."""
+    (tmp_path / "other").mkdir()
+    started = RedisServer(tmp_path / "other")
+    started.start()
+    yield started
+    started.stop()
+
+
 def _evict_every_entry(raw: redis.Redis) -> None:
     """``volatile-ttl`` and a low ``maxmemory``; fill (keys without TTL, in our hash slot)
     until the server has evicted every key with a TTL (our entries, and only them); then
@@ -166,55 +176,43 @@ def test_an_eviction_on_the_cluster_node_owning_our_slot_is_fenced(cluster_url: 
 
 
 def test_a_replicaof_round_trip_is_fenced_on_every_replica(
-    server: RedisServer, tmp_path: Path
+    server: RedisServer, other: RedisServer
 ) -> None:
     """The server copies another master's older data set (REPLICAOF there) and is made a
     master again: the same process (``run_id``), a new replication history."""
-    (tmp_path / "other").mkdir()
-    other = RedisServer(tmp_path / "other")
-    other.start()
-    try:
-        clock = ManualClock(wall=NOW)
-        a, b = redis_replicas(server.url, 2, clock)
-        fresh_deployment(a, clock)
-        a.commit("synced", clock.wall())
-        other.client().replicaof("127.0.0.1", server.port)
-        wait_replicated(server, other)  # the other holds our meta, and "synced"
-        other.client().replicaof("no", "one")
-        captured = clock.wall()
-        a.commit("cmd", captured)  # the other never sees this
-        run_id = server.client().info("server")["run_id"]
-        server.client().replicaof("127.0.0.1", other.port)  # takes the other's data set ...
-        wait_replicated(other, server)
-        server.client().replicaof("no", "one")  # ... and is a master again
-        assert server.client().info("server")["run_id"] == run_id
-        clock.advance(1)
-        assert_fenced(b, "cmd", captured)
-        assert_fenced(a, "cmd", captured)
-        assert _losses(a, b) == 2  # the first contact, then the round trip
-    finally:
-        other.stop()
+    clock = ManualClock(wall=NOW)
+    a, b = redis_replicas(server.url, 2, clock)
+    fresh_deployment(a, clock)
+    a.commit("synced", clock.wall())
+    other.client().replicaof("127.0.0.1", server.port)
+    wait_replicated(server, other)  # the other holds our meta, and "synced"
+    other.client().replicaof("no", "one")
+    captured = clock.wall()
+    a.commit("cmd", captured)  # the other never sees this
+    run_id = server.client().info("server")["run_id"]
+    server.client().replicaof("127.0.0.1", other.port)  # takes the other's data set ...
+    wait_replicated(other, server)
+    server.client().replicaof("no", "one")  # ... and is a master again
+    assert server.client().info("server")["run_id"] == run_id
+    clock.advance(1)
+    assert_fenced(b, "cmd", captured)
+    assert_fenced(a, "cmd", captured)
+    assert _losses(a, b) == 2  # the first contact, then the round trip
 
 
-def test_a_first_replica_attaching_is_not_a_loss(server: RedisServer, tmp_path: Path) -> None:
+def test_a_first_replica_attaching_is_not_a_loss(server: RedisServer, other: RedisServer) -> None:
     """A master's first replica starts a new replication history over the same data (the
     old id is dropped, not kept as a promotion keeps it): no fence, nothing refused."""
-    (tmp_path / "other").mkdir()
-    other = RedisServer(tmp_path / "other")
-    other.start()
-    try:
-        clock = ManualClock(wall=NOW)
-        a, b = redis_replicas(server.url, 2, clock)
-        fresh_deployment(a, clock)
-        a.commit("before", clock.wall())
-        replid = server.client().info("replication")["master_replid"]
-        other.client().replicaof("127.0.0.1", server.port)
-        wait_replicated(server, other)
-        assert server.client().info("replication")["master_replid"] != replid
-        b.commit("after", clock.wall())
-        assert _losses(a, b) == 1  # the first contact only
-    finally:
-        other.stop()
+    clock = ManualClock(wall=NOW)
+    a, b = redis_replicas(server.url, 2, clock)
+    fresh_deployment(a, clock)
+    a.commit("before", clock.wall())
+    replid = server.client().info("replication")["master_replid"]
+    other.client().replicaof("127.0.0.1", server.port)
+    wait_replicated(server, other)
+    assert server.client().info("replication")["master_replid"] != replid
+    b.commit("after", clock.wall())
+    assert _losses(a, b) == 1  # the first contact only
 
 
 def test_a_server_clock_step_forward_never_reopens_what_expired_early(

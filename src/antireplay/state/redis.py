@@ -278,30 +278,19 @@ class RedisStore:
 
     def advance(self, key: str, value: int) -> bool:
         """Compare-and-advance, with the same loss and eviction checks as a commit."""
-        seen = self._run(
-            "advance",
-            f"{self._base}c:{key}",
-            self._clock.wall(),
-            _codec.encode(value),
-            False,
-            counter=key,
-        )
-        return seen.recorded
+        return self._counter("advance", key, value).recorded
 
     def forget(self, keys: Sequence[str], fence_key: str, fence: int) -> None:
         """Atomically advance counter ``fence_key`` to at least ``fence`` and delete the
         counters ``keys`` (missing ones are no-ops), with the same loss detection as
         ``advance``; forgetting never re-opens a replay because the fence covers what was
         dropped."""
-        self._run(
-            "forget",
-            f"{self._base}c:{fence_key}",
-            self._clock.wall(),
-            _codec.encode(fence),
-            False,
-            counter=fence_key,
-            forgotten=[f"{self._base}c:{k}" for k in keys],
-        )
+        self._counter("forget", fence_key, fence, [f"{self._base}c:{k}" for k in keys])
+
+    def _counter(self, mode: str, key: str, value: int, forgotten: Sequence[str] = ()) -> Seen:
+        """``advance`` counter ``key`` to ``value`` (``forget``: dropping ``forgotten`` too)."""
+        counter, now, encoded = f"{self._base}c:{key}", self._clock.wall(), _codec.encode(value)
+        return self._run(mode, counter, now, encoded, False, counter=key, forgotten=forgotten)
 
     def current(self, key: str) -> int | None:
         value = self._call(lambda: self._redis.get(f"{self._base}c:{key}"))
