@@ -187,6 +187,7 @@ def test_a_replicaof_round_trip_is_fenced_on_every_replica(
     other.client().replicaof("127.0.0.1", server.port)
     wait_replicated(server, other)  # the other holds our meta, and "synced"
     other.client().replicaof("no", "one")
+    fresh_deployment(a, clock)  # a first replica renewed the history: fenced, and past it
     captured = clock.wall()
     a.commit("cmd", captured)  # the other never sees this
     run_id = server.client().info("server")["run_id"]
@@ -197,12 +198,13 @@ def test_a_replicaof_round_trip_is_fenced_on_every_replica(
     clock.advance(1)
     assert_fenced(b, "cmd", captured)
     assert_fenced(a, "cmd", captured)
-    assert _losses(a, b) == 2  # the first contact, then the round trip
+    assert _losses(a, b) == 3  # the first contact, the first replica, the round trip
 
 
-def test_a_first_replica_attaching_is_not_a_loss(server: RedisServer, other: RedisServer) -> None:
-    """A master's first replica starts a new replication history over the same data (the
-    old id is dropped, not kept as a promotion keeps it): no fence, nothing refused."""
+def test_a_first_replica_attaching_fences_once(server: RedisServer, other: RedisServer) -> None:
+    """A master's first replica makes it start a new replication history: the same data,
+    but the same sign as a round trip through another master's, so it fences once (as a
+    restart that lost nothing does), and only once."""
     clock = ManualClock(wall=NOW)
     a, b = redis_replicas(server.url, 2, clock)
     fresh_deployment(a, clock)
@@ -211,8 +213,9 @@ def test_a_first_replica_attaching_is_not_a_loss(server: RedisServer, other: Red
     other.client().replicaof("127.0.0.1", server.port)
     wait_replicated(server, other)
     assert server.client().info("replication")["master_replid"] != replid
-    b.commit("after", clock.wall())
-    assert _losses(a, b) == 1  # the first contact only
+    assert b.store.verify().lost
+    assert not a.store.verify().lost
+    assert _losses(a, b) == 2  # the first contact, then the new history
 
 
 def test_a_server_clock_step_forward_never_reopens_what_expired_early(

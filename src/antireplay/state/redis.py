@@ -9,15 +9,14 @@ Theory of operation
 * **Loss is detected whatever caused it, and fenced for every replica.**  ``meta``
   records who holds our state: the process (``run_id``: a restart, failover,
   restore or slot move changes it) and its replication history (``master_replid``:
-  ``REPLICAOF`` elsewhere and back keeps the process, not the data; a first replica
-  attaching renews the id over the same data, which a cleared ``master_replid2``
-  tells apart); ``FLUSHALL`` removes ``meta``.  It records the server's
-  ``evicted_keys`` too: eviction is per key, so entries could go and ``meta`` stay;
-  any change of that count (a policy that evicted, put back since) is a loss.  A
-  loss raises the **fence** in ``meta`` to ``max(caller's now, server time)``,
-  counted once; the fence lives in Redis, so every replica applies it.  Not
-  detectable (they need admin rights on Redis): ``DEL`` of one entry, and
-  ``CONFIG RESETSTAT`` after an eviction.
+  ``REPLICAOF`` elsewhere and back keeps the process, not the data; a master's
+  first replica renews it too, which we cannot tell apart); ``FLUSHALL`` removes
+  ``meta``.  And the server's ``evicted_keys``: eviction is per key, so entries
+  could go and ``meta`` stay; any change of that count (a policy that evicted, put
+  back since) is a loss.  A loss raises the **fence** in ``meta`` to ``max(caller's
+  now, server time)``, counted once; the fence lives in Redis, so every replica
+  applies it.  Not detectable (they need admin rights on Redis): ``DEL`` of one
+  entry, and ``CONFIG RESETSTAT`` after an eviction.
 * **Eviction is refused**: a ``maxmemory-policy`` other than ``noeviction`` is a
   ``ConfigError`` at start and ``STATE_UNAVAILABLE`` in every script.
 * **TTLs run on the server's clock.**  An entry lives until server time
@@ -81,18 +80,7 @@ local function number(v) local n = tonumber(v) return n ~= nil and n == n end
 if not number(fence) then return {-2, 'fence', fence, '', 0} end
 if not number(wm) then return {-2, 'wm', wm, '', 0} end
 if meta[4] and not string.match(meta[4], '^%d+$') then return {-2, 'losses', meta[4], '', 0} end
-if meta[1] ~= holder then
-  -- A master's first replica starts a new history over the same data (the old id is
-  -- dropped, not kept as replid2 as a promotion keeps the id it followed): no loss.
-  local first_replica = string.match(field('master_replid2'), '^0+$') and meta[5] == evicted
-  if first_replica and meta[1] and string.match(meta[1], '^(%w+)/') == run then
-    redis.call('HSET', KEYS[1], 'run', holder)
-  else
-    lost = 'holder'
-  end
-elseif meta[5] ~= evicted then
-  lost = 'evicted'
-end
+if meta[1] ~= holder then lost = 'holder' elseif meta[5] ~= evicted then lost = 'evicted' end
 if lost ~= 0 then
   local f = math.max(tonumber(fence), now, server_now)
   fence = string.format('%.6f', f + 0.000001)
