@@ -1,9 +1,11 @@
 """Real redis-servers for tests, on free ports, started and stopped by the tests themselves:
-a standalone server (optionally persistent, optionally a replica) and a 3-node cluster."""
+a standalone server (optionally persistent, optionally a replica, optionally with a wall
+clock the test steps) and a 3-node cluster."""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import shutil
 import socket
 import subprocess
@@ -58,6 +60,9 @@ class RedisServer:
 
     ``persistent`` turns on AOF with fsync on every write; ``snapshots`` keeps an RDB
     file (``dump.rdb``) that ``save()`` writes, so a test can restart from older data.
+    ``stepped_clock`` preloads ``clockstep.c`` (compiled here) so that ``step_clock(s)``
+    sets the server's wall clock ``s`` seconds ahead of the real one, as an NTP step or an
+    operator's ``date -s`` would: its TTLs then run out early (monotonic time untouched).
     """
 
     def __init__(
@@ -67,6 +72,7 @@ class RedisServer:
         persistent: bool = False,
         snapshots: bool = False,
         extra: tuple[str, ...] = (),
+        stepped_clock: bool = False,
     ) -> None:
         self.binary = _binary("redis-server")
         self.directory = directory
@@ -75,6 +81,18 @@ class RedisServer:
         self.extra = extra
         self.port = free_port()
         self.proc: subprocess.Popen[bytes] | None = None
+        self.env: dict[str, str] | None = None
+        if stepped_clock:
+            shim = directory / "clockstep.so"
+            source = Path(__file__).with_name("clockstep.c")
+            subprocess.run(
+                [_binary("cc"), "-shared", "-fPIC", "-O2", "-o", str(shim), str(source)],
+                check=True,
+                timeout=60,
+            )
+            self.env = {**os.environ, "LD_PRELOAD": str(shim)}
+            self.env["CLOCK_STEP_FILE"] = str(directory / "clock-step")
+            self.step_clock(0)
 
     @property
     def url(self) -> str:
@@ -95,8 +113,15 @@ class RedisServer:
             ]
         )
         args += list(self.extra)
-        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        self.proc = subprocess.Popen(
+            args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=self.env
+        )
         _wait_ping(self.port)
+
+    def step_clock(self, seconds: int) -> None:
+        """Set this server's wall clock ``seconds`` ahead of the real one (0: back to it)."""
+        assert self.env is not None, "start the server with stepped_clock=True"
+        Path(self.env["CLOCK_STEP_FILE"]).write_text(f"{seconds}\n")
 
     def save(self) -> None:
         """Write an RDB snapshot now (what a periodic ``save`` rule would do)."""

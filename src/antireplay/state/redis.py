@@ -2,52 +2,40 @@
 
 Theory of operation
 -------------------
-* **One script per commit.**  ``commit`` is one Lua script (atomic on the
-  server): it checks the deployment's ``meta`` hash against the identity of
-  the server process running it, reads the entry, records or refuses, and
-  returns the entry with the shared fence and watermark.  Detection therefore
-  happens on the very next commit, atomically with it, whether or not the
-  client saw a dropped connection (redis-py retries hide restarts).
-* **Data loss is detected, whatever caused it.**  ``meta`` records the
-  ``run_id`` of the server process that holds our state.  A restart (from an
-  RDB snapshot older than our last write, or from nothing), a failover to a
-  replica that missed writes, or a restore all put our keys in the hands of
-  another server process; ``FLUSHALL``/``FLUSHDB`` remove ``meta`` itself.
-  Either way the script raises the **fence** in ``meta`` to
-  ``max(the caller's now, the server's time)`` and counts a data-loss event.
-  The fence lives in Redis, so every replica applies it on its next commit,
-  not just the first to notice.  A restart that lost nothing (AOF with
-  ``appendfsync always``) is fenced too: one cannot tell it from one that lost
-  something, and a fence only costs ``skew_s`` seconds of refusals.
-* **Eviction is refused, at start and on every operation.**  A
-  ``maxmemory-policy`` other than ``noeviction`` could silently drop our keys,
-  so :class:`RedisStore` refuses such a server at start (``ConfigError``) and
-  every script checks the policy again (``STATE_UNAVAILABLE`` if someone
-  changed it at run time); a full Redis then answers errors, which fail
-  closed.  ``advance`` (MAVLink stream state) runs the same checks.
-* **Entry lifetimes do not depend on one replica's clock.**  An entry's TTL is
-  ``expiry - min(caller's now, server time) + skew_s``: a replica whose clock
-  runs ahead cannot shorten it, nor can a server clock that runs ahead, so an
-  entry lives until at least ``expiry + skew_s`` on the server's clock.  Hence
-  the **watermark** the script returns is ``server time - skew_s``: every
-  entry expiring after it is still there.  For a replica whose clock agrees
-  with the server's within ``skew_s`` it refuses nothing the freshness test
-  would accept; for one whose wall clock stepped back further, it refuses the
-  messages whose entries Redis may already have dropped.  An entry that exists
-  but has expired on the caller's clock is replaced atomically.
-* **Redis Cluster**: ``redis+cluster://HOST:PORT`` uses redis-py's cluster
-  client.  Keys are ``<prefix>{<hash tag>}:…``: the hash tag puts a
-  deployment's keys in one slot, so the script never crosses slots and the
-  node that owns the slot (and its identity) answers for all of them.
-* Any connection error, timeout or server error raises ``STATE_UNAVAILABLE``
-  (HTTP 503): the window then refuses everything but a fresh ESTOP.
+* **One script per operation**, atomic on the server: it checks the deployment's
+  ``meta`` hash against the server running it, then reads and records the entry or
+  counter, returning it with the shared fence and watermark.  So loss is found on
+  the very next operation, whether or not the client saw a dropped connection.
+* **Loss is detected whatever caused it, and fenced for every replica.**  ``meta``
+  records who holds our state: the process (``run_id``: a restart, failover,
+  restore or slot move changes it) and its replication history (``master_replid``:
+  ``REPLICAOF`` elsewhere and back keeps the process, not the data; a master's
+  first replica renews it too, which we cannot tell apart); ``FLUSHALL`` removes
+  ``meta``.  And the server's ``evicted_keys``: eviction is per key, so entries
+  could go and ``meta`` stay; any change of that count (a policy that evicted, put
+  back since) is a loss.  A loss raises the **fence** in ``meta`` to ``max(caller's
+  now, server time)``, counted once; the fence lives in Redis, so every replica
+  applies it.  Not detectable (they need admin rights on Redis): ``DEL`` of one
+  entry, and ``CONFIG RESETSTAT`` after an eviction.
+* **Eviction is refused**: a ``maxmemory-policy`` other than ``noeviction`` is a
+  ``ConfigError`` at start and ``STATE_UNAVAILABLE`` in every script.
+* **TTLs run on the server's clock.**  An entry lives until server time
+  ``expiry + skew_s`` at least (TTL ``expiry - min(caller's now, server time) +
+  skew_s``), so the **watermark** ``server time - skew_s`` covers whatever Redis
+  dropped.  A server clock ahead of the caller's beyond ``skew_s`` may expire
+  entries early: the script then keeps that watermark in ``meta`` (a loss, counted
+  once), so it holds after the clock steps back.  A step forward and back between
+  two operations leaves no trace Redis shows us: keep its clock slewed, not stepped.
+* **Cluster** (``redis+cluster://``): a hash tag puts all our keys in one slot, so
+  the script runs on, and checks, the one node that owns them.  Any connection or
+  server error is ``STATE_UNAVAILABLE`` (503): only a fresh ESTOP then passes.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Any, Final, TypeVar
 
 import redis
@@ -67,38 +55,59 @@ log = logging.getLogger("antireplay.state.redis")
 _FLOOR: Final = "-1e18"
 
 _SCRIPT = """
--- ARGV: 1 mode (commit | advance | verify), 2 now, 3 skew, 4 floor ("nothing yet"),
---       5 expiry or counter value, 6 force.  KEYS: 1 meta, 2 the entry or counter.
-local info = redis.call('INFO', 'server', 'memory')
-local run = string.match(info, 'run_id:(%w+)')
-local policy = string.match(info, 'maxmemory_policy:([%w-]+)')
-if policy ~= 'noeviction' then return {-1, policy or '?', '', '', 0} end
+-- ARGV: 1 mode (commit | advance | forget | verify), 2 now, 3 skew, 4 floor ("nothing
+--       yet"), 5 expiry or counter value, 6 force.  KEYS: 1 meta, 2 the entry or counter,
+--       3.. the counters to forget.
+local info = redis.call('INFO', 'server', 'memory', 'stats', 'replication')
+-- A field of INFO (a plain find: a pattern scan of the whole text costs far more).
+local function field(name)
+  local _, stop = string.find(info, '\\n' .. name .. ':', 1, true)
+  return stop and string.match(info, '^[%w-]+', stop + 1) or '?'
+end
+local policy = field('maxmemory_policy')
+if policy ~= 'noeviction' then return {-1, policy, '', '', 0} end
+-- Who holds our state: this process with this replication history; and its evictions.
+local run = field('run_id')
+local holder = run .. '/' .. field('master_replid')
+local evicted = field('evicted_keys')
 local t = redis.call('TIME')
 local server_now = tonumber(t[1]) + tonumber(t[2]) / 1000000
 local now = tonumber(ARGV[2])
-local meta = redis.call('HMGET', KEYS[1], 'run', 'fence', 'wm', 'losses')
+local meta = redis.call('HMGET', KEYS[1], 'run', 'fence', 'wm', 'losses', 'evicted')
 local fence, wm, lost = meta[2] or ARGV[4], meta[3] or ARGV[4], 0
 -- A stored value that is not a number is never computed with: the client refuses it (-2).
 local function number(v) local n = tonumber(v) return n ~= nil and n == n end
 if not number(fence) then return {-2, 'fence', fence, '', 0} end
 if not number(wm) then return {-2, 'wm', wm, '', 0} end
 if meta[4] and not string.match(meta[4], '^%d+$') then return {-2, 'losses', meta[4], '', 0} end
-if meta[1] ~= run then
+if meta[1] ~= holder then lost = 'holder' elseif meta[5] ~= evicted then lost = 'evicted' end
+if lost ~= 0 then
   local f = math.max(tonumber(fence), now, server_now)
   fence = string.format('%.6f', f + 0.000001)
-  redis.call('HSET', KEYS[1], 'run', run, 'fence', fence, 'wm', wm)
+  redis.call('HSET', KEYS[1], 'run', holder, 'fence', fence, 'wm', wm, 'evicted', evicted)
   redis.call('HINCRBY', KEYS[1], 'losses', 1)
-  lost = 1
 end
 -- A key lives until server time >= its expiry + skew (see the TTL below), so at server
--- time S every entry expiring after S - skew is still here: that is our watermark.  It
--- refuses nothing for a caller whose clock agrees with the server's within skew, and
--- covers a caller whose wall clock stepped back further than that.
+-- time S every entry expiring after S - skew is still here: that is our watermark.  A
+-- server clock ahead of the caller's beyond skew may be expiring entries early: keep that
+-- watermark in meta (a loss the first time) so it still holds once the clock steps back.
 local floor = server_now - tonumber(ARGV[3])
-if tonumber(wm) < floor then wm = string.format('%.6f', floor) end
+if floor > now then
+  if tonumber(wm) < now and lost == 0 then
+    lost = 'clock'
+    redis.call('HINCRBY', KEYS[1], 'losses', 1)
+  end
+  wm = string.format('%.6f', math.max(floor, tonumber(wm)))
+  redis.call('HSET', KEYS[1], 'wm', wm)
+elseif tonumber(wm) < floor then
+  wm = string.format('%.6f', floor)
+end
 if ARGV[1] == 'verify' then return {0, false, fence, wm, lost} end
 local cur = redis.call('GET', KEYS[2])
-if ARGV[1] == 'advance' then
+if ARGV[1] == 'forget' then
+  for i = 3, #KEYS do if KEYS[i] ~= KEYS[2] then redis.call('DEL', KEYS[i]) end end
+end
+if ARGV[1] ~= 'commit' then
   if cur and cur >= ARGV[5] then return {0, cur, fence, wm, lost} end
   redis.call('SET', KEYS[2], ARGV[5])
   return {1, cur or false, fence, wm, lost}
@@ -116,6 +125,15 @@ end
 redis.call('SET', KEYS[2], ARGV[5], 'PX', ttl)
 return {1, cur or false, fence, wm, lost}
 """
+
+#: What the script's loss codes mean, for the log line and ``loss_reason``.
+_LOSSES: Final = {
+    "holder": "another server process or replication history holds it (restart, failover, "
+    "REPLICAOF, restore) or it was flushed",
+    "evicted": "the server evicted keys (a maxmemory-policy other than noeviction was set "
+    "meanwhile) or its statistics were reset",
+    "clock": "the server's clock runs ahead of ours beyond skew: it may expire entries early",
+}
 
 Client = redis.Redis | redis.cluster.RedisCluster
 
@@ -210,9 +228,11 @@ class RedisStore:
         force: bool,
         *,
         counter: str | None = None,
+        forgotten: Sequence[str] = (),
     ) -> Seen:
         args = [mode, repr(now), self._skew, _FLOOR, value, "1" if force else "0"]
-        reply = self._call(lambda: self._script(keys=[self._meta, key], args=args))
+        keys = [self._meta, key, *forgotten]
+        reply = self._call(lambda: self._script(keys=keys, args=args))
         if reply[0] == -1:
             policy = reply[1].decode() if isinstance(reply[1], bytes) else str(reply[1])
             raise StateUnavailableError(
@@ -232,13 +252,11 @@ class RedisStore:
         self._watermark = _floor(self._number(f"{self._meta} wm", watermark))
         if lost:
             self.data_loss_events += 1
-            self.loss_reason = "redis lost or replaced our replay state"
-            log.warning(
-                "redis %s lost or replaced our replay state (restart, failover, flush or "
-                "restore); fence raised to %.6f",
-                self.url,
-                self._fence,
-            )
+            code = str(_text(lost))
+            cause = _LOSSES.get(code, code)
+            self.loss_reason = f"redis may have lost our replay state: {cause}"
+            raised = ("watermark", self._watermark) if code == "clock" else ("fence", self._fence)
+            log.warning("%s: %s; %s raised to %.6f", self.url, self.loss_reason, *raised)
         if counter is not None:
             if cur is not None:
                 self._decode(counter, cur)  # refused: by a counter, never by garbage
@@ -248,15 +266,19 @@ class RedisStore:
 
     def advance(self, key: str, value: int) -> bool:
         """Compare-and-advance, with the same loss and eviction checks as a commit."""
-        seen = self._run(
-            "advance",
-            f"{self._base}c:{key}",
-            self._clock.wall(),
-            _codec.encode(value),
-            False,
-            counter=key,
-        )
-        return seen.recorded
+        return self._counter("advance", key, value).recorded
+
+    def forget(self, keys: Sequence[str], fence_key: str, fence: int) -> None:
+        """Atomically advance counter ``fence_key`` to at least ``fence`` and delete the
+        counters ``keys`` (missing ones are no-ops), with the same loss detection as
+        ``advance``; forgetting never re-opens a replay because the fence covers what was
+        dropped."""
+        self._counter("forget", fence_key, fence, [f"{self._base}c:{k}" for k in keys])
+
+    def _counter(self, mode: str, key: str, value: int, forgotten: Sequence[str] = ()) -> Seen:
+        """``advance`` counter ``key`` to ``value`` (``forget``: dropping ``forgotten`` too)."""
+        counter, now, encoded = f"{self._base}c:{key}", self._clock.wall(), _codec.encode(value)
+        return self._run(mode, counter, now, encoded, False, counter=key, forgotten=forgotten)
 
     def current(self, key: str) -> int | None:
         value = self._call(lambda: self._redis.get(f"{self._base}c:{key}"))
