@@ -44,8 +44,8 @@ from cryptography.hazmat.primitives.asymmetric import ed25519
 from starlette.applications import Starlette
 from starlette.types import ASGIApp
 
-from antireplay.audit import AuditLog, RefusalAuditor
-from antireplay.config import AppConfig, KeyConfig
+from antireplay.audit import AuditLog, RefusalAuditor, Retention
+from antireplay.config import AppConfig, AuditConfig, KeyConfig
 from antireplay.core.clock import Clock
 from antireplay.core.errors import ConfigError, StateUnavailableError
 from antireplay.http.app import gateway_app
@@ -133,13 +133,24 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
         config.security,
         build_registry(config),
         store,
-        AuditLog(config.audit),
+        open_audit(config.audit, clock),
         clock,
         jwt=verifier,
         jwt_required=config.jwt.required,
         versions=frozenset(config.versions),
         max_bytes=config.max_body_bytes,
     )
+
+
+def open_audit(config: AuditConfig, clock: Clock | None = None) -> AuditLog:
+    """The audit trail at ``audit.path``, rotated and retained as ``audit:`` says."""
+    retention = Retention(
+        segment_bytes=config.segment_bytes,
+        segment_age_s=config.segment_age_s,
+        max_bytes=config.max_bytes,
+        max_age_s=config.max_age_s,
+    )
+    return AuditLog(config.path, clock=clock, retention=retention)
 
 
 def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
@@ -150,7 +161,7 @@ def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
         write_key_pair(ed25519.Ed25519PrivateKey.generate(), private, public)
     return AppConfig(
         store=f"sqlite:{state_dir / 'state.db'}",
-        audit=str(state_dir / "audit.db"),
+        audit=AuditConfig(path=str(state_dir / "audit.db")),
         keys=[
             KeyConfig(
                 kid=DEMO_KID,
