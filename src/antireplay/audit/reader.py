@@ -4,6 +4,7 @@ is shown of one."""
 from __future__ import annotations
 
 import time
+from os import PathLike
 from pathlib import Path
 from typing import Any
 
@@ -16,7 +17,7 @@ from antireplay.audit.chain import (
 from antireplay.audit.segments import newest
 
 
-def tail(path: str | Path, n: int = 20) -> list[Record]:
+def tail(path: str | PathLike[str], n: int = 20) -> list[Record]:
     """The newest ``n`` records across segments, read-only: reading never writes a
     checkpoint or a key."""
     return newest(Path(path), n)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import sqlite3
 from dataclasses import dataclass, replace
+from os import PathLike
 from pathlib import Path
 
 from antireplay.audit import segments
@@ -156,7 +157,10 @@ class _Trail:
 
 
 def verify(
-    path: str | Path, *, head_key: str | Path | None = None, head_path: str | Path | None = None
+    path: str | PathLike[str],
+    *,
+    head_key: str | Path | None = None,
+    head_path: str | Path | None = None,
 ) -> ChainReport:
     """Recompute the hash chain across segments and check it against the head checkpoint
     (read-only).
@@ -228,7 +232,10 @@ def _read_link(file: Path, db: sqlite3.Connection) -> Link:
 
 
 def reanchor(
-    path: str | Path, *, head_key: str | Path | None = None, head_path: str | Path | None = None
+    path: str | PathLike[str],
+    *,
+    head_key: str | Path | None = None,
+    head_path: str | Path | None = None,
 ) -> ChainReport:
     """Accept the current, intact chain as the new head (after an operator checked it),
     from the oldest segment present (older ones missing are accepted as gone; a gap is not).

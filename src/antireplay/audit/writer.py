@@ -15,6 +15,7 @@ import sqlite3
 import threading
 from collections.abc import Sequence
 from concurrent.futures import Future
+from os import PathLike
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +49,7 @@ class AuditLog:
 
     def __init__(
         self,
-        path: str | Path,
+        path: str | PathLike[str],
         *,
         head_key: str | Path | None = None,
         head_path: str | Path | None = None,
@@ -354,9 +355,9 @@ class AuditLog:
         gone, self._kept = self._kept[:doomed], self._kept[doomed:]
         self._first = gone[-1].n + 1
         self._checkpoint(sync=True)
+        self._rotation_point("retaining")
         for k in gone:  # oldest first: a crash leaves the rest in a row
             k.path.unlink(missing_ok=True)
-        self._rotation_point("retained")
         log.info("audit trail %s: segments %d-%d removed by retention", self.path, gone[0].n,
                  gone[-1].n)  # fmt: skip
 
