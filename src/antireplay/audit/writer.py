@@ -70,8 +70,7 @@ class AuditLog:
         self._head_dirty = False
         self._refuse_deleted_trail()
         segments.recover(self.path)  # a rotation killed half-way: the live file holds it all
-        self._db = _connect(self.path, read_only=False)
-        self._file = file_identity(self.path)  # the file this writer appends to, not just its name
+        self._db, self._file = _open_live(self.path)
         self._lock = threading.Lock()
         try:
             self._key = self._open_anchor()
@@ -243,14 +242,14 @@ class AuditLog:
         then rotate and retain if due (never failing the batch: its rows are durable)."""
         with self._lock:
             db = self._db
-            if file_identity(self.path) != self._file:  # rows written now would be lost with it
-                log.error("audit trail %s deleted or replaced; refusing to append", self.path)
-                raise AuditFileError(
-                    str(self.path), "deleted or replaced under the running writer",
-                    recovery=f"stop it, restore {self.path} or see antireplay audit reanchor",
-                )  # fmt: skip
-            db.execute("BEGIN IMMEDIATE")
+            db.execute("BEGIN IMMEDIATE")  # then the name: another writer rotates holding this lock
             try:
+                if file_identity(self.path) != self._file:  # rows written now would be lost
+                    log.error("audit trail %s deleted or replaced; refusing to append", self.path)
+                    raise AuditFileError(
+                        str(self.path), "deleted or replaced under the running writer",
+                        recovery=f"stop it, restore {self.path} or see antireplay audit reanchor",
+                    )  # fmt: skip
                 # Rows deleted or rewritten under a running writer must not be adopted by
                 # its next checkpoint: the chain must still hold what this writer wrote
                 # (another writer may have extended it).
@@ -319,19 +318,21 @@ class AuditLog:
                      self.path)  # fmt: skip
             return
         try:
+            self._db.execute("BEGIN IMMEDIATE")  # another writer waits, then sees the new name
             self._rotation_point("sealed")
             following = self.anchor.link(self._key, self._link.n + 1, self._rows + 1, self._head)
             segments.prepare(self.path, following)
             self._rotation_point("prepared")
             old = segments.publish(self.path, self._link.n)
         except BaseException:
+            self._db.execute("ROLLBACK")
             self._db.execute("PRAGMA journal_mode=WAL")
             raise
         self._rotation_point("published")
-        live = _connect(self.path, read_only=False)
+        self._db.execute("ROLLBACK")
+        live, identity = _open_live(self.path)
         self._db.close()
-        self._db = live
-        self._file = file_identity(self.path)
+        self._db, self._file = live, identity
         self._kept.append(segments.kept(old, self._link.n))
         self._link, self._live_since = following, None
         log.info("audit trail %s: segment %d rotated to %s", self.path, following.n - 1, old)
@@ -397,6 +398,19 @@ class AuditLog:
                 log.warning("audit head %s not made durable at close: %s", self.anchor.path, exc)
             finally:
                 self._db.close()
+
+
+def _open_live(path: Path) -> tuple[sqlite3.Connection, tuple[int, int] | None]:
+    """The live segment and the file it is (not just its name): opened again if another
+    writer rotated it while it was being opened."""
+    for _ in range(3):
+        before = file_identity(path)
+        db = _connect(path, read_only=False)
+        if file_identity(path) == before:
+            return db, before
+        db.close()
+    raise AuditFileError(str(path), "replaced three times while opening it",
+                         recovery=f"stop the other writers of {path}")  # fmt: skip
 
 
 def _rows_in(path: Path) -> int:
