@@ -259,3 +259,37 @@ def test_reanchor_with_a_new_key_relinks_every_segment(three: Path) -> None:
     assert report.ok and report.records == 140
     segmented(three, 10).close()
     assert verify(three).ok
+
+
+def test_two_writers_postpone_rotation_until_one_closes(tmp_path: Path) -> None:
+    path = tmp_path / "audit.db"
+    small = Retention(segment_bytes=SMALL_SEGMENT)
+    one, two = AuditLog(path, retention=small), AuditLog(path, retention=small)
+    for i in range(0, 80, 2):
+        append(one, i)
+        append(two, i + 1)
+    assert rotated(path) == []  # each holds the live segment open: neither rotates it
+    two.close()
+    append(one, 80)
+    one.close()
+    assert [n for n, _ in rotated(path)] == [1]
+    assert verify(path).ok and verify(path).records == 81
+
+
+def test_a_budget_smaller_than_a_segment_keeps_only_the_live_one(tmp_path: Path) -> None:
+    """Retention never removes the live segment, even when it alone is over the budget, and
+    the head (the previous segment's last row) still proves the trail."""
+    path = tmp_path / "audit.db"
+    segmented(path, 100, Retention(segment_bytes=SMALL_SEGMENT, max_bytes=1)).close()
+    assert rotated(path) == []
+    report = verify(path)
+    assert report.ok and report.segments == 1 and report.first_segment > 1
+    assert report.last_row == 100
+
+
+def test_truncating_the_newest_rotated_segment_refuses_the_writer(three: Path) -> None:
+    newest = rotated(three)[-1][1]
+    last = rows_of(newest)[-1][0]
+    sql(newest, f"DELETE FROM audit WHERE seq = {last}")
+    with pytest.raises(AuditFileError, match=f"does not start where {newest.name} ends"):
+        AuditLog(three)

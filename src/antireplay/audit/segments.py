@@ -115,16 +115,21 @@ def bytes_of(path: Path) -> int:
 
 def newest(path: Path, n: int) -> list[Record]:
     """The newest ``n`` records: the live segment's, then rotated ones', newest first, until
-    ``n`` are found (a rotated segment removed by retention meanwhile ends the search)."""
-    found: list[Record] = []
-    for file in [path, *(file for _, file in reversed(rotated(path)))]:
-        if len(found) >= n or (file != path and not file.exists()):
-            break
-        db = _connect(file, read_only=True)
-        try:
-            found = _records(db.execute(_TAIL, (n - len(found),)).fetchall()) + found
-        finally:
-            db.close()
+    ``n`` are found.  The live segment stays open meanwhile, so it cannot rotate under the
+    read; a rotated segment removed by retention meanwhile ends the search."""
+    live = _connect(path, read_only=True)
+    try:
+        found = _records(live.execute(_TAIL, (n,)).fetchall())
+        for _, file in reversed(rotated(path)):
+            if len(found) >= n or not file.exists():
+                break
+            db = _connect(file, read_only=True)
+            try:
+                found = _records(db.execute(_TAIL, (n - len(found),)).fetchall()) + found
+            finally:
+                db.close()
+    finally:
+        live.close()
     return found
 
 

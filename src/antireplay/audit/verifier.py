@@ -10,9 +10,12 @@ rows must chain; the oldest segment's link is the proven cut point retention lef
 from __future__ import annotations
 
 import sqlite3
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from os import PathLike
 from pathlib import Path
+from typing import TypeVar
 
 from antireplay.audit import segments
 from antireplay.audit.chain import (
@@ -21,7 +24,6 @@ from antireplay.audit.chain import (
     GENESIS,
     Checkpoint,
     HeadAnchor,
-    Link,
     _aside,
     _compare,
     _connect,
@@ -30,6 +32,8 @@ from antireplay.audit.chain import (
     _wrongly_typed,
 )
 from antireplay.core.errors import AuditFileError
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -96,25 +100,34 @@ class ChainReport:
 
 
 class _Trail:
-    """Every segment kept, opened read-only, oldest first, the live one last."""
+    """Every segment kept, oldest first, the live one last: the live one held open (it cannot
+    rotate under the walk), each rotated one opened in turn (a long trail, few descriptors)."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.files = [file for _, file in segments.rotated(path)] + [path]
-        self.dbs: list[sqlite3.Connection] = []
+        self.live = _connect(path, read_only=True)
         try:
-            for file in self.files:
-                self.dbs.append(_connect(file, read_only=True))
-            self.links = [
-                _read_link(file, db) for file, db in zip(self.files, self.dbs, strict=True)
-            ]
+            self.files = [file for _, file in segments.rotated(path)] + [path]
+            self.links = [self._with(file, _link) for file in self.files]
         except BaseException:
-            self.close()
+            self.live.close()
             raise
 
+    def _with(self, file: Path, read: Callable[[sqlite3.Connection], T]) -> T:
+        """``read`` on one segment, its database errors naming the file."""
+        db = self.live if file == self.path else _connect(file, read_only=True)
+        try:
+            return read(db)
+        except sqlite3.DatabaseError as exc:
+            raise AuditFileError(
+                str(file), f"unreadable audit trail ({exc})", recovery=_aside(file)
+            ) from None
+        finally:
+            if db is not self.live:
+                db.close()
+
     def close(self) -> None:
-        for db in self.dbs:
-            db.close()
+        self.live.close()
 
     def check_order(self, first: int) -> None:
         segments.check_order(self.path, list(zip(self.files, self.links, strict=True)), first)
@@ -126,7 +139,7 @@ class _Trail:
         report = ChainReport(0, None, None, segments=len(self.files), first_segment=start.n,
                              first_row=start.first, first_hash=start.prev)  # fmt: skip
         prev, expected, count = start.prev, start.first, 0
-        for file, db, link in zip(self.files, self.dbs, self.links, strict=True):
+        for file, link in zip(self.files, self.links, strict=True):
             problem = None
             if (link.first, link.prev) != (expected, prev):
                 problem = f"{file.name} does not start where the segment before it ends"
@@ -134,12 +147,9 @@ class _Trail:
                 problem = f"{file.name}: segment link MAC does not verify (forged, or another key)"
             if problem is not None:
                 return replace(report, records=count, broken_at=expected, reason=problem), prev
-            try:
-                walked, broken, reason, prev = _walk(db, prev, expected)
-            except sqlite3.DatabaseError as exc:
-                raise AuditFileError(
-                    str(file), f"unreadable audit trail ({exc})", recovery=_aside(file)
-                ) from None
+            walked, broken, reason, prev = self._with(
+                file, partial(_walk, prev=prev, start=expected)
+            )
             count += walked
             if broken is not None:
                 where = f" (in {file.name})" if len(self.files) > 1 else ""
@@ -150,9 +160,9 @@ class _Trail:
 
     def compare(self, checkpoint: Checkpoint) -> str | None:
         """The checkpoint against the segment holding its row (or starting right after it)."""
-        for link, db in reversed(list(zip(self.links, self.dbs, strict=True))):
+        for file, link in reversed(list(zip(self.files, self.links, strict=True))):
             if checkpoint.rows >= link.first - 1:
-                return _compare(db, checkpoint)
+                return self._with(file, lambda db: _compare(db, checkpoint))
         return f"truncated: the head checkpoint covers row {checkpoint.rows}, no segment holds it"
 
 
@@ -185,12 +195,7 @@ def verify(
             return replace(chain, head="missing")
         if key is None:
             return replace(chain, head="no-key", checkpoint_rows=checkpoint.rows)
-        try:
-            problem = trail.compare(checkpoint)
-        except sqlite3.DatabaseError as exc:
-            raise AuditFileError(
-                str(path), f"unreadable audit trail ({exc})", recovery=_aside(path)
-            ) from None
+        problem = trail.compare(checkpoint)
     finally:
         trail.close()
     if problem is not None:
@@ -201,11 +206,11 @@ def verify(
 
 
 def _walk(
-    db: sqlite3.Connection, prev: str, expected_seq: int
+    db: sqlite3.Connection, *, prev: str, start: int
 ) -> tuple[int, int | None, str | None, str]:
     """(records, first broken row, reason, last hash) from recomputing every link of one
-    segment, starting from ``prev`` at row ``expected_seq``."""
-    count = 0
+    segment, starting from ``prev`` at row ``start``."""
+    count, expected_seq = 0, start
     for values in db.execute(_ALL):
         count += 1
         row = dict(zip(_FIELDS, values[:9], strict=True))
@@ -220,15 +225,6 @@ def _walk(
             return count, row["seq"], "record contents changed", prev
         prev, expected_seq = values[10], expected_seq + 1
     return count, None, None, prev
-
-
-def _read_link(file: Path, db: sqlite3.Connection) -> Link:
-    try:
-        return _link(db)
-    except sqlite3.DatabaseError as exc:
-        raise AuditFileError(
-            str(file), f"unreadable audit trail ({exc})", recovery=_aside(file)
-        ) from None
 
 
 def reanchor(

@@ -163,9 +163,10 @@ class AuditLog:
         order = [(f, k) for f, k, _ in links] + [(self.path, live)]
         segments.check_order(self.path, order, self._first)
         if links and links[-1][2] != (live.first - 1, live.prev):
+            (before, _, (seq, _)) = links[-1]
             raise AuditFileError(
-                str(self.path), f"does not start where {links[-1][0].name} ends: rows "
-                f"{links[-1][2][0] + 1}..{live.first - 1} missing or rewritten",
+                str(self.path), f"does not start where {before.name} ends (row {seq}): rows "
+                "of the segment before it missing or rewritten",
                 recovery=_recovery(self.path),
             )  # fmt: skip
         self._link = live
