@@ -28,8 +28,8 @@ def sql(path: Path, *statements: str) -> None:
     db.close()
 
 
-#: A segment size that rotates the live segment every few dozen rows (4 SQLite pages).
-SMALL_SEGMENT = 16_384
+#: A segment size that rotates the live segment every couple of dozen rows (8 SQLite pages).
+SMALL_SEGMENT = 32_768
 
 
 def append(log: AuditLog, i: int) -> int:

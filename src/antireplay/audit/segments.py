@@ -41,7 +41,8 @@ _NUMBERED = re.compile(r"\.(\d{6,})")
 @dataclass(frozen=True)
 class Retention:
     """When the live segment rotates and which rotated segments are removed (``None``:
-    no limit).  ``max_bytes`` counts every segment on disk, the live one's WAL included."""
+    no limit).  Bytes are bytes on disk, the live segment's WAL included; retention counts
+    the live segment as full, so the trail stays within ``max_bytes`` plus one batch."""
 
     segment_bytes: int | None = None
     segment_age_s: float | None = None

@@ -70,7 +70,7 @@ class AuditLog:
         self._head_dirty = False
         self._refuse_deleted_trail()
         segments.recover(self.path)  # a rotation killed half-way: the live file holds it all
-        self._db, self._file = _open_live(self.path)
+        self._db, self._file = _open_live(self.path, self.retention.segment_bytes)
         self._lock = threading.Lock()
         try:
             self._key = self._open_anchor()
@@ -294,18 +294,15 @@ class AuditLog:
         self._head_dirty = not sync
 
     def _rotation_due(self) -> bool:
-        """The live segment is over its size (the pages SQLite holds for it) or its age;
-        an empty live segment never rotates."""
+        """The live segment is over its size on disk (its WAL included) or its age; an empty
+        live segment never rotates."""
         limit, age = self.retention.segment_bytes, self.retention.segment_age_s
         if self._rows < self._link.first:
             return False
         since = self._live_since
         if age is not None and since is not None and self._clock.wall() - since >= age:
             return True
-        if limit is None:
-            return False
-        pages = self._db.execute("PRAGMA page_count").fetchone()[0]
-        return int(pages) * int(self._db.execute("PRAGMA page_size").fetchone()[0]) >= limit
+        return limit is not None and segments.bytes_of(self.path) >= limit
 
     def _rotation_point(self, step: str) -> None:
         """Called after each step of a rotation (a test stops a real writer there)."""
@@ -331,7 +328,7 @@ class AuditLog:
             raise
         self._rotation_point("published")
         self._db.execute("ROLLBACK")
-        live, identity = _open_live(self.path)
+        live, identity = _open_live(self.path, self.retention.segment_bytes)
         self._db.close()
         self._db, self._file = live, identity
         self._kept.append(segments.kept(old, self._link.n))
@@ -341,9 +338,11 @@ class AuditLog:
 
     def _retain(self) -> None:
         """Remove the oldest rotated segments past the byte or age budget (the caller holds
-        the lock): the head, fsynced, first says they are gone on purpose."""
+        the lock): the head, fsynced, first says they are gone on purpose.  The live segment
+        counts as full, so the trail stays within budget until the next rotation."""
         budget, age = self.retention.max_bytes, self.retention.max_age_s
-        total = sum(k.bytes for k in self._kept) + segments.bytes_of(self.path)
+        live = max(segments.bytes_of(self.path), self.retention.segment_bytes or 0)
+        total = sum(k.bytes for k in self._kept) + live
         horizon = None if age is None else self._clock.wall() - age
         doomed = 0
         for k in self._kept:
@@ -401,13 +400,22 @@ class AuditLog:
                 self._db.close()
 
 
-def _open_live(path: Path) -> tuple[sqlite3.Connection, tuple[int, int] | None]:
+def _open_live(
+    path: Path, segment_bytes: int | None
+) -> tuple[sqlite3.Connection, tuple[int, int] | None]:
     """The live segment and the file it is (not just its name): opened again if another
-    writer rotated it while it was being opened."""
+    writer rotated it while it was being opened.  With a segment size, its WAL is folded in
+    and cut back once it holds a quarter of one (at most SQLite's default 1000 pages), so the
+    bytes on disk, not only the rows, decide rotation and the budget."""
     for _ in range(3):
         before = file_identity(path)
         db = _connect(path, read_only=False)
         if file_identity(path) == before:
+            if segment_bytes is not None:
+                page = int(db.execute("PRAGMA page_size").fetchone()[0])
+                pages = max(1, min(1000, segment_bytes // page // 4))
+                db.execute(f"PRAGMA wal_autocheckpoint={pages}")
+                db.execute(f"PRAGMA journal_size_limit={pages * page}")
             return db, before
         db.close()
     raise AuditFileError(str(path), "replaced three times while opening it",
