@@ -10,14 +10,14 @@ first row chains from segment ``n``'s last hash, and its ``segment`` row (its
 head key, so the oldest segment kept starts at a proven cut point.  A trail written before
 segments is segment 1.
 
-Rotation (:func:`rotate`, the writer, holding its lock, between batches) never leaves
-``PATH`` missing, and each step is a state :func:`recover` or the verifier understands:
-the live segment leaves WAL mode (one self-contained file; another open connection
-postpones rotation), the next segment is written whole to ``PATH.next`` and fsynced,
-``PATH`` is hard-linked to its rotated name (a ``kill -9`` here leaves the same file under
-two names: the rotated name is dropped), then ``PATH.next`` is renamed over ``PATH`` and
-the directory fsynced.  The head checkpoint is untouched: its row is the new segment's
-link.  Retention removes whole segments, oldest first, never the live one: the head,
+Rotation (by the writer, holding its lock and :class:`RotationLock` exclusively, between
+batches) never leaves ``PATH`` missing, and each step is a state :func:`recover` or the
+verifier understands: the live segment leaves WAL mode (one self-contained file; another
+open connection postpones rotation), the next segment is written whole to ``PATH.next``
+and fsynced, ``PATH`` is hard-linked to its rotated name (a ``kill -9`` here leaves the
+same file under two names: the rotated name is dropped), then ``PATH.next`` is renamed over
+``PATH``, the directory fsynced, and the head (whose row the new segment's link names)
+fsynced.  Retention removes whole segments, oldest first, never the live one: the head,
 fsynced, first records the oldest segment kept, then the files go, so a segment missing
 above that mark (a gap, or the newest ones) is tampering and refused by name.
 """
@@ -25,6 +25,7 @@ above that mark (a gap, or the newest ones) is tampering and refused by name.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import re
 import sqlite3
@@ -69,6 +70,34 @@ class Kept:
     bytes: int
     first_at: float | None
     last_at: float | None
+
+
+class RotationLock:
+    """``PATH.lock``: every writer of the trail holds it shared while open; a rotation needs
+    it exclusive (else it waits for a later batch), so no writer opens, or recovers a
+    half-done rotation, while another writer is rotating."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path.with_name(path.name + ".lock")
+        self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
+        fcntl.flock(self._fd, fcntl.LOCK_SH)  # waits out a rotation in progress
+
+    def exclusive(self) -> bool:
+        """Take it for a rotation: ``False`` (and still held shared) if another writer has it."""
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fcntl.flock(self._fd, fcntl.LOCK_SH)  # a failed conversion may have dropped it
+            return False
+        return True
+
+    def shared(self) -> None:
+        fcntl.flock(self._fd, fcntl.LOCK_SH)
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
 
 
 def numbered(path: Path, n: int) -> Path:

@@ -69,20 +69,27 @@ class AuditLog:
         self._head_synced = self._clock.monotonic()
         self._head_dirty = False
         self._refuse_deleted_trail()
-        segments.recover(self.path)  # a rotation killed half-way: the live file holds it all
-        self._db, self._file = _open_live(self.path, self.retention.segment_bytes)
+        self._rotation = segments.RotationLock(self.path)  # no other writer is rotating now
+        try:
+            segments.recover(self.path)  # a rotation killed half-way: the live file holds it all
+            self._db, self._file = _open_live(self.path, self.retention.segment_bytes)
+        except BaseException:
+            self._rotation.close()
+            raise
         self._lock = threading.Lock()
         try:
             self._key = self._open_anchor()
             self._rows, self._head = _last(self._db)  # what this writer knows the chain to be
             self._kept = self._open_segments()
-        except sqlite3.DatabaseError as exc:
+        except BaseException as exc:
             self._db.close()
-            raise AuditFileError(
-                str(self.path), f"not a usable audit segment ({exc})", recovery=_recovery(self.path)
-            ) from None
-        except BaseException:
-            self._db.close()
+            self._rotation.close()
+            if isinstance(exc, sqlite3.DatabaseError):
+                raise AuditFileError(
+                    str(self.path),
+                    f"not a usable audit segment ({exc})",
+                    recovery=_recovery(self.path),
+                ) from None
             raise
         self._live_since = self._first_at()
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
@@ -310,6 +317,15 @@ class AuditLog:
     def _rotate(self) -> None:
         """Make the live segment a rotated one and start the next from its last row (the
         caller holds the lock; the order of steps is argued in :mod:`.segments`)."""
+        if not self._rotation.exclusive():
+            log.info("audit trail %s: another writer has it open; rotation postponed", self.path)
+            return
+        try:
+            self._rotate_alone()
+        finally:
+            self._rotation.shared()
+
+    def _rotate_alone(self) -> None:
         segments.recover(self.path)
         if not segments.seal(self._db):
             log.info("audit trail %s: another connection has it open; rotation postponed",
@@ -333,6 +349,7 @@ class AuditLog:
         self._db, self._file = live, identity
         self._kept.append(segments.kept(old, self._link.n))
         self._link, self._live_since = following, None
+        self._checkpoint(sync=True)  # a power cut never brings back a head in a rotated segment
         log.info("audit trail %s: segment %d rotated to %s", self.path, following.n - 1, old)
         self._retain()
 
@@ -398,28 +415,22 @@ class AuditLog:
                 log.warning("audit head %s not made durable at close: %s", self.anchor.path, exc)
             finally:
                 self._db.close()
+                self._rotation.close()
 
 
 def _open_live(
     path: Path, segment_bytes: int | None
 ) -> tuple[sqlite3.Connection, tuple[int, int] | None]:
-    """The live segment and the file it is (not just its name): opened again if another
-    writer rotated it while it was being opened.  With a segment size, its WAL is folded in
-    and cut back once it holds a quarter of one (at most SQLite's default 1000 pages), so the
-    bytes on disk, not only the rows, decide rotation and the budget."""
-    for _ in range(3):
-        before = file_identity(path)
-        db = _connect(path, read_only=False)
-        if file_identity(path) == before:
-            if segment_bytes is not None:
-                page = int(db.execute("PRAGMA page_size").fetchone()[0])
-                pages = max(1, min(1000, segment_bytes // page // 4))
-                db.execute(f"PRAGMA wal_autocheckpoint={pages}")
-                db.execute(f"PRAGMA journal_size_limit={pages * page}")
-            return db, before
-        db.close()
-    raise AuditFileError(str(path), "replaced three times while opening it",
-                         recovery=f"stop the other writers of {path}")  # fmt: skip
+    """The live segment and the file it is (not just its name).  With a segment size, its
+    WAL is folded in and cut back once it holds a quarter of one (at most SQLite's default
+    1000 pages), so the bytes on disk, not only the rows, decide rotation and the budget."""
+    db = _connect(path, read_only=False)
+    if segment_bytes is not None:
+        page = int(db.execute("PRAGMA page_size").fetchone()[0])
+        pages = max(1, min(1000, segment_bytes // page // 4))
+        db.execute(f"PRAGMA wal_autocheckpoint={pages}")
+        db.execute(f"PRAGMA journal_size_limit={pages * page}")
+    return db, file_identity(path)
 
 
 def _rows_in(path: Path) -> int:
