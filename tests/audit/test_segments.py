@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import os
 import sqlite3
+import threading
 from pathlib import Path
 
 import pytest
@@ -293,3 +294,40 @@ def test_truncating_the_newest_rotated_segment_refuses_the_writer(three: Path) -
     sql(newest, f"DELETE FROM audit WHERE seq = {last}")
     with pytest.raises(AuditFileError, match=f"does not start where {newest.name} ends"):
         AuditLog(three)
+
+
+class PausingLog(AuditLog):
+    """A writer that stops in the middle of its first rotation until the test lets it go."""
+
+    def __init__(self, path: Path) -> None:
+        self.reached, self.go = threading.Event(), threading.Event()
+        super().__init__(path, retention=Retention(segment_bytes=SMALL_SEGMENT))
+
+    def _rotation_point(self, step: str) -> None:
+        if step == "prepared" and not self.go.is_set():
+            self.reached.set()
+            self.go.wait(timeout=30)
+
+
+def test_a_writer_opening_mid_rotation_waits_for_it(tmp_path: Path) -> None:
+    """A second writer (a restarted gateway, ``mavlink-proxy`` on the same trail) started while
+    the first is half-way through a rotation neither undoes it nor opens the old segment."""
+    path = tmp_path / "audit.db"
+    first = PausingLog(path)
+    rows = threading.Thread(target=lambda: [append(first, i) for i in range(60)])
+    rows.start()
+    assert first.reached.wait(timeout=30)
+    opened: list[AuditLog] = []
+    second = threading.Thread(target=lambda: opened.append(AuditLog(path)))
+    second.start()
+    second.join(timeout=0.5)
+    assert second.is_alive() and not opened  # waits on PATH.lock while the rotation runs
+    first.go.set()
+    second.join(timeout=30)
+    assert opened and [n for n, _ in rotated(path)] == [1]  # the rotation went through whole
+    append(opened[0], 1000)  # appends to the new live segment, after the first writer's rows
+    opened[0].close()
+    rows.join(timeout=30)
+    first.close()
+    report = verify(path)
+    assert report.ok and report.records == 61 and report.segments >= 2
