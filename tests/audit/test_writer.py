@@ -96,3 +96,28 @@ def test_kill_9_mid_rotation_leaves_a_verifiable_trail_with_every_acknowledged_r
     assert report.last_row is not None and nxt == report.last_row + 1
     assert verify(path).ok and not path.with_name("audit.db.next").exists()
     assert all(file.name != f"{path.name}.next" for file in tmp_path.iterdir())
+
+
+def rows_seen_by_another_process(path: Path) -> int:
+    """Rows another process sees (its connection closes as it exits)."""
+    count = "import sqlite3, sys; print(sqlite3.connect(sys.argv[1]).execute('SELECT count(*) FROM audit').fetchone()[0])"  # noqa: E501
+    said = subprocess.run([sys.executable, "-c", count, str(path)], capture_output=True, check=True)
+    return int(said.stdout)
+
+
+def test_reading_the_trail_in_the_writers_process_keeps_its_wal(tmp_path: Path) -> None:
+    """The status page reads the trail in the gateway's process: opening the file outside
+    SQLite there would drop the writer's locks, and the next process to close its connection
+    would delete the WAL the writer is appending to (its rows then lost)."""
+    path = tmp_path / "audit.db"
+    log = AuditLog(path)
+    try:
+        append(log, 0)
+        assert [r.msg_id for r in tail(path, 5)] == ["m0"]  # read in the writer's process
+        assert verify(path).ok
+        assert rows_seen_by_another_process(path) == 1
+        append(log, 1)
+        assert rows_seen_by_another_process(path) == 2
+    finally:
+        log.close()
+    assert verify(path).records == 2

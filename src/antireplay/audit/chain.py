@@ -65,7 +65,6 @@ _COLUMNS = ",".join(_FIELDS)  # constants only: no user input ever reaches SQL t
 _TAIL = f"SELECT {_COLUMNS} FROM audit ORDER BY seq DESC LIMIT ?"  # noqa: S608
 _ALL = f"SELECT {_COLUMNS}, prev_hash, hash FROM audit ORDER BY seq"  # noqa: S608
 _EXPECTED_COLUMNS = [*_FIELDS, "prev_hash", "hash"]
-_SQLITE_MAGIC = b"SQLite format 3\x00"
 HEAD_FORMAT = "antireplay-audit-head"
 HEAD_VERSION = 1
 #: Bytes of one head record: well inside a 512-byte sector, so an in-place rewrite is atomic.
@@ -302,20 +301,15 @@ class HeadAnchor:
 
 
 def _connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
-    """Open an audit trail, refusing anything that is not one (never creating a table in it)."""
-    try:
-        with path.open("rb") as handle:
-            magic = handle.read(len(_SQLITE_MAGIC))
-    except FileNotFoundError:
-        magic = b""
-        if read_only:
-            raise AuditFileError(str(path), "does not exist", recovery=_aside(path)) from None
-    except OSError as exc:
-        raise AuditFileError(
-            str(path), f"unreadable ({exc.strerror})", recovery=_aside(path)
-        ) from None
-    if magic and magic != _SQLITE_MAGIC:
-        raise AuditFileError(str(path), "not an SQLite database", recovery=_aside(path))
+    """Open an audit trail, refusing anything that is not one (never creating a table in it).
+
+    The file is only ever opened through SQLite: closing any other descriptor of it would
+    drop the POSIX locks this process's writer holds, and another process closing its last
+    connection would then delete the WAL under that writer."""
+    if read_only and not path.exists():
+        raise AuditFileError(str(path), "does not exist", recovery=_aside(path))
+    if path.is_dir() or (path.exists() and not os.access(path, os.R_OK)):
+        raise AuditFileError(str(path), "unreadable (not a readable file)", recovery=_aside(path))
     try:
         if read_only:
             db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, check_same_thread=False)
@@ -342,9 +336,12 @@ def _connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
             db.close()
             raise
     except sqlite3.DatabaseError as exc:
-        raise AuditFileError(
-            str(path), f"not a usable SQLite database ({exc})", recovery=_aside(path)
-        ) from None
+        problem = (
+            "not an SQLite database"
+            if str(exc) == "file is not a database"
+            else f"not a usable SQLite database ({exc})"
+        )
+        raise AuditFileError(str(path), problem, recovery=_aside(path)) from None
     return db
 
 
