@@ -331,3 +331,22 @@ def test_a_writer_opening_mid_rotation_waits_for_it(tmp_path: Path) -> None:
     first.close()
     report = verify(path)
     assert report.ok and report.records == 61 and report.segments >= 2
+
+
+def test_a_head_from_before_the_last_rotation_only_under_claims(tmp_path: Path) -> None:
+    """A power cut can bring back a head whose row is now in a rotated segment: the writer
+    opens, and verify counts the rows after it as not covered."""
+    path = tmp_path / "audit.db"
+    head = path.with_name("audit.db.head")
+    log = AuditLog(path, retention=Retention(segment_bytes=SMALL_SEGMENT))
+    append(log, 0)
+    older = head.read_bytes()  # covers row 1
+    for i in range(1, 60):
+        append(log, i)
+    log.close()
+    assert len(rotated(path)) >= 2
+    head.write_bytes(older)
+    report = verify(path)
+    assert report.ok and (report.checkpoint_rows, report.after_checkpoint) == (1, 59)
+    AuditLog(path).close()  # adopts the rows after it into a new checkpoint
+    assert verify(path).after_checkpoint == 0

@@ -32,7 +32,20 @@ import sqlite3
 from dataclasses import dataclass
 from pathlib import Path
 
-from antireplay.audit.chain import _TAIL, Link, Record, _connect, _records, valid_at
+from antireplay.audit.chain import (
+    _TAIL,
+    FIRST_LINK,
+    GENESIS,
+    Checkpoint,
+    Link,
+    Record,
+    _compare,
+    _connect,
+    _last,
+    _link,
+    _records,
+    valid_at,
+)
 from antireplay.core.errors import AuditFileError
 from antireplay.state.durable import file_identity
 
@@ -63,13 +76,17 @@ class TrailUsage:
 
 @dataclass(frozen=True)
 class Kept:
-    """A rotated segment the writer keeps track of for retention."""
+    """A rotated segment the writer keeps track of: where it starts and ends (checked
+    against its neighbours at open) and what retention needs."""
 
     n: int
     path: Path
     bytes: int
     first_at: float | None
     last_at: float | None
+    link: Link = FIRST_LINK
+    #: (seq, hash) of its last row.
+    end: tuple[int, str] = (0, GENESIS)
 
 
 class RotationLock:
@@ -163,6 +180,21 @@ def newest(path: Path, n: int) -> list[Record]:
     return found
 
 
+def compare(path: Path, live: sqlite3.Connection, checkpoint: Checkpoint) -> str | None:
+    """The head checkpoint against the live segment, or against the rotated segment holding
+    its row (an older head a power cut brought back just after a rotation)."""
+    if checkpoint.rows >= _link(live).first - 1:
+        return _compare(live, checkpoint)
+    for _, file in reversed(rotated(path)):
+        db = _connect(file, read_only=True)
+        try:
+            if checkpoint.rows >= _link(db).first - 1:
+                return _compare(db, checkpoint)
+        finally:
+            db.close()
+    return f"truncated: the head checkpoint covers row {checkpoint.rows}, no segment holds it"
+
+
 def recover(path: Path) -> None:
     """Undo a rotation a ``kill -9`` interrupted: drop a stale ``PATH.next`` and a rotated
     name hard-linked to the live file (the live file still holds every row)."""
@@ -175,16 +207,23 @@ def recover(path: Path) -> None:
 
 
 def kept(path: Path, n: int) -> Kept:
-    """What retention needs to know of rotated segment ``n`` (read once, then cached)."""
+    """What the writer needs to know of rotated segment ``n`` (read once, then cached)."""
     db = _connect(path, read_only=True)
     try:
         ends = db.execute(
             "SELECT (SELECT at FROM audit ORDER BY seq LIMIT 1),"
             " (SELECT at FROM audit ORDER BY seq DESC LIMIT 1)"
         ).fetchone()
+        link, end = _link(db), _last(db)
+    except sqlite3.DatabaseError as exc:
+        raise AuditFileError(
+            str(path),
+            f"not a usable audit segment ({exc})",
+            recovery=f"antireplay audit verify {path}",
+        ) from None
     finally:
         db.close()
-    return Kept(n, path, bytes_of(path), valid_at(ends[0]), valid_at(ends[1]))
+    return Kept(n, path, bytes_of(path), valid_at(ends[0]), valid_at(ends[1]), link, end)
 
 
 def seal(db: sqlite3.Connection) -> bool:

@@ -25,7 +25,6 @@ from antireplay.audit.chain import (
     Checkpoint,
     HeadAnchor,
     _aside,
-    _compare,
     _connect,
     _digest,
     _link,
@@ -160,10 +159,7 @@ class _Trail:
 
     def compare(self, checkpoint: Checkpoint) -> str | None:
         """The checkpoint against the segment holding its row (or starting right after it)."""
-        for file, link in reversed(list(zip(self.files, self.links, strict=True))):
-            if checkpoint.rows >= link.first - 1:
-                return self._with(file, lambda db: _compare(db, checkpoint))
-        return f"truncated: the head checkpoint covers row {checkpoint.rows}, no segment holds it"
+        return self._with(self.path, partial(segments.compare, self.path, checkpoint=checkpoint))
 
 
 def verify(

@@ -143,7 +143,7 @@ class AuditLog:
                     recovery=_recovery(self.path),
                 )
         else:
-            problem = _compare(self._db, checkpoint)
+            problem = segments.compare(self.path, self._db, checkpoint)
             if problem is not None:
                 raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
         self._first = 1 if checkpoint is None else checkpoint.first
@@ -152,35 +152,30 @@ class AuditLog:
         return key
 
     def _open_segments(self) -> list[Kept]:
-        """The rotated segments, checked in order against the live one and the head (what
-        retention removed, finished if a crash interrupted it), then retention applied."""
-        found = segments.rotated(self.path)
-        for n, file in found:
-            if n < self._first:  # retention marked it removed, then was interrupted
-                file.unlink()
-        found = [(n, file) for n, file in found if n >= self._first]
-        links = []
-        for _n, file in found:
-            db = _connect(file, read_only=True)
-            try:
-                links.append((file, _link(db), _last(db)))
-            finally:
-                db.close()
+        """The rotated segments, checked in order against the live one and the head; then,
+        if no other writer has the trail open, a retention a crash interrupted is finished
+        and retention applied (two writers would race on the head's oldest segment)."""
+        found = [segments.kept(file, n) for n, file in segments.rotated(self.path)]
         live = _link(self._db)
-        order = [(f, k) for f, k, _ in links] + [(self.path, live)]
+        order = [(k.path, k.link) for k in found] + [(self.path, live)]
         segments.check_order(self.path, order, self._first)
-        if links and links[-1][2] != (live.first - 1, live.prev):
-            (before, _, (seq, _)) = links[-1]
+        if found and found[-1].end != (live.first - 1, live.prev):
             raise AuditFileError(
-                str(self.path), f"does not start where {before.name} ends (row {seq}): rows "
-                "of the segment before it missing or rewritten",
+                str(self.path), f"does not start where {found[-1].path.name} ends (row "
+                f"{found[-1].end[0]}): rows of the segment before it missing or rewritten",
                 recovery=_recovery(self.path),
             )  # fmt: skip
         self._link = live
-        kept = [segments.kept(file, n) for n, file in found]
         with self._lock:
-            self._kept = kept
-            self._retain()
+            self._kept = found
+            if self._rotation.exclusive():
+                try:
+                    for k in [k for k in found if k.n < self._first]:  # marked removed
+                        k.path.unlink()
+                    self._kept = [k for k in found if k.n >= self._first]
+                    self._retain()
+                finally:
+                    self._rotation.shared()
         return self._kept
 
     def _first_at(self) -> float | None:
