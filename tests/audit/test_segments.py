@@ -5,6 +5,7 @@ swapped or forged anywhere else is caught, naming the file."""
 from __future__ import annotations
 
 import itertools
+import logging
 import os
 import sqlite3
 import threading
@@ -151,16 +152,22 @@ def test_a_single_file_trail_from_before_segments_is_segment_1(tmp_path: Path) -
 
 
 def test_rotation_waits_while_another_connection_holds_the_live_segment(
-    tmp_path: Path,
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     path = tmp_path / "audit.db"
     log = AuditLog(path, retention=Retention(segment_bytes=SMALL_SEGMENT))
     reader = sqlite3.connect(path)
     try:
         reader.execute("SELECT count(*) FROM audit").fetchone()
-        for i in range(60):
-            append(log, i)
+        with caplog.at_level(logging.WARNING, "antireplay.audit"):
+            for i in range(60):
+                append(log, i)
         assert rotated(path) == []  # postponed, every row still written
+        assert log.rotations_postponed > 1  # counted each batch, said once
+        assert [r.getMessage() for r in caplog.records] == [
+            f"audit trail {path}: rotation postponed (another connection has the live "
+            "segment open); retried after each batch"
+        ]
     finally:
         reader.close()
     append(log, 60)

@@ -68,6 +68,9 @@ class AuditLog:
         self._clock = resolve(clock)
         self._head_synced = self._clock.monotonic()
         self._head_dirty = False
+        #: Rotations that were due but had to wait (another writer or reader had the trail).
+        self.rotations_postponed = 0
+        self._waiting = False
         self._refuse_deleted_trail()
         self._rotation = segments.RotationLock(self.path)  # no other writer is rotating now
         try:
@@ -278,12 +281,25 @@ class AuditLog:
             if self._live_since is None:
                 self._live_since = valid_at(batch[0]["at"])
             self._checkpoint()
-            try:
-                if self._rotation_due():
-                    self._rotate()
-            except (sqlite3.Error, OSError, AuditFileError) as exc:
-                log.warning("audit trail %s: rotation postponed: %s", self.path, exc)
+            if self._rotation_due():
+                try:
+                    why = self._rotate()
+                except (sqlite3.Error, OSError, AuditFileError) as exc:
+                    why = str(exc)
+                self._postponed(why)
             return list(range(first, seq + 1))
+
+    def _postponed(self, why: str | None) -> None:
+        """Count a rotation that is due but waits (retried after the next batch); say so
+        once per streak, so a reader that never lets go is visible, not silent."""
+        if why is None:
+            self._waiting = False
+            return
+        self.rotations_postponed += 1
+        if not self._waiting:
+            log.warning("audit trail %s: rotation postponed (%s); retried after each batch",
+                        self.path, why)  # fmt: skip
+        self._waiting = True
 
     def _checkpoint(self, *, sync: bool = False) -> None:
         """Rewrite the head after a batch (the caller holds the lock); fsync it only once
@@ -309,23 +325,21 @@ class AuditLog:
     def _rotation_point(self, step: str) -> None:
         """Called after each step of a rotation (a test stops a real writer there)."""
 
-    def _rotate(self) -> None:
+    def _rotate(self) -> str | None:
         """Make the live segment a rotated one and start the next from its last row (the
-        caller holds the lock; the order of steps is argued in :mod:`.segments`)."""
+        caller holds the lock; the order of steps is argued in :mod:`.segments`); why it
+        must wait, if it must."""
         if not self._rotation.exclusive():
-            log.info("audit trail %s: another writer has it open; rotation postponed", self.path)
-            return
+            return "another writer has the trail open"
         try:
-            self._rotate_alone()
+            return self._rotate_alone()
         finally:
             self._rotation.shared()
 
-    def _rotate_alone(self) -> None:
+    def _rotate_alone(self) -> str | None:
         segments.recover(self.path)
         if not segments.seal(self._db):
-            log.info("audit trail %s: another connection has it open; rotation postponed",
-                     self.path)  # fmt: skip
-            return
+            return "another connection has the live segment open"
         try:
             self._db.execute("BEGIN IMMEDIATE")  # another writer waits, then sees the new name
             self._rotation_point("sealed")
@@ -347,6 +361,7 @@ class AuditLog:
         self._checkpoint(sync=True)  # a power cut never brings back a head in a rotated segment
         log.info("audit trail %s: segment %d rotated to %s", self.path, following.n - 1, old)
         self._retain()
+        return None
 
     def _retain(self) -> None:
         """Remove the oldest rotated segments past the byte or age budget (the caller holds
