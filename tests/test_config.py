@@ -98,3 +98,44 @@ def test_a_missing_file_is_said_in_those_words(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as err:
         AppConfig.from_yaml(tmp_path / "absent.yaml")
     assert str(err.value) == f"config: file not found: {tmp_path / 'absent.yaml'}"
+
+
+def test_audit_is_a_path_or_a_block_of_retention_keys(tmp_path: Path) -> None:
+    """A bare path keeps working (the defaults rotate and bound the trail); the block names
+    each limit; either way ``config.audit`` is usable as the trail's path."""
+    bare = AppConfig.from_mapping({"audit": "trail/audit.db"})
+    assert (str(bare.audit), Path(bare.audit)) == ("trail/audit.db", Path("trail/audit.db"))
+    assert (bare.audit.segment_bytes, bare.audit.max_bytes) == (64 << 20, 1 << 30)
+    path = tmp_path / "antireplay.yaml"
+    path.write_text(
+        "audit:\n  path: a.db\n  segment_bytes: 1048576\n  segment_age_s: 3600\n"
+        "  max_bytes: null\n  max_age_s: 604800\n"
+    )
+    block = AppConfig.from_yaml(path).audit
+    assert (block.path, block.segment_bytes, block.segment_age_s) == ("a.db", 1 << 20, 3600)
+    assert (block.max_bytes, block.max_age_s) == (None, 604_800)
+
+
+@pytest.mark.parametrize(
+    ("audit", "key", "allowed"),
+    [
+        ({"segment_bytes": 1000}, "audit.segment_bytes", "greater than or equal to 65536"),
+        ({"segment_bytes": "64MiB"}, "audit.segment_bytes", "valid integer"),
+        ({"max_bytes": 200_000, "segment_bytes": 131_072}, "audit.max_bytes",
+         "at least twice audit.segment_bytes (262144), or null"),
+        ({"max_age_s": 0}, "audit.max_age_s", "greater than or equal to 60"),
+        ({"segment_age_s": True}, "audit.segment_age_s", "valid number"),
+    ],
+)  # fmt: skip
+def test_audit_retention_errors_name_the_key(
+    audit: dict[str, object], key: str, allowed: str
+) -> None:
+    with pytest.raises(ConfigError) as err:
+        AppConfig.from_mapping({"audit": audit})
+    assert err.value.key == key and allowed in str(err.value)
+
+
+def test_an_unknown_audit_key_names_the_one_it_resembles() -> None:
+    with pytest.raises(ConfigError) as err:
+        AppConfig.from_mapping({"audit": {"max_byte": 1}})
+    assert str(err.value) == "unknown key `audit.max_byte` (did you mean `audit.max_bytes`?)"

@@ -11,8 +11,8 @@ from typing import Any
 import pytest
 from cryptography.hazmat.primitives.asymmetric import ed25519
 
-from antireplay.audit import AuditLog
-from antireplay.config import AppConfig, KeyConfig
+from antireplay.audit import AuditLog, Retention
+from antireplay.config import AppConfig, AuditConfig, KeyConfig
 from antireplay.core.clock import ManualClock
 from antireplay.core.errors import ConfigError
 from antireplay.mavlink import Refusal, Role, passphrase_key
@@ -26,6 +26,7 @@ from antireplay.wiring import (
     build_mavlink_router,
     build_registry,
     mavlink_auditor,
+    open_audit,
     router_metrics,
 )
 from tests.harness import free_port
@@ -159,3 +160,14 @@ def test_mavlink_refusals_folded_by_the_rate_limit_are_a_metric(tmp_path: Path) 
     assert folded == {"authenticated": 0, "unauthenticated": 7}
     assert log.count() + folded["unauthenticated"] == flood
     log.close()
+
+
+def test_the_audit_block_reaches_the_writer(tmp_path: Path) -> None:
+    config = AuditConfig(path=str(tmp_path / "audit.db"), segment_bytes=1 << 20,
+                         segment_age_s=600, max_bytes=4 << 20, max_age_s=3600)  # fmt: skip
+    log = open_audit(config)
+    try:
+        assert log.path == tmp_path / "audit.db"
+        assert log.retention == Retention(1 << 20, 600, 4 << 20, 3600)
+    finally:
+        log.close()

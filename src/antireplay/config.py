@@ -34,6 +34,7 @@ __all__ = [
     "ALLOWED",
     "AnchorConfig",
     "AppConfig",
+    "AuditConfig",
     "JwtConfig",
     "KeyConfig",
     "SecurityConfig",
@@ -96,6 +97,44 @@ class StateConfig(BaseModel):
     anchor: AnchorConfig = Field(default_factory=AnchorConfig)
 
 
+_MIB = 1 << 20
+
+
+class AuditConfig(BaseModel):
+    """The audit trail (``audit:``): its path, when its live segment rotates and how much
+    of it is kept.  A bare string is the path, with these defaults (``None``: no limit)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    path: str = Field(default=".antireplay/audit.db", min_length=1)
+    segment_bytes: int = Field(default=64 * _MIB, ge=64 * 1024, le=1 << 40)
+    segment_age_s: float = Field(default=86_400.0, ge=1, le=366 * 86_400)
+    max_bytes: int | None = Field(default=1024 * _MIB, ge=2 * 64 * 1024, le=1 << 50)
+    max_age_s: float | None = Field(default=None, ge=60, le=100 * 366 * 86_400)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _path_only(cls, value: Any) -> Any:
+        return {"path": value} if isinstance(value, str) else value
+
+    @model_validator(mode="after")
+    def _budget_holds_two_segments(self) -> AuditConfig:
+        """Retention never removes the live segment: a budget under two segments would
+        remove every rotated one at once, or be exceeded."""
+        if self.max_bytes is not None and self.max_bytes < 2 * self.segment_bytes:
+            raise ConfigError(
+                "audit.max_bytes", self.max_bytes,
+                f"at least twice audit.segment_bytes ({2 * self.segment_bytes}), or null",
+            )  # fmt: skip
+        return self
+
+    def __fspath__(self) -> str:
+        return self.path
+
+    def __str__(self) -> str:
+        return self.path
+
+
 class AppConfig(BaseModel):
     """The whole gateway configuration file; ``security:`` is the §8.3 block."""
 
@@ -104,7 +143,7 @@ class AppConfig(BaseModel):
     security: SecurityConfig = Field(default_factory=SecurityConfig)
     store: str = "sqlite:.antireplay/state.db"
     state: StateConfig = Field(default_factory=StateConfig)
-    audit: str = ".antireplay/audit.db"
+    audit: AuditConfig = Field(default_factory=AuditConfig)
     keys: list[KeyConfig] = Field(default_factory=list)
     sdk_compat: bool = False
     jwt: JwtConfig = Field(default_factory=JwtConfig)

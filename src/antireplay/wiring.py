@@ -47,8 +47,8 @@ from cryptography.hazmat.primitives.asymmetric import ed25519
 from starlette.applications import Starlette
 from starlette.types import ASGIApp
 
-from antireplay.audit import AuditLog, RefusalAuditor
-from antireplay.config import AppConfig, KeyConfig
+from antireplay.audit import AuditLog, RefusalAuditor, Retention
+from antireplay.config import AppConfig, AuditConfig, KeyConfig
 from antireplay.core.clock import Clock
 from antireplay.core.errors import ConfigError, StateUnavailableError
 from antireplay.http.app import gateway_app
@@ -138,7 +138,7 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
         config.security,
         build_registry(config),
         store,
-        AuditLog(config.audit),
+        open_audit(config.audit, clock),
         clock,
         jwt=verifier,
         jwt_required=config.jwt.required,
@@ -210,6 +210,17 @@ def _same_volume(one: Path, other: Path) -> bool:
     return device(one) == device(other)
 
 
+def open_audit(config: AuditConfig, clock: Clock | None = None) -> AuditLog:
+    """The audit trail at ``audit.path``, rotated and retained as ``audit:`` says."""
+    retention = Retention(
+        segment_bytes=config.segment_bytes,
+        segment_age_s=config.segment_age_s,
+        max_bytes=config.max_bytes,
+        max_age_s=config.max_age_s,
+    )
+    return AuditLog(config.path, clock=clock, retention=retention)
+
+
 def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
     """SQLite state and audit under ``state_dir`` and a demo Ed25519 key pair (made once)."""
     state_dir.mkdir(parents=True, exist_ok=True)
@@ -218,7 +229,7 @@ def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
         write_key_pair(ed25519.Ed25519PrivateKey.generate(), private, public)
     return AppConfig(
         store=f"sqlite:{state_dir / 'state.db'}",
-        audit=str(state_dir / "audit.db"),
+        audit=AuditConfig(path=str(state_dir / "audit.db")),
         keys=[
             KeyConfig(
                 kid=DEMO_KID,

@@ -1,14 +1,20 @@
-"""The audit writer when its trail is deleted: refused at start, refused while running."""
+"""The audit writer when its trail is deleted (refused at start, refused while running),
+and a real writer killed with SIGKILL at each step of a rotation."""
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, Retention, tail, verify
 from antireplay.core.errors import AuditFileError, StateUnavailableError
-from tests.harness.audit import trail
+from tests.harness import ROOT
+from tests.harness.audit import SMALL_SEGMENT, append, trail
 
 
 @pytest.mark.parametrize("key_too", [False, True], ids=["db", "db-and-key"])
@@ -45,3 +51,73 @@ def test_a_running_writer_refuses_to_append_to_a_deleted_trail(tmp_path: Path) -
             )  # fmt: skip
     finally:
         log.close()
+
+
+def kill_at(path: Path, step: str, nth: int) -> list[int]:
+    """Run a real writer appending in a loop, SIGKILL it once it hangs at ``step`` of its
+    ``nth`` rotation (or retention); the sequence numbers it had acknowledged."""
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "tests.harness.workers.audit_worker", str(path), step, str(nth)],
+        stdout=subprocess.PIPE, text=True, cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"},
+    )  # fmt: skip
+    acknowledged: list[int] = []
+    try:
+        assert worker.stdout is not None
+        for line in worker.stdout:
+            if line.startswith("STOP"):
+                break
+            acknowledged.append(int(line))
+        else:
+            pytest.fail(f"the writer exited ({worker.wait()}) before {step} #{nth}")
+    finally:
+        worker.send_signal(signal.SIGKILL)
+        worker.wait()
+    return acknowledged
+
+
+@pytest.mark.parametrize("step", ["sealed", "prepared", "published", "retaining"])
+def test_kill_9_mid_rotation_leaves_a_verifiable_trail_with_every_acknowledged_row(
+    tmp_path: Path, step: str
+) -> None:
+    path = tmp_path / "audit.db"
+    acknowledged = kill_at(path, step, 3)
+    assert acknowledged == list(range(1, len(acknowledged) + 1))
+    report = verify(path)
+    assert report.chain_ok and report.head == "match", report.lines()
+    assert report.after_checkpoint <= 1  # at most the row whose batch was rotating
+    kept = {r.seq for r in tail(path, 10_000)}
+    cut = report.first_row
+    assert {seq for seq in acknowledged if seq >= cut} <= kept
+    # a restart finishes or undoes the rotation and the trail goes on
+    log = AuditLog(path, retention=Retention(segment_bytes=SMALL_SEGMENT))
+    nxt = append(log, 10_000)
+    log.close()
+    assert report.last_row is not None and nxt == report.last_row + 1
+    assert verify(path).ok and not path.with_name("audit.db.next").exists()
+    assert all(file.name != f"{path.name}.next" for file in tmp_path.iterdir())
+
+
+def rows_seen_by_another_process(path: Path) -> int:
+    """Rows another process sees (its connection closes as it exits)."""
+    count = "import sqlite3, sys; print(sqlite3.connect(sys.argv[1]).execute('SELECT count(*) FROM audit').fetchone()[0])"  # noqa: E501
+    said = subprocess.run([sys.executable, "-c", count, str(path)], capture_output=True, check=True)
+    return int(said.stdout)
+
+
+def test_reading_the_trail_in_the_writers_process_keeps_its_wal(tmp_path: Path) -> None:
+    """The status page reads the trail in the gateway's process: opening the file outside
+    SQLite there would drop the writer's locks, and the next process to close its connection
+    would delete the WAL the writer is appending to (its rows then lost)."""
+    path = tmp_path / "audit.db"
+    log = AuditLog(path)
+    try:
+        append(log, 0)
+        assert [r.msg_id for r in tail(path, 5)] == ["m0"]  # read in the writer's process
+        assert verify(path).ok
+        assert rows_seen_by_another_process(path) == 1
+        append(log, 1)
+        assert rows_seen_by_another_process(path) == 2
+    finally:
+        log.close()
+    assert verify(path).records == 2

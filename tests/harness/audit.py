@@ -5,7 +5,7 @@ from __future__ import annotations
 import sqlite3
 from pathlib import Path
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, Retention
 
 
 def trail(path: Path, rows: int) -> None:
@@ -26,3 +26,23 @@ def sql(path: Path, *statements: str) -> None:
         db.execute(statement)
     db.commit()
     db.close()
+
+
+#: A segment size that rotates the live segment every couple of dozen rows (8 SQLite pages).
+SMALL_SEGMENT = 32_768
+
+
+def append(log: AuditLog, i: int) -> int:
+    """One accepted record ``m<i>`` at second ``i`` of the test's epoch."""
+    return log.append(
+        at=1_800_000_000.0 + i, outcome="accepted", code=None, warning=None, msg_type=1,
+        sender="op", sender_verified=True, msg_id=f"m{i}",
+    )  # fmt: skip
+
+
+def segmented(path: Path, rows: int, retention: Retention | None = None) -> AuditLog:
+    """An open writer on ``path`` that rotated while ``rows`` records were appended."""
+    log = AuditLog(path, retention=retention or Retention(segment_bytes=SMALL_SEGMENT))
+    for i in range(rows):
+        append(log, i)
+    return log

@@ -26,11 +26,12 @@ from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
 
 from antireplay.audit import AuditLog, sanitize, tail
+from antireplay.audit.segments import rotated
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.http.status import AUDIT_COLUMNS, _audit, render, security_headers
 from antireplay.rcan.receive import Receiver
 from tests.harness import ROOT, GatewayProcess, metrics_pq, metrics_router, post, serving
-from tests.harness.audit import trail
+from tests.harness.audit import segmented, trail
 from tests.harness.redis_server import RedisServer
 
 DASH = "\u2014"
@@ -414,3 +415,16 @@ def test_status_says_the_trail_was_deleted_under_the_running_gateway(tmp_path: P
     assert "deleted under the running gateway" in said
     assert "refusing to start" not in said
     assert "audit reanchor" in said
+
+
+def test_the_status_page_shows_the_newest_records_across_segments(tmp_path: Path) -> None:
+    """Just rotated: the live segment holds a few rows, the page still shows the last 30."""
+    log = segmented(tmp_path / "audit.db", 140)
+    try:
+        shown_ids = [
+            r["msg_id"] for r in _audit(cast(Receiver, SimpleNamespace(audit=log)), 30)["records"]
+        ]
+    finally:
+        log.close()
+    assert len(rotated(tmp_path / "audit.db")) >= 3
+    assert sorted(shown_ids, key=lambda m: int(m[1:])) == [f"m{i}" for i in range(110, 140)]

@@ -21,6 +21,10 @@ chain, the checkpoint's MAC and that no checkpointed row was truncated or
 rewritten, and counts the rows after it as not covered.  It proves nothing against
 a holder of the key, nor a rollback of the database and the head file together.
 
+The trail is a sequence of segments (:mod:`.segments`): ``PATH`` is the live one,
+rotated ones are ``PATH.000041``, each chained from the one before by a MACed link;
+retention removes the oldest whole segments only, and :func:`verify` says where it cut.
+
 Refuse, never guess: a file that is not an audit trail, a trail truncated or
 rewritten since its checkpoint, a missing checkpoint or key raise
 :class:`~antireplay.core.errors.AuditFileError` naming the file and the recovery
@@ -31,6 +35,7 @@ running writer fail with ``STATE_UNAVAILABLE``.
 from antireplay.audit.chain import GENESIS, Checkpoint, HeadAnchor, Record, sanitize
 from antireplay.audit.reader import shown, tail
 from antireplay.audit.refusals import RefusalAuditor
+from antireplay.audit.segments import Retention, TrailUsage
 from antireplay.audit.verifier import ChainReport, reanchor, verify
 from antireplay.audit.writer import AuditLog
 
@@ -42,6 +47,8 @@ __all__ = [
     "HeadAnchor",
     "Record",
     "RefusalAuditor",
+    "Retention",
+    "TrailUsage",
     "reanchor",
     "sanitize",
     "shown",

@@ -1,8 +1,11 @@
 """The audit trail's format: the schema, the hash chain, the head anchor, the sanitizer.
 
 Each row stores ``hash = SHA-256(prev_hash | canonical JSON of the row)``; the first
-row chains from :data:`GENESIS`.  The head ``(rows, last hash)`` is MACed with a key
-kept outside the database and checkpointed to a file beside it (:class:`HeadAnchor`).
+row chains from :data:`GENESIS`, or, in a later segment of the trail, from the last
+hash of the segment before it, which the segment's one ``segment`` row records (its
+:class:`Link`, MACed with the head key).  A file without that row is segment 1.  The
+head ``(rows, last hash, oldest segment kept)`` is MACed with a key kept outside the
+database and checkpointed to a file beside it (:class:`HeadAnchor`).
 The writer (:mod:`.writer`), the reader (:mod:`.reader`) and the verifier
 (:mod:`.verifier`) share these definitions and nothing else.
 """
@@ -40,6 +43,12 @@ CREATE TABLE IF NOT EXISTS audit (
     prev_hash TEXT NOT NULL,
     hash TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS segment (
+    n INTEGER PRIMARY KEY,
+    first_seq INTEGER NOT NULL,
+    prev_hash TEXT NOT NULL,
+    mac TEXT NOT NULL
+);
 """
 _FIELDS = (
     "seq",
@@ -56,7 +65,6 @@ _COLUMNS = ",".join(_FIELDS)  # constants only: no user input ever reaches SQL t
 _TAIL = f"SELECT {_COLUMNS} FROM audit ORDER BY seq DESC LIMIT ?"  # noqa: S608
 _ALL = f"SELECT {_COLUMNS}, prev_hash, hash FROM audit ORDER BY seq"  # noqa: S608
 _EXPECTED_COLUMNS = [*_FIELDS, "prev_hash", "hash"]
-_SQLITE_MAGIC = b"SQLite format 3\x00"
 HEAD_FORMAT = "antireplay-audit-head"
 HEAD_VERSION = 1
 #: Bytes of one head record: well inside a 512-byte sector, so an in-place rewrite is atomic.
@@ -134,6 +142,25 @@ class Checkpoint:
 
     rows: int
     hash: str
+    #: The oldest segment retention keeps: older ones were removed by retention, on purpose.
+    first: int = 1
+
+
+@dataclass(frozen=True)
+class Link:
+    """Where a segment starts: its number, its first row and the hash that row chains from."""
+
+    n: int
+    first: int
+    prev: str
+    mac: str = ""
+
+    def message(self) -> bytes:
+        return f"antireplay/v1 audit segment|{self.n}|{self.first}|{self.prev}".encode()
+
+
+#: Segment 1 of every trail (and the whole of a trail written before segments existed).
+FIRST_LINK = Link(1, 1, GENESIS)
 
 
 class HeadAnchor:
@@ -196,22 +223,38 @@ class HeadAnchor:
         return key
 
     @staticmethod
-    def mac(key: bytes, rows: int, head: str) -> str:
-        return hmac.new(
-            key, f"antireplay/v1 audit head|{rows}|{head}".encode(), "sha256"
-        ).hexdigest()
+    def mac(key: bytes, rows: int, head: str, first: int = 1) -> str:
+        """The head's MAC; version 1 (``first == 1``, nothing removed) keeps its old message."""
+        text = f"antireplay/v1 audit head|{rows}|{head}" + (f"|first {first}" if first > 1 else "")
+        return hmac.new(key, text.encode(), "sha256").hexdigest()
 
-    def record(self, key: bytes, rows: int, head: str) -> bytes:
-        """The checkpoint as one fixed-size record (JSON padded with spaces, then a newline)."""
-        body = {"format": HEAD_FORMAT, "version": HEAD_VERSION, "rows": rows, "hash": head,
-                "mac": self.mac(key, rows, head)}  # fmt: skip
+    @staticmethod
+    def link(key: bytes, n: int, first: int, prev: str) -> Link:
+        """A segment's start, MACed: proof that the writer, not a deleter, cut the chain there."""
+        unsigned = Link(n, first, prev)
+        return Link(n, first, prev, hmac.new(key, unsigned.message(), "sha256").hexdigest())
+
+    @staticmethod
+    def link_ok(key: bytes, link: Link) -> bool:
+        if link == FIRST_LINK:
+            return True  # segment 1 starts from GENESIS: nothing to prove
+        expected = hmac.new(key, link.message(), "sha256").hexdigest()
+        return hmac.compare_digest(link.mac, expected)
+
+    def record(self, key: bytes, rows: int, head: str, first: int = 1) -> bytes:
+        """The checkpoint as one fixed-size record (JSON padded with spaces, then a newline);
+        version 2 adds the oldest segment kept, once retention has removed one."""
+        body: dict[str, Any] = {"format": HEAD_FORMAT, "version": HEAD_VERSION, "rows": rows,
+                                "hash": head, "mac": self.mac(key, rows, head, first)}  # fmt: skip
+        if first > 1:
+            body.update(version=2, first=first)
         return json.dumps(body, sort_keys=True).encode().ljust(HEAD_RECORD - 1) + b"\n"
 
-    def write(self, key: bytes, rows: int, head: str, *, sync: bool = True) -> None:
+    def write(self, key: bytes, rows: int, head: str, *, sync: bool = True, first: int = 1) -> None:
         """Checkpoint the head: in place when the file already holds one record, so that
         ``sync=False`` costs no fsync yet survives a ``kill -9``; whole files (first
         write, an operator's edit) go through :func:`~antireplay.state.durable.atomic_write`."""
-        record = self.record(key, rows, head)
+        record = self.record(key, rows, head, first)
         try:
             fd = os.open(self.path, os.O_WRONLY)
         except FileNotFoundError:
@@ -240,37 +283,33 @@ class HeadAnchor:
             body = json.loads(raw)
             ok = isinstance(body, dict) and body.get("format") == HEAD_FORMAT
             rows, head, mac = (body["rows"], body["hash"], body["mac"]) if ok else (0, "", "")
+            first = body.get("first", 1) if ok else 1
         except (ValueError, UnicodeDecodeError, KeyError):
             ok = False
         if not (ok and type(rows) is int and rows >= 0 and isinstance(head, str)
-                and isinstance(mac, str)):  # fmt: skip
+                and isinstance(mac, str) and type(first) is int and first >= 1):  # fmt: skip
             raise AuditFileError(
                 str(self.path), "not an audit head checkpoint (corrupt or truncated)",
                 recovery=_recovery(self.db),
             )  # fmt: skip
-        if key is not None and not hmac.compare_digest(mac, self.mac(key, rows, head)):
+        if key is not None and not hmac.compare_digest(mac, self.mac(key, rows, head, first)):
             raise AuditFileError(
                 str(self.path), "head MAC does not verify (forged, or written with another key)",
                 recovery=_recovery(self.db),
             )  # fmt: skip
-        return Checkpoint(rows, head)
+        return Checkpoint(rows, head, first)
 
 
 def _connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
-    """Open an audit trail, refusing anything that is not one (never creating a table in it)."""
-    try:
-        with path.open("rb") as handle:
-            magic = handle.read(len(_SQLITE_MAGIC))
-    except FileNotFoundError:
-        magic = b""
-        if read_only:
-            raise AuditFileError(str(path), "does not exist", recovery=_aside(path)) from None
-    except OSError as exc:
-        raise AuditFileError(
-            str(path), f"unreadable ({exc.strerror})", recovery=_aside(path)
-        ) from None
-    if magic and magic != _SQLITE_MAGIC:
-        raise AuditFileError(str(path), "not an SQLite database", recovery=_aside(path))
+    """Open an audit trail, refusing anything that is not one (never creating a table in it).
+
+    The file is only ever opened through SQLite: closing any other descriptor of it would
+    drop the POSIX locks this process's writer holds, and another process closing its last
+    connection would then delete the WAL under that writer."""
+    if read_only and not path.exists():
+        raise AuditFileError(str(path), "does not exist", recovery=_aside(path))
+    if path.is_dir() or (path.exists() and not os.access(path, os.R_OK)):
+        raise AuditFileError(str(path), "unreadable (not a readable file)", recovery=_aside(path))
     try:
         if read_only:
             db = sqlite3.connect(f"file:{path}?mode=ro", uri=True, check_same_thread=False)
@@ -297,15 +336,38 @@ def _connect(path: Path, *, read_only: bool) -> sqlite3.Connection:
             db.close()
             raise
     except sqlite3.DatabaseError as exc:
-        raise AuditFileError(
-            str(path), f"not a usable SQLite database ({exc})", recovery=_aside(path)
-        ) from None
+        problem = (
+            "not an SQLite database"
+            if str(exc) == "file is not a database"
+            else f"not a usable SQLite database ({exc})"
+        )
+        raise AuditFileError(str(path), problem, recovery=_aside(path)) from None
     return db
 
 
+def _link(db: sqlite3.Connection) -> Link:
+    """Where this segment starts (:data:`FIRST_LINK` for a file without a ``segment`` row);
+    a wrongly typed or doubled row refuses, as any value antireplay never writes."""
+    try:
+        rows = db.execute("SELECT n, first_seq, prev_hash, mac FROM segment").fetchall()
+    except sqlite3.OperationalError:  # no such table: a trail written before segments
+        return FIRST_LINK
+    if not rows:
+        return FIRST_LINK
+    n, first, prev, mac = rows[0]
+    if len(rows) > 1 or not (type(n) is int and type(first) is int and n >= 1 and first >= 1
+                             and isinstance(prev, str) and isinstance(mac, str)):  # fmt: skip
+        raise sqlite3.DatabaseError("its segment row is not one antireplay writes")
+    return Link(n, first, prev, mac)
+
+
 def _last(db: sqlite3.Connection) -> tuple[int, str]:
+    """The segment's last (seq, hash); an empty segment ends where its link starts it."""
     row = db.execute("SELECT seq, hash FROM audit ORDER BY seq DESC LIMIT 1").fetchone()
-    return (0, GENESIS) if row is None else (int(row[0]), str(row[1]))
+    if row is not None:
+        return int(row[0]), str(row[1])
+    link = _link(db)
+    return link.first - 1, link.prev
 
 
 @dataclass(frozen=True)
@@ -334,6 +396,9 @@ def _compare(db: sqlite3.Connection, checkpoint: Checkpoint) -> str | None:
     if checkpoint.rows == 0:
         return None
     row = db.execute("SELECT hash FROM audit WHERE seq = ?", (checkpoint.rows,)).fetchone()
+    link = _link(db)
+    if row is None and checkpoint.rows == link.first - 1:
+        row = (link.prev,)  # the head is the previous segment's last row: this one starts there
     if row is None:
         return f"truncated: the head checkpoint covers {checkpoint.rows} rows, they are gone"
     if row[0] != checkpoint.hash:

@@ -1,29 +1,26 @@
-"""Reading an audit trail: the newest records, and what an operator is shown of one."""
+"""Reading an audit trail: the newest records (across its segments), and what an operator
+is shown of one."""
 
 from __future__ import annotations
 
 import time
+from os import PathLike
 from pathlib import Path
 from typing import Any
 
 from antireplay.audit.chain import (
-    _TAIL,
     Record,
-    _connect,
-    _records,
     printable,
     sanitize,
     valid_at,
 )
+from antireplay.audit.segments import newest
 
 
-def tail(path: str | Path, n: int = 20) -> list[Record]:
-    """The newest ``n`` records, read-only: reading never writes a checkpoint or a key."""
-    db = _connect(Path(path), read_only=True)
-    try:
-        return _records(db.execute(_TAIL, (n,)).fetchall())
-    finally:
-        db.close()
+def tail(path: str | PathLike[str], n: int = 20) -> list[Record]:
+    """The newest ``n`` records across segments, read-only: reading never writes a
+    checkpoint or a key."""
+    return newest(Path(path), n)
 
 
 def shown(record: Record) -> dict[str, Any]:

@@ -1,27 +1,38 @@
-"""The audit verifier: recompute the chain, check the anchored head, reanchor on request.
+"""The audit verifier: recompute the chain across segments, check the anchored head,
+reanchor on request.
 
-What it proves and what it cannot is in :mod:`antireplay.audit`.
+What it proves and what it cannot is in :mod:`antireplay.audit`; how segments link and
+what retention may remove is in :mod:`.segments`.  Each segment kept is walked in order:
+its link must start where the previous segment ends (and carry the head key's MAC), its
+rows must chain; the oldest segment's link is the proven cut point retention left.
 """
 
 from __future__ import annotations
 
 import sqlite3
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from functools import partial
+from os import PathLike
 from pathlib import Path
+from typing import TypeVar
 
+from antireplay.audit import segments
 from antireplay.audit.chain import (
     _ALL,
     _FIELDS,
     GENESIS,
+    Checkpoint,
     HeadAnchor,
     _aside,
-    _compare,
     _connect,
     _digest,
-    _last,
+    _link,
     _wrongly_typed,
 )
 from antireplay.core.errors import AuditFileError
+
+T = TypeVar("T")
 
 
 @dataclass(frozen=True)
@@ -35,6 +46,13 @@ class ChainReport:
     head: str = "match"
     checkpoint_rows: int | None = None
     after_checkpoint: int = 0
+    #: Segments kept, and where the chain kept starts (segment, row, the hash it chains from).
+    segments: int = 1
+    first_segment: int = 1
+    first_row: int = 1
+    first_hash: str = GENESIS
+    #: The last row kept (``records`` when nothing was removed); ``None``: none walked yet.
+    last_row: int | None = None
 
     @property
     def chain_ok(self) -> bool:
@@ -47,11 +65,22 @@ class ChainReport:
 
     def lines(self) -> list[str]:
         """What was proven and what was not, one fact per line."""
-        out = [
-            f"chain intact to row {self.records} ({self.records} records)"
+        out = []
+        if self.first_segment > 1:
+            removed = "1" if self.first_segment == 2 else f"1–{self.first_segment - 1}"
+            out.append(
+                f"segments {removed} removed by retention; "
+                f"chain verified from row {self.first_row} / hash {self.first_hash}"
+            )
+        last = self.records if self.last_row is None else self.last_row
+        kept = f"{self.records} records" + (
+            f" in {self.segments} segments" if self.segments > 1 else ""
+        )
+        out.append(
+            f"chain intact to row {last} ({kept})"
             if self.chain_ok
             else f"chain broken at row {self.broken_at}: {self.reason}"
-        ]
+        )
         if self.head == "match":
             out.append(f"head checkpoint matches row {self.checkpoint_rows} (MAC verified)")
             if self.after_checkpoint:
@@ -69,67 +98,142 @@ class ChainReport:
         return out
 
 
-def verify(
-    path: str | Path, *, head_key: str | Path | None = None, head_path: str | Path | None = None
-) -> ChainReport:
-    """Recompute the hash chain and check it against the head checkpoint (read-only).
+class _Trail:
+    """Every segment kept, oldest first, the live one last: the live one held open (it cannot
+    rotate under the walk), each rotated one opened in turn (a long trail, few descriptors)."""
 
-    A file that is not an audit trail raises ``AuditFileError``; a missing, damaged or
-    forged checkpoint or key is *reported* in ``head`` (the report says what is provable)."""
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.live = _connect(path, read_only=True)
+        try:
+            self.files = [file for _, file in segments.rotated(path)] + [path]
+            self.links = [self._with(file, _link) for file in self.files]
+        except BaseException:
+            self.live.close()
+            raise
+
+    def _with(self, file: Path, read: Callable[[sqlite3.Connection], T]) -> T:
+        """``read`` on one segment, its database errors naming the file."""
+        db = self.live if file == self.path else _connect(file, read_only=True)
+        try:
+            return read(db)
+        except sqlite3.DatabaseError as exc:
+            raise AuditFileError(
+                str(file), f"unreadable audit trail ({exc})", recovery=_aside(file)
+            ) from None
+        finally:
+            if db is not self.live:
+                db.close()
+
+    def close(self) -> None:
+        self.live.close()
+
+    def check_order(self, first: int) -> None:
+        segments.check_order(self.path, list(zip(self.files, self.links, strict=True)), first)
+
+    def walk(self, key: bytes | None) -> tuple[ChainReport, str]:
+        """Recompute every link of every segment, oldest first; the report and the last
+        hash that links."""
+        start = self.links[0]
+        report = ChainReport(0, None, None, segments=len(self.files), first_segment=start.n,
+                             first_row=start.first, first_hash=start.prev)  # fmt: skip
+        prev, expected, count = start.prev, start.first, 0
+        for file, link in zip(self.files, self.links, strict=True):
+            problem = None
+            if (link.first, link.prev) != (expected, prev):
+                problem = f"{file.name} does not start where the segment before it ends"
+            elif key is not None and not HeadAnchor.link_ok(key, link):
+                problem = f"{file.name}: segment link MAC does not verify (forged, or another key)"
+            if problem is not None:
+                return replace(report, records=count, broken_at=expected, reason=problem), prev
+            walked, broken, reason, prev = self._with(
+                file, partial(_walk, prev=prev, start=expected)
+            )
+            count += walked
+            if broken is not None:
+                where = f" (in {file.name})" if len(self.files) > 1 else ""
+                failed = replace(report, records=count, broken_at=broken, reason=f"{reason}{where}")
+                return failed, prev
+            expected += walked
+        return replace(report, records=count, last_row=expected - 1), prev
+
+    def compare(self, checkpoint: Checkpoint) -> str | None:
+        """The checkpoint against the segment holding its row (or starting right after it)."""
+        return self._with(self.path, partial(segments.compare, self.path, checkpoint=checkpoint))
+
+
+def verify(
+    path: str | PathLike[str],
+    *,
+    head_key: str | Path | None = None,
+    head_path: str | Path | None = None,
+) -> ChainReport:
+    """Recompute the hash chain across segments and check it against the head checkpoint
+    (read-only).
+
+    A file that is not an audit trail, or a segment missing, renamed or out of order, raises
+    ``AuditFileError``; a missing, damaged or forged checkpoint or key is *reported* in
+    ``head`` (the report says what is provable)."""
     path = Path(path)
     anchor = HeadAnchor(path, Path(head_key) if head_key else None,
                         Path(head_path) if head_path else None)  # fmt: skip
-    db = _connect(path, read_only=True)
+    trail = _Trail(path)
     try:
-        chain = _walk(db)
         try:
             key = anchor.load_key()
             checkpoint = anchor.read(key)
         except AuditFileError as exc:
-            return ChainReport(*chain, head=f"{exc.path}: {exc.problem}")
+            trail.check_order(trail.links[0].n)
+            return replace(trail.walk(None)[0], head=f"{exc.path}: {exc.problem}")
+        trail.check_order(trail.links[0].n if checkpoint is None else checkpoint.first)
+        chain = trail.walk(key)[0]
         if checkpoint is None:
-            return ChainReport(*chain, head="missing")
+            return replace(chain, head="missing")
         if key is None:
-            return ChainReport(*chain, head="no-key", checkpoint_rows=checkpoint.rows)
-        problem = _compare(db, checkpoint)
-    except sqlite3.DatabaseError as exc:
-        raise AuditFileError(
-            str(path), f"unreadable audit trail ({exc})", recovery=_aside(path)
-        ) from None
+            return replace(chain, head="no-key", checkpoint_rows=checkpoint.rows)
+        problem = trail.compare(checkpoint)
     finally:
-        db.close()
+        trail.close()
     if problem is not None:
-        return ChainReport(*chain, head=problem, checkpoint_rows=checkpoint.rows)
-    after = max(0, chain[0] - checkpoint.rows)
-    return ChainReport(*chain, checkpoint_rows=checkpoint.rows, after_checkpoint=after)
+        return replace(chain, head=problem, checkpoint_rows=checkpoint.rows)
+    last = chain.records if chain.last_row is None else chain.last_row
+    return replace(chain, checkpoint_rows=checkpoint.rows,
+                   after_checkpoint=max(0, last - checkpoint.rows))  # fmt: skip
 
 
-def _walk(db: sqlite3.Connection) -> tuple[int, int | None, str | None]:
-    """(records, first broken row, reason) from recomputing every link."""
-    prev, expected_seq, count = GENESIS, 1, 0
+def _walk(
+    db: sqlite3.Connection, *, prev: str, start: int
+) -> tuple[int, int | None, str | None, str]:
+    """(records, first broken row, reason, last hash) from recomputing every link of one
+    segment, starting from ``prev`` at row ``start``."""
+    count, expected_seq = 0, start
     for values in db.execute(_ALL):
         count += 1
         row = dict(zip(_FIELDS, values[:9], strict=True))
         wrong = _wrongly_typed(row)
         if wrong is not None:
-            return count, expected_seq, f"invalid {wrong}: a value antireplay never writes"
+            return count, expected_seq, f"invalid {wrong}: a value antireplay never writes", prev
         if row["seq"] != expected_seq:
-            return count, expected_seq, "record missing or reordered"
+            return count, expected_seq, "record missing or reordered", prev
         if values[9] != prev:
-            return count, row["seq"], "prev_hash does not link"
+            return count, row["seq"], "prev_hash does not link", prev
         if values[10] != _digest(prev, row):
-            return count, row["seq"], "record contents changed"
+            return count, row["seq"], "record contents changed", prev
         prev, expected_seq = values[10], expected_seq + 1
-    return count, None, None
+    return count, None, None, prev
 
 
 def reanchor(
-    path: str | Path, *, head_key: str | Path | None = None, head_path: str | Path | None = None
+    path: str | PathLike[str],
+    *,
+    head_key: str | Path | None = None,
+    head_path: str | Path | None = None,
 ) -> ChainReport:
-    """Accept the current, intact chain as the new head (after an operator checked it).
+    """Accept the current, intact chain as the new head (after an operator checked it),
+    from the oldest segment present (older ones missing are accepted as gone; a gap is not).
 
     Creates a new key when the old one is gone (a damaged or exposed key is replaced,
-    never reused).  Refuses a broken chain."""
+    never reused) and re-MACs the segment links with it.  Refuses a broken chain."""
     path = Path(path)
     anchor = HeadAnchor(path, Path(head_key) if head_key else None,
                         Path(head_path) if head_path else None)  # fmt: skip
@@ -139,16 +243,20 @@ def reanchor(
         key = None
         anchor.key_path.unlink()  # a damaged key is replaced, never reused
     key = key if key is not None else anchor.create_key()
-    db = _connect(path, read_only=True)
+    trail = _Trail(path)
     try:
-        chain = _walk(db)
-        if chain[1] is not None:
-            raise AuditFileError(
-                str(path), f"chain broken at row {chain[1]}: {chain[2]}; cannot re-anchor",
-                recovery=_aside(path),
-            )  # fmt: skip
-        seq, head = _last(db)
+        trail.check_order(trail.links[0].n)
+        chain, head = trail.walk(None)
     finally:
-        db.close()
-    anchor.write(key, seq, head)
-    return ChainReport(*chain, checkpoint_rows=seq)
+        trail.close()
+    if chain.broken_at is not None:
+        raise AuditFileError(
+            str(path), f"chain broken at row {chain.broken_at}: {chain.reason}; cannot re-anchor",
+            recovery=_aside(path),
+        )  # fmt: skip
+    for file, link in zip(trail.files, trail.links, strict=True):
+        if not HeadAnchor.link_ok(key, link):
+            segments.relink(file, HeadAnchor.link(key, link.n, link.first, link.prev))
+    seq = chain.first_row - 1 + chain.records
+    anchor.write(key, seq, head, first=chain.first_segment)
+    return replace(chain, checkpoint_rows=seq)
