@@ -16,13 +16,28 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 
 from antireplay.core.errors import ConfigError
 from antireplay.core.settings import ALLOWED, SecurityConfig, load_yaml, unknown_key
 from antireplay.state.spec import StoreSpec
 
-__all__ = ["ALLOWED", "AppConfig", "JwtConfig", "KeyConfig", "SecurityConfig", "load_yaml"]
+__all__ = [
+    "ALLOWED",
+    "AppConfig",
+    "AuditSpaceConfig",
+    "JwtConfig",
+    "KeyConfig",
+    "SecurityConfig",
+    "load_yaml",
+]
 
 
 class KeyConfig(BaseModel):
@@ -50,6 +65,27 @@ class JwtConfig(BaseModel):
     leeway_s: float = Field(default=0.0, ge=0, le=300)
 
 
+class AuditSpaceConfig(BaseModel):
+    """Free-space floors under the audit trail (``audit_space:``) and the ESTOP spill."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    #: Below: refusals get no rows and no summaries (still counted in metrics).
+    min_free_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
+    #: Below: new commands other than a fresh ESTOP are refused 503 STATE_UNAVAILABLE.
+    refuse_free_bytes: int = Field(default=16 * 1024 * 1024, ge=0)
+    #: The reserved file for ESTOP rows the trail could not take (default: beside it).
+    spill: str | None = None
+
+    @field_validator("refuse_free_bytes")
+    @classmethod
+    def _below_first(cls, value: int, info: ValidationInfo) -> int:
+        first = info.data.get("min_free_bytes")
+        if first is not None and value > first:
+            raise ConfigError("audit_space.refuse_free_bytes", value, f"at most {first}")
+        return value
+
+
 class AppConfig(BaseModel):
     """The whole gateway configuration file; ``security:`` is the §8.3 block."""
 
@@ -58,6 +94,7 @@ class AppConfig(BaseModel):
     security: SecurityConfig = Field(default_factory=SecurityConfig)
     store: str = "sqlite:.antireplay/state.db"
     audit: str = ".antireplay/audit.db"
+    audit_space: AuditSpaceConfig = Field(default_factory=AuditSpaceConfig)
     keys: list[KeyConfig] = Field(default_factory=list)
     sdk_compat: bool = False
     jwt: JwtConfig = Field(default_factory=JwtConfig)

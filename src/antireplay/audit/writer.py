@@ -12,6 +12,7 @@ import sqlite3
 import threading
 from collections.abc import Sequence
 from concurrent.futures import Future
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,12 +31,41 @@ from antireplay.audit.chain import (
     _recovery,
     sanitize,
 )
+from antireplay.audit.spill import SLOTS, Spill
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AuditFileError, StateUnavailableError
 from antireplay.state.durable import file_identity
 from antireplay.state.groupcommit import GroupCommitter
 
 log = logging.getLogger("antireplay.audit")
+
+
+@dataclass(frozen=True)
+class TrailUsage:
+    """What the trail holds on disk: bytes, segments, and the time of its oldest row."""
+
+    bytes: int
+    segments: int
+    oldest: float | None
+
+
+def _fields(
+    *,
+    at: float,
+    outcome: str,
+    code: str | None,
+    warning: str | None,
+    msg_type: int | None,
+    sender: object,
+    sender_verified: bool,
+    msg_id: object,
+) -> dict[str, Any]:
+    """One row as stored: identifiers sanitized, the flag an integer."""
+    return {
+        "at": at, "outcome": outcome, "code": code, "warning": warning, "msg_type": msg_type,
+        "sender": sanitize(sender), "sender_verified": int(sender_verified),
+        "msg_id": sanitize(msg_id),
+    }  # fmt: skip
 
 
 class AuditLog:
@@ -49,6 +79,8 @@ class AuditLog:
         head_path: str | Path | None = None,
         head_sync_s: float = 1.0,
         clock: Clock | None = None,
+        spill_path: str | Path | None = None,
+        spill_slots: int = SLOTS,
     ) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -69,9 +101,53 @@ class AuditLog:
             self._db.close()
             raise
         self._rows, self._head = _last(self._db)  # what this writer knows the chain to be
+        self._spill = self._open_spill(spill_path, spill_slots)
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
         )
+
+    # --- the ESTOP spill (audit/spill.py): reserved at open, merged with each batch -------------
+
+    def _open_spill(self, path: str | Path | None, slots: int) -> Spill | None:
+        """Reserve the spill and merge what a previous run left in it; without one (no
+        slots, or no space to reserve it) held rows stay in the caller's memory."""
+        if slots <= 0:
+            return None
+        where = Path(path) if path else self.path.with_name(self.path.name + ".spill")
+        try:
+            spill = Spill(where, self._key, slots=slots)
+        except AuditFileError as exc:
+            log.error("audit spill unavailable (%s): ESTOP rows are held in memory", exc)
+            return None
+        if spill.pending():
+            try:
+                self._write_batch([])
+                log.warning("merged %d spilled audit rows into %s", len(spill.pending()), self.path)
+            except (sqlite3.Error, OSError, AuditFileError) as exc:
+                log.error("spilled audit rows not merged yet (%s): next batch", exc)
+        return spill
+
+    def spill(self, **fields: Any) -> bool:
+        """Keep one row that the trail could not take in the reserved spill, durably; it is
+        merged, chained, with the next batch the trail commits.  ``False``: no room."""
+        return self._spill is not None and self._spill.add(_fields(**fields))
+
+    @property
+    def spilled(self) -> int:
+        """Rows waiting in the spill."""
+        return 0 if self._spill is None else len(self._spill.pending())
+
+    def usage(self) -> TrailUsage:
+        """Disk used by the trail (its file, WAL and head), its segments and oldest row."""
+        size = 0
+        for name in ("", "-wal", "-shm"):
+            with contextlib.suppress(OSError):
+                size += Path(f"{self.path}{name}").stat().st_size
+        with self._lock:
+            first = self._db.execute("SELECT at FROM audit ORDER BY seq LIMIT 1").fetchone()
+        return TrailUsage(size, 1, None if first is None else float(first[0]))
+
+    # --------------------------------------------------------------------------------------------
 
     def _refuse_deleted_trail(self) -> None:
         """A head checkpoint without its trail means the trail was deleted: refuse before
@@ -170,16 +246,10 @@ class AuditLog:
         """Queue one record for the next group commit; the future completes once it is
         durable (``on_loop``: an asyncio future of the running loop, which awaits it before
         answering, holding no thread)."""
-        row: dict[str, Any] = {
-            "at": at,
-            "outcome": outcome,
-            "code": code,
-            "warning": warning,
-            "msg_type": msg_type,
-            "sender": sanitize(sender),
-            "sender_verified": int(sender_verified),
-            "msg_id": sanitize(msg_id),
-        }
+        row = _fields(
+            at=at, outcome=outcome, code=code, warning=warning, msg_type=msg_type,
+            sender=sender, sender_verified=sender_verified, msg_id=msg_id,
+        )  # fmt: skip
         if on_loop:
             return self._committer.enqueue_async(row)
         return self._committer.enqueue(row)
@@ -187,6 +257,7 @@ class AuditLog:
     def _write_batch(self, batch: Sequence[dict[str, Any]]) -> list[int]:
         """Chain and commit a group of rows in one write transaction; one head checkpoint."""
         with self._lock:
+            spilled = [] if self._spill is None else self._spill.pending()  # merged first
             db = self._db
             if file_identity(self.path) != self._file:  # rows written now would be lost with it
                 log.error("audit trail %s deleted or replaced; refusing to append", self.path)
@@ -208,7 +279,7 @@ class AuditLog:
                 ).fetchone()
                 seq, prev = (0, GENESIS) if last is None else (last[0], last[1])
                 first, values = seq + 1, []
-                for fields in batch:
+                for fields in [*spilled, *batch]:
                     seq += 1
                     row = {"seq": seq, **fields}
                     digest = _digest(prev, row)
@@ -222,7 +293,19 @@ class AuditLog:
                 raise
             self._rows, self._head = seq, prev
             self._checkpoint()
-            return list(range(first, seq + 1))
+            if spilled:
+                self._merged(len(spilled))
+            return list(range(first + len(spilled), seq + 1))
+
+    def _merged(self, n: int) -> None:
+        """Spilled rows are durable in the trail: clear them from the spill."""
+        assert self._spill is not None
+        try:
+            self._spill.merged(n)
+        except OSError as exc:  # merged again later: a duplicate row, never a lost one
+            log.error("audit spill %s not cleared after its merge: %s", self._spill.path, exc)
+        else:
+            log.warning("audit trail writable again: %d spilled rows merged", n)
 
     def _checkpoint(self) -> None:
         """Rewrite the head after a batch (the caller holds the lock); fsync it only once
@@ -259,3 +342,5 @@ class AuditLog:
                 log.warning("audit head %s not made durable at close: %s", self.anchor.path, exc)
             finally:
                 self._db.close()
+                if self._spill is not None:
+                    self._spill.close()

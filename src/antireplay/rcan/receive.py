@@ -21,9 +21,13 @@ No answer goes out before its audit row is durable: ``receive_later`` queues the
 the trail's next group commit and :meth:`Receiver.settle` answers once it is.  An
 accepted message whose row failed is refused ``STATE_UNAVAILABLE``, except a fresh,
 authentic ESTOP (:func:`~antireplay.core.window.estop_survives`, the rule the store
-outage follows too): delivered flagged ``AUDIT_UNAVAILABLE``, its row held in memory
-(bounded, :data:`HELD_ROWS`) and appended once the trail takes a row again.  Malformed
-input is audited at most ``invalid_audit_per_s`` times a second; nothing raises.
+outage follows too): delivered flagged ``AUDIT_UNAVAILABLE``, its row spilled to the
+trail's reserved file (:mod:`~antireplay.audit.spill`, merged into the trail with its next
+batch, at the latest at the next start), or held in memory (bounded, :data:`HELD_ROWS`)
+when even that fails.  Refusals pass the one :class:`~antireplay.audit.RefusalAuditor`
+(unauthenticated ones at most ``invalid_audit_per_s`` rows a second, the rest summarised);
+below the disk's second floor (:class:`~antireplay.audit.space.DiskSpace`) a command other
+than a fresh ESTOP is refused ``STATE_UNAVAILABLE`` before its commit.  Nothing raises.
 """
 
 from __future__ import annotations
@@ -39,6 +43,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from antireplay.audit import AuditLog, RefusalAuditor
+from antireplay.audit.refusals import AUDIT_PER_S
+from antireplay.audit.space import DiskSpace
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import (
     Code,
@@ -48,7 +54,7 @@ from antireplay.core.errors import (
     WarningCode,
 )
 from antireplay.core.settings import SecurityConfig
-from antireplay.core.window import Verdict, estop_survives
+from antireplay.core.window import Verdict, estop_survives, is_estop
 from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
 from antireplay.rcan.auth import JwtVerifier, KeyRegistry
 from antireplay.rcan.envelope import MAX_BYTES
@@ -119,18 +125,23 @@ class _Copy:
 
 @dataclass
 class Stats:
-    """Counters for metrics: accepted, rejected by code, warnings, unaudited shape errors."""
+    """Counters for metrics: accepted, rejected by code, warnings, refusals folded."""
 
     accepted: int = 0
     rejected: Counter[str] = field(default_factory=Counter)
     warnings: Counter[str] = field(default_factory=Counter)
+    #: Refusals given no row of their own (rate limit or disk floor; summarised later).
     unaudited: int = 0
     audit_failures: int = 0
     losses: int = 0
     #: QoS retransmissions answered with their original answer (also in ``rejected``).
     retries: int = 0
-    #: ESTOPs delivered while their audit row could not be written (held, appended later).
+    #: ESTOPs delivered while their audit row could not be written (spilled or held).
     held_estops: int = 0
+    #: Of those, rows spilled to the reserved file (merged into the trail later).
+    spilled: int = 0
+    #: Commands refused because free space was below the second floor.
+    disk_refusals: int = 0
     #: Held rows dropped unwritten because the bound was reached (each one logged).
     held_dropped: int = 0
 
@@ -151,6 +162,7 @@ class Receiver:
         versions: frozenset[str] = frozenset({"3"}),
         invalid_audit_per_s: float = 10.0,
         max_bytes: int = MAX_BYTES,
+        space: DiskSpace | None = None,
     ) -> None:
         self.config = config
         self.max_bytes = max_bytes  # the gateway passes its max_body_bytes: one limit in force
@@ -171,7 +183,12 @@ class Receiver:
         self.answers = AnswerMemo(config.msg_id_cache_size)
         #: How long an event loop waits for the answer of an original still in flight.
         self.answer_wait_s = 5.0
-        self._refusals = RefusalAuditor(clock=self.clock, per_s=invalid_audit_per_s)
+        #: Free space under the trail and its floors (``None``: not watched).
+        self.space = space
+        self.refusals = RefusalAuditor(
+            audit, self.clock, per_s=invalid_audit_per_s, authentic_per_s=AUDIT_PER_S,
+            log=log, quiet=None if space is None else space.low,
+        )  # fmt: skip
         self._held: deque[dict[str, Any]] = deque()
         self._held_lock = threading.Lock()
         reason = getattr(self.cache.store, "loss_reason", None)
@@ -190,7 +207,7 @@ class Receiver:
         copy = self._known_copy(raw)
         if copy is not None:
             return self._reject_copy(copy)
-        step = self._authenticate(raw, headers)
+        step = self._floor(self._authenticate(raw, headers))
         if isinstance(step, NeedsCommit):
             env = step.env
             try:
@@ -230,7 +247,7 @@ class Receiver:
         if pending is not None:
             return pending
         run = offload or in_executor
-        step: NeedsCommit | Done = await run(self._authenticate, raw, headers)
+        step = self._floor(await run(self._authenticate, raw, headers))
         if isinstance(step, Done):
             return await self._reject_async(step)
         env = step.env
@@ -300,7 +317,7 @@ class Receiver:
         outcome.retry = held  # status, nack: still 409, what a retry-unaware transport sends
         self.stats.rejected[exc.code] += 1
         self.stats.retries += 1
-        return self._queue_audit(Pending(outcome), on_loop=on_loop)
+        return self._queue_refusal(Pending(outcome), on_loop=on_loop)
 
     def _authenticate(self, raw: bytes, headers: Mapping[str, str] | None) -> NeedsCommit | Done:
         """Steps 1-6, the one stretch run in a thread: the core's parse, the replay check
@@ -314,6 +331,17 @@ class Receiver:
         except ReplayAttackError as exc:
             return self.steps.authenticate(step, exc, headers)
         return self.steps.authenticate(step, None, headers)
+
+    def _floor(self, step: NeedsCommit | Done) -> NeedsCommit | Done:
+        """Below the disk's second floor only an ESTOP goes on to its commit (where its
+        freshness is decided); anything else is refused before its msg_id is spent."""
+        if self.space is None or not isinstance(step, NeedsCommit) or is_estop(*step.cls):
+            return step
+        reason = self.space.reason()
+        if reason is None:
+            return step
+        self.stats.disk_refusals += 1
+        return step.refused(StateUnavailableError(reason))
 
     def _accept(
         self, raw: bytes, need: NeedsCommit, verdict: Verdict, *, on_loop: bool = False
@@ -357,17 +385,31 @@ class Receiver:
 
     @property
     def held_rows(self) -> int:
-        """Audit rows of delivered ESTOPs waiting for the trail to be writable."""
-        return len(self._held)
+        """Audit rows of delivered ESTOPs waiting for the trail to be writable (spilled to
+        its reserved file, or held in memory)."""
+        return len(self._held) + (0 if self.audit is None else self.audit.spilled)
 
     def _hold(self, pending: Pending, failure: BaseException, warning: str) -> None:
-        """Deliver an ESTOP whose audit row failed: warn, keep the row for later, say so once."""
+        """Deliver an ESTOP whose audit row failed: warn, spill the row to the trail's
+        reserved file (else keep it in memory), say so."""
         outcome = pending.outcome
         outcome.warning = warning
         self.stats.held_estops += 1
-        if pending.row is None:
+        if pending.row is None or self.audit is None:
             return
-        if self._keep({**pending.row, "warning": warning}):
+        row = {**pending.row, "warning": warning}
+        first = self.held_rows == 0
+        if self.audit.spill(**row):
+            self.stats.spilled += 1
+            if not first:
+                return
+            log.error(
+                "audit trail unavailable (%s): ESTOP delivered, its row spilled to the reserved "
+                "file until the trail takes a row again; other messages get STATE_UNAVAILABLE",
+                failure,
+            )
+            return
+        if self._keep(row) and first:
             log.error(
                 "audit trail unavailable (%s): ESTOPs are delivered with a warning and their "
                 "audit rows held in memory until the trail takes a row again; other messages "
@@ -448,12 +490,36 @@ class Receiver:
     def _reject(self, done: Done, *, copy: _Copy | None = None, on_loop: bool = False) -> Pending:
         """The NACK outcome of a refusal; ``copy`` describes a memo hit (nothing parsed)."""
         outcome = self.steps.refuse(done, None if copy is None else copy.msg_id)
-        code = done.error.code
-        self.stats.rejected[code] += 1
-        if code in SHAPE_ERRORS and not self._refusals.admit(authentic=False):
+        self.stats.rejected[done.error.code] += 1
+        sender = None if copy is None else copy.sender
+        return self._queue_refusal(Pending(outcome), sender, on_loop=on_loop)
+
+    def _queue_refusal(
+        self, pending: Pending, sender: str | None = None, *, on_loop: bool = False
+    ) -> Pending:
+        """A refusal's row, if the auditor gives it one; else it is folded into its cause's
+        and sender's summary row (``sender``: a known copy's claimed sender)."""
+        if self.audit is None:
+            return pending
+        fields = audit_row(pending.outcome, self.clock.wall(), sender)
+        if not self.refusals.admit(
+            authentic=fields["sender_verified"], code=fields["code"], sender=fields["sender"],
+            msg_id=fields["msg_id"],
+        ):  # fmt: skip
             self.stats.unaudited += 1
-            return Pending(outcome)
-        return self._queue_audit(Pending(outcome), copy, on_loop=on_loop)
+            return pending
+        return self._queue_audit(pending, fields, on_loop=on_loop)
+
+    def close(self) -> None:
+        """Write the folded refusals' summary rows, then close the audit trail."""
+        if self.audit is not None:
+            self.refusals.close()
+            self.audit.close()
+
+    def flush_refusals(self) -> int:
+        """Write the folded refusals' summary rows now (a timer, and before the trail
+        closes); returns how many were queued."""
+        return self.refusals.flush()
 
     def _audit_loss(self, reason: str) -> None:
         """A store noticed it may have forgotten accepted messages: fenced, and on the record."""
@@ -470,13 +536,13 @@ class Receiver:
             self.stats.audit_failures += 1
 
     def _queue_audit(
-        self, pending: Pending, copy: _Copy | None = None, *, on_loop: bool = False
+        self, pending: Pending, fields: dict[str, Any] | None = None, *, on_loop: bool = False
     ) -> Pending:
-        """Queue the outcome's audit row (``on_loop``: awaited by the running event loop);
-        a trail that is closing fails the row at once."""
+        """Queue the outcome's audit row (``fields``: already built; ``on_loop``: awaited by
+        the running event loop); a trail that is closing fails the row at once."""
         if self.audit is not None:
-            sender = None if copy is None else copy.sender
-            fields = audit_row(pending.outcome, self.clock.wall(), sender)
+            if fields is None:
+                fields = audit_row(pending.outcome, self.clock.wall())
             if pending.estop:
                 pending.row = fields
             try:
