@@ -119,10 +119,12 @@ class AuditLog:
         except AuditFileError as exc:
             log.error("audit spill unavailable (%s): ESTOP rows are held in memory", exc)
             return None
-        if spill.pending():
+        self._spill = spill
+        waiting = len(spill.pending())
+        if waiting:
             try:
                 self._write_batch([])
-                log.warning("merged %d spilled audit rows into %s", len(spill.pending()), self.path)
+                log.warning("merged %d spilled audit rows into %s", waiting, self.path)
             except (sqlite3.Error, OSError, AuditFileError) as exc:
                 log.error("spilled audit rows not merged yet (%s): next batch", exc)
         return spill
