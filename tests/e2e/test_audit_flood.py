@@ -12,8 +12,7 @@ from __future__ import annotations
 
 import json
 import shutil
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -22,7 +21,7 @@ import pytest
 from antireplay.audit import tail, verify
 from antireplay.audit.refusals import SUMMARY, summary_count
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
-from tests.harness import GatewayProcess, metric, post, run_threads
+from tests.harness import GatewayProcess, metric, post, run_threads, until
 from tests.harness.small_fs import SmallFs, small_fs
 
 MIB = 1024 * 1024
@@ -44,14 +43,6 @@ def _gateway(tmp_path: Path, fs: SmallFs) -> GatewayProcess:
     gateway = GatewayProcess(config, prefix=fs.prefix)
     gateway.start()
     return gateway
-
-
-def _until(what: Callable[[], bool], timeout_s: float = 15.0) -> None:
-    """Poll a condition the gateway reaches on its own (its free-space reading is cached)."""
-    deadline = time.monotonic() + timeout_s
-    while not what():
-        assert time.monotonic() < deadline, "condition not reached"
-        time.sleep(0.1)
 
 
 def _trail(fs: SmallFs, to: Path) -> Path:
@@ -107,7 +98,7 @@ def test_below_the_floors_refusals_are_counted_then_commands_refused_and_estops_
             raw = command(key)
             assert post(http, raw).status_code == 200
             fs.fill(leave=2 * MIB)  # below the first floor
-            _until(lambda: metric(http, "antireplay_audit_disk_pressure") == 1)
+            until("the first floor", lambda: metric(http, "antireplay_audit_disk_pressure") == 1)
             rows = len(tail(_trail(fs, out), 100_000))
             for _ in range(30):
                 assert post(http, raw).status_code == 409
@@ -116,7 +107,7 @@ def test_below_the_floors_refusals_are_counted_then_commands_refused_and_estops_
             assert post(http, command(key)).status_code == 200  # acceptances still recorded
 
             fs.fill(leave=MIB // 2)  # below the second floor
-            _until(lambda: http.get("/readyz").status_code == 503)
+            until("the second floor", lambda: http.get("/readyz").status_code == 503)
             assert "disk" in http.get("/readyz").json()["reason"]
             refused = post(http, command(key))
             assert (refused.status_code, refused.json()["code"]) == (503, "STATE_UNAVAILABLE")
@@ -139,7 +130,7 @@ def test_below_the_floors_refusals_are_counted_then_commands_refused_and_estops_
             assert metric(http, "antireplay_audit_spilled_estops_total") == 2
 
             aside.rename(trail)  # back
-            _until(lambda: http.get("/readyz").status_code == 200)
+            until("ready again", lambda: http.get("/readyz").status_code == 200)
             assert post(http, command(key)).status_code == 200  # merges the spilled row
             assert metric(http, "antireplay_audit_held_rows") == 0
     finally:

@@ -61,7 +61,7 @@ def gateway_app(receiver: Receiver, upstream: Upstream | None, timeout_s: float)
         """The folded refusals' summary rows, every interval (queued, not awaited)."""
         while True:
             await asyncio.sleep(receiver.refusals.flush_s)
-            receiver.flush_refusals()
+            receiver.refusals.flush()
 
     @asynccontextmanager
     async def lifespan(_: Starlette) -> AsyncIterator[None]:

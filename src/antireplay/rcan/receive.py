@@ -22,21 +22,17 @@ the trail's next group commit and :meth:`Receiver.settle` answers once it is.  A
 accepted message whose row failed is refused ``STATE_UNAVAILABLE``, except a fresh,
 authentic ESTOP (:func:`~antireplay.core.window.estop_survives`, the rule the store
 outage follows too): delivered flagged ``AUDIT_UNAVAILABLE``, its row spilled to the
-trail's reserved file (:mod:`~antireplay.audit.spill`, merged into the trail with its next
-batch, at the latest at the next start), or held in memory (bounded, :data:`HELD_ROWS`)
-when even that fails.  Refusals pass the one :class:`~antireplay.audit.RefusalAuditor`
-(unauthenticated ones at most ``invalid_audit_per_s`` rows a second, the rest summarised);
-below the disk's second floor (:class:`~antireplay.audit.space.DiskSpace`) a command other
-than a fresh ESTOP is refused ``STATE_UNAVAILABLE`` before its commit.  Nothing raises.
+trail's reserved file (:mod:`~antireplay.audit.spill`), merged into the trail later.
+Refusals pass the one :class:`~antireplay.audit.RefusalAuditor` (rate-limited rows, the
+rest summarised); below the disk's second floor (:mod:`~antireplay.audit.space`) all but
+a fresh ESTOP is refused ``STATE_UNAVAILABLE`` before its commit.  Nothing raises.
 """
 
 from __future__ import annotations
 
 import asyncio
-import functools
 import logging
-import threading
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field
@@ -45,6 +41,7 @@ from typing import Any
 from antireplay.audit import AuditLog, RefusalAuditor
 from antireplay.audit.refusals import AUDIT_PER_S
 from antireplay.audit.space import DiskSpace
+from antireplay.audit.spill import SLOTS as HELD_ROWS  # ESTOP rows held for the trail
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import (
     Code,
@@ -63,8 +60,6 @@ from antireplay.state import Offload, ReplayStore, in_executor
 from antireplay.state.replay import ReplayCache
 
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
-#: Audit rows of ESTOPs delivered while the trail could not take them, held until it can.
-HELD_ROWS = 1024
 
 log = logging.getLogger("antireplay.rcan.receive")
 
@@ -136,13 +131,12 @@ class Stats:
     losses: int = 0
     #: QoS retransmissions answered with their original answer (also in ``rejected``).
     retries: int = 0
-    #: ESTOPs delivered while their audit row could not be written (spilled or held).
+    #: ESTOPs delivered while their audit row could not be written; of them, rows spilled.
     held_estops: int = 0
-    #: Of those, rows spilled to the reserved file (merged into the trail later).
     spilled: int = 0
     #: Commands refused because free space was below the second floor.
     disk_refusals: int = 0
-    #: Held rows dropped unwritten because the bound was reached (each one logged).
+    #: ESTOP rows neither the trail nor its spill could take (each one logged whole).
     held_dropped: int = 0
 
 
@@ -189,8 +183,6 @@ class Receiver:
             audit, self.clock, per_s=invalid_audit_per_s, authentic_per_s=AUDIT_PER_S,
             log=log, quiet=None if space is None else space.low,
         )  # fmt: skip
-        self._held: deque[dict[str, Any]] = deque()
-        self._held_lock = threading.Lock()
         reason = getattr(self.cache.store, "loss_reason", None)
         if reason is not None:  # noticed while the store opened (a lost or rolled-back file)
             self._audit_loss(str(reason))
@@ -333,8 +325,7 @@ class Receiver:
         return self.steps.authenticate(step, None, headers)
 
     def _floor(self, step: NeedsCommit | Done) -> NeedsCommit | Done:
-        """Below the disk's second floor only an ESTOP goes on to its commit (where its
-        freshness is decided); anything else is refused before its msg_id is spent."""
+        """Below the disk's second floor only an ESTOP goes on to its commit."""
         if self.space is None or not isinstance(step, NeedsCommit) or is_estop(*step.cls):
             return step
         reason = self.space.reason()
@@ -373,8 +364,6 @@ class Receiver:
                 refusal = self._reject(done)
                 return self.settle(refusal, _wait(refusal.audit))
             self._hold(pending, failure, warning)  # safety beats the audit trail
-        elif pending.audit is not None:
-            self._append_held()  # the trail took a row: it can take the held ones
         if outcome.accepted:
             self.stats.accepted += 1
             if outcome.warning:
@@ -385,13 +374,12 @@ class Receiver:
 
     @property
     def held_rows(self) -> int:
-        """Audit rows of delivered ESTOPs waiting for the trail to be writable (spilled to
-        its reserved file, or held in memory)."""
-        return len(self._held) + (0 if self.audit is None else self.audit.spilled)
+        """Audit rows of delivered ESTOPs spilled, waiting for the trail to be writable."""
+        return 0 if self.audit is None else self.audit.spilled
 
     def _hold(self, pending: Pending, failure: BaseException, warning: str) -> None:
-        """Deliver an ESTOP whose audit row failed: warn, spill the row to the trail's
-        reserved file (else keep it in memory), say so."""
+        """Deliver an ESTOP whose audit row failed: warn, spill its row (said once per
+        outage); a row the spill cannot take is logged whole, its only record, and counted."""
         outcome = pending.outcome
         outcome.warning = warning
         self.stats.held_estops += 1
@@ -399,57 +387,17 @@ class Receiver:
             return
         row = {**pending.row, "warning": warning}
         first = self.held_rows == 0
-        if self.audit.spill(**row):
-            self.stats.spilled += 1
-            if not first:
-                return
+        if not self.audit.spill(**row):
+            self.stats.held_dropped += 1
+            log.error("audit trail and its spill unavailable (%s); ESTOP row: %s", failure, row)
+            return
+        self.stats.spilled += 1
+        if first:
             log.error(
                 "audit trail unavailable (%s): ESTOP delivered, its row spilled to the reserved "
                 "file until the trail takes a row again; other messages get STATE_UNAVAILABLE",
                 failure,
             )
-            return
-        if self._keep(row) and first:
-            log.error(
-                "audit trail unavailable (%s): ESTOPs are delivered with a warning and their "
-                "audit rows held in memory until the trail takes a row again; other messages "
-                "get STATE_UNAVAILABLE",
-                failure,
-            )
-
-    def _append_held(self) -> None:
-        """After a row was made durable, queue the held ESTOP rows; one that fails again is
-        held again (its ``at`` keeps when it happened)."""
-        if not self._held or self.audit is None:
-            return
-        with self._held_lock:
-            rows = list(self._held)
-            self._held.clear()
-        log.warning("audit trail writable again: appending %d held ESTOP rows", len(rows))
-        for row in rows:
-            try:
-                future = self.audit.append_later(**row)
-            except RuntimeError:  # closing: nothing more will be written
-                self._keep(row)
-                continue
-            assert isinstance(future, Future)
-            future.add_done_callback(functools.partial(self._held_written, row))
-
-    def _held_written(self, row: dict[str, Any], done: Future[int]) -> None:
-        if done.exception() is not None:
-            self._keep(row)
-
-    def _keep(self, row: dict[str, Any]) -> bool:
-        """Hold one row (the oldest dropped beyond :data:`HELD_ROWS`, its log line then its
-        only record); ``True`` if none was held before."""
-        with self._held_lock:
-            first = not self._held
-            if len(self._held) >= HELD_ROWS:
-                dropped = self._held.popleft()
-                self.stats.held_dropped += 1
-                log.error("held audit row dropped (more than %d held): %s", HELD_ROWS, dropped)
-            self._held.append(row)
-        return first
 
     def _remember_copy(self, raw: bytes, expires_at: float, qos: bool, outcome: Outcome) -> None:
         """Memo of accepted bodies: a byte-identical copy is a replay, known before parsing.
@@ -497,15 +445,12 @@ class Receiver:
     def _queue_refusal(
         self, pending: Pending, sender: str | None = None, *, on_loop: bool = False
     ) -> Pending:
-        """A refusal's row, if the auditor gives it one; else it is folded into its cause's
-        and sender's summary row (``sender``: a known copy's claimed sender)."""
+        """A refusal's row if the auditor gives it one, else folded into its summary."""
         if self.audit is None:
             return pending
         fields = audit_row(pending.outcome, self.clock.wall(), sender)
-        if not self.refusals.admit(
-            authentic=fields["sender_verified"], code=fields["code"], sender=fields["sender"],
-            msg_id=fields["msg_id"],
-        ):  # fmt: skip
+        key = {name: fields[name] for name in ("code", "sender", "msg_id")}
+        if not self.refusals.admit(authentic=fields["sender_verified"], **key):
             self.stats.unaudited += 1
             return pending
         return self._queue_audit(pending, fields, on_loop=on_loop)
@@ -515,11 +460,6 @@ class Receiver:
         if self.audit is not None:
             self.refusals.close()
             self.audit.close()
-
-    def flush_refusals(self) -> int:
-        """Write the folded refusals' summary rows now (a timer, and before the trail
-        closes); returns how many were queued."""
-        return self.refusals.flush()
 
     def _audit_loss(self, reason: str) -> None:
         """A store noticed it may have forgotten accepted messages: fenced, and on the record."""
