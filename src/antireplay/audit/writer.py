@@ -49,22 +49,11 @@ class TrailUsage:
     oldest: float | None
 
 
-def _fields(
-    *,
-    at: float,
-    outcome: str,
-    code: str | None,
-    warning: str | None,
-    msg_type: int | None,
-    sender: object,
-    sender_verified: bool,
-    msg_id: object,
-) -> dict[str, Any]:
+def _stored(fields: dict[str, Any]) -> dict[str, Any]:
     """One row as stored: identifiers sanitized, the flag an integer."""
     return {
-        "at": at, "outcome": outcome, "code": code, "warning": warning, "msg_type": msg_type,
-        "sender": sanitize(sender), "sender_verified": int(sender_verified),
-        "msg_id": sanitize(msg_id),
+        **fields, "sender": sanitize(fields["sender"]),
+        "sender_verified": int(fields["sender_verified"]), "msg_id": sanitize(fields["msg_id"]),
     }  # fmt: skip
 
 
@@ -132,7 +121,7 @@ class AuditLog:
     def spill(self, **fields: Any) -> bool:
         """Keep one row that the trail could not take in the reserved spill, durably; it is
         merged, chained, with the next batch the trail commits.  ``False``: no room."""
-        return self._spill is not None and self._spill.add(_fields(**fields))
+        return self._spill is not None and self._spill.add(_stored(fields))
 
     @property
     def spilled(self) -> int:
@@ -248,10 +237,11 @@ class AuditLog:
         """Queue one record for the next group commit; the future completes once it is
         durable (``on_loop``: an asyncio future of the running loop, which awaits it before
         answering, holding no thread)."""
-        row = _fields(
-            at=at, outcome=outcome, code=code, warning=warning, msg_type=msg_type,
-            sender=sender, sender_verified=sender_verified, msg_id=msg_id,
-        )  # fmt: skip
+        row = _stored({
+            "at": at, "outcome": outcome, "code": code, "warning": warning,
+            "msg_type": msg_type, "sender": sender, "sender_verified": sender_verified,
+            "msg_id": msg_id,
+        })  # fmt: skip
         if on_loop:
             return self._committer.enqueue_async(row)
         return self._committer.enqueue(row)
