@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from antireplay.audit import AuditLog, verify
+from antireplay.audit import AuditLog, tail, verify
 from antireplay.audit.spill import SLOT, Spill
 
 KEY = bytes(range(32))
@@ -118,3 +118,13 @@ def test_spilled_rows_are_merged_at_the_next_start_after_the_trail_is_restored(
     finally:
         reopened.close()
     assert verify(trail).ok
+
+
+def test_spilled_rows_are_merged_at_close_when_the_trail_takes_them(tmp_path: Path) -> None:
+    log = AuditLog(tmp_path / "audit.db")
+    assert _estop(log, 0)
+    log.close()
+    assert [r.msg_id for r in tail(tmp_path / "audit.db")] == ["estop-0"]
+    reopened = AuditLog(tmp_path / "audit.db")
+    assert reopened.spilled == 0 and reopened.count() == 1
+    reopened.close()

@@ -323,8 +323,12 @@ class AuditLog:
         return self._committer
 
     def close(self) -> None:
-        """Write what is queued, make the head durable, then close."""
+        """Write what is queued (and what is spilled, if the trail takes it now), make the
+        head durable, then close."""
         self._committer.close()
+        if self.spilled:
+            with contextlib.suppress(sqlite3.Error, OSError, AuditFileError):
+                self._write_batch([])  # else merged at the next start
         with self._lock:
             try:
                 if self._head_dirty:
