@@ -1,5 +1,6 @@
 """Run the benchmarks: ``python -m benchmarks`` (or ``antireplay bench``) runs them all,
-``python -m benchmarks NAME...`` the named ones (``window`` or ``bench_window``)."""
+``python -m benchmarks NAME...`` the named ones (``window`` or ``bench_window``); arguments
+that start with ``-`` (``--seconds=20``) are left for the benchmarks to read."""
 
 from __future__ import annotations
 
@@ -29,7 +30,8 @@ def selected(names: list[str]) -> list[str]:
 
 
 def main(names: list[str] | None = None) -> None:
-    for name in selected(sys.argv[1:] if names is None else names):
+    asked = [a for a in sys.argv[1:] if not a.startswith("-")]  # options: for the module
+    for name in selected(asked if names is None else names):
         print(f"\n== {name} ==", flush=True)
         importlib.import_module(f"benchmarks.{name}").main()
 

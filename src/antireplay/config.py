@@ -22,6 +22,7 @@ from pydantic import (
     ConfigDict,
     Field,
     ValidationError,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
@@ -35,6 +36,7 @@ __all__ = [
     "AnchorConfig",
     "AppConfig",
     "AuditConfig",
+    "AuditSpaceConfig",
     "JwtConfig",
     "KeyConfig",
     "SecurityConfig",
@@ -135,6 +137,27 @@ class AuditConfig(BaseModel):
         return self.path
 
 
+class AuditSpaceConfig(BaseModel):
+    """Free-space floors under the audit trail (``audit_space:``) and the ESTOP spill."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    #: Below: refusals get no rows and no summaries (still counted in metrics).
+    min_free_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
+    #: Below: new commands other than a fresh ESTOP are refused 503 STATE_UNAVAILABLE.
+    refuse_free_bytes: int = Field(default=16 * 1024 * 1024, ge=0)
+    #: The reserved file for ESTOP rows the trail could not take (default: beside it).
+    spill: str | None = None
+
+    @field_validator("refuse_free_bytes")
+    @classmethod
+    def _below_first(cls, value: int, info: ValidationInfo) -> int:
+        first = info.data.get("min_free_bytes")
+        if first is not None and value > first:
+            raise ConfigError("audit_space.refuse_free_bytes", value, f"at most {first}")
+        return value
+
+
 class AppConfig(BaseModel):
     """The whole gateway configuration file; ``security:`` is the §8.3 block."""
 
@@ -144,6 +167,7 @@ class AppConfig(BaseModel):
     store: str = "sqlite:.antireplay/state.db"
     state: StateConfig = Field(default_factory=StateConfig)
     audit: AuditConfig = Field(default_factory=AuditConfig)
+    audit_space: AuditSpaceConfig = Field(default_factory=AuditSpaceConfig)
     keys: list[KeyConfig] = Field(default_factory=list)
     sdk_compat: bool = False
     jwt: JwtConfig = Field(default_factory=JwtConfig)

@@ -48,6 +48,7 @@ from starlette.applications import Starlette
 from starlette.types import ASGIApp
 
 from antireplay.audit import AuditLog, RefusalAuditor, Retention
+from antireplay.audit.space import DiskSpace
 from antireplay.config import AppConfig, AuditConfig, KeyConfig
 from antireplay.core.clock import Clock
 from antireplay.core.errors import ConfigError, StateUnavailableError
@@ -134,12 +135,18 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
     )
     with contextlib.suppress(StateUnavailableError):  # down now: noticed on the first commit
         store.verify()  # loss detection at boot, not on the first command
+    floors = config.audit_space
+    space = DiskSpace(
+        config.audit.path, min_free_bytes=floors.min_free_bytes,
+        refuse_free_bytes=floors.refuse_free_bytes, clock=clock,
+    )  # fmt: skip
     return Receiver(
         config.security,
         build_registry(config),
         store,
-        open_audit(config.audit, clock),
+        open_audit(config.audit, clock, spill=floors.spill),
         clock,
+        space=space,
         jwt=verifier,
         jwt_required=config.jwt.required,
         versions=frozenset(config.versions),
@@ -210,15 +217,18 @@ def _same_volume(one: Path, other: Path) -> bool:
     return device(one) == device(other)
 
 
-def open_audit(config: AuditConfig, clock: Clock | None = None) -> AuditLog:
-    """The audit trail at ``audit.path``, rotated and retained as ``audit:`` says."""
+def open_audit(
+    config: AuditConfig, clock: Clock | None = None, *, spill: str | None = None
+) -> AuditLog:
+    """The audit trail at ``audit.path``, rotated and retained as ``audit:`` says, with its
+    ESTOP spill file (``audit_space.spill``, beside the trail by default)."""
     retention = Retention(
         segment_bytes=config.segment_bytes,
         segment_age_s=config.segment_age_s,
         max_bytes=config.max_bytes,
         max_age_s=config.max_age_s,
     )
-    return AuditLog(config.path, clock=clock, retention=retention)
+    return AuditLog(config.path, clock=clock, retention=retention, spill_path=spill)
 
 
 def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
@@ -310,6 +320,10 @@ class MavlinkRefusals:
     a verified signature, so every frame spends the unauthenticated budget."""
 
     auditor: RefusalAuditor
+
+    def close(self) -> None:
+        """Write the folded refusals' summary rows (before the trail closes)."""
+        self.auditor.close()
 
     def __call__(self, refusal: Refusal) -> None:
         from antireplay.mavlink import claimed_source  # noqa: PLC0415 - module docstring
@@ -414,6 +428,14 @@ def build_mavlink_router(
     )  # fmt: skip
 
 
+def stop_router(router: MavlinkRouter) -> None:
+    """Stop the router, then write its folded refusals' summary rows (before its audit
+    trail closes)."""
+    router.stop()
+    if isinstance(router.on_reject, MavlinkRefusals):
+        router.on_reject.close()
+
+
 def _fingerprint(key: bytes) -> str:
     """A short public name for a key (store prefixes): not the key, not reversible."""
     return hashlib.sha256(b"antireplay mavlink key" + key).hexdigest()[:12]
@@ -483,7 +505,15 @@ def router_metrics(router: MavlinkRouter) -> list[Metric]:
         "Refused frames left off the audit trail and the log by the rate limit, per class",
         labels=["class"],
     )
+    summarised = CounterMetricFamily(
+        "antireplay_mavlink_refusals_summarised",
+        "Folded refusals on the record as summary rows, or that no summary recorded",
+        labels=["state"],
+    )
     if isinstance(router.on_reject, MavlinkRefusals):
+        auditor = router.on_reject.auditor
         for cls in ("authenticated", "unauthenticated"):
-            folded.add_metric([cls], router.on_reject.auditor.folded[cls])
-    return [forwarded, dropped, streams, unaudited, folded, transport]
+            folded.add_metric([cls], auditor.folded[cls])
+        summarised.add_metric(["recorded"], auditor.summarised)
+        summarised.add_metric(["unrecorded"], auditor.unrecorded)
+    return [forwarded, dropped, streams, unaudited, folded, summarised, transport]

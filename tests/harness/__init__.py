@@ -76,13 +76,15 @@ class GatewayProcess:
     port: int = field(default_factory=free_port)
     proc: subprocess.Popen[bytes] | None = None
     stderr_text: str | None = None
+    #: A command the gateway runs behind (``nsenter`` into a small filesystem's namespace).
+    prefix: tuple[str, ...] = ()
 
     @property
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
     def start(self, timeout_s: float = 30.0) -> None:
-        self.proc = start_gateway(self.config, self.port, timeout_s)
+        self.proc = start_gateway(self.config, self.port, timeout_s, self.prefix)
 
     def stop(self) -> None:
         """Graceful stop (uvicorn finishes in-flight requests); keeps what it said on stderr."""

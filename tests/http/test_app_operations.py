@@ -38,6 +38,7 @@ from tests.harness import (
     reencoded,
     until,
 )
+from tests.harness.asgi import demo_app, request
 from tests.harness.redis_server import RedisServer
 
 
@@ -100,6 +101,27 @@ def test_readyz_is_503_while_the_audit_trail_cannot_take_an_append(tmp_path: Pat
     Path(config.audit).rename(tmp_path / "moved.db")  # appends would go nowhere visible
     gone = get(app, "/readyz")
     assert gone.status_code == 503 and "unable to open" in gone.json()["reason"]
+
+
+def test_below_the_free_space_floors_commands_get_503_and_readyz_says_disk(
+    tmp_path: Path,
+) -> None:
+    """Floors above any real disk's free space: refusals are counted, not written; a command
+    gets 503 ``STATE_UNAVAILABLE`` saying disk, as ``/readyz`` does; a fresh ESTOP passes and
+    is recorded."""
+    floors = {"min_free_bytes": 2**62, "refuse_free_bytes": 2**62}
+    with demo_app(tmp_path, audit_space=floors) as app:
+        key = load_operator_key(tmp_path)
+        ready = get(app, "/readyz")
+        assert ready.status_code == 503 and "disk nearly full" in ready.json()["reason"]
+        refused = request(app, "POST", "/v1/messages", command(key))
+        assert (refused.status_code, refused.json()["code"]) == (503, "STATE_UNAVAILABLE")
+        assert "audit_space.refuse_free_bytes" in refused.json()["reason"]
+        estop = command(key, type=6, safety_event="ESTOP", cmd="estop")
+        assert request(app, "POST", "/v1/messages", estop).status_code == 200
+        app.state.receiver.close()
+    rows = tail(tmp_path / "audit.db", 100)
+    assert [(r.outcome, r.msg_id) for r in rows] == [("accepted", json.loads(estop)["msg_id"])]
 
 
 def test_metrics_follow_prometheus_conventions(tmp_path: Path) -> None:

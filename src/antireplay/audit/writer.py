@@ -35,12 +35,21 @@ from antireplay.audit.chain import (
     valid_at,
 )
 from antireplay.audit.segments import Kept, Retention, TrailUsage
+from antireplay.audit.spill import SLOTS, Spill
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AuditFileError, StateUnavailableError
 from antireplay.state.durable import file_identity
 from antireplay.state.groupcommit import GroupCommitter
 
 log = logging.getLogger("antireplay.audit")
+
+
+def _stored(fields: dict[str, Any]) -> dict[str, Any]:
+    """One row as stored: identifiers sanitized, the flag an integer."""
+    return {
+        **fields, "sender": sanitize(fields["sender"]),
+        "sender_verified": int(fields["sender_verified"]), "msg_id": sanitize(fields["msg_id"]),
+    }  # fmt: skip
 
 
 class AuditLog:
@@ -56,6 +65,8 @@ class AuditLog:
         head_sync_s: float = 1.0,
         clock: Clock | None = None,
         retention: Retention | None = None,
+        spill_path: str | Path | None = None,
+        spill_slots: int = SLOTS,
     ) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -95,9 +106,43 @@ class AuditLog:
                 ) from None
             raise
         self._live_since = self._first_at()
+        self._spill = self._open_spill(spill_path, spill_slots)
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
         )
+
+    # --- the ESTOP spill (audit/spill.py): reserved at open, merged with each batch -------------
+
+    def _open_spill(self, path: str | Path | None, slots: int) -> Spill | None:
+        """Reserve the spill and merge what a previous run left in it; without one (no
+        slots, or no space to reserve it) held rows stay in the caller's memory."""
+        if slots <= 0:
+            return None
+        where = Path(path) if path else self.path.with_name(self.path.name + ".spill")
+        try:
+            spill = Spill(where, self._key, slots=slots)
+        except AuditFileError as exc:
+            log.error("audit spill unavailable (%s): ESTOP rows are held in memory", exc)
+            return None
+        self._spill = spill
+        waiting = len(spill.pending())
+        if waiting:
+            try:
+                self._write_batch([])
+                log.warning("merged %d spilled audit rows into %s", waiting, self.path)
+            except (sqlite3.Error, OSError, AuditFileError) as exc:
+                log.error("spilled audit rows not merged yet (%s): next batch", exc)
+        return spill
+
+    def spill(self, **fields: Any) -> bool:
+        """Keep one row that the trail could not take in the reserved spill, durably; it is
+        merged, chained, with the next batch the trail commits.  ``False``: no room."""
+        return self._spill is not None and self._spill.add(_stored(fields))
+
+    @property
+    def spilled(self) -> int:
+        """Rows waiting in the spill."""
+        return 0 if self._spill is None else len(self._spill.pending())
 
     def _refuse_deleted_trail(self) -> None:
         """A head checkpoint without its trail means the trail was deleted: refuse before
@@ -229,16 +274,11 @@ class AuditLog:
         """Queue one record for the next group commit; the future completes once it is
         durable (``on_loop``: an asyncio future of the running loop, which awaits it before
         answering, holding no thread)."""
-        row: dict[str, Any] = {
-            "at": at,
-            "outcome": outcome,
-            "code": code,
-            "warning": warning,
-            "msg_type": msg_type,
-            "sender": sanitize(sender),
-            "sender_verified": int(sender_verified),
-            "msg_id": sanitize(msg_id),
-        }
+        row = _stored({
+            "at": at, "outcome": outcome, "code": code, "warning": warning,
+            "msg_type": msg_type, "sender": sender, "sender_verified": sender_verified,
+            "msg_id": msg_id,
+        })  # fmt: skip
         if on_loop:
             return self._committer.enqueue_async(row)
         return self._committer.enqueue(row)
@@ -247,6 +287,7 @@ class AuditLog:
         """Chain and commit a group of rows in one write transaction; one head checkpoint;
         then rotate and retain if due (never failing the batch: its rows are durable)."""
         with self._lock:
+            spilled = [] if self._spill is None else self._spill.pending()  # merged first
             db = self._db
             db.execute("BEGIN IMMEDIATE")  # then the name: another writer rotates holding this lock
             try:
@@ -264,8 +305,8 @@ class AuditLog:
                     log.error("audit trail %s %s; refusing to append", self.path, problem)
                     raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
                 seq, prev = _last(db)
-                first, values = seq + 1, []
-                for fields in batch:
+                first, values, rows = seq + 1, [], [*spilled, *batch]
+                for fields in rows:
                     seq += 1
                     row = {"seq": seq, **fields}
                     digest = _digest(prev, row)
@@ -278,16 +319,28 @@ class AuditLog:
                     db.execute("ROLLBACK")
                 raise
             self._rows, self._head = seq, prev
-            if self._live_since is None:
-                self._live_since = valid_at(batch[0]["at"])
+            if self._live_since is None and rows:
+                self._live_since = valid_at(rows[0]["at"])
             self._checkpoint()
+            if spilled:
+                self._merged(len(spilled))
             if self._rotation_due():
                 try:
                     why = self._rotate()
                 except (sqlite3.Error, OSError, AuditFileError) as exc:
                     why = str(exc)
                 self._postponed(why)
-            return list(range(first, seq + 1))
+            return list(range(first + len(spilled), seq + 1))
+
+    def _merged(self, n: int) -> None:
+        """Spilled rows are durable in the trail: clear them from the spill."""
+        assert self._spill is not None
+        try:
+            self._spill.merged(n)
+        except OSError as exc:  # merged again later: a duplicate row, never a lost one
+            log.error("audit spill %s not cleared after its merge: %s", self._spill.path, exc)
+        else:
+            log.warning("audit trail writable again: %d spilled rows merged", n)
 
     def _postponed(self, why: str | None) -> None:
         """Count a rotation that is due but waits (retried after the next batch); say so
@@ -413,8 +466,12 @@ class AuditLog:
         return self._committer
 
     def close(self) -> None:
-        """Write what is queued, make the head durable, then close."""
+        """Write what is queued (and what is spilled, if the trail takes it now), make the
+        head durable, then close."""
         self._committer.close()
+        if self.spilled:
+            with contextlib.suppress(sqlite3.Error, OSError, AuditFileError):
+                self._write_batch([])  # else merged at the next start
         with self._lock:
             try:
                 if self._head_dirty:
@@ -426,6 +483,8 @@ class AuditLog:
             finally:
                 self._db.close()
                 self._rotation.close()
+                if self._spill is not None:
+                    self._spill.close()
 
 
 def _open_live(

@@ -22,7 +22,7 @@ import sys
 import tempfile
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -149,9 +149,12 @@ def _free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def start_gateway(config: Path, port: int, timeout_s: float = 30.0) -> subprocess.Popen[bytes]:
-    """Run ``antireplay serve --config CONFIG`` on loopback ``port``; return once it is healthy."""
-    args = [sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
+def start_gateway(
+    config: Path, port: int, timeout_s: float = 30.0, prefix: Sequence[str] = ()
+) -> subprocess.Popen[bytes]:
+    """Run ``antireplay serve --config CONFIG`` on loopback ``port`` (behind ``prefix``, a
+    command such as ``nsenter ...``); return once it is healthy."""
+    args = [*prefix, sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
     args += ["--host", "127.0.0.1", "--port", str(port)]
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + timeout_s

@@ -11,7 +11,7 @@ import click
 from antireplay.audit import AuditLog
 from antireplay.core.counters import DEFAULT_WINDOW
 from antireplay.core.errors import ConfigError, ReplayAttackError, StateFileError
-from antireplay.wiring import Allowed
+from antireplay.wiring import Allowed, stop_router
 
 if TYPE_CHECKING:
     from antireplay.mavlink import Role
@@ -338,7 +338,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     roles = ", ".join(f"{role} {text}" for role, text, _ in endpoints)
     click.echo(f"mavlink-router {roles} (system id {system_id})")  # one line, never wrapped
     done.wait()
-    router.stop()
+    stop_router(router)
     audit_log.close()
     store.close()
     stats = router.stats

@@ -183,6 +183,7 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
     click.echo(f"mavlink-pq {link.name}: local {local}, air {air}", err=True)
     done.wait()
     link.stop()
+    refusals.close()  # the folded refusals' summary rows, before the trail closes
     audit_log.close()
     forwarded = " ".join(f"{k}={v}" for k, v in sorted(link.forwarded.items())) or "none"
     dropped = " ".join(f"{k}={v}" for k, v in sorted(link.dropped.items())) or "none"

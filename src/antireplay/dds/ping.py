@@ -142,4 +142,5 @@ class PingListener:
         return verdicts
 
     def close(self) -> None:
+        self._refusals.close()  # the folded refusals' summary rows
         self.sock.close()

@@ -373,7 +373,9 @@ class SealedReader:
         return matched_writers(self._reader)
 
     def close(self) -> None:
-        """Close the verifier's store if the reader opened it, as a stopping process does."""
+        """Write the folded refusals' summaries, close the verifier's store if the reader
+        opened it, as a stopping process does."""
+        self._refusals.close()
         self.verifier.close()
 
     def judge(self, sample: SealedSample) -> Verdict:

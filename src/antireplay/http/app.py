@@ -7,7 +7,9 @@ budget) and returns a Starlette app: ``POST /v1/messages`` is
 forwarder (no routing on the hot path) and the gateway answers exactly what the middleware
 answers inside anybody's app.  ``GET /healthz`` is liveness (the process answers);
 ``GET /readyz`` is readiness: the replay store could take a commit and the audit trail an
-append now, else 503 with the reason, since every command would get 503 too;
+append now, and free space under the trail is above its second floor, else 503 with the
+reason, since every command would get 503 too; the folded refusals' summary rows are
+written every interval by a lifespan timer (and at shutdown);
 ``GET /metrics`` is Prometheus; ``GET /`` and ``GET /status.json`` are the read-only status
 page (:mod:`antireplay.http.status`).  The readiness probes record nothing (the store's
 ``ready()``: a read, the eviction policy, a write lock taken and released; the same lock on
@@ -19,6 +21,7 @@ stops the guard's workers, then closes the audit trail.
 
 from __future__ import annotations
 
+import asyncio
 import sqlite3
 import time
 from collections.abc import AsyncIterator
@@ -54,11 +57,18 @@ def gateway_app(receiver: Receiver, upstream: Upstream | None, timeout_s: float)
             return JSONResponse({"status": "unavailable", "reason": reason}, status_code=503)
         return JSONResponse({"status": "ready"})
 
+    async def summaries() -> None:
+        """The folded refusals' summary rows, every interval (queued, not awaited)."""
+        while True:
+            await asyncio.sleep(receiver.refusals.flush_s)
+            receiver.refusals.flush()
+
     @asynccontextmanager
     async def lifespan(_: Starlette) -> AsyncIterator[None]:
+        timer = asyncio.create_task(summaries())
         yield  # the guard stops its workers once this has run
-        if receiver.audit is not None:
-            receiver.audit.close()
+        timer.cancel()
+        receiver.close()
 
     app = Starlette(
         routes=[
@@ -86,6 +96,9 @@ def readiness(receiver: Receiver) -> str | None:
         receiver.cache.store.ready()
     except Exception as exc:  # any backend's failure is the reason, never a 500
         return f"store: {exc}"
+    disk = None if receiver.space is None else receiver.space.reason()
+    if disk is not None:
+        return disk
     return None if receiver.audit is None else audit_problem(receiver.audit)
 
 

@@ -161,8 +161,8 @@ class Checkpoint:
             return
         self._closed = True
         self.workers.shutdown()
-        if self._owns_receiver and self.receiver.audit is not None:
-            self.receiver.audit.close()
+        if self._owns_receiver:
+            self.receiver.close()
 
     def ambiguous(self, framing: Framing) -> Refused | None:
         """Both Content-Length and Transfer-Encoding: refused and closed (RFC 9112)."""

@@ -7,13 +7,18 @@ answered with their original answer, and the latency of the receive path.
 :class:`StateCollector` reads everything else when Prometheus scrapes: the replay state of
 the backend actually in use (entries, watermark, fence, early evictions, data-loss
 events), the window's refusals by cause, the group commits of the state and the audit
-trail, and the ESTOPs delivered while the audit trail failed.  While the store is down its
+trail, the ESTOPs delivered while the audit trail failed, and the trail under a flood:
+refusals folded, summarised or left unrecorded, bytes, segments, the oldest row's age, free
+space under it and the pressure against its floors.  While the store is down its
 gauges are NaN (unknown) and its counters keep their last known value.  A scrape may read
 the store, so ``GET /metrics`` runs it in a thread.
 """
 
 from __future__ import annotations
 
+import math
+import sqlite3
+import time
 from collections.abc import Iterator
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
@@ -23,6 +28,8 @@ from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
 from starlette.responses import Response
 
+from antireplay.audit import AuditLog
+from antireplay.audit.segments import TrailUsage
 from antireplay.core.errors import StateUnavailableError
 from antireplay.rcan.receive import Outcome, Receiver
 from antireplay.state.groupcommit import GroupCommitter
@@ -152,3 +159,66 @@ class StateCollector(Collector):
         )
         waiting.add_metric([], self.receiver.held_rows)
         yield waiting
+        yield from self._trail()
+
+    def _trail(self) -> Iterator[Metric]:
+        """The audit trail under a flood: refusals folded and summarised, what it holds on
+        disk, the free space under it and the pressure level (0 ok, 1 low, 2 critical)."""
+        receiver, auditor = self.receiver, self.receiver.refusals
+        folded = CounterMetricFamily(
+            "antireplay_audit_refusals_folded", "Refusals given no row of their own",
+            labels=["class"],
+        )  # fmt: skip
+        for cls in ("authenticated", "unauthenticated"):
+            folded.add_metric([cls], auditor.folded[cls])
+        yield folded
+        for name, doc, value in (
+            ("antireplay_audit_refusals_summarised", "Folded refusals recorded in summary rows",
+             auditor.summarised),
+            ("antireplay_audit_refusals_unrecorded",
+             "Folded refusals no summary recorded (free space below the floor, trail down)",
+             auditor.unrecorded),
+            ("antireplay_audit_summary_rows", "Summary rows written", auditor.summaries),
+            ("antireplay_audit_spilled_estops", "ESTOP rows spilled to the reserved file",
+             receiver.stats.spilled),
+            ("antireplay_audit_disk_refusals", "Commands refused below the free-space floor",
+             receiver.stats.disk_refusals),
+        ):  # fmt: skip
+            counter = CounterMetricFamily(name, doc)
+            counter.add_metric([], value)
+            yield counter
+        gauges: list[tuple[str, str, float]] = [
+            ("antireplay_audit_refusals_pending", "Folded refusals not summarised yet",
+             auditor.pending),
+        ]  # fmt: skip
+        if receiver.space is not None:
+            gauges += [
+                ("antireplay_audit_free_bytes", "Free bytes under the audit trail",
+                 receiver.space.free()),
+                ("antireplay_audit_disk_pressure", "0 ok, 1 below min_free_bytes (refusals "
+                 "only counted), 2 below refuse_free_bytes (commands refused)",
+                 receiver.space.pressure()),
+            ]  # fmt: skip
+        usage = None if receiver.audit is None else _usage(receiver.audit)
+        if usage is not None:
+            oldest = math.nan if usage.oldest is None else max(0.0, time.time() - usage.oldest)
+            gauges += [
+                ("antireplay_audit_trail_bytes", "Bytes the audit trail holds on disk",
+                 usage.bytes),
+                ("antireplay_audit_trail_segments", "Segments of the audit trail",
+                 usage.segments),
+                ("antireplay_audit_oldest_row_age_seconds", "Age of the oldest row kept",
+                 oldest),
+            ]  # fmt: skip
+        for name, doc, reading in gauges:
+            gauge = GaugeMetricFamily(name, doc)
+            gauge.add_metric([], float(reading))
+            yield gauge
+
+
+def _usage(audit: AuditLog) -> TrailUsage | None:
+    """The trail's usage, ``None`` when it cannot be read now (closed, deleted)."""
+    try:
+        return audit.usage()
+    except (sqlite3.Error, OSError):
+        return None

@@ -21,24 +21,27 @@ No answer goes out before its audit row is durable: ``receive_later`` queues the
 the trail's next group commit and :meth:`Receiver.settle` answers once it is.  An
 accepted message whose row failed is refused ``STATE_UNAVAILABLE``, except a fresh,
 authentic ESTOP (:func:`~antireplay.core.window.estop_survives`, the rule the store
-outage follows too): delivered flagged ``AUDIT_UNAVAILABLE``, its row held in memory
-(bounded, :data:`HELD_ROWS`) and appended once the trail takes a row again.  Malformed
-input is audited at most ``invalid_audit_per_s`` times a second; nothing raises.
+outage follows too): delivered flagged ``AUDIT_UNAVAILABLE``, its row spilled to the
+trail's reserved file (:mod:`~antireplay.audit.spill`), merged into the trail later.
+Refusals pass the one :class:`~antireplay.audit.RefusalAuditor` (rate-limited rows, the
+rest summarised); below the disk's second floor (:mod:`~antireplay.audit.space`) all but
+a fresh ESTOP is refused ``STATE_UNAVAILABLE`` before its commit.  Nothing raises.
 """
 
 from __future__ import annotations
 
 import asyncio
-import functools
 import logging
-import threading
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Iterable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import Any
 
 from antireplay.audit import AuditLog, RefusalAuditor
+from antireplay.audit.refusals import AUDIT_PER_S
+from antireplay.audit.space import DiskSpace
+from antireplay.audit.spill import SLOTS as HELD_ROWS  # ESTOP rows held for the trail
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import (
     Code,
@@ -48,7 +51,7 @@ from antireplay.core.errors import (
     WarningCode,
 )
 from antireplay.core.settings import SecurityConfig
-from antireplay.core.window import Verdict, estop_survives
+from antireplay.core.window import Verdict, estop_survives, is_estop
 from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
 from antireplay.rcan.auth import JwtVerifier, KeyRegistry
 from antireplay.rcan.envelope import MAX_BYTES
@@ -57,8 +60,6 @@ from antireplay.state import Offload, ReplayStore, in_executor
 from antireplay.state.replay import ReplayCache
 
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
-#: Audit rows of ESTOPs delivered while the trail could not take them, held until it can.
-HELD_ROWS = 1024
 
 log = logging.getLogger("antireplay.rcan.receive")
 
@@ -119,19 +120,23 @@ class _Copy:
 
 @dataclass
 class Stats:
-    """Counters for metrics: accepted, rejected by code, warnings, unaudited shape errors."""
+    """Counters for metrics: accepted, rejected by code, warnings, refusals folded."""
 
     accepted: int = 0
     rejected: Counter[str] = field(default_factory=Counter)
     warnings: Counter[str] = field(default_factory=Counter)
+    #: Refusals given no row of their own (rate limit or disk floor; summarised later).
     unaudited: int = 0
     audit_failures: int = 0
     losses: int = 0
     #: QoS retransmissions answered with their original answer (also in ``rejected``).
     retries: int = 0
-    #: ESTOPs delivered while their audit row could not be written (held, appended later).
+    #: ESTOPs delivered while their audit row could not be written; of them, rows spilled.
     held_estops: int = 0
-    #: Held rows dropped unwritten because the bound was reached (each one logged).
+    spilled: int = 0
+    #: Commands refused because free space was below the second floor.
+    disk_refusals: int = 0
+    #: ESTOP rows neither the trail nor its spill could take (each one logged whole).
     held_dropped: int = 0
 
 
@@ -151,6 +156,7 @@ class Receiver:
         versions: frozenset[str] = frozenset({"3"}),
         invalid_audit_per_s: float = 10.0,
         max_bytes: int = MAX_BYTES,
+        space: DiskSpace | None = None,
     ) -> None:
         self.config = config
         self.max_bytes = max_bytes  # the gateway passes its max_body_bytes: one limit in force
@@ -171,9 +177,12 @@ class Receiver:
         self.answers = AnswerMemo(config.msg_id_cache_size)
         #: How long an event loop waits for the answer of an original still in flight.
         self.answer_wait_s = 5.0
-        self._refusals = RefusalAuditor(clock=self.clock, per_s=invalid_audit_per_s)
-        self._held: deque[dict[str, Any]] = deque()
-        self._held_lock = threading.Lock()
+        #: Free space under the trail and its floors (``None``: not watched).
+        self.space = space
+        self.refusals = RefusalAuditor(
+            audit, self.clock, per_s=invalid_audit_per_s, authentic_per_s=AUDIT_PER_S,
+            log=log, quiet=None if space is None else space.low,
+        )  # fmt: skip
         reason = getattr(self.cache.store, "loss_reason", None)
         if reason is not None:  # noticed while the store opened (a lost or rolled-back file)
             self._audit_loss(str(reason))
@@ -190,7 +199,7 @@ class Receiver:
         copy = self._known_copy(raw)
         if copy is not None:
             return self._reject_copy(copy)
-        step = self._authenticate(raw, headers)
+        step = self._floor(self._authenticate(raw, headers))
         if isinstance(step, NeedsCommit):
             env = step.env
             try:
@@ -230,7 +239,7 @@ class Receiver:
         if pending is not None:
             return pending
         run = offload or in_executor
-        step: NeedsCommit | Done = await run(self._authenticate, raw, headers)
+        step = self._floor(await run(self._authenticate, raw, headers))
         if isinstance(step, Done):
             return await self._reject_async(step)
         env = step.env
@@ -300,7 +309,7 @@ class Receiver:
         outcome.retry = held  # status, nack: still 409, what a retry-unaware transport sends
         self.stats.rejected[exc.code] += 1
         self.stats.retries += 1
-        return self._queue_audit(Pending(outcome), on_loop=on_loop)
+        return self._queue_refusal(Pending(outcome), on_loop=on_loop)
 
     def _authenticate(self, raw: bytes, headers: Mapping[str, str] | None) -> NeedsCommit | Done:
         """Steps 1-6, the one stretch run in a thread: the core's parse, the replay check
@@ -314,6 +323,16 @@ class Receiver:
         except ReplayAttackError as exc:
             return self.steps.authenticate(step, exc, headers)
         return self.steps.authenticate(step, None, headers)
+
+    def _floor(self, step: NeedsCommit | Done) -> NeedsCommit | Done:
+        """Below the disk's second floor only an ESTOP goes on to its commit."""
+        if self.space is None or not isinstance(step, NeedsCommit) or is_estop(*step.cls):
+            return step
+        reason = self.space.reason()
+        if reason is None:
+            return step
+        self.stats.disk_refusals += 1
+        return step.refused(StateUnavailableError(reason))
 
     def _accept(
         self, raw: bytes, need: NeedsCommit, verdict: Verdict, *, on_loop: bool = False
@@ -345,8 +364,6 @@ class Receiver:
                 refusal = self._reject(done)
                 return self.settle(refusal, _wait(refusal.audit))
             self._hold(pending, failure, warning)  # safety beats the audit trail
-        elif pending.audit is not None:
-            self._append_held()  # the trail took a row: it can take the held ones
         if outcome.accepted:
             self.stats.accepted += 1
             if outcome.warning:
@@ -357,57 +374,30 @@ class Receiver:
 
     @property
     def held_rows(self) -> int:
-        """Audit rows of delivered ESTOPs waiting for the trail to be writable."""
-        return len(self._held)
+        """Audit rows of delivered ESTOPs spilled, waiting for the trail to be writable."""
+        return 0 if self.audit is None else self.audit.spilled
 
     def _hold(self, pending: Pending, failure: BaseException, warning: str) -> None:
-        """Deliver an ESTOP whose audit row failed: warn, keep the row for later, say so once."""
+        """Deliver an ESTOP whose audit row failed: warn, spill its row (said once per
+        outage); a row the spill cannot take is logged whole, its only record, and counted."""
         outcome = pending.outcome
         outcome.warning = warning
         self.stats.held_estops += 1
-        if pending.row is None:
+        if pending.row is None or self.audit is None:
             return
-        if self._keep({**pending.row, "warning": warning}):
+        row = {**pending.row, "warning": warning}
+        first = self.held_rows == 0
+        if not self.audit.spill(**row):
+            self.stats.held_dropped += 1
+            log.error("audit trail and its spill unavailable (%s); ESTOP row: %s", failure, row)
+            return
+        self.stats.spilled += 1
+        if first:
             log.error(
-                "audit trail unavailable (%s): ESTOPs are delivered with a warning and their "
-                "audit rows held in memory until the trail takes a row again; other messages "
-                "get STATE_UNAVAILABLE",
+                "audit trail unavailable (%s): ESTOP delivered, its row spilled to the reserved "
+                "file until the trail takes a row again; other messages get STATE_UNAVAILABLE",
                 failure,
             )
-
-    def _append_held(self) -> None:
-        """After a row was made durable, queue the held ESTOP rows; one that fails again is
-        held again (its ``at`` keeps when it happened)."""
-        if not self._held or self.audit is None:
-            return
-        with self._held_lock:
-            rows = list(self._held)
-            self._held.clear()
-        log.warning("audit trail writable again: appending %d held ESTOP rows", len(rows))
-        for row in rows:
-            try:
-                future = self.audit.append_later(**row)
-            except RuntimeError:  # closing: nothing more will be written
-                self._keep(row)
-                continue
-            assert isinstance(future, Future)
-            future.add_done_callback(functools.partial(self._held_written, row))
-
-    def _held_written(self, row: dict[str, Any], done: Future[int]) -> None:
-        if done.exception() is not None:
-            self._keep(row)
-
-    def _keep(self, row: dict[str, Any]) -> bool:
-        """Hold one row (the oldest dropped beyond :data:`HELD_ROWS`, its log line then its
-        only record); ``True`` if none was held before."""
-        with self._held_lock:
-            first = not self._held
-            if len(self._held) >= HELD_ROWS:
-                dropped = self._held.popleft()
-                self.stats.held_dropped += 1
-                log.error("held audit row dropped (more than %d held): %s", HELD_ROWS, dropped)
-            self._held.append(row)
-        return first
 
     def _remember_copy(self, raw: bytes, expires_at: float, qos: bool, outcome: Outcome) -> None:
         """Memo of accepted bodies: a byte-identical copy is a replay, known before parsing.
@@ -448,12 +438,28 @@ class Receiver:
     def _reject(self, done: Done, *, copy: _Copy | None = None, on_loop: bool = False) -> Pending:
         """The NACK outcome of a refusal; ``copy`` describes a memo hit (nothing parsed)."""
         outcome = self.steps.refuse(done, None if copy is None else copy.msg_id)
-        code = done.error.code
-        self.stats.rejected[code] += 1
-        if code in SHAPE_ERRORS and not self._refusals.admit(authentic=False):
+        self.stats.rejected[done.error.code] += 1
+        sender = None if copy is None else copy.sender
+        return self._queue_refusal(Pending(outcome), sender, on_loop=on_loop)
+
+    def _queue_refusal(
+        self, pending: Pending, sender: str | None = None, *, on_loop: bool = False
+    ) -> Pending:
+        """A refusal's row if the auditor gives it one, else folded into its summary."""
+        if self.audit is None:
+            return pending
+        fields = audit_row(pending.outcome, self.clock.wall(), sender)
+        key = {name: fields[name] for name in ("code", "sender", "msg_id")}
+        if not self.refusals.admit(authentic=fields["sender_verified"], **key):
             self.stats.unaudited += 1
-            return Pending(outcome)
-        return self._queue_audit(Pending(outcome), copy, on_loop=on_loop)
+            return pending
+        return self._queue_audit(pending, fields, on_loop=on_loop)
+
+    def close(self) -> None:
+        """Write the folded refusals' summary rows, then close the audit trail."""
+        if self.audit is not None:
+            self.refusals.close()
+            self.audit.close()
 
     def _audit_loss(self, reason: str) -> None:
         """A store noticed it may have forgotten accepted messages: fenced, and on the record."""
@@ -470,13 +476,13 @@ class Receiver:
             self.stats.audit_failures += 1
 
     def _queue_audit(
-        self, pending: Pending, copy: _Copy | None = None, *, on_loop: bool = False
+        self, pending: Pending, fields: dict[str, Any] | None = None, *, on_loop: bool = False
     ) -> Pending:
-        """Queue the outcome's audit row (``on_loop``: awaited by the running event loop);
-        a trail that is closing fails the row at once."""
+        """Queue the outcome's audit row (``fields``: already built; ``on_loop``: awaited by
+        the running event loop); a trail that is closing fails the row at once."""
         if self.audit is not None:
-            sender = None if copy is None else copy.sender
-            fields = audit_row(pending.outcome, self.clock.wall(), sender)
+            if fields is None:
+                fields = audit_row(pending.outcome, self.clock.wall())
             if pending.estop:
                 pending.row = fields
             try:
