@@ -4,6 +4,7 @@ step forward), each staged on real redis-server processes and replayed to two re
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import uuid
@@ -19,6 +20,7 @@ from antireplay import ManualClock, MessageStaleError, ReplayCache
 from antireplay.audit import tail
 from antireplay.cli.demo import write_demo_config
 from antireplay.core.errors import StateFileError, StateUnavailableError
+from antireplay.core.window import Seen
 from antireplay.state.redis import RedisStore
 from tests.harness import accepted_fresh, data_losses, post_after_cut, reencoded, serving
 from tests.harness.redis_server import RedisCluster, RedisServer, wait_replicated
@@ -306,3 +308,49 @@ def test_forget_drops_counters_and_raises_the_fence_in_one_script(
     assert store.current("fence") == 11
     assert store.data_loss_events == 2  # the first contact, then the flush
     store.close()
+
+
+def test_batched_commits_from_two_stores_accept_each_msg_id_exactly_once(redis_url: str) -> None:
+    """Two store objects (two replicas) race async commits of the same msg_ids: each batch is
+    one script call, and across batches and stores exactly one commit records each id."""
+    prefix = f"race{uuid.uuid4().hex}:"
+    clock = ManualClock(wall=NOW)
+    stores = [RedisStore(redis_url, prefix=prefix, clock=clock) for _ in range(2)]
+    stores[0].verify()
+    ids = [f"cmd-{i}" for i in range(200)]
+
+    async def race() -> list[Seen]:
+        attempts = [s.commit_async(m, NOW + 30, NOW) for m in ids for s in stores for _ in "ab"]
+        return await asyncio.gather(*attempts)
+
+    try:
+        seen = asyncio.run(race())
+        recorded = [0] * len(ids)
+        for n, result in enumerate(seen):
+            recorded[n // 4] += result.recorded
+            assert result.recorded or result.expiry == NOW + 30
+        assert recorded == [1] * len(ids)
+        batches = sum(s.group_commit.batches for s in stores)
+        assert batches < len(seen) / 2  # batched: far fewer script calls than commits
+    finally:
+        for s in stores:
+            s.close()
+
+
+def test_a_loss_found_by_a_batch_is_flagged_once(redis_url: str) -> None:
+    """The loss checks run once per script call: one batch after a FLUSHDB reports the loss
+    on its first record only (one audit row, one data-loss event), fencing every record."""
+    prefix = f"batchloss{uuid.uuid4().hex}:"
+    clock = ManualClock(wall=NOW)
+    store = RedisStore(redis_url, prefix=prefix, clock=clock)
+    store.verify()  # a new deployment: the first contact fences (one event)
+    before = store.data_loss_events
+    redis.Redis.from_url(redis_url).delete(f"{prefix}{{antireplay}}:meta")
+    try:
+        ops = [(f"m-{i}", NOW + 30, NOW, False) for i in range(5)]
+        results = store._commit_batch(ops)
+        assert [isinstance(r, Seen) and r.lost for r in results] == [True] + [False] * 4
+        assert all(isinstance(r, Seen) and r.fence >= NOW for r in results)
+        assert store.data_loss_events == before + 1
+    finally:
+        store.close()

@@ -6,7 +6,10 @@ Rule 1: everything that decides whether an RCAN message is fresh and unique live
 in this file, in :class:`Window`.  The policy takes values (the message's msg_id,
 timestamp and type, the receiver's ``now``, and the :class:`Seen` state a store
 read or wrote atomically for that msg_id) and returns a :class:`Verdict` or
-raises a typed error.  It never reads a clock, sleeps, locks or does I/O; the
+a typed error (raised by :meth:`Window.plan` and :meth:`Window.judge`, returned
+unraised by :meth:`Window.plan_or_refusal` and :meth:`Window.decide`, the hot
+path's form: a refusal is an answer, and raising it through compiled frames
+costs more than the whole admission).  It never reads a clock, sleeps, locks or does I/O; the
 one atomic store operation is performed by the caller
 (:class:`~antireplay.state.replay.ReplayCache`, the pipeline), between
 :meth:`Window.plan` and :meth:`Window.judge`.
@@ -85,6 +88,7 @@ from antireplay.core.errors import (
     InvalidTimestampError,
     MessageFromFutureError,
     MessageStaleError,
+    ReplayAttackError,
     ReplayDetectedError,
 )
 from antireplay.core.messages import MessageType, SafetyEvent
@@ -264,6 +268,16 @@ class Window:
         self, mid: object, ts: object, msg_type: int, event: str | None, now: float
     ) -> Verdict:
         """Shape, staleness and future checks; the expiry a commit would record."""
+        planned = self.plan_or_refusal(mid, ts, msg_type, event, now)
+        if isinstance(planned, ReplayAttackError):
+            raise planned
+        return planned
+
+    def plan_or_refusal(
+        self, mid: object, ts: object, msg_type: int, event: str | None, now: float
+    ) -> Verdict | ReplayAttackError:
+        """:meth:`plan` with a stale or future message's refusal returned, not raised (a
+        malformed msg_id or timestamp still raises: a hostile shape, never the hot path)."""
         if type(mid) is not str or not 0 < len(mid) <= MAX_MSG_ID_LEN:
             mid = validate_msg_id(mid)
         t = ts if type(ts) is float else coerce_timestamp(ts)
@@ -272,38 +286,59 @@ class Window:
         safety = msg_type == _SAFETY
         window = self.safety_window_s if safety else self.window_s
         if now - t > window:
-            raise MessageStaleError(f"message is {now - t:.3f}s old; window is {window:g}s")
+            return MessageStaleError.refusal(
+                f"message is {now - t:.3f}s old; window is {window:g}s"
+            )
         if t > now + self.skew_s:
-            raise MessageFromFutureError(
+            return MessageFromFutureError.refusal(
                 f"message is {t - now:.3f}s ahead; allowed skew is {self.skew_s:g}s"
             )
         return Verdict(mid, t, window, t + window, None, safety and event == _ESTOP)
 
     def judge(self, plan: Verdict, seen: Seen, now: float) -> Verdict:
         """The fence, watermark, saturation and duplicate rules on what the store holds."""
+        verdict = self.decide(
+            plan, seen.expiry, seen.watermark, seen.fence, seen.recorded, seen.full, now
+        )
+        if isinstance(verdict, ReplayAttackError):
+            raise verdict
+        return verdict
+
+    def decide(  # noqa: PLR0917 - the fields of a Seen, unboxed on the hot path
+        self,
+        plan: Verdict,
+        expiry: float,
+        watermark: float,
+        fence: float,
+        recorded: bool,
+        full: bool,
+        now: float,
+    ) -> Verdict | ReplayAttackError:
+        """:meth:`judge` on the fields of a :class:`Seen`, the refusal returned as a value
+        (unraised): a refusal is an answer, not an exceptional path, and a caller that
+        checks before recording passes its known ``watermark`` and ``fence`` without
+        building a ``Seen``."""
         estop = plan.estop
         warning: str | None = None
-        if plan.timestamp <= seen.fence + self.skew_s:
+        if plan.timestamp <= fence + self.skew_s:
             if not estop:
-                raise MessageStaleError(
-                    "message may predate a loss or restart of the replay state",
-                    detail="restart_fence",
+                return MessageStaleError.refusal(
+                    "message may predate a loss or restart of the replay state", "restart_fence"
                 )
             warning = _REPLAY
-        if plan.expires_at <= seen.watermark:
+        if plan.expires_at <= watermark:
             if not estop:
-                raise MessageStaleError(
-                    "message is older than the replay state's low watermark", detail="watermark"
+                return MessageStaleError.refusal(
+                    "message is older than the replay state's low watermark", "watermark"
                 )
             warning = _REPLAY
-        if seen.full and not estop:
-            raise MessageStaleError(
-                "replay state saturated; message expires before every live entry",
-                detail="saturated",
+        if full and not estop:
+            return MessageStaleError.refusal(
+                "replay state saturated; message expires before every live entry", "saturated"
             )
-        if seen.expiry >= now and not seen.recorded:
+        if expiry >= now and not recorded:
             if not estop:
-                raise ReplayDetectedError("msg_id already accepted within its window")
+                return ReplayDetectedError.refusal("msg_id already accepted within its window")
             warning = _REPLAY
         if warning is None:
             return plan

@@ -98,6 +98,12 @@ class MemoryStore:
         expiry = self._expiry.get(key)
         return Seen(NEVER if expiry is None else expiry, self._watermark, self._fence)
 
+    def expiry_of(self, key: str) -> float:
+        """The expiry of ``key``'s entry, ``NEVER`` if none (a :meth:`lookup` without its
+        ``Seen``: the replay cache's index reads this)."""
+        expiry = self._expiry.get(key)
+        return NEVER if expiry is None else expiry
+
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         """Record ``key`` unless it has a live entry; a forced commit extends a live one."""
         self._acquire()

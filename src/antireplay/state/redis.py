@@ -6,6 +6,11 @@ Theory of operation
   ``meta`` hash against the server running it, then reads and records the entry or
   counter, returning it with the shared fence and watermark.  So loss is found on
   the very next operation, whether or not the client saw a dropped connection.
+  Commits are batched as SQLite groups its fsyncs: ``commit_async`` queues the
+  record for a group committer (:mod:`antireplay.state.groupcommit`) whose one
+  script call runs the loss checks once and then records every queued entry in
+  order (two racers on one key, in one batch or two: exactly one records);
+  ``commit`` from a thread is a batch of one.
 * **Loss is detected whatever caused it, and fenced for every replica.**  ``meta``
   records who holds our state: the process (``run_id``: a restart, failover,
   restore or slot move changes it) and its replication history (``master_replid``:
@@ -34,8 +39,9 @@ Theory of operation
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Callable, Sequence
 from typing import Any, Final, TypeVar
 
 import redis
@@ -45,7 +51,8 @@ from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
 from antireplay.core.window import NEVER, Seen
 from antireplay.state import _codec
-from antireplay.state.contract import Offload, offloaded
+from antireplay.state.contract import Offload
+from antireplay.state.groupcommit import GroupCommitter
 from antireplay.state.spec import StoreSpec
 
 T = TypeVar("T")
@@ -53,11 +60,15 @@ log = logging.getLogger("antireplay.state.redis")
 
 #: "No fence / nothing forgotten" in Redis (Lua's tonumber does not read "-inf").
 _FLOOR: Final = "-1e18"
+_COMMIT: Final = "commit"
+#: A record for the batched commit: msg_id, expiry, the caller's now, force.
+_Op = tuple[str, float, float, bool]
 
 _SCRIPT = """
--- ARGV: 1 mode (commit | advance | forget | verify), 2 now, 3 skew, 4 floor ("nothing
---       yet"), 5 expiry or counter value, 6 force.  KEYS: 1 meta, 2 the entry or counter,
---       3.. the counters to forget.
+-- ARGV: 1 mode (commit | advance | forget | verify), 2 now (a batch's latest), 3 skew,
+--       4 floor ("nothing yet"), then: commit: 3 per entry (see below); advance, forget:
+--       5 the counter value.  KEYS: 1 meta, then commit: the entries; advance, forget: 2
+--       the counter, 3.. the counters to forget.
 local info = redis.call('INFO', 'server', 'memory', 'stats', 'replication')
 -- A field of INFO (a plain find: a pattern scan of the whole text costs far more).
 local function field(name)
@@ -103,26 +114,41 @@ elseif tonumber(wm) < floor then
   wm = string.format('%.6f', floor)
 end
 if ARGV[1] == 'verify' then return {0, false, fence, wm, lost} end
+local skew = tonumber(ARGV[3])
+if ARGV[1] == 'commit' then
+  -- One batch: per entry key (KEYS 2..) three ARGV from 5: expiry, force, the caller's now.
+  -- In order, so two racers on one key in one batch: the first records, the second sees it.
+  local out = {0, false, fence, wm, lost}
+  for i = 2, #KEYS do
+    local a = 5 + (i - 2) * 3
+    local cur = redis.call('GET', KEYS[i])
+    local recorded = 0
+    if cur and not number(cur) then
+      recorded = -2
+    else
+      local expiry, at = tonumber(ARGV[a]), tonumber(ARGV[a + 2])
+      local ttl = math.ceil((expiry - math.min(at, server_now) + skew) * 1000) + 1
+      if ttl < 1 then ttl = 1 end
+      if cur and tonumber(cur) >= at then
+        if ARGV[a + 1] == '1' and expiry > tonumber(cur) then
+          redis.call('SET', KEYS[i], ARGV[a], 'PX', ttl)
+        end
+      else
+        redis.call('SET', KEYS[i], ARGV[a], 'PX', ttl)
+        recorded = 1
+      end
+    end
+    out[#out + 1] = recorded
+    out[#out + 1] = cur or false
+  end
+  return out
+end
 local cur = redis.call('GET', KEYS[2])
 if ARGV[1] == 'forget' then
   for i = 3, #KEYS do if KEYS[i] ~= KEYS[2] then redis.call('DEL', KEYS[i]) end end
 end
-if ARGV[1] ~= 'commit' then
-  if cur and cur >= ARGV[5] then return {0, cur, fence, wm, lost} end
-  redis.call('SET', KEYS[2], ARGV[5])
-  return {1, cur or false, fence, wm, lost}
-end
-if cur and not number(cur) then return {-2, 'entry', cur, '', 0} end
-local expiry = tonumber(ARGV[5])
-local ttl = math.ceil((expiry - math.min(now, server_now) + tonumber(ARGV[3])) * 1000) + 1
-if ttl < 1 then ttl = 1 end
-if cur and tonumber(cur) >= now then
-  if ARGV[6] == '1' and expiry > tonumber(cur) then
-    redis.call('SET', KEYS[2], ARGV[5], 'PX', ttl)
-  end
-  return {0, cur, fence, wm, lost}
-end
-redis.call('SET', KEYS[2], ARGV[5], 'PX', ttl)
+if cur and cur >= ARGV[5] then return {0, cur, fence, wm, lost} end
+redis.call('SET', KEYS[2], ARGV[5])
 return {1, cur or false, fence, wm, lost}
 """
 
@@ -175,6 +201,9 @@ class RedisStore:
         self._watermark = NEVER
         self.data_loss_events = 0
         self.loss_reason: str | None = None
+        self._committer: GroupCommitter[_Op, Seen | StateUnavailableError] = GroupCommitter(
+            self._commit_batch, name=f"antireplay-redis:{prefix}"
+        )
         # Refuse to start on an evicting Redis; if it is down now, every script checks the
         # policy again on the first call that reaches it.
         with contextlib.suppress(redis.ConnectionError, redis.TimeoutError):
@@ -201,38 +230,66 @@ class RedisStore:
         return Seen(expiry, self._watermark, self._fence)
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
-        key = self.msg_key(key)
-        return _codec.serving(lambda: self._run("commit", key, now, repr(expires_at), force))
+        """One script call for this one record (a thread's commit: no hand-off)."""
+        return _outcome(self._commit_batch([(key, expires_at, now, force)])[0])
 
-    def commit_async(
+    async def commit_async(
         self,
         key: str,
         expires_at: float,
         now: float,
         force: bool = False,
         offload: Offload | None = None,
-    ) -> Awaitable[Seen]:
-        """:meth:`commit` from an event loop: run in ``offload`` (it waits for Redis)."""
-        return offloaded(offload, self.commit, key, expires_at, now, force)
+    ) -> Seen:
+        """:meth:`commit` from an event loop: queued for the group committer, whose one
+        script call records every record queued meanwhile (no thread held; ``offload`` is
+        not needed)."""
+        return _outcome(await self._committer.enqueue_async((key, expires_at, now, force)))
+
+    @property
+    def group_commit(self) -> GroupCommitter[Any, Any]:
+        """The writer that batches this store's async commits (its counters feed /metrics)."""
+        return self._committer
+
+    def _commit_batch(self, ops: Sequence[_Op]) -> list[Seen | StateUnavailableError]:
+        """One script call for ``ops``: the loss checks once, then each record in order.
+
+        A failure of the store (unreachable, evicting, its meta undecodable) fails the
+        batch; an entry that does not decode fails its own record only.
+        """
+        args = [_COMMIT, repr(max(op[2] for op in ops)), self._skew, _FLOOR]
+        keys = [self._meta]
+        for key, expires_at, now, force in ops:
+            keys.append(self.msg_key(key))
+            args += (repr(expires_at), "1" if force else "0", repr(now))
+        reply = _codec.serving(lambda: self._reply(keys, args))
+        lost = _codec.serving(lambda: self._applied(reply[2], reply[3], reply[4]))
+        out: list[Seen | StateUnavailableError] = []
+        for i, entry in enumerate(keys[1:]):
+            recorded, cur = reply[5 + 2 * i], reply[6 + 2 * i]
+            try:
+                expiry = _codec.serving(functools.partial(self._held, entry, recorded, cur))
+            except StateUnavailableError as exc:
+                out.append(exc)
+                continue
+            out.append(Seen(expiry, self._watermark, self._fence, recorded == 1, False, lost))
+            lost = False  # a loss is one event: its flag goes to the batch's first record
+        return out
+
+    def _held(self, entry: str, recorded: int, cur: bytes | None) -> float:
+        """The expiry a batch found on ``entry`` (``NEVER``: none); one the script found
+        undecodable (``recorded == -2``) is refused like an undecodable counter."""
+        if recorded == -2:
+            raise self._undecodable(entry, cur, "an expiry", also_meta=True)
+        return NEVER if cur is None else self._expiry(entry, cur)
 
     def verify(self) -> Seen:
         """Run the loss and eviction checks alone (start-up, a guard taking its lease)."""
-        return self._run("verify", self._meta, self._clock.wall(), "", False)
+        return self._run("verify", self._meta, self._clock.wall(), "")
 
-    def _run(
-        self,
-        mode: str,
-        key: str,
-        now: float,
-        value: str,
-        force: bool,
-        *,
-        counter: str | None = None,
-        forgotten: Sequence[str] = (),
-    ) -> Seen:
-        args = [mode, repr(now), self._skew, _FLOOR, value, "1" if force else "0"]
-        keys = [self._meta, key, *forgotten]
-        reply = self._call(lambda: self._script(keys=keys, args=args))
+    def _reply(self, keys: list[str], args: list[str]) -> list[Any]:
+        """Run the script; refuse what it refused to compute with (the batch's failures)."""
+        reply: list[Any] = self._call(lambda: self._script(keys=keys, args=args))
         if reply[0] == -1:
             policy = reply[1].decode() if isinstance(reply[1], bytes) else str(reply[1])
             raise StateUnavailableError(
@@ -240,14 +297,30 @@ class RedisStore:
             )
         if reply[0] == -2:
             field = _text(reply[1])
-            if field == "entry":
-                raise self._undecodable(key, reply[2], "an expiry", also_meta=True)
             raise self._undecodable(f"{self._meta} {field}", reply[2], "a number")
-        return self._seen(reply, key, counter)
+        return reply
 
-    def _seen(self, reply: list[Any], entry: str, counter: str | None = None) -> Seen:
-        """The script's answer on ``entry``; ``counter`` names the key an ``advance`` ran on."""
-        recorded, cur, fence, watermark, lost = reply
+    def _run(
+        self,
+        mode: str,
+        key: str,
+        now: float,
+        value: str,
+        *,
+        counter: str | None = None,
+        forgotten: Sequence[str] = (),
+    ) -> Seen:
+        """``verify``, ``advance`` or ``forget`` (one key); ``counter`` names the counter."""
+        args = [mode, repr(now), self._skew, _FLOOR, value]
+        recorded, cur, fence, watermark, lost = self._reply([self._meta, key, *forgotten], args)
+        lost = self._applied(fence, watermark, lost)
+        if counter is not None and cur is not None:
+            self._decode(counter, cur)  # refused: by a counter, never by garbage
+        return Seen(NEVER, self._watermark, self._fence, bool(recorded), False, lost)
+
+    def _applied(self, fence: object, watermark: object, lost: object) -> bool:
+        """Take the fence and watermark a script returned; a loss it found is counted and
+        logged here, once per script call.  Whether it found one."""
         self._fence = _floor(self._number(f"{self._meta} fence", fence))
         self._watermark = _floor(self._number(f"{self._meta} wm", watermark))
         if lost:
@@ -257,12 +330,7 @@ class RedisStore:
             self.loss_reason = f"redis may have lost our replay state: {cause}"
             raised = ("watermark", self._watermark) if code == "clock" else ("fence", self._fence)
             log.warning("%s: %s; %s raised to %.6f", self.url, self.loss_reason, *raised)
-        if counter is not None:
-            if cur is not None:
-                self._decode(counter, cur)  # refused: by a counter, never by garbage
-            return Seen(NEVER, self._watermark, self._fence, bool(recorded), False, bool(lost))
-        expiry = NEVER if cur is None else self._expiry(entry, cur)
-        return Seen(expiry, self._watermark, self._fence, bool(recorded), False, bool(lost))
+        return bool(lost)
 
     def advance(self, key: str, value: int) -> bool:
         """Compare-and-advance, with the same loss and eviction checks as a commit."""
@@ -278,7 +346,7 @@ class RedisStore:
     def _counter(self, mode: str, key: str, value: int, forgotten: Sequence[str] = ()) -> Seen:
         """``advance`` counter ``key`` to ``value`` (``forget``: dropping ``forgotten`` too)."""
         counter, now, encoded = f"{self._base}c:{key}", self._clock.wall(), _codec.encode(value)
-        return self._run(mode, counter, now, encoded, False, counter=key, forgotten=forgotten)
+        return self._run(mode, counter, now, encoded, counter=key, forgotten=forgotten)
 
     def current(self, key: str) -> int | None:
         value = self._call(lambda: self._redis.get(f"{self._base}c:{key}"))
@@ -322,6 +390,7 @@ class RedisStore:
         }
 
     def close(self) -> None:
+        self._committer.close()
         self._redis.close()
 
     def ready(self) -> None:
@@ -360,6 +429,13 @@ class RedisStore:
             raise StateUnavailableError(f"redis unreachable: {exc}") from None
         except redis.RedisError as exc:
             raise StateUnavailableError(f"redis error: {exc}") from None
+
+
+def _outcome(result: Seen | StateUnavailableError) -> Seen:
+    """A record's result from a batch: its ``Seen``, or its own failure raised."""
+    if isinstance(result, StateUnavailableError):
+        raise result
+    return result
 
 
 def _evicting(policy: str) -> str:

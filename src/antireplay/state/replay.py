@@ -7,9 +7,10 @@ The window policy (:class:`~antireplay.core.window.Window`) is pure; a store
 module is the caller that joins them, the one the pipeline runs and the one an
 embedder uses directly:
 
-* :meth:`ReplayCache.check` plans the message (shape, staleness, future), reads
-  the store's entry with ``lookup`` and judges it.  It records nothing, so a
-  receiver runs it before any cryptography and throws replays away cheaply.
+* :meth:`ReplayCache.check` plans the message (shape, staleness, future) and
+  judges what this process knows of its msg_id.  It records nothing in the
+  store, so a receiver runs it before any cryptography and throws replays away
+  cheaply (see *The index* for what it reads).
 * :meth:`ReplayCache.commit` plans again on a fresh ``now``, refuses what the
   store's last known fence and watermark already refuse (so a refused message
   does not spend its msg_id), performs the store's one atomic ``commit``
@@ -17,6 +18,26 @@ embedder uses directly:
   after the message authenticated; of two racers on one msg_id exactly one is
   admitted.  :meth:`ReplayCache.commit_async` is the same two halves around the
   store's ``commit_async``, for an event loop.
+* ``try_check`` and ``try_commit`` are the same with a refusal *returned* (a
+  :class:`~antireplay.core.errors.ReplayAttackError`, unraised): a refusal is an
+  answer, and raising it through compiled frames costs more than an admission.
+
+**The index** (a store other than process memory).  ``check`` must not cost a
+store read for every fresh command, so the cache keeps a bounded in-memory index
+(a :class:`MemoryStore` of ``max_size`` entries, no fence) of the msg_ids this
+cache's commits recorded or found live in the store, each to the expiry the store
+holds.  ``check`` answers from it: a hit is a replay; a miss proceeds to
+authentication without I/O, because ``commit`` is authoritative and refuses a
+replay the index does not know (one committed by another process sharing the
+store, or by this process before a restart); that costs one signature check per
+process per msg_id, after which the refusing commit indexes it.  The index
+forgets nothing silently: an entry leaves it only by expiry or, the index full,
+by eviction that raises its watermark, and a miss expiring at or below that
+watermark (this cache may have forgotten its own commit) reads the store:
+``check``'s only I/O, possible only after more than ``max_size`` live msg_ids
+in one window.  So ``check`` costs two dict lookups (~0.3 µs, no lock held, no
+thread needed) except in that case.  On the memory store the store itself is
+the index (its ``lookup`` is a dict read).
 
 No lock is held here: the store's commit is the only atomic step.  A store that
 cannot be reached fails closed (``STATE_UNAVAILABLE``, 503) for everything
@@ -71,6 +92,15 @@ class ReplayCache:
         self.store: ReplayStore = (
             store if store is not None else MemoryStore(max_entries=max_size, clock=self.clock)
         )
+        # The memory store, called natively; else the index in front of the store.
+        self._memory: MemoryStore | None = (
+            self.store if isinstance(self.store, MemoryStore) else None
+        )
+        self._index: MemoryStore | None = (
+            None
+            if self._memory is not None
+            else MemoryStore(max_entries=max_size, restart_fence=False)
+        )
         self.refusals: Counter[str] = Counter()
         self.losses = 0
         #: Called with a reason when a commit finds the store lost state (the pipeline audits it).
@@ -107,19 +137,48 @@ class ReplayCache:
         msg_type: int = MessageType.COMMAND,
         safety_event: str | None = None,
     ) -> Verdict:
-        """Apply every rule to what the store holds now; record nothing."""
+        """Apply every rule to what this process knows of the msg_id; record nothing
+        (see *The index* in the module docstring for what that costs)."""
+        return _raised(self.try_check(msg_id, timestamp, msg_type, safety_event))
+
+    def try_check(
+        self,
+        msg_id: object,
+        timestamp: object,
+        msg_type: int = MessageType.COMMAND,
+        safety_event: str | None = None,
+    ) -> Verdict | ReplayAttackError:
+        """:meth:`check` with a refusal returned, not raised."""
         now = self.clock.wall()
         try:
-            plan = self.policy.plan(msg_id, timestamp, msg_type, safety_event, now)
-            seen: Seen | StateUnavailableError
-            try:
-                seen = self.store.lookup(plan.msg_id)
-            except StateUnavailableError as exc:
-                seen = exc
-            return self._judge(plan, now, seen)
+            plan = self.policy.plan_or_refusal(msg_id, timestamp, msg_type, safety_event, now)
         except ReplayAttackError as exc:
-            self.refusals[exc.detail or exc.code] += 1
-            raise
+            return self._refused(exc)
+        if isinstance(plan, ReplayAttackError):
+            return self._refused(plan)
+        seen: Seen | StateUnavailableError
+        memory, index = self._memory, self._index
+        if memory is not None:
+            seen = memory.lookup(plan.msg_id)
+        elif index is not None:
+            seen = self._indexed(plan, index, now)
+        else:  # pragma: no cover - one of the two is always set
+            seen = self.store.lookup(plan.msg_id)
+        return self._decided(plan, now, seen)
+
+    def _indexed(
+        self, plan: Verdict, index: MemoryStore, now: float
+    ) -> Seen | StateUnavailableError:
+        """What the index knows of ``plan``'s msg_id, with the store's last known fence and
+        watermark; the store itself only where the index may have forgotten (see above)."""
+        expiry = index.expiry_of(plan.msg_id)
+        store = self.store
+        if expiry < now and plan.expires_at <= index.watermark():
+            try:
+                return store.lookup(plan.msg_id)
+            except StateUnavailableError as exc:
+                return exc
+        return Seen(expiry, store.watermark(), store.fence())
 
     def commit(
         self,
@@ -129,13 +188,30 @@ class ReplayCache:
         safety_event: str | None = None,
     ) -> Verdict:
         """Apply every rule and atomically record the msg_id (after authentication)."""
-        plan, now = self.begin_commit(msg_id, timestamp, msg_type, safety_event)
+        return _raised(self.try_commit(msg_id, timestamp, msg_type, safety_event))
+
+    def try_commit(
+        self,
+        msg_id: object,
+        timestamp: object,
+        msg_type: int = MessageType.COMMAND,
+        safety_event: str | None = None,
+    ) -> Verdict | ReplayAttackError:
+        """:meth:`commit` with a refusal returned, not raised."""
+        begun = self._begin(msg_id, timestamp, msg_type, safety_event)
+        if isinstance(begun, ReplayAttackError):
+            return begun
+        plan, now = begun
         seen: Seen | StateUnavailableError
+        memory = self._memory
         try:
-            seen = self.store.commit(plan.msg_id, plan.expires_at, now, plan.estop)
+            if memory is not None:
+                seen = memory.commit(plan.msg_id, plan.expires_at, now, plan.estop)
+            else:
+                seen = self.store.commit(plan.msg_id, plan.expires_at, now, plan.estop)
         except StateUnavailableError as exc:
             seen = exc
-        return self.finish_commit(plan, now, seen)
+        return self._finish(plan, now, seen)
 
     async def commit_async(
         self,
@@ -169,33 +245,60 @@ class ReplayCache:
         :meth:`finish_commit`), refusing what the known fence or watermark already refuses
         *before* recording it: a refused message must not spend its msg_id.  :meth:`commit`
         and :meth:`commit_async` perform the store's commit between the halves."""
-        now = self.clock.wall()
-        policy = self.policy
-        try:
-            plan = policy.plan(msg_id, timestamp, msg_type, safety_event, now)
-            store = self.store
-            policy.judge(plan, Seen(NEVER, store.watermark(), store.fence()), now)
-        except ReplayAttackError as exc:
-            self.refusals[exc.detail or exc.code] += 1
-            raise
-        return plan, now
+        begun = self._begin(msg_id, timestamp, msg_type, safety_event)
+        if isinstance(begun, ReplayAttackError):
+            raise begun
+        return begun
 
     def finish_commit(
         self, plan: Verdict, now: float, seen: Seen | StateUnavailableError
     ) -> Verdict:
         """:meth:`commit` after the store's: judge what its atomic commit returned, or the
         error it raised."""
-        try:
-            return self._judge(plan, now, seen)
-        except ReplayAttackError as exc:
-            self.refusals[exc.detail or exc.code] += 1
-            raise
+        return _raised(self._finish(plan, now, seen))
 
-    def _judge(self, plan: Verdict, now: float, seen: Seen | StateUnavailableError) -> Verdict:
+    def _begin(
+        self, msg_id: object, timestamp: object, msg_type: int, safety_event: str | None
+    ) -> tuple[Verdict, float] | ReplayAttackError:
+        now = self.clock.wall()
+        policy = self.policy
+        try:
+            plan = policy.plan_or_refusal(msg_id, timestamp, msg_type, safety_event, now)
+        except ReplayAttackError as exc:
+            return self._refused(exc)
+        if isinstance(plan, ReplayAttackError):
+            return self._refused(plan)
+        memory = self._memory
+        if memory is not None:
+            watermark, fence = memory.watermark(), memory.fence()
+        else:
+            store = self.store
+            watermark, fence = store.watermark(), store.fence()
+        known = policy.decide(plan, NEVER, watermark, fence, False, False, now)
+        if isinstance(known, ReplayAttackError):
+            return self._refused(known)
+        return plan, now
+
+    def _finish(
+        self, plan: Verdict, now: float, seen: Seen | StateUnavailableError
+    ) -> Verdict | ReplayAttackError:
+        index = self._index
+        if index is not None and isinstance(seen, Seen):
+            # Persist, then believe: the store's commit returned, so its entry stands.
+            expiry = seen.expiry
+            if seen.recorded or (plan.estop and plan.expires_at > expiry):
+                expiry = plan.expires_at
+            if expiry >= now:
+                index.commit(plan.msg_id, expiry, now, True)
+        return self._decided(plan, now, seen)
+
+    def _decided(
+        self, plan: Verdict, now: float, seen: Seen | StateUnavailableError
+    ) -> Verdict | ReplayAttackError:
         if isinstance(seen, StateUnavailableError):
             warning = estop_survives(plan.estop, plan.warning, _STATE_UNAVAILABLE)
             if warning is None:
-                raise seen
+                return self._refused(seen)
             return Verdict(
                 plan.msg_id, plan.timestamp, plan.window_s, plan.expires_at, warning, True
             )
@@ -203,4 +306,20 @@ class ReplayCache:
             self.losses += 1
             if self.on_loss is not None:
                 self.on_loss(f"{self.store.backend} lost or replaced its state; fence raised")
-        return self.policy.judge(plan, seen, now)
+        verdict = self.policy.decide(
+            plan, seen.expiry, seen.watermark, seen.fence, seen.recorded, seen.full, now
+        )
+        if isinstance(verdict, ReplayAttackError):
+            return self._refused(verdict)
+        return verdict
+
+    def _refused(self, exc: ReplayAttackError) -> ReplayAttackError:
+        self.refusals[exc.count_key] += 1
+        return exc
+
+
+def _raised(outcome: Verdict | ReplayAttackError) -> Verdict:
+    """The verdict, or its refusal raised (the raising API over the ``try_`` forms)."""
+    if isinstance(outcome, ReplayAttackError):
+        raise outcome
+    return outcome
