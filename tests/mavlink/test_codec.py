@@ -5,7 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as dialect
+from pymavlink.generator.mavcrc import x25crc
 
 from antireplay import ManualClock
 from antireplay.core.errors import (
@@ -21,6 +24,7 @@ from antireplay.mavlink import (
     MavlinkGuard,
     TimestampSource,
     claimed_source,
+    codec,
     mav_time,
     parse_frame,
     passphrase_key,
@@ -110,3 +114,21 @@ def test_durable_timestamp_source_never_repeats_across_restarts(
     again = TimestampSource(clock, store=store, store_key="sign")
     assert again.next() > max(handed)
     store.close()
+
+
+@given(st.binary(min_size=1, max_size=300), st.integers(0, 255))
+def test_the_frame_crc_is_pymavlinks_x25(data: bytes, extra: int) -> None:
+    """The parser's one-call CRC (fastcrc's MCRF4XX) equals pymavlink's ``x25crc``."""
+    reference = x25crc(data[1:])
+    reference.accumulate(bytes([extra]))
+    assert codec._crc(data, len(data), extra) == reference.crc
+
+
+def test_target_fields_are_read_per_message_layout() -> None:
+    """``target`` reads COMMAND_LONG's target system and component, and None for a message
+    without them (HEARTBEAT), from the cached layout."""
+    mav = dialect.MAVLink(None, srcSystem=255, srcComponent=190)
+    command = bytes(mav.command_long_encode(7, 3, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(mav))
+    heartbeat = bytes(mav.heartbeat_encode(6, 8, 0, 0, 0).pack(mav))
+    assert codec.target(codec.parse_frame(command)) == (7, 3)
+    assert codec.target(codec.parse_frame(heartbeat)) == (None, None)

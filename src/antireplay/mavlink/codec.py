@@ -42,9 +42,10 @@ from __future__ import annotations
 import hashlib
 import struct
 from dataclasses import dataclass
+from functools import cache
 
+from fastcrc.crc16 import mcrf4xx
 from pymavlink.dialects.v20 import ardupilotmega as dialect
-from pymavlink.generator.mavcrc import x25crc
 
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.counters import NonceCounter
@@ -71,7 +72,7 @@ def mav_time(clock: Clock) -> int:
     return int((clock.wall() - MAV_EPOCH) * UNITS_PER_S)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class Frame:
     """One parsed MAVLink v2 frame."""
 
@@ -172,12 +173,9 @@ def _parse_v1(raw: bytes) -> Frame:
         raise InvalidFrameError("MAVLink v1 frame length does not match its header")
     sysid, compid, msgid = raw[3], raw[4], raw[5]
     payload = raw[HEADER_V1:-2]
-    spec = dialect.mavlink_map.get(msgid)
-    if spec is not None:
-        crc = x25crc(raw[1:-2])
-        crc.accumulate(bytes([spec.crc_extra]))
-        if crc.crc != int.from_bytes(raw[-2:], "little"):
-            raise InvalidFrameError("CRC mismatch")
+    extra = _CRC_EXTRA.get(msgid)
+    if extra is not None and _crc(raw, len(raw) - 2, extra) != int.from_bytes(raw[-2:], "little"):
+        raise InvalidFrameError("CRC mismatch")
     return Frame(raw, sysid, compid, msgid, payload, False, version=1)
 
 
@@ -195,12 +193,10 @@ def parse_frame(raw: bytes) -> Frame:
         raise InvalidFrameError("frame length does not match its header")
     msgid = lo | hi << 16
     payload = raw[HEADER : HEADER + length]
-    spec = dialect.mavlink_map.get(msgid)
-    if spec is not None:
-        crc = x25crc(raw[1 : HEADER + length])
-        crc.accumulate(bytes([spec.crc_extra]))
-        if crc.crc != int.from_bytes(raw[HEADER + length : HEADER + length + 2], "little"):
-            raise InvalidFrameError("CRC mismatch")
+    end = HEADER + length
+    extra = _CRC_EXTRA.get(msgid)
+    if extra is not None and _crc(raw, end, extra) != int.from_bytes(raw[end : end + 2], "little"):
+        raise InvalidFrameError("CRC mismatch")
     if not signed:
         return Frame(raw, sysid, compid, msgid, payload, False)
     trailer = raw[-SIG_LEN:]
@@ -211,15 +207,36 @@ def parse_frame(raw: bytes) -> Frame:
 def target(frame: Frame) -> tuple[int | None, int | None]:
     """The frame's ``target_system`` and ``target_component`` fields, where its message
     (known to the dialect) has them; None where it has not (a broadcast)."""
-    spec = dialect.mavlink_map.get(frame.msgid)
+    layout = _target_layout(frame.msgid)
+    if layout is None:
+        return None, None
+    unpacker, system, component = layout
+    size = unpacker.size
+    payload = frame.payload[:size].ljust(size, b"\0")  # v2 trims trailing zero bytes
+    values = unpacker.unpack(payload)
+    return int(values[system]), None if component is None else values[component]
+
+
+#: Each known message's ``crc_extra``: the byte a frame's CRC ends with.
+_CRC_EXTRA: dict[int, int] = {m: spec.crc_extra for m, spec in dialect.mavlink_map.items()}
+
+
+def _crc(raw: bytes, end: int, extra: int) -> int:
+    """CRC-16/MCRF4XX (MAVLink's X.25) of ``raw[1:end]`` and ``extra``, as pymavlink's
+    ``x25crc`` computes it, in one call of its own native dependency."""
+    return mcrf4xx(bytes((extra,)), mcrf4xx(raw[1:end], 0xFFFF))
+
+
+@cache
+def _target_layout(msgid: int) -> tuple[struct.Struct, int, int | None] | None:
+    """Where message ``msgid``'s target fields are in its unpacked payload (None: it has no
+    ``target_system``, or the dialect does not know it); read once per message id."""
+    spec = dialect.mavlink_map.get(msgid)
     names = () if spec is None else spec.ordered_fieldnames
     if "target_system" not in names:
-        return None, None
-    size = spec.unpacker.size
-    payload = frame.payload[:size].ljust(size, b"\0")  # v2 trims trailing zero bytes
-    values = spec.unpacker.unpack(payload)
-    component = values[names.index("target_component")] if "target_component" in names else None
-    return int(values[names.index("target_system")]), component
+        return None
+    component = names.index("target_component") if "target_component" in names else None
+    return spec.unpacker, names.index("target_system"), component
 
 
 def target_system(frame: Frame) -> int | None:
@@ -282,9 +299,6 @@ def sign_frame(
     head = bytearray(parsed.raw[:HEADER])
     head[2] |= SIGNED
     body = bytes(head) + parsed.payload
-    crc = x25crc(body[1:])
-    crc.accumulate(bytes([spec.crc_extra]))
-    checksum: int = crc.crc
-    signed = body + checksum.to_bytes(2, "little")
+    signed = body + _crc(body, len(body), spec.crc_extra).to_bytes(2, "little")
     signed += bytes([link_id]) + timestamps.next().to_bytes(6, "little")
     return signed + hashlib.sha256(key + signed).digest()[:6]

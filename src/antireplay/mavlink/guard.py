@@ -67,7 +67,7 @@ _GENERATION = 2**42  # lease value = generation * 2**42 + expiry (ms): 139 years
 _AHEAD_STEP = UNITS_PER_S // 10  # the persisted ahead margin grows by 0.1 s steps
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, slots=True)
 class MavVerdict:
     """An accepted frame."""
 

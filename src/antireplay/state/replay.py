@@ -198,17 +198,18 @@ class ReplayCache:
         safety_event: str | None = None,
     ) -> Verdict | ReplayAttackError:
         """:meth:`commit` with a refusal returned, not raised."""
-        begun = self._begin(msg_id, timestamp, msg_type, safety_event)
-        if isinstance(begun, ReplayAttackError):
-            return begun
-        plan, now = begun
-        seen: Seen | StateUnavailableError
+        now = self.clock.wall()
+        plan = self._plan(msg_id, timestamp, msg_type, safety_event, now)
+        if isinstance(plan, ReplayAttackError):
+            return plan
         memory = self._memory
+        if memory is not None:  # process memory: no outage, no index, a native call
+            return self._decided(
+                plan, now, memory.commit(plan.msg_id, plan.expires_at, now, plan.estop)
+            )
+        seen: Seen | StateUnavailableError
         try:
-            if memory is not None:
-                seen = memory.commit(plan.msg_id, plan.expires_at, now, plan.estop)
-            else:
-                seen = self.store.commit(plan.msg_id, plan.expires_at, now, plan.estop)
+            seen = self.store.commit(plan.msg_id, plan.expires_at, now, plan.estop)
         except StateUnavailableError as exc:
             seen = exc
         return self._finish(plan, now, seen)
@@ -245,10 +246,8 @@ class ReplayCache:
         :meth:`finish_commit`), refusing what the known fence or watermark already refuses
         *before* recording it: a refused message must not spend its msg_id.  :meth:`commit`
         and :meth:`commit_async` perform the store's commit between the halves."""
-        begun = self._begin(msg_id, timestamp, msg_type, safety_event)
-        if isinstance(begun, ReplayAttackError):
-            raise begun
-        return begun
+        now = self.clock.wall()
+        return _raised(self._plan(msg_id, timestamp, msg_type, safety_event, now)), now
 
     def finish_commit(
         self, plan: Verdict, now: float, seen: Seen | StateUnavailableError
@@ -257,10 +256,10 @@ class ReplayCache:
         error it raised."""
         return _raised(self._finish(plan, now, seen))
 
-    def _begin(
-        self, msg_id: object, timestamp: object, msg_type: int, safety_event: str | None
-    ) -> tuple[Verdict, float] | ReplayAttackError:
-        now = self.clock.wall()
+    def _plan(
+        self, msg_id: object, timestamp: object, msg_type: int, safety_event: str | None, now: float
+    ) -> Verdict | ReplayAttackError:
+        """The plan, refused already where the known fence or watermark refuses it."""
         policy = self.policy
         try:
             plan = policy.plan_or_refusal(msg_id, timestamp, msg_type, safety_event, now)
@@ -277,7 +276,7 @@ class ReplayCache:
         known = policy.decide(plan, NEVER, watermark, fence, False, False, now)
         if isinstance(known, ReplayAttackError):
             return self._refused(known)
-        return plan, now
+        return plan
 
     def _finish(
         self, plan: Verdict, now: float, seen: Seen | StateUnavailableError
