@@ -17,7 +17,7 @@ rcan evicts the oldest):
   the new id, insert it, delete the evicted one); at 1,000,000 entries these miss the
   CPU caches, and that growth is the hardware's, common to any dict-based cache.
 * **refusals** (10,000 entries): a duplicate of an id in the full table, through
-  ``ReplayCache.try_commit`` (the refusal returned as a value, as rcan returns one) and
+  ``ReplayCache.try_commit`` (a ``Refusal`` value returned, as rcan returns one) and
   ``ReplayCache.commit`` (which raises ``ReplayDetectedError``, caught here), beside
   rcan's ``check_and_record`` (a ``(False, reason)`` value; its ``logger.warning`` is
   silenced, as our refusal logs nothing either).
@@ -51,6 +51,7 @@ from typing import cast
 
 from antireplay import WINDOW_BUILD, ReplayCache
 from antireplay.core.errors import ReplayAttackError
+from antireplay.core.window import Refusal
 from benchmarks import legacy_window
 from benchmarks._timing import Batch, interleaved_ns_per_op
 
@@ -230,7 +231,7 @@ def memory_refusals(work: Workload, size: int, batch: int, *, raising: bool) -> 
     def run(_: int) -> None:
         try_commit = cache.try_commit
         for mid, ts in dupes:
-            if not isinstance(try_commit(mid, ts), ReplayAttackError):
+            if not isinstance(try_commit(mid, ts), Refusal):
                 raise AssertionError("a replay was accepted")
 
     return run_raising if raising else run

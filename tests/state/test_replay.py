@@ -15,7 +15,7 @@ from antireplay.core.errors import (
     StateUnavailableError,
 )
 from antireplay.core.messages import MessageType
-from antireplay.core.window import Seen
+from antireplay.core.window import Refusal, Seen
 from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
 
@@ -49,9 +49,12 @@ def test_try_commit_returns_the_refusal_and_commit_raises_it() -> None:
     clock.step_wall(NOW - STARTED)
     assert cache.try_commit("a", NOW - 1).msg_id == "a"  # type: ignore[union-attr]
     refused = cache.try_commit("a", NOW - 1)
-    assert isinstance(refused, ReplayDetectedError)
-    assert isinstance(cache.try_commit("old", NOW - 60), MessageStaleError)
-    assert isinstance(cache.try_check("a", NOW - 1), ReplayDetectedError)
+    assert isinstance(refused, Refusal) and refused.kind is ReplayDetectedError
+    assert isinstance(refused.error(), ReplayDetectedError)
+    stale = cache.try_commit("old", NOW - 60)
+    assert isinstance(stale, Refusal) and stale.kind is MessageStaleError
+    checked = cache.try_check("a", NOW - 1)
+    assert isinstance(checked, Refusal) and checked.code == "REPLAY_DETECTED"
     with pytest.raises(ReplayDetectedError):
         cache.commit("a", NOW - 1)
     assert cache.refusals["REPLAY_DETECTED"] == 3
@@ -108,7 +111,9 @@ def test_check_on_an_unreachable_store_fails_closed_except_estop(
     cache.commit("b", NOW - 1)  # evicts "a" from the index
     sqlite_store.down = True
     refused = cache.try_check("a", NOW - 10)
-    assert isinstance(refused, StateUnavailableError)
+    assert isinstance(refused, Refusal) and refused.kind is StateUnavailableError
+    with pytest.raises(StateUnavailableError, match="took the store down"):
+        cache.check("a", NOW - 10)
     estop = cache.check("a", NOW - 5, MessageType.SAFETY, "ESTOP")
     assert estop.warning == "STATE_UNAVAILABLE"
 

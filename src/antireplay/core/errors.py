@@ -165,34 +165,11 @@ class ReplayAttackError(AntiReplayError):
     """A message was rejected; carries the code, HTTP status and a short reason."""
 
     code: Code = Code.INVALID_ENVELOPE
-    #: The machine detail (``"watermark"``...), ``None`` unless one was given.
-    detail: str | None = None
-    #: What a refusal is counted under (``detail``, else the code as a plain ``str``: an
-    #: enum member hashes through a Python method); set per class below.
-    count_key: str = Code.INVALID_ENVELOPE.value
 
     def __init__(self, reason: str, *, detail: str | None = None) -> None:
         super().__init__(reason)
-        if detail is not None:
-            self.detail = self.count_key = detail
-
-    def __init_subclass__(cls) -> None:
-        super().__init_subclass__()
-        cls.count_key = str.__str__(cls.code)
-
-    @classmethod
-    def refusal(cls, reason: str, detail: str | None = None) -> ReplayAttackError:
-        """The error built without running ``__init__`` (a C-level construction: the form
-        the window's hot path returns as a value); the same object in every respect."""
-        made = cls.__new__(cls, reason)
-        if detail is not None:
-            made.detail = made.count_key = detail
-        return made
-
-    @property
-    def reason(self) -> str:
-        """The short human reason (the first argument)."""
-        return str(self.args[0]) if self.args else ""
+        self.reason = reason
+        self.detail = detail
 
     def __str__(self) -> str:
         return f"{self.code}: {self.reason}"

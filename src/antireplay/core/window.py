@@ -6,11 +6,12 @@ Rule 1: everything that decides whether an RCAN message is fresh and unique live
 in this file, in :class:`Window`.  The policy takes values (the message's msg_id,
 timestamp and type, the receiver's ``now``, and the :class:`Seen` state a store
 read or wrote atomically for that msg_id) and returns a :class:`Verdict` or
-a typed error (raised by :meth:`Window.plan` and :meth:`Window.judge`, returned
-unraised by :meth:`Window.plan_or_refusal` and :meth:`Window.decide`, the hot
-path's form: a refusal is an answer, and raising it through compiled frames
-costs more than the whole admission).  It never reads a clock, sleeps, locks or does I/O; the
-one atomic store operation is performed by the caller
+a typed error (raised by :meth:`Window.plan` and :meth:`Window.judge`; returned
+as a :class:`Refusal` value by :meth:`Window.plan_or_refusal` and
+:meth:`Window.decide`, the hot path's form: a refusal is an answer, and building
+and raising an exception through compiled frames costs more than an admission).
+It never reads a clock, sleeps, locks or does I/O; the one atomic store
+operation is performed by the caller
 (:class:`~antireplay.state.replay.ReplayCache`, the pipeline), between
 :meth:`Window.plan` and :meth:`Window.judge`.
 
@@ -194,6 +195,57 @@ class Verdict:
         )
 
 
+@final
+class Refusal:
+    """A refusal as a value: the error's class, reason and detail (the hot path's answer,
+    never raised itself: :meth:`error` builds the exception a raising caller raises).
+
+    A plain value rather than the exception: building an exception costs more than a whole
+    admission, and the refusals every replay meets are preallocated once.
+    """
+
+    __slots__ = ("count_key", "detail", "kind", "reason")
+
+    def __init__(
+        self, kind: type[ReplayAttackError], reason: str, detail: str | None = None
+    ) -> None:
+        self.kind: Final = kind
+        self.reason: Final = reason
+        self.detail: Final = detail
+        #: What a refusal is counted under: the detail, else the code (a plain ``str``).
+        self.count_key: Final[str] = detail if detail is not None else str(kind.code)
+
+    @staticmethod
+    def of(exc: ReplayAttackError) -> Refusal:
+        """The refusal an error raised elsewhere (a malformed message, a store outage) is."""
+        return Refusal(type(exc), exc.reason, exc.detail)
+
+    @property
+    def code(self) -> str:
+        return str(self.kind.code)
+
+    def error(self) -> ReplayAttackError:
+        """The exception to raise for this refusal (a new one each time)."""
+        return self.kind(self.reason, detail=self.detail)
+
+    def __repr__(self) -> str:
+        return f"Refusal({self.kind.__name__}, {self.reason!r}, detail={self.detail!r})"
+
+
+_FENCED: Final = Refusal(
+    MessageStaleError, "message may predate a loss or restart of the replay state", "restart_fence"
+)
+_UNDER_WATERMARK: Final = Refusal(
+    MessageStaleError, "message is older than the replay state's low watermark", "watermark"
+)
+_SATURATED: Final = Refusal(
+    MessageStaleError,
+    "replay state saturated; message expires before every live entry",
+    "saturated",
+)
+_REPLAYED: Final = Refusal(ReplayDetectedError, "msg_id already accepted within its window")
+
+
 def coerce_timestamp(value: object) -> float:
     """Validate a timestamp and return it as float seconds, or raise ``INVALID_TIMESTAMP``."""
     if isinstance(value, bool) or value is None:
@@ -269,13 +321,13 @@ class Window:
     ) -> Verdict:
         """Shape, staleness and future checks; the expiry a commit would record."""
         planned = self.plan_or_refusal(mid, ts, msg_type, event, now)
-        if isinstance(planned, ReplayAttackError):
-            raise planned
+        if isinstance(planned, Refusal):
+            raise planned.error()
         return planned
 
     def plan_or_refusal(
         self, mid: object, ts: object, msg_type: int, event: str | None, now: float
-    ) -> Verdict | ReplayAttackError:
+    ) -> Verdict | Refusal:
         """:meth:`plan` with a stale or future message's refusal returned, not raised (a
         malformed msg_id or timestamp still raises: a hostile shape, never the hot path)."""
         if type(mid) is not str or not 0 < len(mid) <= MAX_MSG_ID_LEN:
@@ -286,12 +338,13 @@ class Window:
         safety = msg_type == _SAFETY
         window = self.safety_window_s if safety else self.window_s
         if now - t > window:
-            return MessageStaleError.refusal(
-                f"message is {now - t:.3f}s old; window is {window:g}s"
+            return Refusal(
+                MessageStaleError, f"message is {now - t:.3f}s old; window is {window:g}s"
             )
         if t > now + self.skew_s:
-            return MessageFromFutureError.refusal(
-                f"message is {t - now:.3f}s ahead; allowed skew is {self.skew_s:g}s"
+            return Refusal(
+                MessageFromFutureError,
+                f"message is {t - now:.3f}s ahead; allowed skew is {self.skew_s:g}s",
             )
         return Verdict(mid, t, window, t + window, None, safety and event == _ESTOP)
 
@@ -300,8 +353,8 @@ class Window:
         verdict = self.decide(
             plan, seen.expiry, seen.watermark, seen.fence, seen.recorded, seen.full, now
         )
-        if isinstance(verdict, ReplayAttackError):
-            raise verdict
+        if isinstance(verdict, Refusal):
+            raise verdict.error()
         return verdict
 
     def decide(  # noqa: PLR0917 - the fields of a Seen, unboxed on the hot path
@@ -313,7 +366,7 @@ class Window:
         recorded: bool,
         full: bool,
         now: float,
-    ) -> Verdict | ReplayAttackError:
+    ) -> Verdict | Refusal:
         """:meth:`judge` on the fields of a :class:`Seen`, the refusal returned as a value
         (unraised): a refusal is an answer, not an exceptional path, and a caller that
         checks before recording passes its known ``watermark`` and ``fence`` without
@@ -322,23 +375,17 @@ class Window:
         warning: str | None = None
         if plan.timestamp <= fence + self.skew_s:
             if not estop:
-                return MessageStaleError.refusal(
-                    "message may predate a loss or restart of the replay state", "restart_fence"
-                )
+                return _FENCED
             warning = _REPLAY
         if plan.expires_at <= watermark:
             if not estop:
-                return MessageStaleError.refusal(
-                    "message is older than the replay state's low watermark", "watermark"
-                )
+                return _UNDER_WATERMARK
             warning = _REPLAY
         if full and not estop:
-            return MessageStaleError.refusal(
-                "replay state saturated; message expires before every live entry", "saturated"
-            )
+            return _SATURATED
         if expiry >= now and not recorded:
             if not estop:
-                return ReplayDetectedError.refusal("msg_id already accepted within its window")
+                return _REPLAYED
             warning = _REPLAY
         if warning is None:
             return plan

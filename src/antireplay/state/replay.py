@@ -19,8 +19,9 @@ embedder uses directly:
   admitted.  :meth:`ReplayCache.commit_async` is the same two halves around the
   store's ``commit_async``, for an event loop.
 * ``try_check`` and ``try_commit`` are the same with a refusal *returned* (a
-  :class:`~antireplay.core.errors.ReplayAttackError`, unraised): a refusal is an
-  answer, and raising it through compiled frames costs more than an admission.
+  :class:`~antireplay.core.window.Refusal` value; ``error()`` builds its exception):
+  a refusal is an answer, and building and raising an exception costs more than an
+  admission.
 
 **The index** (a store other than process memory).  ``check`` must not cost a
 store read for every fresh command, so the cache keeps a bounded in-memory index
@@ -64,7 +65,7 @@ from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import ConfigError, ReplayAttackError, StateUnavailableError
 from antireplay.core.messages import MessageType
 from antireplay.core.settings import ALLOWED, SecurityConfig
-from antireplay.core.window import NEVER, Seen, Verdict, Window, estop_survives
+from antireplay.core.window import NEVER, Refusal, Seen, Verdict, Window, estop_survives
 from antireplay.state import Offload, ReplayStore
 from antireplay.state.memory import MemoryStore
 
@@ -147,14 +148,14 @@ class ReplayCache:
         timestamp: object,
         msg_type: int = MessageType.COMMAND,
         safety_event: str | None = None,
-    ) -> Verdict | ReplayAttackError:
+    ) -> Verdict | Refusal:
         """:meth:`check` with a refusal returned, not raised."""
         now = self.clock.wall()
         try:
             plan = self.policy.plan_or_refusal(msg_id, timestamp, msg_type, safety_event, now)
-        except ReplayAttackError as exc:
-            return self._refused(exc)
-        if isinstance(plan, ReplayAttackError):
+        except ReplayAttackError as exc:  # a malformed msg_id or timestamp
+            return self._refused(Refusal.of(exc))
+        if isinstance(plan, Refusal):
             return self._refused(plan)
         seen: Seen | StateUnavailableError
         memory, index = self._memory, self._index
@@ -196,11 +197,11 @@ class ReplayCache:
         timestamp: object,
         msg_type: int = MessageType.COMMAND,
         safety_event: str | None = None,
-    ) -> Verdict | ReplayAttackError:
+    ) -> Verdict | Refusal:
         """:meth:`commit` with a refusal returned, not raised."""
         now = self.clock.wall()
         plan = self._plan(msg_id, timestamp, msg_type, safety_event, now)
-        if isinstance(plan, ReplayAttackError):
+        if isinstance(plan, Refusal):
             return plan
         memory = self._memory
         if memory is not None:  # process memory: no outage, no index, a native call
@@ -258,14 +259,14 @@ class ReplayCache:
 
     def _plan(
         self, msg_id: object, timestamp: object, msg_type: int, safety_event: str | None, now: float
-    ) -> Verdict | ReplayAttackError:
+    ) -> Verdict | Refusal:
         """The plan, refused already where the known fence or watermark refuses it."""
         policy = self.policy
         try:
             plan = policy.plan_or_refusal(msg_id, timestamp, msg_type, safety_event, now)
-        except ReplayAttackError as exc:
-            return self._refused(exc)
-        if isinstance(plan, ReplayAttackError):
+        except ReplayAttackError as exc:  # a malformed msg_id or timestamp
+            return self._refused(Refusal.of(exc))
+        if isinstance(plan, Refusal):
             return self._refused(plan)
         memory = self._memory
         if memory is not None:
@@ -274,13 +275,13 @@ class ReplayCache:
             store = self.store
             watermark, fence = store.watermark(), store.fence()
         known = policy.decide(plan, NEVER, watermark, fence, False, False, now)
-        if isinstance(known, ReplayAttackError):
+        if isinstance(known, Refusal):
             return self._refused(known)
         return plan
 
     def _finish(
         self, plan: Verdict, now: float, seen: Seen | StateUnavailableError
-    ) -> Verdict | ReplayAttackError:
+    ) -> Verdict | Refusal:
         index = self._index
         if index is not None and isinstance(seen, Seen):
             # Persist, then believe: the store's commit returned, so its entry stands.
@@ -293,11 +294,11 @@ class ReplayCache:
 
     def _decided(
         self, plan: Verdict, now: float, seen: Seen | StateUnavailableError
-    ) -> Verdict | ReplayAttackError:
+    ) -> Verdict | Refusal:
         if isinstance(seen, StateUnavailableError):
             warning = estop_survives(plan.estop, plan.warning, _STATE_UNAVAILABLE)
             if warning is None:
-                return self._refused(seen)
+                return self._refused(Refusal.of(seen))
             return Verdict(
                 plan.msg_id, plan.timestamp, plan.window_s, plan.expires_at, warning, True
             )
@@ -308,17 +309,17 @@ class ReplayCache:
         verdict = self.policy.decide(
             plan, seen.expiry, seen.watermark, seen.fence, seen.recorded, seen.full, now
         )
-        if isinstance(verdict, ReplayAttackError):
+        if isinstance(verdict, Refusal):
             return self._refused(verdict)
         return verdict
 
-    def _refused(self, exc: ReplayAttackError) -> ReplayAttackError:
-        self.refusals[exc.count_key] += 1
-        return exc
+    def _refused(self, refusal: Refusal) -> Refusal:
+        self.refusals[refusal.count_key] += 1
+        return refusal
 
 
-def _raised(outcome: Verdict | ReplayAttackError) -> Verdict:
+def _raised(outcome: Verdict | Refusal) -> Verdict:
     """The verdict, or its refusal raised (the raising API over the ``try_`` forms)."""
-    if isinstance(outcome, ReplayAttackError):
-        raise outcome
+    if isinstance(outcome, Refusal):
+        raise outcome.error()
     return outcome
