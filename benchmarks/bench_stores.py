@@ -10,7 +10,9 @@ commit) on the store its config names, opened by ``open_store`` as the gateway o
   WAL's and the witness's, which is how a lost or rolled-back file is detected);
 * ``redis://`` on a real redis-server, beside a **bare redis-py** ``SET key 1 NX PX``
   on the same server (our commit is one script call: identity check, duplicate test,
-  record);
+  record); and ``commit_async`` with ``IN_FLIGHT`` commits awaited at once on one event
+  loop, as the gateway's requests arrive: the store's group committer records each
+  batch of them in one script call;
 * ``memory`` (no baseline client; see ``bench_window`` for its baseline);
 * the same SQLite commit with a **state anchor** (:mod:`antireplay.state.anchor`) written
   in every commit (a file: one more 64-byte ``pwrite`` + ``fdatasync``; a Redis key: one
@@ -24,6 +26,7 @@ of every contender before batch r + 1 of any) and the figures are medians.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import sqlite3
 import tempfile
@@ -46,6 +49,8 @@ LIVE = 10_000
 REPEATS = 11
 #: Operations per timed batch: a synced SQLite commit costs milliseconds, Redis ~0.1 ms.
 BATCH = {"sqlite": 40, "redis": 1_000, "memory": 20_000}
+#: Commits awaited at once in the async Redis row (the gateway benchmark's connections).
+IN_FLIGHT = 32
 #: The memory store's bound: room for every timed commit (``bench_window`` times a full one).
 CAPACITY = LIVE + BATCH["memory"] * REPEATS + 10
 
@@ -112,6 +117,21 @@ def ours(cache: ReplayCache, stamps: Stamps, prefix: str, batch: int) -> Batch:
     return run
 
 
+def ours_async(cache: ReplayCache, stamps: Stamps, prefix: str, batch: int) -> Batch:
+    """``commit_async`` with ``IN_FLIGHT`` commits in flight at once on one event loop."""
+    commit, stamp = cache.commit_async, stamps.stamp
+
+    async def flight(r: int) -> None:
+        for lo in range(0, batch, IN_FLIGHT):
+            ids = range(lo, min(lo + IN_FLIGHT, batch))
+            await asyncio.gather(*(commit(f"{prefix}-{r}-{i}", stamp()) for i in ids))
+
+    def run(r: int) -> None:
+        asyncio.run(flight(r))
+
+    return run
+
+
 def bare_redis(url: str, batch: int) -> Batch:
     client = redis.Redis.from_url(url)
     client.set("raw-warm-up", "1", nx=True, px=300_000)  # connect outside the timing
@@ -161,6 +181,7 @@ def main() -> None:
                 "anchor-redis": anchored("ar", server.url),
                 "anchor-lazy": anchored("al", every_s=0.5),
                 "redis": stamps.open(server.url),
+                "redis-async": stamps.open(server.url),
                 "memory": stamps.open("memory"),
             }
             stamps.start()
@@ -174,10 +195,12 @@ def main() -> None:
                 ),
                 (bare_sqlite(Path(tmp) / "bare.db", BATCH["sqlite"]), BATCH["sqlite"]),
                 (ours(caches["redis"], stamps, "rd", BATCH["redis"]), BATCH["redis"]),
+                (ours_async(caches["redis-async"], stamps, "ra", BATCH["redis"]), BATCH["redis"]),
                 (bare_redis(server.url, BATCH["redis"]), BATCH["redis"]),
                 (ours(caches["memory"], stamps, "mm", BATCH["memory"]), BATCH["memory"]),
             ]
-            sq, af, ar, al, sq_bare, rd, rd_bare, mem = interleaved_ns_per_op(contenders, REPEATS)
+            measured = interleaved_ns_per_op(contenders, REPEATS)
+            sq, af, ar, al, sq_bare, rd, rd_async, rd_bare, mem = measured
             for cache in caches.values():
                 assert cache.refusals.total() == 0, cache.refusals
                 cache.store.close()
@@ -190,7 +213,8 @@ def main() -> None:
         ("sqlite + anchor Redis key, every commit", ar),
         ("sqlite + anchor file, lazy (every_s=0.5)", al),
         ("sqlite: bare insert, WAL, sync=FULL (baseline)", sq_bare),
-        ("redis: ReplayCache.commit (gateway path)", rd),
+        ("redis: ReplayCache.commit (a thread's path)", rd),
+        (f"redis: ReplayCache.commit_async, {IN_FLIGHT} in flight", rd_async),
         ("redis: bare redis-py SET NX PX (baseline)", rd_bare),
         ("memory: ReplayCache.commit (gateway path)", mem),
     ]
@@ -199,7 +223,8 @@ def main() -> None:
     print(f"sqlite: gateway path / bare insert: {sq / sq_bare:.2f}x")
     for name, ns in (("file", af), ("Redis key", ar), ("file, lazy", al)):
         print(f"sqlite: with anchor ({name}) / without: {ns / sq:.2f}x")
-    print(f"redis:  gateway path / bare SET NX PX: {rd / rd_bare:.2f}x")
+    print(f"redis:  one commit / bare SET NX PX: {rd / rd_bare:.2f}x")
+    print(f"redis:  commit_async, {IN_FLIGHT} in flight / one commit: {rd_async / rd:.2f}x")
 
 
 if __name__ == "__main__":
