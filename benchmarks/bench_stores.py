@@ -104,7 +104,7 @@ def fill(name: str, cache: ReplayCache, stamps: Stamps) -> None:
         db.executemany("INSERT INTO seen VALUES (?, ?)", [(k, expiry) for k in keys])
         db.execute("COMMIT")
         db.close()
-    cache.commit("warm-up", stamps.stamp())
+    cache.commit(f"warm-up-{name}", stamps.stamp())
 
 
 def ours(cache: ReplayCache, stamps: Stamps, prefix: str, batch: int) -> Batch:
