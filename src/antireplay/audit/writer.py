@@ -4,6 +4,9 @@ See :mod:`antireplay.audit` for the theory of operation and :mod:`.segments` for
 the trail rotates and what retention removes.  Each batch is one transaction in
 :meth:`AuditLog._write_batch`; rotation and retention run after it, under the same lock,
 and never fail the batch (its rows are durable: a failed rotation is retried next batch).
+Rows waiting in the ESTOP spill (:mod:`.spill`) are merged first in each batch.
+
+Size: the writer, the spill merge, rotation and retention share one lock and one batch.
 """
 
 from __future__ import annotations
