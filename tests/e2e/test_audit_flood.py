@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -39,6 +40,8 @@ SEGMENT = 64 * 1024
 BUDGET = 4 * SEGMENT
 #: What one group-committed batch may add past the budget before retention runs.
 BATCH = 16 * 1024
+#: The trail's files on disk: live and rotated segments, the WAL, a rotation's next segment.
+_TRAIL = re.compile(r"audit\.db(\.[0-9]{6,}|-wal|\.next)?")
 
 
 @pytest.fixture
@@ -74,11 +77,7 @@ def _on_disk(fs: SmallFs) -> int:
     rotation's next segment, each file once (a rotation hard-links the live one)."""
     files = {}
     for found in fs.host().glob("audit.db*"):
-        if (
-            found.name == "audit.db"
-            or found.name[len("audit.db") :].lstrip(".").isdigit()
-            or (found.name in {"audit.db-wal", "audit.db.next"})
-        ):
+        if _TRAIL.fullmatch(found.name):
             try:
                 st = found.stat()
             except FileNotFoundError:  # removed by retention since the listing
