@@ -1,8 +1,8 @@
 """The audit trail under a replay flood: rows and bytes per second, this tree beside an old one.
 
-Run: ``python -m benchmarks audit_flood`` (options ``--seconds=N``, default 20, and
-``--before=REV``, default :data:`BEFORE`; or ``python -m benchmarks.bench_audit_flood
---seconds 600``: the soak).  Needs ``wrk``.
+Run: ``python -m benchmarks audit_flood`` (options ``--seconds=N``, default 20,
+``--before=REV``, default :data:`BEFORE`, and ``--max-bytes=N``; or ``python -m
+benchmarks.bench_audit_flood --seconds 600 --max-bytes 262144``: the soak).  Needs ``wrk``.
 
 What is measured, and why this way:
 
@@ -18,8 +18,11 @@ What is measured, and why this way:
   :data:`BEFORE_MAX_S` (rows/s and bytes/s are rates), both durations printed.
 * The trail's bytes on disk (segments and WAL, ``du``) are sampled every
   :data:`SAMPLE_S` seconds during the flood, and the peak printed beside the budget.
+  ``--max-bytes=N`` runs this tree on the embedded default with ``audit.max_bytes`` N and
+  segments of a quarter of it (at least 64 KiB), so a soak sees it rotate and retain.
 * Rows and bytes are read after a graceful stop (the summaries of the last interval are
-  written then, the WAL checkpointed): rows/s and bytes/s are the growth over the flood;
+  written then, the WAL checkpointed): rows/s and bytes/s are the growth over the flood (rows
+  by row number; bytes by pages, or rows times bytes per row kept once retention removed some);
   then ``antireplay audit verify`` (each tree's own) checks the chain, its verdict printed.
   RSS is the server's resident memory at the flood's end.  The two trees run one after the
   other in the same process, so a noisy neighbour hits both about alike.
@@ -41,9 +44,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
+import yaml
 from tests.harness import free_port
 
 from antireplay.config import AuditConfig
+from antireplay.wiring import embedded_default
 from benchmarks.bench_gateway import WRK_SCRIPT, envelope, signer, stop, wait_healthy, wrk
 from benchmarks.bench_gateway import write_lines as write
 
@@ -108,18 +113,37 @@ def on_disk(state: Path) -> int:
     return total
 
 
-def trail_rows(state: Path) -> tuple[int, int]:
-    """The trail's rows and bytes over every segment (pages, the WAL's included)."""
-    rows = size = 0
+@dataclass(frozen=True)
+class Trail:
+    """The trail now: its last row's number, and the rows and bytes (pages) kept."""
+
+    last: int
+    rows: int
+    size: int
+
+
+def trail(state: Path) -> Trail:
+    """Read every segment kept (the live one, ``audit.db``, holds the last row)."""
+    last = rows = size = 0
     for segment in segment_files(state):
         db = sqlite3.connect(f"file:{segment}?mode=ro", uri=True)
         try:
-            rows += int(db.execute("SELECT count(*) FROM audit").fetchone()[0])
+            count, top = db.execute("SELECT count(*), coalesce(max(seq), 0) FROM audit").fetchone()
+            rows, last = rows + int(count), max(last, int(top))
             pages = int(db.execute("PRAGMA page_count").fetchone()[0])
             size += pages * int(db.execute("PRAGMA page_size").fetchone()[0])
         finally:
             db.close()
-    return rows, size
+    return Trail(last, rows, size)
+
+
+def written(start: Trail, end: Trail) -> tuple[int, int]:
+    """Rows and bytes the flood wrote: row numbers run on across segments, so rows are exact;
+    bytes are the growth, or, once retention removed rows, rows times bytes per row kept."""
+    rows = end.last - start.last
+    if end.rows == start.rows + rows:  # nothing removed
+        return rows, end.size - start.size
+    return rows, rows * end.size // max(end.rows, 1)
 
 
 def rss_mb(pid: int) -> float:
@@ -155,12 +179,32 @@ def verdict(src: Path, state: Path) -> str:
     return f"exit {done.returncode}: {'; '.join(said)}"
 
 
-def flood(tree: str, src: Path, work: Path, seconds: int) -> Flood:
+def budget(max_bytes: int | None, state: Path) -> AuditConfig:
+    """The ``audit:`` block this tree runs with: the defaults, or ``max_bytes`` in four."""
+    if max_bytes is None:
+        return AuditConfig(path=str(state / "audit.db"))
+    segment = max(64 * 1024, max_bytes // 4)
+    return AuditConfig(path=str(state / "audit.db"), segment_bytes=segment, max_bytes=max_bytes)
+
+
+def configured(state: Path, audit: AuditConfig) -> list[str]:
+    """``--config`` for the embedded default under ``state`` with ``audit`` as its trail."""
+    config = embedded_default(state).model_dump(mode="json", exclude_defaults=True)
+    config["audit"] = audit.model_dump(mode="json")
+    path = state / "antireplay.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return ["--config", str(path)]
+
+
+def flood(
+    tree: str, src: Path, work: Path, seconds: int, audit: AuditConfig | None = None
+) -> Flood:
     """Accept one command, then replay it beside aged ones with wrk for ``seconds``."""
     state, port = work / f"{tree}-state", free_port()
     url = f"http://127.0.0.1:{port}"
     env = {**os.environ, "PYTHONPATH": f"{src}{os.pathsep}{ROOT}"}
     args = [sys.executable, "-m", "antireplay", "serve", "--state-dir", str(state)]
+    args += [] if audit is None else configured(state, audit)
     proc = subprocess.Popen([*args, "--port", str(port)], env=env, stderr=subprocess.DEVNULL)
     try:
         wait_healthy(url, proc, "/healthz")
@@ -170,7 +214,7 @@ def flood(tree: str, src: Path, work: Path, seconds: int) -> Flood:
         aged = [envelope(key, AGED_S) for _ in range(AGED)]
         script = write(work / "flood.lua", [WRK_SCRIPT])
         bodies = write(work / "flood.txt", [line for a in aged for line in (captured, a)])
-        rows, size = trail_rows(state)
+        start = trail(state)
         sampler = Sampler(state)
         sampler.start()
         run = wrk(url, proc.pid, script, bodies, CONNECTIONS, seconds)
@@ -180,21 +224,20 @@ def flood(tree: str, src: Path, work: Path, seconds: int) -> Flood:
         rss = rss_mb(proc.pid)
     finally:
         stop(proc)
-    rows_after, size_after = trail_rows(state)
+    rows, size = written(start, trail(state))
     return Flood(
-        tree, run.rps, rows_after - rows, size_after - size, rss, seconds,
+        tree, run.rps, rows, size, rss, seconds,
         max(peak, on_disk(state)), len(segment_files(state)), verdict(src, state),
     )  # fmt: skip
 
 
-def report(floods: list[Flood]) -> None:
-    budget = AuditConfig()
+def report(floods: list[Flood], budget: AuditConfig) -> None:
     print(
         f"flood: wrk 1 thread, {CONNECTIONS} connections; one captured command replayed (409)"
         f" interleaved with {AGED} commands signed {AGED_S:.0f} s ago (408)"
     )
     print(
-        f"this tree's trail budget (audit: defaults): max_bytes {budget.max_bytes} B, "
+        f"this tree's trail budget: audit.max_bytes {budget.max_bytes} B, "
         f"segment_bytes {budget.segment_bytes} B; trail bytes on disk sampled every {SAMPLE_S} s"
     )
     print(
@@ -224,6 +267,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(prog="bench_audit_flood")
     parser.add_argument("--seconds", type=int, default=SECONDS)
     parser.add_argument("--before", default=BEFORE, help="the baseline's git revision")
+    parser.add_argument("--max-bytes", type=int, default=None, help="this tree's audit budget")
     options, _ = parser.parse_known_args(sys.argv[1:])
     if shutil.which("wrk") is None:
         raise SystemExit("wrk not found (apt-get install -y wrk)")
@@ -231,11 +275,12 @@ def main() -> None:
         work = Path(tmp)
         before = old_tree(options.before, work)
         before_s = min(options.seconds, BEFORE_MAX_S)
+        after = budget(options.max_bytes, work / "after (this tree)-state")
         floods = [
             flood(f"before ({options.before})", before / "src", work, before_s),
-            flood("after (this tree)", ROOT / "src", work, options.seconds),
+            flood("after (this tree)", ROOT / "src", work, options.seconds, after),
         ]
-    report(floods)
+    report(floods, after)
 
 
 if __name__ == "__main__":
