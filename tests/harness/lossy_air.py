@@ -44,11 +44,11 @@ class Channel:
     bps: int | None
     latency_s: float = 0.005
     busy_until: float = 0.0
-    bytes: int = 0
+    sent: int = 0
 
     def schedule(self, now: float, frame: bytes) -> float | None:
         """When ``frame`` arrives, or None: lost."""
-        self.bytes += len(frame)
+        self.sent += len(frame)
         start = max(now, self.busy_until)
         self.busy_until = start + (8 * len(frame) / self.bps if self.bps else 0.0)
         if self.rng.random() < self.loss:
@@ -104,7 +104,8 @@ class Radio:
             msg = dialect.MAVLink(_Keep()).decode(bytearray(plain))
             if msg.get_type() == "COMMAND_LONG":
                 self.delivered[msg.param1] += 1
-                ack = build(lambda m, c=msg.command: m.command_ack_send(c, 0, 0, 0, 255, 190), 1)
+                command: int = msg.command
+                ack = build(lambda m: m.command_ack_send(command, 0, 0, 0, 255, 190), 1)
                 self.send(self.down, self.vehicle.from_local(ack), self.to_ground)
 
     def to_ground(self, raw: bytes) -> None:

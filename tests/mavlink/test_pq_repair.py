@@ -50,9 +50,9 @@ def radio(loss: float, bps: int | None, seed: int) -> Radio:
 
 def commands(made: Radio, n: int = 100) -> tuple[list[float], float]:
     """Times to ACK of the delivered ones, and air bytes per delivered command."""
-    before = made.up.bytes + made.down.bytes
+    before = made.up.sent + made.down.sent
     times = [t for i in range(n) if (t := made.command(float(i))) is not None]
-    return sorted(times), (made.up.bytes + made.down.bytes - before) / max(1, len(times))
+    return sorted(times), (made.up.sent + made.down.sent - before) / max(1, len(times))
 
 
 @pytest.mark.parametrize("bps", [None, 57_600])
