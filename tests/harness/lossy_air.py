@@ -104,9 +104,12 @@ class Radio:
             msg = dialect.MAVLink(_Keep()).decode(bytearray(plain))
             if msg.get_type() == "COMMAND_LONG":
                 self.delivered[msg.param1] += 1
-                command: int = msg.command
-                ack = build(lambda m: m.command_ack_send(command, 0, 0, 0, 255, 190), 1)
+                ack = self.ack(msg.command)
                 self.send(self.down, self.vehicle.from_local(ack), self.to_ground)
+
+    @staticmethod
+    def ack(command: int) -> bytes:
+        return build(lambda m: m.command_ack_send(command, 0, 0, 0, 255, 190), 1)
 
     def to_ground(self, raw: bytes) -> None:
         try:

@@ -129,6 +129,10 @@ class _End:
         self.repairs: Counter[str] = Counter()
         self.drops: Counter[str] = Counter()
         self.handshakes: Counter[str] = Counter()
+        #: A GCS's retries (ground end), by how they were answered: ``poked`` (in flight:
+        #: a POKE, no new transfer), ``answered`` (the COMMAND_ACK already seen),
+        #: ``queued`` (already waiting for a session).
+        self.retries: Counter[str] = Counter()
 
     def _air(self, frames: list[bytes], kind: str | None = None) -> list[bytes]:
         for raw in frames:
@@ -242,13 +246,8 @@ class GroundEnd(_End):
         self._queue: deque[tuple[bytes, float]] = deque()  # commands and when they came
         self._tries: OrderedDict[tuple[int, int, int, bytes], _Try] = OrderedDict()
         self._heard = float("-inf")  # when an authenticated frame last came from the vehicle
-        #: Local messages that never left, by reason: ``NO_SESSION`` (not a command, no
-        #: session), ``QUEUE_FULL`` (the oldest queued command, pushed out by a newer one),
-        #: ``QUEUE_EXPIRED`` (a command that waited longer than ``queue_ttl_s``).
-        #: A GCS's retries, by how they were answered (:attr:`retries`): ``poked`` (in
-        #: flight: a POKE instead of a new transfer), ``answered`` (the held COMMAND_ACK),
-        #: ``queued`` (already waiting for a session).
-        self.retries: Counter[str] = Counter()
+        # drops: NO_SESSION (not a command, no session), QUEUE_FULL (the oldest queued
+        # command, pushed out by a newer one), QUEUE_EXPIRED (waited over queue_ttl_s)
 
     def _sessions_held(self) -> list[Session]:
         return [] if self.session is None else [self.session]

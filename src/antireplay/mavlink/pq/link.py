@@ -21,21 +21,28 @@ frame for a session it does not hold with the rate-limited ``PQ_STATUS`` hint.  
 change of the live session (``established``, ``rekeyed``, ``lost``: nothing
 authenticated from the other end for ``silence_s``, ``resumed``) is counted and handed
 once to ``on_session`` (authentic: always recorded).  :meth:`~PqLink.counts` is what
-the metrics export.  One lock serialises the end; writes happen outside it.
+the metrics export, airtime by kind among it.  One lock serialises the end; writes
+happen outside it.  With ``air_bps`` a :class:`Pacer` (a token bucket of bytes, a
+quarter second of burst) puts frames on the air no faster than the radio carries
+them, one-chunk frames (telemetry, ACKs, repair requests, HS2) ahead of the chunks of
+long transfers, so telemetry keeps flowing between a command's chunks; telemetry
+beyond two seconds of queue is dropped (``air:PACED_OUT``), nothing else is.
 """
 
 from __future__ import annotations
 
 import threading
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
+from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AntiReplayError, Code, ReplayAttackError
+from antireplay.core.ratelimit import TokenBucket
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.pq.chunks import PlainFrameError
-from antireplay.mavlink.pq.ends import GroundEnd, Output, VehicleEnd
+from antireplay.mavlink.pq.ends import GroundEnd, Output, VehicleEnd, air_kind
 from antireplay.mavlink.router import Refusal
 from antireplay.pq.session import Session
 
@@ -69,6 +76,46 @@ class LinkCounts:
     refused: Counter[str]  # side:CODE
     dropped: Counter[str]  # side:REASON, dropped without a refusal
     unaudited: int
+    airtime: Counter[str] = field(default_factory=Counter)  # air bytes by kind (AIR_KINDS)
+    repairs: Counter[str] = field(default_factory=Counter)  # NACKs, POKEs, resent chunks
+    retries: Counter[str] = field(default_factory=Counter)  # GCS retries, how answered
+
+
+class Pacer:
+    """Frames for the air, released no faster than ``air_bps`` (module docstring)."""
+
+    def __init__(self, air_bps: int, clock: Clock | None = None) -> None:
+        rate = air_bps / 8
+        self.bucket = TokenBucket(rate, resolve(clock), burst=rate / 4)
+        self.limit = int(2 * rate)  # bytes of telemetry queued at most
+        self.urgent: deque[tuple[bytes, Peer | None]] = deque()
+        self.bulk: deque[tuple[bytes, Peer | None]] = deque()
+        self.queued = 0
+        self.paced_out = 0
+
+    def push(self, frames: list[bytes], peer: Peer | None) -> None:
+        for raw in frames:
+            kind = air_kind(raw)
+            if kind in ("cmd", "parity") or (kind == "hs" and len(frames) > 1):
+                self.bulk.append((raw, peer))
+            elif kind == "passthrough" and self.queued > self.limit:
+                self.paced_out += 1
+                continue
+            else:
+                self.urgent.append((raw, peer))
+            self.queued += len(raw)
+
+    def pop(self) -> tuple[list[tuple[bytes, Peer | None]], float]:
+        """The frames that may go now, and the seconds until the next one may."""
+        out: list[tuple[bytes, Peer | None]] = []
+        while self.urgent or self.bulk:
+            queue = self.urgent or self.bulk
+            raw = queue[0][0]
+            if not self.bucket.take(len(raw)):
+                return out, self.bucket.wait_s(len(raw))
+            out.append(queue.popleft())
+            self.queued -= len(raw)
+        return out, 1.0
 
 
 class PqLink:
@@ -84,7 +131,9 @@ class PqLink:
         on_session: Callable[[SessionEvent], Any] | None = None,
         tap: Callable[[bytes], Any] | None = None,
         max_local_peers: int = 8,
-        tick_s: float = 0.5,
+        tick_s: float = 0.1,
+        air_bps: int | None = None,
+        clock: Clock | None = None,
     ) -> None:
         self.end, self.local, self.air = end, local, air
         self.name = "ground" if isinstance(end, GroundEnd) else "vehicle"
@@ -104,6 +153,9 @@ class PqLink:
         self._count_lock = threading.Lock()
         self._stopped = threading.Event()
         self._ticker: threading.Thread | None = None
+        self.pacer = None if air_bps is None else Pacer(air_bps, clock)
+        self._paced = threading.Condition()
+        self._pacing: threading.Thread | None = None
 
     def start(self) -> None:
         """Start both transports and the timer; a ground end sends its first handshake."""
@@ -115,11 +167,17 @@ class PqLink:
             self._to_air(frames, None)
         self._ticker = threading.Thread(target=self._tick_loop, name="pq-tick", daemon=True)
         self._ticker.start()
+        if self.pacer is not None:
+            self._pacing = threading.Thread(target=self._pace_loop, name="pq-pace", daemon=True)
+            self._pacing.start()
 
     def stop(self) -> None:
         self._stopped.set()
-        if self._ticker is not None:
-            self._ticker.join()
+        with self._paced:
+            self._paced.notify()
+        for thread in (self._ticker, self._pacing):
+            if thread is not None:
+                thread.join()
         self.local.close()
         self.air.close()
 
@@ -134,6 +192,16 @@ class PqLink:
         self._to_air(frames, self._air_peer)
         self._observe()
 
+    def _pace_loop(self) -> None:
+        assert self.pacer is not None
+        while not self._stopped.is_set():
+            with self._paced:
+                ready, wait_s = self.pacer.pop()
+                if not ready:
+                    self._paced.wait(wait_s)
+                    continue
+            self._send_air(ready)
+
     def _from_local(
         self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
     ) -> None:
@@ -146,12 +214,14 @@ class PqLink:
         for raw in frames:
             try:
                 with self._lock:
-                    air = self.end.from_local(raw)
+                    out = self.end.handle_local(raw)
             except ReplayAttackError as exc:
                 self._refuse("local", exc.code, exc.reason, raw)
                 continue
             self.forwarded["local"] += 1
-            self._to_air(air, self._air_peer)
+            for data in out.local:  # a GCS retry answered with the ACK already seen
+                self._to_local(data)
+            self._to_air(out.air, self._air_peer)
         self._observe()
 
     def _from_air(
@@ -220,8 +290,16 @@ class PqLink:
         if peer is None and not self.air.fixed:
             self._count("air:NO_PEER", len(frames))
             return
+        if self.pacer is not None:
+            with self._paced:
+                self.pacer.push(frames, peer)
+                self._paced.notify()
+            return
+        self._send_air([(data, peer) for data in frames])
+
+    def _send_air(self, frames: list[tuple[bytes, Peer | None]]) -> None:
         self._count("sent", len(frames), self.chunks)
-        for data in frames:
+        for data, peer in frames:
             if self.tap is not None:
                 self.tap(data)
             self.air_bytes += len(data)
@@ -245,6 +323,9 @@ class PqLink:
                 }
             )
             out.update({f"local:{k}": v for k, v in self.end.drops.items()})
+        if self.pacer is not None:
+            with self._paced:
+                out["air:PACED_OUT"] = self.pacer.paced_out
         with self._count_lock:
             out.update(self._dropped)
             out.update(self._refused)
@@ -256,6 +337,8 @@ class PqLink:
             handshakes = Counter(self.end.handshakes)
             reassembled = self.end.reassembly.reassembled
             up = self.end.live is not None
+            airtime, repairs = Counter(self.end.airtime), Counter(self.end.repairs)
+            retries = Counter(self.end.retries)
         dropped = self.dropped
         with self._count_lock:
             refused = Counter(self._refused)
@@ -263,7 +346,10 @@ class PqLink:
         chunks["reassembled"] = reassembled
         unaudited = dropped.pop("unaudited", 0)
         dropped.subtract(refused)
-        return LinkCounts(self.name, up, sessions, handshakes, chunks, refused, +dropped, unaudited)
+        return LinkCounts(
+            self.name, up, sessions, handshakes, chunks, refused, +dropped, unaudited,
+            airtime, repairs, retries,
+        )  # fmt: skip
 
     def _count(self, key: str, n: int = 1, counter: Counter[str] | None = None) -> None:
         with self._count_lock:
