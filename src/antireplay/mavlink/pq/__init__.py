@@ -105,7 +105,8 @@ from antireplay.mavlink.pq.chunks import (
     chunk_key,
     parse_chunk,
 )
-from antireplay.mavlink.pq.ends import GroundEnd, Output, VehicleEnd
+from antireplay.mavlink.pq.ends import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.repair import Output
 from antireplay.mavlink.pq.wire import (
     CHUNK_DATA,
     DIALECT,

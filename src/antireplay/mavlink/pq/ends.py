@@ -13,13 +13,13 @@ from __future__ import annotations
 import secrets
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TypeVar
 
 from cryptography.hazmat.primitives.asymmetric import mlkem, x25519
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
-from antireplay.core.clock import Clock, resolve
+from antireplay.core.clock import Clock
 from antireplay.core.errors import (
     InvalidFrameError,
     ReplayAttackError,
@@ -28,13 +28,9 @@ from antireplay.core.errors import (
     UnknownSessionError,
 )
 from antireplay.core.ratelimit import TokenBucket
-from antireplay.mavlink.codec import Frame, parse_frame
+from antireplay.mavlink.codec import parse_frame
 from antireplay.mavlink.pq.chunks import (
     Chunk,
-    ChunkSender,
-    PlainFrameError,
-    Reassembler,
-    ReassemblyStats,
     chunk_key,
     parse_chunk,
 )
@@ -44,8 +40,10 @@ from antireplay.mavlink.pq.repair import (
     MAX_ANSWERS,
     RETRIED,
     Op,
+    Output,
     Repair,
-    SendCache,
+    RepairingEnd,
+    _parse,
     bitmap,
     command_of,
     parse_repair,
@@ -56,7 +54,6 @@ from antireplay.mavlink.pq.repair import (
 from antireplay.mavlink.pq.wire import (
     _COMPACT,
     _INNER_HEAD,
-    MSG_CHUNK,
     MSG_REPAIR,
     MSG_STATUS,
     REKEY_TRANSFERS,
@@ -81,124 +78,6 @@ from antireplay.pq.session import (
 
 
 @dataclass
-class Output:
-    """What an end wants written: plain frames for its local side, chunks for the air."""
-
-    local: list[bytes] = field(default_factory=list)
-    air: list[bytes] = field(default_factory=list)
-    #: A blob verified (HS1, HS2, a session frame): its sender may be learned as the air peer.
-    authenticated: bool = False
-
-
-def _parse(raw: bytes) -> Frame:
-    frame = parse_frame(raw)
-    if frame.version != 2:
-        raise PlainFrameError("MAVLink v1 frames are not carried")
-    return frame
-
-
-#: What each air byte an end sends is for (:attr:`_End.airtime`).
-AIR_KINDS = ("hs", "cmd", "parity", "repair", "passthrough")
-
-
-def air_kind(raw: bytes) -> str:
-    """The kind of an air frame this package made (:data:`AIR_KINDS`)."""
-    if raw[7] != MSG_CHUNK & 0xFF:
-        return "repair"  # PQ_REPAIR, and the PQ_STATUS hint
-    index, count, kind = raw[12], raw[13], ChunkKind(raw[15] & 0x0F)
-    if index >= count:
-        return "parity"
-    if kind in (ChunkKind.HS1, ChunkKind.HS2):
-        return "hs"
-    return "cmd" if kind is ChunkKind.FRAME_CHUNKED else "passthrough"
-
-
-class _End:
-    """What both ends share: reassembly with repair requests, the send cache, airtime."""
-
-    def __init__(self, system_id: int, component_id: int, gap_s: float, clock: Clock | None):
-        self.sender = ChunkSender(system_id, component_id)
-        self.gap_s = gap_s
-        self._clock = resolve(clock)
-        self._reassembler = Reassembler(clock=clock)
-        self._sent = SendCache(clock=self._clock)
-        #: Air bytes this end handed out, by kind (:data:`AIR_KINDS`).
-        self.airtime: Counter[str] = Counter()
-        #: Repairs: ``nack_sent``, ``poke_sent``, ``resent`` (chunks), ``answered`` (a held
-        #: HS2 or COMMAND_ACK again), ``ignored`` (for a transfer no longer held).
-        self.repairs: Counter[str] = Counter()
-        self.drops: Counter[str] = Counter()
-        self.handshakes: Counter[str] = Counter()
-        #: A GCS's retries (ground end), by how they were answered: ``poked`` (in flight:
-        #: a POKE, no new transfer), ``answered`` (the COMMAND_ACK already seen),
-        #: ``queued`` (already waiting for a session).
-        self.retries: Counter[str] = Counter()
-
-    def _air(self, frames: list[bytes], kind: str | None = None) -> list[bytes]:
-        for raw in frames:
-            self.airtime[kind or air_kind(raw)] += len(raw)
-        return frames
-
-    def _sessions_held(self) -> list[Session]:
-        raise NotImplementedError
-
-    def _session_of(self, key: bytes | None) -> Session | None:
-        """The session whose chunk key (its receive direction) is ``key``."""
-        for session in self._sessions_held():
-            if key is not None and chunk_key(session.recv_key) == key:
-                return session
-        return None
-
-    def _nack(self, sender: tuple[int, int, int], key: bytes | None, missing: int) -> list[bytes]:
-        """A NACK for transfer ``sender`` (sysid, compid, number), MACed in the session its
-        chunks authenticated in (none: a handshake's)."""
-        session = self._session_of(key)
-        mac = None if session is None else repair_key(session.send_key)
-        if key is not None and session is None:
-            return []  # its session is gone: nothing to ask for
-        self.repairs["nack_sent"] += 1
-        frame = repair_frame(
-            Op.NACK, sender[2], sender[:2], missing, mac,
-            sysid=self.sender.sysid, compid=self.sender.compid,
-        )  # fmt: skip
-        return self._air([frame], "repair")
-
-    def _feed(self, chunk: Chunk, keys: list[bytes]) -> tuple[ChunkKind, bytes] | Output | None:
-        """Reassemble; an Output carrying a NACK when the transfer's last chunk came and
-        it is still incomplete (module :mod:`.repair`)."""
-        done = self._reassembler.feed(chunk, keys)
-        if done is not None:
-            return done
-        missing = self._reassembler.missing(chunk)
-        if missing and self._reassembler.asked(chunk.key):
-            transfer_key = self._reassembler.lookup(chunk.key[:2], chunk.transfer)
-            assert transfer_key is not None
-            return Output(air=self._nack(chunk.key, transfer_key[1], bitmap(missing)))
-        return None
-
-    def _stale_nacks(self) -> list[bytes]:
-        out: list[bytes] = []
-        for key, _, ckey, missing in self._reassembler.stale(self.gap_s):
-            out += self._nack(key, ckey, bitmap(missing))
-        return out
-
-    def _resend(self, repair: Repair) -> list[bytes]:
-        """Answer a NACK from the sent copies (:class:`~.repair.SendCache`)."""
-        frames = self._sent.resend(repair)
-        self.repairs["resent" if frames else "ignored"] += len(frames) or 1
-        return self._air(frames, "repair")
-
-    @property
-    def reassembly(self) -> ReassemblyStats:
-        return self._reassembler.stats
-
-    @property
-    def unsent(self) -> int:
-        """Local messages that never left (:attr:`drops`, all reasons)."""
-        return sum(self.drops.values())
-
-
-@dataclass
 class _Try:
     """A command the ground end sent: its transfer, its session, the ACK once seen."""
 
@@ -209,7 +88,7 @@ class _Try:
     ack: bytes | None = None
 
 
-class GroundEnd(_End):
+class GroundEnd(RepairingEnd):
     """The initiator's end, next to the ground station (module docstring)."""
 
     def __init__(
@@ -490,7 +369,7 @@ class _Held:
     answered: int = 0
 
 
-class VehicleEnd(_End):
+class VehicleEnd(RepairingEnd):
     """The responder's end, next to the autopilot (module docstring)."""
 
     def __init__(

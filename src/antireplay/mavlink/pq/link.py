@@ -42,7 +42,8 @@ from antireplay.core.errors import AntiReplayError, Code, ReplayAttackError
 from antireplay.core.ratelimit import TokenBucket
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.pq.chunks import PlainFrameError
-from antireplay.mavlink.pq.ends import GroundEnd, Output, VehicleEnd, air_kind
+from antireplay.mavlink.pq.ends import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.repair import Output, air_kind
 from antireplay.mavlink.router import Refusal
 from antireplay.pq.session import Session
 
