@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from antireplay import ManualClock
 from antireplay.core.errors import ReplayAttackError
 from antireplay.mavlink.pq import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.wire import LINE_BITS
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
@@ -37,7 +38,7 @@ def build(make: Callable[[dialect.MAVLink], None], sysid: int) -> bytes:
 @dataclass
 class Channel:
     """One direction of the radio: each frame lost with probability ``loss``; with ``bps``
-    frames queue behind each other (serialisation), then ``latency_s``."""
+    frames queue behind each other (a serial line, 10 bits a byte), then ``latency_s``."""
 
     rng: random.Random
     loss: float
@@ -50,7 +51,7 @@ class Channel:
         """When ``frame`` arrives, or None: lost."""
         self.sent += len(frame)
         start = max(now, self.busy_until)
-        self.busy_until = start + (8 * len(frame) / self.bps if self.bps else 0.0)
+        self.busy_until = start + (LINE_BITS * len(frame) / self.bps if self.bps else 0.0)
         if self.rng.random() < self.loss:
             return None
         return self.busy_until + self.latency_s

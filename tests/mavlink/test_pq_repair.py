@@ -23,6 +23,7 @@ from antireplay.mavlink.pq import (
     VehicleEnd,
     parse_chunk,
 )
+from antireplay.mavlink.pq.link import Pacer
 from antireplay.mavlink.pq.repair import (
     EVERYTHING,
     RESEND_BUDGET,
@@ -163,3 +164,32 @@ def test_reassembly_memory_stays_bounded_under_a_flood_with_parity() -> None:
         for raw in frames[2:]:  # two of a group lost: never complete
             reassembler.feed(parse_chunk(parse_frame(raw)))
     assert reassembler.buffered <= 2 * (MAX_CHUNKS + MAX_PARITY) * CHUNK_DATA
+
+
+def test_the_pacer_keeps_to_the_radio_rate_and_lets_telemetry_through_first() -> None:
+    clock = ManualClock()
+    pacer = Pacer(57_600, clock)  # 5,760 bytes a second, 1,440 of burst
+    made = radio(0.0, None, seed=1)
+    made.start()
+    command = made.ground.from_local(
+        build(lambda m: m.command_long_send(1, 1, 400, 0, 1, *[0] * 6), 255)
+    )
+    beat = made.ground.from_local(build(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), 255))
+    pacer.push(command, None)
+    first, wait_s = pacer.pop()
+    assert sum(len(f) for f, _ in first) <= 1_440 and wait_s > 0
+    pacer.push(beat, None)  # telemetry arrives while the command waits for the air
+    clock.advance(wait_s)
+    after, _ = pacer.pop()
+    assert after[0][0] == beat[0]  # ahead of the command's remaining chunks
+    sent = sum(len(f) for f, _ in first + after)
+    began = clock.monotonic() - wait_s
+    while pacer.bulk:
+        clock.advance(0.05)
+        ready, _ = pacer.pop()
+        sent += sum(len(f) for f, _ in ready)
+    assert sent == sum(map(len, command + beat))
+    assert sent <= 1_440 + 5_760 * (clock.monotonic() - began)  # never faster than the radio
+    for _ in range(200):  # telemetry beyond two seconds of queue is dropped, and counted
+        pacer.push(beat, None)
+    assert pacer.paced_out > 0 and pacer.queued <= 2 * 5_760 + len(beat[0])

@@ -54,6 +54,7 @@ from antireplay.mavlink.pq.repair import (
 from antireplay.mavlink.pq.wire import (
     _COMPACT,
     _INNER_HEAD,
+    LINE_BITS,
     MSG_REPAIR,
     MSG_STATUS,
     REKEY_TRANSFERS,
@@ -132,8 +133,8 @@ class GroundEnd(RepairingEnd):
         return [] if self.session is None else [self.session]
 
     def _airtime_s(self, frames: list[bytes]) -> float:
-        """How long ``frames`` take on a radio of ``air_bps`` (0 when unknown)."""
-        return 0.0 if not self.air_bps else 8 * sum(map(len, frames)) / self.air_bps
+        """How long ``frames`` take on a radio of ``air_bps`` baud (0 when unknown)."""
+        return 0.0 if not self.air_bps else LINE_BITS * sum(map(len, frames)) / self.air_bps
 
     def handshake(self) -> list[bytes]:
         """Start a new handshake (the current session keeps working until HS2 arrives).  Its

@@ -22,8 +22,9 @@ change of the live session (``established``, ``rekeyed``, ``lost``: nothing
 authenticated from the other end for ``silence_s``, ``resumed``) is counted and handed
 once to ``on_session`` (authentic: always recorded).  :meth:`~PqLink.counts` is what
 the metrics export, airtime by kind among it.  One lock serialises the end; writes
-happen outside it.  With ``air_bps`` a :class:`Pacer` (a token bucket of bytes, a
-quarter second of burst) puts frames on the air no faster than the radio carries
+happen outside it.  With ``air_bps`` (the radio's serial rate in baud, 10 bits a byte)
+a :class:`Pacer` (a token bucket of bytes, a quarter second of burst: less than a SiK
+radio's 2,048-byte buffer at 57,600 baud) puts frames on the air no faster than the radio carries
 them, one-chunk frames (telemetry, ACKs, repair requests, HS2) ahead of the chunks of
 long transfers, so telemetry keeps flowing between a command's chunks; telemetry
 beyond two seconds of queue is dropped (``air:PACED_OUT``), nothing else is.
@@ -44,6 +45,7 @@ from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.pq.chunks import PlainFrameError
 from antireplay.mavlink.pq.ends import GroundEnd, VehicleEnd
 from antireplay.mavlink.pq.repair import Output, air_kind
+from antireplay.mavlink.pq.wire import LINE_BITS
 from antireplay.mavlink.router import Refusal
 from antireplay.pq.session import Session
 
@@ -86,7 +88,7 @@ class Pacer:
     """Frames for the air, released no faster than ``air_bps`` (module docstring)."""
 
     def __init__(self, air_bps: int, clock: Clock | None = None) -> None:
-        rate = air_bps / 8
+        rate = air_bps / LINE_BITS  # bytes a second
         self.bucket = TokenBucket(rate, resolve(clock), burst=rate / 4)
         self.limit = int(2 * rate)  # bytes of telemetry queued at most
         self.urgent: deque[tuple[bytes, Peer | None]] = deque()

@@ -36,6 +36,8 @@ CHUNK_DATA, CHUNK_MAC, MAX_CHUNKS = 249, 8, 32
 #: ``MAX_PARITY``; parity chunk ``j`` is the XOR of the data chunks whose index is ``j``
 #: modulo the parity count, so one loss in each such group costs no round trip.
 MAX_PARITY, PARITY_EVERY = 4, 10
+#: Bits a byte takes on a radio's serial line (start, 8 data, stop): ``--air-bps`` is baud.
+LINE_BITS = 10
 STATUS_NO_SESSION = 1
 #: A ground end rekeys once its session used this many transfer numbers, and stops
 #: sending in it at ``TRANSFER_LIMIT``: within a session they never wrap (module docstring).
