@@ -77,6 +77,7 @@ class Radio:
         self.down = Channel(random.Random(rng.random()), self.loss, self.bps)
         self._seq = itertools.count()
         self._acked = False
+        self.fc = dialect.MAVLink(_Keep(), srcSystem=1, srcComponent=1)
 
     def at(self, when: float, action: Callable[[], None]) -> None:
         heapq.heappush(self.events, (when, next(self._seq), action))
@@ -108,9 +109,12 @@ class Radio:
                 ack = self.ack(msg.command)
                 self.send(self.down, self.vehicle.from_local(ack), self.to_ground)
 
-    @staticmethod
-    def ack(command: int) -> bytes:
-        return build(lambda m: m.command_ack_send(command, 0, 0, 0, 255, 190), 1)
+    def ack(self, command: int) -> bytes:
+        """The flight controller's COMMAND_ACK (its sequence number counting, as on a real one)."""
+        keep = _Keep()
+        self.fc.file = keep
+        self.fc.command_ack_send(command, 0, 0, 0, 255, 190)
+        return keep.frames[-1]
 
     def to_ground(self, raw: bytes) -> None:
         try:

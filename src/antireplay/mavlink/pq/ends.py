@@ -1,11 +1,25 @@
 """The two ends of a PQ link: the ground end (initiator) and the vehicle end (responder).
 
 Sans-I/O: bytes and a time in, frames out; :mod:`.link` drives them over transports and
-calls :meth:`GroundEnd.tick` on a timer, so that a lost handshake is retried every
-``retry_s`` whether or not local traffic arrives.  Each end says which session is
-:attr:`~GroundEnd.live` (held, and something authenticated heard from the other end
-within ``silence_s``) and counts its handshakes (``started``, ``completed``, ``failed``:
-superseded unanswered, or refused) and the local frames it dropped (``NO_SESSION``...).
+calls ``tick`` on a timer, so that a transfer gone quiet is repaired (:mod:`.repair`)
+and a lost handshake is poked, then retried, whether or not local traffic arrives: the
+ground end POKEs its HS1 ``poke_s`` after its chunks left (by ``air_bps``) or were last
+repaired (twice at most; the vehicle end answers with its held HS2 or a NACK), and
+hand-shakes anew only after ``retry_s`` of quiet, so repairs never race a new HS1.
+Each end says which session is :attr:`~GroundEnd.live` (held, and something
+authenticated heard from the other end within ``silence_s``) and counts its handshakes
+(``started``, ``completed``, ``failed``: superseded unanswered, or refused), the local
+frames it dropped (``NO_SESSION``...), its repairs, a GCS's retries and its airtime.
+
+A GCS retry (:meth:`GroundEnd.handle_local`) is keyed on what the ground end itself
+sealed and sent: a later identical command within ``retry_window_s`` of the last try
+asks the vehicle end, by an authenticated POKE naming that transfer, for what it holds;
+the vehicle end answers only for a transfer that opened (the held ``COMMAND_ACK``, sealed
+anew, at most ``MAX_ANSWERS`` times) and delivers nothing again.  A command repeated on
+purpose within that window is answered, not executed: repeat it after the window.
+
+Size: over 500 lines: the two ends share their rules (:class:`~.repair.RepairingEnd`)
+but each is one state machine over its half of the handshake, kept whole.
 """
 
 from __future__ import annotations
@@ -106,7 +120,7 @@ class GroundEnd(RepairingEnd):
         queue_ttl_s: float = 5.0,
         hybrid: x25519.X25519PublicKey | None = None,
         poke_s: float = 0.5,
-        gap_s: float = 0.3,
+        gap_s: float = 0.25,
         retry_window_s: float = 2.0,
         air_bps: int | None = None,
         clock: Clock | None = None,
@@ -125,6 +139,7 @@ class GroundEnd(RepairingEnd):
         self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
         self._queue: deque[tuple[bytes, float]] = deque()  # commands and when they came
         self._tries: OrderedDict[tuple[int, int, int, bytes], _Try] = OrderedDict()
+        self._last_ack, self._last_ack_at = b"", float("-inf")  # the ACK last passed on
         self._heard = float("-inf")  # when an authenticated frame last came from the vehicle
         # drops: NO_SESSION (not a command, no session), QUEUE_FULL (the oldest queued
         # command, pushed out by a newer one), QUEUE_EXPIRED (waited over queue_ttl_s)
@@ -293,7 +308,9 @@ class GroundEnd(RepairingEnd):
         self._reassembler.opened(chunk, keys[0])
         self._heard = self._clock.monotonic()
         plain = plain_frame(opened.payload)
-        self._hold_ack(plain)
+        if not self._hold_ack(plain):  # the second copy of an ACK just passed on
+            self.repairs["ack_duplicate"] += 1
+            return Output(authenticated=True)
         return Output(local=[plain], authenticated=True)
 
     def _repair(self, repair: Repair) -> Output:
@@ -310,20 +327,27 @@ class GroundEnd(RepairingEnd):
             self._hs_quiet = self._clock.monotonic() + self._airtime_s(frames)
         return Output(air=frames)
 
-    def _hold_ack(self, plain: bytes) -> None:
+    def _hold_ack(self, plain: bytes) -> bool:
         """A final COMMAND_ACK from the vehicle answers the try of its command: a GCS retry
-        of it from now on is answered with it (within ``retry_window_s``)."""
+        of it from now on is answered with it (within ``retry_window_s``).  False for the
+        second copy of the ACK just passed on (the vehicle end sends each twice; the flight
+        controller's sequence number tells it from a later ACK)."""
         frame = parse_frame(plain)
         if frame.msgid != dialect.MAVLINK_MSG_ID_COMMAND_ACK:
-            return
+            return True
+        now = self._clock.monotonic()
+        if self._last_ack == plain and now - self._last_ack_at < self.retry_window_s:
+            return False
+        self._last_ack, self._last_ack_at = plain, now
         if frame.payload[2:3] == bytes([IN_PROGRESS]):
-            return
+            return True
         command = command_of(frame)
         for attempt in self._tries.values():
             if attempt.command == command and attempt.ack is None:
                 attempt.ack = plain
                 self._sent.forget(attempt.transfer)
-                return
+                break
+        return True
 
     def _finish(self, hs2: bytes) -> Output:
         if self._pending is None:
@@ -382,7 +406,7 @@ class VehicleEnd(RepairingEnd):
         hint_interval_s: float = 1.0,
         silence_s: float = 5.0,
         signed: frozenset[int] = SIGNED_MESSAGES,
-        gap_s: float = 0.3,
+        gap_s: float = 0.25,
         clock: Clock | None = None,
     ) -> None:
         super().__init__(system_id, component_id, gap_s, clock)
@@ -536,18 +560,25 @@ class VehicleEnd(RepairingEnd):
         """Wrap one telemetry frame from the flight controller; with no session it is
         dropped and counted (:attr:`drops`): the flight controller streams long before
         the ground end connects, which is no fault.  A COMMAND_ACK is also held for the
-        command it answers, for the ground end's POKE (a GCS retry)."""
+        command it answers, for the ground end's POKE (a GCS retry), and its first goes
+        out twice (under two counters; the ground end passes one on): one lost costs the
+        ground station no retry, for some 60 bytes."""
         frame = _parse(raw)
         if self.current is None:
             self.drops["NO_SESSION"] += 1
             return Output()
+        copies = 1
         if frame.msgid == dialect.MAVLINK_MSG_ID_COMMAND_ACK:
             command = command_of(frame)
             for held in reversed(self._answers.values()):
                 if held.command == command:
+                    copies += held.ack is None
                     held.ack = raw
                     break
-        return Output(air=self._air(self._seal(self.current, raw)))
+        air = self._air(self._seal(self.current, raw))
+        if copies > 1:
+            air += self._air(self._seal(self.current, raw), "repair")
+        return Output(air=air)
 
     def _seal(self, session: Session, raw: bytes) -> list[bytes]:
         blob = compact(session.seal(inner_of(_parse(raw)), Purpose.DATA))
