@@ -23,7 +23,7 @@ from antireplay.mavlink.pq import (
     VehicleEnd,
     parse_chunk,
 )
-from antireplay.mavlink.pq.link import Pacer
+from antireplay.mavlink.pq.link import Pacer, PqLink
 from antireplay.mavlink.pq.repair import (
     EVERYTHING,
     RESEND_BUDGET,
@@ -31,9 +31,10 @@ from antireplay.mavlink.pq.repair import (
     repair_frame,
     repair_key,
 )
-from antireplay.mavlink.pq.wire import MAX_PARITY
+from antireplay.mavlink.pq.wire import MAX_PARITY, MSG_REPAIR
 from antireplay.pq.session import Initiator, Responder
 from tests.harness.lossy_air import Radio, build
+from tests.harness.mavlink_frames import FakeTransport
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
@@ -194,3 +195,26 @@ def test_the_pacer_keeps_to_the_radio_rate_and_lets_telemetry_through_first() ->
     for _ in range(200):  # telemetry beyond two seconds of queue is dropped, and counted
         pacer.push(beat, None)
     assert pacer.paced_out > 0 and pacer.queued <= 2 * 5_760 + len(beat[0])
+
+
+def test_a_handshake_repair_is_answered_to_its_sender_never_learned() -> None:
+    """A vehicle end on ``udpin`` knows no ground peer before a handshake opens: the NACK
+    for an incomplete HS1 goes back to the address its chunks came from, and that address
+    is not learned (telemetry still has nowhere to go)."""
+    clock = ManualClock()
+    made = radio(0.0, None, seed=1)
+    air = FakeTransport("udpin:0.0.0.0:1", fixed=False)
+    fc = FakeTransport("udpout:1.2.3.4:7")
+    link = PqLink(made.vehicle, fc, air, tick_s=3600, clock=clock)
+    link.start()
+    hs1 = made.ground.handshake()
+    ground_at = ("10.0.0.9", 14550)
+    for raw in [r for i, r in enumerate(hs1) if i not in (0, 3)]:  # two of one group lost
+        air.inject(raw, ground_at)
+    ((nack, to),) = air.sent
+    assert to == ground_at and parse_frame(nack).msgid == MSG_REPAIR
+    resent = made.ground.from_air(nack).air
+    assert len(resent) == 1  # one of the two: parity rebuilds the other
+    fc.inject(build(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), 1))
+    assert air.sent[1:] == [] and link.counts().dropped["air:NO_PEER"] == 0  # no session yet
+    link.stop()

@@ -96,7 +96,7 @@ def pq_metrics(counts: LinkCounts) -> list[Metric]:
         ("repairs", "Repair requests sent, chunks resent, held answers sent again", "what",
          ("nack_sent", "poke_sent", "resent", "answered", "ignored"), counts.repairs),
         ("retries", "A ground station's command retries, by how they were answered", "how",
-         ("poked", "answered", "queued"), counts.retries),
+         ("poked", "answered", "sending", "queued"), counts.retries),
     ):  # fmt: skip
         family = CounterMetricFamily(f"antireplay_mavlink_pq_{name}", text, labels=["end", label])
         for key in fixed:

@@ -100,6 +100,7 @@ class _Try:
     session: Session
     command: int
     last: float
+    due: float  # when its last chunk should have left (by air_bps)
     ack: bytes | None = None
 
 
@@ -203,7 +204,8 @@ class GroundEnd(RepairingEnd):
         air = self._seal(session, inner_of(frame), purpose)
         if tried is not None:
             now = self._clock.monotonic()
-            self._tries[tried] = _Try(self.sender.transfer, session, command_of(frame), now)
+            due = now + self._airtime_s(air)
+            self._tries[tried] = _Try(self.sender.transfer, session, command_of(frame), now, due)
             while len(self._tries) > self._sent.max_transfers:
                 self._tries.popitem(last=False)
         return Output(air=air + self._renew(session))
@@ -219,6 +221,9 @@ class GroundEnd(RepairingEnd):
         if attempt.ack is not None:
             self.retries["answered"] += 1
             return Output(local=[attempt.ack])
+        if now < attempt.due:  # its chunks are still going out: nothing to ask yet
+            self.retries["sending"] += 1
+            return Output()
         self.retries["poked"] += 1
         self.repairs["poke_sent"] += 1
         poke = repair_frame(
@@ -483,7 +488,8 @@ class VehicleEnd(RepairingEnd):
             return Output(air=self._resend(repair))
         if repair.signed:
             return Output(air=self._poked(repair))
-        return Output(air=self._poked_unsigned(repair) if self._unsigned.take() else [])
+        answer = self._poked_unsigned(repair) if self._unsigned.take() else []
+        return Output(air=answer, reply=True)
 
     def _poked_unsigned(self, repair: Repair) -> list[bytes]:
         """A handshake's POKE: the HS2 held for that HS1, or a NACK for its chunks (bounded,

@@ -9,8 +9,9 @@ receives the telemetry), ``air`` the path to the vehicle; it hand-shakes at
 :meth:`~PqLink.start` and, from a timer (:meth:`~PqLink.tick`, every ``tick_s``), again
 every ``retry_s`` until a session answers, whether or not local traffic arrives.  The
 **vehicle** end's ``local`` is the flight controller, ``air`` the path to the ground; a
-``udpin`` air peer is learned only from a blob that authenticated, and plain MAVLink
-from the air never reaches the flight controller.
+``udpin`` air peer is learned only from a blob that authenticated (a handshake's
+repair request is answered to its sender, never learned), and plain MAVLink from the
+air never reaches the flight controller.
 
 Every refusal is counted under ``side:CODE`` and handed to ``on_reject`` (the
 rate-limited refusal auditor the command gives it; a refusal it could not record is
@@ -254,7 +255,7 @@ class PqLink:
                 self.forwarded["air"] += 1
             for data in out.local:
                 self._to_local(data)
-            self._to_air(out.air, peer if out.authenticated else self._air_peer)
+            self._to_air(out.air, peer if out.authenticated or out.reply else self._air_peer)
         self._observe()
 
     def _observe(self) -> None:

@@ -230,6 +230,9 @@ class Output:
     air: list[bytes] = field(default_factory=list)
     #: A blob verified (HS1, HS2, a session frame): its sender may be learned as the air peer.
     authenticated: bool = False
+    #: Answer the frame's sender without learning it (a handshake's repair: no session yet
+    #: to learn the peer from; a NACK is smaller than what asked for it, nothing amplifies).
+    reply: bool = False
 
 
 def _parse(raw: bytes) -> Frame:
@@ -273,7 +276,7 @@ class RepairingEnd:
         self.handshakes: Counter[str] = Counter()
         #: A GCS's retries (ground end), by how they were answered: ``poked`` (in flight:
         #: a POKE, no new transfer), ``answered`` (the COMMAND_ACK already seen),
-        #: ``queued`` (already waiting for a session).
+        #: ``sending`` (its chunks still going out), ``queued`` (waiting for a session).
         self.retries: Counter[str] = Counter()
 
     def _air(self, frames: list[bytes], kind: str | None = None) -> list[bytes]:
@@ -315,7 +318,8 @@ class RepairingEnd:
         if missing and self._reassembler.asked(chunk.key):
             transfer_key = self._reassembler.lookup(chunk.key[:2], chunk.transfer)
             assert transfer_key is not None
-            return Output(air=self._nack(chunk.key, transfer_key[1], bitmap(missing)))
+            nack = self._nack(chunk.key, transfer_key[1], bitmap(missing))
+            return Output(air=nack, reply=transfer_key[1] is None)
         return None
 
     def _stale_nacks(self) -> list[bytes]:
