@@ -24,6 +24,8 @@ Before a session exists (the handshake) nothing can authenticate a repair: its M
 zero, and it can only make the ground end resend chunks of its *pending* HS1 (public
 already, within the same budget) or the vehicle end resend an HS2 it holds (public,
 at most ``MAX_ANSWERS`` times): the worst it does is what jamming does, spend airtime.
+Both ends build on :class:`RepairingEnd` (reassembly that NACKs, the send cache, and the
+airtime each end hands out, by kind: :data:`AIR_KINDS`).
 """
 
 from __future__ import annotations
