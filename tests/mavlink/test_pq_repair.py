@@ -170,7 +170,7 @@ def test_reassembly_memory_stays_bounded_under_a_flood_with_parity() -> None:
 
 def test_the_pacer_keeps_to_the_radio_rate_and_lets_telemetry_through_first() -> None:
     clock = ManualClock()
-    pacer = Pacer(57_600, clock)  # 5,760 bytes a second, 1,440 of burst
+    pacer = Pacer(57_600, clock)  # 5,587 bytes a second (97 % of 5,760), 559 of burst
     made = radio(0.0, None, seed=1)
     made.start()
     command = made.ground.from_local(
@@ -179,7 +179,7 @@ def test_the_pacer_keeps_to_the_radio_rate_and_lets_telemetry_through_first() ->
     beat = made.ground.from_local(build(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), 255))
     pacer.push(command, None)
     first, wait_s = pacer.pop()
-    assert sum(len(f) for f, _ in first) <= 1_440 and wait_s > 0
+    assert sum(len(f) for f, _ in first) <= 559 and wait_s > 0
     pacer.push(beat, None)  # telemetry arrives while the command waits for the air
     clock.advance(wait_s)
     after, _ = pacer.pop()
@@ -191,10 +191,14 @@ def test_the_pacer_keeps_to_the_radio_rate_and_lets_telemetry_through_first() ->
         ready, _ = pacer.pop()
         sent += sum(len(f) for f, _ in ready)
     assert sent == sum(map(len, command + beat))
-    assert sent <= 1_440 + 5_760 * (clock.monotonic() - began)  # never faster than the radio
+    assert sent <= 559 + 5_587 * (clock.monotonic() - began)  # never faster than the radio
     for _ in range(200):  # telemetry beyond two seconds of queue is dropped, and counted
         pacer.push(beat, None)
-    assert pacer.paced_out > 0 and pacer.queued <= 2 * 5_760 + len(beat[0])
+    assert pacer.paced_out > 0 and pacer.queued <= 2 * 5_587 + len(beat[0])
+    slow = Pacer(1_200, clock)  # 116 bytes a second: still two full chunks of burst
+    slow.push(command[:3], None)
+    clock.advance(60)
+    assert len(slow.pop()[0]) == 2
 
 
 def test_a_handshake_repair_is_answered_to_its_sender_never_learned() -> None:

@@ -24,8 +24,8 @@ authenticated from the other end for ``silence_s``, ``resumed``) is counted and 
 once to ``on_session`` (authentic: always recorded).  :meth:`~PqLink.counts` is what
 the metrics export, airtime by kind among it.  One lock serialises the end; writes
 happen outside it.  With ``air_bps`` (the radio's serial rate in baud, 10 bits a byte)
-a :class:`Pacer` (a token bucket of bytes, a quarter second of burst: less than a SiK
-radio's 2,048-byte buffer at 57,600 baud) puts frames on the air no faster than the radio carries
+a :class:`Pacer` (a token bucket of bytes at 97 % of the line rate, a tenth of a second
+of burst: well within a SiK radio's 2,048-byte buffer at 57,600 baud) puts frames on the air no faster than the radio carries
 them, one-chunk frames (telemetry, ACKs, repair requests, HS2) ahead of the chunks of
 long transfers, so telemetry keeps flowing between a command's chunks; telemetry
 beyond two seconds of queue is dropped (``air:PACED_OUT``), nothing else is.
@@ -85,12 +85,18 @@ class LinkCounts:
     retries: Counter[str] = field(default_factory=Counter)  # GCS retries, how answered
 
 
+#: The pacer's share of the line rate (the radio's own clock and a busy host both drift),
+#: and the longest frame an end sends (a full ``PQ_CHUNK``).
+PACE, MAX_FRAME = 0.97, 10 + 255 + 2
+
+
 class Pacer:
     """Frames for the air, released no faster than ``air_bps`` (module docstring)."""
 
     def __init__(self, air_bps: int, clock: Clock | None = None) -> None:
-        rate = air_bps / LINE_BITS  # bytes a second
-        self.bucket = TokenBucket(rate, resolve(clock), burst=rate / 4)
+        rate = PACE * air_bps / LINE_BITS  # bytes a second, a little under the line's
+        burst = max(rate / 10, 2 * MAX_FRAME)  # a tenth of a second; two frames at least
+        self.bucket = TokenBucket(rate, resolve(clock), burst=burst)
         self.limit = int(2 * rate)  # bytes of telemetry queued at most
         self.urgent: deque[tuple[bytes, Peer | None]] = deque()
         self.bulk: deque[tuple[bytes, Peer | None]] = deque()
