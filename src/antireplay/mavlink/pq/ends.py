@@ -25,7 +25,7 @@ but each is one state machine over its half of the handshake, kept whole.
 from __future__ import annotations
 
 import secrets
-from collections import Counter, OrderedDict, deque
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TypeVar
@@ -396,7 +396,6 @@ class _Held:
 
     command: int
     ack: bytes | None = None
-    answered: int = 0
 
 
 class VehicleEnd(RepairingEnd):
@@ -427,7 +426,7 @@ class VehicleEnd(RepairingEnd):
         self._hs2: OrderedDict[tuple[int, int, int], list[bytes]] = OrderedDict()
         self._answers: OrderedDict[tuple[int, int, int], _Held] = OrderedDict()
         self._unsigned = TokenBucket(2.0, self._clock)  # answers to unauthenticated POKEs
-        self._answered: Counter[tuple[int, int, int]] = Counter()
+        self._answered: OrderedDict[tuple[int, int, int], int] = OrderedDict()  # times, bounded
 
     def _sessions_held(self) -> list[Session]:
         return list(self._sessions)
@@ -524,7 +523,7 @@ class VehicleEnd(RepairingEnd):
 
     def _answer(self, at: tuple[int, int, int], frames: Callable[[], list[bytes]]) -> list[bytes]:
         """A held answer again, at most ``MAX_ANSWERS`` times per transfer."""
-        self._answered[at] += 1
+        _remember(self._answered, at, self._answered.get(at, 0) + 1)
         if self._answered[at] > MAX_ANSWERS:
             return []
         self.repairs["answered"] += 1

@@ -25,10 +25,11 @@ once to ``on_session`` (authentic: always recorded).  :meth:`~PqLink.counts` is 
 the metrics export, airtime by kind among it.  One lock serialises the end; writes
 happen outside it.  With ``air_bps`` (the radio's serial rate in baud, 10 bits a byte)
 a :class:`Pacer` (a token bucket of bytes at 97 % of the line rate, a tenth of a second
-of burst: well within a SiK radio's 2,048-byte buffer at 57,600 baud) puts frames on the air no faster than the radio carries
-them, one-chunk frames (telemetry, ACKs, repair requests, HS2) ahead of the chunks of
-long transfers, so telemetry keeps flowing between a command's chunks; telemetry
-beyond two seconds of queue is dropped (``air:PACED_OUT``), nothing else is.
+of burst: well within a SiK radio's 2,048-byte buffer at 57,600 baud) puts frames on
+the air no faster than the radio carries them, one-chunk frames (telemetry, ACKs,
+repair requests, HS2) ahead of the chunks of long transfers, so telemetry keeps flowing
+between a command's chunks; telemetry beyond two seconds of queue is dropped
+(``air:PACED_OUT``), nothing else is.
 """
 
 from __future__ import annotations
