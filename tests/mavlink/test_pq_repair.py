@@ -28,10 +28,11 @@ from antireplay.mavlink.pq.repair import (
     EVERYTHING,
     RESEND_BUDGET,
     Op,
+    parse_repair,
     repair_frame,
     repair_key,
 )
-from antireplay.mavlink.pq.wire import MAX_PARITY, MSG_REPAIR
+from antireplay.mavlink.pq.wire import MAX_PARITY
 from antireplay.pq.session import Initiator, Responder
 from tests.harness.lossy_air import Radio, build
 from tests.harness.mavlink_frames import FakeTransport
@@ -203,22 +204,32 @@ def test_the_pacer_keeps_to_the_radio_rate_and_lets_telemetry_through_first() ->
 
 def test_a_handshake_repair_is_answered_to_its_sender_never_learned() -> None:
     """A vehicle end on ``udpin`` knows no ground peer before a handshake opens: the NACK
-    for an incomplete HS1 goes back to the address its chunks came from, and that address
-    is not learned (telemetry still has nowhere to go)."""
-    clock = ManualClock()
+    for an incomplete HS1, at once or on its timer (the HS1's tail lost), goes back to
+    the address its chunks came from, and that address is not learned."""
     made = radio(0.0, None, seed=1)
     air = FakeTransport("udpin:0.0.0.0:1", fixed=False)
     fc = FakeTransport("udpout:1.2.3.4:7")
-    link = PqLink(made.vehicle, fc, air, tick_s=3600, clock=clock)
+    link = PqLink(made.vehicle, fc, air, tick_s=3600)
     link.start()
-    hs1 = made.ground.handshake()
     ground_at = ("10.0.0.9", 14550)
-    for raw in [r for i, r in enumerate(hs1) if i not in (0, 3)]:  # two of one group lost
-        air.inject(raw, ground_at)
-    ((nack, to),) = air.sent
-    assert to == ground_at and parse_frame(nack).msgid == MSG_REPAIR
-    resent = made.ground.from_air(nack).air
-    assert len(resent) == 1  # one of the two: parity rebuilds the other
-    fc.inject(build(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), 1))
-    assert air.sent[1:] == [] and link.counts().dropped["air:NO_PEER"] == 0  # no session yet
+    for lost in [(0, 3), (0, 3, 28)]:  # two of one group; then the last chunk too
+        hs1 = made.ground.handshake()
+        for raw in [r for i, r in enumerate(hs1) if i not in lost]:
+            air.inject(raw, ground_at)
+        if 28 in lost:
+            assert air.sent[1:] == []  # nothing tells it the HS1 ended: its timer will
+            made.clock.advance(made.vehicle.gap_s)
+            link.tick()
+        nack, to = air.sent[-1]
+        assert (
+            to == ground_at
+            and parse_repair(parse_frame(nack)).transfer
+            == parse_chunk(parse_frame(hs1[0])).transfer
+        )
+        resent = made.ground.from_air(nack).air
+        assert len(resent) == 1  # one of the two: parity rebuilds the other
+    assert {to for _, to in air.sent} == {ground_at}
+    sent = len(air.sent)
+    fc.inject(build(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), 1))  # telemetry: no peer yet
+    assert len(air.sent) == sent and link.counts().dropped == {"local:NO_SESSION": 1}
     link.stop()

@@ -9,9 +9,10 @@ receives the telemetry), ``air`` the path to the vehicle; it hand-shakes at
 :meth:`~PqLink.start` and, from a timer (:meth:`~PqLink.tick`, every ``tick_s``), again
 every ``retry_s`` until a session answers, whether or not local traffic arrives.  The
 **vehicle** end's ``local`` is the flight controller, ``air`` the path to the ground; a
-``udpin`` air peer is learned only from a blob that authenticated (a handshake's
-repair request is answered to its sender, never learned), and plain MAVLink from the
-air never reaches the flight controller.
+``udpin`` air peer is learned only from a blob that authenticated (until then a
+handshake's repair request, at once or on the timer, goes to the sender of the last
+chunk that was not refused, never learned), and plain MAVLink from the air never
+reaches the flight controller.
 
 Every refusal is counted under ``side:CODE`` and handed to ``on_reject`` (the
 rate-limited refusal auditor the command gives it; a refusal it could not record is
@@ -158,6 +159,7 @@ class PqLink:
         self.air_bytes = 0
         self._local_peers: dict[Peer, None] = {}
         self._air_peer: Peer | None = None
+        self._replied: Peer | None = None  # the sender of the last frame not refused
         self._live: Session | None = None
         self._last: Session | None = None  # the last session that was live
         self._lock = threading.Lock()
@@ -200,7 +202,7 @@ class PqLink:
         """What time alone calls for: the end's retries and expiries, a lost session noticed."""
         with self._lock:
             frames = self.end.tick()
-        self._to_air(frames, self._air_peer)
+        self._to_air(frames, self._air_peer or self._replied)  # a handshake's NACK, say
         self._observe()
 
     def _pace_loop(self) -> None:
@@ -262,6 +264,8 @@ class PqLink:
                 self.forwarded["air"] += 1
             for data in out.local:
                 self._to_local(data)
+            if peer is not None:  # where time alone may answer a handshake (never learned)
+                self._replied = peer
             self._to_air(out.air, peer if out.authenticated or out.reply else self._air_peer)
         self._observe()
 
