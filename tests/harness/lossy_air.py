@@ -1,6 +1,8 @@
 """A seeded, lossy, bandwidth-limited radio between a PQ ground end and vehicle end, in
 simulated time (a manual clock and an event queue): a retrying GCS on one side, a flight
-controller that answers COMMAND_ACK on the other.  Deterministic for a seed."""
+controller that answers COMMAND_ACK on the other, each end pacing its air side as
+``--air-bps`` makes the link do (:class:`~antireplay.mavlink.pq.link.Pacer`) when the
+radio is slow.  Deterministic for a seed."""
 
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ from dataclasses import dataclass, field
 from antireplay import ManualClock
 from antireplay.core.errors import ReplayAttackError
 from antireplay.mavlink.pq import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.link import Pacer
 from antireplay.mavlink.pq.wire import LINE_BITS
 
 os.environ["MAVLINK20"] = "1"
@@ -78,6 +81,10 @@ class Radio:
         self._seq = itertools.count()
         self._acked = False
         self.fc = dialect.MAVLink(_Keep(), srcSystem=1, srcComponent=1)
+        # each end's pacer (as ``--air-bps`` gives the link), when the radio is slow
+        self.pacers = {} if self.bps is None else {
+            id(channel): Pacer(self.bps, self.clock) for channel in (self.up, self.down)
+        }  # fmt: skip
 
     def at(self, when: float, action: Callable[[], None]) -> None:
         heapq.heappush(self.events, (when, next(self._seq), action))
@@ -90,6 +97,20 @@ class Radio:
         self.clock.advance(max(0.0, end - self.clock.monotonic()))
 
     def send(self, channel: Channel, frames: list[bytes], to: Callable[[bytes], None]) -> None:
+        pacer = self.pacers.get(id(channel))
+        if pacer is None:
+            self._transmit(channel, frames, to)
+            return
+        pacer.push(frames, None)
+        self._pump(channel, pacer, to)
+
+    def _pump(self, channel: Channel, pacer: Pacer, to: Callable[[bytes], None]) -> None:
+        ready, wait_s = pacer.pop()
+        self._transmit(channel, [frame for frame, _ in ready], to)
+        if pacer.urgent or pacer.bulk:
+            self.at(self.clock.monotonic() + wait_s, lambda: self._pump(channel, pacer, to))
+
+    def _transmit(self, channel: Channel, frames: list[bytes], to: Callable[[bytes], None]) -> None:
         for frame in frames:
             arrive = channel.schedule(self.clock.monotonic(), frame)
             if arrive is not None:
@@ -136,8 +157,12 @@ class Radio:
         self.at(self.clock.monotonic() + self.tick_s, self.ticking)
 
     def heartbeat(self) -> None:
+        """Both sides' heartbeats, once a second (the ground station's cross its commands)."""
         beat = build(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), 1)
         self.send(self.down, self.vehicle.from_local(beat), self.to_ground)
+        if self.ground.session is not None:
+            gcs = build(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), 255)
+            self.send(self.up, self.ground.from_local(gcs), self.to_vehicle)
         self.at(self.clock.monotonic() + 1.0, self.heartbeat)
 
     def start(self) -> float:

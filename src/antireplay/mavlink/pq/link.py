@@ -124,7 +124,7 @@ class Pacer:
             queue = self.urgent or self.bulk
             raw = queue[0][0]
             if not self.bucket.take(len(raw)):
-                return out, self.bucket.wait_s(len(raw))
+                return out, max(self.bucket.wait_s(len(raw)), 0.001)  # time moves on
             out.append(queue.popleft())
             self.queued -= len(raw)
         return out, 1.0
