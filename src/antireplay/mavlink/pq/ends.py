@@ -234,7 +234,7 @@ class GroundEnd(RepairingEnd):
 
     def tick(self) -> list[bytes]:
         """What time alone calls for: expire queued commands, ask for chunks of transfers
-        that went quiet, and hand-shake again (at most every ``retry_s``) while there is
+        that went quiet, and poke or hand-shake again (:meth:`_retry`) while there is
         no session or this one should end (:meth:`_renew`)."""
         self._expire_queue()
         session = self._usable()

@@ -6,8 +6,9 @@ A :class:`PqLink` moves bytes for one sans-I/O end of :mod:`antireplay.mavlink.p
 between two :class:`~antireplay.mavlink.endpoints.Transport` s.  The **ground** end's
 ``local`` is where ground stations connect (a trusted ``udpin``: every peer that sends
 receives the telemetry), ``air`` the path to the vehicle; it hand-shakes at
-:meth:`~PqLink.start` and, from a timer (:meth:`~PqLink.tick`, every ``tick_s``), again
-every ``retry_s`` until a session answers, whether or not local traffic arrives.  The
+:meth:`~PqLink.start` and, from a timer (:meth:`~PqLink.tick`, every ``tick_s``), pokes
+and hand-shakes again (:mod:`.ends`) until a session answers, whether or not local traffic
+arrives; the timer also drives repair requests for transfers gone quiet.  The
 **vehicle** end's ``local`` is the flight controller, ``air`` the path to the ground; a
 ``udpin`` air peer is learned only from a blob that authenticated (until then a
 handshake's repair request, at once or on the timer, goes to the sender of the last
