@@ -128,11 +128,11 @@ def report(floods: list[Flood]) -> None:
         )
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="bench_audit_flood")
     parser.add_argument("--seconds", type=int, default=SECONDS)
     parser.add_argument("--before", default=BEFORE, help="the baseline's git revision")
-    options, _ = parser.parse_known_args(sys.argv[1:])
+    options = parser.parse_args(argv or [])
     if shutil.which("wrk") is None:
         raise SystemExit("wrk not found (apt-get install -y wrk)")
     with tempfile.TemporaryDirectory(prefix="antireplay-flood-") as tmp:
@@ -146,4 +146,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])
