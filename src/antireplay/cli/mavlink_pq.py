@@ -166,9 +166,10 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
     metrics_host: str,
     air_bps: int | None,
 ) -> None:
+    from antireplay.config import AuditConfig  # noqa: PLC0415
     from antireplay.mavlink.endpoints import open_transport, parse_endpoint  # noqa: PLC0415
     from antireplay.mavlink.pq.link import PqLink  # noqa: PLC0415
-    from antireplay.wiring import mavlink_auditor, serve_metrics  # noqa: PLC0415
+    from antireplay.wiring import mavlink_auditor, open_audit, serve_metrics  # noqa: PLC0415
 
     _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")  # before opening anything
     try:
@@ -178,7 +179,7 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
     except OSError as exc:
         raise click.ClickException(f"{local} / {air}: {exc.strerror or exc}") from None
     try:
-        audit_log = AuditLog(audit_path)
+        audit_log = open_audit(AuditConfig(path=audit_path))  # rotated, retained
     except StateFileError as exc:
         _fail(str(exc))
     refusals = mavlink_auditor(audit_log)
