@@ -263,12 +263,12 @@ def report(floods: list[Flood], budget: AuditConfig) -> None:
         print(f"trail growth per second, before / after: rows x{rows:.0f}, bytes x{size:.0f}")
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="bench_audit_flood")
     parser.add_argument("--seconds", type=int, default=SECONDS)
     parser.add_argument("--before", default=BEFORE, help="the baseline's git revision")
     parser.add_argument("--max-bytes", type=int, default=None, help="this tree's audit budget")
-    options, _ = parser.parse_known_args(sys.argv[1:])
+    options = parser.parse_args(argv or [])
     if shutil.which("wrk") is None:
         raise SystemExit("wrk not found (apt-get install -y wrk)")
     with tempfile.TemporaryDirectory(prefix="antireplay-flood-") as tmp:
@@ -284,4 +284,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])
