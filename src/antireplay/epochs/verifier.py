@@ -13,6 +13,15 @@ table raises its fence, persisted as ``NAMESPACE:KIND:floor`` in the same store 
 (``forget``) that deletes the prefix's counters: the store holds at most the table's
 prefixes (and their successor markers), and the floor refuses every epoch forgotten.
 
+**Several verifiers on one store** each hold their own table, so one may evict (and
+``forget``) a prefix another does not know: before a prefix it does not hold passes, a
+verifier reads its counter, *then* the floor, and refuses anything at or below that
+floor.  ``forget`` raises the floor and deletes the counter in one step, so a counter
+read as missing because it was forgotten is always followed by a floor that covers it.
+Not closed: a message never seen before, delivered to both at once, accepted by one and
+then evicted there by a newcomer, all between the other's reads and its advance (a few
+store round trips, with the first delivery's timing in the attacker's hands).
+
 **Persist, then believe.**  Every store write an accept needs (floor, successor marker,
 the epoch) happens before the policy moves any mark; a failed write leaves memory as it
 was, so the genuine redelivery is accepted once the store is back.
@@ -215,7 +224,13 @@ class EpochVerifier:
         """The policy's order check, with the store's epoch for a prefix the table does
         not hold (caller holds the lock).  True: the store holds none for it."""
         held = self._judge(self.policy.held(claim))
-        stored = None if held else self._current(self._key(claim.kind, claim.prefix.hex()))
+        stored = None
+        if not held:  # the counter, then the floor: see "Several verifiers" above
+            stored = self._current(self._key(claim.kind, claim.prefix.hex()))
+            floor = self._current(self._key(claim.kind, "floor"))
+            if floor is not None:
+                self.policy.tables[claim.kind].raise_fence(floor)
+                self._judge(self.policy.held(claim))
         return self._judge(self.policy.check_order(claim, seen, stored, authentic=authentic))
 
     def _commit(
