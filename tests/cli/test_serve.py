@@ -313,3 +313,31 @@ def test_gateways_on_other_hostnames_share_one_redis_anchor(tmp_path: Path, redi
         assert metric(a, "antireplay_state_data_loss_total", '{backend="sqlite"}') == 1
     finally:
         a.stop()
+
+
+def test_a_lazy_anchors_restart_fence_is_said_like_any_fence(tmp_path: Path) -> None:
+    """A restart inside a lazy anchor's lease refuses commands stamped before the lease's
+    end: it says so (log line, data-loss metric, STATE_LOST audit row naming the lease),
+    and a fresh ESTOP still passes."""
+    (tmp_path / "other").mkdir()
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    written = yaml.safe_load(config.read_text())
+    lazy = {"path": str(tmp_path / "other" / "a.anchor"), "every_ms": 10_000}
+    config.write_text(yaml.safe_dump({**written, "state": {"anchor": lazy}}))
+    key = load_operator_key(state)
+    with serving(config) as first:
+        assert post(first, command(key)).status_code == 200
+    second = GatewayProcess(config)
+    second.start()
+    try:
+        assert post(second, command(key)).status_code == 408
+        estop = post(second, command(key, type=6, safety_event="ESTOP", cmd="estop"))
+        assert estop.status_code == 200, estop.text
+        assert metric(second, "antireplay_state_data_loss_total", '{backend="sqlite"}') == 1
+    finally:
+        second.stop()
+    assert "lazy state anchor's lease" in (second.stderr_text or "")
+    rows = [r for r in AuditLog(state / "audit.db").tail(50) if r.code == "STATE_LOST"]
+    assert len(rows) == 1 and "lease" in str(rows[0].warning)

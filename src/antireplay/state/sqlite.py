@@ -40,9 +40,12 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
   database with state but no witness          witness lost (or made by an older
                                               version): **fence**
   with an anchor (:mod:`.anchor`, outside     a restored copy of the whole directory
-  the directory): the database behind it,     or the anchor lost: **fence** (a lazy
-  of another deployment, missing, or no       anchor also raises a restart fence to
-  anchor for existing state                   its lease's end)
+  the directory), any one copy: the database  or an anchor copy lost: **fence** (a lazy
+  behind it, of another deployment, missing,  anchor also raises a restart fence to
+  or no copy for existing state               its lease's end, said as a fence)
+  an anchor file of another state             refused at start (``StateFileError``)
+  an anchor that cannot be reached            opened unverified: lookups, commits and
+                                              readiness refused until it answers
   a file that is not a readable database,     refused at start (``StateFileError``
   or a stored value that does not decode      names the file and the recovery:
   (a hand-edited row)                         move it aside; the next start fences)
