@@ -446,13 +446,13 @@ def test_each_accept_is_one_store_advance(tmp_path: Path, clock: ManualClock) ->
     verifier = EpochVerifier(PSK, store=store, clock=clock)
     verifier.open(signer.seal(b"first"))  # a new prefix: its epoch and its successor's mark
     advances: list[str] = []
-    advance = store.advance
+    advance = store.advance_above
 
-    def counted(key: str, value: int) -> bool:
+    def counted(key: str, value: int, fence_key: str | None) -> bool:
         advances.append(key)
-        return advance(key, value)
+        return advance(key, value, fence_key)
 
-    store.advance = counted  # type: ignore[method-assign]
+    store.advance_above = counted  # type: ignore[method-assign]
     for i in range(5):
         clock.advance(0.001)
         verifier.open(signer.seal(f"more {i}".encode()))
@@ -595,10 +595,10 @@ class _FlakySqlite(SqliteStore):
 
     down = False
 
-    def advance(self, key: str, value: int) -> bool:
+    def advance_above(self, key: str, value: int, fence_key: str | None) -> bool:
         if self.down:
             raise StateUnavailableError(f"sqlite {self.path}: disk I/O error")
-        return super().advance(key, value)
+        return super().advance_above(key, value, fence_key)
 
 
 def test_failed_store_write_moves_no_mark_and_redelivery_is_accepted(

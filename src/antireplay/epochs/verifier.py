@@ -18,9 +18,11 @@ prefixes (and their successor markers), and the floor refuses every epoch forgot
 verifier reads its counter, *then* the floor, and refuses anything at or below that
 floor.  ``forget`` raises the floor and deletes the counter in one step, so a counter
 read as missing because it was forgotten is always followed by a floor that covers it.
-Not closed: a message never seen before, delivered to both at once, accepted by one and
-then evicted there by a newcomer, all between the other's reads and its advance (a few
-store round trips, with the first delivery's timing in the attacker's hands).
+The epoch itself is then written with ``advance_above`` (one store step: above the
+prefix's counter *and* the floor), which closes the race of a verifier evicting the prefix
+between another's reads and its write, and refuses an epoch of a prefix it holds whose
+counter another verifier forgot.  The price: after another verifier's eviction, a sender
+whose clock runs behind the evicted prefix's last epoch is refused until it passes it.
 
 **Persist, then believe.**  Every store write an accept needs (floor, successor marker,
 the epoch) happens before the policy moves any mark; a failed write leaves memory as it
@@ -247,8 +249,11 @@ class EpochVerifier:
         if admission.new:
             self._write(self._key(kind, "after:" + successor_prefix(prefix).hex()),
                         int.from_bytes(prefix, "big"))  # fmt: skip
-        if not self._write(self._key(kind, prefix.hex()), epoch):
-            raise EpochReplayedError(f"epoch {epoch} already committed to the shared state")
+        fenced = self._key(kind, prefix.hex()), epoch, self._key(kind, "floor")
+        if not self._store_op(lambda: self.store.advance_above(*fenced)):
+            raise EpochReplayedError(
+                f"epoch {epoch} already committed to the shared state, or at or below its floor"
+            )
         if epoch <= self.policy.fence_for(prefix, self.restart_fence()):  # the advance noticed loss
             raise MessageStaleError("the verifier's store lost state", detail="restart_fence")
         self.policy.commit(claim, seen)

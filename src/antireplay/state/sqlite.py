@@ -466,9 +466,19 @@ class SqliteStore:
     def advance(self, key: str, value: int) -> bool:
         """Compare-and-advance a counter; like a commit, it moves the generation and witness
         (so a restored copy of the counters is noticed too)."""
+        return self.advance_above(key, value, None)
+
+    def advance_above(self, key: str, value: int, fence_key: str | None) -> bool:
+        """:meth:`advance`, refused too unless ``value`` is above counter ``fence_key``: one
+        transaction."""
 
         def body(db: sqlite3.Connection) -> tuple[bool, _Meta]:
             meta = self._meta_checked(db)
+            row = None if fence_key is None else db.execute(
+                "SELECT value FROM counters WHERE key = ?", (fence_key,)
+            ).fetchone()  # fmt: skip
+            if row is not None and value <= self._decode(str(fence_key), row[0]):
+                return False, meta
             return self._advance(db, key, value), meta
 
         with self._lock:
