@@ -4,7 +4,9 @@ both) vouches for more; exact and lazy writing; a lost anchor fails closed."""
 
 from __future__ import annotations
 
+import random
 import shutil
+import threading
 import uuid
 from collections.abc import Callable
 from pathlib import Path
@@ -280,6 +282,20 @@ def test_the_redis_anchor_never_goes_back(tmp_path: Path, redis_url: str) -> Non
                                      Anchored(deployment, 9, NOW + 5)}  # fmt: skip
     fast.close()
     slow.close()
+    racers = [StateAnchor(tmp_path / "db", redis_url=redis_url) for _ in range(8)]
+    order = list(range(1, 41))
+    random.Random(5).shuffle(order)
+    threads = [
+        threading.Thread(target=racers[g % 8].advance, args=(deployment, 10 + g, NOW + g))
+        for g in order
+    ]  # real threads, eight connections, landing in whatever order they land
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert list(racers[0].read(deployment).values()) == [Anchored(deployment, 50, NOW + 40)]
+    for racer in racers:
+        racer.close()
 
 
 @pytest.mark.parametrize("flushed", ["redis", "file"])
