@@ -201,6 +201,7 @@ def test_config_check_names_the_anchor_and_refuses_a_bad_one(
         (f"{head}/dev/null\n", "not on a real filesystem"),
         (f"{head}/proc/self/anchor\n", "not on a real filesystem"),
         (f"{head}other/notes.txt\n", "not a state anchor"),
+        (f"{head}{other}/a\n    every_ms: 60000\n", "state.anchor.every_ms"),
     ):
         said = config_check(tmp_path, monkeypatch, bad)
         one_line_error(said, needle)
