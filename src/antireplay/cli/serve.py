@@ -93,8 +93,6 @@ def serve(  # noqa: PLR0917 - one option per knob
         _fail(str(exc))
     except sqlite3.DatabaseError as exc:
         _fail(f"{config.audit} or {config.store}: {exc}")
-    except StateUnavailableError as exc:  # the state anchor cannot be read: no loss check
-        _fail(str(exc))
     log_config: dict[str, Any] = json.loads(json.dumps(LOGGING_CONFIG))  # a deep copy
     log_config["loggers"]["uvicorn.error"]["level"] = "WARNING"
     settings = uvicorn.Config(
@@ -179,7 +177,7 @@ def config_check(path: Path, verbose: bool) -> None:
         anchor = build_anchor(cfg)
         if anchor is not None:
             try:
-                anchor.read()  # reaches it, read-only, as serve's open-time loss check does
+                anchor.ping()  # reaches it (serve would start unready without it)
             finally:
                 anchor.close()
     except (ConfigError, StateUnavailableError) as exc:
