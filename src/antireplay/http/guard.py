@@ -187,9 +187,7 @@ class Checkpoint:
             return Refused(raw.http_status, raw.to_nack(None, nack_type=self.nack_type))
         started = self._ticker.monotonic()
         headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
-        outcome = await self.receiver.receive_async(
-            raw, headers, self.workers, self.workers.first
-        )
+        outcome = await self.receiver.receive_async(raw, headers, self.workers, self.workers.first)
         self.metrics.observe(outcome, self._ticker.monotonic() - started)
         if outcome.retry is not None:
             return Refused.retry(outcome.retry)

@@ -7,8 +7,9 @@ and runs the replay check on the loop (cheap, no I/O it waits for) and hands a m
 that needs cryptography to :class:`Workers` once: ``workers(fn, *args)`` returns an
 asyncio future.  Thread traffic is what costs here, not the hand-off's bookkeeping, so:
 
-* **Wake-ups:** a job is queued under one lock; a worker is woken only when one is idle
-  and none is already on its way (a busy worker takes the job when it looks again).
+* **Wake-ups:** the jobs a loop iteration submits are queued together when it ends,
+  under one lock, and wake one worker only when one is idle and none is already on its
+  way (a busy worker takes them when it looks again).
 * **Batches:** an awake worker takes up to ``batch`` jobs, runs them and delivers their
   results to the loop with ONE ``call_soon_threadsafe`` (one loop wake-up per batch, not
   per request).  A quiet gateway's batch is one job: no added latency.
@@ -38,7 +39,7 @@ _Result = tuple["asyncio.Future[Any]", Any, BaseException | None]
 class Workers:
     """The threads that check signatures for the event loop (see the module docstring)."""
 
-    def __init__(self, count: int = 2, *, batch: int = 8) -> None:
+    def __init__(self, count: int = 1, *, batch: int = 8) -> None:
         self.batch = batch
         self._ready = threading.Condition(threading.Lock())
         self._jobs: collections.deque[_Job] = collections.deque()
@@ -46,6 +47,9 @@ class Workers:
         self._idle = 0  # workers waiting for a job
         self._waking = 0  # of them, notified and not yet running
         self._closed = False
+        #: The jobs each loop's current iteration submitted (queued when it ends).
+        self._held: dict[asyncio.AbstractEventLoop, list[tuple[collections.deque[_Job], _Job]]]
+        self._held = {}
         #: Loop wake-ups (result deliveries) and jobs run, for tests and benchmarks.
         self.deliveries = 0
         self.jobs = 0
@@ -69,14 +73,25 @@ class Workers:
     ) -> asyncio.Future[Any]:
         loop = asyncio.get_running_loop()
         future = loop.create_future()
+        if self._closed:
+            raise RuntimeError("workers shut down")
+        held = self._held.get(loop)
+        if held is None:  # the first job of this loop iteration: queued when it ends
+            held = self._held[loop] = []
+            loop.call_soon(self._flush, loop)
+        held.append((lane, (loop, future, fn, args)))
+        return future
+
+    def _flush(self, loop: asyncio.AbstractEventLoop) -> None:
+        """On the loop, once per iteration: queue the jobs its callbacks submitted, and
+        wake one idle worker for all of them."""
+        held = self._held.pop(loop)
         with self._ready:
-            if self._closed:
-                raise RuntimeError("workers shut down")
-            lane.append((loop, future, fn, args))
+            for lane, job in held:
+                lane.append(job)
             if self._idle > self._waking:  # one idle worker is enough to wake
                 self._waking += 1
                 self._ready.notify()
-        return future
 
     def _take(self) -> tuple[list[_Job], bool] | None:
         """The next batch and whether it is urgent (one lane per batch, the urgent lane
