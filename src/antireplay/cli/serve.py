@@ -150,8 +150,8 @@ def serve(  # noqa: PLR0917 - one option per knob
         uvicorn.Server(settings).run(sockets=[sock])
         return
     _release(app)  # it only checked the configuration: each worker builds its own
-    where = {"config": config_path, "state_dir": state_dir}
-    os.environ[_SERVE_ENV] = json.dumps(where, default=str)
+    building = {"config": config_path, "state_dir": state_dir}
+    os.environ[_SERVE_ENV] = json.dumps(building, default=str)
     settings = uvicorn.Config(
         f"{__name__}:worker_app", factory=True, workers=workers, log_config=log_config,
         access_log=access_log, timeout_graceful_shutdown=10,
