@@ -116,3 +116,15 @@ def test_shutdown_finishes_queued_jobs_and_then_refuses_new_ones() -> None:
 
     with pytest.raises(RuntimeError, match="shut down"):
         asyncio.run(late())
+
+
+def test_jobs_submitted_as_the_workers_shut_down_fail_instead_of_hanging() -> None:
+    workers = Workers(1)
+
+    async def scenario() -> None:
+        job = workers(abs, -1)  # queued when this iteration ends: after the shutdown
+        workers.shutdown()
+        with pytest.raises(RuntimeError, match="shut down"):
+            await job
+
+    asyncio.run(scenario())

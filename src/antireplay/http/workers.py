@@ -87,11 +87,14 @@ class Workers:
         wake one idle worker for all of them."""
         held = self._held.pop(loop)
         with self._ready:
-            for lane, job in held:
+            closed = self._closed  # shut down since: nobody would run them
+            for lane, job in () if closed else held:
                 lane.append(job)
             if self._idle > self._waking:  # one idle worker is enough to wake
                 self._waking += 1
                 self._ready.notify()
+        if closed:
+            _resolve([(job[1], None, RuntimeError("workers shut down")) for _, job in held])
 
     def _take(self) -> tuple[list[_Job], bool] | None:
         """The next batch and whether it is urgent (one lane per batch, the urgent lane

@@ -1,5 +1,8 @@
 """The RCAN receive drivers: one sans-I/O core (:mod:`~antireplay.rcan.steps`), two drivers.
 
+Size: the thread driver and the event-loop driver share every piece of I/O between the
+core's calls (the check, the commit, the audit row, the memos); apart, each would copy it.
+
 Theory of operation
 -------------------
 :class:`Receiver` runs RCAN §8.3's check -> authenticate -> commit through
