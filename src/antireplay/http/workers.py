@@ -17,7 +17,10 @@ asyncio future.  Thread traffic is what costs here, not the hand-off's bookkeepi
   queued apart and always taken first.  A worker looks for one between the jobs of its
   batch: when it finds one, it puts the rest of its batch back at the head of the queue,
   delivers what it has, and runs the urgent job next, so an ESTOP waits for at most the
-  job each worker is running, never behind a flood's backlog.
+  job each worker is running, never behind a flood's backlog.  The class is read before
+  the signature is checked: a forged SAFETY message also takes the lane, and is refused
+  there at the cost of one signature check (a captured ESTOP replayed is refused by the
+  replay check first, on the loop, where the store answers in process).
 
 A future already cancelled (the client went away) is left alone; a closed loop has
 nobody left to answer.  ``shutdown`` lets the queued jobs finish, then stops the threads.

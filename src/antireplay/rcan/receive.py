@@ -255,8 +255,9 @@ class Receiver:
         replay check runs on the loop where the store answers in process (memory, SQLite),
         so a known replay is refused with no hand-off; the rest (the signature, and a
         network store's check) is one job in ``offload(fn, *args)`` (default: the loop's
-        executor), a fresh SAFETY message's in ``urgent`` (the lane taken first).  The
-        store's ``commit_async`` and every audit row are awaited on the loop."""
+        executor), a fresh SAFETY message's in ``urgent`` (the lane taken first; on a
+        network store, chosen before its check).  The store's ``commit_async`` and every
+        audit row are awaited on the loop."""
         pending = self.reject_known_copy(raw)
         if pending is not None:
             return pending
