@@ -8,6 +8,8 @@ import socket
 import sqlite3
 import subprocess
 import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import httpx
@@ -20,7 +22,7 @@ from antireplay.cli import main
 from antireplay.cli._common import importable_cwd
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import GatewayProcess, metric, one_line_error, post, serving
+from tests.harness import GatewayProcess, free_port, metric, one_line_error, post, serving, until
 from tests.harness.redis_server import RedisServer
 
 
@@ -342,3 +344,117 @@ def test_a_lazy_anchors_restart_fence_is_said_like_any_fence(tmp_path: Path) -> 
     assert "lazy state anchor's lease" in (second.stderr_text or "")
     rows = [r for r in AuditLog(state / "audit.db").tail(50) if r.code == "STATE_LOST"]
     assert len(rows) == 1 and "lease" in str(rows[0].warning)
+
+
+def _race(urls: list[str], raw: bytes, connections: int) -> list[int]:
+    """``connections`` clients, each on its own connection to one of ``urls`` (in turn),
+    POST ``raw`` at once; their statuses."""
+    clients = [httpx.Client(base_url=urls[i % len(urls)], timeout=30) for i in range(connections)]
+    for client in clients:  # connected before the race
+        client.get("/healthz").raise_for_status()
+    gate = threading.Barrier(connections)
+
+    def send(client: httpx.Client) -> int:
+        gate.wait()
+        return post(client, raw).status_code
+
+    try:
+        with ThreadPoolExecutor(connections) as pool:
+            return list(pool.map(send, clients))
+    finally:
+        for client in clients:
+            client.close()
+
+
+def _audit_intact(state: Path) -> str:
+    verified = CliRunner().invoke(main, ["audit", "verify", str(state / "audit.db")])
+    assert verified.exit_code == 0, verified.output
+    return verified.output
+
+
+def test_two_gateway_processes_on_one_state_accept_a_message_once_and_keep_one_chain(
+    tmp_path: Path,
+) -> None:
+    """Two ``antireplay serve`` processes on one SQLite state and one audit trail, sent
+    the same messages at once over 24 connections split between them: each message is
+    accepted exactly once, every answer audited, and the trail is one intact chain."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    a, b = GatewayProcess(config), GatewayProcess(config)
+    a.start()
+    b.start()
+    try:
+        messages = [command(key) for _ in range(8)]
+        for raw in messages:
+            statuses = _race([a.url, b.url], raw, 24)
+            assert sorted(statuses) == [200] + [409] * 23, statuses
+    finally:
+        a.stop()
+        b.stop()
+    _audit_intact(state)
+    rows = AuditLog(state / "audit.db").tail(500)
+    assert sum(r.outcome == "accepted" for r in rows) == len(messages)
+
+
+def _workers_of(pid: int) -> list[int]:
+    """The gateway worker processes uvicorn's supervisor ``pid`` spawned."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            ppid = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (proc / "cmdline").read_bytes()
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue
+        if ppid == pid and b"spawn_main" in cmdline:
+            found.append(int(proc.name))
+    return found
+
+
+def test_serve_workers_runs_n_processes_that_accept_a_message_once(tmp_path: Path) -> None:
+    """``serve --workers 2``: two worker processes on the one socket; racing copies of a
+    message over many connections get exactly one 200; the trail verifies."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    port = free_port()
+    args = [sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
+    proc = subprocess.Popen(
+        [*args, "--port", str(port), "--workers", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    url = f"http://127.0.0.1:{port}"
+    try:
+        until("serving", lambda: len(_workers_of(proc.pid)) == 2 and _healthy(url), 60)
+        for _ in range(4):
+            statuses = _race([url], command(key), 32)
+            assert sorted(statuses) == [200] + [409] * 31, statuses
+    finally:
+        proc.terminate()
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err.decode()
+    assert b"2 worker processes (metrics per process)" in out
+    _audit_intact(state)
+
+
+def _healthy(url: str) -> bool:
+    try:
+        return httpx.get(url + "/healthz", timeout=1).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def test_serve_workers_refuses_the_memory_store(tmp_path: Path) -> None:
+    """One process's memory is not shared: --workers 2 on a memory store is one line."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    written = yaml.safe_load(config.read_text())
+    config.write_text(yaml.safe_dump({**written, "store": "memory"}))
+    result = CliRunner().invoke(main, ["serve", "--config", str(config), "--workers", "2"])
+    assert result.exit_code == 2
+    one_line_error(result, "store", "memory", "--workers")
