@@ -65,10 +65,11 @@ _COMMIT: Final = "commit"
 _Op = tuple[str, float, float, bool]
 
 _SCRIPT = """
--- ARGV: 1 mode (commit | advance | forget | verify), 2 now (a batch's latest), 3 skew,
---       4 floor ("nothing yet"), then: commit: 3 per entry (see below); advance, forget:
---       5 the counter value.  KEYS: 1 meta, then commit: the entries; advance, forget: 2
---       the counter, 3.. the counters to forget.
+-- ARGV: 1 mode (commit | advance | above | forget | verify), 2 now (a batch's latest),
+--       3 skew, 4 floor ("nothing yet"), then: commit: 3 per entry (see below); advance,
+--       above, forget: 5 the counter value.  KEYS: 1 meta, then commit: the entries;
+--       advance, above, forget: 2 the counter, 3.. the counters to forget (above: 3 the
+--       fence counter).
 local info = redis.call('INFO', 'server', 'memory', 'stats', 'replication')
 -- A field of INFO (a plain find: a pattern scan of the whole text costs far more).
 local function field(name)
@@ -146,6 +147,10 @@ end
 local cur = redis.call('GET', KEYS[2])
 if ARGV[1] == 'forget' then
   for i = 3, #KEYS do if KEYS[i] ~= KEYS[2] then redis.call('DEL', KEYS[i]) end end
+end
+if ARGV[1] == 'above' then
+  local over = redis.call('GET', KEYS[3])
+  if over and over >= ARGV[5] then return {0, cur or false, fence, wm, lost} end
 end
 if cur and cur >= ARGV[5] then return {0, cur, fence, wm, lost} end
 redis.call('SET', KEYS[2], ARGV[5])
@@ -335,6 +340,10 @@ class RedisStore:
     def advance(self, key: str, value: int) -> bool:
         """Compare-and-advance, with the same loss and eviction checks as a commit."""
         return self._counter("advance", key, value).recorded
+
+    def advance_above(self, key: str, value: int, fence_key: str) -> bool:
+        """:meth:`advance` iff ``value`` is also above counter ``fence_key`` (one script)."""
+        return self._counter("above", key, value, [f"{self._base}c:{fence_key}"]).recorded
 
     def forget(self, keys: Sequence[str], fence_key: str, fence: int) -> None:
         """Atomically advance counter ``fence_key`` to at least ``fence`` and delete the
