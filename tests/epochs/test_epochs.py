@@ -8,6 +8,7 @@ import json
 import os
 import sqlite3
 import uuid
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -594,11 +595,17 @@ class _FlakySqlite(SqliteStore):
     """A real SQLite store whose writes fail while ``down`` (a full disk, a lost mount)."""
 
     down = False
+    forget_down = False
 
     def advance_above(self, key: str, value: int, fence_key: str | None) -> bool:
         if self.down:
             raise StateUnavailableError(f"sqlite {self.path}: disk I/O error")
         return super().advance_above(key, value, fence_key)
+
+    def forget(self, keys: Sequence[str], fence_key: str, fence: int) -> None:
+        if self.down or self.forget_down:
+            raise StateUnavailableError(f"sqlite {self.path}: disk I/O error")
+        super().forget(keys, fence_key, fence)
 
 
 def test_failed_store_write_moves_no_mark_and_redelivery_is_accepted(
@@ -867,20 +874,21 @@ def test_forgotten_prefixes_leave_no_counters_and_stay_refused(
     reopened.close()
 
 
-def test_forget_persists_the_floor_before_the_table_moves(clock: ManualClock) -> None:
-    """Persist, then believe: a failed forget leaves the table holding the old prefix."""
-    verifier = verifier_on(clock, max_prefixes=1)
+def test_forget_persists_the_floor_before_the_table_moves(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """Persist, then believe: a failed forget leaves the table holding the old prefix (a
+    real store whose forget fails, not a patched one: the memory store is compiled)."""
+    store = _FlakySqlite(tmp_path / "verifier.db", clock=clock)
+    verifier = EpochVerifier(PSK, store=store, clock=clock, max_prefixes=1)
     first, second = EpochSigner(PSK, clock=clock), EpochSigner(PSK, clock=clock)
     held = verifier.open(first.seal(b"a")).nonce_prefix
     clock.advance(1)
-
-    def down(keys: object, fence_key: str, fence: int) -> None:
-        raise StateUnavailableError("store down")
-
-    verifier.store.forget = down  # type: ignore[method-assign]
+    store.forget_down = True
     with pytest.raises(StateUnavailableError):
         verifier.open(second.seal(b"b"))
     assert verifier.last(held) is not None
+    store.close()
 
 
 @pytest.mark.parametrize("backend", ["sqlite", "redis"])
