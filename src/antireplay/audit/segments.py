@@ -198,7 +198,7 @@ def compare(path: Path, live: sqlite3.Connection, checkpoint: Checkpoint) -> str
 #: The table where a trail drained from an outbox keeps the highest id it moved.
 MARK_SCHEMA = (
     "CREATE TABLE IF NOT EXISTS outbox_moved"
-    " (id INTEGER PRIMARY KEY CHECK (id = 1), moved INTEGER NOT NULL)"
+    " (id INTEGER PRIMARY KEY CHECK (id = 1), epoch TEXT, moved INTEGER NOT NULL)"
 )
 
 
@@ -243,7 +243,7 @@ def seal(db: sqlite3.Connection) -> bool:
     return str(mode).lower() == "delete"
 
 
-def prepare(path: Path, link: Link, moved: int | None = None) -> None:
+def prepare(path: Path, link: Link, moved: tuple[str | None, int] | None = None) -> None:
     """Write the next segment, whole and fsynced, at ``PATH.next`` (not yet live);
     ``moved``: the outbox mark it carries on (:mod:`.writer`)."""
     target = next_path(path)
@@ -257,7 +257,7 @@ def prepare(path: Path, link: Link, moved: int | None = None) -> None:
         )
         if moved is not None:
             db.execute(MARK_SCHEMA)
-            db.execute("INSERT INTO outbox_moved VALUES (1, ?)", (moved,))
+            db.execute("INSERT INTO outbox_moved VALUES (1, ?, ?)", moved)
     finally:
         db.close()
 

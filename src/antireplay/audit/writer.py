@@ -50,7 +50,7 @@ from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AuditFileError, StateUnavailableError
 from antireplay.state.durable import file_identity
 from antireplay.state.groupcommit import GroupCommitter
-from antireplay.state.outbox import Outbox
+from antireplay.state.outbox import Mark, Outbox
 
 log = logging.getLogger("antireplay.audit")
 #: A queued "move what the outbox holds" (no row of its own).
@@ -65,7 +65,7 @@ class _Appended(NamedTuple):
     the time of its first row."""
 
     moved: int
-    mark: int
+    mark: Mark
     first: int
     rows: int
     head: str
@@ -136,7 +136,8 @@ class AuditLog:
         self._live_since = self._first_at()
         self._outbox: Outbox | None = None
         self._drain_queued = False
-        self._forgotten = 0
+        self._forgotten: Mark = (None, 0)
+        self._last_moved = 0
         self._spill = self._open_spill(spill_path, spill_slots)
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
@@ -360,6 +361,7 @@ class AuditLog:
                 except (sqlite3.Error, OSError, AuditFileError) as exc:
                     why = str(exc)
                 self._postponed(why)
+            self._last_moved = done.moved
             if done.moved == DRAIN_BATCH:
                 self._wake()  # more waiting: drain on
             seqs = iter(range(done.first, done.rows + 1))
@@ -384,11 +386,12 @@ class AuditLog:
             log.error("audit trail %s %s; refusing to append", self.path, problem)
             raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
         moved: list[tuple[int, dict[str, Any]]] = []
-        mark = 0
+        mark: Mark = (None, 0)
         if self._outbox is not None:
             self._drain_queued = False  # a row put from now on wakes another drain
             mark = _mark(db)
-            moved = self._outbox.pending(mark, DRAIN_BATCH)
+            epoch, moved = self._outbox.pending(mark, DRAIN_BATCH)
+            mark = (epoch, mark[1] if mark[0] == epoch else 0)
         seq, prev = _last(db)
         rows = [*spilled, *(fields for _, fields in moved), *direct]
         first, values = seq + 1 + len(spilled) + len(moved), []
@@ -400,8 +403,8 @@ class AuditLog:
             prev = digest
         db.executemany("INSERT INTO audit VALUES (?,?,?,?,?,?,?,?,?,?,?)", values)
         if moved:
-            mark = moved[-1][0]
-            db.execute("INSERT OR REPLACE INTO outbox_moved VALUES (1, ?)", (mark,))
+            mark = (mark[0], moved[-1][0])
+            db.execute("INSERT OR REPLACE INTO outbox_moved VALUES (1, ?, ?)", mark)
         return _Appended(len(moved), mark, first, seq, prev, rows[0]["at"] if rows else None)
 
     # --- the state store's outbox (state/outbox.py): drained into the chain ------------------
@@ -417,14 +420,20 @@ class AuditLog:
         outbox.on_rows = self._wake
 
     def drain(self) -> None:
-        """Move everything the outbox holds into the trail now, durably."""
+        """Move everything the outbox holds into the trail now, durably (a database behind
+        the trail's mark gets a new epoch first: see :mod:`antireplay.state.outbox`)."""
         if self._outbox is None:
             return
-        while len(self._outbox.pending(self._forgotten, DRAIN_BATCH)) > 0:
-            before = self._forgotten
+        with self._lock:
+            mark = _mark(self._db)
+        if self._outbox.behind(mark):
+            log.warning("audit outbox of %s is behind the trail's mark: new epoch",
+                        self._outbox.store.path)  # fmt: skip
+            self._outbox.renew().result()
+        while True:
             self._write_batch([_DRAIN], sync=True)
-            if self._forgotten == before:
-                break
+            if self._last_moved < DRAIN_BATCH:
+                return
 
     def _wake(self) -> None:
         """Rows were put in the outbox: queue one drain (called on the store's writer)."""
@@ -434,9 +443,10 @@ class AuditLog:
         with contextlib.suppress(RuntimeError):  # closing: the close drains
             self._committer.enqueue(_DRAIN)
 
-    def _forget(self, outbox: Outbox, mark: int) -> None:
-        """The trail holds rows up to ``mark`` durably: delete them from the outbox."""
-        if mark <= self._forgotten:
+    def _forget(self, outbox: Outbox, mark: Mark) -> None:
+        """The trail holds rows up to ``mark`` durably: delete them from the outbox (of
+        that epoch: the delete names it)."""
+        if mark == self._forgotten or mark[1] == 0:
             return
         self._forgotten = mark
         self._forget_point()
@@ -511,7 +521,8 @@ class AuditLog:
             self._db.execute("BEGIN IMMEDIATE")  # another writer waits, then sees the new name
             self._rotation_point("sealed")
             following = self.anchor.link(self._key, self._link.n + 1, self._rows + 1, self._head)
-            segments.prepare(self.path, following, _mark(self._db) or None)
+            mark = _mark(self._db)
+            segments.prepare(self.path, following, mark if mark[0] is not None else None)
             self._rotation_point("prepared")
             old = segments.publish(self.path, self._link.n)
         except BaseException:
@@ -636,10 +647,10 @@ def _rows_in(path: Path) -> int:
     return 0
 
 
-def _mark(db: sqlite3.Connection) -> int:
-    """The highest outbox id the trail holds (0: none yet, or no outbox used here)."""
+def _mark(db: sqlite3.Connection) -> Mark:
+    """The outbox epoch and highest id the trail holds (``(None, 0)``: never drained)."""
     try:
-        row = db.execute("SELECT moved FROM outbox_moved").fetchone()
+        row = db.execute("SELECT epoch, moved FROM outbox_moved").fetchone()
     except sqlite3.OperationalError:  # no such table: never drained into
-        return 0
-    return 0 if row is None else int(row[0])
+        return None, 0
+    return (None, 0) if row is None else (row[0], int(row[1]))

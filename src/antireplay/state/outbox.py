@@ -22,6 +22,11 @@ every other caller's of that batch) are made durable by one WAL fsync.
   once the trail's copy is durable it deletes them here (:meth:`Outbox.forget`).  Ids
   are ``AUTOINCREMENT``: never reused, and committed in increasing order under the
   database's write lock, so several processes sharing one file drain one sequence.
+* **Epochs.**  Ids count within one database: a new one (deleted, replaced) starts
+  again at 1.  So the outbox has a random ``epoch`` and the trail's mark names it; a mark
+  of another epoch counts as nothing moved.  A database found *behind* the mark (its
+  highest id ever below it: a restored copy) gets a new epoch at the drain's start, so
+  the rows it puts from then on are moved, never skipped.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ from __future__ import annotations
 import asyncio
 import json
 import sqlite3
+import uuid
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -37,9 +43,16 @@ from typing import TYPE_CHECKING, Any, Final
 if TYPE_CHECKING:
     from antireplay.state.sqlite import SqliteStore
 
-SCHEMA: Final = (
-    "CREATE TABLE IF NOT EXISTS outbox (id INTEGER PRIMARY KEY AUTOINCREMENT, row TEXT NOT NULL)"
-)
+SCHEMA: Final = """
+CREATE TABLE IF NOT EXISTS outbox (id INTEGER PRIMARY KEY AUTOINCREMENT, row TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS outbox_epoch (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    epoch TEXT NOT NULL
+);
+INSERT OR IGNORE INTO outbox_epoch VALUES (1, lower(hex(randomblob(16))));
+"""
+#: Where the trail stands in one outbox: its epoch and the highest id moved.
+Mark = tuple[str | None, int]
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,13 +68,28 @@ class Put:
 
 @dataclass(frozen=True, slots=True)
 class Forget:
-    """Delete the rows up to ``upto``: the trail holds them durably."""
+    """Delete the rows up to ``mark`` (if still of its epoch): the trail holds them durably."""
 
-    upto: int
+    mark: Mark
     durable: bool = False
 
     def apply(self, db: sqlite3.Connection) -> int:
-        return db.execute("DELETE FROM outbox WHERE id <= ?", (self.upto,)).rowcount
+        epoch, upto = self.mark
+        return db.execute(
+            "DELETE FROM outbox WHERE id <= ? AND (SELECT epoch FROM outbox_epoch) = ?",
+            (upto, epoch),
+        ).rowcount
+
+
+@dataclass(frozen=True, slots=True)
+class Renew:
+    """Start a new epoch: the trail's mark no longer applies to this database."""
+
+    epoch: str
+    durable: bool = True
+
+    def apply(self, db: sqlite3.Connection) -> int:
+        return db.execute("UPDATE outbox_epoch SET epoch = ?", (self.epoch,)).rowcount
 
 
 class Outbox:
@@ -80,20 +108,37 @@ class Outbox:
         """:meth:`put` from a running event loop (no thread held)."""
         return self.store.enqueue_outbox_async(Put(json.dumps(row), durable))
 
-    def pending(self, after: int, limit: int) -> list[tuple[int, dict[str, Any]]]:
-        """Committed rows with an id above ``after``, oldest first (at most ``limit``)."""
+    def pending(self, mark: Mark, limit: int) -> tuple[str, list[tuple[int, dict[str, Any]]]]:
+        """This outbox's epoch and its committed rows above ``mark``, oldest first (at most
+        ``limit``; all of them if the mark is of another epoch)."""
 
-        def query(db: sqlite3.Connection) -> list[tuple[int, dict[str, Any]]]:
+        def query(db: sqlite3.Connection) -> tuple[str, list[tuple[int, dict[str, Any]]]]:
+            (epoch,) = db.execute("SELECT epoch FROM outbox_epoch").fetchone()
+            after = mark[1] if mark[0] == epoch else 0
             found = db.execute(
                 "SELECT id, row FROM outbox WHERE id > ? ORDER BY id LIMIT ?", (after, limit)
             ).fetchall()
-            return [(int(i), json.loads(text)) for i, text in found]
+            return str(epoch), [(int(i), json.loads(text)) for i, text in found]
 
         return self.store.read_outbox(query)
 
-    def forget(self, upto: int) -> Future[int]:
-        """Delete the rows up to ``upto`` with the store's next batch (no fsync of its own)."""
-        return self.store.enqueue_outbox(Forget(upto))
+    def behind(self, mark: Mark) -> bool:
+        """Whether this database never reached ``mark`` of its own epoch (a restored copy)."""
+
+        def query(db: sqlite3.Connection) -> bool:
+            (epoch,) = db.execute("SELECT epoch FROM outbox_epoch").fetchone()
+            top = db.execute("SELECT seq FROM sqlite_sequence WHERE name = 'outbox'").fetchone()
+            return mark[0] == epoch and (0 if top is None else int(top[0])) < mark[1]
+
+        return self.store.read_outbox(query)
+
+    def renew(self) -> Future[int]:
+        """Give the outbox a new epoch (its rows are all moved again, none skipped)."""
+        return self.store.enqueue_outbox(Renew(uuid.uuid4().hex))
+
+    def forget(self, mark: Mark) -> Future[int]:
+        """Delete the rows up to ``mark`` with the store's next batch (no fsync of its own)."""
+        return self.store.enqueue_outbox(Forget(mark))
 
     def count(self) -> int:
         """Rows waiting to be moved (or moved but not yet durable in the trail)."""

@@ -90,7 +90,7 @@ from antireplay.state.contract import Offload
 from antireplay.state.durable import Witness, file_identity
 from antireplay.state.groupcommit import GroupCommitter
 from antireplay.state.outbox import SCHEMA as _OUTBOX_SCHEMA
-from antireplay.state.outbox import Forget, Outbox, Put
+from antireplay.state.outbox import Forget, Outbox, Put, Renew
 
 T = TypeVar("T")
 log = logging.getLogger("antireplay.state.sqlite")
@@ -120,7 +120,7 @@ _SEEN_UNDECODABLE = "SELECT key, expires FROM seen WHERE expires >= '' LIMIT 1"
 #: One queued seen-set commit: key, expires_at, now, force.
 _Record = tuple[str, float, float, bool]
 #: What the writer takes: a seen-set commit or an outbox row (or its deletion).
-_Op = _Record | Put | Forget
+_Op = _Record | Put | Forget | Renew
 #: How long the witness may go without an fdatasync while commits move it (see docstring).
 WITNESS_SYNC_S: Final = 1.0
 #: The meta row as a transaction read it: generation, watermark, fence, data-loss events.
@@ -191,7 +191,7 @@ class SqliteStore:
                 db.execute("PRAGMA journal_mode=WAL")
                 db.execute("PRAGMA synchronous=FULL")
                 db.executescript(_SCHEMA)
-                db.execute(_OUTBOX_SCHEMA)
+                db.executescript(_OUTBOX_SCHEMA)
                 return db
             except sqlite3.OperationalError as exc:
                 if "locked" not in str(exc) or time.monotonic() > deadline:
@@ -401,7 +401,7 @@ class SqliteStore:
         durable outbox row, whose fsync makes the entry durable too, before the answer."""
         self._defer = True
 
-    def enqueue_outbox(self, op: Put | Forget) -> Future[int]:
+    def enqueue_outbox(self, op: Put | Forget | Renew) -> Future[int]:
         """Queue an outbox operation with the next batch (:class:`~.outbox.Outbox`)."""
         return cast("Future[int]", self._committer.enqueue(op))
 
