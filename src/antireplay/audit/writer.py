@@ -316,6 +316,8 @@ class AuditLog:
         })  # fmt: skip
         if self._outbox is not None:
             sync = outcome == "accepted" if durable is None else durable
+            if file_identity(self.path) != self._file:  # the row would wait for a lost trail
+                return _failed(self._gone(), on_loop=on_loop)
             if on_loop:
                 return self._outbox.put_async(row, durable=sync)
             return self._outbox.put(row, durable=sync)
@@ -367,6 +369,13 @@ class AuditLog:
             seqs = iter(range(done.first, done.rows + 1))
             return [0 if fields is _DRAIN else next(seqs) for fields in batch]
 
+    def _gone(self) -> AuditFileError:
+        """The error of a trail deleted or replaced under this writer."""
+        return AuditFileError(
+            str(self.path), "deleted or replaced under the running writer",
+            recovery=f"stop it, restore {self.path} or see antireplay audit reanchor",
+        )  # fmt: skip
+
     def _append(
         self, db: sqlite3.Connection, spilled: list[dict[str, Any]], direct: list[dict[str, Any]]
     ) -> _Appended:
@@ -374,10 +383,7 @@ class AuditLog:
         spilled rows, the outbox's above the mark (moving the mark) and ``direct``."""
         if file_identity(self.path) != self._file:  # rows written now would be lost
             log.error("audit trail %s deleted or replaced; refusing to append", self.path)
-            raise AuditFileError(
-                str(self.path), "deleted or replaced under the running writer",
-                recovery=f"stop it, restore {self.path} or see antireplay audit reanchor",
-            )  # fmt: skip
+            raise self._gone()
         # Rows deleted or rewritten under a running writer must not be adopted by its next
         # checkpoint: the chain must still hold what this writer wrote (another writer may
         # have extended it).
@@ -604,6 +610,9 @@ class AuditLog:
         """Write what is queued (and what is spilled, if the trail takes it now), make the
         head durable, then close."""
         self._committer.close()
+        if self._outbox is not None:  # rows still queued in the store's writer: in first
+            with contextlib.suppress(RuntimeError, StateUnavailableError):
+                self._outbox.flush()
         if self.spilled or self._outbox is not None:
             with contextlib.suppress(sqlite3.Error, OSError, AuditFileError, StateUnavailableError):
                 self._write_batch([], sync=True)  # else merged (or drained) at the next start
@@ -654,3 +663,11 @@ def _mark(db: sqlite3.Connection) -> Mark:
     except sqlite3.OperationalError:  # no such table: never drained into
         return None, 0
     return (None, 0) if row is None else (row[0], int(row[1]))
+
+
+def _failed(error: BaseException, *, on_loop: bool) -> Future[int] | asyncio.Future[int]:
+    """A queued row's future that has already failed with ``error``."""
+    future: Future[int] | asyncio.Future[int]
+    future = asyncio.get_running_loop().create_future() if on_loop else Future()
+    future.set_exception(error)
+    return future

@@ -140,6 +140,10 @@ class Outbox:
         """Delete the rows up to ``mark`` with the store's next batch (no fsync of its own)."""
         return self.store.enqueue_outbox(Forget(mark))
 
+    def flush(self) -> None:
+        """Return once every row queued so far is committed (the writer's queue is FIFO)."""
+        self.forget((None, 0)).result()
+
     def count(self) -> int:
         """Rows waiting to be moved (or moved but not yet durable in the trail)."""
         return self.store.read_outbox(

@@ -10,9 +10,12 @@ WAL journal with ``synchronous=FULL``: a ``commit`` returns only after its
 transaction is durable, so a message accepted before a crash is still
 remembered after it.  Commits are **group-committed**
 (:mod:`antireplay.state.groupcommit`): concurrent callers' records share one
-transaction, one WAL fsync and one witness write, each caller answered once its
-own record is durable.  Several processes may share one file; SQLite's write
-lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
+transaction and one WAL fsync, each caller answered once its own record is
+durable.  With an audit outbox (:mod:`.outbox`) the batch also carries audit rows,
+and entries may be *deferred* (``synchronous=NORMAL``) to the accepted row that
+follows each, whose batch's fsync covers both: one fsync per batch, not three.
+Several processes may share one file; SQLite's write lock (``BEGIN IMMEDIATE``)
+makes each batch and ``advance`` atomic across them.
 
 * **Entries live to their own expiry; early removal raises the watermark.**
   Each commit purges at most ``PURGE_BATCH`` rows whose expiry is below the
@@ -23,7 +26,12 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
 * **A lost, truncated, replaced or rolled-back file is detected.**  Beside the
   database lives a small **witness** file (``<db>.witness``): a deployment id
   and a generation (plus the highest wall time of any commit), rewritten in
-  place and ``fdatasync``-ed inside every write transaction, before its COMMIT.
+  place after each durable COMMIT with the generation that COMMIT made durable,
+  and ``fdatasync``-ed at most every :data:`WITNESS_SYNC_S` (and at open and
+  close).  So it is never ahead of the database, not even after a power cut (no
+  false alarm); a ``kill -9`` loses nothing written; a power cut may leave it an
+  older genuine generation, which only under-claims: a copy restored between the
+  two is what the anchor (below) is for.
   Its name is hidden (``.state.db.witness``) so that ``rm state.db*`` does not
   take it along.  While running, a database whose generation falls below the
   one this process last wrote was rolled back under it (a live restore): also
@@ -52,9 +60,7 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
   witness's highest commit time, in case the clock stepped back), persisted in
   ``meta``; the window refuses anything stamped at or before ``fence + skew``,
   which covers every message the lost state could have held, and counts it
-  (``data_loss_events``).  A crash between the witness write and the COMMIT
-  leaves the witness one generation ahead: the next start fences (a false
-  alarm that fails closed, never a silent loss).
+  (``data_loss_events``).
 
 Deleting the database *and* its witness is indistinguishable from a new
 deployment; that is the documented way to reset.  Corruption found while
