@@ -505,6 +505,10 @@ def test_kill_9_mid_group_commit_then_replay_everything(tmp_path: Path, seed: in
         assert (msg.before_kill + [a[0] for a in msg.after_restart]).count(200) <= 1
     audit_accepts = Counter(m for (m,) in _rows(tmp_path / "audit.db", ACCEPTED_ROWS))
     assert all(audit_accepts[m] == 1 for m in accepted)
+    # The outbox drained into one intact chain, nothing left behind.
+    assert _rows(tmp_path / "state.db", "SELECT count(*) FROM outbox") == [(0,)]
+    report = verify(tmp_path / "audit.db")
+    assert report.chain_ok and report.head == "match", report.lines()
     assert max(audit_accepts.values()) == 1
     cli = subprocess.run(
         [sys.executable, "-m", "antireplay", "audit", "verify", str(tmp_path / "audit.db")],

@@ -330,6 +330,7 @@ class AuditLog:
         write transaction; one head checkpoint; then rotate and retain if due (never
         failing the batch: its rows are written).  Each queued drain answers ``0``."""
         with self._lock:
+            self._drain_queued = False  # a row put from now on wakes another drain
             spilled = [] if self._spill is None else self._spill.pending()  # merged first
             direct = [fields for fields in batch if fields is not _DRAIN]
             outbox = self._outbox
@@ -394,7 +395,6 @@ class AuditLog:
         moved: list[tuple[int, dict[str, Any]]] = []
         mark: Mark = (None, 0)
         if self._outbox is not None:
-            self._drain_queued = False  # a row put from now on wakes another drain
             mark = _mark(db)
             epoch, moved = self._outbox.pending(mark, DRAIN_BATCH)
             mark = (epoch, mark[1] if mark[0] == epoch else 0)

@@ -23,8 +23,9 @@ state files.
   locally; epochs anchored to wall time (see :mod:`antireplay.epochs`) still
   bound the damage.
 * **Witness records.**  :class:`Witness` is the other shape: one 64-byte checksummed
-  record (deployment, generation, time) rewritten in place and ``fdatasync``-ed, for
-  writes too frequent for a rename (a SQLite store's witness, a state anchor file).
+  record (deployment, generation, time) rewritten in place and ``fdatasync``-ed (or, for
+  a SQLite store's witness, at most once a second: an older genuine record only
+  under-claims), for writes too frequent for a rename (that witness, a state anchor).
 * **Refuse, never reset.** Any problem raises
   :class:`~antireplay.core.errors.StateFileError`, which names the file and the
   recovery command, ``antireplay state repair PATH``.  That includes a file
@@ -278,7 +279,8 @@ class Witness:
     if the wall clock stepped back across the restart).
 
     It is rewritten in place (one ``pwrite`` of 64 bytes, well inside one disk
-    sector, then ``fdatasync``); a torn or foreign file reads as ``None``.
+    sector, then ``fdatasync`` unless the owner defers it); a torn or foreign file reads
+    as ``None``.
     """
 
     MAGIC: Final = WITNESS_MAGIC
