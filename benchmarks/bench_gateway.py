@@ -199,11 +199,12 @@ def signer(state: Path) -> ed25519.Ed25519PrivateKey:
     return key
 
 
-def envelope(key: ed25519.Ed25519PrivateKey) -> str:
-    """One signed RCAN command for the embedded default's demo operator key, on one line."""
+def envelope(key: ed25519.Ed25519PrivateKey, age_s: float = 0.0) -> str:
+    """One signed RCAN command for the embedded default's demo operator key, on one line,
+    stamped ``age_s`` seconds ago."""
     body = {
         "rcan": "3.2", "rcan_version": "3.2", "msg_id": str(uuid.uuid4()),
-        "timestamp": round(time.time(), 6), "cmd": "move_forward",
+        "timestamp": round(time.time() - age_s, 6), "cmd": "move_forward",
         "target": "rcan://registry.rcan.dev/acme/arm/v2/unit-001",
         "params": {"distance_m": 0.5},
     }  # fmt: skip
