@@ -38,10 +38,10 @@ import uuid
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Final
+from pathlib import Path
+from typing import Any, Final, Protocol, TypeVar
 
-if TYPE_CHECKING:
-    from antireplay.state.sqlite import SqliteStore
+T = TypeVar("T")
 
 SCHEMA: Final = """
 CREATE TABLE IF NOT EXISTS outbox (id INTEGER PRIMARY KEY AUTOINCREMENT, row TEXT NOT NULL);
@@ -92,10 +92,24 @@ class Renew:
         return db.execute("UPDATE outbox_epoch SET epoch = ?", (self.epoch,)).rowcount
 
 
+class Host(Protocol):
+    """What the outbox needs of its store (:class:`~antireplay.state.sqlite.SqliteStore`)."""
+
+    path: Path
+
+    def enqueue_outbox(self, op: Put | Forget | Renew) -> Future[int]: ...
+
+    def enqueue_outbox_async(self, op: Put) -> asyncio.Future[int]: ...
+
+    def read_outbox(self, query: Callable[[sqlite3.Connection], T]) -> T: ...
+
+    def defer_commits(self) -> None: ...
+
+
 class Outbox:
     """A SQLite store's outbox: rows in through its committer, out to the audit writer."""
 
-    def __init__(self, store: SqliteStore) -> None:
+    def __init__(self, store: Host) -> None:
         self.store = store
         #: Called on the store's writer thread after a batch that put rows (wakes a drain).
         self.on_rows: Callable[[], None] | None = None
