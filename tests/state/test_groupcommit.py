@@ -271,7 +271,7 @@ def test_sqlite_store_racers_get_one_winner_per_key_in_few_fsyncs(tmp_path: Path
         witness_writes += 1  # one write per durable transaction (its fdatasync deferred)
         write(deployment, generation, wall, sync=sync)
 
-    store.witness.write = counting_write  # type: ignore[method-assign]
+    store.witness.write = counting_write  # type: ignore[method-assign,assignment]
     keys = [f"key-{i}" for i in range(200)]
     n_threads = 16
     barrier = threading.Barrier(n_threads)
