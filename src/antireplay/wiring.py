@@ -70,6 +70,7 @@ from antireplay.rcan.auth import (
 from antireplay.rcan.receive import Receiver
 from antireplay.state import ReplayStore, StoreSpec, open_store
 from antireplay.state.anchor import StateAnchor, check_anchor_path
+from antireplay.state.sqlite import SqliteStore
 
 if TYPE_CHECKING:
     from prometheus_client.core import Metric
@@ -143,11 +144,14 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
         config.audit.path, min_free_bytes=floors.min_free_bytes,
         refuse_free_bytes=floors.refuse_free_bytes, clock=clock,
     )  # fmt: skip
+    audit = open_audit(config.audit, clock, spill=floors.spill)
+    if isinstance(store, SqliteStore):  # one fsync per batch: audit rows in the state's commits
+        audit.attach(store.outbox())
     return Receiver(
         config.security,
         build_registry(config),
         store,
-        open_audit(config.audit, clock, spill=floors.spill),
+        audit,
         clock,
         space=space,
         jwt=verifier,

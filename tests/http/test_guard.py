@@ -286,9 +286,12 @@ def test_receive_async_returns_the_settled_outcome_after_its_audit_row_is_durabl
     msg_id = json.loads(raw)["msg_id"]
 
     async def twice() -> tuple[Outcome, int, Outcome, int]:
+        assert receiver.audit is not None
         accepted = await receiver.receive_async(raw, {})
-        rows_then = len(tail(cfg.audit, 100))  # another connection: committed, not queued
+        receiver.audit.drain()  # committed (in the state's outbox), not queued: moved now
+        rows_then = len(tail(cfg.audit, 100))  # another connection
         refused = await receiver.receive_async(raw, {})
+        receiver.audit.drain()
         return accepted, rows_then, refused, len(tail(cfg.audit, 100))
 
     try:

@@ -94,3 +94,25 @@ def test_an_undecodable_meta_while_serving_is_503_and_estop_still_passes(
         store.verify()
     assert cache.commit("estop", NOW, MessageType.SAFETY, "ESTOP").warning == "STATE_UNAVAILABLE"
     store.close()
+
+
+def test_the_witness_claims_only_generations_made_durable(tmp_path: Path) -> None:
+    """A deferred commit (no fsync of its own) moves the database, not the witness; the
+    next durable commit's fsync covers it and the witness catches up: never ahead, so a
+    power cut between the two cannot raise a false fence."""
+    store = SqliteStore(tmp_path / "state.db")
+    try:
+        store.defer_commits()
+        before = store.witness.read()
+        assert isinstance(before, tuple)
+        now = 1_800_000_000.0
+        assert store.commit("deferred", now + 30.0, now).recorded
+        assert store.witness.read() == before
+        store.outbox().put({"outcome": "accepted"}, durable=True).result()
+        after = store.witness.read()
+        assert isinstance(after, tuple) and after[1] == before[1] + 2  # both generations
+        assert store.commit("estop", now + 30.0, now, force=True).recorded  # never deferred
+        latest = store.witness.read()
+        assert isinstance(latest, tuple) and latest[1] == after[1] + 1
+    finally:
+        store.close()

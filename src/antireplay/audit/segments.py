@@ -195,6 +195,13 @@ def compare(path: Path, live: sqlite3.Connection, checkpoint: Checkpoint) -> str
     return f"truncated: the head checkpoint covers row {checkpoint.rows}, no segment holds it"
 
 
+#: The table where a trail drained from an outbox keeps the highest id it moved.
+MARK_SCHEMA = (
+    "CREATE TABLE IF NOT EXISTS outbox_moved"
+    " (id INTEGER PRIMARY KEY CHECK (id = 1), epoch TEXT, moved INTEGER NOT NULL)"
+)
+
+
 def recover(path: Path) -> None:
     """Undo a rotation a ``kill -9`` interrupted: drop a stale ``PATH.next`` and a rotated
     name hard-linked to the live file (the live file still holds every row)."""
@@ -236,8 +243,9 @@ def seal(db: sqlite3.Connection) -> bool:
     return str(mode).lower() == "delete"
 
 
-def prepare(path: Path, link: Link) -> None:
-    """Write the next segment, whole and fsynced, at ``PATH.next`` (not yet live)."""
+def prepare(path: Path, link: Link, moved: tuple[str | None, int] | None = None) -> None:
+    """Write the next segment, whole and fsynced, at ``PATH.next`` (not yet live);
+    ``moved``: the outbox mark it carries on (:mod:`.writer`)."""
     target = next_path(path)
     with contextlib.suppress(FileNotFoundError):
         target.unlink()
@@ -247,6 +255,9 @@ def prepare(path: Path, link: Link) -> None:
         db.execute(
             "INSERT INTO segment VALUES (?,?,?,?)", (link.n, link.first, link.prev, link.mac)
         )
+        if moved is not None:
+            db.execute(MARK_SCHEMA)
+            db.execute("INSERT INTO outbox_moved VALUES (1, ?, ?)", moved)
     finally:
         db.close()
 

@@ -6,7 +6,18 @@ the trail rotates and what retention removes.  Each batch is one transaction in
 and never fail the batch (its rows are durable: a failed rotation is retried next batch).
 Rows waiting in the ESTOP spill (:mod:`.spill`) are merged first in each batch.
 
-Size: the writer, the spill merge, rotation and retention share one lock and one batch.
+With a SQLite state store's outbox (:meth:`AuditLog.attach`, :mod:`antireplay.state.outbox`)
+rows are appended there, in the state's own transactions, and each batch here *drains*
+it: the rows above the trail's mark (table ``outbox_moved``, carried into each new
+segment) are chained and the mark moved in one transaction.  That commit fsyncs only
+every ``head_sync_s`` (``synchronous=NORMAL`` otherwise: a ``kill -9`` loses nothing, a
+power cut may lose the newest rows, which the outbox still holds and the next drain moves
+again, the mark having gone back with them); after an fsynced one the head is
+checkpointed and the outbox forgets what the trail now holds durably.  Opening drains
+first; closing drains with an fsync.  The head never claims a row not yet durable.
+
+Size: the writer, the spill merge, the outbox drain, rotation and retention share one
+lock and one batch.
 """
 
 from __future__ import annotations
@@ -20,7 +31,7 @@ from collections.abc import Sequence
 from concurrent.futures import Future
 from os import PathLike
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from antireplay.audit import segments
 from antireplay.audit.chain import (
@@ -43,8 +54,26 @@ from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AuditFileError, StateUnavailableError
 from antireplay.state.durable import file_identity
 from antireplay.state.groupcommit import GroupCommitter
+from antireplay.state.outbox import Mark, Outbox
 
 log = logging.getLogger("antireplay.audit")
+#: A queued "move what the outbox holds" (no row of its own).
+_DRAIN: dict[str, Any] = {}
+#: Outbox rows moved per transaction at most (more: another drain follows at once).
+DRAIN_BATCH = 4096
+
+
+class _Appended(NamedTuple):
+    """What one batch's transaction wrote: rows moved from the outbox, the outbox mark, the
+    sequence number of the first row given directly, and the new head (rows, hash) with
+    the time of its first row."""
+
+    moved: int
+    mark: Mark
+    first: int
+    rows: int
+    head: str
+    first_at: object
 
 
 def _stored(fields: dict[str, Any]) -> dict[str, Any]:
@@ -109,6 +138,10 @@ class AuditLog:
                 ) from None
             raise
         self._live_since = self._first_at()
+        self._outbox: Outbox | None = None
+        self._drain_queued = False
+        self._forgotten: Mark = (None, 0)
+        self._last_moved = 0
         self._spill = self._open_spill(spill_path, spill_slots)
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
@@ -254,7 +287,7 @@ class AuditLog:
         try:
             future = self.append_later(
                 at=at, outcome=outcome, code=code, warning=warning, msg_type=msg_type,
-                sender=sender, sender_verified=sender_verified, msg_id=msg_id,
+                sender=sender, sender_verified=sender_verified, msg_id=msg_id, durable=True,
             )  # fmt: skip
             assert isinstance(future, Future)
             return future.result()
@@ -273,58 +306,60 @@ class AuditLog:
         sender_verified: bool,
         msg_id: object,
         on_loop: bool = False,
+        durable: bool | None = None,
     ) -> Future[int] | asyncio.Future[int]:
         """Queue one record for the next group commit; the future completes once it is
         durable (``on_loop``: an asyncio future of the running loop, which awaits it before
-        answering, holding no thread)."""
+        answering, holding no thread).  With an outbox, a refusal's (``durable`` defaults
+        to ``outcome == "accepted"``) completes once written where a ``kill -9`` cannot
+        lose it, durable with the next fsynced batch."""
         row = _stored({
             "at": at, "outcome": outcome, "code": code, "warning": warning,
             "msg_type": msg_type, "sender": sender, "sender_verified": sender_verified,
             "msg_id": msg_id,
         })  # fmt: skip
+        if self._outbox is not None:
+            sync = outcome == "accepted" if durable is None else durable
+            if file_identity(self.path) != self._file:  # the row would wait for a lost trail
+                return _failed(self._gone(), on_loop=on_loop)
+            if on_loop:
+                return self._outbox.put_async(row, durable=sync)
+            return self._outbox.put(row, durable=sync)
         if on_loop:
             return self._committer.enqueue_async(row)
         return self._committer.enqueue(row)
 
-    def _write_batch(self, batch: Sequence[dict[str, Any]]) -> list[int]:
-        """Chain and commit a group of rows in one write transaction; one head checkpoint;
-        then rotate and retain if due (never failing the batch: its rows are durable)."""
+    def _write_batch(self, batch: Sequence[dict[str, Any]], *, sync: bool = False) -> list[int]:
+        """Chain and commit a group of rows (spilled ones first, then the outbox's) in one
+        write transaction; one head checkpoint; then rotate and retain if due (never
+        failing the batch: its rows are written).  Each queued drain answers ``0``."""
         with self._lock:
+            self._drain_queued = False  # a row put from now on wakes another drain
             spilled = [] if self._spill is None else self._spill.pending()  # merged first
+            direct = [fields for fields in batch if fields is not _DRAIN]
+            outbox = self._outbox
+            sync = sync or outbox is None or bool(spilled or direct)
+            sync = sync or self._clock.monotonic() - self._head_synced >= self.head_sync_s
             db = self._db
+            db.execute(f"PRAGMA synchronous={'FULL' if sync else 'NORMAL'}")
             db.execute("BEGIN IMMEDIATE")  # then the name: another writer rotates holding this lock
             try:
-                if file_identity(self.path) != self._file:  # rows written now would be lost
-                    log.error("audit trail %s deleted or replaced; refusing to append", self.path)
-                    raise AuditFileError(
-                        str(self.path), "deleted or replaced under the running writer",
-                        recovery=f"stop it, restore {self.path} or see antireplay audit reanchor",
-                    )  # fmt: skip
-                # Rows deleted or rewritten under a running writer must not be adopted by
-                # its next checkpoint: the chain must still hold what this writer wrote
-                # (another writer may have extended it).
-                problem = _compare(db, Checkpoint(self._rows, self._head))
-                if problem is not None:
-                    log.error("audit trail %s %s; refusing to append", self.path, problem)
-                    raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
-                seq, prev = _last(db)
-                first, values, rows = seq + 1, [], [*spilled, *batch]
-                for fields in rows:
-                    seq += 1
-                    row = {"seq": seq, **fields}
-                    digest = _digest(prev, row)
-                    values.append((*(row[f] for f in _FIELDS), prev, digest))
-                    prev = digest
-                db.executemany("INSERT INTO audit VALUES (?,?,?,?,?,?,?,?,?,?,?)", values)
+                done = self._append(db, spilled, direct)
                 db.execute("COMMIT")
             except BaseException:
                 with contextlib.suppress(sqlite3.Error):  # a full disk: SQLite rolled back
                     db.execute("ROLLBACK")
                 raise
-            self._rows, self._head = seq, prev
-            if self._live_since is None and rows:
-                self._live_since = valid_at(rows[0]["at"])
-            self._checkpoint()
+            self._rows, self._head = done.rows, done.head
+            if self._live_since is None and done.first_at is not None:
+                self._live_since = valid_at(done.first_at)
+            if outbox is None:
+                self._checkpoint()
+            elif sync:  # the head claims only rows made durable; so does the outbox's delete
+                self._checkpoint(sync=True)
+                self._forget(outbox, done.mark)
+            else:
+                self._head_dirty = True
             if spilled:
                 self._merged(len(spilled))
             if self._rotation_due():
@@ -333,7 +368,103 @@ class AuditLog:
                 except (sqlite3.Error, OSError, AuditFileError) as exc:
                     why = str(exc)
                 self._postponed(why)
-            return list(range(first + len(spilled), seq + 1))
+            self._last_moved = done.moved
+            if done.moved == DRAIN_BATCH:
+                self._wake()  # more waiting: drain on
+            seqs = iter(range(done.first, done.rows + 1))
+            return [0 if fields is _DRAIN else next(seqs) for fields in batch]
+
+    def _gone(self) -> AuditFileError:
+        """The error of a trail deleted or replaced under this writer."""
+        return AuditFileError(
+            str(self.path), "deleted or replaced under the running writer",
+            recovery=f"stop it, restore {self.path} or see antireplay audit reanchor",
+        )  # fmt: skip
+
+    def _append(
+        self, db: sqlite3.Connection, spilled: list[dict[str, Any]], direct: list[dict[str, Any]]
+    ) -> _Appended:
+        """Inside the batch's transaction: check the file is still this writer's, chain the
+        spilled rows, the outbox's above the mark (moving the mark) and ``direct``."""
+        if file_identity(self.path) != self._file:  # rows written now would be lost
+            log.error("audit trail %s deleted or replaced; refusing to append", self.path)
+            raise self._gone()
+        # Rows deleted or rewritten under a running writer must not be adopted by its next
+        # checkpoint: the chain must still hold what this writer wrote (another writer may
+        # have extended it).
+        problem = _compare(db, Checkpoint(self._rows, self._head))
+        if problem is not None:
+            log.error("audit trail %s %s; refusing to append", self.path, problem)
+            raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
+        moved: list[tuple[int, dict[str, Any]]] = []
+        mark: Mark = (None, 0)
+        if self._outbox is not None:
+            mark = _mark(db)
+            epoch, moved = self._outbox.pending(mark, DRAIN_BATCH)
+            mark = (epoch, mark[1] if mark[0] == epoch else 0)
+        seq, prev = _last(db)
+        rows = [*spilled, *(fields for _, fields in moved), *direct]
+        first, values = seq + 1 + len(spilled) + len(moved), []
+        for fields in rows:
+            seq += 1
+            row = {"seq": seq, **fields}
+            digest = _digest(prev, row)
+            values.append((*(row[f] for f in _FIELDS), prev, digest))
+            prev = digest
+        db.executemany("INSERT INTO audit VALUES (?,?,?,?,?,?,?,?,?,?,?)", values)
+        if moved:
+            mark = (mark[0], moved[-1][0])
+            db.execute("INSERT OR REPLACE INTO outbox_moved VALUES (1, ?, ?)", mark)
+        return _Appended(len(moved), mark, first, seq, prev, rows[0]["at"] if rows else None)
+
+    # --- the state store's outbox (state/outbox.py): drained into the chain ------------------
+
+    def attach(self, outbox: Outbox) -> None:
+        """Take audit rows through ``outbox`` from now on (its store defers its commits to
+        the accepted rows that follow them); what it already holds is drained first."""
+        with self._lock:
+            self._db.execute(segments.MARK_SCHEMA)
+        self._outbox = outbox
+        outbox.store.defer_commits()
+        self.drain()
+        outbox.on_rows = self._wake
+
+    def drain(self) -> None:
+        """Move everything the outbox holds into the trail now, durably (a database behind
+        the trail's mark gets a new epoch first: see :mod:`antireplay.state.outbox`)."""
+        if self._outbox is None:
+            return
+        with self._lock:
+            mark = _mark(self._db)
+        if self._outbox.behind(mark):
+            log.warning("audit outbox of %s is behind the trail's mark: new epoch",
+                        self._outbox.store.path)  # fmt: skip
+            self._outbox.renew().result()
+        while True:
+            self._write_batch([_DRAIN], sync=True)
+            if self._last_moved < DRAIN_BATCH:
+                return
+
+    def _wake(self) -> None:
+        """Rows were put in the outbox: queue one drain (called on the store's writer)."""
+        if self._drain_queued:
+            return
+        self._drain_queued = True
+        with contextlib.suppress(RuntimeError):  # closing: the close drains
+            self._committer.enqueue(_DRAIN)
+
+    def _forget(self, outbox: Outbox, mark: Mark) -> None:
+        """The trail holds rows up to ``mark`` durably: delete them from the outbox (of
+        that epoch: the delete names it)."""
+        if mark == self._forgotten or mark[1] == 0:
+            return
+        self._forgotten = mark
+        self._forget_point()
+        with contextlib.suppress(RuntimeError):  # the store is closing: deleted next time
+            outbox.forget(mark)
+
+    def _forget_point(self) -> None:
+        """Called between a durable drain and the outbox's delete (a test stops there)."""
 
     def _merged(self, n: int) -> None:
         """Spilled rows are durable in the trail: clear them from the spill."""
@@ -400,7 +531,8 @@ class AuditLog:
             self._db.execute("BEGIN IMMEDIATE")  # another writer waits, then sees the new name
             self._rotation_point("sealed")
             following = self.anchor.link(self._key, self._link.n + 1, self._rows + 1, self._head)
-            segments.prepare(self.path, following)
+            mark = _mark(self._db)
+            segments.prepare(self.path, following, mark if mark[0] is not None else None)
             self._rotation_point("prepared")
             old = segments.publish(self.path, self._link.n)
         except BaseException:
@@ -457,11 +589,21 @@ class AuditLog:
         return TrailUsage(sum(k.bytes for k in kept) + live, len(kept) + 1, oldest)
 
     def tail(self, n: int = 20) -> list[Record]:
-        """The newest ``n`` records across segments (read-only connections)."""
+        """The newest ``n`` records across segments (read-only connections), the outbox's
+        rows moved first."""
+        self._moved_now()
         return segments.newest(self.path, n)
+
+    def _moved_now(self) -> None:
+        """Queue a drain and wait for it (rows put so far are in the trail after it)."""
+        if self._outbox is not None:
+            with contextlib.suppress(RuntimeError, sqlite3.Error, OSError, AuditFileError,
+                                     StateUnavailableError):  # fmt: skip
+                self._committer.submit(_DRAIN)
 
     def count(self) -> int:
         """Records kept across segments."""
+        self._moved_now()
         with self._lock:
             live = int(self._db.execute("SELECT count(*) FROM audit").fetchone()[0])
             return live + sum(_rows_in(k.path) for k in self._kept)
@@ -475,9 +617,12 @@ class AuditLog:
         """Write what is queued (and what is spilled, if the trail takes it now), make the
         head durable, then close."""
         self._committer.close()
-        if self.spilled:
-            with contextlib.suppress(sqlite3.Error, OSError, AuditFileError):
-                self._write_batch([])  # else merged at the next start
+        if self._outbox is not None:  # rows still queued in the store's writer: in first
+            with contextlib.suppress(RuntimeError, StateUnavailableError):
+                self._outbox.flush()
+        if self.spilled or self._outbox is not None:
+            with contextlib.suppress(sqlite3.Error, OSError, AuditFileError, StateUnavailableError):
+                self._write_batch([], sync=True)  # else merged (or drained) at the next start
         with self._lock:
             try:
                 if self._head_dirty:
@@ -516,3 +661,20 @@ def _rows_in(path: Path) -> int:
         finally:
             db.close()
     return 0
+
+
+def _mark(db: sqlite3.Connection) -> Mark:
+    """The outbox epoch and highest id the trail holds (``(None, 0)``: never drained)."""
+    try:
+        row = db.execute("SELECT epoch, moved FROM outbox_moved").fetchone()
+    except sqlite3.OperationalError:  # no such table: never drained into
+        return None, 0
+    return (None, 0) if row is None else (row[0], int(row[1]))
+
+
+def _failed(error: BaseException, *, on_loop: bool) -> Future[int] | asyncio.Future[int]:
+    """A queued row's future that has already failed with ``error``."""
+    future: Future[int] | asyncio.Future[int]
+    future = asyncio.get_running_loop().create_future() if on_loop else Future()
+    future.set_exception(error)
+    return future

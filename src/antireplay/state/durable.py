@@ -23,8 +23,9 @@ state files.
   locally; epochs anchored to wall time (see :mod:`antireplay.epochs`) still
   bound the damage.
 * **Witness records.**  :class:`Witness` is the other shape: one 64-byte checksummed
-  record (deployment, generation, time) rewritten in place and ``fdatasync``-ed, for
-  writes too frequent for a rename (a SQLite store's witness, a state anchor file).
+  record (deployment, generation, time) rewritten in place and ``fdatasync``-ed (or, for
+  a SQLite store's witness, at most once a second: an older genuine record only
+  under-claims), for writes too frequent for a rename (that witness, a state anchor).
 * **Refuse, never reset.** Any problem raises
   :class:`~antireplay.core.errors.StateFileError`, which names the file and the
   recovery command, ``antireplay state repair PATH``.  That includes a file
@@ -278,7 +279,8 @@ class Witness:
     if the wall clock stepped back across the restart).
 
     It is rewritten in place (one ``pwrite`` of 64 bytes, well inside one disk
-    sector, then ``fdatasync``); a torn or foreign file reads as ``None``.
+    sector, then ``fdatasync`` unless the owner defers it); a torn or foreign file reads
+    as ``None``.
     """
 
     MAGIC: Final = WITNESS_MAGIC
@@ -288,6 +290,7 @@ class Witness:
         self.path = path
         self.magic = magic
         self._fd: int | None = None
+        self._dirty = False
 
     def read(self) -> tuple[str, int, float] | bool | None:
         """``(deployment, generation, wall)``, ``None`` if absent, ``False`` if unreadable."""
@@ -305,18 +308,27 @@ class Witness:
             return False
         return uuid.UUID(bytes=deployment).hex, generation, wall
 
-    def write(self, deployment: str, generation: int, wall: float) -> None:
+    def write(self, deployment: str, generation: int, wall: float, *, sync: bool = True) -> None:
+        """Rewrite the record; ``sync=False`` leaves it in the OS (a ``kill -9`` keeps it,
+        a power cut may bring back an older one) until a later write syncs, or close."""
         body = self._LAYOUT.pack(self.magic, uuid.UUID(hex=deployment).bytes, generation, wall)
         record = (body + hashlib.sha256(body).digest()[:16]).ljust(64, b"\0")
         if self._fd is None:
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
         os.pwrite(self._fd, record, 0)
-        os.fdatasync(self._fd)
+        self._dirty = not sync
+        if sync:
+            os.fdatasync(self._fd)
 
     def close(self) -> None:
         if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
+            try:
+                if self._dirty:
+                    os.fdatasync(self._fd)
+            finally:
+                os.close(self._fd)
+                self._fd = None
+                self._dirty = False
 
 
 def salvage(path: Path) -> tuple[int, dict[str, Any] | None]:

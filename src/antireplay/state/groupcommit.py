@@ -2,8 +2,7 @@
 
 Theory of operation
 -------------------
-Durability costs an ``fsync`` (or two: SQLite's WAL and a witness or head
-checkpoint).  Taking one per request, one request at a time under a lock,
+Durability costs an ``fsync``.  Taking one per request, one request at a time under a lock,
 turns a burst of requests, and worse a replay flood whose every rejection is
 audited, into an fsync flood.  Databases answer this with group commit, and so
 do we, in exactly one place: :class:`GroupCommitter`.
@@ -26,8 +25,9 @@ do we, in exactly one place: :class:`GroupCommitter`.
 * Under no concurrency a batch is one operation: the cost is one thread
   hand-off (tens of microseconds), against an fsync of a hundred or more.
 
-Used by :class:`~antireplay.state.sqlite.SqliteStore` (seen-set commits) and
-:class:`~antireplay.audit.AuditLog` (audit rows).
+Used by :class:`~antireplay.state.sqlite.SqliteStore` (seen-set commits and the audit
+outbox's rows, :mod:`antireplay.state.outbox`) and :class:`~antireplay.audit.AuditLog`
+(audit rows, or the outbox's drains).
 """
 
 from __future__ import annotations

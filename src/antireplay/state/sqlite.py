@@ -10,9 +10,12 @@ WAL journal with ``synchronous=FULL``: a ``commit`` returns only after its
 transaction is durable, so a message accepted before a crash is still
 remembered after it.  Commits are **group-committed**
 (:mod:`antireplay.state.groupcommit`): concurrent callers' records share one
-transaction, one WAL fsync and one witness write, each caller answered once its
-own record is durable.  Several processes may share one file; SQLite's write
-lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
+transaction and one WAL fsync, each caller answered once its own record is
+durable.  With an audit outbox (:mod:`.outbox`) the batch also carries audit rows,
+and entries may be *deferred* (``synchronous=NORMAL``) to the accepted row that
+follows each, whose batch's fsync covers both: one fsync per batch, not three.
+Several processes may share one file; SQLite's write lock (``BEGIN IMMEDIATE``)
+makes each batch and ``advance`` atomic across them.
 
 * **Entries live to their own expiry; early removal raises the watermark.**
   Each commit purges at most ``PURGE_BATCH`` rows whose expiry is below the
@@ -23,7 +26,12 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
 * **A lost, truncated, replaced or rolled-back file is detected.**  Beside the
   database lives a small **witness** file (``<db>.witness``): a deployment id
   and a generation (plus the highest wall time of any commit), rewritten in
-  place and ``fdatasync``-ed inside every write transaction, before its COMMIT.
+  place after each durable COMMIT with the generation that COMMIT made durable,
+  and ``fdatasync``-ed at most every :data:`WITNESS_SYNC_S` (and at open and
+  close).  So it is never ahead of the database, not even after a power cut (no
+  false alarm); a ``kill -9`` loses nothing written; a power cut may leave it an
+  older genuine generation, which only under-claims: a copy restored between the
+  two is what the anchor (below) is for.
   Its name is hidden (``.state.db.witness``) so that ``rm state.db*`` does not
   take it along.  While running, a database whose generation falls below the
   one this process last wrote was rolled back under it (a live restore): also
@@ -55,9 +63,7 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
   witness's highest commit time, in case the clock stepped back), persisted in
   ``meta``; the window refuses anything stamped at or before ``fence + skew``,
   which covers every message the lost state could have held, and counts it
-  (``data_loss_events``).  A crash between the witness write and the COMMIT
-  leaves the witness one generation ahead: the next start fences (a false
-  alarm that fails closed, never a silent loss).
+  (``data_loss_events``).
 
 Deleting the database *and* its witness is indistinguishable from a new
 deployment; that is the documented way to reset.  Corruption found while
@@ -80,8 +86,9 @@ import threading
 import time
 import uuid
 from collections.abc import Callable, Sequence
+from concurrent.futures import Future
 from pathlib import Path
-from typing import Any, Final, TypeVar
+from typing import Any, Final, TypeVar, cast
 
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import StateFileError, StateUnavailableError
@@ -91,6 +98,8 @@ from antireplay.state.anchor import Anchored, AnchorUnavailableError, Read, Stat
 from antireplay.state.contract import Offload
 from antireplay.state.durable import Witness, file_identity
 from antireplay.state.groupcommit import GroupCommitter
+from antireplay.state.outbox import SCHEMA as _OUTBOX_SCHEMA
+from antireplay.state.outbox import Forget, Outbox, Put, Renew
 
 T = TypeVar("T")
 log = logging.getLogger("antireplay.state.sqlite")
@@ -117,8 +126,12 @@ _META_SELECT = "SELECT deployment, generation, watermark, fence, data_loss_event
 #: Stored expiries that are not numbers: SQLite orders every number before any text or
 #: blob, so the index finds them at once (a REAL column keeps what it cannot convert).
 _SEEN_UNDECODABLE = "SELECT key, expires FROM seen WHERE expires >= '' LIMIT 1"
-#: One queued commit: key, expires_at, now, force.
-_Op = tuple[str, float, float, bool]
+#: One queued seen-set commit: key, expires_at, now, force.
+_Record = tuple[str, float, float, bool]
+#: What the writer takes: a seen-set commit or an outbox row (or its deletion).
+_Op = _Record | Put | Forget | Renew
+#: How long the witness may go without an fdatasync while commits move it (see docstring).
+WITNESS_SYNC_S: Final = 1.0
 #: The meta row as a transaction read it: generation, watermark, fence, data-loss events.
 _Meta = tuple[int, float, float, int]
 #: The whole meta row, decoded: deployment id, then :data:`_Meta`.
@@ -152,6 +165,7 @@ class SqliteStore:
         self._deployment = ""
         self._generation = 0
         self._wall_hw = _FLOOR
+        self._witness_synced: float | None = None
         self._opened = False
         self._lost_pending = False
         self._watermark = NEVER
@@ -170,7 +184,9 @@ class SqliteStore:
         # connection per concurrent reader lets lookups in several threads run side by side.
         self._timeout_s = timeout_s
         self._readers: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
-        self._committer: GroupCommitter[_Op, Seen] = GroupCommitter(
+        self._defer = False
+        self._outbox: Outbox | None = None
+        self._committer: GroupCommitter[_Op, Seen | int] = GroupCommitter(
             self._commit_batch, name=f"antireplay-state:{self.path.name}"
         )
 
@@ -189,6 +205,7 @@ class SqliteStore:
                 db.execute("PRAGMA journal_mode=WAL")
                 db.execute("PRAGMA synchronous=FULL")
                 db.executescript(_SCHEMA)
+                db.executescript(_OUTBOX_SCHEMA)
                 return db
             except sqlite3.OperationalError as exc:
                 if "locked" not in str(exc) or time.monotonic() > deadline:
@@ -272,18 +289,21 @@ class SqliteStore:
             self._unverified = pending
             raise
 
-    def _transaction(self, body: Callable[[sqlite3.Connection], tuple[T, _Meta]]) -> T:
+    def _transaction(
+        self, body: Callable[[sqlite3.Connection], tuple[T, _Meta]], *, durable: bool = True
+    ) -> T:
         """One write transaction: ``body`` does its work and returns its result and the meta
-        it read; the meta row goes out with the next generation, the witness is written
-        *before* COMMIT (so a database that later goes back is noticed), and this
-        process's view moves only after COMMIT succeeded.  A failed COMMIT (a full disk)
-        puts the witness back to the committed generation, so it is not mistaken for a
-        rollback later; the original error is raised, not the ROLLBACK's."""
+        it read; the meta row goes out with the next generation, and this process's view
+        moves only after COMMIT succeeded.  ``durable``: COMMIT fsyncs the WAL (covering
+        every deferred transaction before it), then the witness records the generation now
+        durable (never one ahead of it); else ``synchronous=NORMAL``: written to the OS,
+        made durable by the next durable commit.  The original error is raised, not the
+        ROLLBACK's."""
         self._verified()
         self._same_file()
         db = self._db
+        db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
         db.execute("BEGIN IMMEDIATE")
-        written = False
         try:
             result, (generation, watermark, fence, losses) = body(db)
             generation += 1
@@ -292,23 +312,29 @@ class SqliteStore:
                 (self._deployment, generation, watermark, fence, losses),
             )
             self._wall_hw = max(self._wall_hw, self._clock.wall())
-            written = True
-            self.witness.write(self._deployment, generation, self._wall_hw)
             if self.anchor is not None:
                 self.anchor.advance(self._deployment, generation, self._wall_hw)
             db.execute("COMMIT")
         except BaseException:
             with contextlib.suppress(sqlite3.Error):  # SQLite may have rolled back already
                 db.execute("ROLLBACK")
-            if written and self._generation:
-                with contextlib.suppress(OSError):  # if this fails too, the next open fences
-                    self.witness.write(self._deployment, self._generation, self._wall_hw)
             raise
         self._generation = generation
         self._watermark = NEVER if watermark <= _FLOOR else watermark
         self._fence = NEVER if fence <= _FLOOR else fence
         self.data_loss_events = losses
+        if durable:
+            self._witness(generation)
         return result
+
+    def _witness(self, generation: int) -> None:
+        """Record a durable generation in the witness; fdatasync it at most every
+        :data:`WITNESS_SYNC_S` (always the first time), see the module docstring."""
+        now = time.monotonic()
+        sync = self._witness_synced is None or now - self._witness_synced >= WITNESS_SYNC_S
+        self.witness.write(self._deployment, generation, self._wall_hw, sync=sync)
+        if sync:
+            self._witness_synced = now
 
     def _same_file(self) -> None:
         """Refuse to write once the file was deleted or replaced under this process: the
@@ -389,8 +415,9 @@ class SqliteStore:
         _codec.serving(lambda: self._run(probe))
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
-        """Queue the record for the next group commit; return once it is durable."""
-        return self._committer.submit((key, expires_at, now, force))
+        """Queue the record for the next group commit; return once it is durable (or,
+        deferred by an outbox, written: see :meth:`defer_commits`)."""
+        return cast(Seen, self._committer.submit((key, expires_at, now, force)))
 
     def commit_async(
         self,
@@ -401,32 +428,79 @@ class SqliteStore:
         offload: Offload | None = None,
     ) -> asyncio.Future[Seen]:
         """:meth:`commit` from a running event loop: await the batch, holding no thread."""
-        return self._committer.enqueue_async((key, expires_at, now, force))
+        waiter = self._committer.enqueue_async((key, expires_at, now, force))
+        return cast("asyncio.Future[Seen]", waiter)
 
-    def _commit_batch(self, ops: Sequence[_Op]) -> list[Seen]:
+    def outbox(self) -> Outbox:
+        """This database's audit outbox (:mod:`antireplay.state.outbox`), made once."""
+        if self._outbox is None:
+            self._outbox = Outbox(self)
+        return self._outbox
+
+    def defer_commits(self) -> None:
+        """Commit seen-set entries without an fsync of their own (``synchronous=NORMAL``;
+        an ESTOP's still has one): for a caller that follows every accepted commit with a
+        durable outbox row, whose fsync makes the entry durable too, before the answer."""
+        self._defer = True
+
+    def enqueue_outbox(self, op: Put | Forget | Renew) -> Future[int]:
+        """Queue an outbox operation with the next batch (:class:`~.outbox.Outbox`)."""
+        return cast("Future[int]", self._committer.enqueue(op))
+
+    def enqueue_outbox_async(self, op: Put) -> asyncio.Future[int]:
+        """:meth:`enqueue_outbox` from a running event loop."""
+        return cast("asyncio.Future[int]", self._committer.enqueue_async(op))
+
+    def read_outbox(self, query: Callable[[sqlite3.Connection], T]) -> T:
+        """``query`` on a reader connection (the outbox's drain and count)."""
+        return _codec.serving(lambda: self._read(query))
+
+    def _durable(self, op: _Op) -> bool:
+        """Whether ``op`` needs its batch fsynced: an outbox row that asks, a deletion
+        never, a seen-set entry unless deferred (an ESTOP's always)."""
+        if isinstance(op, tuple):
+            return op[3] or not self._defer
+        return op.durable
+
+    def _commit_batch(self, ops: Sequence[_Op]) -> list[Seen | int]:
         """One transaction for a batch: bounded purge (raising the watermark), each record
-        in order (racers on one key: one winner), meta + witness once, one COMMIT."""
+        in order (racers on one key: one winner), outbox rows, meta once, one COMMIT
+        (with an fsync if any operation needs one)."""
+        records = [op for op in ops if isinstance(op, tuple)]
 
-        def body(db: sqlite3.Connection) -> tuple[list[tuple[float, bool]], _Meta]:
+        def body(db: sqlite3.Connection) -> tuple[list[tuple[float, bool] | int], _Meta]:
             generation, watermark, fence, losses = self._meta_checked(db)
-            now = min(op[2] for op in ops)  # no caller's entry is purged early
-            purged = db.execute(_PURGE_SELECT, (now, PURGE_BATCH + 2 * len(ops))).fetchall()
-            if purged:
-                db.executemany("DELETE FROM seen WHERE key = ?", [(k,) for k, _ in purged])
-                watermark = max(watermark, *(e for _, e in purged))
-            return [self._record(db, op) for op in ops], (generation, watermark, fence, losses)
+            if records:
+                now = min(op[2] for op in records)  # no caller's entry is purged early
+                limit = PURGE_BATCH + 2 * len(records)
+                purged = db.execute(_PURGE_SELECT, (now, limit)).fetchall()
+                if purged:
+                    db.executemany("DELETE FROM seen WHERE key = ?", [(k,) for k, _ in purged])
+                    watermark = max(watermark, *(e for _, e in purged))
+            done = [self._record(db, op) if isinstance(op, tuple) else op.apply(db) for op in ops]
+            return done, (generation, watermark, fence, losses)
 
-        def tx() -> list[Seen]:
-            results = self._transaction(body)
+        def tx() -> list[Seen | int]:
+            results = self._transaction(body, durable=any(self._durable(op) for op in ops))
             wm, fence_now, lost = self._watermark, self._fence, self._lost_pending
             self._lost_pending = False
-            return [
-                Seen(seen, wm, fence_now, recorded, False, lost and i == 0)
-                for i, (seen, recorded) in enumerate(results)
-            ]
+            first = True
+            answers: list[Seen | int] = []
+            for result in results:
+                if isinstance(result, int):
+                    answers.append(result)
+                    continue
+                seen, recorded = result
+                answers.append(Seen(seen, wm, fence_now, recorded, False, lost and first))
+                first = False
+            return answers
 
         with self._lock:
-            return _codec.serving(lambda: self._run(tx))
+            answers = _codec.serving(lambda: self._run(tx))
+        wake = None if self._outbox is None else self._outbox.on_rows
+        if wake is not None and any(isinstance(op, Put) for op in ops):
+            wake()
+        return answers
 
     def _meta_checked(self, db: sqlite3.Connection) -> tuple[int, float, float, int]:
         """The meta row, fenced first if the database went back under this process."""
@@ -454,7 +528,7 @@ class SqliteStore:
         with self._lock:
             return self._run(tx)
 
-    def _record(self, db: sqlite3.Connection, op: _Op) -> tuple[float, bool]:
+    def _record(self, db: sqlite3.Connection, op: _Record) -> tuple[float, bool]:
         key, expires_at, now, force = op
         found = db.execute("SELECT expires FROM seen WHERE key = ?", (key,)).fetchone()
         seen = NEVER if found is None else self._time(f"seen {key!r} expiry", found[0])

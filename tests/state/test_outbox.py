@@ -1,0 +1,157 @@
+"""The audit outbox: one fsync per batch for an accepted message's entry and row, refusals
+answered before their fsync, kill -9 at the worst points, processes sharing one state."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import sqlite3
+import subprocess
+import sys
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from antireplay.audit import AuditLog, verify
+from antireplay.core.clock import ManualClock
+from antireplay.state.sqlite import SqliteStore
+
+ROOT = Path(__file__).resolve().parents[2]
+ENV = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"}
+WORKER = [sys.executable, "-m", "tests.harness.workers.outbox_worker"]
+#: Fsyncs of opening and closing a store and a trail (creating files, keys, the head).
+SETUP_FSYNCS = 40
+#: One row of ``strace -c``'s table: % time, seconds, usecs/call, calls, [errors], the call.
+SYNC_ROW = re.compile(r"^\s*[\d.]+\s+[\d.]+\s+\d+\s+(\d+)\s+(?:\d+\s+)?f(?:data)?sync$", re.M)
+
+
+def traced(where: Path, *args: str) -> tuple[int, int, int]:
+    """Run the worker under ``strace -f -c``: (fsync + fdatasync calls, batches, ops)."""
+    log = where / "strace.txt"
+    out = subprocess.run(
+        ["strace", "-f", "-c", "-e", "trace=fsync,fdatasync", "-o", str(log), *WORKER,
+         str(where), *args],
+        capture_output=True, text=True, cwd=ROOT, env=ENV, check=True, timeout=120,
+    ).stdout  # fmt: skip
+    calls = sum(int(m[1]) for m in SYNC_ROW.finditer(log.read_text()))
+    found = re.search(r"BATCHES (\d+) OPS (\d+)", out)
+    assert found is not None, out
+    return calls, int(found[1]), int(found[2])
+
+
+def test_an_accepted_message_costs_one_fsync_not_three(tmp_path: Path) -> None:
+    """Sequential (c=1): the entry commits without an fsync, its row's batch fsyncs once
+    and covers both; the witness and the trail sync by time, not per batch."""
+    n = 200
+    fsyncs, _, _ = traced(tmp_path, "accept", str(n), "1")
+    assert n <= fsyncs <= n + SETUP_FSYNCS, f"{fsyncs} fsyncs for {n} accepted messages"
+
+
+def test_concurrent_accepts_cost_at_most_one_fsync_per_batch(tmp_path: Path) -> None:
+    n = 640
+    fsyncs, batches, ops = traced(tmp_path, "accept", str(n), "32")
+    assert ops == 2 * n  # each message: its entry and its row, through one committer
+    assert fsyncs <= batches + SETUP_FSYNCS, f"{fsyncs} fsyncs for {batches} batches"
+    assert fsyncs < n, f"{fsyncs} fsyncs for {n} accepted messages"
+
+
+def test_refusals_are_answered_without_an_fsync(tmp_path: Path) -> None:
+    fsyncs, batches, _ = traced(tmp_path, "refuse", "200")
+    assert batches >= 200 and fsyncs <= SETUP_FSYNCS
+
+
+def accepted_rows(trail: Path) -> Counter[str]:
+    db = sqlite3.connect(f"file:{trail}?mode=ro", uri=True)
+    try:
+        found = db.execute("SELECT msg_id FROM audit WHERE outcome = 'accepted'").fetchall()
+    finally:
+        db.close()
+    return Counter(m for (m,) in found)
+
+
+def outbox_rows(state: Path) -> int:
+    db = sqlite3.connect(f"file:{state}?mode=ro", uri=True)
+    try:
+        return int(db.execute("SELECT count(*) FROM outbox").fetchone()[0])
+    finally:
+        db.close()
+
+
+def reopen(where: Path) -> tuple[SqliteStore, AuditLog]:
+    """A restart: the store, then the trail, which drains the outbox first."""
+    store = SqliteStore(where / "state.db")
+    audit = AuditLog(where / "audit.db", clock=ManualClock())
+    audit.attach(store.outbox())
+    return store, audit
+
+
+def run_until(where: Path, line: str, *args: str) -> list[str]:
+    """Start the worker, SIGKILL it once it prints ``line``; what it printed before."""
+    worker = subprocess.Popen(
+        [*WORKER, str(where), *args], stdout=subprocess.PIPE, text=True, cwd=ROOT, env=ENV
+    )
+    printed: list[str] = []
+    try:
+        assert worker.stdout is not None
+        for got in worker.stdout:
+            if got.strip() == line:
+                break
+            printed.append(got.strip())
+        else:
+            pytest.fail(f"the worker exited ({worker.wait()}) before {line}")
+    finally:
+        worker.send_signal(signal.SIGKILL)
+        worker.wait()
+    return printed
+
+
+def test_kill_9_between_the_trail_commit_and_the_outbox_delete_duplicates_nothing(
+    tmp_path: Path,
+) -> None:
+    n = 50
+    run_until(tmp_path, "STOP", "hang-forget", str(n))
+    assert outbox_rows(tmp_path / "state.db") == n  # moved, durable, not yet deleted
+    assert accepted_rows(tmp_path / "audit.db") == Counter({f"h{i}": 1 for i in range(n)})
+    store, audit = reopen(tmp_path)
+    audit.close()
+    store.close()
+    assert accepted_rows(tmp_path / "audit.db") == Counter({f"h{i}": 1 for i in range(n)})
+    assert outbox_rows(tmp_path / "state.db") == 0
+    report = verify(tmp_path / "audit.db")
+    assert report.chain_ok and report.head == "match", report.lines()
+
+
+def test_a_refusal_answered_before_its_fsync_survives_kill_9(tmp_path: Path) -> None:
+    run_until(tmp_path, "ANSWERED", "hang-refused")
+    store, audit = reopen(tmp_path)
+    try:
+        refused = [r for r in audit.tail(10) if r.msg_id == "refused-1"]
+    finally:
+        audit.close()
+        store.close()
+    assert len(refused) == 1 and refused[0].code == "REPLAY_DETECTED"
+    assert verify(tmp_path / "audit.db").chain_ok
+
+
+def test_processes_sharing_one_state_and_trail_accept_once_and_chain_once(
+    tmp_path: Path,
+) -> None:
+    keys = [f"race-{i}" for i in range(150)]
+    SqliteStore(tmp_path / "state.db").close()  # made once, before the racers open it
+    command = [*WORKER, str(tmp_path), "race", ",".join(keys)]
+    racers = [
+        subprocess.Popen(command, stdout=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
+        for _ in range(3)
+    ]
+    won: Counter[str] = Counter()
+    for racer in racers:
+        out, _ = racer.communicate(timeout=120)
+        assert racer.returncode == 0
+        won.update(line.split()[1] for line in out.splitlines() if line.startswith("WON"))
+    assert won == Counter(dict.fromkeys(keys, 1))  # exactly one acceptance per key
+    assert accepted_rows(tmp_path / "audit.db") == won  # each audited once, none lost
+    assert outbox_rows(tmp_path / "state.db") == 0
+    report = verify(tmp_path / "audit.db")
+    assert report.chain_ok and report.head == "match", report.lines()
