@@ -57,7 +57,7 @@ from antireplay.core.errors import (
 )
 from antireplay.core.messages import MessageType
 from antireplay.core.settings import SecurityConfig
-from antireplay.core.window import Verdict, estop_survives, is_estop
+from antireplay.core.window import Refusal, Verdict, estop_survives, is_estop
 from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
 from antireplay.rcan.auth import JwtVerifier, KeyRegistry
 from antireplay.rcan.envelope import MAX_BYTES
@@ -364,13 +364,11 @@ class Receiver:
         return self.steps.authenticate(checked, self._check(checked), headers)
 
     def _check(self, checked: Checked) -> ReplayAttackError | None:
-        """Step 3, the replay check (a store read that records nothing): its refusal."""
+        """Step 3, the replay check (records nothing): its refusal, as a value (a flood of
+        replays raises nothing on its way to the answer)."""
         env = checked.env
-        try:
-            self.cache.check(env.msg_id, env.seconds, *checked.cls)
-        except ReplayAttackError as exc:
-            return exc
-        return None
+        verdict = self.cache.try_check(env.msg_id, env.seconds, *checked.cls)
+        return verdict.error() if isinstance(verdict, Refusal) else None
 
     def _floor(self, step: NeedsCommit | Done) -> NeedsCommit | Done:
         """Below the disk's second floor only an ESTOP goes on to its commit."""
