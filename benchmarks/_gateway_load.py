@@ -16,6 +16,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -43,26 +44,16 @@ JSON = {"content-type": "application/json"}
 WRK_SCRIPT = """
 local bodies = {}
 local i = 0
-local limit = 0
-local seen = 0
 local headers = {["Content-Type"] = "application/json"}
 
 function init(args)
   for line in io.lines(args[1]) do bodies[#bodies + 1] = line end
-  limit = tonumber(args[2] or "0")
 end
 
 function request()
   i = i + 1
   if i > #bodies then i = 1 end
   return wrk.format("POST", "/v1/messages", headers, bodies[i])
-end
-
-if os.getenv("WRK_STOP_AFTER") then
-  function response(status, hdrs, body)
-    seen = seen + 1
-    if limit > 0 and seen >= limit then wrk.thread:stop() end
-  end
 end
 
 function done(summary, latency, requests)
@@ -141,27 +132,31 @@ class Server:
         self.pid = self.pid or self.proc.pid
 
     def stop(self) -> None:
+        """SIGTERM (to what a wrapper runs, if any), SIGKILL after 30 s."""
         if self.proc.poll() is None:
-            if self.pid != self.proc.pid:  # a wrapper (strace): stop what it runs
+            with contextlib.suppress(ProcessLookupError):
                 os.kill(self.pid, signal.SIGTERM)
-            else:
-                self.proc.terminate()
-        self.proc.wait(timeout=60)
+        try:
+            self.proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            for pid in reversed(tree(self.proc.pid)):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            self.proc.wait(timeout=30)
 
 
 class Wrk:
     """One wrk process against ``server``, started now; :meth:`result` waits for its summary."""
 
-    def __init__(  # noqa: PLR0917 - the load and its target
-        self, server: Server, script: Path, bodies: Path, connections: int, seconds: float,
-        stop_after: int = 0,
-    ) -> None:  # fmt: skip
+    def __init__(
+        self, server: Server, script: Path, bodies: Path, connections: int, seconds: float
+    ) -> None:
         self.server = server
         self.before = counters(server.pid)
         args = ["wrk", "-t1", f"-c{connections}", f"-d{max(1, round(seconds))}s", "-s"]
-        args += [str(script), server.url, "--", str(bodies), str(stop_after)]
-        env = {**os.environ, **({"WRK_STOP_AFTER": "1"} if stop_after else {})}
-        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, text=True, env=env)
+        args += [str(script), server.url, "--", str(bodies)]
+        self.proc = subprocess.Popen(args, stdout=subprocess.PIPE, text=True)
+        self.deadline = max(1, round(seconds)) + 60
 
     def interrupt(self) -> Run:
         """Stop the load now (wrk prints its summary on SIGINT) and read its result."""
@@ -169,7 +164,11 @@ class Wrk:
         return self.result()
 
     def result(self) -> Run:
-        out, _ = self.proc.communicate()
+        try:
+            out, _ = self.proc.communicate(timeout=self.deadline)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            raise SystemExit(f"{self.server.name}: wrk did not finish") from None
         cpu, switches = (b - a for a, b in zip(self.before, counters(self.server.pid), strict=True))
         line = next((ln for ln in out.splitlines() if ln.startswith("WRK ")), None)
         if line is None:

@@ -38,6 +38,7 @@ record).
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
 import os
 import re
@@ -50,6 +51,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 import httpx
+from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay import WINDOW_BUILD
 from antireplay.wiring import DEMO_KID
@@ -80,8 +82,8 @@ from benchmarks._timing import interleaved_ns_per_op
 
 ROWS = ("fresh", "flood", "c1", "estop", "inproc", "router", "redis", "workers")
 ESTOPS = 40
-#: Fsync counting: requests per traced load (fresh c=1, fresh c=32, flood c=32).
-TRACED = {"fresh c=1": (1, 300), "fresh c=32": (32, 3_000), "flood c=32": (32, 5_000)}
+#: Fsync counting: the traced loads and their connections.
+TRACED = {"fresh c=1": 1, "fresh c=32": 32, "flood c=32": 32}
 #: Which file an fsync made durable, by the name strace -y shows.
 FSYNC_FILES = ("audit.db-wal", ".audit.db.head", "state.db-wal", ".state.db.witness")
 
@@ -155,10 +157,12 @@ class Pass:
         self.gw.stop()
         self.bare.stop()
 
-    def fresh_bodies(self, connections: int) -> Path:
-        per_s = 8_000 if connections > 1 else 1_500  # more than the fastest server answers
+    def fresh_bodies(self, connections: int, key: ed25519.Ed25519PrivateKey | None = None) -> Path:
+        """Signed envelopes for one run: more than the fastest server answers in it."""
+        per_s = 8_000 if connections > 1 else 1_500
         n = int(per_s * self.opts.seconds) + 500
-        return write_lines(self.work / "fresh.txt", [envelope(self.key) for _ in range(n)])
+        lines = [envelope(key or self.key) for _ in range(n)]
+        return write_lines(self.work / "fresh.txt", lines)
 
     def versus_bare(
         self, label: str, server: Server, connections: int, fresh: bool
@@ -247,11 +251,13 @@ class Pass:
             captured = envelope(key)
             httpx.post(traced.url + "/v1/messages", content=captured, headers=JSON)
             replay = write_lines(self.work / "traced-replay.txt", [captured])
-            for label, (connections, n) in TRACED.items():
-                bodies = replay if label.startswith("flood") else write_lines(
-                    self.work / "traced.txt", [envelope(key) for _ in range(n + 100)])  # fmt: skip
+            for label, connections in TRACED.items():
+                fresh = label.startswith("fresh")
+                bodies = self.fresh_bodies(connections, key) if fresh else replay
+                settle(traced)
                 started = time.time()
-                run = Wrk(traced, self.script, bodies, connections, 30, stop_after=n).result()
+                run = Wrk(traced, self.script, bodies, connections, self.opts.seconds).result()
+                settle(traced)  # the run's last batch is its own
                 windows[label] = started, time.time(), run.requests
         finally:
             traced.stop()
@@ -423,8 +429,9 @@ def run_pass(opts: Options, loaded: bool) -> list[tuple[str, Row]]:
             rows: list[Row] = []
             try:
                 for row in opts.rows:
-                    print(f"   {row}...", flush=True)
+                    began = time.monotonic()
                     rows += getattr(bench, row)()
+                    print(f"   {row}: {time.monotonic() - began:.0f} s", flush=True)
             finally:
                 bench.close()
     finally:
@@ -467,6 +474,9 @@ def main() -> None:
         f"load average at start: {os.getloadavg()}; rows {','.join(opts.rows)};"
         f" {opts.rounds} rounds of {opts.seconds:g} s; wrk -t1, keep-alive, loopback"
     )
+    http = "httptools" if importlib.util.find_spec("httptools") else "h11"
+    loop = "uvloop" if importlib.util.find_spec("uvloop") else "asyncio"
+    print(f"uvicorn picks http={http}, loop={loop} (both servers); {os.cpu_count()} cores")
     rows: list[tuple[str, Row]] = []
     for name in opts.passes:
         rows += run_pass(opts, loaded=name == "loaded")
