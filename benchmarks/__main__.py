@@ -1,6 +1,7 @@
 """Run the benchmarks: ``python -m benchmarks`` (or ``antireplay bench``) runs them all,
-``python -m benchmarks NAME...`` the named ones (``window`` or ``bench_window``); arguments
-that start with ``-`` (``--seconds=20``) are left for the benchmarks to read."""
+``python -m benchmarks NAME...`` the named ones (``window``, ``bench_window``, ``pq-radio``);
+options after the names go to the one benchmark named (``python -m benchmarks pq-radio
+--commands 50``), whose ``main`` takes its argument list."""
 
 from __future__ import annotations
 
@@ -16,11 +17,17 @@ MODULES = sorted(
 )
 
 
+def module_name(name: str) -> str:
+    """``pq-radio``, ``pq_radio`` and ``bench_pq_radio`` all name ``bench_pq_radio``."""
+    name = name.replace("-", "_")
+    return name if name.startswith("bench_") else f"bench_{name}"
+
+
 def selected(names: list[str]) -> list[str]:
     """The modules ``names`` ask for (all when empty); an unknown name exits with the list."""
     if not names:
         return MODULES
-    wanted = [n if n.startswith("bench_") else f"bench_{n}" for n in names]
+    wanted = [module_name(n) for n in names]
     unknown = [n for n in wanted if n not in MODULES]
     if unknown:
         raise SystemExit(
@@ -29,11 +36,24 @@ def selected(names: list[str]) -> list[str]:
     return wanted
 
 
+def split(argv: list[str]) -> tuple[list[str], list[str]]:
+    """The names, then the options (from the first argument starting with ``-``)."""
+    first = next((i for i, arg in enumerate(argv) if arg.startswith("-")), len(argv))
+    return argv[:first], argv[first:]
+
+
 def main(names: list[str] | None = None) -> None:
-    asked = [a for a in sys.argv[1:] if not a.startswith("-")]  # options: for the module
-    for name in selected(asked if names is None else names):
+    names, options = split(sys.argv[1:] if names is None else names)
+    chosen = selected(names)
+    if options and len(chosen) != 1:
+        raise SystemExit(f"options ({' '.join(options)}) go to exactly one named benchmark")
+    for name in chosen:
         print(f"\n== {name} ==", flush=True)
-        importlib.import_module(f"benchmarks.{name}").main()
+        module = importlib.import_module(f"benchmarks.{name}")
+        if options:
+            module.main(options)
+        else:
+            module.main()
 
 
 if __name__ == "__main__":

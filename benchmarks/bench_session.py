@@ -4,7 +4,7 @@ Run: ``python -m benchmarks.bench_session``.
 
 1. **Bytes on air** (exact, computed from the frames the ends produce): one
    COMMAND_LONG as plain MAVLink v2, MAVLink-signed, in our carriage (ML-DSA-87 command
-   frame, 20 chunks) and in CleitonQ's draft format (20 ``CLEITONQ_CHUNK`` frames of
+   frame, 20 chunks and 2 parity) and in CleitonQ's draft format (20 ``CLEITONQ_CHUNK`` frames of
    245 data bytes; counted as full 255-byte payloads, the draft's framing); the
    handshake; one second of a typical 57,600-baud telemetry stream (HEARTBEAT 1 Hz,
    SYS_STATUS 1 Hz, ATTITUDE 10 Hz, GLOBAL_POSITION_INT 5 Hz, VFR_HUD 2 Hz) plain,
@@ -151,7 +151,7 @@ def commands_per_second() -> None:
     pq = per_op_ns(pq_command, 200)
     classic = per_op_ns(signed_command, 2_000)
     print("Per command, wrap + carry + verify + unwrap, in process (radio airtime aside):")
-    print(f"  ours (ML-DSA-87, 20 chunks)   {pq / 1000:>8.1f} us {rate(pq)}")
+    print(f"  ours (ML-DSA-87, 20+2 chunks) {pq / 1000:>8.1f} us {rate(pq)}")
     print(f"  MAVLink signing (HMAC, 1 frame) {classic / 1000:>6.1f} us {rate(classic)}")
     print(f"  ratio {pq / classic:.0f}x")
 

@@ -77,7 +77,7 @@ class AnchorConfig(BaseModel):
 
     path: str | None = Field(default=None, min_length=1)
     redis: str | None = None
-    every_ms: int = Field(default=0, ge=0, le=60_000)  # 0: every commit; else a lease
+    every_ms: int = Field(default=0, ge=0, le=10_000)  # 0: every commit; else a lease
 
     @field_validator("redis")
     @classmethod

@@ -7,7 +7,11 @@ import sys
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 
+from antireplay.audit import AuditLog
+from antireplay.cli import main
+from antireplay.config import AuditConfig
 from tests.harness import free_port, free_udp_port
 
 
@@ -26,3 +30,31 @@ def test_mavlink_router_metrics_host_errors_name_the_option(
     assert (done.returncode, done.stdout) == (2, ""), done.stderr
     (line,) = done.stderr.splitlines()
     assert line.startswith("antireplay: error: --metrics-host " + host) and why in line, line
+
+
+def test_mavlink_router_opens_its_trail_rotated_and_retained(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The router's trail has the ``audit:`` defaults' segments and budget, and a spill."""
+    opened: list[AuditLog] = []
+
+    def build(_endpoints: object, _store: object, audit: AuditLog, _options: object) -> None:
+        opened.append(audit)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr("antireplay.wiring.build_mavlink_router", build)
+    key = tmp_path / "link.key"
+    key.write_bytes(bytes(range(32)))
+    trail = tmp_path / "audit.db"
+    args = ["mavlink-router", "--forward", "udp:127.0.0.1:9", "--key-file", str(key),
+            "--audit", str(trail), "--store", "memory",
+            "--listen", f"udp:127.0.0.1:{free_udp_port()}"]  # fmt: skip
+    done = CliRunner().invoke(main, args)
+    assert done.exit_code == 2 and "stop here" in done.output, done.output
+    (audit,) = opened
+    audit.close()
+    defaults = AuditConfig(path=str(trail))
+    assert (audit.retention.segment_bytes, audit.retention.max_bytes) == (
+        defaults.segment_bytes, defaults.max_bytes,
+    )  # fmt: skip
+    assert trail.with_name("audit.db.spill").exists()

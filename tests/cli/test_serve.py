@@ -8,8 +8,11 @@ import socket
 import sqlite3
 import subprocess
 import sys
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import httpx
 import pytest
 import yaml
 from click.testing import CliRunner, Result
@@ -19,7 +22,8 @@ from antireplay.cli import main
 from antireplay.cli._common import importable_cwd
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import GatewayProcess, metric, one_line_error, post
+from tests.harness import GatewayProcess, free_port, metric, one_line_error, post, serving, until
+from tests.harness.redis_server import RedisServer
 
 
 def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(
@@ -179,28 +183,278 @@ def test_config_check_names_the_anchor_and_refuses_a_bad_one(
     there (a volume not mounted) fails with one line."""
     other = tmp_path / "other"
     other.mkdir()
-    said = config_check(
-        tmp_path, monkeypatch,
-        f"store: sqlite:state.db\naudit: audit.db\nstate:\n  anchor:\n    path: {other}/a\n",
-    )  # fmt: skip
+    (other / "notes.txt").write_text("keep me")
+    head = "store: sqlite:state/state.db\naudit: audit.db\nstate:\n  anchor:\n    path: "
+    logs = f"{head}{other}/a\n".replace("audit: audit.db", "audit: logs/audit.db")
+    assert config_check(tmp_path, monkeypatch, logs).exit_code == 0
+    said = config_check(tmp_path, monkeypatch, f"{head}{other}/a\n")
     assert said.exit_code == 0, said.output
     assert "no state anchor" not in said.stderr and "same filesystem" in said.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["antireplay.yaml", "other"]
     for bad, needle in (
         ("state:\n  anchor:\n    pth: a\n", "state.anchor.path"),
         ("store: memory\nstate:\n  anchor:\n    path: a\n", "only with a sqlite store"),
         ("state:\n  anchor:\n    path: /not/mounted/a\n", "an existing directory"),
+        (f"{head}state/state.db\n", "the state database"),
+        (f"{head}state/.state.db.witness\n", "the state witness"),
+        (f"{head}audit.db\n", "the audit trail"),
+        (f"{head}state/a.anchor\n", "inside the state directory"),
+        (f"{head}other\n", "not a regular file"),
+        (f"{head}/dev/null\n", "not on a real filesystem"),
+        (f"{head}/proc/self/anchor\n", "not on a real filesystem"),
+        (f"{head}other/notes.txt\n", "not a state anchor"),
+        (f"{head}{other}/a\n    every_ms: 60000\n", "state.anchor.every_ms"),
     ):
         said = config_check(tmp_path, monkeypatch, bad)
         one_line_error(said, needle)
+    assert (other / "notes.txt").read_text() == "keep me"
+    assert not (tmp_path / "state").exists()  # config check creates nothing
 
 
-def test_an_unreachable_redis_anchor_fails_serve_and_config_check_with_one_line(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Without its anchor the store cannot run its open-time loss check: no start."""
-    config = write_demo_config(tmp_path)
+def test_an_unreachable_redis_anchor_starts_unready_and_recovers(tmp_path: Path) -> None:
+    """Its anchor's Redis down at start: ``config check`` fails with one line, but
+    ``serve`` starts (a fresh ESTOP must still reach the robot), unready (/readyz 503
+    naming the anchor), refusing other commands until the anchor answers; it is unready
+    again while the anchor goes down while running."""
+    (tmp_path / "redis").mkdir()
+    server = RedisServer(tmp_path / "redis", persistent=True)
+    server.start()
+    server.kill()
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
     written = yaml.safe_load(config.read_text())
-    anchor = {"state": {"anchor": {"redis": "redis://127.0.0.1:1/0"}}}
-    config.write_text(yaml.safe_dump({**written, **anchor}))
-    for args in (["config", "check", str(config)], ["serve", "--config", str(config)]):
-        one_line_error(CliRunner().invoke(main, args), "state anchor", "127.0.0.1:1")
+    config.write_text(yaml.safe_dump({**written, "state": {"anchor": {"redis": server.url}}}))
+    one_line_error(CliRunner().invoke(main, ["config", "check", str(config)]), "state anchor")
+    key = load_operator_key(state)
+    gateway = GatewayProcess(config)
+    gateway.start()
+    try:
+        ready = httpx.get(f"{gateway.url}/readyz", timeout=5)
+        assert ready.status_code == 503 and "state anchor" in ready.text, ready.text
+        assert post(gateway, command(key)).status_code == 503
+        estop = post(gateway, command(key, type=6, safety_event="ESTOP", cmd="estop"))
+        assert estop.status_code == 200, estop.text
+        server.start()
+        assert httpx.get(f"{gateway.url}/readyz", timeout=5).status_code == 200
+        assert post(gateway, command(key)).status_code == 200
+        server.kill()
+        ready = httpx.get(f"{gateway.url}/readyz", timeout=5)
+        assert ready.status_code == 503 and "state anchor" in ready.text, ready.text
+    finally:
+        gateway.stop()
+        server.stop()
+
+
+def test_two_gateways_on_one_anchor_file_the_second_refuses_to_start(tmp_path: Path) -> None:
+    """B (its own state directory) given A's ``state.anchor.path`` refuses to start with
+    one line naming the file, its owner and the recovery, instead of adopting A's
+    deployment; a restore of A's directory is then still caught by A's anchor."""
+    (tmp_path / "other").mkdir()
+    shared = {"path": str(tmp_path / "other" / "shared.anchor")}
+    configs = []
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        config = write_demo_config(tmp_path / name)
+        written = yaml.safe_load(config.read_text())
+        config.write_text(yaml.safe_dump({**written, "state": {"anchor": shared}}))
+        configs.append(config)
+    key = load_operator_key(tmp_path / "a")
+    a = GatewayProcess(configs[0])
+    a.start()
+    try:
+        assert post(a, command(key)).status_code == 200
+        shutil.copytree(tmp_path / "a", tmp_path / "snapshot")
+        x = command(key)
+        assert post(a, x).status_code == 200
+        with pytest.raises(RuntimeError) as refused:
+            GatewayProcess(configs[1]).start()
+    finally:
+        a.stop()
+    said = [line for line in str(refused.value).splitlines() if "error" in line]
+    assert len(said) == 1 and shared["path"] in said[0] and "own state.anchor.path" in said[0]
+    shutil.rmtree(tmp_path / "a")
+    shutil.copytree(tmp_path / "snapshot", tmp_path / "a")
+    with serving(configs[0]) as restored:
+        assert post(restored, x).status_code == 408
+        assert metric(restored, "antireplay_state_data_loss_total", '{backend="sqlite"}') == 1
+
+
+def test_gateways_on_other_hostnames_share_one_redis_anchor(tmp_path: Path, redis_url: str) -> None:
+    """Two gateways on one state directory, on two hostnames (UTS namespaces), one Redis
+    anchor: neither start counts a loss, and after a restore of the directory the
+    first host's gateway refuses X, which the second accepted."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    written = yaml.safe_load(config.read_text())
+    config.write_text(yaml.safe_dump({**written, "state": {"anchor": {"redis": redis_url}}}))
+    key = load_operator_key(state)
+
+    def on(host: str) -> GatewayProcess:
+        prefix = ("unshare", "-u", "sh", "-c", f'hostname {host} && exec "$@"', "sh")
+        return GatewayProcess(config, prefix=prefix)
+
+    a, b = on("host-a"), on("host-b")
+    a.start()
+    try:
+        assert post(a, command(key)).status_code == 200
+        b.start()
+        assert metric(b, "antireplay_state_data_loss_total", '{backend="sqlite"}') == 0
+        shutil.copytree(state, tmp_path / "snapshot")
+        x = command(key)
+        assert post(b, x).status_code == 200
+    finally:
+        a.stop()
+        b.stop()
+    shutil.rmtree(state)
+    shutil.copytree(tmp_path / "snapshot", state)
+    a = on("host-a")
+    a.start()
+    try:
+        assert post(a, x).status_code == 408
+        assert metric(a, "antireplay_state_data_loss_total", '{backend="sqlite"}') == 1
+    finally:
+        a.stop()
+
+
+def test_a_lazy_anchors_restart_fence_is_said_like_any_fence(tmp_path: Path) -> None:
+    """A restart inside a lazy anchor's lease refuses commands stamped before the lease's
+    end: it says so (log line, data-loss metric, STATE_LOST audit row naming the lease),
+    and a fresh ESTOP still passes."""
+    (tmp_path / "other").mkdir()
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    written = yaml.safe_load(config.read_text())
+    lazy = {"path": str(tmp_path / "other" / "a.anchor"), "every_ms": 10_000}
+    config.write_text(yaml.safe_dump({**written, "state": {"anchor": lazy}}))
+    key = load_operator_key(state)
+    with serving(config) as first:
+        assert post(first, command(key)).status_code == 200
+    second = GatewayProcess(config)
+    second.start()
+    try:
+        assert post(second, command(key)).status_code == 408
+        estop = post(second, command(key, type=6, safety_event="ESTOP", cmd="estop"))
+        assert estop.status_code == 200, estop.text
+        assert metric(second, "antireplay_state_data_loss_total", '{backend="sqlite"}') == 1
+    finally:
+        second.stop()
+    assert "lazy state anchor's lease" in (second.stderr_text or "")
+    rows = [r for r in AuditLog(state / "audit.db").tail(50) if r.code == "STATE_LOST"]
+    assert len(rows) == 1 and "lease" in str(rows[0].warning)
+
+
+def _race(urls: list[str], raw: bytes, connections: int) -> list[int]:
+    """``connections`` clients, each on its own connection to one of ``urls`` (in turn),
+    POST ``raw`` at once; their statuses."""
+    clients = [httpx.Client(base_url=urls[i % len(urls)], timeout=30) for i in range(connections)]
+    for client in clients:  # connected before the race
+        client.get("/healthz").raise_for_status()
+    gate = threading.Barrier(connections)
+
+    def send(client: httpx.Client) -> int:
+        gate.wait()
+        return post(client, raw).status_code
+
+    try:
+        with ThreadPoolExecutor(connections) as pool:
+            return list(pool.map(send, clients))
+    finally:
+        for client in clients:
+            client.close()
+
+
+def _audit_intact(state: Path) -> str:
+    verified = CliRunner().invoke(main, ["audit", "verify", str(state / "audit.db")])
+    assert verified.exit_code == 0, verified.output
+    return verified.output
+
+
+def test_two_gateway_processes_on_one_state_accept_a_message_once_and_keep_one_chain(
+    tmp_path: Path,
+) -> None:
+    """Two ``antireplay serve`` processes on one SQLite state and one audit trail, sent
+    the same messages at once over 24 connections split between them: each message is
+    accepted exactly once, every answer audited, and the trail is one intact chain."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    a, b = GatewayProcess(config), GatewayProcess(config)
+    a.start()
+    b.start()
+    try:
+        messages = [command(key) for _ in range(8)]
+        for raw in messages:
+            statuses = _race([a.url, b.url], raw, 24)
+            assert sorted(statuses) == [200] + [409] * 23, statuses
+    finally:
+        a.stop()
+        b.stop()
+    _audit_intact(state)
+    rows = AuditLog(state / "audit.db").tail(500)
+    assert sum(r.outcome == "accepted" for r in rows) == len(messages)
+
+
+def _workers_of(pid: int) -> list[int]:
+    """The gateway worker processes uvicorn's supervisor ``pid`` spawned."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            ppid = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (proc / "cmdline").read_bytes()
+        except (FileNotFoundError, ProcessLookupError, IndexError):
+            continue
+        if ppid == pid and b"spawn_main" in cmdline:
+            found.append(int(proc.name))
+    return found
+
+
+def test_serve_workers_runs_n_processes_that_accept_a_message_once(tmp_path: Path) -> None:
+    """``serve --workers 2``: two worker processes on the one socket; racing copies of a
+    message over many connections get exactly one 200; the trail verifies."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    port = free_port()
+    args = [sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
+    proc = subprocess.Popen(
+        [*args, "--port", str(port), "--workers", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    url = f"http://127.0.0.1:{port}"
+    try:
+        until("serving", lambda: len(_workers_of(proc.pid)) == 2 and _healthy(url), 60)
+        for _ in range(4):
+            statuses = _race([url], command(key), 32)
+            assert sorted(statuses) == [200] + [409] * 31, statuses
+    finally:
+        proc.terminate()
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err.decode()
+    assert b"2 worker processes (metrics per process)" in out
+    _audit_intact(state)
+
+
+def _healthy(url: str) -> bool:
+    try:
+        return httpx.get(url + "/healthz", timeout=1).status_code == 200
+    except httpx.HTTPError:
+        return False
+
+
+def test_serve_workers_refuses_the_memory_store(tmp_path: Path) -> None:
+    """One process's memory is not shared: --workers 2 on a memory store is one line."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    written = yaml.safe_load(config.read_text())
+    config.write_text(yaml.safe_dump({**written, "store": "memory"}))
+    result = CliRunner().invoke(main, ["serve", "--config", str(config), "--workers", "2"])
+    assert result.exit_code == 2
+    one_line_error(result, "store", "memory", "--workers")

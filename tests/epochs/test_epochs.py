@@ -446,13 +446,13 @@ def test_each_accept_is_one_store_advance(tmp_path: Path, clock: ManualClock) ->
     verifier = EpochVerifier(PSK, store=store, clock=clock)
     verifier.open(signer.seal(b"first"))  # a new prefix: its epoch and its successor's mark
     advances: list[str] = []
-    advance = store.advance
+    advance = store.advance_above
 
-    def counted(key: str, value: int) -> bool:
+    def counted(key: str, value: int, fence_key: str | None) -> bool:
         advances.append(key)
-        return advance(key, value)
+        return advance(key, value, fence_key)
 
-    store.advance = counted  # type: ignore[method-assign]
+    store.advance_above = counted  # type: ignore[method-assign]
     for i in range(5):
         clock.advance(0.001)
         verifier.open(signer.seal(f"more {i}".encode()))
@@ -595,10 +595,10 @@ class _FlakySqlite(SqliteStore):
 
     down = False
 
-    def advance(self, key: str, value: int) -> bool:
+    def advance_above(self, key: str, value: int, fence_key: str | None) -> bool:
         if self.down:
             raise StateUnavailableError(f"sqlite {self.path}: disk I/O error")
-        return super().advance(key, value)
+        return super().advance_above(key, value, fence_key)
 
 
 def test_failed_store_write_moves_no_mark_and_redelivery_is_accepted(
@@ -881,3 +881,38 @@ def test_forget_persists_the_floor_before_the_table_moves(clock: ManualClock) ->
     with pytest.raises(StateUnavailableError):
         verifier.open(second.seal(b"b"))
     assert verifier.last(held) is not None
+
+
+@pytest.mark.parametrize("backend", ["sqlite", "redis"])
+def test_a_prefix_forgotten_by_one_verifier_stays_refused_by_another(
+    backend: str, tmp_path: Path, request: pytest.FixtureRequest
+) -> None:
+    """Two verifiers on one store, tables of two: A accepts P1's capture, then P2 and P3
+    (evicting P1: its counter is deleted under the raised floor).  B, which never held
+    P1, refuses the capture before and after A forgot it (it reads the counter, then the
+    floor), and so does a restarted B."""
+    clock = ManualClock(wall=2_000_000_000.0)
+    prefix = f"t-{uuid.uuid4().hex}:"
+
+    def store() -> SqliteStore | RedisStore:
+        if backend == "sqlite":
+            return SqliteStore(tmp_path / "shared.db", clock=clock)
+        return RedisStore(request.getfixturevalue("redis_url"), prefix=prefix, clock=clock)
+
+    a = EpochVerifier(PSK, store=store(), clock=clock, max_prefixes=2)
+    b = EpochVerifier(PSK, store=store(), clock=clock, max_prefixes=2)
+    clock.step_wall(200)  # past any start fence
+    s1, s2, s3 = (EpochSigner(PSK, nonce_prefix=bytes([i]) * 8, clock=clock) for i in (1, 2, 3))
+    capture = s1.seal(b"P1 announcement")
+    a.open(capture)
+    clock.step_wall(0.1)
+    a.open(s2.seal(b"p2"))
+    with pytest.raises(ReplayAttackError):
+        b.open(capture)
+    clock.step_wall(0.1)
+    a.open(s3.seal(b"p3"))  # evicts P1: forget
+    assert a.store.current("epoch:announcement:" + (b"\x01" * 8).hex()) is None
+    with pytest.raises(ReplayAttackError):
+        b.open(capture)
+    with pytest.raises(ReplayAttackError):
+        EpochVerifier(PSK, store=store(), clock=clock, max_prefixes=2).open(capture)

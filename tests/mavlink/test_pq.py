@@ -32,6 +32,7 @@ from antireplay.mavlink.pq import (
     DIALECT,
     MAX_CHUNKS,
     MSG_CHUNK,
+    MSG_REPAIR,
     REKEY_TRANSFERS,
     TRANSFER_LIMIT,
     ChunkKind,
@@ -166,20 +167,24 @@ def test_dialect_xml_crc_extras_and_pymavlink_decodes_our_chunks(tmp_path: Path)
     frames = ChunkSender(255, 197).frames(bytes(range(256)) * 2, ChunkKind.HS1)
     decoder = module.MAVLink(_Keep())
     decoded = [decoder.decode(bytearray(raw)) for raw in frames]
-    assert [(m.index, m.count, m.kind) for m in decoded] == [(0, 3, 1), (1, 3, 1), (2, 3, 1)]
-    assert b"".join(bytes(m.data[: m.len]) for m in decoded) == bytes(range(256)) * 2
+    assert [(m.index, m.count, m.kind) for m in decoded] == [
+        (0, 3, 0x11), (1, 3, 0x11), (2, 3, 0x11), (3, 3, 0x11),
+    ]  # fmt: skip
+    assert b"".join(bytes(m.data[: m.len]) for m in decoded[:3]) == bytes(range(256)) * 2
+    assert module.mavlink_map[MSG_REPAIR].crc_extra == DIALECT[MSG_REPAIR][0]
 
 
 def test_arm_arrives_once_and_its_replay_is_dropped(link: Link) -> None:
     frames = link.ground.from_local(arm())
-    assert len(frames) == 20  # 4,627-byte ML-DSA-87 signature: 20 chunks
+    assert len(frames) == 22  # 4,627-byte ML-DSA-87 signature: 20 chunks, and 2 parity
     link.up(frames)
     (command,) = link.commands()
     assert (command.command, command.target_system, command.param1) == (ARM, 1, 1.0)
     assert command.get_srcSystem() == 255 and command.get_srcComponent() == 190
+    assert link.vehicle.reassembly.late == 3 + 2  # parity after a whole HS1, command: unused
     link.up(frames)  # the whole capture again: each chunk's transfer already opened
     assert len(link.commands()) == 1
-    assert link.refused == ["REPLAY_DETECTED"] * 20
+    assert link.refused == ["REPLAY_DETECTED"] * 22
 
 
 def test_telemetry_both_ways_is_hmac_in_one_chunk(link: Link) -> None:
@@ -213,18 +218,26 @@ def test_reordered_duplicated_chunks_deliver_once(link: Link) -> None:
     random.Random(7).shuffle(shuffled)
     link.up(shuffled)
     assert len(link.commands()) == 1
-    assert link.vehicle.reassembly.duplicates == 5
+    # the last index came early: the rest was asked for at once; what came after is a replay
+    assert set(link.refused) <= {"REPLAY_DETECTED"}
 
 
-def test_lost_chunk_loses_that_command_only(link: Link, clock: ManualClock) -> None:
+def test_a_lost_chunk_costs_that_chunk_not_the_command(link: Link, clock: ManualClock) -> None:
     first = link.ground.from_local(arm(param1=1.0))
+    link.up(first[:7] + first[8:])  # chunk 7 lost: its parity group rebuilds it
+    assert link.vehicle.reassembly.rebuilt == 1 and link.ground.repairs["resent"] == 0
     second = link.ground.from_local(arm(param1=0.0))
-    link.up(first[:7] + first[8:])  # chunk 7 lost
-    link.up(second)
-    assert [c.param1 for c in link.commands()] == [0.0]
-    clock.advance(11)  # the incomplete transfer expires
-    link.up(link.ground.from_local(arm(param1=2.0)))
-    assert [c.param1 for c in link.commands()] == [0.0, 2.0]
+    # chunks 7 and 9 lost (one parity group): the last chunk's arrival asks for one of them
+    link.up(second[:7] + second[8:9] + second[10:])
+    assert link.ground.repairs == {"resent": 1} and link.vehicle.repairs == {"nack_sent": 1}
+    assert [c.param1 for c in link.commands()] == [1.0, 0.0]
+    third = link.ground.from_local(arm(param1=2.0))
+    nack = link.vehicle.from_air  # every repair lost: the transfer expires, counted
+    for raw in third[:7] + third[8:9] + third[10:]:
+        nack(raw)
+    clock.advance(11)
+    link.up(link.ground.from_local(arm(param1=3.0)))
+    assert [c.param1 for c in link.commands()] == [1.0, 0.0, 3.0]
     assert link.vehicle.reassembly.expired == 1
 
 
@@ -249,9 +262,10 @@ def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> No
     target_at = 6 + 10 + 6 + 30
     frames = link.ground.from_local(arm(target=1))
     link.up([_tamper(frames[0], target_at, 2), *frames[1:]])
-    assert link.refused == ["SIGNATURE_INVALID"] and not link.commands()
+    assert link.refused == ["SIGNATURE_INVALID"]  # the chunk MAC; parity rebuilt the genuine
+    assert [c.target_system for c in link.commands()] == [1]
     # another message id in the outer header: the CRC extra no longer matches
-    header = bytearray(link.ground.from_local(arm())[0])
+    header = bytearray(link.ground.from_local(arm(param1=5.0))[0])
     header[7] = dialect.MAVLINK_MSG_ID_COMMAND_LONG & 0xFF
     link.up([bytes(header)])
     assert link.refused[-1] == "INVALID_FRAME"
@@ -259,8 +273,9 @@ def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> No
     first, second = link.ground.from_local(arm(param1=1.0)), link.ground.from_local(arm(param1=0.0))
     transfer = struct.unpack_from("<H", parse_frame(first[0]).payload)[0]
     renumbered = [_tamper(_tamper(raw, 0, transfer & 0xFF), 1, transfer >> 8) for raw in second]
+    link.refused.clear()
     link.up(first[:10] + renumbered[10:])
-    assert not link.commands() and link.refused.count("SIGNATURE_INVALID") == 11
+    assert len(link.commands()) == 1 and link.refused == ["SIGNATURE_INVALID"] * 12
     # an insider holding the session's HMAC keys rewrites the target: ML-DSA-87 still fails
     session = link.ground.session
     assert session is not None
@@ -268,9 +283,7 @@ def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> No
     blob[28 + 6 + 30] = 2
     key = chunk_key(session.send_key)
     link.up(ChunkSender(255, 197, transfer=900).frames(compact(bytes(blob)), ChunkKind.FRAME, key))
-    assert link.refused[-1] == "SIGNATURE_INVALID" and not link.commands()
-    link.up(frames[:1])  # the genuine first chunk completes the genuine command
-    assert [c.target_system for c in link.commands()] == [1]
+    assert link.refused[-1] == "SIGNATURE_INVALID" and len(link.commands()) == 1
 
 
 def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
@@ -293,7 +306,7 @@ def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
 
 
 def _blob(frames: list[bytes]) -> bytes:
-    chunks = [parse_chunk(parse_frame(raw)) for raw in frames]
+    chunks = [c for raw in frames if not (c := parse_chunk(parse_frame(raw))).is_parity]
     return b"".join(c.piece for c in sorted(chunks, key=lambda c: c.index))
 
 
@@ -313,12 +326,13 @@ def test_chunk_flood_cannot_crowd_out_a_command(link: Link) -> None:
 def test_handshake_flood_keeps_the_almost_complete_handshake(clock: ManualClock) -> None:
     link = Link(clock)
     hs1 = link.ground.handshake()
-    link.up(hs1[:-1])
+    assert len(hs1) == 29  # 26 chunks and 3 parity
+    link.up([raw for i, raw in enumerate(hs1) if i not in (0, 3, 28)])  # two of one group
     rng = random.Random(5)
     for transfer in range(200):  # first chunks of made-up handshakes from other systems
         fields = (transfer, 0, 26, CHUNK_DATA, ChunkKind.HS1)
         link.up([raw_chunk(fields, rng.randbytes(CHUNK_DATA), sysid=rng.randrange(256))])
-    link.up(hs1[-1:])
+    link.up(hs1[:1])
     assert link.ground.session is not None
     assert link.vehicle.reassembly.evicted == 199
 
@@ -425,11 +439,11 @@ def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
     hybrid = vehicle_x25519.public_key()
     link.ground = GroundEnd(initiator, ROBOT_KEM.public_key(), hybrid=hybrid, clock=clock)
     hs1 = link.ground.handshake()
-    assert len(hs1) == 26  # the X25519 share fits in the same 26 chunks
+    assert len(hs1) == 29  # the X25519 share fits in the same 26 chunks (and 3 parity)
     link.up(hs1)
     frames = link.ground.from_local(arm())
     link.up(frames + frames)
-    assert len(link.commands()) == 1 and link.refused == ["REPLAY_DETECTED"] * 20
+    assert len(link.commands()) == 1 and link.refused == ["REPLAY_DETECTED"] * 22
 
 
 def test_a_frame_withheld_from_a_superseded_session_never_plays(link: Link) -> None:
@@ -562,17 +576,17 @@ def test_command_carrying_messages_are_signed_by_default(
 
 def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: Link) -> None:
     old = []
-    for _ in range(6):  # the attacker records six commands, all delivered
-        frames = link.ground.from_local(arm())
+    for n in range(6):  # the attacker records six commands, all delivered
+        frames = link.ground.from_local(arm(param1=float(n)))
         old.append(frames)
         link.up(frames)
     for t in range(4):  # and replays 19 of 20 chunks of four: none is buffered
         link.up(old[t][:19])
     assert link.refused == ["REPLAY_DETECTED"] * 76
-    fresh = link.ground.from_local(arm(param1=0.0))
+    fresh = link.ground.from_local(arm(param1=9.0))
     for i, chunk in enumerate(fresh):
         link.up([chunk, old[4 + i % 2][0]])
-    assert [c.param1 for c in link.commands()][-1] == 0.0
+    assert [c.param1 for c in link.commands()][-1] == 9.0
     assert link.vehicle.reassembly.evicted == 0
 
 
@@ -613,8 +627,8 @@ def test_the_link_counts_plain_mavlink_quietly_and_exports_the_ends_drops(
     local, air = FakeTransport("udpin:0.0.0.0:1", fixed=False), FakeTransport("udpout:1.2.3.4:5")
     pq = PqLink(made.ground, local, air, on_reject=refusals.append)
     pq.start()  # the first HS1 goes out, and is lost
-    for _ in range(9):
-        local.inject(arm(), ("10.0.0.1", 9))
+    for n in range(9):
+        local.inject(arm(param1=float(n)), ("10.0.0.1", 9))
     clock.advance(6)
     air.inject(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), sysid=1))  # MAVProxy's own
     air.inject(raw_chunk((7, 0, 1, 1, 3), b"x"))

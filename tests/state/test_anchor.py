@@ -4,7 +4,10 @@ both) vouches for more; exact and lazy writing; a lost anchor fails closed."""
 
 from __future__ import annotations
 
+import random
 import shutil
+import threading
+import uuid
 from collections.abc import Callable
 from pathlib import Path
 
@@ -12,8 +15,8 @@ import pytest
 import redis
 
 from antireplay import ManualClock, ReplayCache
-from antireplay.core.errors import StateUnavailableError
-from antireplay.state.anchor import Anchored, StateAnchor
+from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
+from antireplay.state.anchor import Anchored, StateAnchor, check_anchor_path
 from antireplay.state.sqlite import SqliteStore
 from tests.harness.redis_server import RedisServer
 from tests.harness.stores import assert_fenced
@@ -35,9 +38,7 @@ def make_anchor(request: pytest.FixtureRequest, tmp_path: Path) -> MakeAnchor:
             tmp_path / "state" / "state.db", path=path, redis_url=url, every_s=every_s
         )
 
-    if url is not None:  # the session's Redis: start this test's database path afresh
-        redis.Redis.from_url(url).delete(make().key)
-    return make
+    return make  # the session's Redis: keys name a new deployment and this test's path
 
 
 def session(tmp_path: Path, clock: ManualClock, anchor: StateAnchor | None) -> ReplayCache:
@@ -177,8 +178,11 @@ def test_a_lazy_anchor_fences_a_copy_it_cannot_tell_from_the_latest(
     shutil.copytree(tmp_path / "snapshot", tmp_path / "state")
     clock.advance(1)
     cache = session(tmp_path, clock, make_anchor(every_s=5.0))
-    assert cache.store.status()["data_loss_events"] == 0  # not provably a loss ...
-    assert_fenced(cache, "X", NOW + 20.9)  # ... yet X stays refused
+    store = cache.store
+    assert isinstance(store, SqliteStore)  # not provably a loss, yet fenced, and said so
+    assert "lazy state anchor's lease" in str(store.loss_reason)
+    assert store.status()["data_loss_events"] == 1
+    assert_fenced(cache, "X", NOW + 20.9)
     assert cache.store.fence() == NOW + 30
     clock.advance(18)
     assert cache.commit("fresh", clock.wall() - 0.1).warning is None
@@ -213,17 +217,193 @@ def test_a_failed_anchor_write_fails_the_commit_and_recovers(tmp_path: Path) -> 
         server.stop()
 
 
-def test_the_anchor_reads_the_most_advanced_of_file_and_redis(
-    tmp_path: Path, redis_url: str
-) -> None:
-    """Losing one of the two copies loses nothing: the other still vouches."""
+def test_two_states_on_one_anchor_file_refuse_never_adopt(tmp_path: Path) -> None:
+    """A second state (its own directory, empty or not) given the first one's anchor file
+    is refused with the file, its owner and the recovery; it never adopts the deployment,
+    so the first state's restore is still found behind its anchor."""
     (tmp_path / "other").mkdir()
-    both = StateAnchor(
-        tmp_path / "db", path=tmp_path / "other" / "a", redis_url=redis_url, every_s=0.0
-    )
-    both.advance("ab" * 16, 7, NOW)
-    (tmp_path / "other" / "a").unlink()
-    assert both.read() == Anchored("ab" * 16, 7, NOW)
-    redis.Redis.from_url(redis_url).set(both.key, "not an anchor")
-    assert both.read() is False
-    both.close()
+    shared = tmp_path / "other" / "shared.anchor"
+    clock = ManualClock(wall=NOW)
+    a = SqliteStore(tmp_path / "a" / "state.db", clock=clock,
+                    anchor=StateAnchor(tmp_path / "a" / "state.db", path=shared))  # fmt: skip
+    a.commit("X", NOW + 30, NOW)
+    a.close()
+    with pytest.raises(StateFileError) as err:
+        SqliteStore(tmp_path / "b" / "state.db", clock=clock,
+                    anchor=StateAnchor(tmp_path / "b" / "state.db", path=shared))  # fmt: skip
+    said = str(err.value)
+    assert str(shared) in said and str(tmp_path / "a" / "state.db") in said
+    assert "its own state.anchor.path" in said and "\n" not in said
+    a = SqliteStore(tmp_path / "a" / "state.db", clock=clock,
+                    anchor=StateAnchor(tmp_path / "a" / "state.db", path=shared))  # fmt: skip
+    assert a.status()["data_loss_events"] == 0  # still A's, untouched by B
+    a.close()
+
+
+def test_sharers_on_other_hosts_and_mount_paths_share_one_redis_record(
+    tmp_path: Path, redis_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two processes on one database, one through a symlinked mount path and another
+    hostname, write one record (keyed by the deployment): a restore of the database is
+    behind it, and neither host's first open counts a loss."""
+    (tmp_path / "state").mkdir()
+    (tmp_path / "mnt").symlink_to(tmp_path / "state")
+    clock = ManualClock(wall=NOW)
+
+    def on(host: str, where: str) -> SqliteStore:
+        monkeypatch.setattr("socket.gethostname", lambda: host)
+        db = tmp_path / where / "state.db"
+        return SqliteStore(db, clock=clock, anchor=StateAnchor(db, redis_url=redis_url))
+
+    a = on("host-a", "state")
+    a.commit("before", NOW + 30, NOW)
+    shutil.copytree(tmp_path / "state", tmp_path / "snapshot", symlinks=True)
+    b = on("host-b", "mnt")
+    assert b.status()["data_loss_events"] == 0  # a new hostname and path: no loss
+    b.commit("X", NOW + 30, NOW)
+    a.close()
+    b.close()
+    shutil.rmtree(tmp_path / "state")
+    shutil.copytree(tmp_path / "snapshot", tmp_path / "state")
+    a = on("host-a", "state")
+    assert "behind its state anchor" in str(a.loss_reason)
+    assert_fenced(ReplayCache(clock=clock, store=a), "X", NOW - 1)
+    a.close()
+
+
+def test_the_redis_anchor_never_goes_back(tmp_path: Path, redis_url: str) -> None:
+    """Concurrent writers land in any order: the record keeps the highest generation and
+    time (one script), so a slow writer never lowers what a fast one vouched for."""
+    deployment = uuid.uuid4().hex
+    fast, slow = (StateAnchor(tmp_path / "db", redis_url=redis_url) for _ in range(2))
+    fast.advance(deployment, 9, NOW + 5)
+    slow.advance(deployment, 4, NOW)
+    assert fast.read(deployment) == {"redis://127.0.0.1:" + redis_url.rsplit(":", 1)[1]:
+                                     Anchored(deployment, 9, NOW + 5)}  # fmt: skip
+    fast.close()
+    slow.close()
+    racers = [StateAnchor(tmp_path / "db", redis_url=redis_url) for _ in range(8)]
+    order = list(range(1, 41))
+    random.Random(5).shuffle(order)
+    threads = [
+        threading.Thread(target=racers[g % 8].advance, args=(deployment, 10 + g, NOW + g))
+        for g in order
+    ]  # real threads, eight connections, landing in whatever order they land
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert list(racers[0].read(deployment).values()) == [Anchored(deployment, 50, NOW + 40)]
+    for racer in racers:
+        racer.close()
+
+
+@pytest.mark.parametrize("flushed", ["redis", "file"])
+def test_each_anchor_copy_is_checked_on_its_own(
+    tmp_path: Path, redis_url: str, flushed: str
+) -> None:
+    """With a file and a Redis copy, losing either one (no restore at all) is a loss:
+    the other copy does not hide it."""
+    (tmp_path / "other").mkdir()
+    clock = ManualClock(wall=NOW)
+    db = tmp_path / "state" / "state.db"
+
+    def anchor() -> StateAnchor:
+        return StateAnchor(db, path=tmp_path / "other" / "a", redis_url=redis_url)
+
+    store = SqliteStore(db, clock=clock, anchor=anchor())
+    store.commit("X", NOW + 30, NOW)
+    deployment = store._deployment
+    store.close()
+    if flushed == "redis":
+        redis.Redis.from_url(redis_url).delete(f"antireplay:anchor:{deployment}")
+    else:
+        (tmp_path / "other" / "a").unlink()
+    store = SqliteStore(db, clock=clock, anchor=anchor())
+    assert "no state anchor" in str(store.loss_reason), store.loss_reason
+    assert store.status()["data_loss_events"] == 1
+    assert_fenced(ReplayCache(clock=clock, store=store), "X", NOW - 1)
+    store.close()
+
+
+def test_an_unreachable_anchor_opens_unready_and_verifies_once_back(tmp_path: Path) -> None:
+    """Its Redis down at open: the store opens (no refusal to start), unready and refusing
+    commits; once Redis answers, readiness runs the deferred loss check, which still
+    finds a restored directory behind its anchor (and the next commit reports it)."""
+    (tmp_path / "redis-dir").mkdir()
+    server = RedisServer(tmp_path / "redis-dir", persistent=True)
+    server.start()
+    clock = ManualClock(wall=NOW)
+    db = tmp_path / "state" / "state.db"
+
+    def anchor() -> StateAnchor:
+        return StateAnchor(db, redis_url=server.url, timeout_s=0.5)
+
+    try:
+        store = SqliteStore(db, clock=clock, anchor=anchor())
+        store.commit("before", NOW + 30, NOW)
+        store.close()
+        shutil.copytree(tmp_path / "state", tmp_path / "snapshot")
+        store = SqliteStore(db, clock=clock, anchor=anchor())
+        store.commit("X", NOW + 30, NOW)
+        store.close()
+        shutil.rmtree(tmp_path / "state")
+        shutil.copytree(tmp_path / "snapshot", tmp_path / "state")
+        server.kill()
+        store = SqliteStore(db, clock=clock, anchor=anchor())  # opens: no exception
+        with pytest.raises(StateUnavailableError, match="state anchor"):
+            store.ready()
+        with pytest.raises(StateUnavailableError, match="state anchor"):
+            store.commit("X", NOW + 30, NOW)
+        server.start()
+        store.ready()
+        assert "behind its state anchor" in str(store.loss_reason)
+        cache = ReplayCache(clock=clock, store=store)
+        assert_fenced(cache, "X", NOW - 1)
+        clock.advance(60)
+        assert cache.commit("fresh", clock.wall()).warning is None
+        store.close()
+    finally:
+        server.stop()
+
+
+def test_a_running_store_is_unready_while_its_anchor_is_down(tmp_path: Path) -> None:
+    (tmp_path / "redis-dir").mkdir()
+    server = RedisServer(tmp_path / "redis-dir", persistent=True)
+    server.start()
+    db = tmp_path / "state" / "state.db"
+    try:
+        store = SqliteStore(db, anchor=StateAnchor(db, redis_url=server.url, timeout_s=0.5))
+        store.ready()
+        server.kill()
+        with pytest.raises(StateUnavailableError, match="state anchor"):
+            store.ready()
+        server.start()
+        store.ready()
+        store.close()
+    finally:
+        server.stop()
+
+
+@pytest.mark.parametrize(
+    "target", ["state/state.db", "state/.state.db.witness", "state/x.anchor", "audit.db",
+               "other", "/dev/null", "/proc/self/anchor", "notes.txt"],
+)  # fmt: skip
+def test_an_anchor_path_that_is_not_an_anchor_is_refused_untouched(
+    tmp_path: Path, target: str
+) -> None:
+    (tmp_path / "state").mkdir()
+    (tmp_path / "other").mkdir()
+    (tmp_path / "notes.txt").write_text("keep me")
+    db = tmp_path / "state" / "state.db"
+    SqliteStore(db).close()
+    (tmp_path / "audit.db").write_bytes(b"SQLite format 3\0")
+    path = Path(target) if target.startswith("/") else tmp_path / target
+    before = path.read_bytes() if path.is_file() and not target.startswith("/") else None
+    avoid = {"state database": db, "state witness": db.with_name(".state.db.witness"),
+             "audit trail": tmp_path / "audit.db"}  # fmt: skip
+    with pytest.raises(ConfigError) as err:
+        check_anchor_path(path, avoid)
+    assert "state.anchor.path" in str(err.value) and "\n" not in str(err.value)
+    if before is not None:
+        assert path.read_bytes() == before

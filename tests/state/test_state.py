@@ -185,6 +185,35 @@ def test_forget_racing_advances_keeps_the_highest_fence(store: ReplayStore) -> N
     assert store.current("f:fence") == 30
 
 
+def test_advance_above_refuses_at_or_below_the_fence_counter(store: ReplayStore) -> None:
+    """``advance_above``: a counter another process dropped under a fence (``forget``)
+    cannot be advanced again from nothing to a value the fence covers."""
+    assert store.advance_above("q:a", 5, "q:floor")  # no fence yet
+    store.forget(["q:a"], "q:floor", 9)
+    assert not store.advance_above("q:a", 9, "q:floor")
+    assert store.current("q:a") is None
+    assert store.advance_above("q:a", 10, "q:floor") and store.current("q:a") == 10
+    assert not store.advance_above("q:a", 10, "q:floor")  # and above its own counter
+
+
+def test_forget_racing_advance_above_never_reopens(store: ReplayStore) -> None:
+    """Real threads: whoever wins, a value the fence covers is never recorded after the
+    counter was dropped under it."""
+    for round_ in range(20):
+        key, fence = f"r{round_}:p", f"r{round_}:floor"
+        assert store.advance(key, 5)
+        racers = [
+            threading.Thread(target=store.forget, args=([key], fence, 7)),
+            threading.Thread(target=store.advance_above, args=(key, 6, fence)),
+        ]
+        for t in racers:
+            t.start()
+        for t in racers:
+            t.join()
+        assert store.current(key) is None and store.current(fence) == 7
+        assert not store.advance_above(key, 7, fence)
+
+
 def test_status_reports_the_backend_in_use(store: ReplayStore) -> None:
     store.commit("a", NOW + 30, NOW)
     status = store.status()

@@ -2,34 +2,28 @@
 
 Theory of operation
 -------------------
-Every accepted message and every refusal that matters is one row: time, outcome,
-code, warning, message type, sender (the authenticated owner, or the claimed one
-marked unverified) and a sanitized msg_id (at most 64 characters of
-``[A-Za-z0-9._:@/-]``, else ``sha256:<16 hex>``), so no row can forge a log line and
-nothing from ``params`` is written.  Refusals pass through one rate-limited
-:class:`RefusalAuditor` (a budget for authenticated refusals, one for the rest);
-accepted messages always get their own row.
+Every accepted message is one row (time, outcome, code, warning, type, sender, a sanitized
+msg_id; nothing from ``params``), so no row can forge a log line.  Refusals pass through
+one :class:`RefusalAuditor` (:mod:`.refusals`): a bounded rate of them get rows, per class
+(authenticated or not) and per sender, and the rest are folded into **summary** rows
+("N further REPLAY_DETECTED from Y between t1 and t2"), so a flood is fully counted at
+bounded rows per second.  Each row stores ``hash = SHA-256(prev_hash | row)``
+(:mod:`.chain`); :class:`AuditLog` group-commits (one transaction and fsync per batch) and
+checkpoints the MACed head ``(rows, last hash)`` to ``PATH.head`` under a key kept
+outside the trail, so :func:`verify` proves the chain and that no checkpointed row was
+truncated or rewritten (not against a holder of the key).
 
-Each row stores ``hash = SHA-256(prev_hash | canonical JSON of the row)``
-(:mod:`.chain`).  The writer (:class:`AuditLog`) group-commits: concurrent rows are
-chained and made durable in one transaction and one fsync, each caller answered
-once its own row is durable.  The head ``(rows, last hash)`` is MACed with a key
-kept outside the database and checkpointed to ``PATH.head`` after every batch
-(fsynced at most every ``head_sync_s``; an older genuine checkpoint only
-under-claims), like a transparency log's signed head: :func:`verify` proves the
-chain, the checkpoint's MAC and that no checkpointed row was truncated or
-rewritten, and counts the rows after it as not covered.  It proves nothing against
-a holder of the key, nor a rollback of the database and the head file together.
-
-The trail is a sequence of segments (:mod:`.segments`): ``PATH`` is the live one,
-rotated ones are ``PATH.000041``, each chained from the one before by a MACed link;
-retention removes the oldest whole segments only, and :func:`verify` says where it cut.
-
-Refuse, never guess: a file that is not an audit trail, a trail truncated or
-rewritten since its checkpoint, a missing checkpoint or key raise
-:class:`~antireplay.core.errors.AuditFileError` naming the file and the recovery
-(``antireplay audit verify`` / ``reanchor``); appends to a trail deleted under a
-running writer fail with ``STATE_UNAVAILABLE``.
+The trail is a sequence of **segments** (:mod:`.segments`): ``PATH`` is the live one,
+rotated by size or age to ``PATH.000041``, each chained from the one before by a MACed
+link.  **Retention** (``max_bytes``, ``max_age_s``) removes the oldest whole segments
+only, recording the cut in the head first: :func:`verify` says where it cut, and a
+missing recent segment is tampering.  **Disk floors** (:mod:`.space`): below the first,
+refusals are only counted; below the second, new commands are refused with
+``STATE_UNAVAILABLE`` and ``/readyz`` says why.  A fresh authentic ESTOP is delivered
+through any audit failure; its row goes to the reserved **spill** (:mod:`.spill`) and is
+merged into the trail, chained, with the next batch it takes.  A file that is not a
+trail, or was rewritten, raises :class:`~antireplay.core.errors.AuditFileError` naming
+the recovery (``antireplay audit verify`` / ``reanchor``).
 """
 
 from antireplay.audit.chain import GENESIS, Checkpoint, HeadAnchor, Record, sanitize

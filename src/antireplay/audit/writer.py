@@ -4,6 +4,9 @@ See :mod:`antireplay.audit` for the theory of operation and :mod:`.segments` for
 the trail rotates and what retention removes.  Each batch is one transaction in
 :meth:`AuditLog._write_batch`; rotation and retention run after it, under the same lock,
 and never fail the batch (its rows are durable: a failed rotation is retried next batch).
+Rows waiting in the ESTOP spill (:mod:`.spill`) are merged first in each batch.
+
+Size: the writer, the spill merge, rotation and retention share one lock and one batch.
 """
 
 from __future__ import annotations
@@ -419,9 +422,12 @@ class AuditLog:
     def _retain(self) -> None:
         """Remove the oldest rotated segments past the byte or age budget (the caller holds
         the lock): the head, fsynced, first says they are gone on purpose.  The live segment
-        counts as full, so the trail stays within budget until the next rotation."""
+        counts as full, as large as the largest rotated one (a segment rotates once a batch
+        has taken it past ``segment_bytes``), so the trail stays within budget until the next
+        rotation."""
         budget, age = self.retention.max_bytes, self.retention.max_age_s
-        live = max(segments.bytes_of(self.path), self.retention.segment_bytes or 0)
+        full = max([self.retention.segment_bytes or 0, *(k.bytes for k in self._kept)])
+        live = max(segments.bytes_of(self.path), full)
         total = sum(k.bytes for k in self._kept) + live
         horizon = None if age is None else self._clock.wall() - age
         doomed = 0

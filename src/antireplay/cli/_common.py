@@ -7,6 +7,7 @@ allowed>)``, with exit status 2 (:func:`_fail`); ``config check`` runs the same
 
 from __future__ import annotations
 
+import os
 import signal
 import sqlite3
 import sys
@@ -98,10 +99,9 @@ _MOVE_ASIDE = "move it aside (a new trail is started) or configure another path"
 
 def _check_audit_anchor(path: Path) -> None:
     """What opening the trail would refuse, found read-only (nothing written, nothing adopted)."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        _fail(f"audit {path}: cannot create its directory ({exc.strerror or exc})")
+    existing = next(p for p in (path.absolute().parent, *path.absolute().parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        _fail(f"audit {path}: cannot create its directory ({existing} is not a writable directory)")
     if not path.exists():
         return
     try:

@@ -46,9 +46,11 @@ def _participant(cfg: DdsConfig) -> Any:
 
 
 def _audit(cfg: DdsConfig) -> Any:
-    from antireplay.audit import AuditLog  # noqa: PLC0415
+    """The ``dds.audit`` trail, rotated and retained by the ``audit:`` defaults, with a spill."""
+    from antireplay.config import AuditConfig  # noqa: PLC0415
+    from antireplay.wiring import open_audit  # noqa: PLC0415
 
-    return None if cfg.audit is None else AuditLog(cfg.audit)
+    return None if cfg.audit is None else open_audit(AuditConfig(path=cfg.audit))
 
 
 @click.group()

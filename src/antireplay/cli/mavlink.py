@@ -8,7 +8,6 @@ from typing import TYPE_CHECKING
 
 import click
 
-from antireplay.audit import AuditLog
 from antireplay.core.counters import DEFAULT_WINDOW
 from antireplay.core.errors import ConfigError, ReplayAttackError, StateFileError
 from antireplay.wiring import Allowed, stop_router
@@ -287,10 +286,12 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     guards accept (also answers to its first name, mavlink-proxy)."""
     import logging  # noqa: PLC0415
 
+    from antireplay.config import AuditConfig  # noqa: PLC0415
     from antireplay.state import open_store  # noqa: PLC0415
     from antireplay.wiring import (  # noqa: PLC0415
         RouterOptions,
         build_mavlink_router,
+        open_audit,
         serve_router_metrics,
     )
 
@@ -304,7 +305,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     )  # fmt: skip
     _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")  # before opening anything
     try:
-        audit_log = AuditLog(audit_path)
+        audit_log = open_audit(AuditConfig(path=audit_path))  # rotated, retained, with a spill
     except StateFileError as exc:
         _fail(str(exc))
     try:

@@ -8,7 +8,8 @@ runs one :class:`~antireplay.mavlink.pq.link.PqLink` until SIGINT or SIGTERM and
 the counts when it stops.  Refusals go to the rate-limited refusal auditor (an audit
 record and a log line each, the rest counted); a change of the session (established,
 rekeyed, lost, resumed) is logged at INFO and always audited (``--audit``).  With
-``--metrics-port`` the link's counts (:func:`pq_metrics`) are served to Prometheus.
+``--metrics-port`` the link's counts (:func:`pq_metrics`) are served to Prometheus, air
+bytes by kind among them; ``--air-bps`` paces the air side to the radio's serial rate.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def _operations(end: str) -> Callable[[F], F]:
-    """The options every end shares: its audit trail and its metrics port."""
+    """The options every end shares: its audit trail, its metrics port, its air budget."""
 
     def apply(command: F) -> F:
         for option in (
@@ -57,6 +58,11 @@ def _operations(end: str) -> Callable[[F], F]:
                 help="The address the metrics port binds (0.0.0.0 for a Prometheus on "
                 "another host).",
             ),
+            click.option(
+                "--air-bps", type=click.IntRange(1_200, 10_000_000), default=None,
+                help="The radio's serial rate in baud (57600 for a SiK radio): pace what "
+                "goes on air to it, telemetry ahead of long transfers.  Default: unpaced.",
+            ),
         ):  # fmt: skip
             command = option(command)
         return command
@@ -69,6 +75,7 @@ def pq_metrics(counts: LinkCounts) -> list[Metric]:
     from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily  # noqa: PLC0415
 
     from antireplay.mavlink.pq.link import SESSION_EVENTS  # noqa: PLC0415
+    from antireplay.mavlink.pq.repair import AIR_KINDS  # noqa: PLC0415
 
     end = counts.end
     up = GaugeMetricFamily(
@@ -84,6 +91,12 @@ def pq_metrics(counts: LinkCounts) -> list[Metric]:
          counts.handshakes),
         ("chunks", "PQ_CHUNK frames", "what", ("sent", "received", "reassembled"),
          counts.chunks),
+        ("air_bytes", "Bytes handed to the air, by what they carry", "kind", AIR_KINDS,
+         counts.airtime),
+        ("repairs", "Repair requests sent, chunks resent, held answers sent again", "what",
+         ("nack_sent", "poke_sent", "resent", "answered", "ignored"), counts.repairs),
+        ("retries", "A ground station's command retries, by how they were answered", "how",
+         ("poked", "answered", "sending", "queued"), counts.retries),
     ):  # fmt: skip
         family = CounterMetricFamily(f"antireplay_mavlink_pq_{name}", text, labels=["end", label])
         for key in fixed:
@@ -151,10 +164,12 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
     audit_path: str,
     metrics_port: int | None,
     metrics_host: str,
+    air_bps: int | None,
 ) -> None:
+    from antireplay.config import AuditConfig  # noqa: PLC0415
     from antireplay.mavlink.endpoints import open_transport, parse_endpoint  # noqa: PLC0415
     from antireplay.mavlink.pq.link import PqLink  # noqa: PLC0415
-    from antireplay.wiring import mavlink_auditor, serve_metrics  # noqa: PLC0415
+    from antireplay.wiring import mavlink_auditor, open_audit, serve_metrics  # noqa: PLC0415
 
     _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")  # before opening anything
     try:
@@ -164,11 +179,14 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
     except OSError as exc:
         raise click.ClickException(f"{local} / {air}: {exc.strerror or exc}") from None
     try:
-        audit_log = AuditLog(audit_path)
+        audit_log = open_audit(AuditConfig(path=audit_path))  # rotated, retained
     except StateFileError as exc:
         _fail(str(exc))
     refusals = mavlink_auditor(audit_log)
-    link = PqLink(end, *transports, on_reject=refusals, on_session=_session_recorder(audit_log))
+    link = PqLink(
+        end, *transports, on_reject=refusals, on_session=_session_recorder(audit_log),
+        air_bps=air_bps,
+    )  # fmt: skip
     if metrics_port is not None:
         try:
             serve_metrics(lambda: pq_metrics(link.counts()), metrics_port, metrics_host)
@@ -188,9 +206,10 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
     forwarded = " ".join(f"{k}={v}" for k, v in sorted(link.forwarded.items())) or "none"
     dropped = " ".join(f"{k}={v}" for k, v in sorted(link.dropped.items())) or "none"
     sessions = " ".join(f"{k}={v}" for k, v in sorted(link.sessions.items())) or "none"
+    kinds = " ".join(f"{k}={v}" for k, v in sorted(link.counts().airtime.items())) or "none"
     click.echo(
         f"forwarded {forwarded}; dropped {dropped}; sessions {sessions}; "
-        f"{link.air_bytes} bytes on air",
+        f"{link.air_bytes} bytes on air ({kinds})",
         err=True,
     )
 
@@ -250,6 +269,7 @@ def ground(  # noqa: PLR0917 - one option per knob
     audit_path: str,
     metrics_port: int | None,
     metrics_host: str,
+    air_bps: int | None,
 ) -> None:
     """The end next to the ground station: opens the session, wraps its peers' messages."""
     from antireplay.mavlink.pq import GroundEnd  # noqa: PLC0415
@@ -264,8 +284,11 @@ def ground(  # noqa: PLR0917 - one option per knob
         initiator = Initiator(identity, key)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="'--identity'") from None
-    end = GroundEnd(initiator, kem, system_id=system_id, hybrid=hybrid, queue_ttl_s=queue_ttl)
-    _run(end, local, air, audit_path, metrics_port, metrics_host)
+    end = GroundEnd(
+        initiator, kem, system_id=system_id, hybrid=hybrid, queue_ttl_s=queue_ttl,
+        air_bps=air_bps,
+    )  # fmt: skip
+    _run(end, local, air, audit_path, metrics_port, metrics_host, air_bps)
 
 
 @mavlink_pq.command()
@@ -315,6 +338,7 @@ def vehicle(  # noqa: PLR0917 - one option per knob
     audit_path: str,
     metrics_port: int | None,
     metrics_host: str,
+    air_bps: int | None,
 ) -> None:
     """The end next to the autopilot: verifies, unwraps, delivers plain MAVLink to it."""
     from antireplay.mavlink.pq import VehicleEnd  # noqa: PLC0415
@@ -332,4 +356,4 @@ def vehicle(  # noqa: PLR0917 - one option per knob
         hybrid = _key(x25519_key, x25519.X25519PrivateKey, "'--x25519-key'")
     responder = Responder(kem, registry, max_sessions=max_sessions, x25519_key=hybrid)
     end = VehicleEnd(responder, system_id=system_id)
-    _run(end, fc, air, audit_path, metrics_port, metrics_host)
+    _run(end, fc, air, audit_path, metrics_port, metrics_host, air_bps)

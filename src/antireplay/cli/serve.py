@@ -1,8 +1,18 @@
-"""``serve``, ``config check``, ``demo`` and ``bench``: the gateway and its checks."""
+"""``serve``, ``config check``, ``demo`` and ``bench``: the gateway and its checks.
+
+``serve --workers N`` runs N gateway processes under uvicorn's supervisor (spawned, each
+building its own app from the same configuration, see :func:`worker_app`), accepting on
+the one listening socket the parent bound.  They share the store and the audit trail on
+disk: the store's commit is the one atomic step, so of two processes racing a msg_id
+exactly one accepts it, and the audit writer chains inside ``BEGIN IMMEDIATE``, so the
+processes extend one chain.  A memory store is refused above one process (its seen-set
+would be one process's).  Metrics are per process.
+"""
 
 from __future__ import annotations
 
 import json
+import os
 import socket
 import sqlite3
 import subprocess
@@ -21,7 +31,7 @@ from antireplay.core.errors import ConfigError, StateUnavailableError
 from antireplay.state import StoreSpec
 
 if TYPE_CHECKING:
-    pass
+    from starlette.applications import Starlette
 
 from antireplay.cli._common import _fail, _load_config, console, preflight
 
@@ -51,6 +61,14 @@ from antireplay.cli._common import _fail, _load_config, console, preflight
 )
 @click.option("--access-log", is_flag=True, help="Log every request on stdout (uvicorn's log).")
 @click.option(
+    "--workers",
+    default=1,
+    show_default=True,
+    type=click.IntRange(1, 64),
+    help="Gateway processes on the one listening socket, sharing the store and audit trail "
+    "(a SQLite or Redis store; refused with the memory store).",
+)
+@click.option(
     "--ssl-certfile",
     type=click.Path(exists=True, dir_okay=False, path_type=Path),
     default=None,
@@ -68,6 +86,7 @@ def serve(  # noqa: PLR0917 - one option per knob
     port: int,
     state_dir: Path,
     access_log: bool,
+    workers: int,
     ssl_certfile: Path | None,
     ssl_keyfile: Path | None,
 ) -> None:
@@ -80,6 +99,7 @@ def serve(  # noqa: PLR0917 - one option per knob
 
     import uvicorn  # noqa: PLC0415
     from uvicorn.config import LOGGING_CONFIG  # noqa: PLC0415
+    from uvicorn.supervisors import Multiprocess  # noqa: PLC0415
 
     from antireplay.wiring import anchor_summary, anchor_warnings, create_app  # noqa: PLC0415
 
@@ -88,13 +108,12 @@ def serve(  # noqa: PLR0917 - one option per knob
     config = _load_config(config_path, state_dir)
     preflight(config)
     try:
+        shared_state(config, workers)
         app = create_app(config)
     except ConfigError as exc:
         _fail(str(exc))
     except sqlite3.DatabaseError as exc:
         _fail(f"{config.audit} or {config.store}: {exc}")
-    except StateUnavailableError as exc:  # the state anchor cannot be read: no loss check
-        _fail(str(exc))
     log_config: dict[str, Any] = json.loads(json.dumps(LOGGING_CONFIG))  # a deep copy
     log_config["loggers"]["uvicorn.error"]["level"] = "WARNING"
     settings = uvicorn.Config(
@@ -125,7 +144,49 @@ def serve(  # noqa: PLR0917 - one option per knob
     )
     for warning in anchor_warnings(config):
         click.echo(f"antireplay: warning: {warning}", err=True)
-    uvicorn.Server(settings).run(sockets=[sock])
+    if workers == 1:
+        uvicorn.Server(settings).run(sockets=[sock])
+        return
+    _release(app)  # it only checked the configuration: each worker builds its own
+    building = {"config": config_path, "state_dir": state_dir}
+    os.environ[_SERVE_ENV] = json.dumps(building, default=str)
+    settings = uvicorn.Config(
+        f"{__name__}:worker_app", factory=True, workers=workers, log_config=log_config,
+        access_log=access_log, timeout_graceful_shutdown=10,
+        ssl_certfile=settings.ssl_certfile, ssl_keyfile=settings.ssl_keyfile,
+    )  # fmt: skip
+    click.echo(f"{workers} worker processes (metrics per process)")
+    Multiprocess(settings, sockets=[sock]).run()
+
+
+#: How ``serve --workers`` tells its spawned workers which configuration to build.
+_SERVE_ENV = "ANTIREPLAY_SERVE_WORKER"
+
+
+def shared_state(config: AppConfig, workers: int) -> None:
+    """``ConfigError`` if ``workers`` processes cannot share ``config``'s store: a memory
+    store is one process's (another process would accept the same msg_id again)."""
+    if workers > 1 and StoreSpec.parse(config.store).backend == "memory":
+        raise ConfigError(
+            "store", config.store, "a sqlite: or redis:// store with --workers > 1 (a memory "
+            "store is one process's: another process would accept the same message again)",
+        )  # fmt: skip
+
+
+def worker_app() -> Starlette:
+    """One ``serve --workers`` process's app (uvicorn's factory, in the spawned worker)."""
+    from antireplay.wiring import create_app  # noqa: PLC0415
+
+    settings = json.loads(os.environ[_SERVE_ENV])
+    path = None if settings["config"] is None else Path(settings["config"])
+    return create_app(_load_config(path, Path(settings["state_dir"])))
+
+
+def _release(app: Starlette) -> None:
+    """Close what building ``app`` opened (its audit trail and store)."""
+    receiver = app.state.receiver
+    receiver.close()
+    receiver.cache.store.close()
 
 
 def _table(results: list[StepResult], title: str) -> Table:
@@ -179,7 +240,7 @@ def config_check(path: Path, verbose: bool) -> None:
         anchor = build_anchor(cfg)
         if anchor is not None:
             try:
-                anchor.read()  # reaches it, read-only, as serve's open-time loss check does
+                anchor.ping()  # reaches it (serve would start unready without it)
             finally:
                 anchor.close()
     except (ConfigError, StateUnavailableError) as exc:

@@ -13,19 +13,27 @@ from antireplay.core.clock import Clock
 
 
 class TokenBucket:
-    """Rate limit for auditing input that is malformed or unauthenticated (``rate`` per s)."""
+    """Rate limit for auditing input that is malformed or unauthenticated (``rate`` per s);
+    ``burst`` tokens at most (``rate``: one second's), ``cost`` per take (bytes on a radio)."""
 
-    def __init__(self, rate: float, clock: Clock) -> None:
+    def __init__(self, rate: float, clock: Clock, burst: float | None = None) -> None:
         self.rate, self.clock = rate, clock
-        self.tokens, self.stamp = rate, clock.monotonic()
+        self.burst = rate if burst is None else burst
+        self.tokens, self.stamp = self.burst, clock.monotonic()
         self._lock = threading.Lock()
 
-    def take(self) -> bool:
+    def take(self, cost: float = 1.0) -> bool:
         with self._lock:
             now = self.clock.monotonic()
-            self.tokens = min(self.rate, self.tokens + (now - self.stamp) * self.rate)
+            self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
             self.stamp = now
-            if self.tokens >= 1:
-                self.tokens -= 1
+            if self.tokens >= cost:
+                self.tokens -= cost
                 return True
             return False
+
+    def wait_s(self, cost: float = 1.0) -> float:
+        """Seconds until ``cost`` tokens are there (0 when they are now)."""
+        with self._lock:
+            held = self.tokens + (self.clock.monotonic() - self.stamp) * self.rate
+            return max(0.0, (min(cost, self.burst) - held) / self.rate)

@@ -13,6 +13,17 @@ table raises its fence, persisted as ``NAMESPACE:KIND:floor`` in the same store 
 (``forget``) that deletes the prefix's counters: the store holds at most the table's
 prefixes (and their successor markers), and the floor refuses every epoch forgotten.
 
+**Several verifiers on one store** each hold their own table, so one may evict (and
+``forget``) a prefix another does not know: before a prefix it does not hold passes, a
+verifier reads its counter, *then* the floor, and refuses anything at or below that
+floor.  ``forget`` raises the floor and deletes the counter in one step, so a counter
+read as missing because it was forgotten is always followed by a floor that covers it.
+The epoch itself is then written with ``advance_above`` (one store step: above the
+prefix's counter *and* the floor), which closes the race of a verifier evicting the prefix
+between another's reads and its write, and refuses an epoch of a prefix it holds whose
+counter another verifier forgot.  The price: after another verifier's eviction, a sender
+whose clock runs behind the evicted prefix's last epoch is refused until it passes it.
+
 **Persist, then believe.**  Every store write an accept needs (floor, successor marker,
 the epoch) happens before the policy moves any mark; a failed write leaves memory as it
 was, so the genuine redelivery is accepted once the store is back.
@@ -215,7 +226,13 @@ class EpochVerifier:
         """The policy's order check, with the store's epoch for a prefix the table does
         not hold (caller holds the lock).  True: the store holds none for it."""
         held = self._judge(self.policy.held(claim))
-        stored = None if held else self._current(self._key(claim.kind, claim.prefix.hex()))
+        stored = None
+        if not held:  # the counter, then the floor: see "Several verifiers" above
+            stored = self._current(self._key(claim.kind, claim.prefix.hex()))
+            floor = self._current(self._key(claim.kind, "floor"))
+            if floor is not None:
+                self.policy.tables[claim.kind].raise_fence(floor)
+                self._judge(self.policy.held(claim))
         return self._judge(self.policy.check_order(claim, seen, stored, authentic=authentic))
 
     def _commit(
@@ -232,8 +249,11 @@ class EpochVerifier:
         if admission.new:
             self._write(self._key(kind, "after:" + successor_prefix(prefix).hex()),
                         int.from_bytes(prefix, "big"))  # fmt: skip
-        if not self._write(self._key(kind, prefix.hex()), epoch):
-            raise EpochReplayedError(f"epoch {epoch} already committed to the shared state")
+        fenced = self._key(kind, prefix.hex()), epoch, self._key(kind, "floor")
+        if not self._store_op(lambda: self.store.advance_above(*fenced)):
+            raise EpochReplayedError(
+                f"epoch {epoch} already committed to the shared state, or at or below its floor"
+            )
         if epoch <= self.policy.fence_for(prefix, self.restart_fence()):  # the advance noticed loss
             raise MessageStaleError("the verifier's store lost state", detail="restart_fence")
         self.policy.commit(claim, seen)

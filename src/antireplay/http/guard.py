@@ -9,8 +9,9 @@ proxy in front that honours the other header would see a different request bound
 then a content type other than JSON (415), a declared or actual body over the limit (413)
 or a client gone mid-body.  Those refusals are counted like the receiver's.  Then
 :meth:`Checkpoint.open` runs :meth:`~antireplay.rcan.receive.Receiver.receive_async`
-(check -> authenticate -> commit; parsing, the store read and the signature in a few
-:class:`~antireplay.http.workers.Workers`, the commit and audit row awaited on the loop)
+(check -> authenticate -> commit; the signature in one job on a few
+:class:`~antireplay.http.workers.Workers`, a fresh SAFETY message's in their urgent lane;
+the commit and audit row awaited on the loop)
 and observes the outcome.  An accepted message becomes a :class:`Verified` (the envelope
 as verified, built once from the parsed envelope: its canonical re-encoding, with the
 signature re-encoded from its decoded form); a refusal becomes :class:`Refused`, the
@@ -146,7 +147,7 @@ class Checkpoint:
         self.metrics = metrics if metrics is not None else Metrics(receiver)
         self.limit = receiver.max_bytes
         self.nack_type = receiver.config.nack_type
-        self.workers = Workers(4)
+        self.workers = Workers()
         self._ticker = resolve(None)
         self._closed = False
 
@@ -186,7 +187,7 @@ class Checkpoint:
             return Refused(raw.http_status, raw.to_nack(None, nack_type=self.nack_type))
         started = self._ticker.monotonic()
         headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
-        outcome = await self.receiver.receive_async(raw, headers, self.workers)
+        outcome = await self.receiver.receive_async(raw, headers, self.workers, self.workers.first)
         self.metrics.observe(outcome, self._ticker.monotonic() - started)
         if outcome.retry is not None:
             return Refused.retry(outcome.retry)

@@ -1,31 +1,61 @@
-"""The few threads that do a request's blocking work for the event loop.
+"""The few threads that check signatures for the event loop: two lanes, results in batches.
 
-Parsing, the store read and the signature check block; the event loop must not.  A
-request hands that work to :class:`Workers` once and awaits an asyncio future; the state
-commit and the audit row are not done here (they are group-committed and awaited on the
-loop).  A few threads suffice: nobody waits for a commit in them, and the signature check
-releases the GIL, so a crowd of threads would only fight over it.  A result goes back as
-one ``call_soon_threadsafe`` into the caller's future, without ``concurrent.futures`` in
-between (its per-call futures and locks cost the loop more than the hand-off itself).  A
-future already cancelled (the client went away) is left alone; a closed loop has nobody
-left to answer.
+Theory of operation
+-------------------
+A request's signature check blocks; the event loop must not.  The receive driver parses
+and runs the replay check on the loop (cheap, no I/O it waits for) and hands a message
+that needs cryptography to :class:`Workers` once: ``workers(fn, *args)`` returns an
+asyncio future.  Thread traffic is what costs here, not the hand-off's bookkeeping, so:
+
+* **Wake-ups:** the jobs a loop iteration submits are queued together when it ends,
+  under one lock, and wake one worker only when one is idle and none is already on its
+  way (a busy worker takes them when it looks again).
+* **Batches:** an awake worker takes up to ``batch`` jobs, runs them and delivers their
+  results to the loop with ONE ``call_soon_threadsafe`` (one loop wake-up per batch, not
+  per request).  A quiet gateway's batch is one job: no added latency.
+* **The urgent lane** (:meth:`Workers.first`): a fresh SAFETY message (an ESTOP) is
+  queued apart and always taken first.  A worker looks for one between the jobs of its
+  batch: when it finds one, it puts the rest of its batch back at the head of the queue,
+  delivers what it has, and runs the urgent job next, so an ESTOP waits for at most the
+  job each worker is running, never behind a flood's backlog.  The class is read before
+  the signature is checked: a forged SAFETY message also takes the lane, and is refused
+  there at the cost of one signature check (a captured ESTOP replayed is refused by the
+  replay check first, on the loop, where the store answers in process).
+
+A future already cancelled (the client went away) is left alone; a closed loop has
+nobody left to answer.  ``shutdown`` lets the queued jobs finish, then stops the threads.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
-import queue
 import threading
 from collections.abc import Callable
 from typing import Any
 
+_Job = tuple[asyncio.AbstractEventLoop, "asyncio.Future[Any]", Callable[..., Any], tuple[Any, ...]]
+_Result = tuple["asyncio.Future[Any]", Any, BaseException | None]
+
 
 class Workers:
-    """The threads that parse, read the store and check signatures for the event loop."""
+    """The threads that check signatures for the event loop (see the module docstring)."""
 
-    def __init__(self, count: int) -> None:
-        self._queue: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
+    def __init__(self, count: int = 1, *, batch: int = 8) -> None:
+        self.batch = batch
+        self._ready = threading.Condition(threading.Lock())
+        self._jobs: collections.deque[_Job] = collections.deque()
+        self._urgent: collections.deque[_Job] = collections.deque()
+        self._idle = 0  # workers waiting for a job
+        self._waking = 0  # of them, notified and not yet running
+        self._closed = False
+        #: The jobs each loop's current iteration submitted (queued when it ends).
+        self._held: dict[asyncio.AbstractEventLoop, list[tuple[collections.deque[_Job], _Job]]]
+        self._held = {}
+        #: Loop wake-ups (result deliveries) and jobs run, for tests and benchmarks.
+        self.deliveries = 0
+        self.jobs = 0
         self._threads = [
             threading.Thread(target=self._serve, name=f"antireplay-receive-{i}", daemon=True)
             for i in range(count)
@@ -34,35 +64,97 @@ class Workers:
             thread.start()
 
     def __call__(self, fn: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+        """Run ``fn(*args)`` on a worker, in the ordinary lane; await the result."""
+        return self._submit(self._jobs, fn, args)
+
+    def first(self, fn: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+        """Run ``fn(*args)`` before every ordinary job queued (the urgent lane)."""
+        return self._submit(self._urgent, fn, args)
+
+    def _submit(
+        self, lane: collections.deque[_Job], fn: Callable[..., Any], args: tuple[Any, ...]
+    ) -> asyncio.Future[Any]:
         loop = asyncio.get_running_loop()
         future = loop.create_future()
-        self._queue.put((loop, future, fn, args))
+        if self._closed:
+            raise RuntimeError("workers shut down")
+        held = self._held.get(loop)
+        if held is None:  # the first job of this loop iteration: queued when it ends
+            held = self._held[loop] = []
+            loop.call_soon(self._flush, loop)
+        held.append((lane, (loop, future, fn, args)))
         return future
 
+    def _flush(self, loop: asyncio.AbstractEventLoop) -> None:
+        """On the loop, once per iteration: queue the jobs its callbacks submitted, and
+        wake one idle worker for all of them."""
+        held = self._held.pop(loop)
+        with self._ready:
+            closed = self._closed  # shut down since: nobody would run them
+            for lane, job in () if closed else held:
+                lane.append(job)
+            if self._idle > self._waking:  # one idle worker is enough to wake
+                self._waking += 1
+                self._ready.notify()
+        if closed:
+            _resolve([(job[1], None, RuntimeError("workers shut down")) for _, job in held])
+
+    def _take(self) -> tuple[list[_Job], bool] | None:
+        """The next batch and whether it is urgent (one lane per batch, the urgent lane
+        first), waiting for one; ``None``: shut down."""
+        with self._ready:
+            while not (self._urgent or self._jobs):
+                if self._closed:
+                    return None
+                self._idle += 1
+                self._ready.wait()
+                self._idle -= 1
+                self._waking = max(0, self._waking - 1)
+            lane = self._urgent or self._jobs
+            batch = [lane.popleft() for _ in range(min(len(lane), self.batch))]
+            return batch, lane is self._urgent
+
     def _serve(self) -> None:
-        while (job := self._queue.get()) is not None:
-            loop, future, fn, args = job
-            try:
-                result, error = fn(*args), None
-            except BaseException as exc:  # delivered to the awaiting request, raised there
-                result, error = None, exc
-            with contextlib.suppress(RuntimeError):  # a closed loop has nobody left to answer
-                loop.call_soon_threadsafe(_resolve, future, result, error)
+        while (taken := self._take()) is not None:
+            batch, urgent = taken
+            done: dict[asyncio.AbstractEventLoop, list[_Result]] = {}
+            for index, (loop, future, fn, args) in enumerate(batch):
+                if index and not urgent and self._urgent:
+                    self._put_back(batch[index:])  # the urgent job runs next
+                    break
+                try:
+                    result: _Result = (future, fn(*args), None)
+                except BaseException as exc:  # delivered to the awaiting request, raised there
+                    result = (future, None, exc)
+                done.setdefault(loop, []).append(result)
+            for loop, results in done.items():
+                self._deliver(loop, results)
+
+    def _put_back(self, rest: list[_Job]) -> None:
+        with self._ready:
+            self._jobs.extendleft(reversed(rest))
+
+    def _deliver(self, loop: asyncio.AbstractEventLoop, done: list[_Result]) -> None:
+        self.jobs += len(done)
+        self.deliveries += 1
+        with contextlib.suppress(RuntimeError):  # a closed loop has nobody left to answer
+            loop.call_soon_threadsafe(_resolve, done)
 
     def shutdown(self) -> None:
-        for _ in self._threads:
-            self._queue.put(None)
+        """Finish the queued jobs, then stop the threads."""
+        with self._ready:
+            self._closed = True
+            self._ready.notify_all()
         for thread in self._threads:
             thread.join(timeout=30)
 
 
-_Job = tuple[asyncio.AbstractEventLoop, "asyncio.Future[Any]", Callable[..., Any], tuple[Any, ...]]
-
-
-def _resolve(future: asyncio.Future[Any], result: Any, error: BaseException | None) -> None:
-    if future.done():  # cancelled: the client went away
-        return
-    if error is None:
-        future.set_result(result)
-    else:
-        future.set_exception(error)
+def _resolve(done: list[_Result]) -> None:
+    """On the loop: one batch's results into their futures."""
+    for future, result, error in done:
+        if future.done():  # cancelled: the client went away
+            continue
+        if error is None:
+            future.set_result(result)
+        else:
+            future.set_exception(error)

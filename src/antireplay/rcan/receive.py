@@ -1,14 +1,19 @@
 """The RCAN receive drivers: one sans-I/O core (:mod:`~antireplay.rcan.steps`), two drivers.
 
+Size: the thread driver and the event-loop driver share every piece of I/O between the
+core's calls (the check, the commit, the audit row, the memos); apart, each would copy it.
+
 Theory of operation
 -------------------
 :class:`Receiver` runs RCAN §8.3's check -> authenticate -> commit through
 :class:`~antireplay.rcan.steps.Steps` and performs the I/O between its steps: the
 replay check and the one atomic commit (:class:`~antireplay.state.replay.ReplayCache`),
 the audit row, the memos.  :meth:`Receiver.receive` drives it on a thread;
-:meth:`Receiver.receive_async` on an event loop, handing the parse, check and
-signature to a thread once (``offload``, the only hand-off: the gateway passes its
-workers) and awaiting the store's ``commit_async`` and the audit row on the loop.
+:meth:`Receiver.receive_async` on an event loop: it parses and (for a store that answers
+in process) runs the replay check on the loop, so junk and known replays cost no thread;
+what needs the signature is ONE job on a thread (``offload``; a fresh SAFETY message's in
+``urgent``, the lane the gateway's workers take first); the store's ``commit_async`` and
+the audit row are awaited on the loop.
 
 Step 0, before any parse: a byte-identical copy of a message accepted here is refused
 ``REPLAY_DETECTED`` from a bounded memo (no I/O); ESTOPs, warned messages and ``qos``
@@ -50,6 +55,7 @@ from antireplay.core.errors import (
     StateUnavailableError,
     WarningCode,
 )
+from antireplay.core.messages import MessageType
 from antireplay.core.settings import SecurityConfig
 from antireplay.core.window import Verdict, estop_survives, is_estop
 from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
@@ -59,6 +65,8 @@ from antireplay.rcan.steps import Checked, Done, NeedsCommit, Outcome, Steps, au
 from antireplay.state import Offload, ReplayStore, in_executor
 from antireplay.state.replay import ReplayCache
 
+#: Stores whose replay check an event loop runs itself (no network round trip).
+LOCAL_BACKENDS = frozenset({"memory", "sqlite"})
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
 
 log = logging.getLogger("antireplay.rcan.receive")
@@ -173,6 +181,10 @@ class Receiver:
             max_bytes=max_bytes,
         )  # fmt: skip
         self.stats = Stats()
+        #: Whether an event loop runs the replay check itself: the store answers in process
+        #: (a dict, a SQLite read from the page cache); a network store's round trip stays
+        #: on the thread, in the one job with the signature.
+        self.check_on_loop = self.cache.store.backend in LOCAL_BACKENDS
         self._copies: dict[int, _Copy] = {}
         self.answers = AnswerMemo(config.msg_id_cache_size)
         #: How long an event loop waits for the answer of an original still in flight.
@@ -216,11 +228,15 @@ class Receiver:
         return self._reject(step)
 
     async def receive_async(
-        self, raw: bytes, headers: Mapping[str, str] | None = None, offload: Offload | None = None
+        self,
+        raw: bytes,
+        headers: Mapping[str, str] | None = None,
+        offload: Offload | None = None,
+        urgent: Offload | None = None,
     ) -> Outcome:
         """:meth:`receive` for an event loop: the settled outcome, its audit row durable,
         awaited without holding a thread (:meth:`receive_later_async`, then :meth:`settle`)."""
-        pending = await self.receive_later_async(raw, headers, offload)
+        pending = await self.receive_later_async(raw, headers, offload, urgent)
         failure = await _durable(pending.audit)
         if failure is not None and pending.outcome.accepted:  # its refusal is audited: blocks
             outcome: Outcome = await (offload or in_executor)(self.settle, pending, failure)
@@ -228,18 +244,40 @@ class Receiver:
         return self.settle(pending, failure)
 
     async def receive_later_async(
-        self, raw: bytes, headers: Mapping[str, str] | None = None, offload: Offload | None = None
+        self,
+        raw: bytes,
+        headers: Mapping[str, str] | None = None,
+        offload: Offload | None = None,
+        urgent: Offload | None = None,
     ) -> Pending:
-        """:meth:`receive_later` for an event loop, holding a thread only while there is work
-        for one: a byte-identical copy is refused on the loop; parsing, the pre-crypto check
-        (a store read) and the signature run in a thread (``offload(fn, *args)``, default
-        the loop's executor); the store's ``commit_async`` and every audit row are awaited
-        on the loop."""
+        """:meth:`receive_later` for an event loop, handing a thread at most ONE job: a
+        byte-identical copy is refused on the loop, and so is what fails the parse; the
+        replay check runs on the loop where the store answers in process (memory, SQLite),
+        so a known replay is refused with no hand-off; the rest (the signature, and a
+        network store's check) is one job in ``offload(fn, *args)`` (default: the loop's
+        executor), a fresh SAFETY message's in ``urgent`` (the lane taken first; on a
+        network store, chosen before its check).  The store's ``commit_async`` and every
+        audit row are awaited on the loop."""
         pending = self.reject_known_copy(raw)
         if pending is not None:
             return pending
         run = offload or in_executor
-        step = self._floor(await run(self._authenticate, raw, headers))
+        parsed = self.steps.parse(raw)
+        step: NeedsCommit | Done
+        if isinstance(parsed, Done):
+            step = parsed
+        elif not self.check_on_loop:
+            lane = urgent if urgent is not None and parsed.cls[0] == MessageType.SAFETY else run
+            step = await lane(self._check_and_authenticate, parsed, headers)
+        else:
+            replayed = self._check(parsed)
+            if replayed is not None and not may_retry(replayed, parsed.env):
+                step = self.steps.authenticate(parsed, replayed, headers)  # refused: no crypto
+            else:
+                fresh_safety = replayed is None and parsed.cls[0] == MessageType.SAFETY
+                lane = urgent if urgent is not None and fresh_safety else run
+                step = await lane(self.steps.authenticate, parsed, replayed, headers)
+        step = self._floor(step)
         if isinstance(step, Done):
             return await self._reject_async(step)
         env = step.env
@@ -312,17 +350,27 @@ class Receiver:
         return self._queue_refusal(Pending(outcome), on_loop=on_loop)
 
     def _authenticate(self, raw: bytes, headers: Mapping[str, str] | None) -> NeedsCommit | Done:
-        """Steps 1-6, the one stretch run in a thread: the core's parse, the replay check
-        (a store read, records nothing), then the core's token, signature and scopes."""
+        """Steps 1-6 on a thread: the core's parse, then :meth:`_check_and_authenticate`."""
         step = self.steps.parse(raw)
         if not isinstance(step, Checked):
             return step
-        env = step.env
+        return self._check_and_authenticate(step, headers)
+
+    def _check_and_authenticate(
+        self, checked: Checked, headers: Mapping[str, str] | None
+    ) -> NeedsCommit | Done:
+        """Steps 3-6: the replay check (records nothing), then the core's token, signature
+        and scopes."""
+        return self.steps.authenticate(checked, self._check(checked), headers)
+
+    def _check(self, checked: Checked) -> ReplayAttackError | None:
+        """Step 3, the replay check (a store read that records nothing): its refusal."""
+        env = checked.env
         try:
-            self.cache.check(env.msg_id, env.seconds, *step.cls)
+            self.cache.check(env.msg_id, env.seconds, *checked.cls)
         except ReplayAttackError as exc:
-            return self.steps.authenticate(step, exc, headers)
-        return self.steps.authenticate(step, None, headers)
+            return exc
+        return None
 
     def _floor(self, step: NeedsCommit | Done) -> NeedsCommit | Done:
         """Below the disk's second floor only an ESTOP goes on to its commit."""

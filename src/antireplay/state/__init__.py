@@ -18,7 +18,9 @@ each message exactly once (:class:`ReplayStore`):
   high-water counters (MAVLink stream state), with the same loss detection.
 * ``forget(keys, fence_key, fence)``: one atomic step that raises counter ``fence_key``
   to ``fence`` and deletes the counters ``keys``: bounded counter state (the epoch
-  verifier's evicted prefixes) that never re-opens a replay, as the fence covers them.
+  verifier's evicted prefixes) that never re-opens a replay, as the fence covers them;
+  ``advance_above(key, value, fence_key)`` advances only above that fence too, in the
+  same atomic step (another process may have just forgotten the counter).
 * ``verify() -> Seen``: run the loss detection now (start-up; a MAVLink guard
   taking its lease), returning the fence and watermark.
 * ``status()``: figures for ``/metrics`` (entries, watermark, fence,

@@ -1,10 +1,10 @@
 """The store contract: the :class:`ReplayStore` protocol every backend keeps, and the one
 hand-off of a blocking commit to a thread (:data:`Offload`).
 
-The contract itself (what ``lookup``, ``commit``, ``advance``, ``forget``, ``verify`` and ``ready``
-promise, and how loss is detected) is described in :mod:`antireplay.state`; it lives in
-this module, apart from the package, so that the backends and the spec grammar import it
-without importing the package that imports them.
+The contract itself (what ``lookup``, ``commit``, ``advance``, ``advance_above``, ``forget``,
+``verify`` and ``ready`` promise, and how loss is detected) is described in
+:mod:`antireplay.state`; it lives in this module, apart from the package, so that the
+backends and the spec grammar import it without importing the package that imports them.
 """
 
 from __future__ import annotations
@@ -63,6 +63,11 @@ class ReplayStore(Protocol):
         """Run this backend's loss detection now; the fence and watermark it finds."""
 
     def advance(self, key: str, value: int) -> bool: ...
+
+    def advance_above(self, key: str, value: int, fence_key: str) -> bool:
+        """:meth:`advance`, refused too unless ``value`` is above counter ``fence_key`` (if
+        set), in the same atomic step: a counter another process just dropped under that
+        fence (:meth:`forget`) cannot be advanced again from nothing."""
 
     def current(self, key: str) -> int | None: ...
 

@@ -193,6 +193,15 @@ class MemoryStore:
         finally:
             self._release()
 
+    def advance_above(self, key: str, value: int, fence_key: str) -> bool:
+        """:meth:`advance` iff ``value`` is also above counter ``fence_key`` (one lock)."""
+        self._acquire()
+        try:
+            fence = self._counters.get(fence_key)
+            return (fence is None or value > fence) and self._advance(key, value)
+        finally:
+            self._release()
+
     def _advance(self, key: str, value: int) -> bool:
         cur = self._counters.get(key)
         if cur is not None and value <= cur:

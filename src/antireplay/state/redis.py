@@ -55,9 +55,9 @@ log = logging.getLogger("antireplay.state.redis")
 _FLOOR: Final = "-1e18"
 
 _SCRIPT = """
--- ARGV: 1 mode (commit | advance | forget | verify), 2 now, 3 skew, 4 floor ("nothing
+-- ARGV: 1 mode (commit | advance | above | forget | verify), 2 now, 3 skew, 4 floor ("nothing
 --       yet"), 5 expiry or counter value, 6 force.  KEYS: 1 meta, 2 the entry or counter,
---       3.. the counters to forget.
+--       3.. the counters to forget (above: 3 the fence counter).
 local info = redis.call('INFO', 'server', 'memory', 'stats', 'replication')
 -- A field of INFO (a plain find: a pattern scan of the whole text costs far more).
 local function field(name)
@@ -106,6 +106,10 @@ if ARGV[1] == 'verify' then return {0, false, fence, wm, lost} end
 local cur = redis.call('GET', KEYS[2])
 if ARGV[1] == 'forget' then
   for i = 3, #KEYS do if KEYS[i] ~= KEYS[2] then redis.call('DEL', KEYS[i]) end end
+end
+if ARGV[1] == 'above' then
+  local over = redis.call('GET', KEYS[3])
+  if over and over >= ARGV[5] then return {0, cur or false, fence, wm, lost} end
 end
 if ARGV[1] ~= 'commit' then
   if cur and cur >= ARGV[5] then return {0, cur, fence, wm, lost} end
@@ -267,6 +271,10 @@ class RedisStore:
     def advance(self, key: str, value: int) -> bool:
         """Compare-and-advance, with the same loss and eviction checks as a commit."""
         return self._counter("advance", key, value).recorded
+
+    def advance_above(self, key: str, value: int, fence_key: str) -> bool:
+        """:meth:`advance` iff ``value`` is also above counter ``fence_key`` (one script)."""
+        return self._counter("above", key, value, [f"{self._base}c:{fence_key}"]).recorded
 
     def forget(self, keys: Sequence[str], fence_key: str, fence: int) -> None:
         """Atomically advance counter ``fence_key`` to at least ``fence`` and delete the

@@ -40,9 +40,12 @@ lock (``BEGIN IMMEDIATE``) makes each batch and ``advance`` atomic across them.
   database with state but no witness          witness lost (or made by an older
                                               version): **fence**
   with an anchor (:mod:`.anchor`, outside     a restored copy of the whole directory
-  the directory): the database behind it,     or the anchor lost: **fence** (a lazy
-  of another deployment, missing, or no       anchor also raises a restart fence to
-  anchor for existing state                   its lease's end)
+  the directory), any one copy: the database  or an anchor copy lost: **fence** (a lazy
+  behind it, of another deployment, missing,  anchor also raises a restart fence to
+  or no copy for existing state               its lease's end, said as a fence)
+  an anchor file of another state             refused at start (``StateFileError``)
+  an anchor that cannot be reached            opened unverified: lookups, commits and
+                                              readiness refused until it answers
   a file that is not a readable database,     refused at start (``StateFileError``
   or a stored value that does not decode      names the file and the recovery:
   (a hand-edited row)                         move it aside; the next start fences)
@@ -84,7 +87,7 @@ from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.core.window import NEVER, Seen
 from antireplay.state import _codec
-from antireplay.state.anchor import Anchored, Read, StateAnchor
+from antireplay.state.anchor import Anchored, AnchorUnavailableError, Read, StateAnchor
 from antireplay.state.contract import Offload
 from antireplay.state.durable import Witness, file_identity
 from antireplay.state.groupcommit import GroupCommitter
@@ -155,7 +158,12 @@ class SqliteStore:
         self._fence = NEVER
         self.data_loss_events = 0
         self.loss_reason: str | None = None
-        self._run(self._verify)
+        self._unverified: str | None = None  # why the open-time check waits for the anchor
+        try:
+            self._run(self._verify)
+        except AnchorUnavailableError as exc:  # start fenced and unready, never refuse to start
+            self._unverified = str(exc)
+            log.warning("replay state %s: not verified yet (%s); commits wait", self.path, exc)
         self._opened = True
         # Reads (the pre-crypto check, metrics) use their own connections: WAL lets them run
         # beside the writer, so no lookup ever waits behind a group commit's fsyncs, and one
@@ -205,7 +213,8 @@ class SqliteStore:
         return _codec.decode_float(value, where=str(self.path), key=key, recovery=self._aside)
 
     def _verify(self) -> None:
-        """At open: compare the database with its witness; fence on any sign of loss."""
+        """At open: compare the database with its witness and each anchor copy; fence on any
+        sign of loss (and, for a lazy anchor, up to its lease's end, said as a fence)."""
 
         def body(db: sqlite3.Connection) -> tuple[None, _Meta]:
             meta = db.execute(_META_SELECT).fetchone()
@@ -213,35 +222,55 @@ class SqliteStore:
             rows = db.execute("SELECT count(*) FROM seen").fetchone()[0]
             counters = db.execute("SELECT count(*) FROM counters").fetchone()[0]
             found = self.witness.read()
-            anchored = None if self.anchor is None else self.anchor.read()
+            known = row[0] if row is not None else found[0] if isinstance(found, tuple) else None
+            copies = {} if self.anchor is None else self.anchor.read(known)
             reason = _loss_reason(row, found, bool(rows or counters))
-            if reason is None and self.anchor is not None:
-                reason = anchor_reason(row, found, anchored)
+            for where, copy in copies.items():
+                reason = reason or anchor_reason(row, found, copy, where)
+            anchored = [copy for copy in copies.values() if isinstance(copy, Anchored)]
             if row is None:
-                deployment = found[0] if isinstance(found, tuple) else uuid.uuid4().hex
-                if isinstance(anchored, Anchored):  # the deployment continues, fenced
-                    deployment = anchored.deployment
+                deployment = known or (anchored[0].deployment if anchored else uuid.uuid4().hex)
                 generation, watermark, fence, losses = 0, _FLOOR, _FLOOR, 0
             else:
                 deployment, generation, watermark, fence, losses = row
             if isinstance(found, tuple):
                 generation = max(generation, found[1])
                 self._wall_hw = max(self._wall_hw, found[2])
-            if isinstance(anchored, Anchored) and self.anchor is not None:
-                generation = max(generation, anchored.generation)
-                if self.anchor.lazy:  # a lease: commits since its last write came before it
-                    fence = max(fence, anchored.time)
+            lease = _FLOOR
+            for copy in anchored:
+                generation = max(generation, copy.generation)
+                if self.anchor is not None and self.anchor.lazy:
+                    lease = max(lease, copy.time)  # commits since its last write came before
                 else:  # the last commit's time
-                    self._wall_hw = max(self._wall_hw, anchored.time)
+                    self._wall_hw = max(self._wall_hw, copy.time)
+            wall = self._clock.wall()
+            if reason is None and lease > max(fence, wall):
+                reason = (
+                    f"restart fence to the lazy state anchor's lease end {lease:.3f}: a copy "
+                    "as new as the anchor may lack commits made under that lease"
+                )
             if reason is not None:
-                fence = max(fence, self._clock.wall(), self._wall_hw)
+                fence = max(fence, wall, self._wall_hw, lease)
                 losses += 1
                 self.loss_reason = reason
+                self._lost_pending = self._opened  # found late: the next commit says so
                 log.warning("replay state %s: %s; fence raised to %s", self.path, reason, fence)
             self._deployment = deployment
             return None, (generation, watermark, fence, losses)
 
         self._transaction(body)
+
+    def _verified(self) -> None:
+        """Run the open-time check the anchor's absence deferred (each write and readiness
+        probe tries again; ``AnchorUnavailableError`` until the anchor answers)."""
+        if self._unverified is None:
+            return
+        pending, self._unverified = self._unverified, None
+        try:
+            self._verify()
+        except BaseException:
+            self._unverified = pending
+            raise
 
     def _transaction(self, body: Callable[[sqlite3.Connection], tuple[T, _Meta]]) -> T:
         """One write transaction: ``body`` does its work and returns its result and the meta
@@ -250,6 +279,7 @@ class SqliteStore:
         process's view moves only after COMMIT succeeded.  A failed COMMIT (a full disk)
         puts the witness back to the committed generation, so it is not mistaken for a
         rollback later; the original error is raised, not the ROLLBACK's."""
+        self._verified()
         self._same_file()
         db = self._db
         db.execute("BEGIN IMMEDIATE")
@@ -311,6 +341,8 @@ class SqliteStore:
                 NEVER if fence <= _FLOOR else fence,
             )
 
+        if self._unverified is not None:  # no loss check yet: its fence is unknown
+            raise StateUnavailableError(f"sqlite {self.path}: not verified ({self._unverified})")
         return _codec.serving(lambda: self._read(query))
 
     def _read(self, query: Callable[[sqlite3.Connection], T]) -> T:
@@ -336,6 +368,10 @@ class SqliteStore:
         ``ROLLBACK``), on a connection of its own."""
 
         def probe() -> None:
+            if self.anchor is not None:
+                with self._lock:
+                    self._verified()  # the deferred open-time check, once the anchor answers
+                self.anchor.ping()
             self._same_file()
             db = self._connect(min(self._timeout_s, 1.0))
             try:
@@ -430,9 +466,19 @@ class SqliteStore:
     def advance(self, key: str, value: int) -> bool:
         """Compare-and-advance a counter; like a commit, it moves the generation and witness
         (so a restored copy of the counters is noticed too)."""
+        return self.advance_above(key, value, None)
+
+    def advance_above(self, key: str, value: int, fence_key: str | None) -> bool:
+        """:meth:`advance`, refused too unless ``value`` is above counter ``fence_key``: one
+        transaction."""
 
         def body(db: sqlite3.Connection) -> tuple[bool, _Meta]:
             meta = self._meta_checked(db)
+            row = None if fence_key is None else db.execute(
+                "SELECT value FROM counters WHERE key = ?", (fence_key,)
+            ).fetchone()  # fmt: skip
+            if row is not None and value <= self._decode(str(fence_key), row[0]):
+                return False, meta
             return self._advance(db, key, value), meta
 
         with self._lock:
@@ -592,26 +638,31 @@ def _loss_reason(  # noqa: PLR0911 - one answer per row of the table in the docs
 
 
 def anchor_reason(  # noqa: PLR0911 - one answer per anchor row of the docstring's table
-    meta: tuple[Any, ...] | None, witness: tuple[str, int, float] | bool | None, anchor: Read
+    meta: tuple[Any, ...] | None,
+    witness: tuple[str, int, float] | bool | None,
+    anchor: Read,
+    where: str = "",
 ) -> str | None:
-    """Why a database its witness vouches for may still have lost state, by its anchor
-    (:mod:`antireplay.state.anchor`): what a restored copy of the whole directory shows."""
+    """Why a database its witness vouches for may still have lost state, by one copy of
+    its anchor (:mod:`antireplay.state.anchor`, at ``where``): what a restored copy of the
+    whole directory, or a lost anchor copy, shows."""
+    at = f" ({where})" if where else ""
     if anchor is False:
-        return "state anchor unreadable"
+        return f"state anchor{at} unreadable"
     if anchor is None:
         if meta is None and witness is None:
             return None  # a new deployment, anchored from its first commit
-        return "no state anchor for existing state (the anchor was lost, or is new here)"
+        return f"no state anchor{at} for existing state (the anchor was lost, or is new here)"
     if meta is None:
         return (
-            f"database and witness missing but the state anchor vouches for generation "
+            f"database and witness missing but the state anchor{at} vouches for generation "
             f"{anchor.generation} (deleted, or restored from before the anchor)"
         )
     if meta[0] != anchor.deployment:
-        return "database belongs to another deployment than its state anchor (replaced)"
+        return f"database belongs to another deployment than its state anchor{at} (replaced)"
     if meta[1] < anchor.generation:
         return (
-            f"database generation {meta[1]} is behind its state anchor's {anchor.generation} "
-            "(the state directory was restored from an older copy)"
+            f"database generation {meta[1]} is behind its state anchor{at}'s "
+            f"{anchor.generation} (the state directory was restored from an older copy)"
         )
     return None

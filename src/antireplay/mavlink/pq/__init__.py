@@ -3,8 +3,8 @@
 Theory of operation
 -------------------
 :mod:`antireplay.pq.session` makes the blobs (HS1, HS2, session frames); this module
-carries them in MAVLink v2 messages of a two-message dialect of ours,
-``antireplay_pq.xml`` (published next to this module, ids 61000 and 61001), so that
+carries them in MAVLink v2 messages of a three-message dialect of ours,
+``antireplay_pq.xml`` (published next to this module, ids 61000 to 61002), so that
 every router (MAVProxy, mavlink-router, ours) forwards them untouched: a router that
 does not know the dialect passes an unknown message id as it is.  The messages are
 packed with :mod:`struct`; the CRC extra of each is computed from the XML by
@@ -13,14 +13,28 @@ the published XML and the bytes on air cannot drift apart.
 
 ``PQ_CHUNK`` (61000, 255-byte payload)::
 
-    transfer u16 | index u8 | count u8 | len u8 | kind u8 | data[249]
+    transfer u16 | index u8 | count u8 | len u8 | kind u4 parity u4 | data[249]
 
-A blob is cut into ``count`` (at most 32) chunks sharing the sender's ``transfer``
-number.  ``kind`` says what the blob is: 1 HS1, 2 HS2, 3 a session frame in one chunk,
-4 a session frame in several chunks, each of whose ``data[:len]`` ends with an 8-byte
-**chunk MAC**: ``HMAC-SHA256(chunk key, sysid | compid | header | piece)[:8]``,
-the chunk key derived from the sender's session data key.  Senders trim trailing
-zero bytes (MAVLink v2); ``len`` says what is data.
+A blob is cut into ``count`` (at most 32) data chunks sharing the sender's ``transfer``
+number, followed by ``parity`` (one per ten data chunks, at most 4) **parity chunks**:
+parity chunk ``j`` (index ``count + j``) is the XOR of the data chunks whose index is
+``j`` modulo ``parity``, so one loss in each such group is rebuilt without a round trip
+(its ``len`` repeats the last data chunk's, so that one can be rebuilt to length).
+``kind`` says what the blob is: 1 HS1, 2 HS2, 3 a session frame in one chunk,
+4 a session frame in several chunks, each of whose ``data[:len]`` (parity chunks too)
+ends with an 8-byte **chunk MAC**: ``HMAC-SHA256(chunk key, sysid | compid | header |
+piece)[:8]``, the chunk key derived from the sender's session data key.  Senders trim
+trailing zero bytes (MAVLink v2); ``len`` says what is data.
+
+Beyond what parity rebuilds, a lost chunk costs that chunk (:mod:`.repair`): the
+receiver sends ``PQ_REPAIR`` (61002) NACKs naming the fewest missing indices, the sender
+resends them from a bounded copy, and a ground station's retry of a command in flight is
+a POKE (35 bytes) answered by the vehicle end with a NACK or the held ``COMMAND_ACK``,
+never a new signature.  Airtime at 0 % loss: 2 parity chunks per command and the
+COMMAND_ACK twice, about 5,850 to 5,980 bytes per delivered command (1.10x to 1.12x the
+5,327 without them), 3 parity chunks per HS1; through a lossy UDP radio at 57,600 baud
+(``python -m benchmarks pq-radio``), 30 of 30 commands at 5 % and 10 % loss, p90 to the
+ACK 1.29 s and 1.42 s, a session within 1.3 s (the figures: the MAVLink guide).
 
 Receiving (:class:`Reassembler`), cheap first: strict MAVLink parse and our CRC, the
 header's bounds (``index < count <= 32``, ``len`` fits, a kind that needs one chunk
@@ -33,10 +47,12 @@ history; the handshake pool (HS1 from an unknown peer cannot carry a MAC) is sep
 and small, and a full one evicts the transfer with the fewest chunks (the oldest among
 equals), so a flood of first chunks cannot push out a handshake that is almost
 complete, nor any command.  Transfers expire after ``timeout_s``; duplicates are
-ignored, a conflicting chunk is refused; evictions, expiries and duplicates are counted
-(:class:`ReassemblyStats`, exported by the link).  A lost chunk loses its blob; no
-other blob can complete with it (the MAC binds each chunk to its transfer, index and
-count; the session frame's tag binds everything again).  Transfer numbers are 16 bits:
+ignored, a conflicting chunk is refused; chunks of a blob completed lately that it did
+not need (parity after a whole blob) are counted ``late``, one it had already taken is a
+replay; evictions, expiries and duplicates are counted (:class:`ReassemblyStats`,
+exported by the link).  No other blob can complete with a chunk (the MAC binds each
+chunk, parity too, to its transfer, index, count and parity; the session frame's tag
+binds everything again).  Transfer numbers are 16 bits:
 a ground end rekeys after ``REKEY_TRANSFERS`` of them and stops sending in a session at
 ``TRANSFER_LIMIT``, so they never wrap within a session towards the vehicle; the
 vehicle end's do wrap (it cannot rekey), so a chunk of its telemetry recorded more than
@@ -44,7 +60,7 @@ vehicle end's do wrap (it cannot rekey), so a chunk of its telemetry recorded mo
 (its tag refuses it at the end).  An HS1 goes out under a random transfer number, so a
 chunk planted ahead of it cannot spoil it; one injected in reaction to it (conflicting
 count or piece) can, as jamming could; the ground end tries again after ``retry_s``.
-Memory: ``(max_transfers + max_handshakes) * 32 * 249`` bytes at most.
+Memory: ``(max_transfers + max_handshakes) * (32 + 4) * 249`` bytes at most.
 
 Session frames travel **compact**, ``handle u8 | purpose u8 | counter u64 | inner |
 tag``: magic, version and direction are implied, and the 16-byte session id is cut to
@@ -105,12 +121,14 @@ from antireplay.mavlink.pq.chunks import (
     chunk_key,
     parse_chunk,
 )
-from antireplay.mavlink.pq.ends import GroundEnd, Output, VehicleEnd
+from antireplay.mavlink.pq.ends import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.repair import Output
 from antireplay.mavlink.pq.wire import (
     CHUNK_DATA,
     DIALECT,
     MAX_CHUNKS,
     MSG_CHUNK,
+    MSG_REPAIR,
     MSG_STATUS,
     REKEY_TRANSFERS,
     SIGNED_MESSAGES,
@@ -128,6 +146,7 @@ __all__ = [
     "DIALECT",
     "MAX_CHUNKS",
     "MSG_CHUNK",
+    "MSG_REPAIR",
     "MSG_STATUS",
     "REKEY_TRANSFERS",
     "SIGNED_MESSAGES",

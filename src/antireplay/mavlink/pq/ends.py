@@ -1,22 +1,39 @@
 """The two ends of a PQ link: the ground end (initiator) and the vehicle end (responder).
 
 Sans-I/O: bytes and a time in, frames out; :mod:`.link` drives them over transports and
-calls :meth:`GroundEnd.tick` on a timer, so that a lost handshake is retried every
-``retry_s`` whether or not local traffic arrives.  Each end says which session is
-:attr:`~GroundEnd.live` (held, and something authenticated heard from the other end
-within ``silence_s``) and counts its handshakes (``started``, ``completed``, ``failed``:
-superseded unanswered, or refused) and the local frames it dropped (``NO_SESSION``...).
+calls ``tick`` on a timer, so that a transfer gone quiet is repaired (:mod:`.repair`)
+and a lost handshake is poked, then retried, whether or not local traffic arrives: the
+ground end POKEs its HS1 ``poke_s`` after its chunks left (by ``air_bps``) or were last
+repaired (twice at most; the vehicle end answers with its held HS2 or a NACK), and
+hand-shakes anew only after ``retry_s`` of quiet, so repairs never race a new HS1.
+Each end says which session is :attr:`~GroundEnd.live` (held, and something
+authenticated heard from the other end within ``silence_s``) and counts its handshakes
+(``started``, ``completed``, ``failed``: superseded unanswered, or refused), the local
+frames it dropped (``NO_SESSION``...), its repairs, a GCS's retries and its airtime.
+
+A GCS retry (:meth:`GroundEnd.handle_local`) is keyed on what the ground end itself
+sealed and sent: a later identical command within ``retry_window_s`` of the last try
+asks the vehicle end, by an authenticated POKE naming that transfer, for what it holds;
+the vehicle end answers only for a transfer that opened (the held ``COMMAND_ACK``, sealed
+anew, at most ``MAX_ANSWERS`` times) and delivers nothing again.  A command repeated on
+purpose within that window is answered, not executed: repeat it after the window.
+
+Size: over 500 lines: the two ends share their rules (:class:`~.repair.RepairingEnd`)
+but each is one state machine over its half of the handshake, kept whole.
 """
 
 from __future__ import annotations
 
 import secrets
-from collections import Counter, deque
-from dataclasses import dataclass, field
+from collections import OrderedDict, deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TypeVar
 
 from cryptography.hazmat.primitives.asymmetric import mlkem, x25519
+from pymavlink.dialects.v20 import ardupilotmega as dialect
 
-from antireplay.core.clock import Clock, resolve
+from antireplay.core.clock import Clock
 from antireplay.core.errors import (
     InvalidFrameError,
     ReplayAttackError,
@@ -24,18 +41,35 @@ from antireplay.core.errors import (
     SignatureRequiredError,
     UnknownSessionError,
 )
-from antireplay.mavlink.codec import Frame, parse_frame
+from antireplay.core.ratelimit import TokenBucket
+from antireplay.mavlink.codec import parse_frame
 from antireplay.mavlink.pq.chunks import (
-    ChunkSender,
-    PlainFrameError,
-    Reassembler,
-    ReassemblyStats,
+    Chunk,
     chunk_key,
     parse_chunk,
+)
+from antireplay.mavlink.pq.repair import (
+    EVERYTHING,
+    IN_PROGRESS,
+    MAX_ANSWERS,
+    RETRIED,
+    Op,
+    Output,
+    Repair,
+    RepairingEnd,
+    _parse,
+    bitmap,
+    command_of,
+    parse_repair,
+    repair_frame,
+    repair_key,
+    retry_key,
 )
 from antireplay.mavlink.pq.wire import (
     _COMPACT,
     _INNER_HEAD,
+    LINE_BITS,
+    MSG_REPAIR,
     MSG_STATUS,
     REKEY_TRANSFERS,
     SIGNED_MESSAGES,
@@ -59,23 +93,18 @@ from antireplay.pq.session import (
 
 
 @dataclass
-class Output:
-    """What an end wants written: plain frames for its local side, chunks for the air."""
+class _Try:
+    """A command the ground end sent: its transfer, its session, the ACK once seen."""
 
-    local: list[bytes] = field(default_factory=list)
-    air: list[bytes] = field(default_factory=list)
-    #: A blob verified (HS1, HS2, a session frame): its sender may be learned as the air peer.
-    authenticated: bool = False
-
-
-def _parse(raw: bytes) -> Frame:
-    frame = parse_frame(raw)
-    if frame.version != 2:
-        raise PlainFrameError("MAVLink v1 frames are not carried")
-    return frame
+    transfer: int
+    session: Session
+    command: int
+    last: float
+    due: float  # when its last chunk should have left (by air_bps)
+    ack: bytes | None = None
 
 
-class GroundEnd:
+class GroundEnd(RepairingEnd):
     """The initiator's end, next to the ground station (module docstring)."""
 
     def __init__(
@@ -91,64 +120,126 @@ class GroundEnd:
         max_queued: int = 8,
         queue_ttl_s: float = 5.0,
         hybrid: x25519.X25519PublicKey | None = None,
+        poke_s: float = 0.5,
+        gap_s: float = 0.25,
+        retry_window_s: float = 2.0,
+        air_bps: int | None = None,
         clock: Clock | None = None,
     ) -> None:
+        super().__init__(system_id, component_id, gap_s, clock)
         self.initiator, self.responder_key = initiator, responder_key
         self.hybrid = hybrid  # the vehicle's static X25519 key: hybrid handshakes
         self.signed = signed
         self.retry_s, self.silence_s = retry_s, silence_s
-        self.sender = ChunkSender(system_id, component_id)
+        self.poke_s, self.retry_window_s, self.air_bps = poke_s, retry_window_s, air_bps
         self._first_transfer = 0  # the sender's transfer number when the session began
         self.session: Session | None = None
-        self._clock = resolve(clock)
-        self._reassembler = Reassembler(clock=clock)
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
+        self._hs_transfer, self._hs_quiet, self._hs_pokes = 0, 0.0, 0
+        self._hs2: bytes | None = None  # the HS2 that finished the session (a repeat is no news)
         self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
         self._queue: deque[tuple[bytes, float]] = deque()  # commands and when they came
+        self._tries: OrderedDict[tuple[int, int, int, bytes], _Try] = OrderedDict()
+        self._last_ack, self._last_ack_at = b"", float("-inf")  # the ACK last passed on
         self._heard = float("-inf")  # when an authenticated frame last came from the vehicle
-        #: Local messages that never left, by reason: ``NO_SESSION`` (not a command, no
-        #: session), ``QUEUE_FULL`` (the oldest queued command, pushed out by a newer one),
-        #: ``QUEUE_EXPIRED`` (a command that waited longer than ``queue_ttl_s``).
-        self.drops: Counter[str] = Counter()
-        self.handshakes: Counter[str] = Counter()
+        # drops: NO_SESSION (not a command, no session), QUEUE_FULL (the oldest queued
+        # command, pushed out by a newer one), QUEUE_EXPIRED (waited over queue_ttl_s)
+
+    def _sessions_held(self) -> list[Session]:
+        return [] if self.session is None else [self.session]
+
+    def _airtime_s(self, frames: list[bytes]) -> float:
+        """How long ``frames`` take on a radio of ``air_bps`` baud (0 when unknown)."""
+        return 0.0 if not self.air_bps else LINE_BITS * sum(map(len, frames)) / self.air_bps
 
     def handshake(self) -> list[bytes]:
         """Start a new handshake (the current session keeps working until HS2 arrives).  Its
         transfer number is random: nobody can plant a conflicting chunk ahead of it."""
         if self._pending is not None:
             self.handshakes["failed"] += 1  # never answered: superseded
+            self._sent.forget(self._hs_transfer)
         self.handshakes["started"] += 1
         hs1 = self.initiator.start(self.responder_key, self.hybrid)
-        self._pending = (hs1, self._clock.monotonic())
-        return self.sender.frames(hs1, ChunkKind.HS1, transfer=secrets.randbelow(0x10000))
+        now = self._clock.monotonic()
+        self._pending = (hs1, now)
+        self._hs_transfer = secrets.randbelow(0x10000)
+        frames = self.sender.frames(hs1, ChunkKind.HS1, transfer=self._hs_transfer)
+        self._sent.add(self._hs_transfer, frames, None)
+        self._hs_quiet, self._hs_pokes = now + self._airtime_s(frames), 0
+        return self._air(frames)
 
     def from_local(self, raw: bytes) -> list[bytes]:
+        """:meth:`handle_local`'s air frames."""
+        return self.handle_local(raw).air
+
+    def handle_local(self, raw: bytes) -> Output:
         """Wrap one plain frame from a local peer.  While there is no session, commands wait
         in a bounded queue, each at most ``queue_ttl_s`` (a command is meant for now, not
         for whenever the link comes back), and the rest is dropped: a heartbeat comes
         again, and must not push a command out of the queue.  Every drop is counted in
-        :attr:`drops`."""
+        :attr:`drops`.  A GCS's retry of a command in flight (same source, target, command
+        and parameters within ``retry_window_s`` of the last try) is no new transfer: a
+        POKE asks the vehicle end where it stands, or the ACK already seen answers it."""
         frame = _parse(raw)
         session = self._usable()
+        tried = retry_key(frame)
         if session is None:
             if frame.msgid in self.signed:
                 self._expire_queue()
+                if tried is not None and any(tried == retry_key(_parse(q)) for q, _ in self._queue):
+                    self.retries["queued"] += 1
+                    return Output(air=self._retry())
                 if len(self._queue) >= self.max_queued:
                     self._queue.popleft()
                     self.drops["QUEUE_FULL"] += 1
                 self._queue.append((raw, self._clock.monotonic()))
             else:
                 self.drops["NO_SESSION"] += 1
-            return self._retry()
+            return Output(air=self._retry())
+        if tried is not None:
+            answer = self._answer_retry(tried, session)
+            if answer is not None:
+                return answer
         purpose = Purpose.COMMAND if frame.msgid in self.signed else Purpose.DATA
-        return self._seal(session, inner_of(frame), purpose) + self._renew(session)
+        air = self._seal(session, inner_of(frame), purpose)
+        if tried is not None:
+            now = self._clock.monotonic()
+            due = now + self._airtime_s(air)
+            self._tries[tried] = _Try(self.sender.transfer, session, command_of(frame), now, due)
+            while len(self._tries) > self._sent.max_transfers:
+                self._tries.popitem(last=False)
+        return Output(air=air + self._renew(session))
+
+    def _answer_retry(self, tried: tuple[int, int, int, bytes], session: Session) -> Output | None:
+        attempt, now = self._tries.get(tried), self._clock.monotonic()
+        if attempt is None or attempt.session is not session:
+            return None
+        if now - attempt.last > self.retry_window_s:
+            del self._tries[tried]
+            return None
+        attempt.last = now
+        if attempt.ack is not None:
+            self.retries["answered"] += 1
+            return Output(local=[attempt.ack])
+        if now < attempt.due:  # its chunks are still going out: nothing to ask yet
+            self.retries["sending"] += 1
+            return Output()
+        self.retries["poked"] += 1
+        self.repairs["poke_sent"] += 1
+        poke = repair_frame(
+            Op.POKE, attempt.transfer, (0, 0), 0, repair_key(session.send_key),
+            sysid=self.sender.sysid, compid=self.sender.compid,
+        )  # fmt: skip
+        return Output(air=self._air([poke], "repair"))
 
     def tick(self) -> list[bytes]:
-        """What time alone calls for: expire queued commands, and hand-shake again (at most
-        every ``retry_s``) while there is no session or this one should end (:meth:`_renew`)."""
+        """What time alone calls for: expire queued commands, ask for chunks of transfers
+        that went quiet, and poke or hand-shake again (:meth:`_retry`) while there is
+        no session or this one should end (:meth:`_renew`)."""
         self._expire_queue()
         session = self._usable()
-        return self._retry() if session is None else self._renew(session)
+        out = self._stale_nacks()
+        return out + (self._retry() if session is None else self._renew(session))
 
     @property
     def live(self) -> Session | None:
@@ -177,25 +268,42 @@ class GroundEnd:
 
     def _seal(self, session: Session, inner: bytes, purpose: Purpose) -> list[bytes]:
         blob = compact(session.seal(inner, purpose))
-        return self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
+        frames = self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
+        self._sent.add(self.sender.transfer, frames, repair_key(session.recv_key))
+        return self._air(frames)
 
     def _retry(self) -> list[bytes]:
-        if self._pending is not None and self._clock.monotonic() - self._pending[1] < self.retry_s:
+        """The pending handshake's timer: quiet for ``poke_s`` after its chunks left (by
+        ``air_bps``) or were last repaired, a POKE (twice at most: the HS2 may be lost, or
+        the tail of HS1); quiet for ``retry_s``, a new handshake."""
+        now = self._clock.monotonic()
+        if self._pending is None or now - self._hs_quiet >= self.retry_s:
+            return self.handshake()
+        if now - self._hs_quiet < self.poke_s or self._hs_pokes >= 2:
             return []
-        return self.handshake()
+        self._hs_pokes += 1
+        self._hs_quiet = now
+        self.repairs["poke_sent"] += 1
+        poke = repair_frame(
+            Op.POKE, self._hs_transfer, (0, 0), 0, None,
+            sysid=self.sender.sysid, compid=self.sender.compid,
+        )  # fmt: skip
+        return self._air([poke], "repair")
 
     def from_air(self, raw: bytes) -> Output:
-        """One frame from the air: HS2, telemetry, or the vehicle end's hint."""
+        """One frame from the air: HS2, telemetry, a repair request, or the vehicle's hint."""
         frame = _parse(raw)
         if frame.msgid == MSG_STATUS:  # unauthenticated: heeded only when the vehicle is silent
             silent = self._clock.monotonic() - self._heard >= self.retry_s
             hinted = read_status(frame) == STATUS_NO_SESSION and silent
             return Output(air=self._retry() if hinted else [])
+        if frame.msgid == MSG_REPAIR:
+            return self._repair(parse_repair(frame))
         keys = [chunk_key(self.session.recv_key)] if self.session is not None else []
         chunk = parse_chunk(frame)
-        done = self._reassembler.feed(chunk, keys)
-        if done is None:
-            return Output()
+        done = self._feed(chunk, keys)
+        if not isinstance(done, tuple):
+            return done or Output()
         kind, blob = done
         if kind is ChunkKind.HS2:
             return self._finish(blob)
@@ -204,14 +312,58 @@ class GroundEnd:
         opened = open_compact(blob, [self.session], Direction.R2I, self.session)
         self._reassembler.opened(chunk, keys[0])
         self._heard = self._clock.monotonic()
-        return Output(local=[plain_frame(opened.payload)], authenticated=True)
+        plain = plain_frame(opened.payload)
+        if not self._hold_ack(plain):  # the second copy of an ACK just passed on
+            self.repairs["ack_duplicate"] += 1
+            return Output(authenticated=True)
+        return Output(local=[plain], authenticated=True)
+
+    def _repair(self, repair: Repair) -> Output:
+        """A NACK for one of our transfers; a NACK for the pending HS1 (unauthenticated,
+        module :mod:`.repair`) also restarts its timer.  The vehicle end never pokes."""
+        if repair.op is not Op.NACK or repair.target != (self.sender.sysid, self.sender.compid):
+            return Output()
+        handshake = self._pending is not None and repair.transfer == self._hs_transfer
+        if not repair.signed and not handshake:
+            self.repairs["ignored"] += 1
+            return Output()
+        frames = self._resend(repair)
+        if handshake and frames:
+            self._hs_quiet = self._clock.monotonic() + self._airtime_s(frames)
+        return Output(air=frames)
+
+    def _hold_ack(self, plain: bytes) -> bool:
+        """A final COMMAND_ACK from the vehicle answers the try of its command: a GCS retry
+        of it from now on is answered with it (within ``retry_window_s``).  False for the
+        second copy of the ACK just passed on (the vehicle end sends each twice; the flight
+        controller's sequence number tells it from a later ACK)."""
+        frame = parse_frame(plain)
+        if frame.msgid != dialect.MAVLINK_MSG_ID_COMMAND_ACK:
+            return True
+        now = self._clock.monotonic()
+        if self._last_ack == plain and now - self._last_ack_at < self.retry_window_s:
+            return False
+        self._last_ack, self._last_ack_at = plain, now
+        if frame.payload[2:3] == bytes([IN_PROGRESS]):
+            return True
+        command = command_of(frame)
+        for attempt in self._tries.values():
+            if attempt.command == command and attempt.ack is None:
+                attempt.ack = plain
+                self._sent.forget(attempt.transfer)
+                break
+        return True
 
     def _finish(self, hs2: bytes) -> Output:
         if self._pending is None:
+            if hs2 == self._hs2:  # the vehicle end answered a POKE that crossed the HS2
+                self.reassembly.duplicates += 1
+                return Output()
             raise UnknownSessionError("HS2 with no handshake in progress")
         self.session = self.initiator.finish(self._pending[0], hs2)
         self.handshakes["completed"] += 1
-        self._pending, self._heard = None, self._clock.monotonic()
+        self._sent.forget(self._hs_transfer)
+        self._pending, self._heard, self._hs2 = None, self._clock.monotonic(), hs2
         self._first_transfer = self.sender.transfer
         out = Output(authenticated=True)
         self._expire_queue()
@@ -225,17 +377,28 @@ class GroundEnd:
             self._queue.popleft()
             self.drops["QUEUE_EXPIRED"] += 1
 
-    @property
-    def unsent(self) -> int:
-        """Local messages that never left (:attr:`drops`, all reasons)."""
-        return sum(self.drops.values())
 
-    @property
-    def reassembly(self) -> ReassemblyStats:
-        return self._reassembler.stats
+_T = TypeVar("_T")
 
 
-class VehicleEnd:
+def _remember(
+    table: OrderedDict[tuple[int, int, int], _T], key: tuple[int, int, int], value: _T
+) -> None:
+    """Hold ``value`` under ``key``, the oldest of 16 forgotten."""
+    table[key] = value
+    while len(table) > 16:
+        table.popitem(last=False)
+
+
+@dataclass
+class _Held:
+    """A command the vehicle end delivered, and the COMMAND_ACK its flight controller gave."""
+
+    command: int
+    ack: bytes | None = None
+
+
+class VehicleEnd(RepairingEnd):
     """The responder's end, next to the autopilot (module docstring)."""
 
     def __init__(
@@ -247,49 +410,46 @@ class VehicleEnd:
         hint_interval_s: float = 1.0,
         silence_s: float = 5.0,
         signed: frozenset[int] = SIGNED_MESSAGES,
+        gap_s: float = 0.25,
         clock: Clock | None = None,
     ) -> None:
+        super().__init__(system_id, component_id, gap_s, clock)
         self.responder = responder
         self.silence_s = silence_s
         self.signed = signed  # messages delivered only from a command (ML-DSA-87) frame
-        self.sender = ChunkSender(system_id, component_id)
         self.hint_interval_s = hint_interval_s
-        self._clock = resolve(clock)
-        self._reassembler = Reassembler(clock=clock)
         self._sessions: deque[Session] = deque(maxlen=responder.max_sessions)
         self.current: Session | None = None  # the newest session that authenticated
         self._hinted = float("-inf")
         self._heard = float("-inf")  # when an authenticated blob last came from the ground
-        #: Telemetry dropped because no session carries it yet (``NO_SESSION``).
-        self.drops: Counter[str] = Counter()
-        self.handshakes: Counter[str] = Counter()
+        # what the ground end may ask for again: HS2s by HS1 transfer, ACKs by command transfer
+        self._hs2: OrderedDict[tuple[int, int, int], list[bytes]] = OrderedDict()
+        self._answers: OrderedDict[tuple[int, int, int], _Held] = OrderedDict()
+        self._unsigned = TokenBucket(2.0, self._clock)  # answers to unauthenticated POKEs
+        self._answered: OrderedDict[tuple[int, int, int], int] = OrderedDict()  # times, bounded
+
+    def _sessions_held(self) -> list[Session]:
+        return list(self._sessions)
 
     def from_air(self, raw: bytes) -> Output:
-        """One frame from the air: HS1 (answered with HS2) or a session frame for the FC."""
+        """One frame from the air: HS1 (answered with HS2), a session frame for the FC, or a
+        repair request."""
         frame = _parse(raw)
+        if frame.msgid == MSG_REPAIR:
+            return self._repair(parse_repair(frame))
         keys = [chunk_key(s.recv_key) for s in self._sessions]
         try:
             chunk = parse_chunk(frame)
-            done = self._reassembler.feed(chunk, keys)
+            done = self._feed(chunk, keys)
         except SignatureInvalidError:
             if keys:
                 raise
             raise UnknownSessionError("a session frame, and no live session here") from None
-        if done is None:
-            return Output()
+        if not isinstance(done, tuple):
+            return done or Output()
         kind, blob = done
         if kind is ChunkKind.HS1:
-            handles = {s.session_id[-1] for s in self._sessions}
-            self.handshakes["started"] += 1
-            try:
-                session, hs2 = self.responder.accept_handshake(blob, lambda sid: sid[-1] in handles)
-            except ReplayAttackError:
-                self.handshakes["failed"] += 1
-                raise
-            self.handshakes["completed"] += 1
-            self._sessions.append(session)
-            self.current, self._heard = session, self._clock.monotonic()
-            return Output(air=self.sender.frames(hs2, ChunkKind.HS2), authenticated=True)
+            return self._accept(chunk, blob)
         if kind is ChunkKind.HS2:
             raise InvalidFrameError("HS2 travels to the ground end")
         self._require_signature(blob)
@@ -298,7 +458,76 @@ class VehicleEnd:
         self._reassembler.opened(chunk, chunk_key(session.recv_key))
         self._supersede(session)
         self.current, self._heard = session, self._clock.monotonic()
-        return Output(local=[plain_frame(opened.payload)], authenticated=True)
+        plain = plain_frame(opened.payload)
+        if int.from_bytes(opened.payload[3:6], "little") in RETRIED:
+            _remember(self._answers, chunk.key, _Held(command_of(_parse(plain))))
+        return Output(local=[plain], authenticated=True)
+
+    def _accept(self, chunk: Chunk, hs1: bytes) -> Output:
+        handles = {s.session_id[-1] for s in self._sessions}
+        self.handshakes["started"] += 1
+        try:
+            session, hs2 = self.responder.accept_handshake(hs1, lambda sid: sid[-1] in handles)
+        except ReplayAttackError:
+            self.handshakes["failed"] += 1
+            raise
+        self.handshakes["completed"] += 1
+        self._sessions.append(session)
+        self.current, self._heard = session, self._clock.monotonic()
+        frames = self.sender.frames(hs2, ChunkKind.HS2)
+        _remember(self._hs2, chunk.key, frames)
+        return Output(air=self._air(frames), authenticated=True)
+
+    def _repair(self, repair: Repair) -> Output:
+        """A NACK for our own (telemetry) transfers, or the ground end's POKE: answered
+        with what is held for that transfer (HS2, COMMAND_ACK), or with a NACK."""
+        if repair.op is Op.NACK:
+            if repair.target != (self.sender.sysid, self.sender.compid) or not repair.signed:
+                return Output()
+            return Output(air=self._resend(repair))
+        if repair.signed:
+            return Output(air=self._poked(repair))
+        answer = self._poked_unsigned(repair) if self._unsigned.take() else []
+        return Output(air=answer, reply=True)
+
+    def _poked_unsigned(self, repair: Repair) -> list[bytes]:
+        """A handshake's POKE: the HS2 held for that HS1, or a NACK for its chunks (bounded,
+        rate-limited: nothing authenticates it)."""
+        at = (repair.sysid, repair.compid, repair.transfer)
+        held = self._hs2.get(at)
+        if held is not None:
+            return self._answer(at, lambda: held)
+        found = self._reassembler.lookup(at[:2], at[2])
+        if found is not None and found[0] is not ChunkKind.HS1:
+            return []
+        return self._nack(at, None, EVERYTHING if found is None else bitmap(found[2]))
+
+    def _poked(self, repair: Repair) -> list[bytes]:
+        """A POKE in a session (a GCS retry): the held COMMAND_ACK again, or a NACK for the
+        chunks still missing (all of them, for a fresh transfer never seen)."""
+        key = repair.verify([repair_key(s.recv_key) for s in self._sessions])
+        session = next(s for s in self._sessions if repair_key(s.recv_key) == key)
+        at = (repair.sysid, repair.compid, repair.transfer)
+        answer = self._answers.get(at)
+        if answer is not None:
+            ack = answer.ack
+            return [] if ack is None else self._answer(at, lambda: self._seal(session, ack))
+        ckey = chunk_key(session.recv_key)
+        found = self._reassembler.lookup(at[:2], at[2])
+        if found is not None:
+            return self._nack(at, ckey, bitmap(found[2]))
+        done = self._reassembler.completed(at[:2], at[2])
+        if done or not self._reassembler.is_fresh(at[:2], at[2], ckey):
+            return []
+        return self._nack(at, ckey, EVERYTHING)
+
+    def _answer(self, at: tuple[int, int, int], frames: Callable[[], list[bytes]]) -> list[bytes]:
+        """A held answer again, at most ``MAX_ANSWERS`` times per transfer."""
+        _remember(self._answered, at, self._answered.get(at, 0) + 1)
+        if self._answered[at] > MAX_ANSWERS:
+            return []
+        self.repairs["answered"] += 1
+        return self._air(frames(), "repair")
 
     def _require_signature(self, air: bytes) -> None:
         """Refuse, before any cryptography, a message that must be signed (:attr:`signed`)
@@ -325,29 +554,50 @@ class VehicleEnd:
         if now - self._hinted < self.hint_interval_s:
             return []
         self._hinted = now
-        return [status_frame(STATUS_NO_SESSION, self.sender.sysid, self.sender.compid)]
+        frame = status_frame(STATUS_NO_SESSION, self.sender.sysid, self.sender.compid)
+        return self._air([frame], "repair")
 
     def from_local(self, raw: bytes) -> list[bytes]:
+        """:meth:`handle_local`'s air frames."""
+        return self.handle_local(raw).air
+
+    def handle_local(self, raw: bytes) -> Output:
         """Wrap one telemetry frame from the flight controller; with no session it is
         dropped and counted (:attr:`drops`): the flight controller streams long before
-        the ground end connects, which is no fault."""
+        the ground end connects, which is no fault.  A COMMAND_ACK is also held for the
+        command it answers, for the ground end's POKE (a GCS retry), and its first goes
+        out twice (under two counters; the ground end passes one on): one lost costs the
+        ground station no retry, for some 60 bytes."""
         frame = _parse(raw)
         if self.current is None:
             self.drops["NO_SESSION"] += 1
-            return []
-        blob = compact(self.current.seal(inner_of(frame), Purpose.DATA))
-        return self.sender.frames(blob, ChunkKind.FRAME, chunk_key(self.current.send_key))
+            return Output()
+        copies = 1
+        if frame.msgid == dialect.MAVLINK_MSG_ID_COMMAND_ACK:
+            command = command_of(frame)
+            for held in reversed(self._answers.values()):
+                if held.command == command:
+                    copies += held.ack is None
+                    held.ack = raw
+                    break
+        air = self._air(self._seal(self.current, raw))
+        if copies > 1:
+            air += self._air(self._seal(self.current, raw), "repair")
+        return Output(air=air)
+
+    def _seal(self, session: Session, raw: bytes) -> list[bytes]:
+        blob = compact(session.seal(inner_of(_parse(raw)), Purpose.DATA))
+        frames = self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
+        self._sent.add(self.sender.transfer, frames, repair_key(session.recv_key))
+        return frames
 
     def tick(self) -> list[bytes]:
-        """Nothing to send on time alone: the ground end opens sessions."""
-        return []
+        """What time alone calls for: ask for chunks of transfers that went quiet (the
+        ground end opens sessions)."""
+        return self._stale_nacks()
 
     @property
     def live(self) -> Session | None:
         """The current session, while the ground end was heard within ``silence_s``."""
         silent = self._clock.monotonic() - self._heard >= self.silence_s
         return None if silent else self.current
-
-    @property
-    def reassembly(self) -> ReassemblyStats:
-        return self._reassembler.stats

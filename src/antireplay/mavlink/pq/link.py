@@ -6,11 +6,14 @@ A :class:`PqLink` moves bytes for one sans-I/O end of :mod:`antireplay.mavlink.p
 between two :class:`~antireplay.mavlink.endpoints.Transport` s.  The **ground** end's
 ``local`` is where ground stations connect (a trusted ``udpin``: every peer that sends
 receives the telemetry), ``air`` the path to the vehicle; it hand-shakes at
-:meth:`~PqLink.start` and, from a timer (:meth:`~PqLink.tick`, every ``tick_s``), again
-every ``retry_s`` until a session answers, whether or not local traffic arrives.  The
+:meth:`~PqLink.start` and, from a timer (:meth:`~PqLink.tick`, every ``tick_s``), pokes
+and hand-shakes again (:mod:`.ends`) until a session answers, whether or not local traffic
+arrives; the timer also drives repair requests for transfers gone quiet.  The
 **vehicle** end's ``local`` is the flight controller, ``air`` the path to the ground; a
-``udpin`` air peer is learned only from a blob that authenticated, and plain MAVLink
-from the air never reaches the flight controller.
+``udpin`` air peer is learned only from a blob that authenticated (until then a
+handshake's repair request, at once or on the timer, goes to the sender of the last
+chunk that was not refused, never learned), and plain MAVLink from the air never
+reaches the flight controller.
 
 Every refusal is counted under ``side:CODE`` and handed to ``on_reject`` (the
 rate-limited refusal auditor the command gives it; a refusal it could not record is
@@ -21,21 +24,32 @@ frame for a session it does not hold with the rate-limited ``PQ_STATUS`` hint.  
 change of the live session (``established``, ``rekeyed``, ``lost``: nothing
 authenticated from the other end for ``silence_s``, ``resumed``) is counted and handed
 once to ``on_session`` (authentic: always recorded).  :meth:`~PqLink.counts` is what
-the metrics export.  One lock serialises the end; writes happen outside it.
+the metrics export, airtime by kind among it.  One lock serialises the end; writes
+happen outside it.  With ``air_bps`` (the radio's serial rate in baud, 10 bits a byte)
+a :class:`Pacer` (a token bucket of bytes at 97 % of the line rate, a tenth of a second
+of burst: well within a SiK radio's 2,048-byte buffer at 57,600 baud) puts frames on
+the air no faster than the radio carries them, one-chunk frames (telemetry, ACKs,
+repair requests, HS2) ahead of the chunks of long transfers, so telemetry keeps flowing
+between a command's chunks; telemetry beyond two seconds of queue is dropped
+(``air:PACED_OUT``), nothing else is.
 """
 
 from __future__ import annotations
 
 import threading
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
+from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AntiReplayError, Code, ReplayAttackError
+from antireplay.core.ratelimit import TokenBucket
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.pq.chunks import PlainFrameError
-from antireplay.mavlink.pq.ends import GroundEnd, Output, VehicleEnd
+from antireplay.mavlink.pq.ends import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.repair import Output, air_kind
+from antireplay.mavlink.pq.wire import LINE_BITS
 from antireplay.mavlink.router import Refusal
 from antireplay.pq.session import Session
 
@@ -69,6 +83,52 @@ class LinkCounts:
     refused: Counter[str]  # side:CODE
     dropped: Counter[str]  # side:REASON, dropped without a refusal
     unaudited: int
+    airtime: Counter[str] = field(default_factory=Counter)  # air bytes by kind (AIR_KINDS)
+    repairs: Counter[str] = field(default_factory=Counter)  # NACKs, POKEs, resent chunks
+    retries: Counter[str] = field(default_factory=Counter)  # GCS retries, how answered
+
+
+#: The pacer's share of the line rate (the radio's own clock and a busy host both drift),
+#: and the longest frame an end sends (a full ``PQ_CHUNK``).
+PACE, MAX_FRAME = 0.97, 10 + 255 + 2
+
+
+class Pacer:
+    """Frames for the air, released no faster than ``air_bps`` (module docstring)."""
+
+    def __init__(self, air_bps: int, clock: Clock | None = None) -> None:
+        rate = PACE * air_bps / LINE_BITS  # bytes a second, a little under the line's
+        burst = max(rate / 10, 2 * MAX_FRAME)  # a tenth of a second; two frames at least
+        self.bucket = TokenBucket(rate, resolve(clock), burst=burst)
+        self.limit = int(2 * rate)  # bytes of telemetry queued at most
+        self.urgent: deque[tuple[bytes, Peer | None]] = deque()
+        self.bulk: deque[tuple[bytes, Peer | None]] = deque()
+        self.queued = 0
+        self.paced_out = 0
+
+    def push(self, frames: list[bytes], peer: Peer | None) -> None:
+        for raw in frames:
+            kind = air_kind(raw)
+            if kind in ("cmd", "parity") or (kind == "hs" and len(frames) > 1):
+                self.bulk.append((raw, peer))
+            elif kind == "passthrough" and self.queued > self.limit:
+                self.paced_out += 1
+                continue
+            else:
+                self.urgent.append((raw, peer))
+            self.queued += len(raw)
+
+    def pop(self) -> tuple[list[tuple[bytes, Peer | None]], float]:
+        """The frames that may go now, and the seconds until the next one may."""
+        out: list[tuple[bytes, Peer | None]] = []
+        while self.urgent or self.bulk:
+            queue = self.urgent or self.bulk
+            raw = queue[0][0]
+            if not self.bucket.take(len(raw)):
+                return out, max(self.bucket.wait_s(len(raw)), 0.001)  # time moves on
+            out.append(queue.popleft())
+            self.queued -= len(raw)
+        return out, 1.0
 
 
 class PqLink:
@@ -84,7 +144,9 @@ class PqLink:
         on_session: Callable[[SessionEvent], Any] | None = None,
         tap: Callable[[bytes], Any] | None = None,
         max_local_peers: int = 8,
-        tick_s: float = 0.5,
+        tick_s: float = 0.1,
+        air_bps: int | None = None,
+        clock: Clock | None = None,
     ) -> None:
         self.end, self.local, self.air = end, local, air
         self.name = "ground" if isinstance(end, GroundEnd) else "vehicle"
@@ -98,12 +160,16 @@ class PqLink:
         self.air_bytes = 0
         self._local_peers: dict[Peer, None] = {}
         self._air_peer: Peer | None = None
+        self._replied: Peer | None = None  # the sender of the last frame not refused
         self._live: Session | None = None
         self._last: Session | None = None  # the last session that was live
         self._lock = threading.Lock()
         self._count_lock = threading.Lock()
         self._stopped = threading.Event()
         self._ticker: threading.Thread | None = None
+        self.pacer = None if air_bps is None else Pacer(air_bps, clock)
+        self._paced = threading.Condition()
+        self._pacing: threading.Thread | None = None
 
     def start(self) -> None:
         """Start both transports and the timer; a ground end sends its first handshake."""
@@ -115,11 +181,17 @@ class PqLink:
             self._to_air(frames, None)
         self._ticker = threading.Thread(target=self._tick_loop, name="pq-tick", daemon=True)
         self._ticker.start()
+        if self.pacer is not None:
+            self._pacing = threading.Thread(target=self._pace_loop, name="pq-pace", daemon=True)
+            self._pacing.start()
 
     def stop(self) -> None:
         self._stopped.set()
-        if self._ticker is not None:
-            self._ticker.join()
+        with self._paced:
+            self._paced.notify()
+        for thread in (self._ticker, self._pacing):
+            if thread is not None:
+                thread.join()
         self.local.close()
         self.air.close()
 
@@ -131,8 +203,18 @@ class PqLink:
         """What time alone calls for: the end's retries and expiries, a lost session noticed."""
         with self._lock:
             frames = self.end.tick()
-        self._to_air(frames, self._air_peer)
+        self._to_air(frames, self._air_peer or self._replied)  # a handshake's NACK, say
         self._observe()
+
+    def _pace_loop(self) -> None:
+        assert self.pacer is not None
+        while not self._stopped.is_set():
+            with self._paced:
+                ready, wait_s = self.pacer.pop()
+                if not ready:
+                    self._paced.wait(wait_s)
+                    continue
+            self._send_air(ready)
 
     def _from_local(
         self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
@@ -146,12 +228,14 @@ class PqLink:
         for raw in frames:
             try:
                 with self._lock:
-                    air = self.end.from_local(raw)
+                    out = self.end.handle_local(raw)
             except ReplayAttackError as exc:
                 self._refuse("local", exc.code, exc.reason, raw)
                 continue
             self.forwarded["local"] += 1
-            self._to_air(air, self._air_peer)
+            for data in out.local:  # a GCS retry answered with the ACK already seen
+                self._to_local(data)
+            self._to_air(out.air, self._air_peer)
         self._observe()
 
     def _from_air(
@@ -181,7 +265,9 @@ class PqLink:
                 self.forwarded["air"] += 1
             for data in out.local:
                 self._to_local(data)
-            self._to_air(out.air, peer if out.authenticated else self._air_peer)
+            if peer is not None:  # where time alone may answer a handshake (never learned)
+                self._replied = peer
+            self._to_air(out.air, peer if out.authenticated or out.reply else self._air_peer)
         self._observe()
 
     def _observe(self) -> None:
@@ -220,8 +306,16 @@ class PqLink:
         if peer is None and not self.air.fixed:
             self._count("air:NO_PEER", len(frames))
             return
+        if self.pacer is not None:
+            with self._paced:
+                self.pacer.push(frames, peer)
+                self._paced.notify()
+            return
+        self._send_air([(data, peer) for data in frames])
+
+    def _send_air(self, frames: list[tuple[bytes, Peer | None]]) -> None:
         self._count("sent", len(frames), self.chunks)
-        for data in frames:
+        for data, peer in frames:
             if self.tap is not None:
                 self.tap(data)
             self.air_bytes += len(data)
@@ -245,6 +339,9 @@ class PqLink:
                 }
             )
             out.update({f"local:{k}": v for k, v in self.end.drops.items()})
+        if self.pacer is not None:
+            with self._paced:
+                out["air:PACED_OUT"] = self.pacer.paced_out
         with self._count_lock:
             out.update(self._dropped)
             out.update(self._refused)
@@ -256,6 +353,8 @@ class PqLink:
             handshakes = Counter(self.end.handshakes)
             reassembled = self.end.reassembly.reassembled
             up = self.end.live is not None
+            airtime, repairs = Counter(self.end.airtime), Counter(self.end.repairs)
+            retries = Counter(self.end.retries)
         dropped = self.dropped
         with self._count_lock:
             refused = Counter(self._refused)
@@ -263,7 +362,10 @@ class PqLink:
         chunks["reassembled"] = reassembled
         unaudited = dropped.pop("unaudited", 0)
         dropped.subtract(refused)
-        return LinkCounts(self.name, up, sessions, handshakes, chunks, refused, +dropped, unaudited)
+        return LinkCounts(
+            self.name, up, sessions, handshakes, chunks, refused, +dropped, unaudited,
+            airtime, repairs, retries,
+        )  # fmt: skip
 
     def _count(self, key: str, n: int = 1, counter: Counter[str] | None = None) -> None:
         with self._count_lock:

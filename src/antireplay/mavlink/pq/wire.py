@@ -30,8 +30,14 @@ from antireplay.pq.session import (
     Session,
 )
 
-MSG_CHUNK, MSG_STATUS = 61000, 61001
+MSG_CHUNK, MSG_STATUS, MSG_REPAIR = 61000, 61001, 61002
 CHUNK_DATA, CHUNK_MAC, MAX_CHUNKS = 249, 8, 32
+#: Parity chunks after a blob's data chunks: one per ``PARITY_EVERY`` (rounded up), at most
+#: ``MAX_PARITY``; parity chunk ``j`` is the XOR of the data chunks whose index is ``j``
+#: modulo the parity count, so one loss in each such group costs no round trip.
+MAX_PARITY, PARITY_EVERY = 4, 10
+#: Bits a byte takes on a radio's serial line (start, 8 data, stop): ``--air-bps`` is baud.
+LINE_BITS = 10
 STATUS_NO_SESSION = 1
 #: A ground end rekeys once its session used this many transfer numbers, and stops
 #: sending in it at ``TRANSFER_LIMIT``: within a session they never wrap (module docstring).
@@ -54,6 +60,11 @@ def _load_dialect() -> dict[int, tuple[int, int]]:
 
 DIALECT = _load_dialect()
 DIALECT_XML = "antireplay_pq.xml"
+
+
+def parity_for(count: int) -> int:
+    """How many parity chunks follow ``count`` data chunks (none for a one-chunk blob)."""
+    return 0 if count < 2 else min(MAX_PARITY, -(-count // PARITY_EVERY))
 
 
 class ChunkKind(IntEnum):

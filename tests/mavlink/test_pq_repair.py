@@ -1,0 +1,252 @@
+"""Loss-tolerant transfers: parity and repair requests on a seeded lossy radio (simulated
+time), GCS retries answered from what the ends hold, and repair requests an attacker
+forges or replays changing nothing."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import pytest
+from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
+
+from antireplay import ManualClock
+from antireplay.core.errors import SignatureInvalidError
+from antireplay.mavlink.codec import parse_frame
+from antireplay.mavlink.pq import (
+    CHUNK_DATA,
+    MAX_CHUNKS,
+    ChunkKind,
+    ChunkSender,
+    GroundEnd,
+    Reassembler,
+    VehicleEnd,
+    parse_chunk,
+)
+from antireplay.mavlink.pq.link import Pacer, PqLink
+from antireplay.mavlink.pq.repair import (
+    EVERYTHING,
+    RESEND_BUDGET,
+    Op,
+    parse_repair,
+    repair_frame,
+    repair_key,
+)
+from antireplay.mavlink.pq.wire import MAX_PARITY
+from antireplay.pq.session import Initiator, Responder
+from tests.harness.lossy_air import Radio, build
+from tests.harness.mavlink_frames import FakeTransport
+
+GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
+ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
+TODAY_AIR_BYTES = 5_327  # per delivered command at 0 % loss, before parity and repairs
+
+
+def radio(loss: float, bps: int | None, seed: int) -> Radio:
+    clock = ManualClock()
+    ground = GroundEnd(
+        Initiator("gcs", GCS_KEY, clock), ROBOT_KEM.public_key(), clock=clock, air_bps=bps
+    )
+    responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
+    return Radio(ground, VehicleEnd(responder, clock=clock), clock, loss, bps, seed)
+
+
+def commands(made: Radio, n: int = 100) -> tuple[list[float], float]:
+    """Times to ACK of the delivered ones, and air bytes per delivered command."""
+    before = made.up.sent + made.down.sent
+    times = [t for i in range(n) if (t := made.command(float(i))) is not None]
+    return sorted(times), (made.up.sent + made.down.sent - before) / max(1, len(times))
+
+
+@pytest.mark.parametrize("bps", [None, 57_600])
+@pytest.mark.parametrize(("loss", "least"), [(0.05, 99), (0.10, 95)])
+def test_lossy_radio_delivers_commands_each_once(loss: float, least: int, bps: int | None) -> None:
+    made = radio(loss, bps, seed=7)
+    assert made.start() < 5.0
+    times, _ = commands(made)
+    assert len(times) >= least
+    assert set(made.delivered.values()) == {1}  # never twice, retries and repairs included
+    if loss == 0.05:
+        assert times[89] <= 1.5  # p90 to ACK, within the GCS's first try
+    assert made.ground.repairs["resent"] > 0 and made.vehicle.repairs["nack_sent"] > 0
+
+
+def test_no_loss_costs_parity_only() -> None:
+    made = radio(0.0, 57_600, seed=1)
+    made.start()
+    times, air = commands(made, 20)
+    assert len(times) == 20 and air <= 1.3 * TODAY_AIR_BYTES
+    assert made.vehicle.repairs == {}  # no NACK, no POKE: parity only
+    assert set(made.ground.repairs) == {"ack_duplicate"}  # each ACK's second copy, dropped
+    assert made.ground.airtime["parity"] > 0 and made.ground.airtime["cmd"] > 0
+
+
+def test_a_session_comes_up_within_5s_at_10_percent_loss() -> None:
+    for seed in range(10):
+        assert radio(0.10, 57_600, seed).start() < 5.0, seed
+
+
+class Signs:
+    """A signing key that counts its signatures."""
+
+    def __init__(self, key: mldsa.MLDSA87PrivateKey) -> None:
+        self.key, self.calls = key, 0
+
+    def sign(self, data: bytes, context: bytes) -> bytes:
+        self.calls += 1
+        return self.key.sign(data, context)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.key, name)
+
+
+def test_a_gcs_retry_is_no_new_transfer_and_the_ack_is_answered_again() -> None:
+    made = radio(0.0, None, seed=1)
+    made.start()
+    assert made.ground.session is not None
+    signs = Signs(GCS_KEY)
+    made.ground.session.signing_key = signs  # type: ignore[assignment]
+    arm = build(lambda m: m.command_long_send(1, 1, 400, 0, 1.0, 0, 0, 0, 0, 0, 0), 255)
+    made.down.loss = 1.0  # the downlink fails: the ACK is lost
+    made.send(made.up, made.ground.handle_local(arm).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 1.5)
+    assert made.delivered == {1.0: 1} and not made._acked
+    made.down.loss = 0.0
+    retry = made.ground.handle_local(arm)  # the GCS's second try: a POKE, 35 bytes
+    assert len(retry.air) == 1 and len(retry.air[0]) < 40 and retry.local == []
+    made.send(made.up, retry.air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 0.5)
+    assert made._acked and made.vehicle.repairs["answered"] == 1
+    third = made.ground.handle_local(arm)  # a third try: the ACK the ground end saw
+    assert third.air == [] and len(third.local) == 1
+    assert signs.calls == 1 and made.delivered == {1.0: 1}
+    assert made.ground.retries == {"poked": 1, "answered": 1}
+    made.clock.advance(3)  # after the retry window, the same command is a new one
+    assert len(made.ground.handle_local(arm).air) == 22 and signs.calls == 2
+
+
+def test_forged_and_replayed_repair_requests_change_nothing() -> None:
+    made = radio(0.0, None, seed=1)
+    made.start()
+    ground, vehicle = made.ground, made.vehicle
+    session = ground.session
+    assert session is not None
+    frames = ground.from_local(build(lambda m: m.command_long_send(1, 1, 400, 0, 1, *[0] * 6), 255))
+    transfer = ground.sender.transfer
+    vehicle_ids = {"sysid": vehicle.sender.sysid, "compid": vehicle.sender.compid}
+    target = (ground.sender.sysid, ground.sender.compid)
+    forged = repair_frame(Op.NACK, transfer, target, EVERYTHING, os.urandom(32), **vehicle_ids)
+    with pytest.raises(SignatureInvalidError):
+        ground.from_air(forged)
+    unsigned = repair_frame(Op.NACK, transfer, target, EVERYTHING, None, **vehicle_ids)
+    assert ground.from_air(unsigned).air == []  # no session transfer for an unsigned NACK
+    genuine = repair_frame(
+        Op.NACK, transfer, target, EVERYTHING, repair_key(session.recv_key), **vehicle_ids
+    )
+    resent = [f for _ in range(5) for f in ground.from_air(genuine).air]  # replayed 5 times
+    assert len(resent) == RESEND_BUDGET * len(frames)  # bounded
+    assert set(resent) == set(frames)  # the same authenticated bytes, nothing new
+    for raw in frames + resent:
+        made.to_vehicle(raw)
+    assert made.delivered == {1.0: 1}  # once; the rest de-duplicated or refused as replays
+    assert made.refused["vehicle:REPLAY_DETECTED"] == 2 * len(frames)
+    poke = repair_frame(Op.POKE, transfer, (0, 0), 0, os.urandom(32), sysid=255, compid=197)
+    with pytest.raises(SignatureInvalidError):
+        vehicle.from_air(poke)
+    sessions, current = len(vehicle.responder), vehicle.current
+    for n in range(10):  # unauthenticated POKEs: rate-limited NACKs, nothing else
+        vehicle.from_air(repair_frame(Op.POKE, n, (0, 0), 0, None, sysid=9, compid=9))
+    assert len(vehicle.responder) == sessions and vehicle.current is current
+    assert vehicle.repairs["nack_sent"] <= 2
+
+
+def test_reassembly_memory_stays_bounded_under_a_flood_with_parity() -> None:
+    reassembler = Reassembler(clock=ManualClock())
+    for sysid in range(200):  # handshakes with parity from many senders, never complete
+        frames = ChunkSender(sysid, 9).frames(os.urandom(31 * CHUNK_DATA), ChunkKind.HS1)
+        for raw in frames[2:]:  # two of a group lost: never complete
+            reassembler.feed(parse_chunk(parse_frame(raw)))
+    assert reassembler.buffered <= 2 * (MAX_CHUNKS + MAX_PARITY) * CHUNK_DATA
+
+
+def test_the_pacer_keeps_to_the_radio_rate_and_lets_telemetry_through_first() -> None:
+    clock = ManualClock()
+    pacer = Pacer(57_600, clock)  # 5,587 bytes a second (97 % of 5,760), 559 of burst
+    made = radio(0.0, None, seed=1)
+    made.start()
+    command = made.ground.from_local(
+        build(lambda m: m.command_long_send(1, 1, 400, 0, 1, *[0] * 6), 255)
+    )
+    beat = made.ground.from_local(build(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), 255))
+    pacer.push(command, None)
+    first, wait_s = pacer.pop()
+    assert sum(len(f) for f, _ in first) <= 559 and wait_s > 0
+    pacer.push(beat, None)  # telemetry arrives while the command waits for the air
+    clock.advance(wait_s)
+    after, _ = pacer.pop()
+    assert after[0][0] == beat[0]  # ahead of the command's remaining chunks
+    sent = sum(len(f) for f, _ in first + after)
+    began = clock.monotonic() - wait_s
+    while pacer.bulk:
+        clock.advance(0.05)
+        ready, _ = pacer.pop()
+        sent += sum(len(f) for f, _ in ready)
+    assert sent == sum(map(len, command + beat))
+    assert sent <= 559 + 5_587 * (clock.monotonic() - began)  # never faster than the radio
+    for _ in range(200):  # telemetry beyond two seconds of queue is dropped, and counted
+        pacer.push(beat, None)
+    assert pacer.paced_out > 0 and pacer.queued <= 2 * 5_587 + len(beat[0])
+    slow = Pacer(1_200, clock)  # 116 bytes a second: still two full chunks of burst
+    slow.push(command[:3], None)
+    clock.advance(60)
+    assert len(slow.pop()[0]) == 2
+
+
+def test_a_handshake_repair_is_answered_to_its_sender_never_learned() -> None:
+    """A vehicle end on ``udpin`` knows no ground peer before a handshake opens: the NACK
+    for an incomplete HS1, at once or on its timer (the HS1's tail lost), goes back to
+    the address its chunks came from, and that address is not learned."""
+    made = radio(0.0, None, seed=1)
+    air = FakeTransport("udpin:0.0.0.0:1", fixed=False)
+    fc = FakeTransport("udpout:1.2.3.4:7")
+    link = PqLink(made.vehicle, fc, air, tick_s=3600)
+    link.start()
+    ground_at = ("10.0.0.9", 14550)
+    for lost in [(0, 3), (0, 3, 28)]:  # two of one group; then the last chunk too
+        hs1 = made.ground.handshake()
+        for raw in [r for i, r in enumerate(hs1) if i not in lost]:
+            air.inject(raw, ground_at)
+        if 28 in lost:
+            assert air.sent[1:] == []  # nothing tells it the HS1 ended: its timer will
+            made.clock.advance(made.vehicle.gap_s)
+            link.tick()
+        nack, to = air.sent[-1]
+        assert (
+            to == ground_at
+            and parse_repair(parse_frame(nack)).transfer
+            == parse_chunk(parse_frame(hs1[0])).transfer
+        )
+        resent = made.ground.from_air(nack).air
+        assert len(resent) == 1  # one of the two: parity rebuilds the other
+    assert {to for _, to in air.sent} == {ground_at}
+    sent = len(air.sent)
+    fc.inject(build(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), 1))  # telemetry: no peer yet
+    assert len(air.sent) == sent and link.counts().dropped == {"local:NO_SESSION": 1}
+    link.stop()
+
+
+def test_telemetry_overtaking_a_command_on_the_air_spoils_nothing() -> None:
+    """The pacer sends one-chunk frames ahead of a command's chunks: a heartbeat sealed
+    after the command (a later transfer number) arrives first, and the command still
+    opens; its replay is still refused."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    arm = build(lambda m: m.command_long_send(1, 1, 400, 0, 1, *[0] * 6), 255)
+    command = made.ground.from_local(arm)
+    beat = made.ground.from_local(build(lambda m: m.heartbeat_send(6, 8, 0, 0, 4), 255))
+    for raw in beat + command:
+        made.to_vehicle(raw)
+    assert made.delivered == {1.0: 1} and made.refused == {}
+    for raw in command:
+        made.to_vehicle(raw)
+    assert made.refused == {"vehicle:REPLAY_DETECTED": len(command)}
