@@ -24,7 +24,7 @@ import subprocess
 import sys
 import time
 import uuid
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
@@ -124,15 +124,16 @@ class Server:
 
     name: str
     url: str
-    proc: subprocess.Popen[bytes]
+    proc: subprocess.Popen[bytes] | None  # None: started elsewhere, only counted here
     pid: int = 0
-    extra: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.pid = self.pid or self.proc.pid
+        self.pid = self.pid or (self.proc.pid if self.proc is not None else 0)
 
     def stop(self) -> None:
         """SIGTERM (to what a wrapper runs, if any), SIGKILL after 30 s."""
+        if self.proc is None:
+            return
         if self.proc.poll() is None:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(self.pid, signal.SIGTERM)
@@ -199,7 +200,9 @@ def settle(server: Server, timeout: float = 10.0) -> None:
             return
 
 
-def wait_healthy(server: Server, path: str) -> Server:
+def healthy(server: Server, path: str) -> Server:
+    """``server`` once it answers ``path`` (a POST to /v1/messages without one)."""
+    assert server.proc is not None
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         if server.proc.poll() is not None:
@@ -217,7 +220,7 @@ def wait_healthy(server: Server, path: str) -> Server:
 def bare_server() -> Server:
     port = free_port()
     args = [sys.executable, "-m", "benchmarks.bench_gateway", "--bare-server", str(port)]
-    return wait_healthy(Server("bare", f"http://127.0.0.1:{port}", subprocess.Popen(args)), "")
+    return healthy(Server("bare", f"http://127.0.0.1:{port}", subprocess.Popen(args)), "")
 
 
 def gateway(
@@ -236,7 +239,7 @@ def gateway(
                 raise SystemExit(f"{name}: the tracer started nothing")
             time.sleep(0.01)
         server.pid = int(kids[0])
-    return wait_healthy(server, "/healthz")
+    return healthy(server, "/healthz")
 
 
 def signer(state: Path) -> ed25519.Ed25519PrivateKey:
@@ -245,11 +248,12 @@ def signer(state: Path) -> ed25519.Ed25519PrivateKey:
     return key
 
 
-def envelope(key: ed25519.Ed25519PrivateKey, cmd: str = "move_forward") -> str:
-    """One signed RCAN command for the embedded default's demo operator key, on one line."""
+def envelope(key: ed25519.Ed25519PrivateKey, age_s: float = 0.0, cmd: str = "move_forward") -> str:
+    """One signed RCAN command for the embedded default's demo operator key, on one line,
+    stamped ``age_s`` seconds ago."""
     body = {
         "rcan": "3.2", "rcan_version": "3.2", "msg_id": str(uuid.uuid4()),
-        "timestamp": round(time.time(), 6), "cmd": cmd,
+        "timestamp": round(time.time() - age_s, 6), "cmd": cmd,
         "target": "rcan://registry.rcan.dev/acme/arm/v2/unit-001",
         "params": {"distance_m": 0.5} if cmd == "move_forward" else {},
     }  # fmt: skip
@@ -264,3 +268,21 @@ def write_lines(path: Path, lines: list[str]) -> Path:
 def hog() -> subprocess.Popen[bytes]:
     """A process spinning on one core: other work on the box, as a companion computer has."""
     return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+
+
+# The flat forms other benchmarks (bench_audit_flood) import from bench_gateway.
+
+
+def wait_healthy(url: str, proc: subprocess.Popen[bytes], path: str) -> None:
+    healthy(Server(url, url, proc), path)
+
+
+def stop(proc: subprocess.Popen[bytes]) -> None:
+    Server("server", "", proc).stop()
+
+
+def wrk(  # noqa: PLR0917 - the load and its target
+    url: str, pid: int, script: Path, bodies: Path, connections: int, seconds: float
+) -> Run:
+    """One wrk run against ``url``, counting the process tree of ``pid``."""
+    return Wrk(Server(url, url, None, pid), script, bodies, connections, seconds).result()

@@ -1,8 +1,8 @@
 """The durable path end to end: the gateway users run, under wrk, beside bare Starlette.
 
 Run: ``python -m benchmarks gateway`` (needs ``wrk`` and ``strace``; the router row
-MAVProxy, the Redis row ``redis-server``).  Options (``=`` form, as ``python -m
-benchmarks`` passes them on): ``--rows=fresh,flood,c1,estop,inproc,router,redis,workers``
+MAVProxy, the Redis row ``redis-server``).  Options: ``--rows fresh,flood,c1,estop,inproc,
+router,redis,workers``
 (default all; ``workers`` only where ``serve --workers`` exists), ``--rounds=3``,
 ``--seconds=3`` (per wrk run), ``--passes=quiet,loaded`` (default both), ``--quick``
 (1-second runs, quiet pass only: under 3 minutes).
@@ -57,7 +57,7 @@ from antireplay import WINDOW_BUILD
 from antireplay.wiring import DEMO_KID
 from benchmarks import bench_mavlink as mav
 from benchmarks import bench_window as window
-from benchmarks._gateway_load import (
+from benchmarks._gateway_load import (  # the flat forms: bench_audit_flood's
     JSON,
     WRK_SCRIPT,
     Run,
@@ -69,8 +69,11 @@ from benchmarks._gateway_load import (
     hog,
     settle,
     signer,
+    stop,
+    wait_healthy,
     write_lines,
-)  # fmt: skip
+    wrk,
+)  # fmt: skip  # fmt: skip
 from benchmarks._gateway_rows import (
     accepting,
     has_workers,
@@ -79,6 +82,8 @@ from benchmarks._gateway_rows import (
     router_bursts,
 )  # fmt: skip
 from benchmarks._timing import interleaved_ns_per_op
+
+__all__ = ["WRK_SCRIPT", "envelope", "main", "signer", "stop", "wait_healthy", "write_lines", "wrk"]
 
 ROWS = ("fresh", "flood", "c1", "estop", "inproc", "router", "redis", "workers")
 ESTOPS = 40
@@ -278,7 +283,7 @@ class Pass:
 
     def estop_latencies(self, flood: bool) -> tuple[list[float], int]:
         """Latency (ms) of ESTOPS fresh ESTOPs, one at a time, with or without a flood."""
-        bodies = [envelope(self.key, "ESTOP") for _ in range(ESTOPS + 1)]
+        bodies = [envelope(self.key, cmd="ESTOP") for _ in range(ESTOPS + 1)]
         settle(self.gw)
         with httpx.Client(headers=JSON) as client:
             client.post(self.gw.url + "/v1/messages", content=bodies.pop())  # the connection
@@ -455,17 +460,18 @@ def summary(rows: list[tuple[str, Row]]) -> None:
               f" {r.goal:<24} {verdict}")  # fmt: skip
 
 
-def main() -> None:
-    if len(sys.argv) == 3 and sys.argv[1] == "--bare-server":
+def main(argv: list[str] | None = None) -> None:
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) == 2 and args[0] == "--bare-server":
         import uvicorn  # noqa: PLC0415
 
         from benchmarks._gateway_load import bare_app  # noqa: PLC0415
 
         # The same uvicorn options as `antireplay serve` (cli.serve).
-        uvicorn.run(bare_app(), host="127.0.0.1", port=int(sys.argv[2]), log_level="warning",
+        uvicorn.run(bare_app(), host="127.0.0.1", port=int(args[1]), log_level="warning",
                     timeout_graceful_shutdown=10)  # fmt: skip
         return
-    opts = parse(sys.argv[1:])
+    opts = parse(args)
     for tool in ("wrk",):
         if shutil.which(tool) is None:
             raise SystemExit(f"bench_gateway needs {tool}: apt-get install -y {tool}")
