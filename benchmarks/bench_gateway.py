@@ -1,402 +1,493 @@
-"""The gateway users run, under a concurrent load generator, beside a bare Starlette app.
+"""The durable path end to end: the gateway users run, under wrk, beside bare Starlette.
 
-Run: ``python -m benchmarks.bench_gateway`` (needs ``wrk``: ``apt-get install -y wrk``).
+Run: ``python -m benchmarks gateway`` (needs ``wrk`` and ``strace``; the router row
+MAVProxy, the Redis row ``redis-server``).  Options: ``--rows fresh,flood,c1,estop,inproc,
+router,redis,workers``
+(default all; ``workers`` only where ``serve --workers`` exists), ``--rounds=3``,
+``--seconds=3`` (per wrk run), ``--passes=quiet,loaded`` (default both), ``--quick``
+(1-second runs, quiet pass only: under 3 minutes).
 
-What is measured, and why this way:
+Every row of the durable-path table, each against its baseline measured in the same
+run (see :mod:`benchmarks._gateway_load` for the servers, the load and the counters):
 
-* The gateway is ``antireplay serve --state-dir DIR`` on its embedded default
-  (SQLite seen-set and audit trail on disk, fsync on commit): the durable
-  configuration users get.  The baseline is a Starlette app on the same uvicorn,
-  started with the same options, that only parses the JSON body and answers 200.
-* The load comes from wrk, a C load generator in its own process (keep-alive,
-  loopback, one wrk thread), at 1 and 32 connections.  Python clients become the
-  bottleneck long before the servers do, which hides what concurrency costs.
-* Fresh commands: every request carries its own signed Ed25519 envelope.  They are
-  signed ahead of each run into a file that a Lua ``request()`` hook walks through
-  (enough for the run: a wrapped list would be replays, and the run fails then).
-  Replays: one captured command, accepted once, sent again and again (409).
-* Rounds are interleaved (bare, gateway, bare, ... for every case) and the
-  figures are medians over rounds, so a noisy neighbour hits both sides alike.
-  ``CPU ms/req`` is the server process's user + system CPU (all threads, from
-  /proc) per answered request: the figure a busy shared machine skews least.
-* Fsyncs of a replay flood: 10,000 replays at 32 connections against a gateway
-  started under ``strace -f --seccomp-bpf`` (only fsync/fdatasync are trapped, so
-  the tracing costs little), counted between the flood's start and end, and the
-  audit rows the flood wrote are counted in the audit database (every rejection
-  must be audited).  ``/metrics`` is also read before and after for any
-  group-commit batch counter it exposes.
+* **fresh** c=32: every request its own signed Ed25519 envelope; req/s against bare
+  Starlette, p99, server CPU ms and context switches per request.
+* **flood** c=32: one captured command, accepted once, sent again and again (409).
+* **c1**: fresh at one connection (p50), and fsyncs per request counted on a second
+  gateway run under ``strace -f --seccomp-bpf -e trace=fsync,fdatasync`` (what ``-c``
+  counts, with timestamps so that only the requests' window is counted) for fresh c=1,
+  fresh c=32 and the flood, split by the file synced.
+* **estop**: 40 fresh ESTOPs from a separate client, one at a time, while wrk floods
+  captured commands at c=32, against the same 40 on the gateway with no flood.
+* **inproc**: ``ReplayCache.commit`` on the memory store full at 10,000 entries against
+  rcan 3.7.0 ``check_and_record`` (:mod:`benchmarks.bench_window`'s contenders), and a
+  refusal (a seen msg_id) on each; rcan's per-refusal warning log is muted.
+* **router**: a burst of 5,000 signed frames through ``antireplay mavlink-router``
+  (verifying; signing on behalf) against MAVProxy forwarding with signing on
+  (:mod:`benchmarks.bench_mavlink`'s sender and launchers).
+* **redis**: the gateway on a Redis store (a redis-server started here), fresh c=32.
+* **workers**: ``serve --workers 2``, fresh c=32, when the option exists.
+
+Rounds alternate bare and the server under test, figures are medians over rounds, and
+the load average is printed at the start and the end.  The *loaded* pass repeats the
+rows with a process spinning on one core beside them.  The summary ends with each
+row's goal and PASS/MISS (loaded: the fresh p99 and ESTOP goals; the rest for the
+record).
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib.util
-import json
+import logging
 import os
 import re
 import shutil
-import signal
-import sqlite3
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
-import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import httpx
-import uvicorn
-from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ed25519
-from starlette.applications import Starlette
-from starlette.requests import Request
-from starlette.responses import JSONResponse, Response
-from starlette.routing import Route
-from tests.harness import free_port
 
-from antireplay.rcan.auth import sign_envelope
+from antireplay import WINDOW_BUILD
 from antireplay.wiring import DEMO_KID
+from benchmarks import bench_mavlink as mav
+from benchmarks import bench_window as window
+from benchmarks._gateway_load import (  # the flat forms: bench_audit_flood's
+    JSON,
+    WRK_SCRIPT,
+    Run,
+    Server,
+    Wrk,
+    bare_server,
+    envelope,
+    gateway,
+    hog,
+    settle,
+    signer,
+    stop,
+    wait_healthy,
+    write_lines,
+    wrk,
+)  # fmt: skip  # fmt: skip
+from benchmarks._gateway_rows import (
+    accepting,
+    has_workers,
+    memory_refusals,
+    rcan_refusals,
+    router_bursts,
+)  # fmt: skip
+from benchmarks._timing import interleaved_ns_per_op
 
-ROUNDS = 3
-SECONDS = 3
-CONNECTIONS = (1, 32)
-FLOOD = 10_000
-#: Signed envelopes per fresh run: more than the fastest server answers in SECONDS.
-FRESH_PER_RUN = 15_000
-TARGETS = {"fresh": 0.5, "replay": 0.8}
-P99_TARGET_MS = 50.0
+__all__ = ["WRK_SCRIPT", "envelope", "main", "signer", "stop", "wait_healthy", "write_lines", "wrk"]
 
-WRK_SCRIPT = """
-local bodies = {}
-local i = 0
-local limit = 0
-local seen = 0
-local headers = {["Content-Type"] = "application/json"}
-
-function init(args)
-  for line in io.lines(args[1]) do bodies[#bodies + 1] = line end
-  limit = tonumber(args[2] or "0")
-end
-
-function request()
-  i = i + 1
-  if i > #bodies then i = 1 end
-  return wrk.format("POST", "/v1/messages", headers, bodies[i])
-end
-
-if os.getenv("WRK_STOP_AFTER") then
-  function response(status, hdrs, body)
-    seen = seen + 1
-    if limit > 0 and seen >= limit then wrk.thread:stop() end
-  end
-end
-
-function done(summary, latency, requests)
-  local e = summary.errors
-  io.write(string.format(
-    'WRK {"requests": %d, "duration_us": %d, "p50_us": %d, "p99_us": %d, '
-    .. '"status_errors": %d, "socket_errors": %d}\\n',
-    summary.requests, summary.duration, latency:percentile(50), latency:percentile(99),
-    e.status, e.connect + e.read + e.write + e.timeout))
-end
-"""
-
-
-def bare_app() -> Starlette:
-    async def messages(request: Request) -> Response:
-        body = json.loads(await request.body())
-        return JSONResponse({"accepted": True, "msg_id": body.get("msg_id")})
-
-    return Starlette(routes=[Route("/v1/messages", messages, methods=["POST"])])
+ROWS = ("fresh", "flood", "c1", "estop", "inproc", "router", "redis", "workers")
+ESTOPS = 40
+#: Fsync counting: the traced loads and their connections.
+TRACED = {"fresh c=1": 1, "fresh c=32": 32, "flood c=32": 32}
+#: Which file an fsync made durable, by the name strace -y shows.
+FSYNC_FILES = ("audit.db-wal", ".audit.db.head", "state.db-wal", ".state.db.witness")
 
 
 @dataclass(frozen=True)
-class Run:
-    """One wrk run: throughput, latency, and how many answers were not 2xx."""
-
-    rps: float
-    p50_ms: float
-    p99_ms: float
-    requests: int
-    non_2xx: int
-    #: Server CPU (all threads, user + system) per request: what a busy neighbour cannot skew.
-    cpu_ms: float
+class Options:
+    rows: tuple[str, ...]
+    rounds: int
+    seconds: float
+    passes: tuple[str, ...]
 
 
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU of process ``pid`` so far (every thread), from /proc."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def wrk(  # noqa: PLR0917 - the load and its target
-    url: str, pid: int, script: Path, bodies: Path, connections: int, seconds: int, stop: int = 0
-) -> Run:
-    cpu = cpu_seconds(pid)
-    args = ["wrk", "-t1", f"-c{connections}", f"-d{seconds}s", "-s", str(script), url]
-    env = {**os.environ, **({"WRK_STOP_AFTER": "1"} if stop else {})}
-    out = subprocess.run(
-        [*args, "--", str(bodies), str(stop)], capture_output=True, text=True, env=env, check=True
-    ).stdout
-    line = next((ln for ln in out.splitlines() if ln.startswith("WRK ")), None)
-    if line is None:
-        raise SystemExit(f"wrk printed no summary:\n{out}")
-    cpu = cpu_seconds(pid) - cpu
-    data = json.loads(line[4:])
-    if data["socket_errors"]:
-        raise SystemExit(f"{url}: {data['socket_errors']} socket errors under wrk")
-    seconds_run = data["duration_us"] / 1e6
-    return Run(
-        data["requests"] / seconds_run,
-        data["p50_us"] / 1e3,
-        data["p99_us"] / 1e3,
-        data["requests"],
-        data["status_errors"],
-        cpu * 1e3 / max(data["requests"], 1),
-    )
+def parse(argv: list[str]) -> Options:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks gateway")
+    parser.add_argument("--rows", default=",".join(ROWS))
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--seconds", type=float, default=3.0)
+    parser.add_argument("--passes", default=None, help="quiet,loaded (default both)")
+    parser.add_argument("--quick", action="store_true", help="1 s runs, quiet pass only")
+    args, _ = parser.parse_known_args(argv)  # positional names are python -m benchmarks'
+    rows = tuple(r for r in args.rows.split(",") if r)
+    unknown = set(rows) - set(ROWS)
+    if unknown:
+        parser.error(f"unknown rows {sorted(unknown)}; choose from {', '.join(ROWS)}")
+    passes = tuple((args.passes or ("quiet" if args.quick else "quiet,loaded")).split(","))
+    if set(passes) - {"quiet", "loaded"}:
+        parser.error("--passes takes quiet and/or loaded")
+    seconds = 1.0 if args.quick and "--seconds" not in " ".join(argv) else args.seconds
+    return Options(rows, max(1, args.rounds), seconds, passes)
 
 
 @dataclass(frozen=True)
-class Server:
-    """A server under test: where it listens and the process whose CPU is counted."""
+class Row:
+    """One line of the summary: a measure, its baseline, ours, the goal and the verdict."""
 
-    url: str
-    pid: int
+    row: str
+    measure: str
+    baseline: str
+    ours: str
+    goal: str
+    ok: bool | None  # None: reported, no goal in this pass
 
 
-def wait_healthy(url: str, proc: subprocess.Popen[bytes], path: str) -> None:
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise SystemExit(f"{url}: server exited with {proc.returncode}")
+def median_run(runs: list[Run]) -> Run:
+    return Run(*(statistics.median(getattr(r, f.name) for r in runs) for f in fields(Run)))
+
+
+def p99(values: list[float]) -> float:
+    return statistics.quantiles(values, n=100)[98] if len(values) > 1 else values[0]
+
+
+class Pass:
+    """One pass over the selected rows (quiet, or with a CPU hog beside it)."""
+
+    def __init__(self, opts: Options, work: Path, loaded: bool) -> None:
+        self.opts, self.work, self.loaded = opts, work, loaded
+        self.details: list[str] = []
+        self.script = write_lines(work / "wrk.lua", [WRK_SCRIPT])
+        self.bare = bare_server()
+        self.gw = gateway("gateway", work / "state")
+        self.key = signer(work / "state")
+        captured = envelope(self.key)
+        first = httpx.post(self.gw.url + "/v1/messages", content=captured, headers=JSON)
+        if first.status_code != 200:
+            raise SystemExit(f"the gateway refused the command to be replayed: {first.text}")
+        self.replay = write_lines(work / "replay.txt", [captured])
+        for server in (self.bare, self.gw):  # warm-up: imports, caches, connections
+            Wrk(server, self.script, self.replay, 32, 1).result()
+
+    def close(self) -> None:
+        self.gw.stop()
+        self.bare.stop()
+
+    def fresh_bodies(self, connections: int, key: ed25519.Ed25519PrivateKey | None = None) -> Path:
+        """Signed envelopes for one run: more than the fastest server answers in it."""
+        per_s = 8_000 if connections > 1 else 1_500
+        n = int(per_s * self.opts.seconds) + 500
+        lines = [envelope(key or self.key) for _ in range(n)]
+        return write_lines(self.work / "fresh.txt", lines)
+
+    def versus_bare(
+        self, label: str, server: Server, connections: int, fresh: bool
+    ) -> tuple[Run, Run]:
+        """Median runs of bare and ``server``, rounds interleaved; a detail line each."""
+        runs: dict[str, list[Run]] = {"bare": [], server.name: []}
+        for _ in range(self.opts.rounds):
+            bodies = self.fresh_bodies(connections) if fresh else self.replay
+            for target in (self.bare, server):
+                settle(target)
+                run = Wrk(target, self.script, bodies, connections, self.opts.seconds).result()
+                refused = run.requests if target is not self.bare and not fresh else 0
+                if run.non_2xx != refused:
+                    print(f"  WARNING {label} {target.name}: {run.non_2xx} of {run.requests}"
+                          f" answers not 2xx, {refused} expected")  # fmt: skip
+                runs[target.name].append(run)
+        base, ours = median_run(runs["bare"]), median_run(runs[server.name])
+        for name, run in (("bare", base), (server.name, ours)):
+            self.details.append(
+                f"{label:<13} {name:<10} {run.rps:>7.0f} {run.p50_ms:>7.2f} {run.p99_ms:>7.1f}"
+                f" {run.rps / base.rps:>5.2f}x {run.cpu_ms:>7.3f} {run.switches:>7.1f}"
+            )
+        return base, ours
+
+    # -- the rows --------------------------------------------------------------------
+
+    def fresh(self) -> list[Row]:
+        base, ours = self.versus_bare("fresh c=32", self.gw, 32, fresh=True)
+        ratio = ours.rps / base.rps
+        if self.loaded:
+            ok, goal = ours.p99_ms <= 3 * base.p99_ms, "p99 <= 3x bare (loaded)"
+        else:
+            ok, goal = ratio >= 0.30 and ours.p99_ms <= 20, ">= 0.30x, p99 <= 20 ms"
+        return [
+            Row(
+                "fresh c=32",
+                "req/s (ratio), p99",
+                f"{base.rps:,.0f}, p99 {base.p99_ms:.1f} ms",
+                f"{ours.rps:,.0f} ({ratio:.2f}x), p99 {ours.p99_ms:.1f} ms",
+                goal,
+                ok,
+            )
+        ]
+
+    def flood(self) -> list[Row]:
+        base, ours = self.versus_bare("flood c=32", self.gw, 32, fresh=False)
+        ratio = ours.rps / base.rps
+        return [
+            Row(
+                "flood c=32",
+                "req/s (ratio), p99",
+                f"{base.rps:,.0f}, p99 {base.p99_ms:.1f} ms",
+                f"{ours.rps:,.0f} ({ratio:.2f}x), p99 {ours.p99_ms:.1f} ms",
+                ">= 0.95x",
+                None if self.loaded else ratio >= 0.95,
+            )
+        ]
+
+    def c1(self) -> list[Row]:
+        base, ours = self.versus_bare("fresh c=1", self.gw, 1, fresh=True)
+        per_request = self.fsyncs()
+        one = per_request.get("fresh c=1", float("nan"))
+        return [
+            Row(
+                "fresh c=1",
+                "p50; fsyncs per request",
+                f"p50 {base.p50_ms:.2f} ms",
+                f"p50 {ours.p50_ms:.2f} ms; {one:.2f} fsyncs",
+                "one fsync per command",
+                one <= 1.05,
+            )
+        ]
+
+    def fsyncs(self) -> dict[str, float]:
+        """Fsyncs per request of each TRACED load, on a gateway under strace."""
+        if shutil.which("strace") is None:
+            self.details.append("fsyncs: strace not found (apt-get install -y strace)")
+            return {}
+        log = self.work / "fsync.log"
+        trace = ("strace", "-f", "--seccomp-bpf", "-qq", "-y", "-ttt", "-o", str(log),
+                 "-e", "trace=fsync,fdatasync")  # fmt: skip
+        traced = gateway("traced", self.work / "traced-state", trace=trace)
+        windows: dict[str, tuple[float, float, int]] = {}
         try:
-            httpx.request("GET" if path else "POST", url + (path or "/v1/messages"), content=b"{}")
-            return
-        except httpx.HTTPError:
-            time.sleep(0.05)
-    raise SystemExit(f"{url}: server did not start")
+            key = signer(self.work / "traced-state")
+            captured = envelope(key)
+            httpx.post(traced.url + "/v1/messages", content=captured, headers=JSON)
+            replay = write_lines(self.work / "traced-replay.txt", [captured])
+            for label, connections in TRACED.items():
+                fresh = label.startswith("fresh")
+                bodies = self.fresh_bodies(connections, key) if fresh else replay
+                settle(traced)
+                started = time.time()
+                run = Wrk(traced, self.script, bodies, connections, self.opts.seconds).result()
+                settle(traced)  # the run's last batch is its own
+                windows[label] = started, time.time(), run.requests
+        finally:
+            traced.stop()
+        call = re.compile(r"^\d+\s+(\d+\.\d+) (?:fsync|fdatasync)\(\d+<([^>]*)>")
+        calls = [(float(m[1]), Path(m[2]).name) for ln in log.read_text().splitlines()
+                 if (m := call.match(ln))]  # fmt: skip
+        out = {}
+        for label, (start, end, requests) in windows.items():
+            during = [name for at, name in calls if start <= at <= end]
+            out[label] = len(during) / max(requests, 1)
+            split = {p: sum(n.startswith(p) for n in during) for p in FSYNC_FILES}
+            split["other"] = len(during) - sum(split.values())
+            self.details.append(
+                f"fsyncs, {label}: {len(during)} for {requests} requests = {out[label]:.2f}"
+                " per request (" + ", ".join(f"{k} {v}" for k, v in split.items() if v) + ")"
+            )
+        return out
+
+    def estop_latencies(self, flood: bool) -> tuple[list[float], int]:
+        """Latency (ms) of ESTOPS fresh ESTOPs, one at a time, with or without a flood."""
+        bodies = [envelope(self.key, cmd="ESTOP") for _ in range(ESTOPS + 1)]
+        settle(self.gw)
+        with httpx.Client(headers=JSON) as client:
+            client.post(self.gw.url + "/v1/messages", content=bodies.pop())  # the connection
+            load = Wrk(self.gw, self.script, self.replay, 32, 120) if flood else None
+            time.sleep(0.3)  # wrk connected and saturating
+            latencies, accepted = [], 0
+            for body in bodies:
+                started = time.perf_counter()
+                answer = client.post(self.gw.url + "/v1/messages", content=body)
+                latencies.append((time.perf_counter() - started) * 1e3)
+                accepted += answer.status_code == 200
+                time.sleep(0.02)
+            if load is not None:
+                run = load.interrupt()
+                self.details.append(f"ESTOPs sent during a flood of {run.rps:,.0f} req/s")
+        return latencies, accepted
+
+    def estop(self) -> list[Row]:
+        quiet, flooded, accepted = [], [], []
+        for _ in range(self.opts.rounds):
+            q, _ = self.estop_latencies(flood=False)
+            f, n = self.estop_latencies(flood=True)
+            quiet.append(p99(q))
+            flooded.append(p99(f))
+            accepted.append(n)
+        q99, f99 = statistics.median(quiet), statistics.median(flooded)
+        self.details.append(f"ESTOP p99 per round: quiet {quiet}, flooded {flooded} (ms)")
+        return [
+            Row(
+                "ESTOP in flood",
+                "p99 (accepted)",
+                f"no flood: p99 {q99:.1f} ms",
+                f"p99 {f99:.1f} ms ({min(accepted)}/{ESTOPS})",
+                "p99 <= 2x no flood",
+                f99 <= 2 * q99 and min(accepted) == ESTOPS,
+            )
+        ]
+
+    def inproc(self) -> list[Row]:
+        size, batch, rcan_batch = 10_000, 20_000, 5_000
+        logging.getLogger("rcan.replay").setLevel(logging.ERROR)  # its warning per refusal
+        work = window.Workload(size, batch)
+        contenders = [
+            (window.memory_full(work, size), batch),
+            (window.rcan_full(size, rcan_batch), rcan_batch),
+            (memory_refusals(work, size, batch), batch),
+            (rcan_refusals(size, batch), batch),
+        ]
+        ours, rcan, refuse, rcan_refuse = interleaved_ns_per_op(contenders, window.REPEATS)
+        loaded = self.loaded
+        return [
+            Row("in-process", f"commit, memory, 10k ({WINDOW_BUILD})", f"rcan {rcan:,.0f} ns",
+                f"{ours:,.0f} ns ({rcan / ours:.2f}x)", ">= 3x rcan",
+                None if loaded else rcan / ours >= 3),
+            Row("refusals", "seen msg_id, full 10k", f"rcan {rcan_refuse:,.0f} ns",
+                f"{refuse:,.0f} ns ({rcan_refuse / refuse:.2f}x)", ">= 1x rcan",
+                None if loaded else rcan_refuse / refuse >= 1),
+        ]  # fmt: skip
+
+    def router(self) -> list[Row]:
+        rates = router_bursts(self.opts.rounds)
+        base = rates["mavproxy"]
+        self.details.append(
+            f"router burst of {mav.BURST}, frames/s: "
+            + ", ".join(f"{k} {v:,.0f}" for k, v in rates.items())
+        )
+        verify, behalf = rates["verifying"] / base, rates["on behalf"] / base
+        return [
+            Row("router verify", f"burst {mav.BURST:,} frames/s", f"MAVProxy {base:,.0f}",
+                f"{rates['verifying']:,.0f} ({verify:.2f}x)", ">= 2.5x MAVProxy",
+                None if self.loaded else verify >= 2.5),
+            Row("router behalf", f"burst {mav.BURST:,} frames/s", f"MAVProxy {base:,.0f}",
+                f"{rates['on behalf']:,.0f} ({behalf:.2f}x)", ">= 1.5x MAVProxy",
+                None if self.loaded else behalf >= 1.5),
+        ]  # fmt: skip
+
+    def redis(self) -> list[Row]:
+        from tests.harness.redis_server import RedisServer  # noqa: PLC0415 - needs pytest
+
+        directory = self.work / "redis"
+        directory.mkdir(exist_ok=True)
+        server = RedisServer(directory)
+        server.start()
+        public = self.work / "state" / f"{DEMO_KID}.pub.pem"
+        config = write_lines(directory / "gateway.yaml", [
+            f"store: {server.url}", f"audit: {directory / 'audit.db'}", "keys:",
+            f"  - {{kid: {DEMO_KID}, owner: operator, alg: ed25519, public_keys: [{public}],",
+            "     scopes: [control, safety]}",
+        ])  # fmt: skip
+        try:
+            gw = gateway("redis", directory, ("--config", str(config)))
+            try:
+                accepting(gw, self.key)
+                base, ours = self.versus_bare("redis c=32", gw, 32, fresh=True)
+            finally:
+                gw.stop()
+        finally:
+            server.stop()
+        ratio = ours.rps / base.rps
+        return [
+            Row(
+                "Redis store",
+                "fresh c=32 req/s",
+                f"{base.rps:,.0f}",
+                f"{ours.rps:,.0f} ({ratio:.2f}x), p99 {ours.p99_ms:.1f} ms",
+                ">= 0.2x",
+                None if self.loaded else ratio >= 0.2,
+            )
+        ]
+
+    def workers(self) -> list[Row]:
+        if not has_workers():
+            self.details.append("workers: `antireplay serve` has no --workers; row skipped")
+            return []
+        gw = gateway("workers=2", self.work / "workers-state", ("--workers", "2"))
+        try:
+            self.key, key = signer(self.work / "workers-state"), self.key
+            try:
+                accepting(gw, self.key)
+                base, ours = self.versus_bare("workers=2", gw, 32, fresh=True)
+            finally:
+                self.key = key
+        finally:
+            gw.stop()
+        self.details.append(
+            f"scaling model: {ours.cpu_ms:.3f} CPU ms per fresh request ="
+            f" {1e3 / ours.cpu_ms:,.0f} req/s per core, before the load generator's share"
+        )
+        return [
+            Row(
+                "--workers 2",
+                "fresh c=32 req/s",
+                f"{base.rps:,.0f}",
+                f"{ours.rps:,.0f} ({ours.rps / base.rps:.2f}x), p99 {ours.p99_ms:.1f} ms",
+                "(2 cores: see scaling)",
+                None,
+            )
+        ]
 
 
-def serve_gateway(
-    state: Path, port: int, prefix: list[str] | None = None
-) -> subprocess.Popen[bytes]:
-    """``antireplay serve`` on the embedded default, as users start it."""
-    args = [sys.executable, "-m", "antireplay", "serve", "--state-dir", str(state)]
-    proc = subprocess.Popen([*(prefix or []), *args, "--port", str(port)])
-    wait_healthy(f"http://127.0.0.1:{port}", proc, "/healthz")
-    return proc
-
-
-def stop(proc: subprocess.Popen[bytes]) -> None:
-    proc.terminate()
-    proc.wait(timeout=30)
-
-
-def signer(state: Path) -> ed25519.Ed25519PrivateKey:
-    key = serialization.load_pem_private_key((state / f"{DEMO_KID}.key.pem").read_bytes(), None)
-    assert isinstance(key, ed25519.Ed25519PrivateKey)
-    return key
-
-
-def envelope(key: ed25519.Ed25519PrivateKey, age_s: float = 0.0) -> str:
-    """One signed RCAN command for the embedded default's demo operator key, on one line,
-    stamped ``age_s`` seconds ago."""
-    body = {
-        "rcan": "3.2", "rcan_version": "3.2", "msg_id": str(uuid.uuid4()),
-        "timestamp": round(time.time() - age_s, 6), "cmd": "move_forward",
-        "target": "rcan://registry.rcan.dev/acme/arm/v2/unit-001",
-        "params": {"distance_m": 0.5},
-    }  # fmt: skip
-    return json.dumps(sign_envelope(body, DEMO_KID, "ed25519", key))
-
-
-def write_lines(path: Path, lines: list[str]) -> Path:
-    path.write_text("\n".join(lines) + "\n")
-    return path
-
-
-def audited(audit_db: Path, code: str) -> int:
-    db = sqlite3.connect(f"file:{audit_db}?mode=ro", uri=True)
+def run_pass(opts: Options, loaded: bool) -> list[tuple[str, Row]]:
+    name = "loaded" if loaded else "quiet"
+    print(f"\n-- {name} pass" + (" (a process spinning on one core beside it)" if loaded else ""))
+    spinner = hog() if loaded else None
     try:
-        return int(db.execute("SELECT count(*) FROM audit WHERE code = ?", (code,)).fetchone()[0])
+        with tempfile.TemporaryDirectory() as tmp:
+            bench = Pass(opts, Path(tmp), loaded)
+            rows: list[Row] = []
+            try:
+                for row in opts.rows:
+                    began = time.monotonic()
+                    rows += getattr(bench, row)()
+                    print(f"   {row}: {time.monotonic() - began:.0f} s", flush=True)
+            finally:
+                bench.close()
     finally:
-        db.close()
+        if spinner is not None:
+            spinner.kill()
+            spinner.wait()
+    print(f"{'case':<13} {'server':<10} {'req/s':>7} {'p50 ms':>7} {'p99 ms':>7} {'ratio':>6}"
+          f" {'CPU ms':>7} {'ctx sw':>7}   (per request, medians)")  # fmt: skip
+    for line in bench.details:
+        print(line)
+    return [(name, r) for r in rows]
 
 
-def batch_counters(url: str) -> dict[str, float]:
-    """Every ``/metrics`` sample whose name mentions a batch (group commit), by name."""
-    text = httpx.get(url + "/metrics").text
-    samples = (ln.rsplit(" ", 1) for ln in text.splitlines() if ln and not ln.startswith("#"))
-    return {name: float(value) for name, value in samples if "batch" in name}
+def summary(rows: list[tuple[str, Row]]) -> None:
+    print("\nsummary (goals: the durable-path table; loaded: fresh p99 and ESTOP goals only)")
+    print(f"{'row':<15} {'pass':<7} {'measure':<30} {'baseline (same run)':<28}"
+          f" {'antireplay':<34} {'goal':<24} verdict")  # fmt: skip
+    for name, r in rows:
+        verdict = "-" if r.ok is None else "PASS" if r.ok else "MISS"
+        print(f"{r.row:<15} {name:<7} {r.measure:<30} {r.baseline:<28} {r.ours:<34}"
+              f" {r.goal:<24} {verdict}")  # fmt: skip
 
 
-def measure(
-    work: Path, bare: Server, gateway: Server, key: ed25519.Ed25519PrivateKey
-) -> dict[tuple[str, int, str], list[Run]]:
-    """Interleaved rounds of every (path, connections, server) case."""
-    servers = (bare, gateway)
-    script = write_lines(work / "bodies.lua", [WRK_SCRIPT])
-    captured = envelope(key)
-    first = httpx.post(gateway.url + "/v1/messages", content=captured, headers=_JSON)
-    if first.status_code != 200:
-        raise SystemExit(f"gateway refused the command to be replayed: {first.text}")
-    replay = write_lines(work / "replay.txt", [captured])
-    for target in servers:  # warm-up: imports, caches, connection setup
-        wrk(target.url, target.pid, script, replay, 32, 1)
-    runs: dict[tuple[str, int, str], list[Run]] = {}
-    for _ in range(ROUNDS):
-        for connections in CONNECTIONS:
-            fresh = write_lines(work / "fresh.txt", [envelope(key) for _ in range(FRESH_PER_RUN)])
-            for path, bodies in (("fresh", fresh), ("replay", replay)):
-                for server, target in zip(("bare", "gateway"), servers, strict=True):
-                    run = wrk(target.url, target.pid, script, bodies, connections, SECONDS)
-                    expected_errors = (
-                        run.requests if server == "gateway" and path == "replay" else 0
-                    )
-                    if run.non_2xx != expected_errors:
-                        raise SystemExit(
-                            f"{server} {path} c={connections}: {run.non_2xx} of {run.requests}"
-                            f" answers were not 2xx, {expected_errors} expected"
-                            + (" (raise FRESH_PER_RUN?)" if path == "fresh" else "")
-                        )
-                    runs.setdefault((path, connections, server), []).append(run)
-    return runs
+def main(argv: list[str] | None = None) -> None:
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) == 2 and args[0] == "--bare-server":
+        import uvicorn  # noqa: PLC0415
 
+        from benchmarks._gateway_load import bare_app  # noqa: PLC0415
 
-def report(runs: dict[tuple[str, int, str], list[Run]]) -> float:
-    """Print medians and ratios; returns the replay rate at 32 connections."""
-    print(f"wrk, 1 thread, keep-alive, loopback, {SECONDS} s per run, median of {ROUNDS} rounds")
+        # The same uvicorn options as `antireplay serve` (cli.serve).
+        uvicorn.run(bare_app(), host="127.0.0.1", port=int(args[1]), log_level="warning",
+                    timeout_graceful_shutdown=10)  # fmt: skip
+        return
+    opts = parse(args)
+    for tool in ("wrk",):
+        if shutil.which(tool) is None:
+            raise SystemExit(f"bench_gateway needs {tool}: apt-get install -y {tool}")
+    started = time.monotonic()
+    print(
+        f"load average at start: {os.getloadavg()}; rows {','.join(opts.rows)};"
+        f" {opts.rounds} rounds of {opts.seconds:g} s; wrk -t1, keep-alive, loopback"
+    )
     http = "httptools" if importlib.util.find_spec("httptools") else "h11"
     loop = "uvloop" if importlib.util.find_spec("uvloop") else "asyncio"
-    print(f"uvicorn {uvicorn.__version__} picks: http={http}, loop={loop} (both servers)")
-    head = f"{'case':<14} {'server':<8} {'req/s':>7} {'p50 ms':>7} {'p99 ms':>7} {'ratio':>6}"
-    head += f" {'CPU ms/req':>10}"
-    print(head)
-    replay_rate = 0.0
-    for path in ("fresh", "replay"):
-        for connections in CONNECTIONS:
-            bare = runs[(path, connections, "bare")]
-            base = statistics.median(r.rps for r in bare)
-            for server in ("bare", "gateway"):
-                rs = runs[(path, connections, server)]
-                rps = statistics.median(r.rps for r in rs)
-                p50 = statistics.median(r.p50_ms for r in rs)
-                p99 = statistics.median(r.p99_ms for r in rs)
-                cpu = statistics.median(r.cpu_ms for r in rs)
-                verdict = ""
-                if server == "gateway" and connections == max(CONNECTIONS):
-                    ok = rps / base >= TARGETS[path] and p99 <= P99_TARGET_MS
-                    verdict = f"  target >= {TARGETS[path]}x, p99 <= {P99_TARGET_MS:.0f} ms: "
-                    verdict += "met" if ok else "MISSED"
-                    if path == "replay":
-                        replay_rate = rps
-                case = f"{path} c={connections}"
-                print(
-                    f"{case:<14} {server:<8} {rps:>7.0f} {p50:>7.2f} {p99:>7.1f}"
-                    f" {rps / base:>5.2f}x {cpu:>10.2f}{verdict}"
-                )
-    return replay_rate
-
-
-#: Which file an fsync made durable, by the name strace -y shows (longest pattern first).
-FSYNC_FILES = (
-    ("audit WAL", "audit.db-wal"),
-    ("audit head checkpoint", ".audit.db.head"),
-    ("state WAL", "state.db-wal"),
-    ("state witness", ".state.db.witness"),
-)
-
-
-def fsync_flood(work: Path, replay_rate: float) -> None:
-    """Fsyncs and audit rows for FLOOD replays at 32 connections (strace, seccomp filter)."""
-    if shutil.which("strace") is None:
-        print("fsync count: strace not found (apt-get install -y strace); not measured")
-        return
-    state, log = work / "flood-state", work / "fsync.log"
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    trace = ["strace", "-f", "--seccomp-bpf", "-qq", "-y", "-ttt", "-o", str(log)]
-    tracer = serve_gateway(state, port, [*trace, "-e", "trace=fsync,fdatasync"])
-    (child,) = Path(f"/proc/{tracer.pid}/task/{tracer.pid}/children").read_text().split()
-    try:
-        captured = envelope(signer(state))
-        httpx.post(url + "/v1/messages", content=captured, headers=_JSON).raise_for_status()
-        bodies = write_lines(work / "flood.txt", [captured])
-        script = write_lines(work / "flood.lua", [WRK_SCRIPT])
-        rows_before = audited(state / "audit.db", "REPLAY_DETECTED")
-        batches_before = batch_counters(url)
-        seconds = max(3, int(FLOOD / max(replay_rate, 1.0) * 2) + 1)
-        started = time.time()
-        run = wrk(url, int(child), script, bodies, 32, seconds, stop=FLOOD)
-        ended = time.time()
-        rows = audited(state / "audit.db", "REPLAY_DETECTED") - rows_before
-        batches = {k: v - batches_before.get(k, 0.0) for k, v in batch_counters(url).items()}
-    finally:
-        os.kill(int(child), signal.SIGTERM)
-        tracer.wait(timeout=60)
-    call = re.compile(r"^\d+\s+(\d+\.\d+) (?:fsync|fdatasync)\(\d+<([^>]*)>")
-    calls = [m for ln in log.read_text().splitlines() if (m := call.match(ln))]
-    during = [m[2] for m in calls if started <= float(m[1]) <= ended]
-    split = {
-        label: sum(Path(f).name.startswith(pattern) for f in during)
-        for label, pattern in FSYNC_FILES
-    }
-    split["other"] = len(during) - sum(split.values())
-    print(
-        f"replay flood, c=32: {run.requests} answered ({run.non_2xx} refused), {rows} audited as"
-        f" REPLAY_DETECTED, {len(during)} fsync/fdatasync calls"
-        f" = {len(during) * FLOOD / max(rows, 1):.0f} per {FLOOD:,} replays"
-        f" (target: a few hundred); server CPU {run.cpu_ms:.2f} ms per request"
-    )
-    print("  by file: " + ", ".join(f"{k} {v}" for k, v in split.items() if v))
-    if rows < run.non_2xx:
-        print(f"  MISSED: {run.non_2xx - rows} refused replays have no audit row")
-    print(
-        "  /metrics group-commit batches: "
-        + (", ".join(f"{k} +{v:.0f}" for k, v in batches.items()) or "not exposed")
-    )
-
-
-_JSON = {"content-type": "application/json"}
-
-
-def main() -> None:
-    if len(sys.argv) == 3 and sys.argv[1] == "--bare-server":
-        # The same uvicorn options as `antireplay serve` (cli.serve).
-        uvicorn.run(
-            bare_app(),
-            host="127.0.0.1",
-            port=int(sys.argv[2]),
-            log_level="warning",
-            timeout_graceful_shutdown=10,
-        )
-        return
-    if shutil.which("wrk") is None:
-        print("bench_gateway needs wrk, a C HTTP load generator: apt-get install -y wrk")
-        raise SystemExit(2)
-    bare_port, gateway_port = free_port(), free_port()
-    bare = subprocess.Popen(
-        [sys.executable, "-m", "benchmarks.bench_gateway", "--bare-server", str(bare_port)]
-    )
-    with tempfile.TemporaryDirectory() as tmp:
-        work = Path(tmp)
-        try:
-            wait_healthy(f"http://127.0.0.1:{bare_port}", bare, "")
-            gateway = serve_gateway(work / "state", gateway_port)
-            try:
-                runs = measure(
-                    work,
-                    Server(f"http://127.0.0.1:{bare_port}", bare.pid),
-                    Server(f"http://127.0.0.1:{gateway_port}", gateway.pid),
-                    signer(work / "state"),
-                )
-            finally:
-                stop(gateway)
-        finally:
-            stop(bare)
-        replay_rate = report(runs)
-        fsync_flood(work, replay_rate)
+    print(f"uvicorn picks http={http}, loop={loop} (both servers); {os.cpu_count()} cores")
+    rows: list[tuple[str, Row]] = []
+    for name in opts.passes:
+        rows += run_pass(opts, loaded=name == "loaded")
+    summary(rows)
+    print(f"load average at end: {os.getloadavg()}; {time.monotonic() - started:.0f} s")
 
 
 if __name__ == "__main__":

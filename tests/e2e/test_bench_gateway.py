@@ -1,0 +1,50 @@
+"""``python -m benchmarks gateway`` runs end to end and ends with its verdicts.
+
+A smoke test, not a measurement: one short round of a few rows on whatever else the
+machine is doing; it asserts the benchmark runs against the current tree as users
+deploy it (``antireplay serve``, the embedded default), answers what it sends as
+expected and prints a PASS or MISS for every row it ran.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+from benchmarks.bench_gateway import ROWS, parse
+
+from tests.harness import ROOT
+
+
+def test_options_select_rows_and_a_quick_run() -> None:
+    quick = parse(["--quick"])
+    assert quick.rows == ROWS
+    assert (quick.seconds, quick.passes, quick.rounds) == (1.0, ("quiet",), 3)
+    full = parse(["gateway", "--rows=fresh,estop", "--rounds=5", "--seconds=2"])
+    assert (full.rows, full.rounds, full.seconds) == (("fresh", "estop"), 5, 2.0)
+    assert full.passes == ("quiet", "loaded")
+
+
+def test_an_unknown_row_is_refused_with_the_list(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        parse(["--rows=fresh,nonsense"])
+    assert "fresh, flood" in capsys.readouterr().err
+
+
+def test_a_short_run_prints_a_verdict_for_every_row_it_ran() -> None:
+    env = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"}
+    args = [sys.executable, "-m", "benchmarks", "gateway", "--rows=fresh,flood,estop,inproc",
+            "--rounds=1", "--seconds=1", "--passes=quiet"]  # fmt: skip
+    run = subprocess.run(
+        args, check=False, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+    out = run.stdout
+    assert "load average at start" in out and "load average at end" in out
+    assert "WARNING" not in out, out  # every answer as expected (2xx fresh, 409 replays)
+    for row in ("fresh c=32", "flood c=32", "ESTOP in flood", "in-process", "refusals"):
+        assert re.search(rf"^{re.escape(row)} +quiet .* (PASS|MISS)$", out, re.MULTILINE), out
+    assert re.search(r"\(40/40\)", out), out  # every ESTOP accepted during the flood
