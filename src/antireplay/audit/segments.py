@@ -162,10 +162,11 @@ def bytes_of(path: Path) -> int:
 
 def newest(path: Path, n: int) -> list[Record]:
     """The newest ``n`` records: the live segment's, then rotated ones', newest first, until
-    ``n`` are found.  The live segment stays open meanwhile, so it cannot rotate under the
-    read; a rotated segment removed by retention meanwhile ends the search."""
+    ``n`` are found.  The live segment's read transaction stays open meanwhile, so it cannot
+    rotate (nor retention run) under the read; a rotated segment gone anyway ends the search."""
     live = _connect(path, read_only=True)
     try:
+        live.execute("BEGIN")  # held to the end: a rotation waits for it
         found = _records(live.execute(_TAIL, (n,)).fetchall())
         for _, file in reversed(rotated(path)):
             if len(found) >= n or not file.exists():

@@ -320,8 +320,8 @@ class AuditLog:
         })  # fmt: skip
         if self._outbox is not None:
             sync = outcome == "accepted" if durable is None else durable
-            if file_identity(self.path) != self._file:  # the row would wait for a lost trail
-                return _failed(self._gone(), on_loop=on_loop)
+            if file_identity(self.path) != self._file and self._replaced():
+                return _failed(self._gone(), on_loop=on_loop)  # it would wait for a lost trail
             if on_loop:
                 return self._outbox.put_async(row, durable=sync)
             return self._outbox.put(row, durable=sync)
@@ -416,6 +416,12 @@ class AuditLog:
             mark = (mark[0], moved[-1][0])
             db.execute("INSERT OR REPLACE INTO outbox_moved VALUES (1, ?, ?)", mark)
         return _Appended(len(moved), mark, first, seq, prev, rows[0]["at"] if rows else None)
+
+    def _replaced(self) -> bool:
+        """The live file is not the one this writer holds, checked again under the lock: a
+        rotation in progress (it holds the lock) renames the next segment in first."""
+        with self._lock:
+            return file_identity(self.path) != self._file
 
     # --- the state store's outbox (state/outbox.py): drained into the chain ------------------
 

@@ -11,6 +11,7 @@ import os
 import signal
 import sqlite3
 import sys
+import tempfile
 import threading
 from pathlib import Path
 from types import FrameType
@@ -97,10 +98,22 @@ _OPEN_ONLY_AUDIT = "audit verify and audit tail read only audit trails that anti
 _MOVE_ASIDE = "move it aside (a new trail is started) or configure another path"
 
 
+def _can_make_directory_in(parent: Path) -> bool:
+    """Whether a directory can be made in ``parent`` (root passes ``os.access`` even on
+    /proc): tried with a temporary one, removed at once, so nothing is left behind."""
+    try:
+        os.rmdir(tempfile.mkdtemp(dir=parent, prefix=".antireplay-check-"))
+    except OSError:
+        return False
+    return True
+
+
 def _check_audit_anchor(path: Path) -> None:
     """What opening the trail would refuse, found read-only (nothing written, nothing adopted)."""
     existing = next(p for p in (path.absolute().parent, *path.absolute().parents) if p.exists())
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK) or (
+        existing != path.absolute().parent and not _can_make_directory_in(existing)
+    ):
         _fail(f"audit {path}: cannot create its directory ({existing} is not a writable directory)")
     if not path.exists():
         return
