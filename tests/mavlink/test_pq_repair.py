@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
+from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
 from antireplay.core.errors import SignatureInvalidError
@@ -28,11 +29,13 @@ from antireplay.mavlink.pq.repair import (
     EVERYTHING,
     RESEND_BUDGET,
     Op,
+    bind_ack,
     parse_repair,
     repair_frame,
     repair_key,
+    unbind_ack,
 )
-from antireplay.mavlink.pq.wire import MAX_PARITY
+from antireplay.mavlink.pq.wire import MAX_PARITY, MSG_REPAIR, inner_of
 from antireplay.pq.session import Initiator, Responder
 from tests.harness.lossy_air import Radio, build
 from tests.harness.mavlink_frames import FakeTransport
@@ -250,3 +253,105 @@ def test_telemetry_overtaking_a_command_on_the_air_spoils_nothing() -> None:
     for raw in command:
         made.to_vehicle(raw)
     assert made.refused == {"vehicle:REPLAY_DETECTED": len(command)}
+
+
+def _command(command: int, param1: float) -> bytes:
+    return build(lambda m: m.command_long_send(1, 1, command, 0, param1, 1900, 0, 0, 0, 0, 0), 255)
+
+
+def _acks_at_gcs(made: Radio) -> list[tuple[int, int]]:
+    """Tap what reaches the GCS: (command, result) of each COMMAND_ACK."""
+    seen: list[tuple[int, int]] = []
+    passed = made.to_gcs
+
+    def gcs(frames: list[bytes]) -> None:
+        for plain in frames:
+            msg = dialect.MAVLink(None).decode(bytearray(plain))
+            if msg.get_type() == "COMMAND_ACK":
+                seen.append((msg.command, msg.result))
+        passed(frames)
+
+    made.to_gcs = gcs  # type: ignore[method-assign]
+    return seen
+
+
+def test_a_replayed_poke_never_acks_a_blocked_command() -> None:
+    """ARM's ACK lost once, so the GCS retried and the ground end POKEd (recorded).  Later
+    DISARM (same command number) is jammed and the POKE replayed: the vehicle end's ACK
+    again is bound to ARM's transfer, so the GCS hears nothing and DISARM's retry goes to
+    the vehicle, never answered locally with ARM's ACK."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    pokes: list[bytes] = []
+    passed = made.to_vehicle
+
+    def tap(raw: bytes) -> None:
+        if parse_frame(raw).msgid == MSG_REPAIR:
+            pokes.append(raw)
+        passed(raw)
+
+    made.to_vehicle = tap  # type: ignore[method-assign]
+    arm, disarm = _command(400, 1.0), _command(400, 0.0)
+    made.down.loss = 1.0
+    made.send(made.up, made.ground.handle_local(arm).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 1.5)
+    made.down.loss = 0.0
+    made.send(made.up, made.ground.handle_local(arm).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 0.5)
+    assert made._acked and len(pokes) == 1
+    made.clock.advance(10)
+    seen = _acks_at_gcs(made)
+    made.up.loss = 1.0
+    made.send(made.up, made.ground.handle_local(disarm).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 0.3)
+    made.up.loss = 0.0
+    passed(pokes[0])  # the replay
+    made.run_until(made.clock.monotonic() + 0.5)
+    assert seen == []  # ARM's ACK again, dropped: no ACCEPTED for a DISARM never delivered
+    assert made.ground.repairs["ack_duplicate"] >= 1
+    retry = made.ground.handle_local(disarm)
+    assert retry.local == [] and retry.air  # asked of the vehicle, not answered here
+    made.send(made.up, retry.air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 1.0)
+    assert made.delivered == {1.0: 1, 0.0: 1} and seen == [(400, 0)]
+
+
+def test_an_ack_answers_only_its_own_transfer_under_plain_loss() -> None:
+    """DO_SET_SERVO 5 lost whole, then servo 6 delivered and ACKed: servo 6's ACK is bound
+    to servo 6's transfer; the GCS retry of servo 5 POKEs, the vehicle end says it never
+    arrived (and never can: a later transfer opened), and the ground end sends it anew."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    seen = _acks_at_gcs(made)
+    servo5, servo6 = _command(183, 5.0), _command(183, 6.0)
+    answers: list[bytes] = []
+    passed = made.to_ground
+
+    def tap(raw: bytes) -> None:
+        if parse_frame(raw).msgid == MSG_REPAIR:
+            answers.append(raw)
+        passed(raw)
+
+    made.to_ground = tap  # type: ignore[method-assign]
+    made.up.loss = 1.0
+    made.send(made.up, made.ground.handle_local(servo5).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 0.3)
+    made.up.loss = 0.0
+    made.send(made.up, made.ground.handle_local(servo6).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 0.5)
+    assert made.delivered == {6.0: 1} and seen == [(183, 0)]
+    retry = made.ground.handle_local(servo5)
+    assert retry.local == []  # never servo 6's ACK
+    made.send(made.up, retry.air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 1.0)
+    assert made.delivered == {6.0: 1, 5.0: 1} and seen == [(183, 0), (183, 0)]
+    assert made.ground.repairs["undelivered"] == 1 and len(answers) == 1
+    assert made.ground.from_air(answers[0]).air == []  # replayed: its nonce is spent
+    assert made.ground.handle_local(servo5).local == [made.ground._last_ack]  # its own ACK
+
+
+def test_a_bound_ack_round_trips() -> None:
+    ack = build(lambda m: m.command_ack_send(400, 0, 0, 0, 0, 0), 1)
+    inner = inner_of(parse_frame(ack))
+    assert unbind_ack(bind_ack(inner, 0xBEEF)) == (inner, 0xBEEF)
+    assert unbind_ack(inner) == (inner, None)

@@ -13,9 +13,15 @@ frames it dropped (``NO_SESSION``...), its repairs, a GCS's retries and its airt
 
 A GCS retry (:meth:`GroundEnd.handle_local`) is keyed on what the ground end itself
 sealed and sent: a later identical command within ``retry_window_s`` of the last try
-asks the vehicle end, by an authenticated POKE naming that transfer, for what it holds;
-the vehicle end answers only for a transfer that opened (the held ``COMMAND_ACK``, sealed
-anew, at most ``MAX_ANSWERS`` times) and delivers nothing again.  A command repeated on
+asks the vehicle end, by an authenticated POKE naming that transfer (and a fresh nonce),
+for what it holds.  The vehicle end answers for a transfer that opened with its held
+``COMMAND_ACK`` sealed anew (at most ``MAX_ANSWERS`` times) and delivers nothing again;
+for one that never opened and never can (a later one did), "not delivered" echoing the
+nonce, and the ground end sends that command anew, whole.  Every ACK the vehicle end
+holds travels bound to the transfer it answers (:func:`~.repair.bind_ack`, inside the
+seal): the ground end gives a try only its own transfer's ACK, and passes on none twice
+nor one for a try it no longer has, so a replayed POKE, or another command with the same
+number, never tells a GCS that a command it sent was accepted.  A command repeated on
 purpose within that window is answered, not executed: repeat it after the window.
 
 Size: over 500 lines: the two ends share their rules (:class:`~.repair.RepairingEnd`)
@@ -58,12 +64,14 @@ from antireplay.mavlink.pq.repair import (
     Repair,
     RepairingEnd,
     _parse,
+    bind_ack,
     bitmap,
     command_of,
     parse_repair,
     repair_frame,
     repair_key,
     retry_key,
+    unbind_ack,
 )
 from antireplay.mavlink.pq.wire import (
     _COMPACT,
@@ -99,9 +107,11 @@ class _Try:
     transfer: int
     session: Session
     command: int
-    last: float
+    last: float  # when the GCS last sent it
     due: float  # when its last chunk should have left (by air_bps)
+    raw: bytes  # the GCS's frame, sealed anew if the vehicle end says it never arrived
     ack: bytes | None = None
+    nonce: int = 0  # the outstanding POKE's, echoed in a "not delivered" answer (0: none)
 
 
 class GroundEnd(RepairingEnd):
@@ -205,7 +215,8 @@ class GroundEnd(RepairingEnd):
         if tried is not None:
             now = self._clock.monotonic()
             due = now + self._airtime_s(air)
-            self._tries[tried] = _Try(self.sender.transfer, session, command_of(frame), now, due)
+            transfer = self.sender.transfer
+            self._tries[tried] = _Try(transfer, session, command_of(frame), now, due, raw)
             while len(self._tries) > self._sent.max_transfers:
                 self._tries.popitem(last=False)
         return Output(air=air + self._renew(session))
@@ -226,8 +237,9 @@ class GroundEnd(RepairingEnd):
             return Output()
         self.retries["poked"] += 1
         self.repairs["poke_sent"] += 1
+        attempt.nonce = secrets.randbits(63) | 1
         poke = repair_frame(
-            Op.POKE, attempt.transfer, (0, 0), 0, repair_key(session.send_key),
+            Op.POKE, attempt.transfer, (0, 0), attempt.nonce, repair_key(session.send_key),
             sysid=self.sender.sysid, compid=self.sender.compid,
         )  # fmt: skip
         return Output(air=self._air([poke], "repair"))
@@ -312,17 +324,20 @@ class GroundEnd(RepairingEnd):
         opened = open_compact(blob, [self.session], Direction.R2I, self.session)
         self._reassembler.opened(chunk, keys[0])
         self._heard = self._clock.monotonic()
-        plain = plain_frame(opened.payload)
-        if not self._hold_ack(plain):  # the second copy of an ACK just passed on
-            self.repairs["ack_duplicate"] += 1
+        inner, bound = unbind_ack(opened.payload)
+        plain = plain_frame(inner)
+        if not self._hold_ack(plain, bound):  # a copy of an ACK passed on, or a stale one
             return Output(authenticated=True)
         return Output(local=[plain], authenticated=True)
 
     def _repair(self, repair: Repair) -> Output:
         """A NACK for one of our transfers; a NACK for the pending HS1 (unauthenticated,
-        module :mod:`.repair`) also restarts its timer.  The vehicle end never pokes."""
-        if repair.op is not Op.NACK or repair.target != (self.sender.sysid, self.sender.compid):
+        module :mod:`.repair`) also restarts its timer.  A POKE from the vehicle end is its
+        answer "never delivered" to ours (:meth:`_undelivered`)."""
+        if repair.target != (self.sender.sysid, self.sender.compid):
             return Output()
+        if repair.op is Op.POKE:
+            return self._undelivered(repair)
         handshake = self._pending is not None and repair.transfer == self._hs_transfer
         if not repair.signed and not handshake:
             self.repairs["ignored"] += 1
@@ -332,26 +347,48 @@ class GroundEnd(RepairingEnd):
             self._hs_quiet = self._clock.monotonic() + self._airtime_s(frames)
         return Output(air=frames)
 
-    def _hold_ack(self, plain: bytes) -> bool:
-        """A final COMMAND_ACK from the vehicle answers the try of its command: a GCS retry
-        of it from now on is answered with it (within ``retry_window_s``).  False for the
-        second copy of the ACK just passed on (the vehicle end sends each twice; the flight
-        controller's sequence number tells it from a later ACK)."""
+    def _undelivered(self, repair: Repair) -> Output:
+        """The vehicle end's answer to our POKE: that transfer never opened there and never
+        can (a later one did).  Believed once, for the try whose POKE carried that nonce
+        (a replay of it finds the nonce spent): the command is sealed anew, whole."""
+        attempt = next((t for t in self._tries.values() if t.transfer == repair.transfer), None)
+        session = self.session
+        if attempt is None or attempt.nonce != repair.missing or attempt.session is not session:
+            self.repairs["ignored"] += 1
+            return Output()
+        repair.verify([repair_key(attempt.session.recv_key)])
+        self.repairs["undelivered"] += 1
+        self._sent.forget(attempt.transfer)
+        air = self._seal(attempt.session, inner_of(_parse(attempt.raw)), Purpose.COMMAND)
+        attempt.transfer, attempt.nonce = self.sender.transfer, 0
+        attempt.due = self._clock.monotonic() + self._airtime_s(air)
+        return Output(air=air)
+
+    def _hold_ack(self, plain: bytes, bound: int | None) -> bool:
+        """A final COMMAND_ACK the vehicle end bound to a command transfer (sealed with it)
+        answers the try of that transfer, and only that one: a GCS retry of it from now
+        on is answered with it (within ``retry_window_s``).  False (counted) for a copy
+        of an ACK already passed on (the vehicle end sends each twice, and answers POKEs)
+        and for a bound ACK whose try is gone: neither may reach a GCS that waits for
+        another command's ACK (MAVLink names only the command number)."""
         frame = parse_frame(plain)
         if frame.msgid != dialect.MAVLINK_MSG_ID_COMMAND_ACK:
             return True
         now = self._clock.monotonic()
         if self._last_ack == plain and now - self._last_ack_at < self.retry_window_s:
+            self.repairs["ack_duplicate"] += 1
+            return False
+        if bound is None:  # a command from elsewhere (the vehicle end holds none for it)
+            self._last_ack, self._last_ack_at = plain, now
+            return True
+        attempt = next((t for t in self._tries.values() if t.transfer == bound), None)
+        if attempt is None or attempt.ack is not None:
+            self.repairs["ack_duplicate" if attempt else "ack_stale"] += 1
             return False
         self._last_ack, self._last_ack_at = plain, now
-        if frame.payload[2:3] == bytes([IN_PROGRESS]):
-            return True
-        command = command_of(frame)
-        for attempt in self._tries.values():
-            if attempt.command == command and attempt.ack is None:
-                attempt.ack = plain
-                self._sent.forget(attempt.transfer)
-                break
+        if frame.payload[2:3] != bytes([IN_PROGRESS]):
+            attempt.ack = plain
+            self._sent.forget(attempt.transfer)
         return True
 
     def _finish(self, hs2: bytes) -> Output:
@@ -396,6 +433,11 @@ class _Held:
 
     command: int
     ack: bytes | None = None
+
+    @property
+    def final(self) -> bool:
+        """Whether its flight controller gave a final COMMAND_ACK (not IN_PROGRESS)."""
+        return self.ack is not None and self.ack[12:13] != bytes([IN_PROGRESS])
 
 
 class VehicleEnd(RepairingEnd):
@@ -511,15 +553,25 @@ class VehicleEnd(RepairingEnd):
         answer = self._answers.get(at)
         if answer is not None:
             ack = answer.ack
-            return [] if ack is None else self._answer(at, lambda: self._seal(session, ack))
+            if ack is None:
+                return []
+            return self._answer(at, lambda: self._seal(session, ack, at[2]))
         ckey = chunk_key(session.recv_key)
         found = self._reassembler.lookup(at[:2], at[2])
         if found is not None:
             return self._nack(at, ckey, bitmap(found[2]))
-        done = self._reassembler.completed(at[:2], at[2])
-        if done or not self._reassembler.is_fresh(at[:2], at[2], ckey):
+        if self._reassembler.completed(at[:2], at[2]):
             return []
-        return self._nack(at, ckey, EVERYTHING)
+        if self._reassembler.is_fresh(at[:2], at[2], ckey):
+            return self._nack(at, ckey, EVERYTHING)
+        # never opened, and never can (a later transfer did): "not delivered", echoing the
+        # POKE's nonce so that only the try that asked believes it
+        mac = repair_key(session.send_key)
+        undelivered = repair_frame(
+            Op.POKE, at[2], at[:2], repair.missing, mac,
+            sysid=self.sender.sysid, compid=self.sender.compid,
+        )  # fmt: skip
+        return self._answer(at, lambda: [undelivered])
 
     def _answer(self, at: tuple[int, int, int], frames: Callable[[], list[bytes]]) -> list[bytes]:
         """A held answer again, at most ``MAX_ANSWERS`` times per transfer."""
@@ -572,21 +624,32 @@ class VehicleEnd(RepairingEnd):
         if self.current is None:
             self.drops["NO_SESSION"] += 1
             return Output()
-        copies = 1
+        copies, bound = 1, None
         if frame.msgid == dialect.MAVLINK_MSG_ID_COMMAND_ACK:
-            command = command_of(frame)
-            for held in reversed(self._answers.values()):
-                if held.command == command:
-                    copies += held.ack is None
-                    held.ack = raw
-                    break
-        air = self._air(self._seal(self.current, raw))
+            bound = self._held_for(command_of(frame))
+            if bound is not None:
+                held = self._answers[bound]
+                copies += held.ack is None
+                held.ack = raw
+        transfer = None if bound is None else bound[2]
+        air = self._air(self._seal(self.current, raw, transfer))
         if copies > 1:
-            air += self._air(self._seal(self.current, raw), "repair")
+            air += self._air(self._seal(self.current, raw, transfer), "repair")
         return Output(air=air)
 
-    def _seal(self, session: Session, raw: bytes) -> list[bytes]:
-        blob = compact(session.seal(inner_of(_parse(raw)), Purpose.DATA))
+    def _held_for(self, command: int) -> tuple[int, int, int] | None:
+        """The delivered transfer a COMMAND_ACK for ``command`` answers: the oldest one not
+        finally answered (a flight controller answers in order), else the newest."""
+        held = [(k, h) for k, h in self._answers.items() if h.command == command]
+        waiting = [k for k, h in held if not h.final]
+        return waiting[0] if waiting else held[-1][0] if held else None
+
+    def _seal(self, session: Session, raw: bytes, bound: int | None = None) -> list[bytes]:
+        """Seal a telemetry frame; a COMMAND_ACK bound to the transfer it answers."""
+        inner = inner_of(_parse(raw))
+        if bound is not None:
+            inner = bind_ack(inner, bound)
+        blob = compact(session.seal(inner, Purpose.DATA))
         frames = self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
         self._sent.add(self.sender.transfer, frames, repair_key(session.recv_key))
         return frames

@@ -222,6 +222,26 @@ def command_of(frame: Frame) -> int:
 
 #: A COMMAND_ACK result that is not final: the command is still running.
 IN_PROGRESS = dialect.MAV_RESULT_IN_PROGRESS
+_ACK_AT = 6  # an inner's payload offset (its head: sysid compid seq msgid[3])
+_ACK_FULL = 10  # a COMMAND_ACK's payload with every extension field (MAVLink v2)
+
+
+def bind_ack(inner: bytes, transfer: int) -> bytes:
+    """A COMMAND_ACK's inner bound to the command transfer it answers: its payload padded
+    to full length, then the transfer number.  It travels sealed (the binding is
+    authenticated with the ACK); no plain COMMAND_ACK payload is that long, so a bound
+    one is told from an unbound one by its length alone (:func:`unbind_ack`)."""
+    payload = inner[_ACK_AT:].ljust(_ACK_FULL, b"\0")
+    return inner[:_ACK_AT] + payload + transfer.to_bytes(2, "little")
+
+
+def unbind_ack(inner: bytes) -> tuple[bytes, int | None]:
+    """The plain inner and the transfer a bound COMMAND_ACK answers (None: not bound)."""
+    msgid = int.from_bytes(inner[3:6], "little")
+    if msgid != dialect.MAVLINK_MSG_ID_COMMAND_ACK or len(inner) != _ACK_AT + _ACK_FULL + 2:
+        return inner, None
+    payload = inner[_ACK_AT : _ACK_AT + _ACK_FULL].rstrip(b"\0") or b"\0"
+    return inner[:_ACK_AT] + payload, int.from_bytes(inner[-2:], "little")
 
 
 @dataclass
