@@ -355,3 +355,25 @@ def test_a_bound_ack_round_trips() -> None:
     inner = inner_of(parse_frame(ack))
     assert unbind_ack(bind_ack(inner, 0xBEEF)) == (inner, 0xBEEF)
     assert unbind_ack(inner) == (inner, None)
+
+
+@pytest.mark.parametrize(("held_s", "delivered"), [(4.0, 1), (300.0, 0)])
+def test_a_withheld_command_released_late_is_refused_as_stale(
+    held_s: float, delivered: int
+) -> None:
+    """An attacker withholds every chunk of a command and releases them later: within
+    ``max_age_s`` (10 s) it is delivered, five minutes on it is refused (MESSAGE_STALE,
+    counted), though the session is still up and the chunks authentic."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    held: list[bytes] = []
+    passed = made.to_vehicle
+    made.to_vehicle = lambda raw: held.append(raw) if len(raw) > 200 else passed(raw)  # type: ignore[method-assign]
+    made.send(made.up, made.ground.handle_local(_command(400, 7.0)).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + held_s)
+    assert made.delivered == {} and made.ground.session is not None
+    made.to_vehicle = passed  # type: ignore[method-assign]
+    for raw in held:
+        made.to_vehicle(raw)
+    assert sum(made.delivered.values()) == delivered
+    assert made.refused["vehicle:MESSAGE_STALE"] == made.vehicle.drops["STALE"] == 1 - delivered

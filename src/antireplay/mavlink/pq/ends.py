@@ -24,6 +24,14 @@ nor one for a try it no longer has, so a replayed POKE, or another command with 
 number, never tells a GCS that a command it sent was accepted.  A command repeated on
 purpose within that window is answered, not executed: repeat it after the window.
 
+A command also carries, sealed with it, when the ground end sealed it: milliseconds since
+its session came up there (the HS2 arrived).  The vehicle end refuses (``MESSAGE_STALE``,
+counted in ``drops``) a command older than ``max_age_s`` by its own time since it sent
+that HS2.  No clocks are compared: each end measures from its side of one event, and the
+vehicle's side comes first (the HS2 leaves before it arrives), so the vehicle reckons a
+command older than it is, never younger: a command withheld on the air and released
+later is refused however the attacker times it (delaying HS2 only ages every command).
+
 Size: over 500 lines: the two ends share their rules (:class:`~.repair.RepairingEnd`)
 but each is one state machine over its half of the handshake, kept whole.
 """
@@ -31,6 +39,7 @@ but each is one state machine over its half of the handshake, kept whole.
 from __future__ import annotations
 
 import secrets
+import struct
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -42,6 +51,7 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from antireplay.core.clock import Clock
 from antireplay.core.errors import (
     InvalidFrameError,
+    MessageStaleError,
     ReplayAttackError,
     SignatureInvalidError,
     SignatureRequiredError,
@@ -99,6 +109,8 @@ from antireplay.pq.session import (
     Session,
 )
 
+_STAMP = struct.Struct("<I")  # a command's age stamp: ms since its session came up (ground)
+
 
 @dataclass
 class _Try:
@@ -152,6 +164,7 @@ class GroundEnd(RepairingEnd):
         self._tries: OrderedDict[tuple[int, int, int, bytes], _Try] = OrderedDict()
         self._last_ack, self._last_ack_at = b"", float("-inf")  # the ACK last passed on
         self._heard = float("-inf")  # when an authenticated frame last came from the vehicle
+        self._epoch = 0.0  # when this session came up here (HS2): commands' age stamps
         # drops: NO_SESSION (not a command, no session), QUEUE_FULL (the oldest queued
         # command, pushed out by a newer one), QUEUE_EXPIRED (waited over queue_ttl_s)
 
@@ -279,6 +292,10 @@ class GroundEnd(RepairingEnd):
         return (self.sender.transfer - self._first_transfer) & 0xFFFF
 
     def _seal(self, session: Session, inner: bytes, purpose: Purpose) -> list[bytes]:
+        """Seal a frame; a command with its age stamp (module docstring)."""
+        if purpose is Purpose.COMMAND:
+            age_ms = int(max(0.0, self._clock.monotonic() - self._epoch) * 1000)
+            inner += _STAMP.pack(min(age_ms, 0xFFFFFFFF))
         blob = compact(session.seal(inner, purpose))
         frames = self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
         self._sent.add(self.sender.transfer, frames, repair_key(session.recv_key))
@@ -401,6 +418,7 @@ class GroundEnd(RepairingEnd):
         self.handshakes["completed"] += 1
         self._sent.forget(self._hs_transfer)
         self._pending, self._heard, self._hs2 = None, self._clock.monotonic(), hs2
+        self._epoch = self._heard
         self._first_transfer = self.sender.transfer
         out = Output(authenticated=True)
         self._expire_queue()
@@ -453,10 +471,13 @@ class VehicleEnd(RepairingEnd):
         silence_s: float = 5.0,
         signed: frozenset[int] = SIGNED_MESSAGES,
         gap_s: float = 0.25,
+        max_age_s: float = 10.0,
         clock: Clock | None = None,
     ) -> None:
         super().__init__(system_id, component_id, gap_s, clock)
         self.responder = responder
+        self.max_age_s = max_age_s  # a command older than this is refused (module docstring)
+        self._epochs: dict[bytes, float] = {}  # session id -> when its HS2 left
         self.silence_s = silence_s
         self.signed = signed  # messages delivered only from a command (ML-DSA-87) frame
         self.hint_interval_s = hint_interval_s
@@ -500,10 +521,25 @@ class VehicleEnd(RepairingEnd):
         self._reassembler.opened(chunk, chunk_key(session.recv_key))
         self._supersede(session)
         self.current, self._heard = session, self._clock.monotonic()
-        plain = plain_frame(opened.payload)
+        command = opened.purpose is Purpose.COMMAND
+        inner = self._fresh(opened.payload, session) if command else opened.payload
+        plain = plain_frame(inner)
         if int.from_bytes(opened.payload[3:6], "little") in RETRIED:
             _remember(self._answers, chunk.key, _Held(command_of(_parse(plain))))
         return Output(local=[plain], authenticated=True)
+
+    def _fresh(self, payload: bytes, session: Session) -> bytes:
+        """A command's inner, its age stamp checked (module docstring): an older command is
+        refused (``MESSAGE_STALE``, counted) after it opened, so it is spent as well."""
+        if len(payload) < _STAMP.size + _INNER_HEAD:
+            raise InvalidFrameError("command frame too short for its age stamp")
+        (sent_ms,) = _STAMP.unpack_from(payload, len(payload) - _STAMP.size)
+        epoch = self._epochs.get(session.session_id, float("-inf"))
+        age = self._clock.monotonic() - epoch - sent_ms / 1000
+        if age > self.max_age_s:
+            self.drops["STALE"] += 1
+            raise MessageStaleError(f"command sealed {age:.1f} s ago (at most {self.max_age_s})")
+        return payload[: -_STAMP.size]
 
     def _accept(self, chunk: Chunk, hs1: bytes) -> Output:
         handles = {s.session_id[-1] for s in self._sessions}
@@ -516,6 +552,9 @@ class VehicleEnd(RepairingEnd):
         self.handshakes["completed"] += 1
         self._sessions.append(session)
         self.current, self._heard = session, self._clock.monotonic()
+        held = {s.session_id for s in self._sessions}
+        self._epochs = {k: v for k, v in self._epochs.items() if k in held}
+        self._epochs[session.session_id] = self._heard
         frames = self.sender.frames(hs2, ChunkKind.HS2)
         _remember(self._hs2, chunk.key, frames)
         return Output(air=self._air(frames), authenticated=True)
