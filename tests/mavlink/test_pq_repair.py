@@ -377,3 +377,24 @@ def test_a_withheld_command_released_late_is_refused_as_stale(
         made.to_vehicle(raw)
     assert sum(made.delivered.values()) == delivered
     assert made.refused["vehicle:MESSAGE_STALE"] == made.vehicle.drops["STALE"] == 1 - delivered
+
+
+def test_a_rekey_heeds_only_nacks_maced_in_the_live_session() -> None:
+    """While a session is live, a rekey's HS1 is resent only for a NACK MACed in it: an
+    unsigned one (anybody's, some 25 bytes) costs the ground end no airtime, while the
+    vehicle end's own NACK for the chunks it missed still repairs the HS1."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    ground, vehicle = made.ground, made.vehicle
+    hs1 = ground.handshake()  # a rekey, the session still live
+    target = (ground.sender.sysid, ground.sender.compid)
+    forged = repair_frame(
+        Op.NACK, ground._hs_transfer, target, EVERYTHING, None, sysid=1, compid=197
+    )
+    assert ground.from_air(forged).air == [] and ground.repairs["ignored"] == 1
+    for raw in hs1[: len(hs1) - MAX_PARITY - 2]:  # its tail lost
+        assert vehicle.from_air(raw).air == []
+    made.clock.advance(1.0)
+    nacks = vehicle.tick()
+    assert nacks and parse_repair(parse_frame(nacks[0])).signed
+    assert ground.from_air(nacks[0]).air  # the vehicle end's own NACK: repaired

@@ -158,6 +158,7 @@ class GroundEnd(RepairingEnd):
         self.session: Session | None = None
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
         self._hs_transfer, self._hs_quiet, self._hs_pokes = 0, 0.0, 0
+        self._hs_keyed = False  # the pending HS1 is a rekey's: unsigned NACKs are refused
         self._hs2: bytes | None = None  # the HS2 that finished the session (a repeat is no news)
         self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
         self._queue: deque[tuple[bytes, float]] = deque()  # commands and when they came
@@ -187,7 +188,10 @@ class GroundEnd(RepairingEnd):
         self._pending = (hs1, now)
         self._hs_transfer = secrets.randbelow(0x10000)
         frames = self.sender.frames(hs1, ChunkKind.HS1, transfer=self._hs_transfer)
-        self._sent.add(self._hs_transfer, frames, None)
+        live = self.live  # a rekey: its NACKs must come MACed in the live session
+        self._hs_keyed = live is not None
+        key = None if live is None else repair_key(live.recv_key)
+        self._sent.add(self._hs_transfer, frames, key)
         self._hs_quiet, self._hs_pokes = now + self._airtime_s(frames), 0
         return self._air(frames)
 
@@ -349,14 +353,16 @@ class GroundEnd(RepairingEnd):
 
     def _repair(self, repair: Repair) -> Output:
         """A NACK for one of our transfers; a NACK for the pending HS1 (unauthenticated,
-        module :mod:`.repair`) also restarts its timer.  A POKE from the vehicle end is its
+        module :mod:`.repair`, unless a session was live when it left: a rekey's are MACed
+        in that session, so nobody can make it resend the HS1 for free) also restarts its
+        timer.  A POKE from the vehicle end is its
         answer "never delivered" to ours (:meth:`_undelivered`)."""
         if repair.target != (self.sender.sysid, self.sender.compid):
             return Output()
         if repair.op is Op.POKE:
             return self._undelivered(repair)
         handshake = self._pending is not None and repair.transfer == self._hs_transfer
-        if not repair.signed and not handshake:
+        if not repair.signed and (not handshake or self._hs_keyed):
             self.repairs["ignored"] += 1
             return Output()
         frames = self._resend(repair)
@@ -493,6 +499,11 @@ class VehicleEnd(RepairingEnd):
 
     def _sessions_held(self) -> list[Session]:
         return list(self._sessions)
+
+    def _handshake_key(self) -> bytes | None:
+        """A handshake's NACKs are MACed in the current session (a rekey's HS1): the ground
+        end heeds an unsigned one only when it had no live session."""
+        return None if self.current is None else repair_key(self.current.send_key)
 
     def from_air(self, raw: bytes) -> Output:
         """One frame from the air: HS1 (answered with HS2), a session frame for the FC, or a

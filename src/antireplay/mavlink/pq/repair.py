@@ -309,6 +309,10 @@ class RepairingEnd:
     def _sessions_held(self) -> list[Session]:
         raise NotImplementedError
 
+    def _handshake_key(self) -> bytes | None:
+        """The repair key a handshake's NACK is MACed under (None: unsigned)."""
+        return None
+
     def _session_of(self, key: bytes | None) -> Session | None:
         """The session whose chunk key (its receive direction) is ``key``."""
         for session in self._sessions_held():
@@ -320,7 +324,7 @@ class RepairingEnd:
         """A NACK for transfer ``sender`` (sysid, compid, number), MACed in the session its
         chunks authenticated in (none: a handshake's)."""
         session = self._session_of(key)
-        mac = None if session is None else repair_key(session.send_key)
+        mac = self._handshake_key() if session is None else repair_key(session.send_key)
         if key is not None and session is None:
             return []  # its session is gone: nothing to ask for
         self.repairs["nack_sent"] += 1
