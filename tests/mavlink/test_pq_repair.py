@@ -199,7 +199,7 @@ def test_the_pacer_keeps_to_the_radio_rate_and_lets_telemetry_through_first() ->
     for _ in range(200):  # telemetry beyond two seconds of queue is dropped, and counted
         pacer.push(beat, None)
     assert pacer.paced_out > 0 and pacer.queued <= 2 * 5_587 + len(beat[0])
-    slow = Pacer(1_200, clock)  # 116 bytes a second: still two full chunks of burst
+    slow = Pacer(1_200, clock, bulk_ttl_s=120)  # 116 bytes a second: still two full chunks of burst
     slow.push(command[:3], None)
     clock.advance(60)
     assert len(slow.pop()[0]) == 2
@@ -398,3 +398,30 @@ def test_a_rekey_heeds_only_nacks_maced_in_the_live_session() -> None:
     nacks = vehicle.tick()
     assert nacks and parse_repair(parse_frame(nacks[0])).signed
     assert ground.from_air(nacks[0]).air  # the vehicle end's own NACK: repaired
+
+
+def test_the_pacer_gives_long_transfers_their_share_and_drops_stale_ones() -> None:
+    """An RC override at 110 % of a 57,600-baud line: a command still leaves within about
+    twice its own airtime (a byte for each byte of one-chunk frames), and chunks queued
+    longer than ``bulk_ttl_s`` (the GCS gave up) are dropped, counted, never sent late."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    clock = made.clock
+    pacer = Pacer(57_600, clock)
+    rc = made.ground.from_local(
+        build(lambda m: m.rc_channels_override_send(1, 1, *[1500] * 8), 255)
+    )[0]
+    step = len(rc) / (1.1 * 5_760)
+    commands = [made.ground.from_local(_command(183, float(i))) for i in range(8)]
+    born = {raw: clock.monotonic() for command in commands for raw in command}
+    for command in commands:
+        pacer.push(command, None)
+    left: dict[bytes, float] = {}
+    for _ in range(int(12 / step)):
+        pacer.push([rc], None)
+        left.update((raw, clock.monotonic()) for raw, _ in pacer.pop()[0] if raw in born)
+        clock.advance(step)
+    assert set(commands[0]) <= set(left)
+    assert max(left[raw] for raw in commands[0]) - born[commands[0][0]] < 2.5
+    assert max(left[raw] - born[raw] for raw in left) <= pacer.bulk_ttl_s  # nothing late
+    assert pacer.paced_stale == sum(map(len, commands)) - len(left) > 0
