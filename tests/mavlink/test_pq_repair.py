@@ -425,3 +425,38 @@ def test_the_pacer_gives_long_transfers_their_share_and_drops_stale_ones() -> No
     assert max(left[raw] for raw in commands[0]) - born[commands[0][0]] < 2.5
     assert max(left[raw] - born[raw] for raw in left) <= pacer.bulk_ttl_s  # nothing late
     assert pacer.paced_stale == sum(map(len, commands)) - len(left) > 0
+
+
+def test_a_udpin_vehicle_peer_is_steered_by_nothing_unauthenticated() -> None:
+    """Before a session, an unsigned POKE from elsewhere does not redirect the handshake's
+    NACK; in a session, a relayed copy of a command's last chunk, arriving first from
+    the attacker's address, does not become the air peer: the first authentic frame's does."""
+    made = radio(0.0, None, seed=1)
+    ground, clock = made.ground, made.clock
+    air = FakeTransport("udpin:0.0.0.0:1", fixed=False)
+    link = PqLink(made.vehicle, FakeTransport("udpout:1.2.3.4:7"), air, tick_s=3600)
+    link.start()
+    home, evil = ("10.0.0.9", 14550), ("6.6.6.6", 666)
+    hs1 = ground.handshake()
+    for raw in hs1[:-5]:  # its tail lost, beyond parity
+        air.inject(raw, home)
+    air.inject(repair_frame(Op.POKE, 1, (0, 0), 0, None, sysid=9, compid=9), evil)
+    sent = len(air.sent)
+    clock.advance(0.3)
+    link.tick()
+    assert {to for _, to in air.sent[sent:]} == {home}
+    for raw in hs1[-5:]:
+        air.inject(raw, home)
+    for raw, _ in air.sent:
+        try:
+            ground.from_air(raw)
+        except SignatureInvalidError:
+            continue
+    assert ground.session is not None and link._air_peer == home
+    command = ground.from_local(_command(400, 1.0))
+    for raw in command[:-3]:
+        air.inject(raw, home)
+    air.inject(command[-3], evil)  # sniffed and relayed first, from its own address
+    air.inject(command[-3], home)
+    assert link._air_peer == home
+    link.stop()

@@ -10,9 +10,10 @@ receives the telemetry), ``air`` the path to the vehicle; it hand-shakes at
 and hand-shakes again (:mod:`.ends`) until a session answers, whether or not local traffic
 arrives; the timer also drives repair requests for transfers gone quiet.  The
 **vehicle** end's ``local`` is the flight controller, ``air`` the path to the ground; a
-``udpin`` air peer is learned only from a blob that authenticated (until then a
-handshake's repair request, at once or on the timer, goes to the sender of the last
-chunk that was not refused, never learned), and plain MAVLink from the air never
+``udpin`` air peer is learned only from the first blob of each session that
+authenticated (until then a handshake's repair request, at once or on the timer, goes
+to the sender of the last chunk that was not refused, never learned; a repair frame
+never steers it), and plain MAVLink from the air never
 reaches the flight controller.
 
 Every refusal is counted under ``side:CODE`` and handed to ``on_reject`` (the
@@ -190,7 +191,8 @@ class PqLink:
         self.air_bytes = 0
         self._local_peers: dict[Peer, None] = {}
         self._air_peer: Peer | None = None
-        self._replied: Peer | None = None  # the sender of the last frame not refused
+        self._replied: Peer | None = None  # the sender of the last chunk not refused
+        self._learned: Session | None = None  # the session the air peer was learned in
         self._live: Session | None = None
         self._last: Session | None = None  # the last session that was live
         self._lock = threading.Lock()
@@ -290,15 +292,24 @@ class PqLink:
                 self._to_air(hint, peer)
                 continue
             self._count("received", counter=self.chunks)
-            if out.authenticated:  # its sender is the air peer from now on
-                self._air_peer = peer
+            if out.authenticated:
+                self._learn(peer)
                 self.forwarded["air"] += 1
             for data in out.local:
                 self._to_local(data)
-            if peer is not None:  # where time alone may answer a handshake (never learned)
-                self._replied = peer
+            if peer is not None and air_kind(raw) != "repair":  # a chunk, taken: where time
+                self._replied = peer  # alone may answer a handshake (never learned)
             self._to_air(out.air, peer if out.authenticated or out.reply else self._air_peer)
         self._observe()
+
+    def _learn(self, peer: Peer | None) -> None:
+        """The air peer: the sender of the first authenticated blob of each session (a
+        relayed copy of a later chunk, arriving first, steers nothing)."""
+        with self._lock:
+            end = self.end
+            session = end.session if isinstance(end, GroundEnd) else end.current
+        if session is not self._learned or self._air_peer is None:
+            self._air_peer, self._learned = peer, session
 
     def _observe(self) -> None:
         """Hand a change of the live session to ``on_session``, once."""
