@@ -124,8 +124,21 @@ def test_a_gcs_retry_is_no_new_transfer_and_the_ack_is_answered_again() -> None:
     assert third.air == [] and len(third.local) == 1
     assert signs.calls == 1 and made.delivered == {1.0: 1}
     assert made.ground.retries == {"poked": 1, "answered": 1}
-    made.clock.advance(3)  # after the retry window, the same command is a new one
+    made.run_until(made.clock.monotonic() + 5)  # after the retry window: a new command
     assert len(made.ground.handle_local(arm).air) == 22 and signs.calls == 2
+
+
+def test_the_retry_window_is_fixed_from_the_first_try() -> None:
+    """A command repeated every 1.9 s is answered within ``retry_window_s`` (6 s) of its
+    first try and executed again after it: repeats never hold the window open."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    arm = _command(400, 1.0)
+    for _ in range(5):
+        made.send(made.up, made.ground.handle_local(arm).air, made.to_vehicle)
+        made.run_until(made.clock.monotonic() + 1.9)
+    assert made.delivered == {1.0: 2}  # at 0 s and at 7.6 s
+    assert made.ground.retries == {"answered": 3}
 
 
 def test_forged_and_replayed_repair_requests_change_nothing() -> None:

@@ -12,7 +12,8 @@ authenticated heard from the other end within ``silence_s``) and counts its hand
 frames it dropped (``NO_SESSION``...), its repairs, a GCS's retries and its airtime.
 
 A GCS retry (:meth:`GroundEnd.handle_local`) is keyed on what the ground end itself
-sealed and sent: a later identical command within ``retry_window_s`` of the last try
+sealed and sent: a later identical command within ``retry_window_s`` of the first try
+(a fixed window, a GCS's whole retry horizon: repeats never keep it open)
 asks the vehicle end, by an authenticated POKE naming that transfer (and a fresh nonce),
 for what it holds.  The vehicle end answers for a transfer that opened with its held
 ``COMMAND_ACK`` sealed anew (at most ``MAX_ANSWERS`` times) and delivers nothing again;
@@ -119,7 +120,7 @@ class _Try:
     transfer: int
     session: Session
     command: int
-    last: float  # when the GCS last sent it
+    first: float  # when the GCS first sent it: the retry window runs from here, fixed
     due: float  # when its last chunk should have left (by air_bps)
     raw: bytes  # the GCS's frame, sealed anew if the vehicle end says it never arrived
     ack: bytes | None = None
@@ -144,7 +145,7 @@ class GroundEnd(RepairingEnd):
         hybrid: x25519.X25519PublicKey | None = None,
         poke_s: float = 0.5,
         gap_s: float = 0.25,
-        retry_window_s: float = 2.0,
+        retry_window_s: float = 6.0,
         air_bps: int | None = None,
         clock: Clock | None = None,
     ) -> None:
@@ -205,7 +206,7 @@ class GroundEnd(RepairingEnd):
         for whenever the link comes back), and the rest is dropped: a heartbeat comes
         again, and must not push a command out of the queue.  Every drop is counted in
         :attr:`drops`.  A GCS's retry of a command in flight (same source, target, command
-        and parameters within ``retry_window_s`` of the last try) is no new transfer: a
+        and parameters within ``retry_window_s`` of the first try) is no new transfer: a
         POKE asks the vehicle end where it stands, or the ACK already seen answers it."""
         frame = _parse(raw)
         session = self._usable()
@@ -242,10 +243,9 @@ class GroundEnd(RepairingEnd):
         attempt, now = self._tries.get(tried), self._clock.monotonic()
         if attempt is None or attempt.session is not session:
             return None
-        if now - attempt.last > self.retry_window_s:
+        if now - attempt.first > self.retry_window_s:
             del self._tries[tried]
             return None
-        attempt.last = now
         if attempt.ack is not None:
             self.retries["answered"] += 1
             return Output(local=[attempt.ack])
