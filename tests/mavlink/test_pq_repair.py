@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
+from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
 from antireplay.core.errors import SignatureInvalidError
@@ -28,11 +29,13 @@ from antireplay.mavlink.pq.repair import (
     EVERYTHING,
     RESEND_BUDGET,
     Op,
+    bind_ack,
     parse_repair,
     repair_frame,
     repair_key,
+    unbind_ack,
 )
-from antireplay.mavlink.pq.wire import MAX_PARITY
+from antireplay.mavlink.pq.wire import MAX_PARITY, MSG_REPAIR, inner_of
 from antireplay.pq.session import Initiator, Responder
 from tests.harness.lossy_air import Radio, build
 from tests.harness.mavlink_frames import FakeTransport
@@ -121,8 +124,21 @@ def test_a_gcs_retry_is_no_new_transfer_and_the_ack_is_answered_again() -> None:
     assert third.air == [] and len(third.local) == 1
     assert signs.calls == 1 and made.delivered == {1.0: 1}
     assert made.ground.retries == {"poked": 1, "answered": 1}
-    made.clock.advance(3)  # after the retry window, the same command is a new one
+    made.run_until(made.clock.monotonic() + 5)  # after the retry window: a new command
     assert len(made.ground.handle_local(arm).air) == 22 and signs.calls == 2
+
+
+def test_the_retry_window_is_fixed_from_the_first_try() -> None:
+    """A command repeated every 1.9 s is answered within ``retry_window_s`` (6 s) of its
+    first try and executed again after it: repeats never hold the window open."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    arm = _command(400, 1.0)
+    for _ in range(5):
+        made.send(made.up, made.ground.handle_local(arm).air, made.to_vehicle)
+        made.run_until(made.clock.monotonic() + 1.9)
+    assert made.delivered == {1.0: 2}  # at 0 s and at 7.6 s
+    assert made.ground.retries == {"answered": 3}
 
 
 def test_forged_and_replayed_repair_requests_change_nothing() -> None:
@@ -196,7 +212,7 @@ def test_the_pacer_keeps_to_the_radio_rate_and_lets_telemetry_through_first() ->
     for _ in range(200):  # telemetry beyond two seconds of queue is dropped, and counted
         pacer.push(beat, None)
     assert pacer.paced_out > 0 and pacer.queued <= 2 * 5_587 + len(beat[0])
-    slow = Pacer(1_200, clock)  # 116 bytes a second: still two full chunks of burst
+    slow = Pacer(1_200, clock, bulk_ttl_s=120)  # 116 bytes a second: still two full chunks of burst
     slow.push(command[:3], None)
     clock.advance(60)
     assert len(slow.pop()[0]) == 2
@@ -250,3 +266,210 @@ def test_telemetry_overtaking_a_command_on_the_air_spoils_nothing() -> None:
     for raw in command:
         made.to_vehicle(raw)
     assert made.refused == {"vehicle:REPLAY_DETECTED": len(command)}
+
+
+def _command(command: int, param1: float) -> bytes:
+    return build(lambda m: m.command_long_send(1, 1, command, 0, param1, 1900, 0, 0, 0, 0, 0), 255)
+
+
+def _acks_at_gcs(made: Radio) -> list[tuple[int, int]]:
+    """Tap what reaches the GCS: (command, result) of each COMMAND_ACK."""
+    seen: list[tuple[int, int]] = []
+    passed = made.to_gcs
+
+    def gcs(frames: list[bytes]) -> None:
+        for plain in frames:
+            msg = dialect.MAVLink(None).decode(bytearray(plain))
+            if msg.get_type() == "COMMAND_ACK":
+                seen.append((msg.command, msg.result))
+        passed(frames)
+
+    made.to_gcs = gcs  # type: ignore[method-assign]
+    return seen
+
+
+def test_a_replayed_poke_never_acks_a_blocked_command() -> None:
+    """ARM's ACK lost once, so the GCS retried and the ground end POKEd (recorded).  Later
+    DISARM (same command number) is jammed and the POKE replayed: the vehicle end's ACK
+    again is bound to ARM's transfer, so the GCS hears nothing and DISARM's retry goes to
+    the vehicle, never answered locally with ARM's ACK."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    pokes: list[bytes] = []
+    passed = made.to_vehicle
+
+    def tap(raw: bytes) -> None:
+        if parse_frame(raw).msgid == MSG_REPAIR:
+            pokes.append(raw)
+        passed(raw)
+
+    made.to_vehicle = tap  # type: ignore[method-assign]
+    arm, disarm = _command(400, 1.0), _command(400, 0.0)
+    made.down.loss = 1.0
+    made.send(made.up, made.ground.handle_local(arm).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 1.5)
+    made.down.loss = 0.0
+    made.send(made.up, made.ground.handle_local(arm).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 0.5)
+    assert made._acked and len(pokes) == 1
+    made.clock.advance(10)
+    seen = _acks_at_gcs(made)
+    made.up.loss = 1.0
+    made.send(made.up, made.ground.handle_local(disarm).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 0.3)
+    made.up.loss = 0.0
+    passed(pokes[0])  # the replay
+    made.run_until(made.clock.monotonic() + 0.5)
+    assert seen == []  # ARM's ACK again, dropped: no ACCEPTED for a DISARM never delivered
+    assert made.ground.repairs["ack_duplicate"] >= 1
+    retry = made.ground.handle_local(disarm)
+    assert retry.local == [] and retry.air  # asked of the vehicle, not answered here
+    made.send(made.up, retry.air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 1.0)
+    assert made.delivered == {1.0: 1, 0.0: 1} and seen == [(400, 0)]
+
+
+def test_an_ack_answers_only_its_own_transfer_under_plain_loss() -> None:
+    """DO_SET_SERVO 5 lost whole, then servo 6 delivered and ACKed: servo 6's ACK is bound
+    to servo 6's transfer; the GCS retry of servo 5 POKEs, the vehicle end says it never
+    arrived (and never can: a later transfer opened), and the ground end sends it anew."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    seen = _acks_at_gcs(made)
+    servo5, servo6 = _command(183, 5.0), _command(183, 6.0)
+    answers: list[bytes] = []
+    passed = made.to_ground
+
+    def tap(raw: bytes) -> None:
+        if parse_frame(raw).msgid == MSG_REPAIR:
+            answers.append(raw)
+        passed(raw)
+
+    made.to_ground = tap  # type: ignore[method-assign]
+    made.up.loss = 1.0
+    made.send(made.up, made.ground.handle_local(servo5).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 0.3)
+    made.up.loss = 0.0
+    made.send(made.up, made.ground.handle_local(servo6).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 0.5)
+    assert made.delivered == {6.0: 1} and seen == [(183, 0)]
+    retry = made.ground.handle_local(servo5)
+    assert retry.local == []  # never servo 6's ACK
+    made.send(made.up, retry.air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + 1.0)
+    assert made.delivered == {6.0: 1, 5.0: 1} and seen == [(183, 0), (183, 0)]
+    assert made.ground.repairs["undelivered"] == 1 and len(answers) == 1
+    assert made.ground.from_air(answers[0]).air == []  # replayed: its nonce is spent
+    assert made.ground.handle_local(servo5).local == [made.ground._last_ack]  # its own ACK
+
+
+def test_a_bound_ack_round_trips() -> None:
+    ack = build(lambda m: m.command_ack_send(400, 0, 0, 0, 0, 0), 1)
+    inner = inner_of(parse_frame(ack))
+    assert unbind_ack(bind_ack(inner, 0xBEEF)) == (inner, 0xBEEF)
+    assert unbind_ack(inner) == (inner, None)
+
+
+@pytest.mark.parametrize(("held_s", "delivered"), [(4.0, 1), (300.0, 0)])
+def test_a_withheld_command_released_late_is_refused_as_stale(
+    held_s: float, delivered: int
+) -> None:
+    """An attacker withholds every chunk of a command and releases them later: within
+    ``max_age_s`` (10 s) it is delivered, five minutes on it is refused (MESSAGE_STALE,
+    counted), though the session is still up and the chunks authentic."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    held: list[bytes] = []
+    passed = made.to_vehicle
+    made.to_vehicle = lambda raw: held.append(raw) if len(raw) > 200 else passed(raw)  # type: ignore[method-assign]
+    made.send(made.up, made.ground.handle_local(_command(400, 7.0)).air, made.to_vehicle)
+    made.run_until(made.clock.monotonic() + held_s)
+    assert made.delivered == {} and made.ground.session is not None
+    made.to_vehicle = passed  # type: ignore[method-assign]
+    for raw in held:
+        made.to_vehicle(raw)
+    assert sum(made.delivered.values()) == delivered
+    assert made.refused["vehicle:MESSAGE_STALE"] == made.vehicle.drops["STALE"] == 1 - delivered
+
+
+def test_a_rekey_heeds_only_nacks_maced_in_the_live_session() -> None:
+    """While a session is live, a rekey's HS1 is resent only for a NACK MACed in it: an
+    unsigned one (anybody's, some 25 bytes) costs the ground end no airtime, while the
+    vehicle end's own NACK for the chunks it missed still repairs the HS1."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    ground, vehicle = made.ground, made.vehicle
+    hs1 = ground.handshake()  # a rekey, the session still live
+    target = (ground.sender.sysid, ground.sender.compid)
+    forged = repair_frame(
+        Op.NACK, ground._hs_transfer, target, EVERYTHING, None, sysid=1, compid=197
+    )
+    assert ground.from_air(forged).air == [] and ground.repairs["ignored"] == 1
+    for raw in hs1[: len(hs1) - MAX_PARITY - 2]:  # its tail lost
+        assert vehicle.from_air(raw).air == []
+    made.clock.advance(1.0)
+    nacks = vehicle.tick()
+    assert nacks and parse_repair(parse_frame(nacks[0])).signed
+    assert ground.from_air(nacks[0]).air  # the vehicle end's own NACK: repaired
+
+
+def test_the_pacer_gives_long_transfers_their_share_and_drops_stale_ones() -> None:
+    """An RC override at 110 % of a 57,600-baud line: a command still leaves within about
+    twice its own airtime (a byte for each byte of one-chunk frames), and chunks queued
+    longer than ``bulk_ttl_s`` (the GCS gave up) are dropped, counted, never sent late."""
+    made = radio(0.0, None, seed=1)
+    made.start()
+    clock = made.clock
+    pacer = Pacer(57_600, clock)
+    rc = made.ground.from_local(
+        build(lambda m: m.rc_channels_override_send(1, 1, *[1500] * 8), 255)
+    )[0]
+    step = len(rc) / (1.1 * 5_760)
+    commands = [made.ground.from_local(_command(183, float(i))) for i in range(8)]
+    born = {raw: clock.monotonic() for command in commands for raw in command}
+    for command in commands:
+        pacer.push(command, None)
+    left: dict[bytes, float] = {}
+    for _ in range(int(12 / step)):
+        pacer.push([rc], None)
+        left.update((raw, clock.monotonic()) for raw, _ in pacer.pop()[0] if raw in born)
+        clock.advance(step)
+    assert set(commands[0]) <= set(left)
+    assert max(left[raw] for raw in commands[0]) - born[commands[0][0]] < 2.5
+    assert max(left[raw] - born[raw] for raw in left) <= pacer.bulk_ttl_s  # nothing late
+    assert pacer.paced_stale == sum(map(len, commands)) - len(left) > 0
+
+
+def test_a_udpin_vehicle_peer_is_steered_by_nothing_unauthenticated() -> None:
+    """Before a session, an unsigned POKE from elsewhere does not redirect the handshake's
+    NACK; in a session, a relayed copy of a command's last chunk, arriving first from
+    the attacker's address, does not become the air peer: the first authentic frame's does."""
+    made = radio(0.0, None, seed=1)
+    ground, clock = made.ground, made.clock
+    air = FakeTransport("udpin:0.0.0.0:1", fixed=False)
+    link = PqLink(made.vehicle, FakeTransport("udpout:1.2.3.4:7"), air, tick_s=3600)
+    link.start()
+    home, evil = ("10.0.0.9", 14550), ("6.6.6.6", 666)
+    hs1 = ground.handshake()
+    for raw in hs1[:-5]:  # its tail lost, beyond parity
+        air.inject(raw, home)
+    air.inject(repair_frame(Op.POKE, 1, (0, 0), 0, None, sysid=9, compid=9), evil)
+    sent = len(air.sent)
+    clock.advance(0.3)
+    link.tick()
+    assert {to for _, to in air.sent[sent:]} == {home}
+    for raw in hs1[-5:]:
+        air.inject(raw, home)
+    for raw, _ in air.sent:
+        try:
+            ground.from_air(raw)
+        except SignatureInvalidError:
+            continue
+    assert ground.session is not None and link._air_peer == home
+    command = ground.from_local(_command(400, 1.0))
+    for raw in command[:-3]:
+        air.inject(raw, home)
+    air.inject(command[-3], evil)  # sniffed and relayed first, from its own address
+    air.inject(command[-3], home)
+    assert link._air_peer == home
+    link.stop()

@@ -326,6 +326,14 @@ def ground(  # noqa: PLR0917 - one option per knob
     type=click.IntRange(1, 256),
     help="Sessions held at once (operators, rekeys); a new one evicts the oldest with its keys.",
 )
+@click.option(
+    "--max-age",
+    "max_age_s",
+    default=10.0,
+    show_default=True,
+    type=click.FloatRange(min=0.5),
+    help="Seconds a command may take from the ground end to here; an older one is refused.",
+)
 @_operations("vehicle")
 def vehicle(  # noqa: PLR0917 - one option per knob
     fc: str,
@@ -335,6 +343,7 @@ def vehicle(  # noqa: PLR0917 - one option per knob
     x25519_key: Path | None,
     system_id: int,
     max_sessions: int,
+    max_age_s: float,
     audit_path: str,
     metrics_port: int | None,
     metrics_host: str,
@@ -355,5 +364,5 @@ def vehicle(  # noqa: PLR0917 - one option per knob
     if x25519_key is not None:
         hybrid = _key(x25519_key, x25519.X25519PrivateKey, "'--x25519-key'")
     responder = Responder(kem, registry, max_sessions=max_sessions, x25519_key=hybrid)
-    end = VehicleEnd(responder, system_id=system_id)
+    end = VehicleEnd(responder, system_id=system_id, max_age_s=max_age_s)
     _run(end, fc, air, audit_path, metrics_port, metrics_host, air_bps)

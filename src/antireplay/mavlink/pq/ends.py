@@ -12,11 +12,26 @@ authenticated heard from the other end within ``silence_s``) and counts its hand
 frames it dropped (``NO_SESSION``...), its repairs, a GCS's retries and its airtime.
 
 A GCS retry (:meth:`GroundEnd.handle_local`) is keyed on what the ground end itself
-sealed and sent: a later identical command within ``retry_window_s`` of the last try
-asks the vehicle end, by an authenticated POKE naming that transfer, for what it holds;
-the vehicle end answers only for a transfer that opened (the held ``COMMAND_ACK``, sealed
-anew, at most ``MAX_ANSWERS`` times) and delivers nothing again.  A command repeated on
+sealed and sent: a later identical command within ``retry_window_s`` of the first try
+(a fixed window, a GCS's whole retry horizon: repeats never keep it open)
+asks the vehicle end, by an authenticated POKE naming that transfer (and a fresh nonce),
+for what it holds.  The vehicle end answers for a transfer that opened with its held
+``COMMAND_ACK`` sealed anew (at most ``MAX_ANSWERS`` times) and delivers nothing again;
+for one that never opened and never can (a later one did), "not delivered" echoing the
+nonce, and the ground end sends that command anew, whole.  Every ACK the vehicle end
+holds travels bound to the transfer it answers (:func:`~.repair.bind_ack`, inside the
+seal): the ground end gives a try only its own transfer's ACK, and passes on none twice
+nor one for a try it no longer has, so a replayed POKE, or another command with the same
+number, never tells a GCS that a command it sent was accepted.  A command repeated on
 purpose within that window is answered, not executed: repeat it after the window.
+
+A command also carries, sealed with it, when the ground end sealed it: milliseconds since
+its session came up there (the HS2 arrived).  The vehicle end refuses (``MESSAGE_STALE``,
+counted in ``drops``) a command older than ``max_age_s`` by its own time since it sent
+that HS2.  No clocks are compared: each end measures from its side of one event, and the
+vehicle's side comes first (the HS2 leaves before it arrives), so the vehicle reckons a
+command older than it is, never younger: a command withheld on the air and released
+later is refused however the attacker times it (delaying HS2 only ages every command).
 
 Size: over 500 lines: the two ends share their rules (:class:`~.repair.RepairingEnd`)
 but each is one state machine over its half of the handshake, kept whole.
@@ -25,6 +40,7 @@ but each is one state machine over its half of the handshake, kept whole.
 from __future__ import annotations
 
 import secrets
+import struct
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -36,6 +52,7 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from antireplay.core.clock import Clock
 from antireplay.core.errors import (
     InvalidFrameError,
+    MessageStaleError,
     ReplayAttackError,
     SignatureInvalidError,
     SignatureRequiredError,
@@ -58,12 +75,14 @@ from antireplay.mavlink.pq.repair import (
     Repair,
     RepairingEnd,
     _parse,
+    bind_ack,
     bitmap,
     command_of,
     parse_repair,
     repair_frame,
     repair_key,
     retry_key,
+    unbind_ack,
 )
 from antireplay.mavlink.pq.wire import (
     _COMPACT,
@@ -91,6 +110,8 @@ from antireplay.pq.session import (
     Session,
 )
 
+_STAMP = struct.Struct("<I")  # a command's age stamp: ms since its session came up (ground)
+
 
 @dataclass
 class _Try:
@@ -99,9 +120,11 @@ class _Try:
     transfer: int
     session: Session
     command: int
-    last: float
+    first: float  # when the GCS first sent it: the retry window runs from here, fixed
     due: float  # when its last chunk should have left (by air_bps)
+    raw: bytes  # the GCS's frame, sealed anew if the vehicle end says it never arrived
     ack: bytes | None = None
+    nonce: int = 0  # the outstanding POKE's, echoed in a "not delivered" answer (0: none)
 
 
 class GroundEnd(RepairingEnd):
@@ -122,7 +145,7 @@ class GroundEnd(RepairingEnd):
         hybrid: x25519.X25519PublicKey | None = None,
         poke_s: float = 0.5,
         gap_s: float = 0.25,
-        retry_window_s: float = 2.0,
+        retry_window_s: float = 6.0,
         air_bps: int | None = None,
         clock: Clock | None = None,
     ) -> None:
@@ -136,12 +159,14 @@ class GroundEnd(RepairingEnd):
         self.session: Session | None = None
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
         self._hs_transfer, self._hs_quiet, self._hs_pokes = 0, 0.0, 0
+        self._hs_keyed = False  # the pending HS1 is a rekey's: unsigned NACKs are refused
         self._hs2: bytes | None = None  # the HS2 that finished the session (a repeat is no news)
         self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
         self._queue: deque[tuple[bytes, float]] = deque()  # commands and when they came
         self._tries: OrderedDict[tuple[int, int, int, bytes], _Try] = OrderedDict()
         self._last_ack, self._last_ack_at = b"", float("-inf")  # the ACK last passed on
         self._heard = float("-inf")  # when an authenticated frame last came from the vehicle
+        self._epoch = 0.0  # when this session came up here (HS2): commands' age stamps
         # drops: NO_SESSION (not a command, no session), QUEUE_FULL (the oldest queued
         # command, pushed out by a newer one), QUEUE_EXPIRED (waited over queue_ttl_s)
 
@@ -164,7 +189,10 @@ class GroundEnd(RepairingEnd):
         self._pending = (hs1, now)
         self._hs_transfer = secrets.randbelow(0x10000)
         frames = self.sender.frames(hs1, ChunkKind.HS1, transfer=self._hs_transfer)
-        self._sent.add(self._hs_transfer, frames, None)
+        live = self.live  # a rekey: its NACKs must come MACed in the live session
+        self._hs_keyed = live is not None
+        key = None if live is None else repair_key(live.recv_key)
+        self._sent.add(self._hs_transfer, frames, key)
         self._hs_quiet, self._hs_pokes = now + self._airtime_s(frames), 0
         return self._air(frames)
 
@@ -178,7 +206,7 @@ class GroundEnd(RepairingEnd):
         for whenever the link comes back), and the rest is dropped: a heartbeat comes
         again, and must not push a command out of the queue.  Every drop is counted in
         :attr:`drops`.  A GCS's retry of a command in flight (same source, target, command
-        and parameters within ``retry_window_s`` of the last try) is no new transfer: a
+        and parameters within ``retry_window_s`` of the first try) is no new transfer: a
         POKE asks the vehicle end where it stands, or the ACK already seen answers it."""
         frame = _parse(raw)
         session = self._usable()
@@ -205,7 +233,8 @@ class GroundEnd(RepairingEnd):
         if tried is not None:
             now = self._clock.monotonic()
             due = now + self._airtime_s(air)
-            self._tries[tried] = _Try(self.sender.transfer, session, command_of(frame), now, due)
+            transfer = self.sender.transfer
+            self._tries[tried] = _Try(transfer, session, command_of(frame), now, due, raw)
             while len(self._tries) > self._sent.max_transfers:
                 self._tries.popitem(last=False)
         return Output(air=air + self._renew(session))
@@ -214,10 +243,9 @@ class GroundEnd(RepairingEnd):
         attempt, now = self._tries.get(tried), self._clock.monotonic()
         if attempt is None or attempt.session is not session:
             return None
-        if now - attempt.last > self.retry_window_s:
+        if now - attempt.first > self.retry_window_s:
             del self._tries[tried]
             return None
-        attempt.last = now
         if attempt.ack is not None:
             self.retries["answered"] += 1
             return Output(local=[attempt.ack])
@@ -226,8 +254,9 @@ class GroundEnd(RepairingEnd):
             return Output()
         self.retries["poked"] += 1
         self.repairs["poke_sent"] += 1
+        attempt.nonce = secrets.randbits(63) | 1
         poke = repair_frame(
-            Op.POKE, attempt.transfer, (0, 0), 0, repair_key(session.send_key),
+            Op.POKE, attempt.transfer, (0, 0), attempt.nonce, repair_key(session.send_key),
             sysid=self.sender.sysid, compid=self.sender.compid,
         )  # fmt: skip
         return Output(air=self._air([poke], "repair"))
@@ -267,6 +296,10 @@ class GroundEnd(RepairingEnd):
         return (self.sender.transfer - self._first_transfer) & 0xFFFF
 
     def _seal(self, session: Session, inner: bytes, purpose: Purpose) -> list[bytes]:
+        """Seal a frame; a command with its age stamp (module docstring)."""
+        if purpose is Purpose.COMMAND:
+            age_ms = int(max(0.0, self._clock.monotonic() - self._epoch) * 1000)
+            inner += _STAMP.pack(min(age_ms, 0xFFFFFFFF))
         blob = compact(session.seal(inner, purpose))
         frames = self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
         self._sent.add(self.sender.transfer, frames, repair_key(session.recv_key))
@@ -312,19 +345,24 @@ class GroundEnd(RepairingEnd):
         opened = open_compact(blob, [self.session], Direction.R2I, self.session)
         self._reassembler.opened(chunk, keys[0])
         self._heard = self._clock.monotonic()
-        plain = plain_frame(opened.payload)
-        if not self._hold_ack(plain):  # the second copy of an ACK just passed on
-            self.repairs["ack_duplicate"] += 1
+        inner, bound = unbind_ack(opened.payload)
+        plain = plain_frame(inner)
+        if not self._hold_ack(plain, bound):  # a copy of an ACK passed on, or a stale one
             return Output(authenticated=True)
         return Output(local=[plain], authenticated=True)
 
     def _repair(self, repair: Repair) -> Output:
         """A NACK for one of our transfers; a NACK for the pending HS1 (unauthenticated,
-        module :mod:`.repair`) also restarts its timer.  The vehicle end never pokes."""
-        if repair.op is not Op.NACK or repair.target != (self.sender.sysid, self.sender.compid):
+        module :mod:`.repair`, unless a session was live when it left: a rekey's are MACed
+        in that session, so nobody can make it resend the HS1 for free) also restarts its
+        timer.  A POKE from the vehicle end is its
+        answer "never delivered" to ours (:meth:`_undelivered`)."""
+        if repair.target != (self.sender.sysid, self.sender.compid):
             return Output()
+        if repair.op is Op.POKE:
+            return self._undelivered(repair)
         handshake = self._pending is not None and repair.transfer == self._hs_transfer
-        if not repair.signed and not handshake:
+        if not repair.signed and (not handshake or self._hs_keyed):
             self.repairs["ignored"] += 1
             return Output()
         frames = self._resend(repair)
@@ -332,26 +370,48 @@ class GroundEnd(RepairingEnd):
             self._hs_quiet = self._clock.monotonic() + self._airtime_s(frames)
         return Output(air=frames)
 
-    def _hold_ack(self, plain: bytes) -> bool:
-        """A final COMMAND_ACK from the vehicle answers the try of its command: a GCS retry
-        of it from now on is answered with it (within ``retry_window_s``).  False for the
-        second copy of the ACK just passed on (the vehicle end sends each twice; the flight
-        controller's sequence number tells it from a later ACK)."""
+    def _undelivered(self, repair: Repair) -> Output:
+        """The vehicle end's answer to our POKE: that transfer never opened there and never
+        can (a later one did).  Believed once, for the try whose POKE carried that nonce
+        (a replay of it finds the nonce spent): the command is sealed anew, whole."""
+        attempt = next((t for t in self._tries.values() if t.transfer == repair.transfer), None)
+        session = self.session
+        if attempt is None or attempt.nonce != repair.missing or attempt.session is not session:
+            self.repairs["ignored"] += 1
+            return Output()
+        repair.verify([repair_key(attempt.session.recv_key)])
+        self.repairs["undelivered"] += 1
+        self._sent.forget(attempt.transfer)
+        air = self._seal(attempt.session, inner_of(_parse(attempt.raw)), Purpose.COMMAND)
+        attempt.transfer, attempt.nonce = self.sender.transfer, 0
+        attempt.due = self._clock.monotonic() + self._airtime_s(air)
+        return Output(air=air)
+
+    def _hold_ack(self, plain: bytes, bound: int | None) -> bool:
+        """A final COMMAND_ACK the vehicle end bound to a command transfer (sealed with it)
+        answers the try of that transfer, and only that one: a GCS retry of it from now
+        on is answered with it (within ``retry_window_s``).  False (counted) for a copy
+        of an ACK already passed on (the vehicle end sends each twice, and answers POKEs)
+        and for a bound ACK whose try is gone: neither may reach a GCS that waits for
+        another command's ACK (MAVLink names only the command number)."""
         frame = parse_frame(plain)
         if frame.msgid != dialect.MAVLINK_MSG_ID_COMMAND_ACK:
             return True
         now = self._clock.monotonic()
         if self._last_ack == plain and now - self._last_ack_at < self.retry_window_s:
+            self.repairs["ack_duplicate"] += 1
+            return False
+        if bound is None:  # a command from elsewhere (the vehicle end holds none for it)
+            self._last_ack, self._last_ack_at = plain, now
+            return True
+        attempt = next((t for t in self._tries.values() if t.transfer == bound), None)
+        if attempt is None or attempt.ack is not None:
+            self.repairs["ack_duplicate" if attempt else "ack_stale"] += 1
             return False
         self._last_ack, self._last_ack_at = plain, now
-        if frame.payload[2:3] == bytes([IN_PROGRESS]):
-            return True
-        command = command_of(frame)
-        for attempt in self._tries.values():
-            if attempt.command == command and attempt.ack is None:
-                attempt.ack = plain
-                self._sent.forget(attempt.transfer)
-                break
+        if frame.payload[2:3] != bytes([IN_PROGRESS]):
+            attempt.ack = plain
+            self._sent.forget(attempt.transfer)
         return True
 
     def _finish(self, hs2: bytes) -> Output:
@@ -364,6 +424,7 @@ class GroundEnd(RepairingEnd):
         self.handshakes["completed"] += 1
         self._sent.forget(self._hs_transfer)
         self._pending, self._heard, self._hs2 = None, self._clock.monotonic(), hs2
+        self._epoch = self._heard
         self._first_transfer = self.sender.transfer
         out = Output(authenticated=True)
         self._expire_queue()
@@ -397,6 +458,11 @@ class _Held:
     command: int
     ack: bytes | None = None
 
+    @property
+    def final(self) -> bool:
+        """Whether its flight controller gave a final COMMAND_ACK (not IN_PROGRESS)."""
+        return self.ack is not None and self.ack[12:13] != bytes([IN_PROGRESS])
+
 
 class VehicleEnd(RepairingEnd):
     """The responder's end, next to the autopilot (module docstring)."""
@@ -411,10 +477,13 @@ class VehicleEnd(RepairingEnd):
         silence_s: float = 5.0,
         signed: frozenset[int] = SIGNED_MESSAGES,
         gap_s: float = 0.25,
+        max_age_s: float = 10.0,
         clock: Clock | None = None,
     ) -> None:
         super().__init__(system_id, component_id, gap_s, clock)
         self.responder = responder
+        self.max_age_s = max_age_s  # a command older than this is refused (module docstring)
+        self._epochs: dict[bytes, float] = {}  # session id -> when its HS2 left
         self.silence_s = silence_s
         self.signed = signed  # messages delivered only from a command (ML-DSA-87) frame
         self.hint_interval_s = hint_interval_s
@@ -430,6 +499,11 @@ class VehicleEnd(RepairingEnd):
 
     def _sessions_held(self) -> list[Session]:
         return list(self._sessions)
+
+    def _handshake_key(self) -> bytes | None:
+        """A handshake's NACKs are MACed in the current session (a rekey's HS1): the ground
+        end heeds an unsigned one only when it had no live session."""
+        return None if self.current is None else repair_key(self.current.send_key)
 
     def from_air(self, raw: bytes) -> Output:
         """One frame from the air: HS1 (answered with HS2), a session frame for the FC, or a
@@ -458,10 +532,25 @@ class VehicleEnd(RepairingEnd):
         self._reassembler.opened(chunk, chunk_key(session.recv_key))
         self._supersede(session)
         self.current, self._heard = session, self._clock.monotonic()
-        plain = plain_frame(opened.payload)
+        command = opened.purpose is Purpose.COMMAND
+        inner = self._fresh(opened.payload, session) if command else opened.payload
+        plain = plain_frame(inner)
         if int.from_bytes(opened.payload[3:6], "little") in RETRIED:
             _remember(self._answers, chunk.key, _Held(command_of(_parse(plain))))
         return Output(local=[plain], authenticated=True)
+
+    def _fresh(self, payload: bytes, session: Session) -> bytes:
+        """A command's inner, its age stamp checked (module docstring): an older command is
+        refused (``MESSAGE_STALE``, counted) after it opened, so it is spent as well."""
+        if len(payload) < _STAMP.size + _INNER_HEAD:
+            raise InvalidFrameError("command frame too short for its age stamp")
+        (sent_ms,) = _STAMP.unpack_from(payload, len(payload) - _STAMP.size)
+        epoch = self._epochs.get(session.session_id, float("-inf"))
+        age = self._clock.monotonic() - epoch - sent_ms / 1000
+        if age > self.max_age_s:
+            self.drops["STALE"] += 1
+            raise MessageStaleError(f"command sealed {age:.1f} s ago (at most {self.max_age_s})")
+        return payload[: -_STAMP.size]
 
     def _accept(self, chunk: Chunk, hs1: bytes) -> Output:
         handles = {s.session_id[-1] for s in self._sessions}
@@ -474,6 +563,9 @@ class VehicleEnd(RepairingEnd):
         self.handshakes["completed"] += 1
         self._sessions.append(session)
         self.current, self._heard = session, self._clock.monotonic()
+        held = {s.session_id for s in self._sessions}
+        self._epochs = {k: v for k, v in self._epochs.items() if k in held}
+        self._epochs[session.session_id] = self._heard
         frames = self.sender.frames(hs2, ChunkKind.HS2)
         _remember(self._hs2, chunk.key, frames)
         return Output(air=self._air(frames), authenticated=True)
@@ -511,15 +603,25 @@ class VehicleEnd(RepairingEnd):
         answer = self._answers.get(at)
         if answer is not None:
             ack = answer.ack
-            return [] if ack is None else self._answer(at, lambda: self._seal(session, ack))
+            if ack is None:
+                return []
+            return self._answer(at, lambda: self._seal(session, ack, at[2]))
         ckey = chunk_key(session.recv_key)
         found = self._reassembler.lookup(at[:2], at[2])
         if found is not None:
             return self._nack(at, ckey, bitmap(found[2]))
-        done = self._reassembler.completed(at[:2], at[2])
-        if done or not self._reassembler.is_fresh(at[:2], at[2], ckey):
+        if self._reassembler.completed(at[:2], at[2]):
             return []
-        return self._nack(at, ckey, EVERYTHING)
+        if self._reassembler.is_fresh(at[:2], at[2], ckey):
+            return self._nack(at, ckey, EVERYTHING)
+        # never opened, and never can (a later transfer did): "not delivered", echoing the
+        # POKE's nonce so that only the try that asked believes it
+        mac = repair_key(session.send_key)
+        undelivered = repair_frame(
+            Op.POKE, at[2], at[:2], repair.missing, mac,
+            sysid=self.sender.sysid, compid=self.sender.compid,
+        )  # fmt: skip
+        return self._answer(at, lambda: [undelivered])
 
     def _answer(self, at: tuple[int, int, int], frames: Callable[[], list[bytes]]) -> list[bytes]:
         """A held answer again, at most ``MAX_ANSWERS`` times per transfer."""
@@ -572,21 +674,32 @@ class VehicleEnd(RepairingEnd):
         if self.current is None:
             self.drops["NO_SESSION"] += 1
             return Output()
-        copies = 1
+        copies, bound = 1, None
         if frame.msgid == dialect.MAVLINK_MSG_ID_COMMAND_ACK:
-            command = command_of(frame)
-            for held in reversed(self._answers.values()):
-                if held.command == command:
-                    copies += held.ack is None
-                    held.ack = raw
-                    break
-        air = self._air(self._seal(self.current, raw))
+            bound = self._held_for(command_of(frame))
+            if bound is not None:
+                held = self._answers[bound]
+                copies += held.ack is None
+                held.ack = raw
+        transfer = None if bound is None else bound[2]
+        air = self._air(self._seal(self.current, raw, transfer))
         if copies > 1:
-            air += self._air(self._seal(self.current, raw), "repair")
+            air += self._air(self._seal(self.current, raw, transfer), "repair")
         return Output(air=air)
 
-    def _seal(self, session: Session, raw: bytes) -> list[bytes]:
-        blob = compact(session.seal(inner_of(_parse(raw)), Purpose.DATA))
+    def _held_for(self, command: int) -> tuple[int, int, int] | None:
+        """The delivered transfer a COMMAND_ACK for ``command`` answers: the oldest one not
+        finally answered (a flight controller answers in order), else the newest."""
+        held = [(k, h) for k, h in self._answers.items() if h.command == command]
+        waiting = [k for k, h in held if not h.final]
+        return waiting[0] if waiting else held[-1][0] if held else None
+
+    def _seal(self, session: Session, raw: bytes, bound: int | None = None) -> list[bytes]:
+        """Seal a telemetry frame; a COMMAND_ACK bound to the transfer it answers."""
+        inner = inner_of(_parse(raw))
+        if bound is not None:
+            inner = bind_ack(inner, bound)
+        blob = compact(session.seal(inner, Purpose.DATA))
         frames = self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
         self._sent.add(self.sender.transfer, frames, repair_key(session.recv_key))
         return frames

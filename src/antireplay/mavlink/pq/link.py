@@ -10,9 +10,10 @@ receives the telemetry), ``air`` the path to the vehicle; it hand-shakes at
 and hand-shakes again (:mod:`.ends`) until a session answers, whether or not local traffic
 arrives; the timer also drives repair requests for transfers gone quiet.  The
 **vehicle** end's ``local`` is the flight controller, ``air`` the path to the ground; a
-``udpin`` air peer is learned only from a blob that authenticated (until then a
-handshake's repair request, at once or on the timer, goes to the sender of the last
-chunk that was not refused, never learned), and plain MAVLink from the air never
+``udpin`` air peer is learned only from the first blob of each session that
+authenticated (until then a handshake's repair request, at once or on the timer, goes
+to the sender of the last chunk that was not refused, never learned; a repair frame
+never steers it), and plain MAVLink from the air never
 reaches the flight controller.
 
 Every refusal is counted under ``side:CODE`` and handed to ``on_reject`` (the
@@ -30,8 +31,12 @@ a :class:`Pacer` (a token bucket of bytes at 97 % of the line rate, a tenth of a
 of burst: well within a SiK radio's 2,048-byte buffer at 57,600 baud) puts frames on
 the air no faster than the radio carries them, one-chunk frames (telemetry, ACKs,
 repair requests, HS2) ahead of the chunks of long transfers, so telemetry keeps flowing
-between a command's chunks; telemetry beyond two seconds of queue is dropped
-(``air:PACED_OUT``), nothing else is.
+between a command's chunks, yet never all of the line: while both wait, long transfers
+get a byte for each byte of one-chunk frames (``BULK_SHARE``), so a saturating RC
+override cannot starve a command or a handshake.  Telemetry beyond two seconds of queue
+is dropped (``air:PACED_OUT``), and so is a long transfer's chunk still queued after
+``bulk_ttl_s`` (``air:PACED_STALE``): the GCS has given up on it, and it must not leave
+late.
 """
 
 from __future__ import annotations
@@ -91,26 +96,36 @@ class LinkCounts:
 #: The pacer's share of the line rate (the radio's own clock and a busy host both drift),
 #: and the longest frame an end sends (a full ``PQ_CHUNK``).
 PACE, MAX_FRAME = 0.97, 10 + 255 + 2
+#: Bytes of long transfers a pacer owes for each byte of one-chunk frames while both wait.
+BULK_SHARE = 1.0
 
 
 class Pacer:
     """Frames for the air, released no faster than ``air_bps`` (module docstring)."""
 
-    def __init__(self, air_bps: int, clock: Clock | None = None) -> None:
+    def __init__(
+        self, air_bps: int, clock: Clock | None = None, *, bulk_ttl_s: float = 6.0
+    ) -> None:
         rate = PACE * air_bps / LINE_BITS  # bytes a second, a little under the line's
         burst = max(rate / 10, 2 * MAX_FRAME)  # a tenth of a second; two frames at least
-        self.bucket = TokenBucket(rate, resolve(clock), burst=burst)
+        self._clock = resolve(clock)
+        self.bucket = TokenBucket(rate, self._clock, burst=burst)
         self.limit = int(2 * rate)  # bytes of telemetry queued at most
+        self.bulk_ttl_s = bulk_ttl_s  # a GCS's retry horizon: a chunk older is dropped
         self.urgent: deque[tuple[bytes, Peer | None]] = deque()
         self.bulk: deque[tuple[bytes, Peer | None]] = deque()
+        self._born: deque[float] = deque()  # when each bulk frame was queued
+        self._owed = 0.0  # bulk bytes owed for the one-chunk bytes sent while bulk waited
         self.queued = 0
         self.paced_out = 0
+        self.paced_stale = 0
 
     def push(self, frames: list[bytes], peer: Peer | None) -> None:
         for raw in frames:
             kind = air_kind(raw)
             if kind in ("cmd", "parity") or (kind == "hs" and len(frames) > 1):
                 self.bulk.append((raw, peer))
+                self._born.append(self._clock.monotonic())
             elif kind == "passthrough" and self.queued > self.limit:
                 self.paced_out += 1
                 continue
@@ -121,14 +136,30 @@ class Pacer:
     def pop(self) -> tuple[list[tuple[bytes, Peer | None]], float]:
         """The frames that may go now, and the seconds until the next one may."""
         out: list[tuple[bytes, Peer | None]] = []
+        self._expire()
         while self.urgent or self.bulk:
-            queue = self.urgent or self.bulk
+            bulk = bool(self.bulk) and (not self.urgent or self._owed >= len(self.bulk[0][0]))
+            queue = self.bulk if bulk else self.urgent
             raw = queue[0][0]
             if not self.bucket.take(len(raw)):
                 return out, max(self.bucket.wait_s(len(raw)), 0.001)  # time moves on
             out.append(queue.popleft())
             self.queued -= len(raw)
+            if bulk:
+                self._born.popleft()
+                self._owed = max(0.0, self._owed - len(raw))
+            elif self.bulk:
+                self._owed += BULK_SHARE * len(raw)
+        self._owed = 0.0
         return out, 1.0
+
+    def _expire(self) -> None:
+        """Drop long transfers' chunks queued over ``bulk_ttl_s`` (counted)."""
+        horizon = self._clock.monotonic() - self.bulk_ttl_s
+        while self._born and self._born[0] < horizon:
+            self._born.popleft()
+            self.queued -= len(self.bulk.popleft()[0])
+            self.paced_stale += 1
 
 
 class PqLink:
@@ -160,7 +191,8 @@ class PqLink:
         self.air_bytes = 0
         self._local_peers: dict[Peer, None] = {}
         self._air_peer: Peer | None = None
-        self._replied: Peer | None = None  # the sender of the last frame not refused
+        self._replied: Peer | None = None  # the sender of the last chunk not refused
+        self._learned: Session | None = None  # the session the air peer was learned in
         self._live: Session | None = None
         self._last: Session | None = None  # the last session that was live
         self._lock = threading.Lock()
@@ -260,15 +292,24 @@ class PqLink:
                 self._to_air(hint, peer)
                 continue
             self._count("received", counter=self.chunks)
-            if out.authenticated:  # its sender is the air peer from now on
-                self._air_peer = peer
+            if out.authenticated:
+                self._learn(peer)
                 self.forwarded["air"] += 1
             for data in out.local:
                 self._to_local(data)
-            if peer is not None:  # where time alone may answer a handshake (never learned)
-                self._replied = peer
+            if peer is not None and air_kind(raw) != "repair":  # a chunk, taken: where time
+                self._replied = peer  # alone may answer a handshake (never learned)
             self._to_air(out.air, peer if out.authenticated or out.reply else self._air_peer)
         self._observe()
+
+    def _learn(self, peer: Peer | None) -> None:
+        """The air peer: the sender of the first authenticated blob of each session (a
+        relayed copy of a later chunk, arriving first, steers nothing)."""
+        with self._lock:
+            end = self.end
+            session = end.session if isinstance(end, GroundEnd) else end.current
+        if session is not self._learned or self._air_peer is None:
+            self._air_peer, self._learned = peer, session
 
     def _observe(self) -> None:
         """Hand a change of the live session to ``on_session``, once."""
@@ -342,6 +383,7 @@ class PqLink:
         if self.pacer is not None:
             with self._paced:
                 out["air:PACED_OUT"] = self.pacer.paced_out
+                out["air:PACED_STALE"] = self.pacer.paced_stale
         with self._count_lock:
             out.update(self._dropped)
             out.update(self._refused)

@@ -222,6 +222,26 @@ def command_of(frame: Frame) -> int:
 
 #: A COMMAND_ACK result that is not final: the command is still running.
 IN_PROGRESS = dialect.MAV_RESULT_IN_PROGRESS
+_ACK_AT = 6  # an inner's payload offset (its head: sysid compid seq msgid[3])
+_ACK_FULL = 10  # a COMMAND_ACK's payload with every extension field (MAVLink v2)
+
+
+def bind_ack(inner: bytes, transfer: int) -> bytes:
+    """A COMMAND_ACK's inner bound to the command transfer it answers: its payload padded
+    to full length, then the transfer number.  It travels sealed (the binding is
+    authenticated with the ACK); no plain COMMAND_ACK payload is that long, so a bound
+    one is told from an unbound one by its length alone (:func:`unbind_ack`)."""
+    payload = inner[_ACK_AT:].ljust(_ACK_FULL, b"\0")
+    return inner[:_ACK_AT] + payload + transfer.to_bytes(2, "little")
+
+
+def unbind_ack(inner: bytes) -> tuple[bytes, int | None]:
+    """The plain inner and the transfer a bound COMMAND_ACK answers (None: not bound)."""
+    msgid = int.from_bytes(inner[3:6], "little")
+    if msgid != dialect.MAVLINK_MSG_ID_COMMAND_ACK or len(inner) != _ACK_AT + _ACK_FULL + 2:
+        return inner, None
+    payload = inner[_ACK_AT : _ACK_AT + _ACK_FULL].rstrip(b"\0") or b"\0"
+    return inner[:_ACK_AT] + payload, int.from_bytes(inner[-2:], "little")
 
 
 @dataclass
@@ -289,6 +309,10 @@ class RepairingEnd:
     def _sessions_held(self) -> list[Session]:
         raise NotImplementedError
 
+    def _handshake_key(self) -> bytes | None:
+        """The repair key a handshake's NACK is MACed under (None: unsigned)."""
+        return None
+
     def _session_of(self, key: bytes | None) -> Session | None:
         """The session whose chunk key (its receive direction) is ``key``."""
         for session in self._sessions_held():
@@ -300,7 +324,7 @@ class RepairingEnd:
         """A NACK for transfer ``sender`` (sysid, compid, number), MACed in the session its
         chunks authenticated in (none: a handshake's)."""
         session = self._session_of(key)
-        mac = None if session is None else repair_key(session.send_key)
+        mac = self._handshake_key() if session is None else repair_key(session.send_key)
         if key is not None and session is None:
             return []  # its session is gone: nothing to ask for
         self.repairs["nack_sent"] += 1
