@@ -2,8 +2,8 @@
 MAVLink router's burst, and what the gateway under test can do.
 
 * The refusal contenders time a msg_id the full cache already holds: ours through
-  ``ReplayCache.commit`` (a raised :class:`ReplayAttackError` or a non-admitting result
-  both count as refused; an admission fails the run), rcan's ``check_and_record``.
+  ``ReplayCache.try_check``, the receiver's replay check (a :class:`Refusal` value; an
+  admission fails the run), rcan's ``check_and_record``.
 * The router's burst reuses :mod:`benchmarks.bench_mavlink`'s sender and launchers:
   the router (``antireplay mavlink-router``, its default SQLite store and audit) and
   MAVProxy run one at a time, so neither idles beside the other on a 2-core box.
@@ -28,6 +28,7 @@ from tests.harness import free_port
 
 from antireplay import ReplayCache
 from antireplay.core.errors import ReplayAttackError
+from antireplay.core.window import Refusal
 from benchmarks import bench_mavlink as mav
 from benchmarks import bench_window as window
 from benchmarks._gateway_load import JSON, Server, envelope
@@ -48,14 +49,15 @@ def accepting(server: Server, key: ed25519.Ed25519PrivateKey) -> None:
 
 
 def memory_refusals(work: window.Workload, size: int, batch: int) -> Batch:
-    """``ReplayCache.commit`` of a msg_id the full memory store holds: refused."""
+    """``ReplayCache.try_check`` (the receiver's step 3) of a msg_id the full memory store
+    holds: refused, as a value."""
     clock = window.StoppedClock(work.t0)
     cache = ReplayCache(window_s=300, max_size=size, clock=clock)
     clock.move_to(work.now)
     for mid, ts in zip(work.fill, work.fill_stamps, strict=True):
         cache.commit(mid, ts)
     seen, stamp = work.fill[-1], work.fill_stamps[-1]
-    return lambda _r: refuse_all(cache.commit, seen, stamp, batch)
+    return lambda _r: refuse_all(cache.try_check, seen, stamp, batch)
 
 
 def refuse_all(commit: Callable[[str, float], object], seen: str, stamp: float, n: int) -> None:
@@ -64,7 +66,7 @@ def refuse_all(commit: Callable[[str, float], object], seen: str, stamp: float, 
             result = commit(seen, stamp)
         except ReplayAttackError:
             continue
-        if getattr(result, "accepted", False) or type(result).__name__ == "Verdict":
+        if not isinstance(result, Refusal):
             raise AssertionError("a replay was accepted")
 
 
