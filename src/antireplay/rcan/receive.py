@@ -122,8 +122,9 @@ async def _durable(pending: Pending) -> BaseException | None:
     if audit is None:
         return None
     waiter = audit if isinstance(audit, asyncio.Future) else asyncio.wrap_future(audit)
+    patience = _patience(pending)
     try:
-        await asyncio.wait_for(asyncio.shield(waiter), _patience(pending))
+        await (waiter if patience is None else asyncio.wait_for(asyncio.shield(waiter), patience))
     except Exception as exc:  # any failure to record is the answer
         return exc
     return None
