@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from antireplay.audit import AuditLog, RefusalAuditor
-from antireplay.audit.refusals import FOLDED, SUMMARY, summary_count
+from antireplay.audit.refusals import FOLDED, SUMMARY, UNVERIFIED_KEYS, summary_count
 from antireplay.core.clock import ManualClock
 from antireplay.core.errors import StateUnavailableError
 
@@ -189,6 +189,37 @@ def test_sprayed_senders_fold_into_one_other_senders_tally(tmp_path: Path) -> No
         assert len(others) == 1 and others[0].sender is None
         assert summary_count(others[0].outcome, others[0].warning) == 5_000 - 8
         assert _counted(audit) == 5_000
+    finally:
+        audit.close()
+
+
+def test_claimed_senders_of_unauthenticated_refusals_cost_a_handful_of_summaries(
+    tmp_path: Path,
+) -> None:
+    """Bad signatures under a new claimed sender each (the default ``max_keys``): per cause
+    and interval at most ``UNVERIFIED_KEYS`` senders are summarised apart, the rest in one
+    "other senders" row; authenticated senders keep a tally each; all counted."""
+    clock = ManualClock()
+    audit = AuditLog(tmp_path / "audit.db")
+    auditor = RefusalAuditor(audit, clock, per_s=RATE)
+    try:
+        for interval in range(2):
+            for i in range(1_000):
+                auditor.record(code="SIGNATURE_INVALID", sender=f"spoof-{interval}-{i}",
+                               sender_verified=False)  # fmt: skip
+            for i in range(40):
+                auditor.record(code="REPLAY_DETECTED", sender=f"op-{i % 20}",
+                               sender_verified=True)  # fmt: skip
+            clock.advance(10.0)
+            auditor.flush()
+        audit.close()
+        audit = AuditLog(tmp_path / "audit.db")
+        summaries = [r for r in audit.tail(100_000) if r.outcome == SUMMARY]
+        forged = [r for r in summaries if not r.sender_verified]
+        assert len(forged) <= 2 * (UNVERIFIED_KEYS + 1)  # was one per claimed sender
+        assert sum("senders=other" in (r.warning or "") for r in forged) == 2
+        assert len([r for r in summaries if r.sender_verified]) == 2 * 20  # one per sender
+        assert _counted(audit) == 2 * 1_040 == audit.count() - len(summaries) + auditor.summarised
     finally:
         audit.close()
 

@@ -6,6 +6,8 @@ import asyncio
 import concurrent.futures
 import json
 import logging
+import sqlite3
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -15,10 +17,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from antireplay import ManualClock, SecurityConfig
-from antireplay.audit import verify
+from antireplay.audit import AuditLog, verify
 from antireplay.rcan.auth import JwtVerifier, sign_envelope
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.rcan.receive import Outcome, Receiver
+from antireplay.state.sqlite import SqliteStore
 from tests.harness import fresh_receiver, race
 from tests.harness.envelopes import (
     ED,
@@ -379,6 +382,47 @@ def test_an_estop_is_delivered_while_the_audit_trail_cannot_be_written(
         ("accepted", "AUDIT_UNAVAILABLE"),
     ]  # fmt: skip
     assert verify(trail).ok
+
+
+@pytest.mark.parametrize("driver", ["thread", "event loop"])
+def test_a_fresh_estop_is_prompt_while_another_process_holds_the_state_lock(
+    tmp_path: Path, clock: ManualClock, driver: str
+) -> None:
+    """Another connection holds the state database's write lock (``BEGIN IMMEDIATE``: a
+    second gateway on the same state dir, stopped mid-batch): a fresh ESTOP is delivered
+    flagged within a bound far below the 10 s busy timeout (it took two of them), and its
+    row, spilled, reaches the trail once the lock is released."""
+    store = SqliteStore(tmp_path / "state.db", clock=clock)  # the default 10 s busy timeout
+    audit = AuditLog(tmp_path / "audit.db")
+    audit.attach(store.outbox())
+    receiver = fresh_receiver(SecurityConfig(), registry(), store, audit, clock)
+    assert receiver.receive(signed()).accepted
+    estop = signed(type=6, safety_event="ESTOP", cmd="estop")
+
+    async def on_loop() -> Outcome:
+        async def offload(fn: Callable[..., Any], *args: Any) -> Any:
+            return await asyncio.to_thread(fn, *args)
+
+        return await receiver.receive_async(estop, None, offload, offload)
+
+    holder = sqlite3.connect(tmp_path / "state.db", isolation_level=None)
+    holder.execute("BEGIN IMMEDIATE")
+    try:
+        start = time.monotonic()
+        out = receiver.receive(estop) if driver == "thread" else asyncio.run(on_loop())
+        took = time.monotonic() - start
+    finally:
+        holder.rollback()
+        holder.close()
+    assert (out.accepted, out.warning) == (True, "STATE_UNAVAILABLE")
+    assert took < 2.0  # two SAFETY_WAIT_S and a spill; 20 s before
+    assert receiver.receive(signed()).accepted  # the lock is free: the spill is merged
+    receiver.close()
+    rows = [(r.outcome, r.warning) for r in AuditLog(tmp_path / "audit.db").tail(20)
+            if r.msg_type == 6]  # fmt: skip
+    assert rows == [("accepted", "STATE_UNAVAILABLE")]  # once: withdrawn from the outbox
+    assert verify(tmp_path / "audit.db").ok
+    store.close()
 
 
 class _NoThreads(concurrent.futures.ThreadPoolExecutor):

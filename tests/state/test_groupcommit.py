@@ -147,6 +147,26 @@ def test_a_failed_batch_raises_in_every_caller_and_the_next_batch_works() -> Non
     assert (committer.batches, committer.operations) == (2, 2)  # the failed one not counted
 
 
+def test_a_withdrawn_operation_is_never_run_and_a_taken_one_cannot_be_withdrawn() -> None:
+    """A caller that stops waiting cancels its future: withdrawn while queued, the writer
+    skips it; once taken into a batch it can no longer be withdrawn and is committed."""
+    writer = HeldWriter()
+    committer: GroupCommitter[int, tuple[int, int]] = GroupCommitter(writer, name="t-cancel")
+    try:
+        taken = committer.enqueue(1)
+        _until(writer.entered.is_set, "the writer to take the first batch")
+        queued, kept = committer.enqueue(2), committer.enqueue(3)
+        assert not taken.cancel()  # in the running batch
+        assert queued.cancel()
+        writer.release.set()
+        assert taken.result(WAIT_S) == (1, 0)
+        assert kept.result(WAIT_S) == (3, 0)  # alone in its batch: 2 was skipped
+        assert writer.batches == [[1], [3]]
+    finally:
+        writer.release.set()
+        committer.close()
+
+
 def test_event_loop_waiters_get_their_results_in_one_call_per_batch() -> None:
     """enqueue_async: no thread held while waiting, and the writer wakes the loop once per
     batch, not once per waiter; a failed batch fails every waiter of it."""

@@ -4,6 +4,7 @@ or answers 503 while serving, naming the file and the recovery, never a bare err
 from __future__ import annotations
 
 import sqlite3
+import time
 from functools import partial
 from pathlib import Path
 
@@ -11,7 +12,7 @@ import pytest
 
 from antireplay import ManualClock, MessageType, ReplayCache
 from antireplay.core.errors import StateFileError, StateUnavailableError
-from antireplay.state.sqlite import SqliteStore, check_readable
+from antireplay.state.sqlite import SAFETY_WAIT_S, STALLED_WAIT_S, SqliteStore, check_readable
 
 NOW = 2_000_000_000.0
 
@@ -116,3 +117,44 @@ def test_the_witness_claims_only_generations_made_durable(tmp_path: Path) -> Non
         assert isinstance(latest, tuple) and latest[1] == after[1] + 1
     finally:
         store.close()
+
+
+def _busy_ms(store: SqliteStore) -> int:
+    return int(store._db.execute("PRAGMA busy_timeout").fetchone()[0])
+
+
+def test_another_process_holding_the_write_lock_costs_one_wait_and_an_estop_none(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """Another connection holds ``BEGIN IMMEDIATE`` (a second gateway stopped mid-batch):
+    an ESTOP's commit gives up after ``SAFETY_WAIT_S`` (its record stays queued and lands
+    once the lock frees); an ordinary commit waits the busy timeout once, and after that
+    wait ran out every commit fails after ``STALLED_WAIT_S`` until a transaction begins."""
+    store = SqliteStore(tmp_path / "state.db", timeout_s=30.0, clock=clock)
+    now = clock.wall()
+    holder = sqlite3.connect(tmp_path / "state.db", isolation_level=None)
+    holder.execute("BEGIN IMMEDIATE")
+    try:
+        start = time.monotonic()
+        with pytest.raises(StateUnavailableError, match="write lock not taken"):
+            store.commit("estop-1", now + 60, now, force=True)
+        assert time.monotonic() - start < 10 * SAFETY_WAIT_S  # not the 30 s busy timeout
+    finally:
+        holder.rollback()
+    assert store.commit("a", now + 60, now).recorded  # queued behind the ESTOP's record
+    assert store.lookup("estop-1").expiry == now + 60  # committed once the lock freed
+
+    store._db.execute("PRAGMA busy_timeout=300")  # a short busy timeout to run out
+    holder.execute("BEGIN IMMEDIATE")
+    try:
+        with pytest.raises(StateUnavailableError, match="locked"):
+            store.commit("b", now + 60, now)  # one full wait
+        assert _busy_ms(store) == int(STALLED_WAIT_S * 1000)
+        with pytest.raises(StateUnavailableError, match="locked"):
+            store.commit("c", now + 60, now)  # then at once
+    finally:
+        holder.rollback()
+        holder.close()
+    assert store.commit("d", now + 60, now).recorded
+    assert _busy_ms(store) == 30_000  # the busy timeout is back
+    store.close()

@@ -15,7 +15,10 @@ the interval: at most ``per_key`` rows per ``(class, cause, sender)`` per ``flus
 so one noisy sender does not starve the others of their class.  A refusal left out is
 *folded* into its key's tally (count, first and last time, its msg_id while they all
 share one).  The table of keys is bounded (``max_keys``): a sender beyond it folds into
-its class's and cause's "other senders" tally, so spraying senders grows nothing.
+its class's and cause's "other senders" tally, so spraying senders grows nothing.  An
+unauthenticated refusal's sender is only claimed, so that class gets at most
+``unverified_keys`` senders of its own per interval: a flood spraying claimed senders
+costs a handful of summary rows per cause, not one per name.
 
 Every ``flush_s`` (checked as refusals arrive, by the adapter's timer, and at
 ``close``) each tally becomes one summary row: ``outcome`` ``summary``, the cause as
@@ -50,6 +53,8 @@ AUDIT_PER_S = 50.0
 FLUSH_S = 10.0
 #: Senders tallied apart, per auditor; the rest share their cause's "other senders" tally.
 MAX_KEYS = 1024
+#: Claimed (unverified) senders tallied apart per interval; the rest are "other senders".
+UNVERIFIED_KEYS = 8
 #: The key under which folded refusals are counted in an adapter's counter.
 FOLDED = "audit_rate_limited"
 #: The ``outcome`` of a summary row.
@@ -127,6 +132,7 @@ class RefusalAuditor:
         per_key: int | None = None,
         flush_s: float = FLUSH_S,
         max_keys: int = MAX_KEYS,
+        unverified_keys: int = UNVERIFIED_KEYS,
         log: logging.Logger | None = None,
         counts: Counter[str] | None = None,
         quiet: Callable[[], bool] | None = None,
@@ -143,7 +149,8 @@ class RefusalAuditor:
         rates = {False: per_s, True: per_s if authentic_per_s is None else authentic_per_s}
         #: Rows of their own per key and interval, per class (one second's budget by default).
         self.per_key = {a: max(1, int(r)) if per_key is None else per_key for a, r in rates.items()}
-        self.flush_s, self.max_keys = flush_s, max_keys
+        self.flush_s, self.max_keys, self.unverified_keys = flush_s, max_keys, unverified_keys
+        self._unverified = 0  # unauthenticated senders tallied apart this interval
         #: ``True`` while rows must not be written (free space below the first floor).
         self.quiet = quiet or (lambda: False)
         self._counts = counts
@@ -180,13 +187,17 @@ class RefusalAuditor:
         return False
 
     def _tally(self, key: Key) -> _Tally:
-        """The key's tally (the caller holds the lock); beyond ``max_keys``, its cause's
-        "other senders" tally."""
+        """The key's tally (the caller holds the lock); beyond ``max_keys``, or for an
+        unauthenticated sender beyond ``unverified_keys``, its cause's "other senders"
+        tally."""
         tally = self._tallies.get(key)
         if tally is None:
-            if len(self._tallies) >= self.max_keys:
+            full = len(self._tallies) >= self.max_keys
+            if full or (not key[0] and self._unverified >= self.unverified_keys):
                 key = (key[0], key[1], _OTHER)
                 tally = self._tallies.get(key)
+            elif not key[0]:
+                self._unverified += 1
             if tally is None:
                 tally = self._tallies[key] = _Tally()
         return tally
@@ -223,6 +234,7 @@ class RefusalAuditor:
         queued.  Below the free-space floor nothing is written, only counted."""
         with self._lock:
             tallies, self._tallies = self._tallies, {}
+            self._unverified = 0
             self._flushed = self.clock.monotonic()
         rows = [(key, t) for key, t in tallies.items() if t.folded]
         if not rows:
@@ -295,6 +307,7 @@ __all__ = [
     "FOLDED",
     "MAX_KEYS",
     "SUMMARY",
+    "UNVERIFIED_KEYS",
     "RefusalAuditor",
     "Trail",
     "summary_count",

@@ -31,6 +31,9 @@ trail's reserved file (:mod:`~antireplay.audit.spill`), merged into the trail la
 Refusals pass the one :class:`~antireplay.audit.RefusalAuditor` (rate-limited rows, the
 rest summarised); below the disk's second floor (:mod:`~antireplay.audit.space`) all but
 a fresh ESTOP is refused ``STATE_UNAVAILABLE`` before its commit.  Nothing raises.
+A fresh ESTOP waits for its commit and its row at most ``SAFETY_WAIT_S`` each (a row
+not written by then is withdrawn and spilled, or, already in a batch, spilled only if
+that batch fails).
 """
 
 from __future__ import annotations
@@ -64,6 +67,7 @@ from antireplay.rcan.envelope import MAX_BYTES
 from antireplay.rcan.steps import Checked, Done, NeedsCommit, Outcome, Steps, audit_row, may_retry
 from antireplay.state import Offload, ReplayStore, in_executor
 from antireplay.state.replay import ReplayCache
+from antireplay.state.sqlite import SAFETY_WAIT_S
 
 #: Stores whose replay check an event loop runs itself (no network round trip).
 LOCAL_BACKENDS = frozenset({"memory", "sqlite"})
@@ -91,24 +95,36 @@ class Pending:
     row: dict[str, Any] | None = None
 
 
-def _wait(audit: Future[int] | asyncio.Future[int] | None) -> BaseException | None:
-    """Block until the audit row is durable: ``None``, or why it could not be made so."""
+def _patience(pending: Pending) -> float | None:
+    """How long an answer waits for its audit row (``None``: until the row is durable or
+    failed): a fresh ESTOP's at most :data:`SAFETY_WAIT_S` (then delivered flagged, its
+    row withdrawn and spilled)."""
+    return SAFETY_WAIT_S if pending.estop else None
+
+
+def _wait(pending: Pending) -> BaseException | None:
+    """Block until the audit row is durable: ``None``, or why it could not be made so
+    (``TimeoutError``: not within :func:`_patience`; the row is still queued)."""
+    audit = pending.audit
     if audit is None:
         return None
     assert isinstance(audit, Future), "a row queued by an event loop is awaited there"
     try:
-        audit.result()
+        audit.result(_patience(pending))
     except Exception as exc:  # any failure to record is the answer
         return exc
     return None
 
 
-async def _durable(audit: Future[int] | asyncio.Future[int] | None) -> BaseException | None:
+async def _durable(pending: Pending) -> BaseException | None:
     """:func:`_wait` on an event loop, holding no thread."""
+    audit = pending.audit
     if audit is None:
         return None
+    waiter = audit if isinstance(audit, asyncio.Future) else asyncio.wrap_future(audit)
+    patience = _patience(pending)
     try:
-        await (audit if isinstance(audit, asyncio.Future) else asyncio.wrap_future(audit))
+        await (waiter if patience is None else asyncio.wait_for(asyncio.shield(waiter), patience))
     except Exception as exc:  # any failure to record is the answer
         return exc
     return None
@@ -202,7 +218,7 @@ class Receiver:
     def receive(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Outcome:
         """Run the §8.3 steps; never raises for anything a peer can send."""
         pending = self.receive_later(raw, headers)
-        return self.settle(pending, _wait(pending.audit))
+        return self.settle(pending, _wait(pending))
 
     def receive_later(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Pending:
         """Every step through the commit; the outcome's audit row is queued for the next
@@ -237,9 +253,10 @@ class Receiver:
         """:meth:`receive` for an event loop: the settled outcome, its audit row durable,
         awaited without holding a thread (:meth:`receive_later_async`, then :meth:`settle`)."""
         pending = await self.receive_later_async(raw, headers, offload, urgent)
-        failure = await _durable(pending.audit)
+        failure = await _durable(pending)
         if failure is not None and pending.outcome.accepted:  # its refusal is audited: blocks
-            outcome: Outcome = await (offload or in_executor)(self.settle, pending, failure)
+            lane = urgent if urgent is not None and pending.estop else offload or in_executor
+            outcome: Outcome = await lane(self.settle, pending, failure)
             return outcome
         return self.settle(pending, failure)
 
@@ -332,7 +349,7 @@ class Receiver:
         done = Done(error, outcome.envelope, outcome.signer, outcome.msg_type)
         failed = self.steps.refuse(done)
         failed.msg_id = outcome.msg_id
-        if await _durable(self._queue_audit(Pending(failed), on_loop=True).audit) is not None:
+        if await _durable(self._queue_audit(Pending(failed), on_loop=True)) is not None:
             self.stats.audit_failures += 1  # the failure is still answered
 
     def _answer_retry(
@@ -398,7 +415,7 @@ class Receiver:
         if failure is not None:
             self.stats.audit_failures += 1
             if not outcome.accepted:
-                return outcome  # the rejection stands; it could not be recorded
+                return outcome  # the rejection stands; it could not be recorded (yet)
             warning = estop_survives(pending.estop, outcome.warning, WarningCode.AUDIT_UNAVAILABLE)
             if warning is None:
                 # Nothing accepted may be missing from the audit trail: refuse to act on it.
@@ -408,7 +425,7 @@ class Receiver:
                 exc = StateUnavailableError(f"audit trail unavailable: {failure}")
                 done = Done(exc, outcome.envelope, outcome.signer, outcome.msg_type)
                 refusal = self._reject(done)
-                return self.settle(refusal, _wait(refusal.audit))
+                return self.settle(refusal, _wait(refusal))
             self._hold(pending, failure, warning)  # safety beats the audit trail
         if outcome.accepted:
             self.stats.accepted += 1
@@ -432,6 +449,22 @@ class Receiver:
         if pending.row is None or self.audit is None:
             return
         row = {**pending.row, "warning": warning}
+        audit = pending.audit
+        if isinstance(failure, TimeoutError) and isinstance(audit, Future) and not audit.cancel():
+            # Already in a batch (cannot be withdrawn): it lands, or is spilled if it fails.
+            audit.add_done_callback(lambda done: self._spill_late(done, row))
+            return
+        self._spill(row, failure)
+
+    def _spill_late(self, done: Future[int], row: dict[str, Any]) -> None:
+        """An ESTOP row's batch finished after its answer: spilled only if it failed."""
+        failure = None if done.cancelled() else done.exception()
+        if failure is not None:
+            self._spill(row, failure)
+
+    def _spill(self, row: dict[str, Any], failure: BaseException) -> None:
+        """Keep one delivered ESTOP's row in the spill (merged into the trail later)."""
+        assert self.audit is not None
         first = self.held_rows == 0
         if not self.audit.spill(**row):
             self.stats.held_dropped += 1
@@ -529,10 +562,12 @@ class Receiver:
         if self.audit is not None:
             if fields is None:
                 fields = audit_row(pending.outcome, self.clock.wall())
-            if pending.estop:
+            if pending.estop:  # a thread's future: withdrawn if it is not written in time
                 pending.row = fields
             try:
-                pending.audit = self.audit.append_later(**fields, on_loop=on_loop)
+                pending.audit = self.audit.append_later(
+                    **fields, on_loop=on_loop and not pending.estop
+                )
             except RuntimeError as exc:
                 failed: Future[int] = Future()
                 failed.set_exception(exc)

@@ -22,6 +22,9 @@ do we, in exactly one place: :class:`GroupCommitter`.
   may not have been answered: safe, a retry is refused as a replay) or none of
   it (no caller was answered).
 * A batch that fails raises the same error in every caller of that batch.
+* A thread's caller that stops waiting may withdraw its operation: ``Future.cancel()``
+  succeeds only while it is still queued (the writer marks each taken future running), so a
+  withdrawn operation is never committed and one that was not is committed as usual.
 * Under no concurrency a batch is one operation: the cost is one thread
   hand-off (tens of microseconds), against an fsync of a hundred or more.
 
@@ -65,6 +68,13 @@ def _deliver(
             waiter.set_result(cast(R, result))
         else:
             waiter.set_exception(error)
+
+
+def _taken(future: Future[R] | asyncio.Future[R]) -> bool:
+    """Whether the writer takes this operation: a thread's future not withdrawn (cancelled)
+    by its caller, marked running so that it can no longer be; an event loop's always (a
+    cancelled waiter only goes unanswered)."""
+    return not isinstance(future, Future) or future.set_running_or_notify_cancel()
 
 
 class GroupCommitter(Generic[Op, R]):
@@ -135,7 +145,10 @@ class GroupCommitter(Generic[Op, R]):
             if stop:
                 return
 
-    def _commit(self, batch: list[_Slot[Op, R]]) -> None:
+    def _commit(self, queued: list[_Slot[Op, R]]) -> None:
+        batch = [slot for slot in queued if _taken(slot.future)]
+        if not batch:
+            return
         error: BaseException | None = None
         results: list[R | None]
         try:

@@ -15,7 +15,12 @@ durable.  With an audit outbox (:mod:`.outbox`) the batch also carries audit row
 and entries may be *deferred* (``synchronous=NORMAL``) to the accepted row that
 follows each, whose batch's fsync covers both: one fsync per batch, not three.
 Several processes may share one file; SQLite's write lock (``BEGIN IMMEDIATE``)
-makes each batch and ``advance`` atomic across them.
+makes each batch and ``advance`` atomic across them.  A fresh ESTOP's commit waits for
+that lock at most :data:`SAFETY_WAIT_S` (not the busy timeout): past it, the ESTOP is
+delivered flagged ``STATE_UNAVAILABLE`` while its record stays queued, committed once the
+lock frees (another process holding it, even stopped, never delays an ESTOP).  Other
+operations wait up to the busy timeout once; after a wait that ran out, each fails
+after :data:`STALLED_WAIT_S` until a transaction begins again (no pile-up of timeouts).
 
 * **Entries live to their own expiry; early removal raises the watermark.**
   Each commit purges at most ``PURGE_BATCH`` rows whose expiry is below the
@@ -130,6 +135,10 @@ _SEEN_UNDECODABLE = "SELECT key, expires FROM seen WHERE expires >= '' LIMIT 1"
 _Record = tuple[str, float, float, bool]
 #: What the writer takes: a seen-set commit or an outbox row (or its deletion).
 _Op = _Record | Put | Forget | Renew
+#: How long a fresh ESTOP's commit waits for the write lock before it is delivered anyway.
+SAFETY_WAIT_S: Final = 0.2
+#: How long a transaction waits for the write lock after a wait ran out (see ``_begin``).
+STALLED_WAIT_S: Final = 0.05
 #: How long the witness may go without an fdatasync while commits move it (see docstring).
 WITNESS_SYNC_S: Final = 1.0
 #: The meta row as a transaction read it: generation, watermark, fence, data-loss events.
@@ -159,6 +168,8 @@ class SqliteStore:
         self.witness = Witness(self.path.with_name(f".{self.path.name}.witness"))
         self._clock = resolve(clock)
         self._lock = threading.Lock()
+        self._timeout_s = timeout_s
+        self._stalled = False  # the last wait for the write lock ran out (see _begin)
         self._db = self._open(timeout_s)
         check_readable(self.path)  # stored values that do not decode refuse the start
         self._file = file_identity(self.path)
@@ -182,7 +193,6 @@ class SqliteStore:
         # Reads (the pre-crypto check, metrics) use their own connections: WAL lets them run
         # beside the writer, so no lookup ever waits behind a group commit's fsyncs, and one
         # connection per concurrent reader lets lookups in several threads run side by side.
-        self._timeout_s = timeout_s
         self._readers: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
         self._defer = False
         self._outbox: Outbox | None = None
@@ -303,7 +313,7 @@ class SqliteStore:
         self._same_file()
         db = self._db
         db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
-        db.execute("BEGIN IMMEDIATE")
+        self._begin(db)
         try:
             result, (generation, watermark, fence, losses) = body(db)
             generation += 1
@@ -326,6 +336,22 @@ class SqliteStore:
         if durable:
             self._witness(generation)
         return result
+
+    def _begin(self, db: sqlite3.Connection) -> None:
+        """``BEGIN IMMEDIATE``, waiting for the write lock up to the busy timeout, but only
+        :data:`STALLED_WAIT_S` after a wait that ran out and until a transaction begins
+        again: one bounded wait, then every queued operation fails at once (503), not one
+        busy timeout each."""
+        try:
+            db.execute("BEGIN IMMEDIATE")
+        except sqlite3.OperationalError as exc:
+            if "locked" in str(exc) and not self._stalled:
+                self._stalled = True
+                db.execute(f"PRAGMA busy_timeout={int(STALLED_WAIT_S * 1000)}")
+            raise
+        if self._stalled:
+            self._stalled = False
+            db.execute(f"PRAGMA busy_timeout={int(self._timeout_s * 1000)}")
 
     def _witness(self, generation: int) -> None:
         """Record a durable generation in the witness; fdatasync it at most every
@@ -416,8 +442,15 @@ class SqliteStore:
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         """Queue the record for the next group commit; return once it is durable (or,
-        deferred by an outbox, written: see :meth:`defer_commits`)."""
-        return cast(Seen, self._committer.submit((key, expires_at, now, force)))
+        deferred by an outbox, written: see :meth:`defer_commits`).  An ESTOP's (``force``)
+        waits at most :data:`SAFETY_WAIT_S`, see :func:`_lock_held`."""
+        waiter = self._committer.enqueue((key, expires_at, now, force))
+        if not force:
+            return cast(Seen, waiter.result())
+        try:
+            return cast(Seen, waiter.result(SAFETY_WAIT_S))
+        except TimeoutError:
+            raise _lock_held(self.path) from None
 
     def commit_async(
         self,
@@ -429,7 +462,9 @@ class SqliteStore:
     ) -> asyncio.Future[Seen]:
         """:meth:`commit` from a running event loop: await the batch, holding no thread."""
         waiter = self._committer.enqueue_async((key, expires_at, now, force))
-        return cast("asyncio.Future[Seen]", waiter)
+        if not force:
+            return cast("asyncio.Future[Seen]", waiter)
+        return asyncio.ensure_future(_bounded(cast("asyncio.Future[Seen]", waiter), self.path))
 
     def outbox(self) -> Outbox:
         """This database's audit outbox (:mod:`antireplay.state.outbox`), made once."""
@@ -636,6 +671,25 @@ class SqliteStore:
             raise StateUnavailableError(f"sqlite {self.path}: {exc}") from None
         except OSError as exc:
             raise StateUnavailableError(f"sqlite witness {self.witness.path}: {exc}") from None
+
+
+def _lock_held(path: Path) -> StateUnavailableError:
+    """An ESTOP's commit that did not finish within :data:`SAFETY_WAIT_S` (another
+    process holds the write lock, or a slow disk): the ESTOP is delivered flagged
+    (``estop_survives``); its record stays queued and is committed once the lock frees."""
+    return StateUnavailableError(
+        f"sqlite {path}: write lock not taken within {SAFETY_WAIT_S}s (another process "
+        "holds it?); the ESTOP's record is committed once it frees"
+    )
+
+
+async def _bounded(waiter: asyncio.Future[Seen], path: Path) -> Seen:
+    """An ESTOP's commit on an event loop, awaited at most :data:`SAFETY_WAIT_S` (the
+    record itself stays queued: ``shield``)."""
+    try:
+        return await asyncio.wait_for(asyncio.shield(waiter), SAFETY_WAIT_S)
+    except TimeoutError:
+        raise _lock_held(path) from None
 
 
 def check_readable(path: str | Path) -> None:
