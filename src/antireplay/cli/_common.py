@@ -111,8 +111,10 @@ def _can_make_directory_in(parent: Path) -> bool:
 def _check_audit_anchor(path: Path) -> None:
     """What opening the trail would refuse, found read-only (nothing written, nothing adopted)."""
     existing = next(p for p in (path.absolute().parent, *path.absolute().parents) if p.exists())
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK) or (
-        existing != path.absolute().parent and not _can_make_directory_in(existing)
+    if (
+        not existing.is_dir()
+        or not os.access(existing, os.W_OK | os.X_OK)
+        or (existing != path.absolute().parent and not _can_make_directory_in(existing))
     ):
         _fail(f"audit {path}: cannot create its directory ({existing} is not a writable directory)")
     if not path.exists():
