@@ -23,9 +23,9 @@ above that mark (a gap, or the newest ones) is tampering and refused by name.
 
 Several writers (``serve --workers N``) share one trail: each holds the lock shared only
 around a batch, so a rotation waits at most for the batches in flight.  Leaving WAL mode
-needs every other connection closed, so each writer closes its live connection after any
-batch that finds rotation due (everyone sees the same file size), then tries to rotate
-itself; whoever gets the lock first rotates, the others find the file they had open under
+needs every other connection closed, so a writer that is not alone (``PATH.writers``)
+closes its live connection after each batch, and one whose batch finds rotation due tries
+to rotate; whoever gets the lock first rotates, the others find the file they had open under
 a rotated name at their next batch (:meth:`~.writer.AuditLog._follow`: same inode as
 ``PATH.NNNNNN``, or a segment retention removed per the head) and reopen the live one; a
 file that is neither was deleted or replaced, and is refused.
@@ -108,6 +108,19 @@ class RotationLock:
         self.path = path.with_name(path.name + ".lock")
         self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
         self.shared()  # waits out a rotation in progress
+        #: ``PATH.writers``, held shared for the writer's lifetime: who else is open.
+        self._open = os.open(path.with_name(path.name + ".writers"), os.O_RDWR | os.O_CREAT, 0o600)
+        fcntl.flock(self._open, fcntl.LOCK_SH)
+
+    def alone(self) -> bool:
+        """No other writer has the trail open (then this one may keep its connection)."""
+        try:
+            fcntl.flock(self._open, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return False
+        finally:
+            fcntl.flock(self._open, fcntl.LOCK_SH)
+        return True
 
     def exclusive(self, wait_s: float = 0.0) -> bool:
         """Take it for a rotation, waiting up to ``wait_s`` for batches in flight;
@@ -132,6 +145,7 @@ class RotationLock:
     def close(self) -> None:
         if self._fd >= 0:
             os.close(self._fd)
+            os.close(self._open)
             self._fd = -1
 
 

@@ -110,6 +110,9 @@ class AuditLog:
         self.head_sync_s = head_sync_s
         #: When the live segment rotates and what is removed (default: one growing file).
         self.retention = retention or Retention()
+        self._rotates = self.retention.segment_bytes is not None or (
+            self.retention.segment_age_s is not None
+        )
         self._clock = resolve(clock)
         self._head_synced = self._clock.monotonic()
         self._head_dirty = False
@@ -297,6 +300,9 @@ class AuditLog:
         if identity is None:
             log.error("audit trail %s deleted; refusing to append", self.path)
             raise self._gone()
+        if self._db is None and identity == self._file and current:  # closed by this writer
+            self._db = _open_live(self.path, self.retention.segment_bytes)[0]
+            return self._db
         self._close_live()
         db, file = _open_live(self.path, self.retention.segment_bytes)
         try:
@@ -418,16 +424,16 @@ class AuditLog:
                     with contextlib.suppress(sqlite3.Error):  # a full disk: SQLite rolled back
                         db.execute("ROLLBACK")
                     raise
-            self._rows, self._head = done.rows, done.head
-            if self._live_since is None and done.first_at is not None:
-                self._live_since = valid_at(done.first_at)
-            if outbox is None:
-                self._checkpoint()
-            elif sync:  # the head claims only rows made durable; so does the outbox's delete
-                self._checkpoint(sync=True)
-                self._forget(outbox, done.mark)
-            else:
-                self._head_dirty = True
+                self._rows, self._head = done.rows, done.head
+                if self._live_since is None and done.first_at is not None:
+                    self._live_since = valid_at(done.first_at)
+                if outbox is None:  # the head under the lock: never a retention's stale mark
+                    self._checkpoint()
+                elif sync:  # the head claims only rows made durable; so does the outbox's delete
+                    self._checkpoint(sync=True)
+                    self._forget(outbox, done.mark)
+                else:
+                    self._head_dirty = True
             if spilled:
                 self._merged(len(spilled))
             if self._rotation_due():
@@ -439,6 +445,8 @@ class AuditLog:
                 if why is not None:
                     self._close_live()
                 self._postponed(why)
+            elif self._rotates and not self._rotation.alone():
+                self._close_live()  # an idle writer's connection would stop the others' rotation
             self._last_moved = done.moved
             if done.moved == DRAIN_BATCH:
                 self._wake()  # more waiting: drain on
@@ -603,6 +611,10 @@ class AuditLog:
         try:
             db.execute("BEGIN IMMEDIATE")  # another writer waits, then sees the new name
             self._rotation_point("sealed")
+            problem = _compare(db, Checkpoint(self._rows, self._head))
+            if problem is not None:
+                raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
+            self._rows, self._head = _last(db)  # other writers' rows included
             following = self.anchor.link(self._key, self._link.n + 1, self._rows + 1, self._head)
             mark = _mark(db)
             segments.prepare(self.path, following, mark if mark[0] is not None else None)
@@ -654,12 +666,15 @@ class AuditLog:
                  gone[-1].n)  # fmt: skip
 
     def usage(self) -> TrailUsage:
-        """Bytes on disk across segments (WAL included), segments kept, oldest row's time."""
+        """Bytes on disk across segments (WAL included), segments kept, oldest row's time
+        (the files on disk, which other writers rotate and retain too; the oldest row's
+        time as this writer last saw it)."""
         with self._lock:
-            kept = list(self._kept)
+            files = [file for _, file in segments.rotated(self.path)]
             live = segments.bytes_of(self.path)
-            oldest = next((k.first_at for k in kept if k.first_at is not None), self._live_since)
-        return TrailUsage(sum(k.bytes for k in kept) + live, len(kept) + 1, oldest)
+            oldest = next((k.first_at for k in self._kept if k.first_at is not None),
+                          self._live_since)  # fmt: skip
+        return TrailUsage(sum(map(segments.bytes_of, files)) + live, len(files) + 1, oldest)
 
     def tail(self, n: int = 20) -> list[Record]:
         """The newest ``n`` records across segments (read-only connections), the outbox's
@@ -699,10 +714,11 @@ class AuditLog:
         with self._lock:
             try:
                 if self._head_dirty:
-                    self.anchor.write(self._key, self._rows, self._head, sync=True,
-                                      first=self._first)  # fmt: skip
+                    with self._shared():
+                        self.anchor.write(self._key, self._rows, self._head, sync=True,
+                                          first=self._first)  # fmt: skip
                     self._head_dirty = False
-            except OSError as exc:  # the head on disk may lag after a power cut: under-claims
+            except (OSError, sqlite3.Error, AuditFileError) as exc:  # the head lags: under-claims
                 log.warning("audit head %s not made durable at close: %s", self.anchor.path, exc)
             finally:
                 self._close_live()
