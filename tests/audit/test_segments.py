@@ -18,7 +18,7 @@ from antireplay.audit import AuditLog, Retention, reanchor, verify
 from antireplay.audit.segments import bytes_of, numbered, rotated
 from antireplay.cli import main
 from antireplay.core.clock import ManualClock
-from antireplay.core.errors import AuditFileError
+from antireplay.core.errors import AuditFileError, StateUnavailableError
 from tests.harness.audit import SMALL_SEGMENT, append, segmented, sql, trail
 
 
@@ -170,10 +170,13 @@ def test_rotation_waits_while_another_connection_holds_the_live_segment(
         ]
     finally:
         reader.close()
-    append(log, 60)
+    rows = 60
+    while not rotated(path):  # the reader gone, the next batch past the size rotates
+        append(log, rows)
+        rows += 1
     log.close()
     assert [n for n, _ in rotated(path)] == [1]
-    assert verify(path).ok and verify(path).records == 61
+    assert verify(path).ok and verify(path).records == rows
 
 
 # --- what retention does not do: deletions, truncations, swaps, forgeries ---------------------
@@ -269,19 +272,37 @@ def test_reanchor_with_a_new_key_relinks_every_segment(three: Path) -> None:
     assert verify(three).ok
 
 
-def test_two_writers_postpone_rotation_until_one_closes(tmp_path: Path) -> None:
+def test_two_writers_in_one_trail_take_turns_rotating(tmp_path: Path) -> None:
+    """Neither writer's open connection stops the other's rotation for good: a writer
+    whose batch finds rotation due lets its connection go, whoever rotates, the other
+    follows the chain into the new live segment."""
     path = tmp_path / "audit.db"
     small = Retention(segment_bytes=SMALL_SEGMENT)
     one, two = AuditLog(path, retention=small), AuditLog(path, retention=small)
-    for i in range(0, 80, 2):
-        append(one, i)
-        append(two, i + 1)
-    assert rotated(path) == []  # each holds the live segment open: neither rotates it
-    two.close()
-    append(one, 80)
+    seqs = []
+    for i in range(0, 160, 2):
+        seqs += [append(one, i), append(two, i + 1)]
     one.close()
-    assert [n for n, _ in rotated(path)] == [1]
-    assert verify(path).ok and verify(path).records == 81
+    two.close()
+    assert seqs == list(range(1, 161))
+    assert len(rotated(path)) >= 3
+    report = verify(path)
+    assert report.ok and report.records == 160, report.lines()
+
+
+def test_a_trail_replaced_under_two_writers_is_still_refused(tmp_path: Path) -> None:
+    """Following a rotation is not adopting any file: one put in the live segment's place
+    that is not the rotated one under its numbered name is refused."""
+    path = tmp_path / "audit.db"
+    one = AuditLog(path, retention=Retention(segment_bytes=SMALL_SEGMENT))
+    append(one, 0)
+    AuditLog(tmp_path / "other.db").close()
+    os.replace(tmp_path / "other.db", path)
+    try:
+        with pytest.raises(StateUnavailableError, match="deleted or replaced"):
+            append(one, 1)
+    finally:
+        one.close()
 
 
 def test_a_budget_smaller_than_a_segment_keeps_only_the_live_one(tmp_path: Path) -> None:

@@ -12,9 +12,11 @@ from pathlib import Path
 import pytest
 
 from antireplay.audit import AuditLog, Retention, tail, verify
+from antireplay.audit.segments import bytes_of, rotated
 from antireplay.core.errors import AuditFileError, StateUnavailableError
 from tests.harness import ROOT
 from tests.harness.audit import SMALL_SEGMENT, append, trail
+from tests.harness.workers.audit_worker import BUDGET
 
 
 @pytest.mark.parametrize("key_too", [False, True], ids=["db", "db-and-key"])
@@ -121,3 +123,55 @@ def test_reading_the_trail_in_the_writers_process_keeps_its_wal(tmp_path: Path) 
     finally:
         log.close()
     assert verify(path).records == 2
+
+
+def test_writer_processes_on_one_trail_rotate_and_retain_within_budget(tmp_path: Path) -> None:
+    """Two real writer processes appending at once (``serve --workers 2``): the trail
+    rotates and retention keeps it within ``max_bytes`` plus one segment whatever the
+    interleaving, ``audit verify`` accepts the cut, and every acknowledged row kept is there
+    exactly once."""
+    path = tmp_path / "audit.db"
+    AuditLog(path, retention=BUDGET).close()  # the key and head exist before both start
+    env = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"}
+    command = [sys.executable, "-m", "tests.harness.workers.audit_worker", str(path), "append"]
+    workers = [
+        subprocess.Popen(
+            [*command, "700", name],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            env=env,
+        )
+        for name in ("a", "b")
+    ]
+    said: list[list[str]] = [[], []]
+
+    def until(line: str) -> None:
+        for worker, lines in zip(workers, said, strict=True):
+            assert worker.stdin is not None and worker.stdout is not None
+            while (got := worker.stdout.readline().strip()) != line:
+                assert got, f"the writer exited ({worker.wait()}) before {line}"
+                lines.append(got)
+        for worker in workers:  # both are open together: now go on
+            assert worker.stdin is not None
+            worker.stdin.write("go\n")
+            worker.stdin.flush()
+
+    try:
+        until("READY")
+        until("DONE")  # both still open: the bound holds while they run
+        on_disk = sum(bytes_of(file) for _, file in rotated(path)) + bytes_of(path)
+        assert on_disk <= BUDGET.max_bytes + SMALL_SEGMENT  # type: ignore[operator]
+    finally:
+        for worker in workers:
+            worker.communicate(timeout=60)
+    assert [worker.returncode for worker in workers] == [0, 0]
+    assert len(said[0]) == len(said[1]) == 700
+    report = verify(path)
+    assert report.ok and report.first_segment > 1, report.lines()  # rotated, and retained
+    assert report.last_row == 1400  # every acknowledged row chained once: none lost, none twice
+    kept = tail(path, 10_000)
+    assert [r.seq for r in kept] == list(range(report.first_row, 1401))
+    assert len({r.msg_id for r in kept}) == len(kept)
+    assert {r.msg_id for r in kept} <= set(said[0]) | set(said[1])

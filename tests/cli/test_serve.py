@@ -17,7 +17,8 @@ import pytest
 import yaml
 from click.testing import CliRunner, Result
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, tail
+from antireplay.audit.segments import bytes_of
 from antireplay.cli import main
 from antireplay.cli._common import importable_cwd
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
@@ -458,3 +459,43 @@ def test_serve_workers_refuses_the_memory_store(tmp_path: Path) -> None:
     result = CliRunner().invoke(main, ["serve", "--config", str(config), "--workers", "2"])
     assert result.exit_code == 2
     one_line_error(result, "store", "memory", "--workers")
+
+
+def test_serve_workers_rotate_and_retain_one_trail_within_its_budget(tmp_path: Path) -> None:
+    """``serve --workers 2`` on one trail with a small audit budget: neither worker's open
+    trail stops the other's rotation, so the trail stays within ``max_bytes`` plus one
+    segment while both serve, and what retention kept verifies, each accepted row once."""
+    state = tmp_path / "state"
+    state.mkdir()
+    budget = {"segment_bytes": 65_536, "max_bytes": 262_144}
+    config = write_demo_config(state, audit={"path": str(state / "audit.db"), **budget})
+    key = load_operator_key(state)
+    port = free_port()
+    args = [sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
+    proc = subprocess.Popen(
+        [*args, "--port", str(port), "--workers", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    url = f"http://127.0.0.1:{port}"
+    try:
+        until("serving", lambda: len(_workers_of(proc.pid)) == 2 and _healthy(url), 60)
+
+        def send(n: int) -> list[int]:
+            with httpx.Client(base_url=url, timeout=30) as client:
+                return [post(client, command(key)).status_code for _ in range(n)]
+
+        with ThreadPoolExecutor(8) as pool:  # 8 connections, spread over the workers
+            answers = [code for codes in pool.map(send, [250] * 8) for code in codes]
+        assert answers == [200] * 2000
+        scraped = httpx.get(url + "/metrics", timeout=10).text
+        assert "antireplay_audit_rotations_postponed_total " in scraped  # counted, per process
+        trail = [state / "audit.db", *state.glob("audit.db.[0-9]*")]
+        on_disk = sum(bytes_of(file) for file in trail)
+        assert on_disk <= budget["max_bytes"] + budget["segment_bytes"], on_disk
+    finally:
+        proc.terminate()
+        err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == 0, err.decode()
+    assert "segments 1–" in _audit_intact(state)  # rotated, and the oldest removed
+    accepted = [r.msg_id for r in tail(state / "audit.db", 100_000) if r.outcome == "accepted"]
+    assert len(accepted) == len(set(accepted)) > 100  # the rows retention kept, once each

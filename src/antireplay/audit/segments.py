@@ -10,7 +10,7 @@ first row chains from segment ``n``'s last hash, and its ``segment`` row (its
 head key, so the oldest segment kept starts at a proven cut point.  A trail written before
 segments is segment 1.
 
-Rotation (by the writer, holding its lock and :class:`RotationLock` exclusively, between
+Rotation (by one writer, holding its lock and :class:`RotationLock` exclusively, between
 batches) never leaves ``PATH`` missing, and each step is a state :func:`recover` or the
 verifier understands: the live segment leaves WAL mode (one self-contained file; another
 open connection postpones rotation), the next segment is written whole to ``PATH.next``
@@ -20,6 +20,15 @@ same file under two names: the rotated name is dropped), then ``PATH.next`` is r
 fsynced.  Retention removes whole segments, oldest first, never the live one: the head,
 fsynced, first records the oldest segment kept, then the files go, so a segment missing
 above that mark (a gap, or the newest ones) is tampering and refused by name.
+
+Several writers (``serve --workers N``) share one trail: each holds the lock shared only
+around a batch, so a rotation waits at most for the batches in flight.  Leaving WAL mode
+needs every other connection closed, so a writer that is not alone (``PATH.writers``)
+closes its live connection after each batch, and one whose batch finds rotation due tries
+to rotate; whoever gets the lock first rotates, the others find the file they had open under
+a rotated name at their next batch (:meth:`~.writer.AuditLog._follow`: same inode as
+``PATH.NNNNNN``, or a segment retention removed per the head) and reopen the live one; a
+file that is neither was deleted or replaced, and is refused.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ import fcntl
 import os
 import re
 import sqlite3
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -90,30 +100,52 @@ class Kept:
 
 
 class RotationLock:
-    """``PATH.lock``: every writer of the trail holds it shared while open; a rotation needs
-    it exclusive (else it waits for a later batch), so no writer opens, or recovers a
-    half-done rotation, while another writer is rotating."""
+    """``PATH.lock``: a writer holds it shared while it opens the trail or writes a batch;
+    a rotation (or retention) holds it exclusive, so nobody writes, opens or recovers a
+    half-done rotation meanwhile.  Held by nobody between batches."""
 
     def __init__(self, path: Path) -> None:
         self.path = path.with_name(path.name + ".lock")
         self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
-        fcntl.flock(self._fd, fcntl.LOCK_SH)  # waits out a rotation in progress
+        self.shared()  # waits out a rotation in progress
+        #: ``PATH.writers``, held shared for the writer's lifetime: who else is open.
+        self._open = os.open(path.with_name(path.name + ".writers"), os.O_RDWR | os.O_CREAT, 0o600)
+        fcntl.flock(self._open, fcntl.LOCK_SH)
 
-    def exclusive(self) -> bool:
-        """Take it for a rotation: ``False`` (and still held shared) if another writer has it."""
+    def alone(self) -> bool:
+        """No other writer has the trail open (then this one may keep its connection)."""
         try:
-            fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(self._open, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            fcntl.flock(self._fd, fcntl.LOCK_SH)  # a failed conversion may have dropped it
             return False
+        finally:
+            fcntl.flock(self._open, fcntl.LOCK_SH)
         return True
+
+    def exclusive(self, wait_s: float = 0.0) -> bool:
+        """Take it for a rotation, waiting up to ``wait_s`` for batches in flight;
+        ``False`` (and no longer held) if they do not end in time."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(self._fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return True
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    self.release()
+                    return False
+                time.sleep(0.001)
 
     def shared(self) -> None:
         fcntl.flock(self._fd, fcntl.LOCK_SH)
 
+    def release(self) -> None:
+        fcntl.flock(self._fd, fcntl.LOCK_UN)
+
     def close(self) -> None:
         if self._fd >= 0:
             os.close(self._fd)
+            os.close(self._open)
             self._fd = -1
 
 

@@ -27,7 +27,7 @@ import contextlib
 import logging
 import sqlite3
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import Future
 from os import PathLike
 from pathlib import Path
@@ -61,6 +61,8 @@ log = logging.getLogger("antireplay.audit")
 _DRAIN: dict[str, Any] = {}
 #: Outbox rows moved per transaction at most (more: another drain follows at once).
 DRAIN_BATCH = 4096
+#: Longest a due rotation waits for other writers' batches in flight (then postponed).
+ROTATION_WAIT_S = 0.5
 
 
 class _Appended(NamedTuple):
@@ -108,6 +110,9 @@ class AuditLog:
         self.head_sync_s = head_sync_s
         #: When the live segment rotates and what is removed (default: one growing file).
         self.retention = retention or Retention()
+        self._rotates = self.retention.segment_bytes is not None or (
+            self.retention.segment_age_s is not None
+        )
         self._clock = resolve(clock)
         self._head_synced = self._clock.monotonic()
         self._head_dirty = False
@@ -115,20 +120,23 @@ class AuditLog:
         self.rotations_postponed = 0
         self._waiting = False
         self._refuse_deleted_trail()
-        self._rotation = segments.RotationLock(self.path)  # no other writer is rotating now
+        self._rotation = segments.RotationLock(self.path)  # shared: no writer is rotating now
         try:
             segments.recover(self.path)  # a rotation killed half-way: the live file holds it all
-            self._db, self._file = _open_live(self.path, self.retention.segment_bytes)
+            db, self._file = _open_live(self.path, self.retention.segment_bytes)
+            self._db: sqlite3.Connection | None = db
         except BaseException:
             self._rotation.close()
             raise
         self._lock = threading.Lock()
         try:
-            self._key = self._open_anchor()
-            self._rows, self._head = _last(self._db)  # what this writer knows the chain to be
-            self._kept = self._open_segments()
+            self._key = self._open_anchor(db)
+            self._rows, self._head = _last(db)  # what this writer knows the chain to be
+            self._kept = self._open_segments(db)
+            self._rotation.release()
+            self._retain_at_open()
         except BaseException as exc:
-            self._db.close()
+            self._close_live()
             self._rotation.close()
             if isinstance(exc, sqlite3.DatabaseError):
                 raise AuditFileError(
@@ -137,7 +145,7 @@ class AuditLog:
                     recovery=_recovery(self.path),
                 ) from None
             raise
-        self._live_since = self._first_at()
+        self._live_since = self._first_at(self._live())
         self._outbox: Outbox | None = None
         self._drain_queued = False
         self._forgotten: Mark = (None, 0)
@@ -200,11 +208,11 @@ class AuditLog:
             ),
         )
 
-    def _open_anchor(self) -> bytes:
+    def _open_anchor(self, db: sqlite3.Connection) -> bytes:
         """Check the database against its checkpoint before appending anything."""
         key = self.anchor.load_key()
         checkpoint = self.anchor.read(key)
-        seq, head = _last(self._db)
+        seq, head = _last(db)
         if key is None:
             if checkpoint is not None:
                 raise AuditFileError(
@@ -227,7 +235,7 @@ class AuditLog:
                     recovery=_recovery(self.path),
                 )
         else:
-            problem = segments.compare(self.path, self._db, checkpoint)
+            problem = segments.compare(self.path, db, checkpoint)
             if problem is not None:
                 raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
         self._first = 1 if checkpoint is None else checkpoint.first
@@ -235,12 +243,10 @@ class AuditLog:
             self.anchor.write(key, seq, head, first=self._first)
         return key
 
-    def _open_segments(self) -> list[Kept]:
-        """The rotated segments, checked in order against the live one and the head; then,
-        if no other writer has the trail open, a retention a crash interrupted is finished
-        and retention applied (two writers would race on the head's oldest segment)."""
+    def _open_segments(self, db: sqlite3.Connection) -> list[Kept]:
+        """The rotated segments, checked in order against the live one and the head."""
         found = [segments.kept(file, n) for n, file in segments.rotated(self.path)]
-        live = _link(self._db)
+        live = _link(db)
         order = [(k.path, k.link) for k in found] + [(self.path, live)]
         segments.check_order(self.path, order, self._first)
         if found and found[-1].end != (live.first - 1, live.prev):
@@ -250,21 +256,89 @@ class AuditLog:
                 recovery=_recovery(self.path),
             )  # fmt: skip
         self._link = live
-        with self._lock:
-            self._kept = found
-            if self._rotation.exclusive():
-                try:
-                    for k in [k for k in found if k.n < self._first]:  # marked removed
-                        k.path.unlink()
-                    self._kept = [k for k in found if k.n >= self._first]
-                    self._retain()
-                finally:
-                    self._rotation.shared()
-        return self._kept
+        return found
 
-    def _first_at(self) -> float | None:
+    def _retain_at_open(self) -> None:
+        """Finish a retention a crash interrupted and apply retention, alone on the trail
+        (two writers would race on the head's oldest segment); else after a rotation."""
+        with self._lock:
+            if not self._rotation.exclusive(ROTATION_WAIT_S):
+                return
+            try:
+                self._follow()
+                for k in [k for k in self._kept if k.n < self._first]:  # marked removed
+                    k.path.unlink()
+                self._kept = [k for k in self._kept if k.n >= self._first]
+                self._retain()
+            finally:
+                self._rotation.release()
+
+    @contextlib.contextmanager
+    def _shared(self) -> Iterator[sqlite3.Connection]:
+        """The live segment, current, with the rotation lock held shared (the caller holds
+        the writer's lock)."""
+        self._rotation.shared()
+        try:
+            yield self._follow()
+        finally:
+            self._rotation.release()
+
+    def _live(self) -> sqlite3.Connection:
+        assert self._db is not None, "the live segment is open while the rotation lock is held"
+        return self._db
+
+    def _follow(self) -> sqlite3.Connection:
+        """The live segment (the caller holds the rotation lock): reopened if it is closed,
+        another writer rotated it, or another writer's retention removed segments.  The file
+        this writer had open must now be a rotated segment (same inode) or one retention
+        removed (the head says so); the chain must still hold the last row this writer knew.
+        Anything else was deleted or replaced under it: refused."""
+        identity = file_identity(self.path)
+        current = not self._kept or self._kept[0].path.exists()
+        if self._db is not None and identity == self._file and current:
+            return self._db
+        if identity is None:
+            log.error("audit trail %s deleted; refusing to append", self.path)
+            raise self._gone()
+        if self._db is None and identity == self._file and current:  # closed by this writer
+            self._db = _open_live(self.path, self.retention.segment_bytes)[0]
+            return self._db
+        self._close_live()
+        db, file = _open_live(self.path, self.retention.segment_bytes)
+        try:
+            checkpoint = self.anchor.read(self._key)
+            if checkpoint is not None:
+                self._first = max(self._first, checkpoint.first)
+            if file != self._file:
+                renamed = file_identity(segments.numbered(self.path, self._link.n)) == self._file
+                if not (renamed or self._link.n < self._first):
+                    log.error("audit trail %s replaced; refusing to append", self.path)
+                    raise self._gone()
+            kept = self._open_segments(db)
+            oldest = kept[0].link.first if kept else self._link.first
+            if self._rows >= oldest - 1:  # else retention removed the segment holding it
+                problem = segments.compare(self.path, db, Checkpoint(self._rows, self._head))
+                if problem is not None:
+                    raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
+        except BaseException:
+            db.close()
+            raise
+        self._db, self._file, self._kept = db, file, kept
+        self._rows, self._head = _last(db)
+        self._live_since = self._first_at(db)
+        return db
+
+    def _close_live(self) -> None:
+        """Close this writer's live connection (reopened by the next batch): leaving WAL
+        mode for a rotation needs every connection but the rotating one's closed."""
+        if self._db is not None:
+            with contextlib.suppress(sqlite3.Error):
+                self._db.close()
+            self._db = None
+
+    def _first_at(self, db: sqlite3.Connection) -> float | None:
         """Wall time of the live segment's first row (its age decides rotation)."""
-        row = self._db.execute("SELECT at FROM audit ORDER BY seq LIMIT 1").fetchone()
+        row = db.execute("SELECT at FROM audit ORDER BY seq LIMIT 1").fetchone()
         return None if row is None else valid_at(row[0])
 
     def append(
@@ -320,8 +394,8 @@ class AuditLog:
         })  # fmt: skip
         if self._outbox is not None:
             sync = outcome == "accepted" if durable is None else durable
-            if file_identity(self.path) != self._file and self._replaced():
-                return _failed(self._gone(), on_loop=on_loop)  # it would wait for a lost trail
+            if file_identity(self.path) is None:  # the row would wait for a lost trail
+                return _failed(self._gone(), on_loop=on_loop)
             if on_loop:
                 return self._outbox.put_async(row, durable=sync)
             return self._outbox.put(row, durable=sync)
@@ -340,34 +414,39 @@ class AuditLog:
             outbox = self._outbox
             sync = sync or outbox is None or bool(spilled or direct)
             sync = sync or self._clock.monotonic() - self._head_synced >= self.head_sync_s
-            db = self._db
-            db.execute(f"PRAGMA synchronous={'FULL' if sync else 'NORMAL'}")
-            db.execute("BEGIN IMMEDIATE")  # then the name: another writer rotates holding this lock
-            try:
-                done = self._append(db, spilled, direct)
-                db.execute("COMMIT")
-            except BaseException:
-                with contextlib.suppress(sqlite3.Error):  # a full disk: SQLite rolled back
-                    db.execute("ROLLBACK")
-                raise
-            self._rows, self._head = done.rows, done.head
-            if self._live_since is None and done.first_at is not None:
-                self._live_since = valid_at(done.first_at)
-            if outbox is None:
-                self._checkpoint()
-            elif sync:  # the head claims only rows made durable; so does the outbox's delete
-                self._checkpoint(sync=True)
-                self._forget(outbox, done.mark)
-            else:
-                self._head_dirty = True
+            with self._shared() as db:  # no rotation meanwhile
+                db.execute(f"PRAGMA synchronous={'FULL' if sync else 'NORMAL'}")
+                db.execute("BEGIN IMMEDIATE")
+                try:
+                    done = self._append(db, spilled, direct)
+                    db.execute("COMMIT")
+                except BaseException:
+                    with contextlib.suppress(sqlite3.Error):  # a full disk: SQLite rolled back
+                        db.execute("ROLLBACK")
+                    raise
+                self._rows, self._head = done.rows, done.head
+                if self._live_since is None and done.first_at is not None:
+                    self._live_since = valid_at(done.first_at)
+                if outbox is None:  # the head under the lock: never a retention's stale mark
+                    self._checkpoint()
+                elif sync:  # the head claims only rows made durable; so does the outbox's delete
+                    self._checkpoint(sync=True)
+                    self._forget(outbox, done.mark)
+                else:
+                    self._head_dirty = True
             if spilled:
                 self._merged(len(spilled))
             if self._rotation_due():
+                self._close_live()  # whichever writer gets the lock rotates: see .segments
                 try:
                     why = self._rotate()
                 except (sqlite3.Error, OSError, AuditFileError) as exc:
                     why = str(exc)
+                if why is not None:
+                    self._close_live()
                 self._postponed(why)
+            elif self._rotates and not self._rotation.alone():
+                self._close_live()  # an idle writer's connection would stop the others' rotation
             self._last_moved = done.moved
             if done.moved == DRAIN_BATCH:
                 self._wake()  # more waiting: drain on
@@ -386,9 +465,6 @@ class AuditLog:
     ) -> _Appended:
         """Inside the batch's transaction: check the file is still this writer's, chain the
         spilled rows, the outbox's above the mark (moving the mark) and ``direct``."""
-        if file_identity(self.path) != self._file:  # rows written now would be lost
-            log.error("audit trail %s deleted or replaced; refusing to append", self.path)
-            raise self._gone()
         # Rows deleted or rewritten under a running writer must not be adopted by its next
         # checkpoint: the chain must still hold what this writer wrote (another writer may
         # have extended it).
@@ -417,19 +493,11 @@ class AuditLog:
             db.execute("INSERT OR REPLACE INTO outbox_moved VALUES (1, ?, ?)", mark)
         return _Appended(len(moved), mark, first, seq, prev, rows[0]["at"] if rows else None)
 
-    def _replaced(self) -> bool:
-        """The live file is not the one this writer holds, checked again under the lock: a
-        rotation in progress (it holds the lock) renames the next segment in first."""
-        with self._lock:
-            return file_identity(self.path) != self._file
-
-    # --- the state store's outbox (state/outbox.py): drained into the chain ------------------
-
     def attach(self, outbox: Outbox) -> None:
         """Take audit rows through ``outbox`` from now on (its store defers its commits to
         the accepted rows that follow them); what it already holds is drained first."""
-        with self._lock:
-            self._db.execute(segments.MARK_SCHEMA)
+        with self._lock, self._shared() as db:
+            db.execute(segments.MARK_SCHEMA)
         self._outbox = outbox
         outbox.store.defer_commits()
         self.drain()
@@ -440,8 +508,8 @@ class AuditLog:
         the trail's mark gets a new epoch first: see :mod:`antireplay.state.outbox`)."""
         if self._outbox is None:
             return
-        with self._lock:
-            mark = _mark(self._db)
+        with self._lock, self._shared() as db:
+            mark = _mark(db)
         if self._outbox.behind(mark):
             log.warning("audit outbox of %s is behind the trail's mark: new epoch",
                         self._outbox.store.path)  # fmt: skip
@@ -522,33 +590,42 @@ class AuditLog:
         """Make the live segment a rotated one and start the next from its last row (the
         caller holds the lock; the order of steps is argued in :mod:`.segments`); why it
         must wait, if it must."""
-        if not self._rotation.exclusive():
-            return "another writer has the trail open"
+        if not self._rotation.exclusive(ROTATION_WAIT_S):
+            return "another writer's batch held the trail"
         try:
+            n = self._link.n
+            self._follow()
+            if self._link.n != n:
+                return None  # another writer rotated it meanwhile
             return self._rotate_alone()
         finally:
-            self._rotation.shared()
+            self._rotation.release()
 
     def _rotate_alone(self) -> str | None:
         segments.recover(self.path)
-        if not segments.seal(self._db):
+        db = self._live()
+        if not segments.seal(db):
             return "another connection has the live segment open"
         try:
-            self._db.execute("BEGIN IMMEDIATE")  # another writer waits, then sees the new name
+            db.execute("BEGIN IMMEDIATE")  # another writer waits, then sees the new name
             self._rotation_point("sealed")
+            problem = _compare(db, Checkpoint(self._rows, self._head))
+            if problem is not None:
+                raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
+            self._rows, self._head = _last(db)  # other writers' rows included
             following = self.anchor.link(self._key, self._link.n + 1, self._rows + 1, self._head)
-            mark = _mark(self._db)
+            mark = _mark(db)
             segments.prepare(self.path, following, mark if mark[0] is not None else None)
             self._rotation_point("prepared")
             old = segments.publish(self.path, self._link.n)
         except BaseException:
-            self._db.execute("ROLLBACK")
-            self._db.execute("PRAGMA journal_mode=WAL")
+            db.execute("ROLLBACK")
+            db.execute("PRAGMA journal_mode=WAL")
             raise
         self._rotation_point("published")
-        self._db.execute("ROLLBACK")
+        db.execute("ROLLBACK")
         live, identity = _open_live(self.path, self.retention.segment_bytes)
-        self._db.close()
+        db.close()
         self._db, self._file = live, identity
         self._kept.append(segments.kept(old, self._link.n))
         self._link, self._live_since = following, None
@@ -587,12 +664,15 @@ class AuditLog:
                  gone[-1].n)  # fmt: skip
 
     def usage(self) -> TrailUsage:
-        """Bytes on disk across segments (WAL included), segments kept, oldest row's time."""
+        """Bytes on disk across segments (WAL included), segments kept, oldest row's time
+        (the files on disk, which other writers rotate and retain too; the oldest row's
+        time as this writer last saw it)."""
         with self._lock:
-            kept = list(self._kept)
+            files = [file for _, file in segments.rotated(self.path)]
             live = segments.bytes_of(self.path)
-            oldest = next((k.first_at for k in kept if k.first_at is not None), self._live_since)
-        return TrailUsage(sum(k.bytes for k in kept) + live, len(kept) + 1, oldest)
+            oldest = next((k.first_at for k in self._kept if k.first_at is not None),
+                          self._live_since)  # fmt: skip
+        return TrailUsage(sum(map(segments.bytes_of, files)) + live, len(files) + 1, oldest)
 
     def tail(self, n: int = 20) -> list[Record]:
         """The newest ``n`` records across segments (read-only connections), the outbox's
@@ -610,8 +690,8 @@ class AuditLog:
     def count(self) -> int:
         """Records kept across segments."""
         self._moved_now()
-        with self._lock:
-            live = int(self._db.execute("SELECT count(*) FROM audit").fetchone()[0])
+        with self._lock, self._shared() as db:
+            live = int(db.execute("SELECT count(*) FROM audit").fetchone()[0])
             return live + sum(_rows_in(k.path) for k in self._kept)
 
     @property
@@ -632,13 +712,14 @@ class AuditLog:
         with self._lock:
             try:
                 if self._head_dirty:
-                    self.anchor.write(self._key, self._rows, self._head, sync=True,
-                                      first=self._first)  # fmt: skip
+                    with self._shared():
+                        self.anchor.write(self._key, self._rows, self._head, sync=True,
+                                          first=self._first)  # fmt: skip
                     self._head_dirty = False
-            except OSError as exc:  # the head on disk may lag after a power cut: under-claims
+            except (OSError, sqlite3.Error, AuditFileError) as exc:  # the head lags: under-claims
                 log.warning("audit head %s not made durable at close: %s", self.anchor.path, exc)
             finally:
-                self._db.close()
+                self._close_live()
                 self._rotation.close()
                 if self._spill is not None:
                     self._spill.close()

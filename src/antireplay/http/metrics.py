@@ -8,10 +8,10 @@ answered with their original answer, and the latency of the receive path.
 the backend actually in use (entries, watermark, fence, early evictions, data-loss
 events), the window's refusals by cause, the group commits of the state and the audit
 trail, the ESTOPs delivered while the audit trail failed, and the trail under a flood:
-refusals folded, summarised or left unrecorded, bytes, segments, the oldest row's age, free
-space under it and the pressure against its floors.  While the store is down its
-gauges are NaN (unknown) and its counters keep their last known value.  A scrape may read
-the store, so ``GET /metrics`` runs it in a thread.
+refusals folded, summarised or left unrecorded, bytes, segments, postponed rotations, the
+oldest row's age, free space under it and the pressure against its floors.  While the
+store is down its gauges are NaN (unknown) and its counters keep their last known value.
+A scrape may read the store, so ``GET /metrics`` runs it in a thread.
 """
 
 from __future__ import annotations
@@ -183,6 +183,9 @@ class StateCollector(Collector):
              receiver.stats.spilled),
             ("antireplay_audit_disk_refusals", "Commands refused below the free-space floor",
              receiver.stats.disk_refusals),
+            ("antireplay_audit_rotations_postponed",
+             "Due rotations that waited for another writer or reader of the trail",
+             0 if receiver.audit is None else receiver.audit.rotations_postponed),
         ):  # fmt: skip
             counter = CounterMetricFamily(name, doc)
             counter.add_metric([], value)
