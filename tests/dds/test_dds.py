@@ -795,3 +795,17 @@ def test_fresh_reader_in_another_process_accepts_within_a_second(
         rogue.publish(SealedSample(instance="arm", sealed=sealed))
     replayed = collect(reader, len(captures))
     assert not any(v.accepted for v in replayed), [v.line() for v in replayed]
+
+
+def test_flush_says_false_when_readers_do_not_acknowledge_in_time(
+    participant: Any, clock: ManualClock
+) -> None:
+    """A reader that has not acknowledged in time is ``False``, never a traceback: the
+    cyclonedds writer reports that timeout as an ``AttributeError`` (its own bug)."""
+    from cyclonedds.core import DDSException  # noqa: PLC0415
+
+    writer, _reader = pair(participant, clock)
+    assert writer.flush() is True
+    inner = writer._writer  # the library's writer, its timeout path forced
+    inner._wait_for_acks = lambda *_: DDSException.DDS_RETCODE_TIMEOUT
+    assert writer.flush(timeout_s=0.01) is False

@@ -256,8 +256,12 @@ class SealedWriter:
         self._writer.write(sample)
 
     def flush(self, timeout_s: float = 2.0) -> bool:
-        """Wait until matched readers acknowledged everything written (reliable QoS)."""
-        return bool(self._writer.wait_for_acks(duration(seconds=timeout_s)))
+        """Wait until matched readers acknowledged everything written (reliable QoS);
+        ``False`` when they did not in time."""
+        try:
+            return bool(self._writer.wait_for_acks(duration(seconds=timeout_s)))
+        except AttributeError:  # cyclonedds 0.10's DataWriter reports a timeout this way
+            return False
 
     def matched_readers(self) -> int:
         return matched_readers(self._writer)
