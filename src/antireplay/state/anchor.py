@@ -45,6 +45,7 @@ from typing import Final, Literal
 import redis
 
 from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
+from antireplay.state.durable import read_record, seal_record
 from antireplay.state.spec import StoreSpec
 
 #: The anchor file's magic (``ARANCH01``: the previous layout, still recognised as ours).
@@ -180,15 +181,9 @@ class StateAnchor:
 
     def _read_file(self, deployment: str | None) -> Read:
         assert self.path is not None
-        try:
-            raw = self.path.read_bytes()
-        except FileNotFoundError:
-            return None
-        except OSError:
-            return False
-        size = _LAYOUT.size
-        if len(raw) < _RECORD or hashlib.sha256(raw[:size]).digest()[:16] != raw[size : size + 16]:
-            return False
+        raw = read_record(self.path, _LAYOUT.size, _RECORD)
+        if not isinstance(raw, bytes):
+            return raw
         magic, dep, generation, when, state = _LAYOUT.unpack_from(raw)
         if magic != ANCHOR_MAGIC:
             return False
@@ -267,7 +262,7 @@ class StateAnchor:
         assert self.path is not None
         body = _LAYOUT.pack(ANCHOR_MAGIC, uuid.UUID(hex=record.deployment).bytes,
                             record.generation, record.time, self.state)  # fmt: skip
-        data = (body + hashlib.sha256(body).digest()[:16]).ljust(_RECORD, b"\0")
+        data = seal_record(body, _RECORD)
         if self._fd is None:
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
         if not self._named:  # the path, for the error another state's open gives

@@ -61,7 +61,7 @@ import uuid
 import weakref
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Final, TypeVar
+from typing import Any, Final, Literal, TypeVar
 
 from antireplay.core.errors import StateFileError
 
@@ -273,6 +273,25 @@ class DurableState:
 WITNESS_MAGIC: Final = b"ARWITN02"
 
 
+def seal_record(body: bytes, length: int = 64) -> bytes:
+    """``body`` with the first 16 bytes of its SHA-256, padded to ``length`` (one sector)."""
+    return (body + hashlib.sha256(body).digest()[:16]).ljust(length, b"\0")
+
+
+def read_record(path: Path, size: int, least: int) -> bytes | Literal[False] | None:
+    """The bytes of a record :func:`seal_record` wrote, its ``size``-byte body checked:
+    ``None`` if absent, ``False`` if unreadable, shorter than ``least`` or torn."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError:
+        return False
+    if len(raw) < least or hashlib.sha256(raw[:size]).digest()[:16] != raw[size : size + 16]:
+        return False
+    return raw
+
+
 class Witness:
     """The small file beside the database: deployment id, generation and the highest wall
     time of any commit, checksummed (a fence after a loss starts no lower than that, even
@@ -294,15 +313,10 @@ class Witness:
 
     def read(self) -> tuple[str, int, float] | bool | None:
         """``(deployment, generation, wall)``, ``None`` if absent, ``False`` if unreadable."""
-        try:
-            raw = self.path.read_bytes()
-        except FileNotFoundError:
-            return None
-        except OSError:
-            return False
         size = self._LAYOUT.size
-        if len(raw) < size + 16 or hashlib.sha256(raw[:size]).digest()[:16] != raw[size:][:16]:
-            return False
+        raw = read_record(self.path, size, size + 16)
+        if not isinstance(raw, bytes):
+            return raw
         magic, deployment, generation, wall = self._LAYOUT.unpack_from(raw)
         if magic != self.magic:
             return False
@@ -312,7 +326,7 @@ class Witness:
         """Rewrite the record; ``sync=False`` leaves it in the OS (a ``kill -9`` keeps it,
         a power cut may bring back an older one) until a later write syncs, or close."""
         body = self._LAYOUT.pack(self.magic, uuid.UUID(hex=deployment).bytes, generation, wall)
-        record = (body + hashlib.sha256(body).digest()[:16]).ljust(64, b"\0")
+        record = seal_record(body)
         if self._fd is None:
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
         os.pwrite(self._fd, record, 0)
