@@ -23,7 +23,7 @@ from benchmarks import bench_pq_radio
 from pymavlink import mavutil
 
 from antireplay.cli import main
-from tests.harness import free_port, until
+from tests.harness import free_port, free_udp_port, until
 from tests.harness.radio import SIK_BAUD, SIK_QUEUE_BYTES
 
 CLI = [sys.executable, "-m", "antireplay"]
@@ -67,7 +67,7 @@ def keys(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def fc() -> Iterator[Any]:
-    conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{free_port()}", source_system=1)
+    conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{free_udp_port()}", source_system=1)
     try:
         yield conn
     finally:
@@ -194,7 +194,7 @@ def test_a_lost_first_handshake_is_retried_and_each_end_reports_its_session(
     relay = Relay(air)
     ground = Process(
         [
-            "mavlink-pq", "ground", "--local", f"udpin:127.0.0.1:{free_port()}",
+            "mavlink-pq", "ground", "--local", f"udpin:127.0.0.1:{free_udp_port()}",
             "--air", f"udpout:127.0.0.1:{relay.port}", "--signing-key", "gcs.key.pem",
             "--vehicle-key", "vehicle.pub.pem", "--vehicle-x25519", "vehicle-x.pub.pem",
             "--audit", "ground.db", "--metrics-port", str(ground_metrics),

@@ -217,7 +217,7 @@ def metrics_router(tmp_path: Path, host: str | None = None) -> Iterator[int]:
     port = free_port()
     args = [
         sys.executable, "-m", "antireplay", "mavlink-router", "--listen",
-        f"udp:127.0.0.1:{free_port()}", "--forward", f"udp:127.0.0.1:{free_port()}",
+        f"udp:127.0.0.1:{free_udp_port()}", "--forward", f"udp:127.0.0.1:{free_udp_port()}",
         "--key-file", str(key), "--store", "memory", "--audit", str(tmp_path / "router.db"),
         "--metrics-port", str(port), *(["--metrics-host", host] if host else []),
     ]  # fmt: skip
@@ -264,7 +264,8 @@ def metrics_pq(tmp_path: Path) -> Iterator[int]:
     port = free_port()
     args = [
         sys.executable, "-m", "antireplay", "mavlink-pq", "ground",
-        "--local", f"udpin:127.0.0.1:{free_port()}", "--air", f"udpout:127.0.0.1:{free_port()}",
+        "--local", f"udpin:127.0.0.1:{free_udp_port()}",
+        "--air", f"udpout:127.0.0.1:{free_udp_port()}",
         "--signing-key", str(tmp_path / "gcs.key.pem"),
         "--vehicle-key", str(tmp_path / "vehicle.pub.pem"),
         "--audit", str(tmp_path / "pq.db"), "--metrics-port", str(port),

@@ -41,7 +41,7 @@ from antireplay.mavlink import (
     parse_endpoint,
     parse_frame,
 )
-from tests.harness import ROOT, free_port, until
+from tests.harness import ROOT, free_port, free_udp_port, until
 from tests.harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
 
 
@@ -55,7 +55,7 @@ class Rig:
         bind_system_id: bool = True,
         allow_unsigned: frozenset[int] = frozenset(),
     ) -> None:
-        vport = free_port()
+        vport = free_udp_port()
         self.vehicle = mavutil.mavlink_connection(
             f"udpin:127.0.0.1:{vport}", source_system=system_id, source_component=1
         )
@@ -380,7 +380,7 @@ def test_cli_proxy_kill_9_at_1000_hz_then_every_capture_dropped(tmp_path: Path) 
     SIGKILL mid-stream, restart, replay every capture: all dropped; the sender goes on."""
     key_file = tmp_path / "key.hex"
     key_file.write_text(KEY.hex())
-    vport, pport, mport = free_port(), free_port(), free_port()
+    vport, pport, mport = free_udp_port(), free_udp_port(), free_port()
     vehicle = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     vehicle.bind(("127.0.0.1", vport))
     vehicle.settimeout(0.2)
@@ -557,7 +557,7 @@ def test_cli_router_and_simulated_vehicle_answer_a_signed_command(tmp_path: Path
     logs the station's first authentication once and both print their counts on SIGTERM."""
     key_file = tmp_path / "key.hex"
     key_file.write_text(KEY.hex())
-    vport, gport = free_port(), free_port()
+    vport, gport = free_udp_port(), free_udp_port()
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
     router = subprocess.Popen(
         [sys.executable, "-m", "antireplay", "mavlink-router",
@@ -594,6 +594,9 @@ def test_cli_router_and_simulated_vehicle_answer_a_signed_command(tmp_path: Path
         return bool(acks)
 
     try:
+        if not started:  # it exited before its first line: say why
+            router.wait(10)
+            raise AssertionError(router.stderr.read() if router.stderr else "no stderr")
         assert started.startswith("mavlink-router vehicle udpin:") and started.endswith(
             "(system id 1)\n"
         ), started
