@@ -54,18 +54,43 @@ def until(what: str, done: Callable[[], object], timeout: float = 30.0) -> None:
         time.sleep(0.005)
 
 
+def _below_ephemeral() -> range:
+    """Ports the kernel never picks on its own: below its ephemeral range, from which it
+    draws the source port of every client socket (a udpout link, a connection) and
+    every bind to port 0, so a port handed out here cannot be taken by one meanwhile."""
+    try:
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        low = 32768
+    return range(max(1024, low - 12000), low)
+
+
+_PORTS = _below_ephemeral()
+#: Ports this process handed out: never twice, though the first may not be bound yet.
+_HANDED: set[int] = set()
+
+
 def free_port() -> int:
-    """A loopback TCP port nothing listens on now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    """A loopback port nothing is bound to now, for TCP and for UDP alike, outside the
+    kernel's ephemeral range and never handed out twice by this process."""
+    for _ in range(1000):
+        port = random.choice(_PORTS)
+        if port in _HANDED:
+            continue
+        try:
+            for kind in (socket.SOCK_STREAM, socket.SOCK_DGRAM):
+                with socket.socket(socket.AF_INET, kind) as sock:
+                    sock.bind(("127.0.0.1", port))
+        except OSError:
+            continue
+        _HANDED.add(port)
+        return port
+    raise RuntimeError(f"no free loopback port in {_PORTS}")
 
 
 def free_udp_port() -> int:
-    """A loopback UDP port nothing is bound to now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    """A loopback UDP port nothing is bound to now (:func:`free_port`: it checks both)."""
+    return free_port()
 
 
 @dataclass
