@@ -3,6 +3,7 @@ files, and a check that opens the store as ``serve`` would."""
 
 from __future__ import annotations
 
+import gc
 import shutil
 import socket
 import sqlite3
@@ -22,6 +23,7 @@ from antireplay.audit.segments import bytes_of
 from antireplay.cli import main
 from antireplay.cli._common import importable_cwd
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
+from antireplay.cli.serve import settled_heap
 from antireplay.state.sqlite import SqliteStore
 from tests.harness import GatewayProcess, free_port, metric, one_line_error, post, serving, until
 from tests.harness.redis_server import RedisServer
@@ -499,3 +501,14 @@ def test_serve_workers_rotate_and_retain_one_trail_within_its_budget(tmp_path: P
     assert "segments 1–" in _audit_intact(state)  # rotated, and the oldest removed
     accepted = [r.msg_id for r in tail(state / "audit.db", 100_000) if r.outcome == "accepted"]
     assert len(accepted) == len(set(accepted)) > 100  # the rows retention kept, once each
+
+
+def test_what_startup_built_is_frozen_out_of_the_collectors_sight() -> None:
+    """``serve`` calls it before serving: a full collection under a flood then scans only
+    what requests left (an ESTOP waited out a 30 ms pause scanning every module)."""
+    gc.unfreeze()
+    try:
+        settled_heap()
+        assert gc.get_freeze_count() > 10_000
+    finally:
+        gc.unfreeze()

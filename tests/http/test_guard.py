@@ -28,9 +28,11 @@ from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_con
 from antireplay.config import AppConfig
 from antireplay.core.clock import ManualClock
 from antireplay.http.guard import SIGNER_HEADERS, Verified
+from antireplay.http.workers import Door
 from antireplay.rcan.auth import Signer
 from antireplay.rcan.envelope import encode, parse
 from antireplay.rcan.receive import Outcome
+from antireplay.rcan.steps import Done
 from antireplay.wiring import Guard, RcanGuard, build_receiver, create_app
 from tests.harness import free_port, recording_upstream, state_rows, until
 from tests.harness.asgi import LIMIT, NOW, Answer, call, config
@@ -532,3 +534,81 @@ def test_behind_the_dependency_routes_see_the_verified_signer_never_the_clients_
     }  # fmt: skip
     assert seen[0]["param"] == "operator"
     assert _signer_claims(plain) == {} and _signer_claims(echoed) == {}
+
+
+@pytest.fixture
+def door_guard(tmp_path: Path) -> Iterator[tuple[ed25519.Ed25519PrivateKey, ManualClock, Guard]]:
+    """The middleware on its own SQLite state, and the operator's key."""
+    write_demo_config(tmp_path)
+    clock = ManualClock(wall=NOW)
+    _, guard = guarded_app(config(tmp_path / "mw", tmp_path / "operator.pub.pem"), clock)
+    yield load_operator_key(tmp_path), clock, guard
+    guard.close()
+
+
+def test_other_requests_wait_at_the_door_while_a_fresh_estop_is_answered(
+    door_guard: tuple[ed25519.Ed25519PrivateKey, ManualClock, Guard],
+) -> None:
+    """An ordinary command arriving while an ESTOP is between its signature check and its
+    answer starts only after the ESTOP's answer; the door is open again afterwards."""
+    key, clock, guard = door_guard
+    estop = command(key, timestamp=clock.wall(), type=6, safety_event="ESTOP", cmd="estop")
+    ordinary = command(key, timestamp=clock.wall())
+    urgent = guard.workers.first
+
+    async def scenario() -> list[tuple[str, int]]:
+        checked, answered = asyncio.Event(), asyncio.Event()
+        done: list[tuple[str, int]] = []
+
+        async def slow_first(fn: Any, *args: Any) -> Any:
+            result = await urgent(fn, *args)
+            checked.set()
+            await answered.wait()  # the ESTOP still in flight
+            return result
+
+        guard.workers.first = slow_first  # type: ignore[method-assign,assignment]
+
+        async def send(name: str, body: bytes) -> None:
+            done.append((name, (await call(guard, body)).status))
+
+        first = asyncio.create_task(send("estop", estop))
+        await checked.wait()
+        second = asyncio.create_task(send("ordinary", ordinary))
+        for _ in range(20):
+            await asyncio.sleep(0)
+        assert (guard.door.waited, done) == (1, [])  # at the door, not in the receiver
+        answered.set()
+        await asyncio.wait_for(asyncio.gather(first, second), 10)
+        return done
+
+    assert asyncio.run(scenario()) == [("estop", 200), ("ordinary", 200)]
+    assert (guard.door.holders, guard.door.timeouts) == (set(), 0)
+
+
+def test_a_forged_safety_message_lets_the_door_go_and_an_authentic_one_holds_it(
+    door_guard: tuple[ed25519.Ed25519PrivateKey, ManualClock, Guard],
+) -> None:
+    """With no budget for holds before the signature check (a forged flood spent it), an
+    authentic ESTOP still holds the door from its authentication; a forged one never does."""
+    key, clock, guard = door_guard
+    guard.door = Door(early_per_s=0.001, early_burst=0.0, clock=clock)
+    genuine = json.loads(command(key, timestamp=clock.wall(), type=6, safety_event="ESTOP"))
+    forged = json.dumps({**genuine, "cmd": "arm_motors"}).encode()
+    steps = guard.receiver.steps
+
+    async def held_after(raw: bytes) -> bool:
+        parsed = steps.parse(raw)
+        assert not isinstance(parsed, Done)
+        await guard._first(steps.authenticate, parsed, None, {})
+        held = asyncio.current_task() in guard.door.holders
+        guard.door.release()
+        return held
+
+    async def scenario() -> tuple[bool, bool, bool]:
+        forged_held = await held_after(forged)
+        genuine_held = await held_after(json.dumps(genuine).encode())
+        guard.door = Door(clock=clock)  # the default budget: the forged one held it early
+        return forged_held, genuine_held, await held_after(forged)
+
+    assert asyncio.run(scenario()) == (False, True, False)
+    assert guard.door.holders == set()

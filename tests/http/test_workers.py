@@ -1,4 +1,4 @@
-"""The guard's worker threads: one loop delivery per batch, the urgent lane first."""
+"""The guard's worker threads: one loop delivery per batch, the urgent lane first; the door."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ from typing import Any
 
 import pytest
 
-from antireplay.http.workers import Workers
+from antireplay.core.clock import ManualClock
+from antireplay.http.workers import Door, Workers
 
 
 def _blocker(started: threading.Event, go: threading.Event) -> Callable[[], str]:
@@ -128,3 +129,82 @@ def test_jobs_submitted_as_the_workers_shut_down_fail_instead_of_hanging() -> No
             await job
 
     asyncio.run(scenario())
+
+
+def test_an_urgent_job_is_queued_at_once_not_when_the_loop_iteration_ends() -> None:
+    """The loop blocks right after submitting (as a busy flood iteration does): an urgent
+    job runs meanwhile; an ordinary one waits for the iteration's end."""
+    workers = Workers(1)
+    urgent_ran, ordinary_ran = threading.Event(), threading.Event()
+
+    async def scenario() -> tuple[bool, bool]:
+        urgent = workers.first(urgent_ran.set)
+        ordinary = workers(ordinary_ran.set)
+        during = urgent_ran.wait(timeout=10), ordinary_ran.wait(timeout=0.2)  # loop blocked
+        await asyncio.gather(urgent, ordinary)
+        return during
+
+    try:
+        assert asyncio.run(scenario()) == (True, False)
+    finally:
+        workers.shutdown()
+
+
+async def _holding(door: Door, release: asyncio.Event) -> None:
+    door.hold()
+    await release.wait()
+    door.release()
+
+
+def test_requests_wait_at_a_held_door_until_its_last_holder_lets_go() -> None:
+    door = Door()
+
+    async def scenario() -> list[int]:
+        first, second = asyncio.Event(), asyncio.Event()
+        holders = [asyncio.create_task(_holding(door, e)) for e in (first, second)]
+        await asyncio.sleep(0)
+        entrant = asyncio.create_task(door.enter())
+        seen = []
+        for release in (first, second):
+            for _ in range(5):
+                await asyncio.sleep(0)
+            seen.append(int(entrant.done()))
+            release.set()
+        await asyncio.wait_for(entrant, 5)
+        await asyncio.gather(*holders)
+        return seen
+
+    assert asyncio.run(scenario()) == [0, 0]
+    assert (door.waited, door.timeouts, door.holders) == (1, 0, set())
+
+
+def test_a_door_never_let_go_lets_requests_in_after_hold_s() -> None:
+    door = Door(hold_s=0.01)
+
+    async def scenario() -> None:
+        door.hold()  # and never released: a stuck ESTOP cannot stall the gateway
+        await asyncio.wait_for(door.enter(), 5)
+        await asyncio.wait_for(door.enter(), 5)
+
+    asyncio.run(scenario())
+    assert (door.waited, door.timeouts) == (2, 2)
+
+
+def test_holds_before_the_signature_check_are_bounded_by_their_budget() -> None:
+    """What a flood of forged SAFETY messages can hold: ``early_burst``, then
+    ``early_per_s``; a holder asking again takes nothing."""
+    clock = ManualClock(wall=1_800_000_000.0)
+    door = Door(early_per_s=1.0, early_burst=2.0, clock=clock)
+
+    async def early() -> tuple[bool, bool]:
+        taken = door.hold_early()
+        again = door.hold_early()
+        door.release()
+        return taken, again
+
+    async def scenario() -> list[tuple[bool, bool]]:
+        got = [await asyncio.create_task(early()) for _ in range(3)]
+        clock.advance(1.0)
+        return [*got, await asyncio.create_task(early())]
+
+    assert asyncio.run(scenario()) == [(True, False), (True, False), (False, False), (True, False)]

@@ -10,7 +10,8 @@ then a content type other than JSON (415), a declared or actual body over the li
 or a client gone mid-body.  Those refusals are counted like the receiver's.  Then
 :meth:`Checkpoint.open` runs :meth:`~antireplay.rcan.receive.Receiver.receive_async`
 (check -> authenticate -> commit; the signature in one job on a few
-:class:`~antireplay.http.workers.Workers`, a fresh SAFETY message's in their urgent lane;
+:class:`~antireplay.http.workers.Workers`, a fresh SAFETY message's in their urgent lane,
+holding the :class:`~antireplay.http.workers.Door` that other requests wait at until its answer;
 the commit and audit row awaited on the loop)
 and observes the outcome.  An accepted message becomes a :class:`Verified` (the envelope
 as verified, built once from the parsed envelope: its canonical re-encoding, with the
@@ -44,11 +45,12 @@ from antireplay.core.errors import (
     UnsupportedMediaTypeError,
 )
 from antireplay.http.metrics import Metrics
-from antireplay.http.workers import Workers
+from antireplay.http.workers import Door, Workers
 from antireplay.rcan.answers import HeldAnswer
 from antireplay.rcan.auth import Signer
 from antireplay.rcan.envelope import Envelope
 from antireplay.rcan.receive import Outcome, Receiver
+from antireplay.rcan.steps import NeedsCommit
 
 encode_json = msgspec.json.Encoder().encode
 #: Request headers only the guard sets (the verified signer); a client's copies are dropped.
@@ -148,6 +150,8 @@ class Checkpoint:
         self.limit = receiver.max_bytes
         self.nack_type = receiver.config.nack_type
         self.workers = Workers()
+        #: Held for a fresh SAFETY message until its answer: ESTOP first (workers.py).
+        self.door = Door()
         self._ticker = resolve(None)
         self._closed = False
 
@@ -164,6 +168,18 @@ class Checkpoint:
         self.workers.shutdown()
         if self._owns_receiver:
             self.receiver.close()
+
+    async def _first(self, fn: Callable[..., Any], *args: Any) -> Any:
+        """The urgent lane (only a fresh SAFETY message takes it), holding the door: from
+        the start while the early budget lasts, else once authenticated; a refusal lets
+        it go, an authenticated one keeps it until this request's answer."""
+        early = self.door.hold_early()
+        result = await self.workers.first(fn, *args)
+        if type(result) is NeedsCommit:
+            self.door.hold()
+        elif early:
+            self.door.release()
+        return result
 
     def ambiguous(self, framing: Framing) -> Refused | None:
         """Both Content-Length and Transfer-Encoding: refused and closed (RFC 9112)."""
@@ -185,9 +201,14 @@ class Checkpoint:
             # type; the code decides the status (errors.HTTP_STATUS); counted like the rest.
             self.metrics.rejected.labels(str(raw.code)).inc()
             return Refused(raw.http_status, raw.to_nack(None, nack_type=self.nack_type))
+        await self.door.enter()
         started = self._ticker.monotonic()
         headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
-        outcome = await self.receiver.receive_async(raw, headers, self.workers, self.workers.first)
+        try:
+            outcome = await self.receiver.receive_async(raw, headers, self.workers, self._first)
+        finally:
+            if self.door.holders:
+                self.door.release()
         self.metrics.observe(outcome, self._ticker.monotonic() - started)
         if outcome.retry is not None:
             return Refused.retry(outcome.retry)

@@ -13,14 +13,17 @@ asyncio future.  Thread traffic is what costs here, not the hand-off's bookkeepi
 * **Batches:** an awake worker takes up to ``batch`` jobs, runs them and delivers their
   results to the loop with ONE ``call_soon_threadsafe`` (one loop wake-up per batch, not
   per request).  A quiet gateway's batch is one job: no added latency.
-* **The urgent lane** (:meth:`Workers.first`): a fresh SAFETY message (an ESTOP) is
-  queued apart and always taken first.  A worker looks for one between the jobs of its
-  batch: when it finds one, it puts the rest of its batch back at the head of the queue,
-  delivers what it has, and runs the urgent job next, so an ESTOP waits for at most the
-  job each worker is running, never behind a flood's backlog.  The class is read before
-  the signature is checked: a forged SAFETY message also takes the lane, and is refused
-  there at the cost of one signature check (a captured ESTOP replayed is refused by the
-  replay check first, on the loop, where the store answers in process).
+* **The urgent lane** (:meth:`Workers.first`): a fresh SAFETY message's job is queued
+  at once, apart, and taken first, also between the jobs of a batch already taken (the
+  rest go back to the head of the queue), so an ESTOP waits for at most the job each
+  worker is running.  The class is read before the signature is checked: a forged SAFETY
+  message also takes the lane, at the cost of one signature check.
+* **The door** (:class:`Door`): a flood keeps the loop holding the GIL, and each thread
+  hand-off of the ESTOP's check, commit and row then waits a switch interval (p99 60 ms
+  under a flood where a quiet gateway takes 6).  So a fresh SAFETY message holds the door
+  until its answer: from the lane on while a small budget lasts (``EARLY_PER_S``: what a
+  forged flood can take), else from its authentication; requests arriving meanwhile wait
+  before they start (at most :data:`HOLD_S`), and a flood's clients fall quiet.
 
 A future already cancelled (the client went away) is left alone; a closed loop has
 nobody left to answer.  ``shutdown`` lets the queued jobs finish, then stops the threads.
@@ -34,6 +37,17 @@ import contextlib
 import threading
 from collections.abc import Callable
 from typing import Any
+
+from antireplay.core.clock import Clock, resolve
+from antireplay.core.ratelimit import TokenBucket
+
+#: The longest a request waits at a held :class:`Door` (an ESTOP's whole answer is due by
+#: then; the state's own safety wait is 0.2 s).
+HOLD_S = 0.25
+
+#: Holds taken before the signature check, per second: what a forged SAFETY flood can take.
+EARLY_PER_S = 20.0
+EARLY_BURST = 5.0
 
 _Job = tuple[asyncio.AbstractEventLoop, "asyncio.Future[Any]", Callable[..., Any], tuple[Any, ...]]
 _Result = tuple["asyncio.Future[Any]", Any, BaseException | None]
@@ -78,12 +92,24 @@ class Workers:
         future = loop.create_future()
         if self._closed:
             raise RuntimeError("workers shut down")
+        job = (loop, future, fn, args)
+        if lane is self._urgent:  # queued and a worker woken now, not when the iteration ends
+            with self._ready:
+                lane.append(job)
+                self._wake()
+            return future
         held = self._held.get(loop)
         if held is None:  # the first job of this loop iteration: queued when it ends
             held = self._held[loop] = []
             loop.call_soon(self._flush, loop)
-        held.append((lane, (loop, future, fn, args)))
+        held.append((lane, job))
         return future
+
+    def _wake(self) -> None:
+        """Under ``_ready``: wake one idle worker unless one is already on its way."""
+        if self._idle > self._waking:
+            self._waking += 1
+            self._ready.notify()
 
     def _flush(self, loop: asyncio.AbstractEventLoop) -> None:
         """On the loop, once per iteration: queue the jobs its callbacks submitted, and
@@ -93,9 +119,7 @@ class Workers:
             closed = self._closed  # shut down since: nobody would run them
             for lane, job in () if closed else held:
                 lane.append(job)
-            if self._idle > self._waking:  # one idle worker is enough to wake
-                self._waking += 1
-                self._ready.notify()
+            self._wake()  # one idle worker is enough to wake
         if closed:
             _resolve([(job[1], None, RuntimeError("workers shut down")) for _, job in held])
 
@@ -158,3 +182,60 @@ def _resolve(done: list[_Result]) -> None:
             future.set_result(result)
         else:
             future.set_exception(error)
+
+
+class Door:
+    """Held while an authenticated fresh SAFETY message is between its signature check and
+    its answer; other requests :meth:`enter` after it (see the module docstring)."""
+
+    def __init__(
+        self,
+        hold_s: float = HOLD_S,
+        *,
+        early_per_s: float = EARLY_PER_S,
+        early_burst: float = EARLY_BURST,
+        clock: Clock | None = None,
+    ) -> None:
+        self.hold_s = hold_s
+        self._early = TokenBucket(early_per_s, resolve(clock), burst=early_burst)
+        #: The tasks holding the door (an ESTOP's request each).
+        self.holders: set[asyncio.Task[Any]] = set()
+        self._opened: asyncio.Event | None = None
+        #: Requests that waited at the door, and of them those it let in at ``hold_s``.
+        self.waited = 0
+        self.timeouts = 0
+
+    async def enter(self) -> None:
+        """Return at once while nobody holds the door; else when it opens, or ``hold_s``."""
+        opened = self._opened
+        if opened is None:
+            return
+        self.waited += 1
+        try:
+            await asyncio.wait_for(opened.wait(), self.hold_s)
+        except asyncio.TimeoutError:
+            self.timeouts += 1
+
+    def hold_early(self) -> bool:
+        """Hold the door before the signature is checked, if the budget for that allows
+        (``False``: not taken now, or the current task holds it already)."""
+        if asyncio.current_task() in self.holders or not self._early.take():
+            return False
+        self.hold()
+        return True
+
+    def hold(self) -> None:
+        """The current task holds the door until :meth:`release`."""
+        task = asyncio.current_task()
+        if task is None or task in self.holders:
+            return
+        self.holders.add(task)
+        if self._opened is None:
+            self._opened = asyncio.Event()
+
+    def release(self) -> None:
+        """The current task lets go; the last holder opens the door."""
+        self.holders.discard(asyncio.current_task())
+        if not self.holders and self._opened is not None:
+            self._opened.set()
+            self._opened = None
