@@ -66,7 +66,7 @@ _NUMBERED = re.compile(r"\.(\d{6,})")
 class Retention:
     """When the live segment rotates and which rotated segments are removed (``None``:
     no limit).  Bytes are bytes on disk, the live segment's WAL included; retention counts
-    the live segment as full, so the trail stays within ``max_bytes`` plus one batch."""
+    the live segment as full, with a full WAL, so the trail stays within ``max_bytes``."""
 
     segment_bytes: int | None = None
     segment_age_s: float | None = None

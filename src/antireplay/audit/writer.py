@@ -638,11 +638,12 @@ class AuditLog:
         """Remove the oldest rotated segments past the byte or age budget (the caller holds
         the lock): the head, fsynced, first says they are gone on purpose.  The live segment
         counts as full, as large as the largest rotated one (a segment rotates once a batch
-        has taken it past ``segment_bytes``), so the trail stays within budget until the next
-        rotation."""
+        has taken it past ``segment_bytes``), with its WAL at the most it holds before being
+        folded in, so the trail stays within budget until the next rotation."""
         budget, age = self.retention.max_bytes, self.retention.max_age_s
         full = max([self.retention.segment_bytes or 0, *(k.bytes for k in self._kept)])
-        live = max(segments.bytes_of(self.path), full)
+        wal = _wal_pages(self.retention.segment_bytes or 0, PAGE) * PAGE
+        live = max(segments.bytes_of(self.path), full + wal)
         total = sum(k.bytes for k in self._kept) + live
         horizon = None if age is None else self._clock.wall() - age
         doomed = 0
@@ -734,10 +735,20 @@ def _open_live(
     db = _connect(path, read_only=False)
     if segment_bytes is not None:
         page = int(db.execute("PRAGMA page_size").fetchone()[0])
-        pages = max(1, min(1000, segment_bytes // page // 4))
+        pages = _wal_pages(segment_bytes, page)
         db.execute(f"PRAGMA wal_autocheckpoint={pages}")
         db.execute(f"PRAGMA journal_size_limit={pages * page}")
     return db, file_identity(path)
+
+
+#: SQLite's page size for the trail (its default; retention's WAL allowance assumes it).
+PAGE = 4096
+
+
+def _wal_pages(segment_bytes: int, page: int) -> int:
+    """Pages the live segment's WAL holds before it is folded in: a quarter segment, at
+    most SQLite's default 1000."""
+    return max(1, min(1000, segment_bytes // page // 4))
 
 
 def _rows_in(path: Path) -> int:
