@@ -612,3 +612,44 @@ def test_a_forged_safety_message_lets_the_door_go_and_an_authentic_one_holds_it(
 
     assert asyncio.run(scenario()) == (False, True, False)
     assert guard.door.holders == set()
+
+
+def test_an_estop_holds_the_door_until_the_robot_has_answered_it(tmp_path: Path) -> None:
+    """The door opens after the ESTOP is forwarded and answered, not when it is verified:
+    a slow robot behind the middleware still has the ESTOP to itself."""
+    write_demo_config(tmp_path)
+    clock = ManualClock(wall=NOW)
+    key = load_operator_key(tmp_path)
+    reached, answered = asyncio.Event(), asyncio.Event()
+
+    async def robot(scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["state"]["antireplay"].envelope["cmd"] == "estop":
+            reached.set()
+            await answered.wait()
+        await send({"type": "http.response.start", "status": 200, "headers": []})
+        await send({"type": "http.response.body", "body": b"{}"})
+
+    guard = Guard(robot, config(tmp_path / "mw", tmp_path / "operator.pub.pem"), clock=clock)
+    estop = command(key, timestamp=clock.wall(), type=6, safety_event="ESTOP", cmd="estop")
+
+    async def scenario() -> list[tuple[str, int]]:
+        done: list[tuple[str, int]] = []
+
+        async def send(name: str, body: bytes) -> None:
+            done.append((name, (await call(guard, body)).status))
+
+        first = asyncio.create_task(send("estop", estop))
+        await reached.wait()  # verified, committed, at the robot
+        second = asyncio.create_task(send("ordinary", command(key, timestamp=clock.wall())))
+        for _ in range(20):
+            await asyncio.sleep(0)
+        assert (guard.door.waited, done) == (1, [])
+        answered.set()
+        await asyncio.wait_for(asyncio.gather(first, second), 10)
+        return done
+
+    try:
+        assert asyncio.run(scenario()) == [("estop", 200), ("ordinary", 200)]
+    finally:
+        guard.close()
+    assert guard.door.holders == set()

@@ -169,6 +169,11 @@ class Checkpoint:
         if self._owns_receiver:
             self.receiver.close()
 
+    def let_go(self) -> None:
+        """The current request lets go of the door if it holds it."""
+        if self.door.holders:
+            self.door.release()
+
     async def _first(self, fn: Callable[..., Any], *args: Any) -> Any:
         """The urgent lane (only a fresh SAFETY message takes it), holding the door: from
         the start while the early budget lasts, else once authenticated; a refusal lets
@@ -190,10 +195,12 @@ class Checkpoint:
         return Refused(400, nack, close=True)
 
     async def open(
-        self, scope: Scope, receive: Receive, framing: Framing
+        self, scope: Scope, receive: Receive, framing: Framing, *, hold: bool = False
     ) -> tuple[Verified, Outcome] | Refused:
         """One POSTed envelope, checked, authenticated and committed: its :class:`Verified`
-        and outcome, or its refusal (a QoS retransmission's: :meth:`Refused.retry`)."""
+        and outcome, or its refusal (a QoS retransmission's: :meth:`Refused.retry`).
+        ``hold``: a fresh SAFETY message keeps the door held after this returns, until the
+        caller (which forwards and answers it) calls :meth:`let_go`, also if this raises."""
         refusal = _framing_refusal(framing[0], framing[1], self.limit)
         raw = await _body(receive, self.limit) if refusal is None else refusal
         if not isinstance(raw, bytes):
@@ -207,8 +214,8 @@ class Checkpoint:
         try:
             outcome = await self.receiver.receive_async(raw, headers, self.workers, self._first)
         finally:
-            if self.door.holders:
-                self.door.release()
+            if not hold:
+                self.let_go()
         self.metrics.observe(outcome, self._ticker.monotonic() - started)
         if outcome.retry is not None:
             return Refused.retry(outcome.retry)

@@ -87,21 +87,24 @@ class GuardMiddleware(Checkpoint):
             return await self.app(scope, receive, send)
         if scope["method"] != "POST":
             return await self._not_post().answer(send)
-        result = await self.open(scope, receive, framed)
-        if isinstance(result, Refused):
-            return await result.answer(send)
-        verified, outcome = result
-        body = encode_json(verified.envelope)
-        inner = {
-            **scope,
-            "headers": _verified_headers(scope["headers"], verified, len(body)),
-            "state": {**scope.get("state", {}), "antireplay": verified, OUTCOME: outcome},
-        }
-        relay, finish = self._holding(outcome, send)
-        try:
-            await self.accepted(inner, _replay(body, receive), relay)
+        try:  # an ESTOP holds the door until it is forwarded and answered
+            result = await self.open(scope, receive, framed, hold=True)
+            if isinstance(result, Refused):
+                return await result.answer(send)
+            verified, outcome = result
+            body = encode_json(verified.envelope)
+            inner = {
+                **scope,
+                "headers": _verified_headers(scope["headers"], verified, len(body)),
+                "state": {**scope.get("state", {}), "antireplay": verified, OUTCOME: outcome},
+            }
+            relay, finish = self._holding(outcome, send)
+            try:
+                await self.accepted(inner, _replay(body, receive), relay)
+            finally:
+                finish()
         finally:
-            finish()
+            self.let_go()
 
     async def _not_http(self, scope: Scope, receive: Receive, send: Send) -> None:
         """A WebSocket (or any other connection but HTTP and lifespan): a client's

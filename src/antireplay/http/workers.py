@@ -23,7 +23,8 @@ asyncio future.  Thread traffic is what costs here, not the hand-off's bookkeepi
   under a flood where a quiet gateway takes 6).  So a fresh SAFETY message holds the door
   until its answer: from the lane on while a small budget lasts (``EARLY_PER_S``: what a
   forged flood can take), else from its authentication; requests arriving meanwhile wait
-  before they start (at most :data:`HOLD_S`), and a flood's clients fall quiet.
+  before they start (at most :data:`HOLD_S`; another ESTOP too), and a flood's clients
+  fall quiet.  The gateway lets go once the ESTOP is forwarded and answered.
 
 A future already cancelled (the client went away) is left alone; a closed loop has
 nobody left to answer.  ``shutdown`` lets the queued jobs finish, then stops the threads.
