@@ -642,7 +642,7 @@ class AuditLog:
         folded in, so the trail stays within budget until the next rotation."""
         budget, age = self.retention.max_bytes, self.retention.max_age_s
         full = max([self.retention.segment_bytes or 0, *(k.bytes for k in self._kept)])
-        wal = _wal_pages(self.retention.segment_bytes or 0, PAGE) * PAGE
+        wal = _wal_bytes(self.retention.segment_bytes or 0)
         live = max(segments.bytes_of(self.path), full + wal)
         total = sum(k.bytes for k in self._kept) + live
         horizon = None if age is None else self._clock.wall() - age
@@ -735,20 +735,16 @@ def _open_live(
     db = _connect(path, read_only=False)
     if segment_bytes is not None:
         page = int(db.execute("PRAGMA page_size").fetchone()[0])
-        pages = _wal_pages(segment_bytes, page)
+        pages = max(1, _wal_bytes(segment_bytes) // page)
         db.execute(f"PRAGMA wal_autocheckpoint={pages}")
         db.execute(f"PRAGMA journal_size_limit={pages * page}")
     return db, file_identity(path)
 
 
-#: SQLite's page size for the trail (its default; retention's WAL allowance assumes it).
-PAGE = 4096
-
-
-def _wal_pages(segment_bytes: int, page: int) -> int:
-    """Pages the live segment's WAL holds before it is folded in: a quarter segment, at
-    most SQLite's default 1000."""
-    return max(1, min(1000, segment_bytes // page // 4))
+def _wal_bytes(segment_bytes: int) -> int:
+    """What the live segment's WAL holds before it is folded in (and retention keeps room
+    for): a quarter segment, at most SQLite's default checkpoint of 1000 4-KiB pages."""
+    return min(segment_bytes // 4, 1000 * 4096)
 
 
 def _rows_in(path: Path) -> int:

@@ -186,8 +186,9 @@ def _resolve(done: list[_Result]) -> None:
 
 
 class Door:
-    """Held while an authenticated fresh SAFETY message is between its signature check and
-    its answer; other requests :meth:`enter` after it (see the module docstring)."""
+    """Held by a fresh SAFETY message's request until its answer (from before its
+    signature check within the early budget, else from its authentication); other
+    requests :meth:`enter` after it (see the module docstring)."""
 
     def __init__(
         self,
