@@ -1,8 +1,15 @@
-"""What every command shares: one error idiom, the config and audit preflight, a signal wait.
+"""What every command shares: one error idiom, the config and audit preflight, one shutdown.
 
 An ordinary mistake is one line on stderr, ``antireplay: error: <what> (<what is
 allowed>)``, with exit status 2 (:func:`_fail`); ``config check`` runs the same
 :func:`preflight` as ``serve``, so a configuration that passes the check starts.
+
+One shutdown for every long-running command: SIGINT (Ctrl-C) and SIGTERM end it with a
+one-line summary and exit status 0.  A command with a loop of its own waits on the event
+of :func:`stop_on_signal` and prints its counts; one that blocks elsewhere (a server, a
+wait for readers, a scripted run) runs inside :func:`until_stopped`, which ends the
+block at the signal, prints the summary it is given and exits 0.  A secret read from a
+file that group or others may read gets one warning line (:func:`warn_if_shared`).
 """
 
 from __future__ import annotations
@@ -12,7 +19,10 @@ import signal
 import sqlite3
 import sys
 import tempfile
+import stat
 import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
 from typing import TYPE_CHECKING, Any, NoReturn
@@ -192,3 +202,49 @@ def stop_on_signal() -> threading.Event:
     signal.signal(signal.SIGTERM, handler)
     signal.signal(signal.SIGINT, handler)
     return stop
+
+
+class _Stopped(BaseException):
+    """Raised in the main thread by the first SIGINT or SIGTERM inside :func:`until_stopped`
+    (a ``BaseException``: no ``except Exception`` on the way swallows it)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+@contextmanager
+def until_stopped(summary: Callable[[], str]) -> Iterator[None]:
+    """Run the block until SIGINT or SIGTERM; then print ``summary()`` as one line on stderr
+    (``stopped by SIGINT: ...``) and exit 0.  Later signals are ignored while it stops."""
+    stopping: list[int] = []
+
+    def handler(signum: int, _frame: FrameType | None) -> None:
+        if not stopping:
+            stopping.append(signum)
+            raise _Stopped(signum)
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    except _Stopped as stop:
+        name = signal.Signals(stop.signum).name
+        click.echo(f"stopped by {name}: {summary()}", err=True)
+        sys.exit(0)
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def warn_if_shared(path: Path, what: str) -> None:
+    """One warning line if the secret ``path`` may be read by group or others."""
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return  # the reader names what is wrong with it
+    if mode & (stat.S_IRWXG | stat.S_IRWXO):
+        click.echo(
+            f"antireplay: warning: {what} {path} is readable by others (mode "
+            f"{stat.S_IMODE(mode):04o}); keep a secret mode 0600: chmod 600 {path}",
+            err=True,
+        )

@@ -17,7 +17,7 @@ from typing import Any
 
 import click
 
-from antireplay.cli._common import _fail, stop_on_signal
+from antireplay.cli._common import _fail, stop_on_signal, until_stopped, warn_if_shared
 from antireplay.core.errors import AntiReplayError, ConfigError
 from antireplay.dds.config import DdsConfig, parse_udp
 
@@ -32,9 +32,11 @@ CONFIG = click.option(
 
 def _load(path: Path) -> DdsConfig:
     try:
-        return DdsConfig.from_yaml(path)
+        cfg = DdsConfig.from_yaml(path)
     except ConfigError as exc:
         _fail(str(exc))
+    warn_if_shared(Path(cfg.psk_file), "dds.psk_file")
+    return cfg
 
 
 def _participant(cfg: DdsConfig) -> Any:
@@ -135,18 +137,21 @@ def write(  # noqa: PLR0917 - one option per knob
         )
     except (AntiReplayError, ValueError) as exc:
         _fail(str(exc))
-    _wait_readers(writer, wait_readers)
-    if capture is not None:
-        capture.write_text("", encoding="ascii")  # this run's samples only: re-runnable
-    for message in messages:
-        sample = writer.write(message.encode(), instance=instance)
+    sent: list[str] = []
+    with until_stopped(lambda: f"sent {len(sent)} of {len(messages)} messages"):
+        _wait_readers(writer, wait_readers)
         if capture is not None:
-            line = {"topic": writer.topic_name, "instance": instance,
-                    "sealed": bytes(sample.sealed).hex()}  # fmt: skip
-            with capture.open("a", encoding="ascii") as handle:
-                handle.write(json.dumps(line) + "\n")
-        click.echo(f"sent {message!r} prefix={writer.nonce_prefix.hex()}")
-    writer.flush()
+            capture.write_text("", encoding="ascii")  # this run's samples only: re-runnable
+        for message in messages:
+            sample = writer.write(message.encode(), instance=instance)
+            if capture is not None:
+                line = {"topic": writer.topic_name, "instance": instance,
+                        "sealed": bytes(sample.sealed).hex()}  # fmt: skip
+                with capture.open("a", encoding="ascii") as handle:
+                    handle.write(json.dumps(line) + "\n")
+            click.echo(f"sent {message!r} prefix={writer.nonce_prefix.hex()}")
+            sent.append(message)
+        writer.flush()
 
 
 @dds.command()

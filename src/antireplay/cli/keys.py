@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
+import secrets
 import sys
 import time
 import uuid
@@ -35,7 +37,7 @@ from antireplay.rcan.envelope import parse, safety_class
 if TYPE_CHECKING:
     pass
 
-from antireplay.cli._common import _fail, console
+from antireplay.cli._common import _fail, console, warn_if_shared
 
 KEY_TYPES: dict[str, Any] = {
     "ed25519": ed25519.Ed25519PrivateKey,
@@ -49,14 +51,25 @@ KEY_TYPES: dict[str, Any] = {
 @click.command()
 @click.option(
     "--alg",
-    type=click.Choice(sorted(KEY_TYPES)),
+    type=click.Choice(sorted([*KEY_TYPES, "psk"])),
     default="ed25519",
     show_default=True,
-    help="The key's algorithm (ml-kem-1024 and x25519 are vehicle keys for mavlink-pq).",
+    help="The key's algorithm (ml-kem-1024 and x25519 are vehicle keys for mavlink-pq; psk "
+    "is a DDS fleet key, 32 random bytes in hex).",
 )
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="File prefix.")
 def keygen(alg: str, out: Path) -> None:
-    """Write PREFIX.key.pem (mode 0600) and PREFIX.pub.pem."""
+    """Write PREFIX.key.pem (mode 0600) and PREFIX.pub.pem, or PREFIX.psk (mode 0600)."""
+    if alg == "psk":
+        secret = out.with_name(out.name + ".psk")
+        try:
+            fd = os.open(secret, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:
+            _fail(f"{secret} exists; refusing to overwrite a key")
+        with os.fdopen(fd, "w", encoding="ascii") as handle:
+            handle.write(secrets.token_hex(32) + "\n")
+        console.print(f"[green]fleet key (mode 0600):[/green] {secret}")
+        return
     key = KEY_TYPES[alg].generate()
     private = out.with_name(out.name + ".key.pem")
     public = out.with_name(out.name + ".pub.pem")
@@ -80,6 +93,7 @@ def _private_key(
     keys = []
     for path in paths:
         data = path.read_bytes()
+        warn_if_shared(path, "--key")
         if data.startswith(SDK_PRIVATE_MAGIC) and accepted == _SIGNING_KEYS:
             _fail(f"--key {path}: an RCAN SDK key file; sign with it using --sdk")
         try:
@@ -217,6 +231,8 @@ def _sdk_key(paths: tuple[Path, ...], kid: str | None) -> mldsa.MLDSA65PrivateKe
     if len(paths) != 1:
         _fail("--sdk signs with exactly one --key (ML-DSA-65)")
     data = paths[0].read_bytes()
+    if data.startswith(SDK_PRIVATE_MAGIC):  # a PEM key is checked by _private_key
+        warn_if_shared(paths[0], "--key")
     key: mldsa.MLDSA65PrivateKey | SdkKeyPair
     if data.startswith(SDK_PRIVATE_MAGIC):
         size = int.from_bytes(data[4:6], "big")

@@ -15,7 +15,13 @@ from antireplay.wiring import Allowed, stop_router
 if TYPE_CHECKING:
     from antireplay.mavlink import Role
 
-from antireplay.cli._common import _MOVE_ASIDE, _check_audit_file, _fail, stop_on_signal
+from antireplay.cli._common import (
+    _MOVE_ASIDE,
+    _check_audit_file,
+    _fail,
+    stop_on_signal,
+    warn_if_shared,
+)
 
 
 def _signing_key(path: Path) -> bytes:
@@ -25,6 +31,7 @@ def _signing_key(path: Path) -> bytes:
         raw = path.read_bytes()
     except OSError as exc:
         raise click.BadParameter(f"{path}: unreadable ({exc.strerror})") from None
+    warn_if_shared(path, "--key-file")
     if len(raw) == 32:
         return raw
     text = raw.strip()
@@ -44,6 +51,7 @@ def _signing_keys(path: Path | None) -> dict[str, str]:
         lines = path.read_text().splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise click.BadParameter(f"{path}: unreadable ({exc})") from None
+    warn_if_shared(path, "--signing-keys")
     found = {}
     for line in lines:
         words = line.split()

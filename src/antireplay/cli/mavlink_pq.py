@@ -25,7 +25,13 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 
 from antireplay.audit import AuditLog
-from antireplay.cli._common import _MOVE_ASIDE, _check_audit_file, _fail, stop_on_signal
+from antireplay.cli._common import (
+    _MOVE_ASIDE,
+    _check_audit_file,
+    _fail,
+    stop_on_signal,
+    warn_if_shared,
+)
 from antireplay.core.clock import SystemClock
 from antireplay.core.errors import StateFileError
 
@@ -136,6 +142,8 @@ def _key(path: Path, kind: Any, option: str) -> Any:
         )
     except (OSError, ValueError, TypeError, UnsupportedAlgorithm) as exc:
         raise click.BadParameter(f"{path}: not {what} ({exc})", param_hint=option) from None
+    if private:
+        warn_if_shared(path, option)
     if not isinstance(key, kind):
         message = f"{path}: a {type(key).__name__}, not a {kind.__name__}"
         raise click.BadParameter(message, param_hint=option)

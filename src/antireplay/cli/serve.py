@@ -34,7 +34,7 @@ from antireplay.state import StoreSpec
 if TYPE_CHECKING:
     from starlette.applications import Starlette
 
-from antireplay.cli._common import _fail, _load_config, console, preflight
+from antireplay.cli._common import _fail, _load_config, console, preflight, until_stopped
 
 
 @click.command()
@@ -102,7 +102,7 @@ def serve(  # noqa: PLR0917 - one option per knob
     from uvicorn.config import LOGGING_CONFIG  # noqa: PLC0415
     from uvicorn.supervisors import Multiprocess  # noqa: PLC0415
 
-    from antireplay.wiring import anchor_summary, anchor_warnings, create_app  # noqa: PLC0415
+    from antireplay.wiring import anchor_summary, create_app  # noqa: PLC0415
 
     if (ssl_certfile is None) != (ssl_keyfile is None):
         raise click.UsageError("give --ssl-certfile and --ssl-keyfile together")
@@ -143,11 +143,12 @@ def serve(  # noqa: PLR0917 - one option per knob
         f"(store {StoreSpec.parse(config.store).redacted()}, {anchor_summary(config)}"
         f"audit {config.audit})"
     )
-    for warning in anchor_warnings(config):
+    for warning in _startup_warnings(config, anchor_summary(config)):
         click.echo(f"antireplay: warning: {warning}", err=True)
     if workers == 1:
         settled_heap()
-        uvicorn.Server(settings).run(sockets=[sock])
+        with until_stopped(lambda: f"served {_served(app)}"):
+            uvicorn.Server(settings).run(sockets=[sock])
         return
     _release(app)  # it only checked the configuration: each worker builds its own
     building = {"config": config_path, "state_dir": state_dir}
@@ -158,7 +159,37 @@ def serve(  # noqa: PLR0917 - one option per knob
         ssl_certfile=settings.ssl_certfile, ssl_keyfile=settings.ssl_keyfile,
     )  # fmt: skip
     click.echo(f"{workers} worker processes (metrics per process)")
-    Multiprocess(settings, sockets=[sock]).run()
+    Multiprocess(settings, sockets=[sock]).run()  # its own handlers stop the workers
+    click.echo(f"stopped: {workers} worker processes ended (their counts were per process)", err=True)
+
+
+#: The startup's short form of ``config check``'s no-anchor warning (said in full there).
+NO_ANCHOR_REFERENCE = (
+    "no state anchor: a restored snapshot can re-open replays (see `antireplay config check`, "
+    "docs/threat-model.md#the-state-anchor)"
+)
+
+
+def _startup_warnings(config: AppConfig, summary: str) -> list[str]:
+    """``config check``'s anchor warnings, the long no-anchor one as a short reference."""
+    from antireplay.wiring import anchor_warnings  # noqa: PLC0415
+
+    if summary.startswith("no state anchor"):
+        return [NO_ANCHOR_REFERENCE]
+    return anchor_warnings(config)
+
+
+def _served(app: Starlette) -> str:
+    """What a gateway answered since it started, for its shutdown line."""
+    registry = app.state.metrics.registry
+    accepted = registry.get_sample_value("antireplay_accepted_total") or 0
+    refused = sum(
+        sample.value
+        for metric in registry.collect()
+        for sample in metric.samples
+        if sample.name == "antireplay_rejected_total"
+    )
+    return f"{accepted:g} accepted, {refused:g} refused"
 
 
 #: How ``serve --workers`` tells its spawned workers which configuration to build.
@@ -215,6 +246,11 @@ def _table(results: list[StepResult], title: str) -> Table:
 @click.option("--in-process", is_flag=True, help="Only the §8.3 window, no gateway process.")
 def demo(in_process: bool) -> None:
     """Play operator and attacker; exit non-zero if any answer differs."""
+    with until_stopped(lambda: "the demo did not finish, so it has no verdict"):
+        _demo(in_process)
+
+
+def _demo(in_process: bool) -> None:
     if in_process:
         results = run_window_demo()
         console.print(_table(results, "antireplay demo: RCAN §8.3 window (in process)"))
@@ -265,9 +301,28 @@ def config_check(path: Path, verbose: bool) -> None:
     if not cfg.keys:
         click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
                    "so every command will be refused", err=True)  # fmt: skip
-    for warning in anchor_warnings(cfg):
+    for warning in [*anchor_warnings(cfg), *_sdk_key_hints(cfg)]:
         click.echo(f"antireplay: warning: {warning}", err=True)
     click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
+
+
+def _sdk_key_hints(cfg: AppConfig) -> list[str]:
+    """Without ``sdk_compat``, a key given as the RCAN SDK's own public key file: the SDK
+    signs under the key's SDK key id, which then names no key (401 UNKNOWN_SENDER)."""
+    from antireplay.rcan.auth import load_public_key, sdk_key_id  # noqa: PLC0415
+
+    if cfg.sdk_compat:
+        return []
+    hints = []
+    for entry in cfg.keys:
+        raw = Path(entry.public_keys[0]).read_bytes()  # preflight read them all
+        if entry.alg == "ml-dsa-65" and not raw.lstrip().startswith(b"-----BEGIN"):
+            hints.append(
+                f"keys.{entry.kid} is an RCAN SDK public key file: the SDK signs as its SDK key "
+                f"id {sdk_key_id(load_public_key(raw))}, which names a key only with "
+                "sdk_compat: true (else 401 UNKNOWN_SENDER)"
+            )
+    return hints
 
 
 def _probe_upstream(upstream: str | None, timeout_s: float) -> None:

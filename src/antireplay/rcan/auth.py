@@ -48,6 +48,7 @@ import hashlib
 import json
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -154,6 +155,10 @@ def load_public_key(data: bytes) -> PublicKey:
     return kind.from_public_bytes(data)
 
 
+#: What an RCAN SDK key id looks like (:func:`sdk_key_id`).
+_SDK_KID = re.compile(r"[0-9a-f]{8}")
+
+
 def sdk_key_id(key: PublicKey) -> str:
     """The RCAN SDK's key id: the first 8 hex digits of SHA-256 over the raw public key
     (``MLDSAKeyPair.key_id``); the SDK's ``sign_message`` puts it in ``sig.kid``."""
@@ -213,8 +218,22 @@ class KeyRegistry:
             raise SignatureRequiredError("message is not signed")
         entry = self.entries.get(sig.kid)
         if entry is None:
-            raise UnknownSenderError("unknown signing key")
+            raise UnknownSenderError("unknown signing key", detail=self._sdk_hint(sig.kid))
         return sig, entry
+
+    def _sdk_hint(self, kid: str) -> str | None:
+        """Why an unknown kid may be an RCAN SDK key id (the SDK always signs with it, and
+        it names a key only with ``sdk_compat``); ``None`` if nothing suggests it."""
+        if self.sdk_compat or not _SDK_KID.fullmatch(kid):
+            return None
+        ours = any(
+            entry.alg == "ml-dsa-65" and sdk_key_id(entry.public_keys[0]) == kid
+            for entry in self.entries.values()
+        )
+        whose = "the RCAN SDK key id of a configured ml-dsa-65 key" if ours else (
+            "shaped like an RCAN SDK key id (8 hex digits)"
+        )
+        return f"sig.kid {kid} is {whose}; SDK-signed messages verify only with sdk_compat: true"
 
     def verify(self, env: Envelope) -> Signer:
         """Verify ``env.sig``; raises ``SIGNATURE_REQUIRED``, ``UNKNOWN_SENDER`` or
