@@ -5,8 +5,10 @@ by an HTML comment, either ``<!-- test: run -->`` (this test runs it verbatim) o
 ``<!-- test: manual (why) -->`` (hardware, another program, the install itself).
 ``<!-- test: run; expect: A | B -->`` also requires each of A, B in its output;
 ``<!-- test: run after the block above -->`` runs a block after the runnable block before it in
-the same file, in the same directory, with what that one left running (its gateway).  A block
-runs in a fresh directory holding only ``.venv`` (this interpreter's environment), under
+the same file, in the same shell, with what that one left running (its gateway).  A block
+runs in a fresh directory holding only ``.venv`` (this interpreter's environment, as a clone
+holds it after the install; it is also ``HOME``, so a guide's scratch directory
+``~/antireplay-try/...`` is the test's own), under
 ``bash -e -o pipefail`` or this Python, in a private network namespace (``unshare -rn``,
 loopback up), so the fixed ports the docs use (8080, DDS) cannot collide with anything else on
 the machine; whatever it left running in the background is killed afterwards.  A chain runs in
@@ -116,13 +118,15 @@ def run_blocks(blocks: list[Snippet], tmp_path: Path, coda: str = "true") -> tup
             lines.append(snippet.code)
         else:
             (tmp_path / f"snippet{i}.py").write_text(snippet.code)
-            lines.append(f"{shlex.quote(sys.executable)} snippet{i}.py")
+            script = shlex.quote(str(tmp_path / f"snippet{i}.py"))  # run where the shell is
+            lines.append(f"{shlex.quote(sys.executable)} {script}")
     (tmp_path / "readme.sh").write_text("\n".join(lines))
     driver = f"ip link set lo up && bash -e -o pipefail readme.sh && {coda}"
     output = tmp_path / "output.txt"
     with output.open("wb") as sink:
         proc = subprocess.Popen(
-            ["unshare", "-rn", "sh", "-c", driver], cwd=tmp_path, env=block_environment(),
+            ["unshare", "-rn", "sh", "-c", driver], cwd=tmp_path,
+            env={**block_environment(), "HOME": str(tmp_path)},
             stdout=sink, stderr=subprocess.STDOUT, start_new_session=True,
         )  # fmt: skip
         try:
@@ -159,6 +163,28 @@ def test_page_followed_in_order_in_one_shell(document: Path, tmp_path: Path) -> 
     assert code == 0, f"exited {code}; still listening: {left!r}\n{said[-4000:]}"
     for wanted in (w for snippet in blocks for w in snippet.expect):
         assert wanted in said, f"{wanted!r} not in:\n{said[-4000:]}"
+    harness = {".venv", "readme.sh", "output.txt", "listening.txt", "antireplay-try"}
+    written = {p.name for p in tmp_path.iterdir()} - harness
+    assert {n for n in written if not n.startswith("snippet")} == set(), (
+        f"{name(document)} wrote these into the clone, not its scratch directory: {written}"
+    )
+
+
+SECRETS_AND_STATE = [
+    "operator.key.pem", "gcs.key.pem", "sub/vehicle-x.key.pem", "fleet.psk", "sdk-operator.key",
+    ".mavproxy/signing.keys", "signing.keys", ".antireplay/state.db", "antireplay-try/tour/x",
+]  # fmt: skip
+
+
+def test_the_clone_ignores_what_the_guides_write() -> None:
+    """A private key, a pre-shared key, MAVProxy's keys or a state file the guides write is
+    never one ``git add -A`` from a commit, wherever in the clone a reader ran a block."""
+    done = subprocess.run(
+        ["git", "check-ignore", "--no-index", "-v", *SECRETS_AND_STATE],
+        cwd=ROOT, capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    ignored = {line.split("\t", 1)[1] for line in done.stdout.splitlines()}
+    assert ignored == set(SECRETS_AND_STATE), f"not ignored: {set(SECRETS_AND_STATE) - ignored}"
 
 
 def nav_pages(nav: object) -> Iterator[str]:

@@ -17,9 +17,9 @@ from __future__ import annotations
 import os
 import signal
 import sqlite3
+import stat
 import sys
 import tempfile
-import stat
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -244,7 +244,7 @@ def warn_if_shared(path: Path, what: str) -> None:
         return  # the reader names what is wrong with it
     if mode & (stat.S_IRWXG | stat.S_IRWXO):
         click.echo(
-            f"antireplay: warning: {what} {path} is readable by others (mode "
+            f"antireplay: warning: {what} {path} is open to group or others (mode "
             f"{stat.S_IMODE(mode):04o}); keep a secret mode 0600: chmod 600 {path}",
             err=True,
         )

@@ -265,7 +265,13 @@ def _sdk_key(paths: tuple[Path, ...], kid: str | None) -> mldsa.MLDSA65PrivateKe
 @click.argument("url")
 @click.argument("message", type=click.File("rb"), default="-")
 @click.option("--bearer", default=None, help="JWT for the Authorization header.")
-def send(url: str, message: Any, bearer: str | None) -> None:
+@click.option(
+    "--json",
+    "as_json",
+    is_flag=True,
+    help="Print one JSON object (status, code, reason, body, sent_as) instead of the table.",
+)
+def send(url: str, message: Any, bearer: str | None, as_json: bool) -> None:
     """POST a signed envelope to a gateway and print the verdict (exit 1 if refused)."""
     headers = {"content-type": "application/json"}
     if bearer:
@@ -277,13 +283,20 @@ def send(url: str, message: Any, bearer: str | None) -> None:
         reply = httpx.post(url, content=raw, headers=headers, timeout=10)
     except httpx.HTTPError as exc:
         _fail(f"cannot reach {url}: {exc}")
-    table = Table(title=f"{url} answered HTTP {reply.status_code}", caption=_sent_as(raw))
-    table.add_column("field")
-    table.add_column("value")
     try:
         body = reply.json()
     except ValueError:
         body = {"body": reply.text[:200]}
+    if as_json:
+        fields = body if isinstance(body, dict) else {}
+        answer = {"status": reply.status_code, "code": fields.get("code"),
+                  "reason": fields.get("reason"), "body": body,
+                  "sent_as": _sent_as(raw)}  # fmt: skip
+        click.echo(json.dumps(answer))
+        sys.exit(0 if reply.status_code < 300 else 1)
+    table = Table(title=f"{url} answered HTTP {reply.status_code}", caption=_sent_as(raw))
+    table.add_column("field")
+    table.add_column("value")
     for name, value in body.items():
         table.add_row(str(name), json.dumps(value) if not isinstance(value, str) else value)
     console.print(table)

@@ -160,7 +160,7 @@ def serve(  # noqa: PLR0917 - one option per knob
     )  # fmt: skip
     click.echo(f"{workers} worker processes (metrics per process)")
     Multiprocess(settings, sockets=[sock]).run()  # its own handlers stop the workers
-    click.echo(f"stopped: {workers} worker processes ended (their counts were per process)", err=True)
+    click.echo(f"stopped: {workers} worker processes ended (counts were per process)", err=True)
 
 
 #: The startup's short form of ``config check``'s no-anchor warning (said in full there).

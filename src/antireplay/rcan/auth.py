@@ -230,8 +230,10 @@ class KeyRegistry:
             entry.alg == "ml-dsa-65" and sdk_key_id(entry.public_keys[0]) == kid
             for entry in self.entries.values()
         )
-        whose = "the RCAN SDK key id of a configured ml-dsa-65 key" if ours else (
-            "shaped like an RCAN SDK key id (8 hex digits)"
+        whose = (
+            "the RCAN SDK key id of a configured ml-dsa-65 key"
+            if ours
+            else ("shaped like an RCAN SDK key id (8 hex digits)")
         )
         return f"sig.kid {kid} is {whose}; SDK-signed messages verify only with sdk_compat: true"
 

@@ -491,7 +491,7 @@ class Receiver:
         copies = self._copies
         if len(copies) >= self.config.msg_id_cache_size:
             copies.pop(next(iter(copies)), None)
-        sender = outcome.envelope.sender if outcome.envelope is not None else None
+        sender = None if outcome.signer is None else f"kid:{outcome.signer.kid}"  # as claimed
         copies[hash(raw)] = _Copy(
             len(raw), expires_at, outcome.msg_id, outcome.msg_type, sender, qos
         )

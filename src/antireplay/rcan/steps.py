@@ -245,12 +245,14 @@ class Steps:
 
 
 def audit_row(outcome: Outcome, at: float, sender: str | None = None) -> dict[str, Any]:
-    """The audit row of an outcome (``sender``: a known copy's claimed sender)."""
+    """The audit row of an outcome (``sender``: a known copy's claimed sender).  Unverified,
+    the sender is what the message claims: its ``sender`` field, else its key id
+    (``kid:NAME``; a replay is refused before its signature is checked)."""
     signer, env = outcome.signer, outcome.envelope
     if signer is not None:
         sender = signer.owner
     elif env is not None:
-        sender = env.sender
+        sender = env.sender or claimed_kid(env)
     return {
         "at": at,
         "outcome": "accepted" if outcome.accepted else "rejected",
@@ -261,6 +263,15 @@ def audit_row(outcome: Outcome, at: float, sender: str | None = None) -> dict[st
         "sender_verified": signer is not None,
         "msg_id": outcome.msg_id,
     }
+
+
+def claimed_kid(env: Envelope) -> str | None:
+    """``kid:NAME`` of the signature block ``env`` carries (unverified), or ``None``."""
+    try:
+        sig = env.signature()
+    except ReplayAttackError:
+        return None
+    return None if sig is None else f"kid:{sig.kid}"
 
 
 def may_retry(error: ReplayAttackError, env: Envelope) -> bool:
