@@ -352,8 +352,18 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     store.close()
     stats = router.stats
     forwarded = ", ".join(f"{k} {v}" for k, v in sorted(stats.forwarded.items())) or "none"
-    dropped = ", ".join(f"{k} {v}" for k, v in sorted(stats.dropped.items())) or "none"
+    dropped = ", ".join(f"{k} {v}{_DROPS.get(k.partition(':')[2], '')}"
+                        for k, v in sorted(stats.dropped.items())) or "none"  # fmt: skip
     click.echo(f"forwarded {forwarded}; dropped {dropped}", err=True)
+
+
+#: What the router's own drop codes mean, beside their counts (refusals are in docs/codes.md).
+_DROPS = {
+    "NO_PEER": " (accepted, but no other link had a receiver yet: telemetry before a ground "
+    "station authenticated)",
+    "NO_ROUTE": " (targeted at a system never seen on the ground side)",
+    "UNREACHABLE": " (the link could not take the frame: disconnected or full)",
+}
 
 
 def _udp_shorthand(spec: str, kind: str, option: str) -> str:

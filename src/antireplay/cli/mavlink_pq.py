@@ -15,7 +15,7 @@ bytes by kind among them; ``--air-bps`` paces the air side to the radio's serial
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
@@ -206,13 +206,13 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = stop_on_signal()
     link.start()
-    click.echo(f"mavlink-pq {link.name}: local {local}, air {air}", err=True)
+    side = "fc" if link.name == "vehicle" else "local"  # the vehicle end's local side: the FC
+    click.echo(f"mavlink-pq {link.name}: {side} {local}, air {air}", err=True)
     done.wait()
     link.stop()
     refusals.close()  # the folded refusals' summary rows, before the trail closes
     audit_log.close()
-    forwarded = " ".join(f"{k}={v}" for k, v in sorted(link.forwarded.items())) or "none"
-    dropped = " ".join(f"{k}={v}" for k, v in sorted(link.dropped.items())) or "none"
+    forwarded, dropped = _shown(link.forwarded, side), _shown(link.dropped, side)
     sessions = " ".join(f"{k}={v}" for k, v in sorted(link.sessions.items())) or "none"
     kinds = " ".join(f"{k}={v}" for k, v in sorted(link.counts().airtime.items())) or "none"
     click.echo(
@@ -220,6 +220,19 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
         f"{link.air_bytes} bytes on air ({kinds})",
         err=True,
     )
+
+
+#: What a drop counted at exit means, beside its count.
+_MEANING = {"air:NO_PEER": " (no peer on the air side yet: none authenticated to this end)"}
+
+
+def _shown(counts: Mapping[str, int], side: str) -> str:
+    """Counts as printed at exit, the local side named ``side`` (the vehicle end's: "fc")."""
+    parts = []
+    for key, value in sorted(counts.items()):
+        name = side + key.removeprefix("local") if key.startswith("local") else key
+        parts.append(f"{name}={value}{_MEANING.get(key, '')}")
+    return " ".join(parts) or "none"
 
 
 @click.group("mavlink-pq")
