@@ -1,8 +1,11 @@
-"""``antireplay sign --sdk``: what it refuses, each as one line naming the input."""
+"""``antireplay keygen``, ``sign`` and ``send``: what ``sign --sdk`` refuses, each as one line
+naming the input; secrets written mode 0600 and a warning for a shared one; ``send --json``."""
 
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -13,7 +16,8 @@ from rcan.signing import MLDSAKeyPair
 
 from antireplay.cli import main
 from antireplay.rcan.auth import write_key_pair
-from tests.harness import one_line_error
+from antireplay.cli.demo import command, load_operator_key, write_demo_config
+from tests.harness import one_line_error, serving
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 
@@ -59,3 +63,50 @@ def test_sign_sdk_refuses_a_target_the_sdk_cannot_parse(tmp_path: Path, target: 
     write_key_pair(mldsa.MLDSA65PrivateKey.generate(), tmp_path / "k.pem", tmp_path / "k.pub")
     one_line_error(sdk_sign(tmp_path / "k.pem", "--target", target), "target", "RCAN SDK")
     one_line_error(sdk_sign(tmp_path / "k.pem"), "target", "missing")
+
+
+def antireplay(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """The command as a user runs it (a process of its own, its output as text)."""
+    return subprocess.run(
+        [sys.executable, "-m", "antireplay", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+
+
+def test_secrets_are_written_0600_and_a_shared_one_is_warned_about(tmp_path: Path) -> None:
+    """``keygen`` writes private keys and a fleet PSK mode 0600 (never over an existing
+    one); ``sign`` reading a key that group or others may read warns in one line."""
+    made = antireplay("keygen", "--alg", "psk", "--out", "fleet", cwd=tmp_path)
+    assert made.returncode == 0, made.stderr
+    assert len(bytes.fromhex((tmp_path / "fleet.psk").read_text())) == 32
+    again = antireplay("keygen", "--alg", "psk", "--out", "fleet", cwd=tmp_path)
+    assert again.returncode == 2 and "refusing to overwrite" in again.stderr
+    assert antireplay("keygen", "--out", "operator", cwd=tmp_path).returncode == 0
+    for secret in ("fleet.psk", "operator.key.pem"):
+        assert (tmp_path / secret).stat().st_mode & 0o777 == 0o600, secret
+    sign = ("sign", "--key", "operator.key.pem", "--kid", "operator", "--cmd", "c",
+            "--target", ROBOT)  # fmt: skip
+    quiet = antireplay(*sign, cwd=tmp_path)
+    assert quiet.returncode == 0 and quiet.stderr == "", quiet.stderr
+    os.chmod(tmp_path / "operator.key.pem", 0o644)
+    loud = antireplay(*sign, cwd=tmp_path)
+    assert loud.returncode == 0 and json.loads(loud.stdout)["sig"]["kid"] == "operator"
+    assert loud.stderr.splitlines() == [
+        "antireplay: warning: --key operator.key.pem is open to group or others (mode 0644); "
+        "keep a secret mode 0600: chmod 600 operator.key.pem"
+    ]
+
+
+def test_send_json_is_one_object_with_status_code_reason_and_body(tmp_path: Path) -> None:
+    config = write_demo_config(tmp_path)
+    (tmp_path / "msg.json").write_bytes(command(load_operator_key(tmp_path)))
+    with serving(config) as gateway:
+        first = antireplay("send", "--json", gateway.url, "msg.json", cwd=tmp_path)
+        again = antireplay("send", "--json", gateway.url, "msg.json", cwd=tmp_path)
+    accepted, refused = json.loads(first.stdout), json.loads(again.stdout)
+    assert first.returncode == 0 and again.returncode == 1, (first.stderr, again.stderr)
+    assert (accepted["status"], accepted["code"], accepted["reason"]) == (200, None, None)
+    assert accepted["body"]["accepted"] is True
+    assert accepted["sent_as"] == "sent cmd move_forward as COMMAND"
+    assert (refused["status"], refused["code"]) == (409, "REPLAY_DETECTED")
+    assert refused["reason"].startswith("REPLAY_DETECTED: ") and refused["body"]["type"] == 18

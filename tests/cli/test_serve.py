@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import shutil
+import signal
 import socket
 import sqlite3
 import subprocess
@@ -25,7 +26,16 @@ from antireplay.cli._common import importable_cwd
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.cli.serve import settled_heap
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import GatewayProcess, free_port, metric, one_line_error, post, serving, until
+from tests.harness import (
+    GatewayProcess,
+    child_pids,
+    free_port,
+    metric,
+    one_line_error,
+    post,
+    serving,
+    until,
+)
 from tests.harness.redis_server import RedisServer
 
 
@@ -170,12 +180,73 @@ def test_without_an_anchor_a_restored_state_directory_reopens_the_replay(
     with itself and B accepts X again; the startup says so (and config check warns)."""
     status, said = _restore_after_accepting(tmp_path, None)
     assert status == 200
-    assert "no state anchor" in said and "replay_window_s (30 s)" in said, said
+    assert "no state anchor" in said and "config check" in said, said
     checked = CliRunner().invoke(
         main, ["config", "check", str(tmp_path / "state" / "antireplay.yaml")]
     )
     assert checked.exit_code == 0, checked.output
     assert "no state anchor" in checked.stderr and "re-opens" in checked.stderr
+
+
+def test_serve_refers_to_the_anchor_warning_that_config_check_gives_in_full(
+    tmp_path: Path,
+) -> None:
+    """Every ``serve`` start names the missing anchor in one short line pointing at the
+    full warning (``config check``, the threat model); ``config check`` keeps it whole."""
+    config = write_demo_config(tmp_path)
+    with serving(config) as gateway:
+        pass
+    warnings = [line for line in (gateway.stderr_text or "").splitlines() if "warning" in line]
+    assert warnings == [
+        "antireplay: warning: no state anchor: a restored snapshot can re-open replays (see "
+        "`antireplay config check`, docs/threat-model.md#the-state-anchor)"
+    ]
+    checked = subprocess.run(
+        [sys.executable, "-m", "antireplay", "config", "check", str(config)],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert checked.returncode == 0, checked.stderr
+    assert "replay_window_s (30 s) of a command re-opens that command's replay" in checked.stderr
+
+
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)
+def test_serve_stops_on_sigint_and_sigterm_with_a_summary_and_exit_0(
+    tmp_path: Path, stop: signal.Signals
+) -> None:
+    """Ctrl-C and SIGTERM alike: one line saying what the gateway answered, exit 0 (not
+    ``antireplay: error: aborted`` and 1, nor a silent 143)."""
+    config = write_demo_config(tmp_path)
+    gateway = GatewayProcess(config)
+    gateway.start()
+    assert gateway.proc is not None
+    raw = command(load_operator_key(tmp_path))
+    assert post(gateway, raw).status_code == 200
+    assert post(gateway, raw).status_code == 409
+    gateway.proc.send_signal(stop)
+    _, err = gateway.proc.communicate(timeout=30)
+    said = err.decode()
+    assert gateway.proc.returncode == 0, said
+    assert said.splitlines()[-1] == f"stopped by {stop.name}: served 1 accepted, 1 refused", said
+    assert "aborted" not in said and "Traceback" not in said
+
+
+def test_demo_stopped_by_ctrl_c_says_so_exits_0_and_leaves_no_gateway() -> None:
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "antireplay", "demo"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        until("the demo's gateway process", lambda: child_pids(demo.pid))
+        gateway = child_pids(demo.pid)[0]
+        demo.send_signal(signal.SIGINT)
+        _, err = demo.communicate(timeout=60)
+    finally:
+        demo.kill()
+    assert demo.returncode == 0, err
+    assert err.splitlines()[-1] == (
+        "stopped by SIGINT: the demo did not finish, so it has no verdict"
+    ), err
+    assert "aborted" not in err and not Path(f"/proc/{gateway}").exists()
 
 
 def test_config_check_names_the_anchor_and_refuses_a_bad_one(

@@ -118,6 +118,17 @@ class GatewayProcess:
             self.proc = None
 
 
+def child_pids(pid: int) -> list[int]:
+    """The processes ``pid`` started that are still running (Linux ``/proc``)."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            found += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:  # the task ended meanwhile
+            continue
+    return found
+
+
 @contextmanager
 def serving(config: Path) -> Iterator[GatewayProcess]:
     """A started :class:`GatewayProcess` on ``config``, stopped afterwards."""

@@ -157,6 +157,16 @@ def start_gateway(
     args = [*prefix, sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
     args += ["--host", "127.0.0.1", "--port", str(port)]
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:  # whatever ends the wait (a timeout, a signal) leaves no gateway behind
+        _wait_healthy(proc, port, timeout_s)
+    except BaseException:
+        proc.kill()
+        proc.wait()
+        raise
+    return proc
+
+
+def _wait_healthy(proc: subprocess.Popen[bytes], port: int, timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -164,7 +174,7 @@ def start_gateway(
             raise RuntimeError(f"gateway exited early: {err[-2000:]}")
         try:
             if httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=1).status_code == 200:
-                return proc
+                return
         except httpx.HTTPError:
             time.sleep(0.05)
     raise RuntimeError("gateway did not become healthy")

@@ -93,7 +93,6 @@ def _private_key(
     keys = []
     for path in paths:
         data = path.read_bytes()
-        warn_if_shared(path, "--key")
         if data.startswith(SDK_PRIVATE_MAGIC) and accepted == _SIGNING_KEYS:
             _fail(f"--key {path}: an RCAN SDK key file; sign with it using --sdk")
         try:
@@ -103,6 +102,7 @@ def _private_key(
             _fail(f"--key {path}: not {accepted} ({why})")
         if not isinstance(key, PrivateKey):
             _fail(f"--key {path}: a {type(key).__name__}; accepted: {accepted}")
+        warn_if_shared(path, "--key")
         keys.append(key)
     return keys[0] if len(keys) == 1 else tuple(keys)
 
@@ -231,13 +231,12 @@ def _sdk_key(paths: tuple[Path, ...], kid: str | None) -> mldsa.MLDSA65PrivateKe
     if len(paths) != 1:
         _fail("--sdk signs with exactly one --key (ML-DSA-65)")
     data = paths[0].read_bytes()
-    if data.startswith(SDK_PRIVATE_MAGIC):  # a PEM key is checked by _private_key
-        warn_if_shared(paths[0], "--key")
     key: mldsa.MLDSA65PrivateKey | SdkKeyPair
     if data.startswith(SDK_PRIVATE_MAGIC):
         size = int.from_bytes(data[4:6], "big")
         if (size, len(data) - 6 - size) != _SDK_KEY_SIZES:
             _fail(f"--key {paths[0]}: a damaged RCAN SDK key file; accepted: {_SDK_KEYS}")
+        warn_if_shared(paths[0], "--key")  # a PEM key's is _private_key's
         try:  # the SDK signs its own files with dilithium-py (``rcan[pq]``)
             from rcan.signing import MLDSAKeyPair  # noqa: PLC0415 - only for the SDK's files
 

@@ -31,15 +31,16 @@ def _signing_key(path: Path) -> bytes:
         raw = path.read_bytes()
     except OSError as exc:
         raise click.BadParameter(f"{path}: unreadable ({exc.strerror})") from None
-    warn_if_shared(path, "--key-file")
-    if len(raw) == 32:
-        return raw
+    key = raw if len(raw) == 32 else None
     text = raw.strip()
-    if len(text) == 64:
+    if key is None and len(text) == 64:
         try:
-            return bytes.fromhex(text.decode("ascii"))
+            key = bytes.fromhex(text.decode("ascii"))
         except ValueError:
             pass
+    if key is not None:
+        warn_if_shared(path, "--key-file")
+        return key
     raise click.BadParameter(f"{path}: not a MAVLink signing key (32 raw bytes or 64 hex digits)")
 
 

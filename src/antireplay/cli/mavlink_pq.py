@@ -142,11 +142,11 @@ def _key(path: Path, kind: Any, option: str) -> Any:
         )
     except (OSError, ValueError, TypeError, UnsupportedAlgorithm) as exc:
         raise click.BadParameter(f"{path}: not {what} ({exc})", param_hint=option) from None
-    if private:
-        warn_if_shared(path, option)
     if not isinstance(key, kind):
         message = f"{path}: a {type(key).__name__}, not a {kind.__name__}"
         raise click.BadParameter(message, param_hint=option)
+    if private:
+        warn_if_shared(path, option.strip("'"))
     return key
 
 
