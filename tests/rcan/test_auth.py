@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import jwt as pyjwt
@@ -13,6 +16,7 @@ from cryptography.hazmat.primitives.asymmetric import ec, mldsa
 from rcan.signing import MLDSAKeyPair, verify_message
 
 from antireplay import ManualClock, SecurityConfig
+from antireplay.cli.demo import write_demo_config
 from antireplay.core.errors import SignatureInvalidError
 from antireplay.rcan.auth import (
     JwtVerifier,
@@ -25,7 +29,7 @@ from antireplay.rcan.auth import (
 )
 from antireplay.rcan.receive import Receiver
 from rcan import RCANMessage
-from tests.harness import fresh_receiver
+from tests.harness import fresh_receiver, serving
 from tests.harness.envelopes import (
     ED,
     JWT_KEY,
@@ -161,3 +165,49 @@ def test_sdk_signatures_made_here_verify_with_the_sdk() -> None:
     assert body["sig"]["kid"] == pair.key_id == sdk_key_id(PQ.public_key())
     with pytest.raises(ValueError, match="does not cover scope"):
         sign_sdk(message(scope="safety"), PQ)
+
+
+def antireplay(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "antireplay", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+
+
+def test_an_sdk_key_id_without_sdk_compat_gets_a_hint_naming_it(tmp_path: Path) -> None:
+    """A gateway given the SDK's own public key file but not ``sdk_compat: true``: ``config
+    check`` warns, and the SDK-signed message's 401 UNKNOWN_SENDER says why in its
+    ``detail``; an 8-hex-digit kid of no key is named as SDK-shaped, any other kid gets none."""
+    pair = MLDSAKeyPair.generate()
+    pair.save(str(tmp_path / "sdk.key"))
+    pair.save_public(str(tmp_path / "sdk.pub"))
+    entry = {"kid": "sdk-operator", "owner": "operator", "alg": "ml-dsa-65",
+             "public_keys": [str(tmp_path / "sdk.pub")], "scopes": ["control"]}  # fmt: skip
+    config = write_demo_config(tmp_path, keys=[entry])
+    checked = antireplay("config", "check", str(config), cwd=tmp_path)
+    assert checked.returncode == 0, checked.stderr
+    assert (
+        f"antireplay: warning: keys.sdk-operator is an RCAN SDK public key file: the SDK signs "
+        f"as its SDK key id {pair.key_id}, which names a key only with sdk_compat: true"
+    ) in checked.stderr
+    robot = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
+    signed_sdk = antireplay("sign", "--sdk", "--key", "sdk.key", "--cmd", "move_forward",
+                            "--target", robot, cwd=tmp_path)  # fmt: skip
+    (tmp_path / "sdk.json").write_text(signed_sdk.stdout)
+    for kid in ("deadbeef", "nobody"):
+        other = antireplay("sign", "--key", "operator.key.pem", "--kid", kid, "--cmd", "c",
+                           "--target", robot, cwd=tmp_path)  # fmt: skip
+        (tmp_path / f"{kid}.json").write_text(other.stdout)
+    with serving(config) as gateway:
+        answers = {
+            name: json.loads(antireplay("send", "--json", gateway.url, f"{name}.json",
+                                        cwd=tmp_path).stdout)  # fmt: skip
+            for name in ("sdk", "deadbeef", "nobody")
+        }
+    assert {a["code"] for a in answers.values()} == {"UNKNOWN_SENDER"}
+    assert answers["sdk"]["body"]["detail"] == (
+        f"sig.kid {pair.key_id} is the RCAN SDK key id of a configured ml-dsa-65 key; "
+        "SDK-signed messages verify only with sdk_compat: true"
+    )
+    assert "shaped like an RCAN SDK key id" in answers["deadbeef"]["body"]["detail"]
+    assert "detail" not in answers["nobody"]["body"]

@@ -7,6 +7,8 @@ import concurrent.futures
 import json
 import logging
 import sqlite3
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -22,7 +24,8 @@ from antireplay.rcan.auth import JwtVerifier, sign_envelope
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.rcan.receive import Outcome, Receiver
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import fresh_receiver, race
+from antireplay.cli.demo import command, load_operator_key, write_demo_config
+from tests.harness import fresh_receiver, post, race, serving
 from tests.harness.envelopes import (
     ED,
     JWT_KEY,
@@ -489,3 +492,37 @@ def test_the_event_loop_driver_hands_a_thread_one_job_at_most_and_safety_the_urg
         (False, "REPLAY_DETECTED"), (True, None),
     ]  # fmt: skip
     assert signatures == ["ordinary", "urgent"]
+
+
+def test_a_refused_replay_is_audited_under_the_key_it_claims_and_verified_only_if_checked(
+    tmp_path: Path,
+) -> None:
+    """A replay is refused before its signature is checked, so its row names the key id it
+    claims (``kid:operator``, unverified), never ``-`` and never an authentication that did
+    not happen.  After a restart the first copy of an accepted msg_id reaches the signature
+    once (the commit is the authority): a tampered copy is ``SIGNATURE_INVALID``, the intact
+    one ``REPLAY_DETECTED`` under its verified sender; later copies are refused before it."""
+    config = write_demo_config(tmp_path)
+    raw = command(load_operator_key(tmp_path))
+    tampered = json.dumps({**json.loads(raw), "params": {"distance_m": 9}}).encode()
+    with serving(config) as gateway:
+        assert post(gateway, raw).status_code == 200
+        assert post(gateway, raw).status_code == 409  # the byte-identical copy: no parse
+    with serving(config) as gateway:
+        assert post(gateway, tampered).json()["code"] == "SIGNATURE_INVALID"
+        assert post(gateway, raw).json()["code"] == "REPLAY_DETECTED"  # verified, then refused
+        assert post(gateway, raw).json()["code"] == "REPLAY_DETECTED"  # known: no crypto
+    tail = [sys.executable, "-m", "antireplay", "audit", "tail", str(tmp_path / "audit.db")]
+    rows = [json.loads(line) for line in subprocess.run(
+        [*tail, "--json"], capture_output=True, text=True, timeout=60, check=True,
+    ).stdout.splitlines()]  # fmt: skip
+    seen = [(r["code"], r["sender"], r["sender_verified"]) for r in rows]
+    assert seen == [
+        (None, "operator", True),
+        ("REPLAY_DETECTED", "kid:operator", False),
+        ("SIGNATURE_INVALID", "kid:operator", False),
+        ("REPLAY_DETECTED", "operator", True),
+        ("REPLAY_DETECTED", "kid:operator", False),
+    ]
+    table = subprocess.run(tail, capture_output=True, text=True, timeout=60, check=True).stdout
+    assert "kid:operator (claimed)" in table

@@ -232,5 +232,7 @@ def relay(config_path: Path, duration_s: float) -> None:
 
 def _wait_readers(writer: Any, count: int) -> None:
     """DDS drops samples that no reader matched yet: wait (bounded) for the readers."""
+    if count:
+        click.echo(f"waiting for {count} reader(s) of {writer.topic_name} (20 s)", err=True)
     if count and not writer.wait_for_readers(count, 20.0):
         _fail(f"no {count} reader(s) matched within 20 s", 1)
