@@ -15,8 +15,8 @@ from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa
 from rcan.signing import MLDSAKeyPair
 
 from antireplay.cli import main
-from antireplay.rcan.auth import write_key_pair
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
+from antireplay.rcan.auth import write_key_pair
 from tests.harness import one_line_error, serving
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"

@@ -106,6 +106,8 @@ def test_ground_and_vehicle_ends_carry_arm(keys: Path, fc: Any) -> None:
         gcs.close()
         assert ground.stop() == 0 and vehicle.stop() == 0
     assert vehicle.said("forwarded air=2;"), vehicle.lines  # HS1 and the ARM
+    assert vehicle.said(f"mavlink-pq vehicle: fc udpout:127.0.0.1:{fc_port}, air udpin:")
+    assert ground.said(f"mavlink-pq ground: local udpin:127.0.0.1:{local}, air udpout:")
 
 
 def test_bad_options_are_one_line_errors(keys: Path) -> None:
@@ -248,7 +250,7 @@ def test_a_lost_first_handshake_is_retried_and_each_end_reports_its_session(
         assert sum("session established" in line for line in end.lines) == 1, end.lines
         assert not any("no session" in line for line in end.lines), end.lines
         assert end.said("sessions established=1"), end.lines  # the counts at SIGTERM
-    assert vehicle.said("local:NO_SESSION="), vehicle.lines
+    assert vehicle.said("fc:NO_SESSION="), vehicle.lines  # the vehicle end's local side: the FC
     for trail in ("ground.db", "vehicle.db"):
         assert _audited(keys / trail) == [("session", "ESTABLISHED")]
 

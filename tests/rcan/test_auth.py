@@ -199,11 +199,9 @@ def test_an_sdk_key_id_without_sdk_compat_gets_a_hint_naming_it(tmp_path: Path) 
                            "--target", robot, cwd=tmp_path)  # fmt: skip
         (tmp_path / f"{kid}.json").write_text(other.stdout)
     with serving(config) as gateway:
-        answers = {
-            name: json.loads(antireplay("send", "--json", gateway.url, f"{name}.json",
-                                        cwd=tmp_path).stdout)  # fmt: skip
-            for name in ("sdk", "deadbeef", "nobody")
-        }
+        sent = {n: antireplay("send", "--json", gateway.url, f"{n}.json", cwd=tmp_path)
+                for n in ("sdk", "deadbeef", "nobody")}  # fmt: skip
+    answers = {name: json.loads(done.stdout) for name, done in sent.items()}
     assert {a["code"] for a in answers.values()} == {"UNKNOWN_SENDER"}
     assert answers["sdk"]["body"]["detail"] == (
         f"sig.kid {pair.key_id} is the RCAN SDK key id of a configured ml-dsa-65 key; "

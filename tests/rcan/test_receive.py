@@ -20,11 +20,11 @@ from hypothesis import strategies as st
 
 from antireplay import ManualClock, SecurityConfig
 from antireplay.audit import AuditLog, verify
+from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.rcan.auth import JwtVerifier, sign_envelope
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.rcan.receive import Outcome, Receiver
 from antireplay.state.sqlite import SqliteStore
-from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from tests.harness import fresh_receiver, post, race, serving
 from tests.harness.envelopes import (
     ED,

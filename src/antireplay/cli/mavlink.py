@@ -31,16 +31,15 @@ def _signing_key(path: Path) -> bytes:
         raw = path.read_bytes()
     except OSError as exc:
         raise click.BadParameter(f"{path}: unreadable ({exc.strerror})") from None
-    key = raw if len(raw) == 32 else None
     text = raw.strip()
-    if key is None and len(text) == 64:
+    if len(raw) != 32 and len(text) == 64:
         try:
-            key = bytes.fromhex(text.decode("ascii"))
+            raw = bytes.fromhex(text.decode("ascii"))
         except ValueError:
-            pass
-    if key is not None:
+            raw = b""
+    if len(raw) == 32:
         warn_if_shared(path, "--key-file")
-        return key
+        return raw
     raise click.BadParameter(f"{path}: not a MAVLink signing key (32 raw bytes or 64 hex digits)")
 
 
