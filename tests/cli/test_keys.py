@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from rcan.signing import MLDSAKeyPair
 from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.rcan.auth import write_key_pair
-from tests.harness import one_line_error, serving
+from tests.harness import antireplay, one_line_error, serving
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 
@@ -63,14 +62,6 @@ def test_sign_sdk_refuses_a_target_the_sdk_cannot_parse(tmp_path: Path, target: 
     write_key_pair(mldsa.MLDSA65PrivateKey.generate(), tmp_path / "k.pem", tmp_path / "k.pub")
     one_line_error(sdk_sign(tmp_path / "k.pem", "--target", target), "target", "RCAN SDK")
     one_line_error(sdk_sign(tmp_path / "k.pem"), "target", "missing")
-
-
-def antireplay(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    """The command as a user runs it (a process of its own, its output as text)."""
-    return subprocess.run(
-        [sys.executable, "-m", "antireplay", *args],
-        cwd=cwd, capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
 
 
 def test_secrets_are_written_0600_and_a_shared_one_is_warned_about(tmp_path: Path) -> None:

@@ -118,6 +118,14 @@ class GatewayProcess:
             self.proc = None
 
 
+def antireplay(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``antireplay ARGS`` as a user runs it: a process of its own, its output as text."""
+    return subprocess.run(
+        [sys.executable, "-m", "antireplay", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+
+
 def child_pids(pid: int) -> list[int]:
     """The processes ``pid`` started that are still running (Linux ``/proc``)."""
     found = []

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +27,7 @@ from antireplay.rcan.auth import (
 )
 from antireplay.rcan.receive import Receiver
 from rcan import RCANMessage
-from tests.harness import fresh_receiver, serving
+from tests.harness import antireplay, fresh_receiver, serving
 from tests.harness.envelopes import (
     ED,
     JWT_KEY,
@@ -165,13 +163,6 @@ def test_sdk_signatures_made_here_verify_with_the_sdk() -> None:
     assert body["sig"]["kid"] == pair.key_id == sdk_key_id(PQ.public_key())
     with pytest.raises(ValueError, match="does not cover scope"):
         sign_sdk(message(scope="safety"), PQ)
-
-
-def antireplay(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "antireplay", *args],
-        cwd=cwd, capture_output=True, text=True, timeout=120, check=False,
-    )  # fmt: skip
 
 
 def test_an_sdk_key_id_without_sdk_compat_gets_a_hint_naming_it(tmp_path: Path) -> None:
