@@ -245,6 +245,7 @@ def test_mavlink_proxy_bad_inputs(tmp_path: Path) -> None:
     run = CliRunner().invoke
     key = tmp_path / "link.key"
     key.write_bytes(bytes(range(32)))
+    key.chmod(0o600)  # a secret (a wider one is warned about)
     busy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     busy.bind(("127.0.0.1", 0))
     port = busy.getsockname()[1]

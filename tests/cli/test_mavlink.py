@@ -24,6 +24,7 @@ def test_mavlink_router_metrics_host_errors_name_the_option(
 ) -> None:
     key = tmp_path / "link.key"
     key.write_bytes(bytes(range(32)))
+    key.chmod(0o600)  # a secret (a wider one is warned about)
     args = ["mavlink-proxy", "--forward", "udp:127.0.0.1:9", "--key-file", str(key),
             "--audit", str(tmp_path / "audit.db"), "--store", "memory",
             "--listen", f"udp:127.0.0.1:{free_udp_port()}",

@@ -4,6 +4,7 @@ files, and a check that opens the store as ``serve`` would."""
 from __future__ import annotations
 
 import gc
+import os
 import shutil
 import signal
 import socket
@@ -230,14 +231,14 @@ def test_serve_stops_on_sigint_and_sigterm_with_a_summary_and_exit_0(
     assert "aborted" not in said and "Traceback" not in said
 
 
-def test_demo_stopped_by_ctrl_c_says_so_exits_0_and_leaves_no_gateway() -> None:
+def test_demo_stopped_by_ctrl_c_says_so_exits_0_and_leaves_no_gateway(tmp_path: Path) -> None:
     demo = subprocess.Popen(
-        [sys.executable, "-m", "antireplay", "demo"],
+        [sys.executable, "-m", "antireplay", "demo"], env={**os.environ, "TMPDIR": str(tmp_path)},
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    try:
-        until("the demo's gateway process", lambda: child_pids(demo.pid))
-        gateway = child_pids(demo.pid)[0]
+    try:  # its gateway opened its audit trail: the demo has long had its process in hand
+        until("its gateway running", lambda: list(tmp_path.glob("antireplay-demo-*/audit.db")))
+        (gateway,) = child_pids(demo.pid)
         demo.send_signal(signal.SIGINT)
         _, err = demo.communicate(timeout=60)
     finally:

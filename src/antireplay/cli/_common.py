@@ -236,6 +236,31 @@ def until_stopped(summary: Callable[[], str]) -> Iterator[None]:
             signal.signal(sig, old)
 
 
+def read_secret(path: Path, what: str) -> bytes:
+    """The bytes of the secret ``path`` (``what``: the option naming it), warned about as
+    :func:`warn_if_shared` says."""
+    data = path.read_bytes()
+    warn_if_shared(path, what)
+    return data
+
+
+#: What the drop codes of the MAVLink router and the PQ ends mean, for their exit counts
+#: (a refusal's code is in docs/codes.md); looked up by ``side:CODE``, then by ``CODE``.
+_DROPS = {
+    "air:NO_PEER": "no peer on the air side yet: none authenticated to this end",
+    "NO_PEER": "accepted, but no other link had a receiver yet: telemetry before a ground "
+    "station authenticated",
+    "NO_ROUTE": "targeted at a system never seen",
+    "UNREACHABLE": "the link could not take the frame: disconnected or full",
+}
+
+
+def why(key: str) -> str:
+    """`` (what it means)`` for a counted drop ``side:CODE`` that needs saying, else ``""``."""
+    meaning = _DROPS.get(key) or _DROPS.get(key.rpartition(":")[2])
+    return f" ({meaning})" if meaning else ""
+
+
 def warn_if_shared(path: Path, what: str) -> None:
     """One warning line if the secret ``path`` may be read by group or others."""
     try:

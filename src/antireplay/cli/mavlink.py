@@ -15,31 +15,25 @@ from antireplay.wiring import Allowed, stop_router
 if TYPE_CHECKING:
     from antireplay.mavlink import Role
 
-from antireplay.cli._common import (
-    _MOVE_ASIDE,
-    _check_audit_file,
-    _fail,
-    stop_on_signal,
-    warn_if_shared,
-)
+from antireplay.cli import _common
+from antireplay.cli._common import _MOVE_ASIDE, _check_audit_file, _fail, stop_on_signal, why
 
 
 def _signing_key(path: Path) -> bytes:
     """The link key: exactly 32 raw bytes (taken as they are: a raw key may begin or end
     with a whitespace byte), or 64 hex characters with optional surrounding whitespace."""
     try:
-        raw = path.read_bytes()
+        raw = _common.read_secret(path, "--key-file")
     except OSError as exc:
         raise click.BadParameter(f"{path}: unreadable ({exc.strerror})") from None
-    text = raw.strip()
-    if len(raw) != 32 and len(text) == 64:
-        try:
-            raw = bytes.fromhex(text.decode("ascii"))
-        except ValueError:
-            raw = b""
     if len(raw) == 32:
-        warn_if_shared(path, "--key-file")
         return raw
+    text = raw.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except ValueError:
+            pass
     raise click.BadParameter(f"{path}: not a MAVLink signing key (32 raw bytes or 64 hex digits)")
 
 
@@ -48,10 +42,9 @@ def _signing_keys(path: Path | None) -> dict[str, str]:
     if path is None:
         return {}
     try:
-        lines = path.read_text().splitlines()
+        lines = _common.read_secret(path, "--signing-keys").decode().splitlines()
     except (OSError, UnicodeDecodeError) as exc:
         raise click.BadParameter(f"{path}: unreadable ({exc})") from None
-    warn_if_shared(path, "--signing-keys")
     found = {}
     for line in lines:
         words = line.split()
@@ -352,18 +345,8 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     store.close()
     stats = router.stats
     forwarded = ", ".join(f"{k} {v}" for k, v in sorted(stats.forwarded.items())) or "none"
-    dropped = ", ".join(f"{k} {v}{_DROPS.get(k.partition(':')[2], '')}"
-                        for k, v in sorted(stats.dropped.items())) or "none"  # fmt: skip
+    dropped = ", ".join(f"{k} {v}{why(k)}" for k, v in sorted(stats.dropped.items())) or "none"
     click.echo(f"forwarded {forwarded}; dropped {dropped}", err=True)
-
-
-#: What the router's own drop codes mean, beside their counts (refusals are in docs/codes.md).
-_DROPS = {
-    "NO_PEER": " (accepted, but no other link had a receiver yet: telemetry before a ground "
-    "station authenticated)",
-    "NO_ROUTE": " (targeted at a system never seen on the ground side)",
-    "UNREACHABLE": " (the link could not take the frame: disconnected or full)",
-}
 
 
 def _udp_shorthand(spec: str, kind: str, option: str) -> str:

@@ -31,6 +31,7 @@ from antireplay.cli._common import (
     _fail,
     stop_on_signal,
     warn_if_shared,
+    why,
 )
 from antireplay.core.clock import SystemClock
 from antireplay.core.errors import StateFileError
@@ -222,16 +223,12 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
     )
 
 
-#: What a drop counted at exit means, beside its count.
-_MEANING = {"air:NO_PEER": " (no peer on the air side yet: none authenticated to this end)"}
-
-
 def _shown(counts: Mapping[str, int], side: str) -> str:
     """Counts as printed at exit, the local side named ``side`` (the vehicle end's: "fc")."""
     parts = []
     for key, value in sorted(counts.items()):
         name = side + key.removeprefix("local") if key.startswith("local") else key
-        parts.append(f"{name}={value}{_MEANING.get(key, '')}")
+        parts.append(f"{name}={value}{why(key)}")
     return " ".join(parts) or "none"
 
 
