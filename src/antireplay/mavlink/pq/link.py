@@ -7,7 +7,7 @@ between two :class:`~antireplay.mavlink.endpoints.Transport` s.  The **ground** 
 ``local`` is where ground stations connect (a trusted ``udpin``: every peer that sends
 receives the telemetry), ``air`` the path to the vehicle; it hand-shakes at
 :meth:`~PqLink.start` and, from a timer (:meth:`~PqLink.tick`, every ``tick_s``), pokes
-and hand-shakes again (:mod:`.ends`) until a session answers, whether or not local traffic
+and hand-shakes again (:mod:`.ground`) until a session answers, whether or not local traffic
 arrives; the timer also drives repair requests for transfers gone quiet.  The
 **vehicle** end's ``local`` is the flight controller, ``air`` the path to the ground; a
 ``udpin`` air peer is learned only from the first blob of each session that
@@ -52,8 +52,9 @@ from antireplay.core.errors import AntiReplayError, Code, ReplayAttackError
 from antireplay.core.ratelimit import TokenBucket
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.pq.chunks import PlainFrameError
-from antireplay.mavlink.pq.ends import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.ground import GroundEnd
 from antireplay.mavlink.pq.repair import Output, air_kind
+from antireplay.mavlink.pq.vehicle import VehicleEnd
 from antireplay.mavlink.pq.wire import LINE_BITS
 from antireplay.mavlink.router import Refusal
 from antireplay.pq.session import Session
