@@ -50,6 +50,7 @@ from typing import Any
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AntiReplayError, Code, ReplayAttackError
 from antireplay.core.ratelimit import TokenBucket
+from antireplay.mavlink.codec import Frame
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.pq.chunks import PlainFrameError
 from antireplay.mavlink.pq.ground import GroundEnd
@@ -250,7 +251,7 @@ class PqLink:
             self._send_air(ready)
 
     def _from_local(
-        self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
+        self, transport: Transport, peer: Peer | None, frames: list[Frame], skipped: int
     ) -> None:
         if skipped:
             self._refuse("local", Code.INVALID_FRAME, f"{skipped} bytes that are no frame", b"")
@@ -258,7 +259,8 @@ class PqLink:
             self._local_peers[peer] = None
             if len(self._local_peers) > self.max_local_peers:
                 del self._local_peers[next(iter(self._local_peers))]
-        for raw in frames:
+        for frame in frames:
+            raw = frame.raw
             try:
                 with self._lock:
                     out = self.end.handle_local(raw)
@@ -272,12 +274,12 @@ class PqLink:
         self._observe()
 
     def _from_air(
-        self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
+        self, transport: Transport, peer: Peer | None, frames: list[Frame], skipped: int
     ) -> None:
         if skipped:
             self._refuse("air", Code.INVALID_FRAME, f"{skipped} bytes that are no frame", b"")
-        for raw in frames:
-            hint: list[bytes] = []
+        for frame in frames:
+            raw, hint = frame.raw, []
             try:
                 with self._lock:
                     out: Output = self.end.from_air(raw)
