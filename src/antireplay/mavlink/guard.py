@@ -125,6 +125,31 @@ class MavlinkGuard:
         return self.policy.periodic
 
     @property
+    def allow_unsigned(self) -> frozenset[int]:
+        return self.policy.allow_unsigned
+
+    @property
+    def allow_v1(self) -> frozenset[int]:
+        return self.policy.allow_v1
+
+    @property
+    def reorder_window(self) -> int:
+        return self.policy.reorder_window
+
+    @property
+    def max_forward(self) -> int:
+        return self.policy.max_forward
+
+    @property
+    def new_stream_max_age(self) -> int:
+        return self.policy.new_stream_max_age
+
+    @property
+    def refused_sources(self) -> set[int]:
+        """Source system ids that belong to the other direction (the policy's)."""
+        return self.policy.refused_sources
+
+    @property
     def restart_fence(self) -> int:
         """Timestamps at or below this are refused (module docstring)."""
         return self.policy.restart_fence
