@@ -58,7 +58,7 @@ def test_the_owners_timer_reserves_ahead_so_signing_does_not_write(
     """Ticked every half reserve, a source signing 100 frames a second for 5 s writes only
     from its tick, never on the signing path; untouched, the signing path reserves itself."""
     store = CountingStore(SqliteStore(tmp_path / "sign.db"))
-    source = TimestampSource(clock, store=store, store_key="sign")  # type: ignore[arg-type]
+    source = TimestampSource(clock, store=store, store_key="sign")
     source.tick()
     signing_path = 0
     for i in range(500):
@@ -69,7 +69,7 @@ def test_the_owners_timer_reserves_ahead_so_signing_does_not_write(
         if i % 50 == 49:
             source.tick()
     assert signing_path == 0 and 5 <= source.reservations <= 11
-    late = TimestampSource(clock, store=store, store_key="late")  # type: ignore[arg-type]
+    late = TimestampSource(clock, store=store, store_key="late")
     late.next()  # no tick yet: the signing path reserves before it hands a value out
     assert late.reservations == 1 and store.current("late") >= late.last
     store.close()
