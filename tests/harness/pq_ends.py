@@ -77,25 +77,28 @@ class Link:
 
     def up(self, frames: list[bytes]) -> None:
         """Deliver ``frames`` to the vehicle end; answers go back down."""
-        for raw in frames:
-            self.captured.append(raw)
-            try:
-                out = self.vehicle.from_air(raw)
-            except ReplayAttackError as exc:
-                self.refused.append(str(exc.code))
-                continue
-            self.delivered += out.local
-            self.down(out.air)
+        self.captured += frames
+        self._carry(frames, self.vehicle, self.delivered, self.down)
 
     def down(self, frames: list[bytes]) -> None:
+        """Deliver ``frames`` to the ground end; answers go back up."""
+        self._carry(frames, self.ground, self.telemetry, self.up)
+
+    def _carry(
+        self,
+        frames: list[bytes],
+        end: GroundEnd | VehicleEnd,
+        local: list[bytes],
+        answer: Callable[[list[bytes]], None],
+    ) -> None:
         for raw in frames:
             try:
-                out = self.ground.from_air(raw)
+                out = end.from_air(raw)
             except ReplayAttackError as exc:
                 self.refused.append(str(exc.code))
                 continue
-            self.telemetry += out.local
-            self.up(out.air)
+            local += out.local
+            answer(out.air)
 
     def commands(self) -> list[dialect.MAVLink_command_long_message]:
         decoder = dialect.MAVLink(Keep())

@@ -20,11 +20,6 @@ os.environ["MAVLINK20"] = "1"
 from tests.harness.pq_ends import Link, arm, connected, plain
 
 
-@pytest.fixture
-def link(clock: ManualClock) -> Link:
-    return connected(clock)
-
-
 def test_queued_commands_go_out_after_the_handshake(clock: ManualClock) -> None:
     link = Link(clock)
     hs1 = link.ground.from_local(arm())  # no session yet: queued, the handshake starts
@@ -56,7 +51,8 @@ def test_queued_commands_expire_and_every_drop_is_counted(clock: ManualClock) ->
     assert link.ground.unsent == 10
 
 
-def test_the_ground_end_rekeys_before_its_transfer_numbers_wrap(link: Link) -> None:
+def test_the_ground_end_rekeys_before_its_transfer_numbers_wrap(clock: ManualClock) -> None:
+    link = connected(clock)
     session = link.ground.session
     beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
     first = link.ground.sender.transfer  # where the session began
@@ -71,14 +67,16 @@ def test_the_ground_end_rekeys_before_its_transfer_numbers_wrap(link: Link) -> N
     assert link.ground.session is not session and len(link.commands()) == 1
 
 
-def test_forged_hint_is_ignored_while_telemetry_flows(link: Link) -> None:
+def test_forged_hint_is_ignored_while_telemetry_flows(clock: ManualClock) -> None:
+    link = connected(clock)
     link.down(link.vehicle.from_local(plain(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), sysid=1)))
     session = link.ground.session
     assert link.ground.from_air(link.vehicle.hint()[0]).air == []
     assert link.ground.session is session
 
 
-def test_unknown_local_message_is_refused_before_sealing(link: Link) -> None:
+def test_unknown_local_message_is_refused_before_sealing(clock: ManualClock) -> None:
+    link = connected(clock)
     raw = bytearray(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4)))
     raw[7:10] = (60999).to_bytes(3, "little")  # a message id nobody knows
     with pytest.raises(InvalidFrameError, match="not in the dialect"):

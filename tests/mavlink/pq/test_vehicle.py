@@ -37,11 +37,6 @@ from tests.harness.pq_ends import (
 )
 
 
-@pytest.fixture
-def link(clock: ManualClock) -> Link:
-    return connected(clock)
-
-
 def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
     link = Link(clock)
     hs1 = link.ground.handshake()
@@ -112,17 +107,17 @@ def test_a_message_that_must_be_signed_is_refused_in_a_data_frame(clock: ManualC
     ],
 )
 def test_command_carrying_messages_are_signed_by_default(
-    link: Link, build: Callable[[dialect.MAVLink], None]
+    clock: ManualClock, build: Callable[[dialect.MAVLink], None]
 ) -> None:
+    link = connected(clock)
     frames = link.ground.from_local(plain(build))
     assert len(frames) > 1  # an ML-DSA-87 signature: several chunks
     link.up(frames)
     assert len(link.delivered) == 1 and link.refused == []
 
 
-def test_vehicle_end_restart_the_ground_end_handshakes_again(
-    link: Link, clock: ManualClock
-) -> None:
+def test_vehicle_end_restart_the_ground_end_handshakes_again(clock: ManualClock) -> None:
+    link = connected(clock)
     link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
     link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted: no session
     with pytest.raises(UnknownSessionError):
