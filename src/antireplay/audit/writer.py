@@ -33,7 +33,7 @@ from os import PathLike
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from antireplay.audit import segments
+from antireplay.audit import consistency, segments
 from antireplay.audit.chain import (
     _FIELDS,
     Checkpoint,
@@ -149,6 +149,13 @@ class AuditLog:
         self._outbox: Outbox | None = None
         self._drain_queued = False
         self._forgotten: Mark = (None, 0)
+        self._recorded: tuple[int, str] | None = None
+        #: Record the head in the state database with each drain (off: to measure its cost).
+        self.record_head = True
+        #: Why the trail was found rolled back against the state's record (``None``: it was
+        #: not), and how often; the flag holds until the process stops.
+        self.rolled_back: str | None = None
+        self.rollbacks = 0
         self._last_moved = 0
         self._spill = self._open_spill(spill_path, spill_slots)
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
@@ -498,10 +505,24 @@ class AuditLog:
         the accepted rows that follow them); what it already holds is drained first."""
         with self._lock, self._shared() as db:
             db.execute(segments.MARK_SCHEMA)
+            found = consistency.against_state(self.path, db, outbox.trail_head(), self._key)
+        if found is not None and found.problem is not None:
+            self._roll_back(f"behind the state database {outbox.store.path}: {found.problem}")
         self._outbox = outbox
         outbox.store.defer_commits()
         self.drain()
         outbox.on_rows = self._wake
+
+    def _roll_back(self, problem: str) -> None:
+        """The trail disagrees with the state's record of its head: say so (log, flag,
+        counter) and put it on the record, an ``AUDIT_ROLLED_BACK`` row chained now."""
+        self.rolled_back, self.rollbacks = problem, self.rollbacks + 1
+        log.error("audit trail %s rolled back: %s", self.path, problem)
+        row = _stored({"at": self._clock.wall(), "outcome": "alert",
+                       "code": consistency.ROLLED_BACK, "warning": problem[:200],
+                       "msg_type": None, "sender": None, "sender_verified": False,
+                       "msg_id": None})  # fmt: skip
+        self._write_batch([row], sync=True)
 
     def drain(self) -> None:
         """Move everything the outbox holds into the trail now, durably (a database behind
@@ -511,8 +532,9 @@ class AuditLog:
         with self._lock, self._shared() as db:
             mark = _mark(db)
         if self._outbox.behind(mark):
-            log.warning("audit outbox of %s is behind the trail's mark: new epoch",
-                        self._outbox.store.path)  # fmt: skip
+            self._roll_back(f"the state database {self._outbox.store.path} is behind the "
+                            "trail (its outbox never reached the trail's mark): restored "
+                            "from an older copy; its outbox starts a new epoch")  # fmt: skip
             self._outbox.renew().result()
         while True:
             self._write_batch([_DRAIN], sync=True)
@@ -530,12 +552,20 @@ class AuditLog:
     def _forget(self, outbox: Outbox, mark: Mark) -> None:
         """The trail holds rows up to ``mark`` durably: delete them from the outbox (of
         that epoch: the delete names it)."""
-        if mark == self._forgotten or mark[1] == 0:
+        head = (self._rows, self._head)
+        if (mark == self._forgotten or mark[1] == 0) and (
+            not self.record_head or head == self._recorded or not self._rows
+        ):
             return
         self._forgotten = mark
+        record = None
+        if self.record_head:  # the head, durable now: kept in the state database too
+            self._recorded = head
+            mac = HeadAnchor.mac(self._key, self._rows, self._head, self._first)
+            record = (self._rows, self._head, self._first, mac)
         self._forget_point()
         with contextlib.suppress(RuntimeError):  # the store is closing: deleted next time
-            outbox.forget(mark)
+            outbox.forget(mark, record)
 
     def _forget_point(self) -> None:
         """Called between a durable drain and the outbox's delete (a test stops there)."""
