@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -37,24 +38,18 @@ _HEAD_FILE = click.option(
 )
 
 
+def _recorded(name: str, text: str) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """An option naming an existing file that records a head (``--state``, ``--since``)."""
+    kind = click.Path(exists=True, dir_okay=False, path_type=Path)
+    return click.option(f"--{name}", name, type=kind, default=None, help=text)
+
+
 @audit.command("verify")
 @click.argument("path", type=click.Path(exists=True, path_type=Path))
 @_HEAD_KEY
 @_HEAD_FILE
-@click.option(
-    "--state",
-    "state",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    default=None,
-    help="The SQLite state database: prove the trail extends the head it recorded.",
-)
-@click.option(
-    "--since",
-    "since",
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    default=None,
-    help="A head exported by `audit head --export`: prove the trail extends it.",
-)
+@_recorded("state", "The SQLite state database: prove the trail extends the head it recorded.")
+@_recorded("since", "A head exported by `audit head --export`: prove the trail extends it.")
 def audit_verify(
     path: Path, head_key: Path | None, head_file: Path | None, state: Path | None,
     since: Path | None,
