@@ -171,3 +171,26 @@ def test_verify_state_on_a_file_that_is_not_a_database_is_one_line(tmp_path: Pat
     said = CliRunner().invoke(main, ["audit", "verify", str(path), "--state",
                                      str(tmp_path / "state.db")])  # fmt: skip
     assert said.exit_code == 2 and "not a readable SQLite state database" in said.output
+
+
+def test_a_state_database_put_back_behind_the_trail_is_rolled_back_too(tmp_path: Path) -> None:
+    """The reverse: the trail intact, the state database restored from an older copy (its
+    outbox never reached the trail's mark)."""
+    _gateway(tmp_path, range(3))
+    old = tmp_path / "old"
+    old.mkdir()
+    for file in tmp_path.glob("state.db*"):
+        shutil.copy2(file, old / file.name)
+    _gateway(tmp_path, range(3, 6))
+    for file in tmp_path.glob("state.db*"):
+        file.unlink()
+    for file in old.iterdir():
+        shutil.copy2(file, tmp_path / file.name)
+    store = SqliteStore(tmp_path / "state.db")
+    audit = AuditLog(tmp_path / "audit.db", clock=ManualClock())
+    audit.attach(store.outbox())
+    assert audit.rolled_back is not None and "is behind the trail" in audit.rolled_back
+    _put(audit, 6)  # rows put from now on are moved, never skipped (a new epoch)
+    assert [r.msg_id for r in audit.tail(2)] == [None, "m6"]
+    audit.close()
+    store.close()
