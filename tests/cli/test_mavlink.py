@@ -38,11 +38,11 @@ def test_mavlink_router_opens_its_trail_rotated_and_retained(
     """The router's trail has the ``audit:`` defaults' segments and budget, and a spill."""
     opened: list[AuditLog] = []
 
-    def build(_endpoints: object, _store: object, audit: AuditLog, _options: object) -> None:
+    def build(_endpoints: object, _store: object, audit: AuditLog, *_: object) -> None:
         opened.append(audit)
         raise ValueError("stop here")
 
-    monkeypatch.setattr("antireplay.wiring.build_mavlink_router", build)
+    monkeypatch.setattr("antireplay.wiring.mavlink.build_mavlink_router", build)
     key = tmp_path / "link.key"
     key.write_bytes(bytes(range(32)))
     trail = tmp_path / "audit.db"

@@ -70,6 +70,17 @@ def _load_config(path: Path | None, state_dir: Path) -> AppConfig:
         _fail(f"state directory {state_dir}: {exc.strerror or exc}")
 
 
+def load_with_flags(path: Path | None, flags: dict[str, tuple[str, Any]]) -> AppConfig:
+    """The configuration at ``path`` (none: the defaults) with a command's flags over its
+    keys: ``flags`` maps a dotted key to ``(flag, value)``, ``None`` or ``()`` when the
+    flag was not given.  A mistake is one line naming the flag when a flag made it."""
+    try:
+        return AppConfig.load(path, {key: value for key, (_, value) in flags.items()})
+    except ConfigError as exc:
+        flag, given = flags.get(exc.key, ("", None))
+        _fail(f"{flag}: {exc}" if given not in (None, ()) else str(exc))
+
+
 def _audit_problem(path: Path) -> str | None:
     """Why ``path`` is not an antireplay audit trail (read only: nothing is created)."""
     try:

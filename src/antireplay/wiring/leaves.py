@@ -6,7 +6,8 @@ Every long-running command (``serve``, ``mavlink-router``, ``mavlink-pq``, the `
 commands) opens its leaves here, from one :class:`~antireplay.config.AppConfig`, so what
 the file says about them holds for each alike:
 
-* :func:`open_trail` opens the audit trail at ``audit.path`` (or a command's own path),
+* :func:`open_trail` opens the audit trail at ``audit.path`` (or a command's own path:
+  :func:`trail_path`, so two commands never share one trail unasked),
   rotated and retained as ``audit:`` says (:func:`open_audit`), with its ESTOP spill
   (``audit_space.spill``) and the free-space floors under it (``audit_space``, a
   :class:`~antireplay.audit.space.DiskSpace` the command's refusal auditor goes quiet by);
@@ -43,6 +44,12 @@ def open_trail(
         refuse_free_bytes=floors.refuse_free_bytes, clock=clock,
     )  # fmt: skip
     return open_audit(block, clock, spill=floors.spill), space
+
+
+def trail_path(config: AppConfig, default: str) -> str:
+    """A command's audit trail: ``audit.path`` when the file (or ``--audit``) names it,
+    else the command's own ``default``, so two commands never share one trail unasked."""
+    return config.audit.path if config.audit.path_set() else default
 
 
 def open_state(
