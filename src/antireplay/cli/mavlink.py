@@ -184,7 +184,8 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     guards accept (also answers to its first name, mavlink-proxy)."""
     import logging  # noqa: PLC0415
 
-    from antireplay.wiring.mavlink import ROUTER_AUDIT, open_router, trail_path  # noqa: PLC0415
+    from antireplay.wiring.leaves import trail_path  # noqa: PLC0415
+    from antireplay.wiring.mavlink import ROUTER_AUDIT, open_router  # noqa: PLC0415
     from antireplay.wiring.metrics import serve_router_metrics  # noqa: PLC0415
 
     grounds = [*ground, *([_udp_shorthand(listen, "udpin", "--listen")] if listen else [])]
