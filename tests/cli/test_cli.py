@@ -279,7 +279,9 @@ def test_mavlink_router_key_and_allow_list_options(
     assert link_key("udpin:0.0.0.0:14550", found, None) == passphrase_key("ground-pass")
     assert link_key("udpout:127.0.0.1:14560", found, None) == passphrase_key("radio-pass")
     assert link_key("/dev/ttyACM0,57600", found, b"d" * 32) == b"d" * 32
-    to_vehicle, from_vehicle = allowed_messages(("RADIO_STATUS:v1", "to-vehicle:0", "from-vehicle:166"))
+    to_vehicle, from_vehicle = allowed_messages(
+        ("RADIO_STATUS:v1", "to-vehicle:0", "from-vehicle:166")
+    )
     assert to_vehicle == Allowed(frozenset({109, 0}), frozenset({109}))
     assert from_vehicle == Allowed(frozenset({109, 166}), frozenset({109}))
     run = CliRunner().invoke
