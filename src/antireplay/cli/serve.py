@@ -244,12 +244,14 @@ def config() -> None:
     "--verbose", is_flag=True, help="Also print the whole configuration, defaults filled in."
 )
 def config_check(path: Path, verbose: bool) -> None:
-    """Validate a YAML config: everything serve checks (keys, store, audit), and that an
-    HTTP upstream answers a connection."""
+    """Validate a YAML config: every section's keys and values; everything serve checks
+    (keys, store, audit), and that an HTTP upstream answers a connection; the router's and
+    each PQ end's keys and allow-lists when their section is there; the DDS key file."""
     from antireplay.wiring import anchor_warnings, build_anchor  # noqa: PLC0415
 
     try:
         cfg = AppConfig.from_yaml(path)
+        sections = _check_sections(cfg)
         anchor = build_anchor(cfg)
         if anchor is not None:
             try:
@@ -268,6 +270,33 @@ def config_check(path: Path, verbose: bool) -> None:
     for warning in anchor_warnings(cfg):
         click.echo(f"antireplay: warning: {warning}", err=True)
     click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
+    for line in sections:
+        click.echo(f"ok: {line}")
+
+
+def _check_sections(cfg: AppConfig) -> list[str]:
+    """What the commands other than ``serve`` would load from their sections (key files,
+    allow-lists, PEM keys), loaded and dropped: nothing opened, nothing bound."""
+    from antireplay.wiring.mavlink import router_endpoints, router_options  # noqa: PLC0415
+    from antireplay.wiring.mavlink_pq import ground_end, vehicle_end  # noqa: PLC0415
+
+    said = []
+    given = cfg.model_fields_set
+    if "mavlink" in given and cfg.mavlink.vehicle:
+        endpoints = router_endpoints(cfg.mavlink)
+        router_options(cfg.mavlink)
+        said.append(f"mavlink: {len(endpoints)} endpoints, store {cfg.mavlink.store}")
+    pq = cfg.mavlink_pq
+    if "mavlink_pq" in given and "ground" in pq.model_fields_set:
+        ground_end(pq.ground)
+        said.append("mavlink_pq.ground: keys load")
+    if "mavlink_pq" in given and "vehicle" in pq.model_fields_set:
+        vehicle_end(pq.vehicle)
+        said.append(f"mavlink_pq.vehicle: keys load, {len(pq.vehicle.peers)} peers")
+    if cfg.dds is not None:
+        cfg.dds.psk()
+        said.append(f"dds: domain {cfg.dds.domain_id}, key file {cfg.dds.psk_file}")
+    return said
 
 
 def _probe_upstream(upstream: str | None, timeout_s: float) -> None:
