@@ -156,7 +156,7 @@ def importable_cwd(upstream: str | None) -> None:
 def preflight(config: AppConfig) -> None:
     """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
     from antireplay.http.upstream import resolve_upstream  # noqa: PLC0415
-    from antireplay.state import StoreSpec, open_store  # noqa: PLC0415
+    from antireplay.state import open_store  # noqa: PLC0415
     from antireplay.wiring import build_registry  # noqa: PLC0415
 
     importable_cwd(config.upstream)
@@ -176,7 +176,7 @@ def preflight(config: AppConfig) -> None:
     _check_audit_file(Path(config.audit), f"audit: {_MOVE_ASIDE}")
     _check_audit_anchor(Path(config.audit))
     try:
-        spec = StoreSpec.parse(config.store)
+        spec = config.store_spec
         if spec.backend == "sqlite":
             from antireplay.state.sqlite import check_readable  # noqa: PLC0415
 

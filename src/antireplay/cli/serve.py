@@ -29,7 +29,6 @@ from rich.table import Table
 from antireplay.cli.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.config import AppConfig
 from antireplay.core.errors import ConfigError, StateUnavailableError
-from antireplay.state import StoreSpec
 
 if TYPE_CHECKING:
     from starlette.applications import Starlette
@@ -140,7 +139,7 @@ def serve(  # noqa: PLR0917 - one option per knob
     where = f"[{host}]" if family == socket.AF_INET6 else host
     click.echo(
         f"listening on {scheme}://{where}:{bound} "
-        f"(store {StoreSpec.parse(config.store).redacted()}, {anchor_summary(config)}"
+        f"(store {config.store_spec.redacted()}, {anchor_summary(config)}"
         f"audit {config.audit})"
     )
     for warning in anchor_warnings(config):
@@ -168,7 +167,7 @@ _SERVE_ENV = "ANTIREPLAY_SERVE_WORKER"
 def shared_state(config: AppConfig, workers: int) -> None:
     """``ConfigError`` if ``workers`` processes cannot share ``config``'s store: a memory
     store is one process's (another process would accept the same msg_id again)."""
-    if workers > 1 and StoreSpec.parse(config.store).backend == "memory":
+    if workers > 1 and config.store_spec.backend == "memory":
         raise ConfigError(
             "store", config.store, "a sqlite: or redis:// store with --workers > 1 (a memory "
             "store is one process's: another process would accept the same message again)",

@@ -41,7 +41,6 @@ from antireplay.rcan.auth import (
     write_key_pair,
 )
 from antireplay.rcan.receive import Receiver
-from antireplay.state import StoreSpec
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring.leaves import open_state, open_trail
 
@@ -97,7 +96,7 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
             clock=clock,
         )
     store = open_state(
-        config, StoreSpec.parse(config.store), audit_path=config.audit.path, clock=clock,
+        config, config.store_spec, audit_path=config.audit.path, clock=clock,
         max_entries=config.security.msg_id_cache_size, skew_s=config.security.skew_s,
     )  # fmt: skip
     with contextlib.suppress(StateUnavailableError):  # down now: noticed on the first commit

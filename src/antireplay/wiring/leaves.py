@@ -77,7 +77,7 @@ def build_anchor(
     anchor = config.state.anchor
     if not anchor.configured:
         return None
-    spec = spec or StoreSpec.parse(config.store)
+    spec = spec or config.store_spec
     if spec.backend != "sqlite":
         raise ConfigError(
             "state.anchor", anchor.model_dump(exclude_defaults=True),
@@ -101,7 +101,7 @@ def anchor_summary(config: AppConfig, spec: StoreSpec | None = None) -> str:
     """What guards the store (``spec``; default the gateway's) against a restored copy, for
     the startup line."""
     anchor = config.state.anchor
-    if (spec or StoreSpec.parse(config.store)).backend != "sqlite":
+    if (spec or config.store_spec).backend != "sqlite":
         return ""
     if not anchor.configured:
         return "no state anchor, "
@@ -116,7 +116,7 @@ def anchor_warnings(config: AppConfig, spec: StoreSpec | None = None) -> list[st
     """What a snapshot restore could re-open with this configuration (``config check``,
     ``serve``): a SQLite store (``spec``; default the gateway's) without an anchor, or an
     anchor file beside the state."""
-    spec = spec or StoreSpec.parse(config.store)
+    spec = spec or config.store_spec
     if spec.backend != "sqlite":
         return []
     anchor, window = config.state.anchor, config.security.replay_window_s

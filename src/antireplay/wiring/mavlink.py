@@ -318,7 +318,7 @@ def open_router(config: AppConfig, audit_path: str | None = None) -> RouterParts
     section = config.mavlink
     endpoints = router_endpoints(section)
     options = router_options(section)
-    spec = StoreSpec.parse(section.store, "mavlink.store")
+    spec = section.store_spec
     path = audit_path or trail_path(config, ROUTER_AUDIT)
     audit, space = open_trail(config, path)  # rotated, retained, with a spill and floors
     store = open_state(config, spec, audit_path=path)
