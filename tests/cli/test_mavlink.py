@@ -37,7 +37,8 @@ def test_mavlink_router_metrics_host_errors_name_the_option(
 def test_mavlink_router_opens_its_trail_rotated_and_retained(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The router's trail has the ``audit:`` defaults' segments and budget, and a spill."""
+    """The router's trail has the ``audit:`` defaults' segments and budget, and a spill;
+    a router that cannot be built leaves its trail closed."""
     opened: list[AuditLog] = []
 
     def build(_endpoints: object, _store: object, audit: AuditLog, *_: object) -> None:
@@ -53,8 +54,7 @@ def test_mavlink_router_opens_its_trail_rotated_and_retained(
             "--listen", f"udp:127.0.0.1:{free_udp_port()}"]  # fmt: skip
     done = CliRunner().invoke(main, args)
     assert done.exit_code == 2 and "stop here" in done.output, done.output
-    (audit,) = opened
-    audit.close()
+    (audit,) = opened  # closed again by the wiring when the router could not be built
     defaults = AuditConfig(path=str(trail))
     assert (audit.retention.segment_bytes, audit.retention.max_bytes) == (
         defaults.segment_bytes, defaults.max_bytes,

@@ -321,7 +321,14 @@ def open_router(config: AppConfig, audit_path: str | None = None) -> RouterParts
     spec = section.store_spec
     path = audit_path or trail_path(config, ROUTER_AUDIT)
     audit, space = open_trail(config, path)  # rotated, retained, with a spill and floors
-    store = open_state(config, spec, audit_path=path)
-    on_reject = mavlink_auditor(audit, quiet=space.low)
-    router = build_mavlink_router(endpoints, store, audit, options, on_reject)
+    opened: list[AuditLog | ReplayStore] = [audit]
+    try:
+        store = open_state(config, spec, audit_path=path)
+        opened.append(store)
+        on_reject = mavlink_auditor(audit, quiet=space.low)
+        router = build_mavlink_router(endpoints, store, audit, options, on_reject)
+    except BaseException:
+        for leaf in reversed(opened):  # what this call opened, closed again
+            leaf.close()
+        raise
     return RouterParts(router, endpoints, store, spec, audit, space)
