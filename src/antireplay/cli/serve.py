@@ -28,7 +28,7 @@ from rich.table import Table
 
 from antireplay.cli.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.config import AppConfig
-from antireplay.core.errors import ConfigError, StateUnavailableError
+from antireplay.core.errors import AntiReplayError, ConfigError, StateUnavailableError
 
 if TYPE_CHECKING:
     from starlette.applications import Starlette
@@ -276,6 +276,7 @@ def config_check(path: Path, verbose: bool) -> None:
 def _check_sections(cfg: AppConfig) -> list[str]:
     """What the commands other than ``serve`` would load from their sections (key files,
     allow-lists, PEM keys), loaded and dropped: nothing opened, nothing bound."""
+    from antireplay.wiring.leaves import check_state  # noqa: PLC0415
     from antireplay.wiring.mavlink import router_endpoints, router_options  # noqa: PLC0415
     from antireplay.wiring.mavlink_pq import ground_end, vehicle_end  # noqa: PLC0415
 
@@ -284,6 +285,14 @@ def _check_sections(cfg: AppConfig) -> list[str]:
     if "mavlink" in given and cfg.mavlink.vehicle:
         endpoints = router_endpoints(cfg.mavlink)
         router_options(cfg.mavlink)
+        spec = cfg.mavlink.store_spec
+        try:
+            check_state(spec)
+        except AntiReplayError:
+            raise  # names the file and the recovery
+        except Exception as exc:  # any backend's own failure, named with its key
+            allowed = f"a store that opens ({type(exc).__name__}: {exc})"
+            raise ConfigError("mavlink.store", spec.redacted(), allowed) from None
         said.append(f"mavlink: {len(endpoints)} endpoints, store {cfg.mavlink.store}")
     pq = cfg.mavlink_pq
     if "mavlink_pq" in given and "ground" in pq.model_fields_set:

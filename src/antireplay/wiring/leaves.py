@@ -68,6 +68,22 @@ def open_state(
     )  # fmt: skip
 
 
+def check_state(spec: StoreSpec) -> None:
+    """What a command's first commit would find, found without using anything up: a SQLite
+    file is read read-only (opening it would use up its loss detection); another store is
+    reached (the PING and eviction check ``ready()`` runs), then closed."""
+    if spec.backend == "sqlite":
+        from antireplay.state.sqlite import check_readable  # noqa: PLC0415
+
+        check_readable(spec.target)
+        return
+    store = open_store(spec)
+    try:
+        store.ready()
+    finally:
+        store.close()
+
+
 def build_anchor(
     config: AppConfig, spec: StoreSpec | None = None, audit_path: str | None = None
 ) -> StateAnchor | None:
