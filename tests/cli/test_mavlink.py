@@ -6,13 +6,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import pytest
 from click.testing import CliRunner
 
 from antireplay.audit import AuditLog, verify
 from antireplay.cli import main
 from antireplay.config import AuditConfig
-from tests.harness import free_port, free_udp_port
+from tests.harness import free_port, free_udp_port, metrics_router
 from tests.harness.flood import flood_until_rotated, trail_bytes
 from tests.harness.mavlink_frames import unsigned_heartbeat
 
@@ -138,3 +139,11 @@ def test_flags_override_the_config_file(tmp_path: Path) -> None:
     done = CliRunner().invoke(main, args)
     assert done.exit_code == 2
     assert done.output.startswith("antireplay: error: --store: invalid config mavlink.store")
+
+
+def test_the_router_exports_its_readiness_and_trail_as_the_gateway_does(tmp_path: Path) -> None:
+    with metrics_router(tmp_path) as port:
+        text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
+    assert 'antireplay_ready{command="mavlink-router"} 1.0' in text
+    assert 'antireplay_audit_trail_segments{command="mavlink-router"} 1.0' in text
+    assert 'antireplay_audit_disk_pressure{command="mavlink-router"} 0.0' in text

@@ -25,7 +25,7 @@ from pymavlink import mavutil
 from antireplay.audit import verify
 from antireplay.cli import main
 from antireplay.mavlink.pq.wire import status_frame
-from tests.harness import free_port, free_udp_port, until
+from tests.harness import free_port, free_udp_port, metrics_pq, until
 from tests.harness.flood import flood_until_rotated, trail_bytes
 from tests.harness.radio import SIK_BAUD, SIK_QUEUE_BYTES
 
@@ -338,3 +338,10 @@ def test_a_pq_key_outside_its_block_is_refused_by_name(
     (line,) = done.stderr.splitlines()
     assert line.startswith("antireplay: error: ") and said in line, line
     assert not (tmp_path / ".antireplay").exists()
+
+
+def test_a_pq_end_exports_its_readiness_and_trail_as_the_gateway_does(tmp_path: Path) -> None:
+    with metrics_pq(tmp_path) as port:
+        text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
+    assert 'antireplay_ready{command="mavlink-pq ground"} 1.0' in text
+    assert 'antireplay_audit_trail_segments{command="mavlink-pq ground"} 1.0' in text

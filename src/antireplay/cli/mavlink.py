@@ -186,7 +186,11 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
 
     from antireplay.wiring.leaves import trail_path  # noqa: PLC0415
     from antireplay.wiring.mavlink import ROUTER_AUDIT, open_router  # noqa: PLC0415
-    from antireplay.wiring.metrics import serve_router_metrics  # noqa: PLC0415
+    from antireplay.wiring.metrics import (  # noqa: PLC0415
+        router_metrics,
+        serve_metrics,
+        trail_metrics,
+    )
 
     grounds = [*ground, *([_udp_shorthand(listen, "udpin", "--listen")] if listen else [])]
     vehicles = [*vehicle, *([_udp_shorthand(forward, "udpout", "--forward")] if forward else [])]
@@ -225,7 +229,13 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     metrics = section.metrics
     if metrics.port is not None:
         try:
-            serve_router_metrics(parts.router, metrics.port, metrics.host)
+            serve_metrics(
+                lambda: [
+                    *router_metrics(parts.router),
+                    *trail_metrics("mavlink-router", parts.audit, parts.space, parts.store),
+                ],
+                metrics.port, metrics.host,
+            )  # fmt: skip
         except (OSError, ValueError) as exc:  # an unknown host, a busy port, a bad name
             _fail(
                 f"--metrics-host {metrics.host} --metrics-port {metrics.port}: cannot serve "

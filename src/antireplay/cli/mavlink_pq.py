@@ -76,7 +76,7 @@ def _run(
     """Read the configuration with ``flags`` (``--option``: (key under the end, value))
     over it, open the end through wiring, run it until a signal, print its counts."""
     from antireplay.wiring.mavlink_pq import open_pq_end, pq_audit_path  # noqa: PLC0415
-    from antireplay.wiring.metrics import pq_metrics, serve_metrics  # noqa: PLC0415
+    from antireplay.wiring.metrics import pq_metrics, serve_metrics, trail_metrics  # noqa: PLC0415
 
     at = f"mavlink_pq.{which}"
     config = load_with_flags(config_path, {
@@ -96,7 +96,13 @@ def _run(
     link, metrics = parts.link, getattr(config.mavlink_pq, which).metrics
     if metrics.port is not None:
         try:
-            serve_metrics(lambda: pq_metrics(link.counts()), metrics.port, metrics.host)
+            serve_metrics(
+                lambda: [
+                    *pq_metrics(link.counts()),
+                    *trail_metrics(f"mavlink-pq {which}", parts.audit, parts.space),
+                ],
+                metrics.port, metrics.host,
+            )  # fmt: skip
         except (OSError, ValueError) as exc:  # an unknown host, a busy port, a bad name
             _fail(
                 f"--metrics-host {metrics.host} --metrics-port {metrics.port}: cannot serve "

@@ -9,14 +9,22 @@ forwarded and dropped per direction and code, accepted per stream, refusals unau
 folded by the rate limit, transport errors per endpoint and kind) and
 :func:`serve_router_metrics` serves them; :func:`pq_metrics` does the same for a
 post-quantum end's link (sessions, handshakes, chunks, air bytes by kind, repairs).
-Counters are read at scrape time, never pushed.
+:func:`trail_metrics` is what the gateway exports about its leaves, for any command: the
+trail's bytes and segments, the free space under it and the pressure against its floors,
+and readiness (the store could take a commit, the trail an append: the gateway's
+``/readyz``) as a gauge.  Counters are read at scrape time, never pushed.
 """
 
 from __future__ import annotations
 
+import sqlite3
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING
 
+from antireplay.audit import AuditLog
+from antireplay.audit.space import DiskSpace
+from antireplay.http.app import audit_problem
+from antireplay.state import ReplayStore
 from antireplay.wiring.refusals import MavlinkRefusals
 
 if TYPE_CHECKING:
@@ -155,3 +163,48 @@ def pq_metrics(counts: LinkCounts) -> list[Metric]:
     )
     unaudited.add_metric([end], counts.unaudited)
     return [*families, unaudited]
+
+
+def leaves_ready(audit: AuditLog, space: DiskSpace, store: ReplayStore | None = None) -> str | None:
+    """Why a command cannot take traffic now (its store, the disk, its trail), ``None`` if it
+    can: the gateway's readiness for any command's leaves.  Blocking I/O; records nothing."""
+    if store is not None:
+        try:
+            store.ready()
+        except Exception as exc:  # any backend's failure is the reason
+            return f"store: {exc}"
+    return space.reason() or audit_problem(audit)
+
+
+def trail_metrics(
+    command: str, audit: AuditLog, space: DiskSpace, store: ReplayStore | None = None
+) -> list[Metric]:
+    """A command's leaves as the gateway exports its own: readiness, the trail on disk,
+    the free space under it and the pressure against its floors."""
+    from prometheus_client.core import GaugeMetricFamily  # noqa: PLC0415
+
+    ready = GaugeMetricFamily(
+        "antireplay_ready", "1 while the store takes a commit and the audit trail an append",
+        labels=["command"],
+    )  # fmt: skip
+    ready.add_metric([command], int(leaves_ready(audit, space, store) is None))
+    families: list[Metric] = [ready]
+    values: list[tuple[str, str, float]] = [
+        ("antireplay_audit_free_bytes", "Free bytes under the audit trail", space.free()),
+        ("antireplay_audit_disk_pressure", "0 ok, 1 below min_free_bytes (refusals only "
+         "counted), 2 below refuse_free_bytes", space.pressure()),
+    ]  # fmt: skip
+    try:
+        usage = audit.usage()
+    except (sqlite3.Error, OSError):  # closed or deleted meanwhile: said by readiness
+        usage = None
+    if usage is not None:
+        values += [
+            ("antireplay_audit_trail_bytes", "Bytes the audit trail holds on disk", usage.bytes),
+            ("antireplay_audit_trail_segments", "Segments of the audit trail", usage.segments),
+        ]
+    for name, doc, value in values:
+        gauge = GaugeMetricFamily(name, doc, labels=["command"])
+        gauge.add_metric([command], value)
+        families.append(gauge)
+    return families
