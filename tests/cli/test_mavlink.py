@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from antireplay.audit import AuditLog
 from antireplay.cli import main
 from antireplay.config import AuditConfig
-from tests.harness import free_port, free_udp_port
+from harness import free_port, free_udp_port
 
 
 @pytest.mark.parametrize(("host", "why"), [("192.0.2.1", "assign"), ("bad..host", "label")])

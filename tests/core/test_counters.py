@@ -30,7 +30,7 @@ from antireplay.core.errors import (
     ReplayAttackError,
 )
 from antireplay.state.ceilings import persistent_counter
-from tests.harness import assert_never_reused, kill9_runs, race, run_threads
+from harness import assert_never_reused, kill9_runs, race, run_threads
 
 
 def commits(window: CounterWindow, counter: int) -> bool:
@@ -236,7 +236,7 @@ def test_persistent_counter_resumes_above_ceiling(tmp_path: Path) -> None:
 
 def test_persistent_counter_never_reuses_across_kill9(tmp_path: Path) -> None:
     """100 real subprocesses, each SIGKILLed at a random moment."""
-    args = ["-m", "tests.harness.workers.counter_worker", str(tmp_path / "ctr.state"), "16"]
+    args = ["-m", "harness.workers.counter_worker", str(tmp_path / "ctr.state"), "16"]
     assert_never_reused(kill9_runs(args, 100, 120, seed=1234), "counter")
 
 

@@ -31,7 +31,7 @@ from antireplay.mavlink import (
     sign_frame,
 )
 from antireplay.state.sqlite import SqliteStore
-from tests.harness.mavlink_frames import KEY, Sink, command_frame, encoder, v1_radio_status
+from harness.mavlink_frames import KEY, Sink, command_frame, encoder, v1_radio_status
 
 
 @pytest.mark.parametrize(

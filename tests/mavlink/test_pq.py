@@ -58,8 +58,8 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavgen
 
-from tests.harness import until
-from tests.harness.mavlink_frames import FakeTransport
+from harness import until
+from harness.mavlink_frames import FakeTransport
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()

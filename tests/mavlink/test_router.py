@@ -41,8 +41,8 @@ from antireplay.mavlink import (
     parse_endpoint,
     parse_frame,
 )
-from tests.harness import ROOT, free_port, free_udp_port, until
-from tests.harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
+from harness import ROOT, free_port, free_udp_port, until
+from harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
 
 
 class Rig:

@@ -22,8 +22,8 @@ from antireplay.rcan.auth import JwtVerifier, sign_envelope
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.rcan.receive import Outcome, Receiver
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import fresh_receiver, race
-from tests.harness.envelopes import (
+from harness import fresh_receiver, race
+from harness.envelopes import (
     ED,
     JWT_KEY,
     MITM_FIELDS,
