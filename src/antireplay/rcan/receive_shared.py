@@ -1,39 +1,30 @@
-"""The RCAN receive drivers: one sans-I/O core (:mod:`~antireplay.rcan.steps`), two drivers.
-
-Size: the thread driver and the event-loop driver share every piece of I/O between the
-core's calls (the check, the commit, the audit row, the memos); apart, each would copy it.
+"""What the RCAN receive drivers share: the receiver's state and every rule between the
+core's calls, written once.
 
 Theory of operation
 -------------------
-:class:`Receiver` runs RCAN §8.3's check -> authenticate -> commit through
-:class:`~antireplay.rcan.steps.Steps` and performs the I/O between its steps: the
-replay check and the one atomic commit (:class:`~antireplay.state.replay.ReplayCache`),
-the audit row, the memos.  :meth:`Receiver.receive` drives it on a thread;
-:meth:`Receiver.receive_async` on an event loop: it parses and (for a store that answers
-in process) runs the replay check on the loop, so junk and known replays cost no thread;
-what needs the signature is ONE job on a thread (``offload``; a fresh SAFETY message's in
-``urgent``, the lane the gateway's workers take first); the store's ``commit_async`` and
-the audit row are awaited on the loop.
+:class:`ReceiverBase` holds one robot's receive state: the replay window
+(:class:`~antireplay.state.replay.ReplayCache`), the sans-I/O core
+(:class:`~antireplay.rcan.steps.Steps`), the memo of accepted bodies, the QoS answers,
+the refusal auditor and the counters.  Its methods decide; they queue nothing: an
+outcome leaves as a :class:`Pending` carrying its audit ``row`` (``None``: no row: no
+trail, or folded into the auditor's summary), and the driver that asked queues the row
+its own way: :mod:`~antireplay.rcan.receive` on a thread, :mod:`~antireplay.rcan.receive_loop`
+on an event loop (:func:`queue_row`, the one place a row meets the trail).
 
 Step 0, before any parse: a byte-identical copy of a message accepted here is refused
 ``REPLAY_DETECTED`` from a bounded memo (no I/O); ESTOPs, warned messages and ``qos``
 >= 1 ones never enter it.  A ``REPLAY_DETECTED`` message with ``qos`` >= 1 whose
 authenticated content matches the accepted one is a QoS retransmission: answered with
 the original's held answer (:mod:`~antireplay.rcan.answers`, :attr:`Outcome.retry`),
-waited for on the loop while in flight, never executed again.
+never executed again.  Below the disk's second floor (:mod:`~antireplay.audit.space`)
+all but a fresh ESTOP is refused ``STATE_UNAVAILABLE`` before its commit.
 
-No answer goes out before its audit row is durable: ``receive_later`` queues the row for
-the trail's next group commit and :meth:`Receiver.settle` answers once it is.  An
+No answer goes out before its audit row is durable (:meth:`ReceiverBase.settle`).  An
 accepted message whose row failed is refused ``STATE_UNAVAILABLE``, except a fresh,
-authentic ESTOP (:func:`~antireplay.core.window.estop_survives`, the rule the store
-outage follows too): delivered flagged ``AUDIT_UNAVAILABLE``, its row spilled to the
-trail's reserved file (:mod:`~antireplay.audit.spill`), merged into the trail later.
-Refusals pass the one :class:`~antireplay.audit.RefusalAuditor` (rate-limited rows, the
-rest summarised); below the disk's second floor (:mod:`~antireplay.audit.space`) all but
-a fresh ESTOP is refused ``STATE_UNAVAILABLE`` before its commit.  Nothing raises.
-A fresh ESTOP waits for its commit and its row at most ``SAFETY_WAIT_S`` each (a row
-not written by then is withdrawn and spilled, or, already in a batch, spilled only if
-that batch fails).
+authentic ESTOP (:func:`~antireplay.core.window.estop_survives`): delivered flagged
+``AUDIT_UNAVAILABLE``, its row spilled to the trail's reserved file
+(:mod:`~antireplay.audit.spill`), merged into the trail later.  Nothing raises.
 """
 
 from __future__ import annotations
@@ -58,76 +49,74 @@ from antireplay.core.errors import (
     StateUnavailableError,
     WarningCode,
 )
-from antireplay.core.messages import MessageType
 from antireplay.core.settings import SecurityConfig
 from antireplay.core.window import Refusal, Verdict, estop_survives, is_estop
 from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
 from antireplay.rcan.auth import JwtVerifier, KeyRegistry
 from antireplay.rcan.envelope import MAX_BYTES
 from antireplay.rcan.steps import Checked, Done, NeedsCommit, Outcome, Steps, audit_row, may_retry
-from antireplay.state import Offload, ReplayStore, in_executor
+from antireplay.state import ReplayStore
 from antireplay.state.replay import ReplayCache
 from antireplay.state.sqlite import SAFETY_WAIT_S
 
-#: Stores whose replay check an event loop runs itself (no network round trip).
-LOCAL_BACKENDS = frozenset({"memory", "sqlite"})
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
 
 log = logging.getLogger("antireplay.rcan.receive")
 
-__all__ = ["HELD_ROWS", "SHAPE_ERRORS", "Offload", "Outcome", "Pending", "Receiver", "Stats"]
+__all__ = ["HELD_ROWS", "SHAPE_ERRORS", "Pending", "ReceiverBase", "Stats", "queue_row"]
 
 
 @dataclass(slots=True)
 class Pending:
-    """An outcome whose audit row may not be durable yet; :meth:`Receiver.settle` answers."""
+    """An outcome whose audit row may not be durable yet; :meth:`ReceiverBase.settle` answers."""
 
     outcome: Outcome
     #: The queued audit row (``None``: nothing to wait for: no trail, or not audited);
-    #: an asyncio future when an event loop queued it (:meth:`Receiver.reject_known_copy`).
+    #: an asyncio future when an event loop queued it.
     audit: Future[int] | asyncio.Future[int] | None = None
     #: An accepted body, its expiry and whether it declared ``qos`` >= 1, remembered as a
     #: known copy once audited.
     memo: tuple[bytes, float, bool] | None = None
     #: A fresh, authentic ESTOP: delivered even when its audit row cannot be made durable.
     estop: bool = False
-    #: The audit row queued (kept to be held and appended later if it fails).
+    #: The outcome's audit row, for the driver to queue (kept to be spilled if it fails).
     row: dict[str, Any] | None = None
 
 
-def _patience(pending: Pending) -> float | None:
+def patience(pending: Pending) -> float | None:
     """How long an answer waits for its audit row (``None``: until the row is durable or
     failed): a fresh ESTOP's at most :data:`SAFETY_WAIT_S` (then delivered flagged, its
     row withdrawn and spilled)."""
     return SAFETY_WAIT_S if pending.estop else None
 
 
-def _wait(pending: Pending) -> BaseException | None:
+def wait(pending: Pending) -> BaseException | None:
     """Block until the audit row is durable: ``None``, or why it could not be made so
-    (``TimeoutError``: not within :func:`_patience`; the row is still queued)."""
+    (``TimeoutError``: not within :func:`patience`; the row is still queued)."""
     audit = pending.audit
     if audit is None:
         return None
     assert isinstance(audit, Future), "a row queued by an event loop is awaited there"
     try:
-        audit.result(_patience(pending))
+        audit.result(patience(pending))
     except Exception as exc:  # any failure to record is the answer
         return exc
     return None
 
 
-async def _durable(pending: Pending) -> BaseException | None:
-    """:func:`_wait` on an event loop, holding no thread."""
-    audit = pending.audit
-    if audit is None:
-        return None
-    waiter = audit if isinstance(audit, asyncio.Future) else asyncio.wrap_future(audit)
-    patience = _patience(pending)
+def queue_row(audit: AuditLog | None, pending: Pending, *, on_loop: bool) -> Pending:
+    """Queue ``pending``'s row for the trail's next group commit (``on_loop``: an asyncio
+    future the running loop awaits; a fresh ESTOP's is always a thread's future, withdrawn
+    if it is not written in time); a trail that is closing fails the row at once."""
+    if audit is None or pending.row is None:
+        return pending
     try:
-        await (waiter if patience is None else asyncio.wait_for(asyncio.shield(waiter), patience))
-    except Exception as exc:  # any failure to record is the answer
-        return exc
-    return None
+        pending.audit = audit.append_later(**pending.row, on_loop=on_loop and not pending.estop)
+    except RuntimeError as exc:
+        failed: Future[int] = Future()
+        failed.set_exception(exc)
+        pending.audit = failed
+    return pending
 
 
 @dataclass(frozen=True, slots=True)
@@ -164,8 +153,10 @@ class Stats:
     held_dropped: int = 0
 
 
-class Receiver:
-    """One robot's receive path; thread-safe (the window and stores are atomic)."""
+class ReceiverBase:
+    """One robot's receive state and the rules both drivers follow; thread-safe (the window
+    and stores are atomic).  Its methods decide and return :class:`Pending` values; the
+    drivers queue their rows and answer."""
 
     def __init__(
         self,
@@ -197,10 +188,6 @@ class Receiver:
             max_bytes=max_bytes,
         )  # fmt: skip
         self.stats = Stats()
-        #: Whether an event loop runs the replay check itself: the store answers in process
-        #: (a dict, a SQLite read from the page cache); a network store's round trip stays
-        #: on the thread, in the one job with the signature.
-        self.check_on_loop = self.cache.store.backend in LOCAL_BACKENDS
         self._copies: dict[int, _Copy] = {}
         self.answers = AnswerMemo(config.msg_id_cache_size)
         #: How long an event loop waits for the answer of an original still in flight.
@@ -215,105 +202,45 @@ class Receiver:
         if reason is not None:  # noticed while the store opened (a lost or rolled-back file)
             self._audit_loss(str(reason))
 
-    def receive(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Outcome:
-        """Run the §8.3 steps; never raises for anything a peer can send."""
-        pending = self.receive_later(raw, headers)
-        return self.settle(pending, _wait(pending))
+    # --- the steps between the core's calls ------------------------------------------------
 
-    def receive_later(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Pending:
-        """Every step through the commit; the outcome's audit row is queued for the next
-        group commit, not awaited.  Answer with :meth:`settle` once ``Pending.audit`` is
-        done (:meth:`receive` blocks on it)."""
-        copy = self._known_copy(raw)
-        if copy is not None:
-            return self._reject_copy(copy)
-        step = self._floor(self._authenticate(raw, headers))
-        if isinstance(step, NeedsCommit):
-            env = step.env
-            try:
-                verdict = self.cache.commit(env.msg_id, env.seconds, *step.cls)
-            except ReplayAttackError as exc:
-                step = step.refused(exc)
-            else:
-                return self._accept(raw, step, verdict)
-        entry, step = self._retry_entry(step)
-        if entry is not None and entry.answer is not None:
-            return self._answer_retry(entry, entry.answer, step)
-        if entry is not None:  # in flight: only an event loop waits (receive_async)
-            step = _not_held(step, "original answer not held here yet (still in flight)")
-        return self._reject(step)
+    def _check(self, checked: Checked) -> ReplayAttackError | None:
+        """Step 3, the replay check (records nothing): its refusal, as a value (a flood of
+        replays raises nothing on its way to the answer)."""
+        env = checked.env
+        verdict = self.cache.try_check(env.msg_id, env.seconds, *checked.cls)
+        return verdict.error() if isinstance(verdict, Refusal) else None
 
-    async def receive_async(
-        self,
-        raw: bytes,
-        headers: Mapping[str, str] | None = None,
-        offload: Offload | None = None,
-        urgent: Offload | None = None,
-    ) -> Outcome:
-        """:meth:`receive` for an event loop: the settled outcome, its audit row durable,
-        awaited without holding a thread (:meth:`receive_later_async`, then :meth:`settle`)."""
-        pending = await self.receive_later_async(raw, headers, offload, urgent)
-        failure = await _durable(pending)
-        if failure is not None and pending.outcome.accepted:  # its refusal is audited: blocks
-            lane = urgent if urgent is not None and pending.estop else offload or in_executor
-            outcome: Outcome = await lane(self.settle, pending, failure)
-            return outcome
-        return self.settle(pending, failure)
+    def _check_and_authenticate(
+        self, checked: Checked, headers: Mapping[str, str] | None
+    ) -> NeedsCommit | Done:
+        """Steps 3-6: the replay check (records nothing), then the core's token, signature
+        and scopes."""
+        return self.steps.authenticate(checked, self._check(checked), headers)
 
-    async def receive_later_async(
-        self,
-        raw: bytes,
-        headers: Mapping[str, str] | None = None,
-        offload: Offload | None = None,
-        urgent: Offload | None = None,
-    ) -> Pending:
-        """:meth:`receive_later` for an event loop, handing a thread at most ONE job: a
-        byte-identical copy is refused on the loop, and so is what fails the parse; the
-        replay check runs on the loop where the store answers in process (memory, SQLite),
-        so a known replay is refused with no hand-off; the rest (the signature, and a
-        network store's check) is one job in ``offload(fn, *args)`` (default: the loop's
-        executor), a fresh SAFETY message's in ``urgent`` (the lane taken first; on a
-        network store, chosen before its check).  The store's ``commit_async`` and every
-        audit row are awaited on the loop."""
-        pending = self.reject_known_copy(raw)
-        if pending is not None:
-            return pending
-        run = offload or in_executor
-        parsed = self.steps.parse(raw)
-        step: NeedsCommit | Done
-        if isinstance(parsed, Done):
-            step = parsed
-        elif not self.check_on_loop:
-            lane = urgent if urgent is not None and parsed.cls[0] == MessageType.SAFETY else run
-            step = await lane(self._check_and_authenticate, parsed, headers)
-        else:
-            replayed = self._check(parsed)
-            if replayed is not None and not may_retry(replayed, parsed.env):
-                step = self.steps.authenticate(parsed, replayed, headers)  # refused: no crypto
-            else:
-                fresh_safety = replayed is None and parsed.cls[0] == MessageType.SAFETY
-                lane = urgent if urgent is not None and fresh_safety else run
-                step = await lane(self.steps.authenticate, parsed, replayed, headers)
-        step = self._floor(step)
-        if isinstance(step, Done):
-            return await self._reject_async(step)
-        env = step.env
-        try:
-            verdict = await self.cache.commit_async(env.msg_id, env.seconds, *step.cls, run)
-        except ReplayAttackError as exc:
-            return await self._reject_async(step.refused(exc))
-        return self._accept(raw, step, verdict, on_loop=True)
+    def _floor(self, step: NeedsCommit | Done) -> NeedsCommit | Done:
+        """Below the disk's second floor only an ESTOP goes on to its commit."""
+        if self.space is None or not isinstance(step, NeedsCommit) or is_estop(*step.cls):
+            return step
+        reason = self.space.reason()
+        if reason is None:
+            return step
+        self.stats.disk_refusals += 1
+        return step.refused(StateUnavailableError(reason))
 
-    async def _reject_async(self, done: Done) -> Pending:
-        """The refusal, or a QoS retransmission's original answer, awaited on the loop
-        while the original is still in flight (at most ``answer_wait_s``)."""
-        entry, done = self._retry_entry(done)
-        if entry is not None:
-            held = await self.answers.wait(entry, self.answer_wait_s)
-            if held is not None:
-                return self._answer_retry(entry, held, done, on_loop=True)
-            done = _not_held(done, "original answer not held here (none arrived in time)")
-        return self._reject(done, on_loop=True)
+    def _accept(self, raw: bytes, need: NeedsCommit, verdict: Verdict) -> Pending:
+        """A committed message: its answer expected, its row to queue."""
+        accepted = self.steps.accept(need, verdict)
+        if accepted.entry is not None:
+            self.answers.expect(need.env.msg_id, accepted.entry, self.clock.wall())
+        memo = (raw, verdict.expires_at, accepted.qos) if accepted.memo else None
+        return self._with_row(Pending(accepted.outcome, memo=memo, estop=verdict.estop))
+
+    def _with_row(self, pending: Pending) -> Pending:
+        """``pending`` with its audit row (always recorded: not a refusal's)."""
+        if self.audit is not None:
+            pending.row = audit_row(pending.outcome, self.clock.wall())
+        return pending
 
     def _retry_entry(self, done: Done) -> tuple[Entry | None, Done]:
         """For a ``REPLAY_DETECTED`` message that declares ``qos`` >= 1 and carries the
@@ -325,8 +252,78 @@ class Receiver:
             return None, done
         entry = self.answers.find(env, self.clock.wall())
         if entry is None:
-            return None, _not_held(done, "original answer not held here")
+            return None, not_held(done, "original answer not held here")
         return entry, done
+
+    def _answer_retry(self, entry: Entry, held: HeldAnswer, done: Done) -> Pending:
+        """A QoS retransmission: the original answer, audited as a refused replay
+        (``REPLAY_DETECTED``, warning ``QOS_RETRY``) by the original's verified signer."""
+        exc = ReplayDetectedError(
+            "QoS retransmission: the original answer, not executed again", detail=QOS_RETRY
+        )
+        outcome = self.steps.refuse(Done(exc, done.env, entry.signer, done.msg_type))
+        outcome.retry = held  # status, nack: still 409, what a retry-unaware transport sends
+        self.stats.rejected[exc.code] += 1
+        self.stats.retries += 1
+        return self._refusal_row(Pending(outcome))
+
+    def _reject(self, done: Done, copy: _Copy | None = None) -> Pending:
+        """The NACK outcome of a refusal; ``copy`` describes a memo hit (nothing parsed)."""
+        outcome = self.steps.refuse(done, None if copy is None else copy.msg_id)
+        self.stats.rejected[done.error.code] += 1
+        return self._refusal_row(Pending(outcome), None if copy is None else copy.sender)
+
+    def _refusal_row(self, pending: Pending, sender: str | None = None) -> Pending:
+        """A refusal's row if the auditor gives it one, else folded into its summary."""
+        if self.audit is None:
+            return pending
+        fields = audit_row(pending.outcome, self.clock.wall(), sender)
+        key = {name: fields[name] for name in ("code", "sender", "msg_id")}
+        if self.refusals.admit(authentic=fields["sender_verified"], **key):
+            pending.row = fields
+        else:
+            self.stats.unaudited += 1
+        return pending
+
+    def _upstream_failure(self, outcome: Outcome, error: ReplayAttackError) -> Pending:
+        """An accepted message's upstream failed (``UPSTREAM_FAILED``, warning
+        ``delivered=…``, under its verified sender): its row, always recorded."""
+        failed = self.steps.refuse(Done(error, outcome.envelope, outcome.signer, outcome.msg_type))
+        failed.msg_id = outcome.msg_id
+        return self._with_row(Pending(failed))
+
+    # --- step 0: the memo of accepted bodies ------------------------------------------------
+
+    def _remember_copy(self, raw: bytes, expires_at: float, qos: bool, outcome: Outcome) -> None:
+        """Memo of accepted bodies: a byte-identical copy is a replay, known before parsing.
+
+        Only authenticated, accepted, non-ESTOP messages enter it (a fresh duplicate ESTOP
+        must still be processed), keyed by Python's keyed SipHash of the body plus its
+        length; it is bounded (oldest forgotten first) and forgetting only means the copy
+        takes the full path, where the window rejects it as before.  A copy of a message
+        that declared ``qos`` >= 1 is not refused here: it goes on to step 3, where the
+        retry rule is decided (one decision point; a parse, no crypto).
+        """
+        copies = self._copies
+        if len(copies) >= self.config.msg_id_cache_size:
+            copies.pop(next(iter(copies)), None)
+        sender = outcome.envelope.sender if outcome.envelope is not None else None
+        copies[hash(raw)] = _Copy(
+            len(raw), expires_at, outcome.msg_id, outcome.msg_type, sender, qos
+        )
+
+    def _known_copy(self, raw: bytes) -> Pending | None:
+        """Step 0: a byte-identical copy of an accepted message refused with no parsing, no
+        lock and no I/O (its row still to queue); ``None``: not a known copy."""
+        copy = self._copies.get(hash(raw)) if type(raw) is bytes else None
+        if copy is None or copy.qos or copy.length != len(raw):
+            return None
+        if copy.expires_at < self.clock.wall():
+            return None
+        exc = ReplayDetectedError("an identical message was already accepted")
+        return self._reject(Done(exc, None, None, copy.type), copy)
+
+    # --- the answer ---------------------------------------------------------------------------
 
     def hold_answer(
         self,
@@ -342,75 +339,10 @@ class Receiver:
         if outcome.accepted and env is not None and type(env.msg_id) is str:
             self.answers.hold(env.msg_id, status, headers, body)
 
-    async def record_upstream_failure(self, outcome: Outcome, error: ReplayAttackError) -> None:
-        """Audit that an accepted message's upstream failed (``UPSTREAM_FAILED``, warning
-        ``delivered=…``, under its verified sender), queued with the other rows and durable
-        before the failure is answered; a row that cannot be written is counted."""
-        done = Done(error, outcome.envelope, outcome.signer, outcome.msg_type)
-        failed = self.steps.refuse(done)
-        failed.msg_id = outcome.msg_id
-        if await _durable(self._queue_audit(Pending(failed), on_loop=True)) is not None:
-            self.stats.audit_failures += 1  # the failure is still answered
-
-    def _answer_retry(
-        self, entry: Entry, held: HeldAnswer, done: Done, *, on_loop: bool = False
-    ) -> Pending:
-        """A QoS retransmission: the original answer, audited as a refused replay
-        (``REPLAY_DETECTED``, warning ``QOS_RETRY``) by the original's verified signer."""
-        exc = ReplayDetectedError(
-            "QoS retransmission: the original answer, not executed again", detail=QOS_RETRY
-        )
-        outcome = self.steps.refuse(Done(exc, done.env, entry.signer, done.msg_type))
-        outcome.retry = held  # status, nack: still 409, what a retry-unaware transport sends
-        self.stats.rejected[exc.code] += 1
-        self.stats.retries += 1
-        return self._queue_refusal(Pending(outcome), on_loop=on_loop)
-
-    def _authenticate(self, raw: bytes, headers: Mapping[str, str] | None) -> NeedsCommit | Done:
-        """Steps 1-6 on a thread: the core's parse, then :meth:`_check_and_authenticate`."""
-        step = self.steps.parse(raw)
-        if not isinstance(step, Checked):
-            return step
-        return self._check_and_authenticate(step, headers)
-
-    def _check_and_authenticate(
-        self, checked: Checked, headers: Mapping[str, str] | None
-    ) -> NeedsCommit | Done:
-        """Steps 3-6: the replay check (records nothing), then the core's token, signature
-        and scopes."""
-        return self.steps.authenticate(checked, self._check(checked), headers)
-
-    def _check(self, checked: Checked) -> ReplayAttackError | None:
-        """Step 3, the replay check (records nothing): its refusal, as a value (a flood of
-        replays raises nothing on its way to the answer)."""
-        env = checked.env
-        verdict = self.cache.try_check(env.msg_id, env.seconds, *checked.cls)
-        return verdict.error() if isinstance(verdict, Refusal) else None
-
-    def _floor(self, step: NeedsCommit | Done) -> NeedsCommit | Done:
-        """Below the disk's second floor only an ESTOP goes on to its commit."""
-        if self.space is None or not isinstance(step, NeedsCommit) or is_estop(*step.cls):
-            return step
-        reason = self.space.reason()
-        if reason is None:
-            return step
-        self.stats.disk_refusals += 1
-        return step.refused(StateUnavailableError(reason))
-
-    def _accept(
-        self, raw: bytes, need: NeedsCommit, verdict: Verdict, *, on_loop: bool = False
-    ) -> Pending:
-        accepted = self.steps.accept(need, verdict)
-        if accepted.entry is not None:
-            self.answers.expect(need.env.msg_id, accepted.entry, self.clock.wall())
-        memo = (raw, verdict.expires_at, accepted.qos) if accepted.memo else None
-        pending = Pending(accepted.outcome, memo=memo, estop=verdict.estop)
-        return self._queue_audit(pending, on_loop=on_loop)
-
     def settle(self, pending: Pending, failure: BaseException | None) -> Outcome:
         """The answer, once the outcome's audit row is durable (``failure`` is ``None``) or
         could not be made durable.  Only an accepted message whose row failed blocks (its
-        refusal is audited in turn): run that case off the event loop."""
+        refusal is audited in turn, on this thread): run that case off the event loop."""
         outcome = pending.outcome
         if failure is not None:
             self.stats.audit_failures += 1
@@ -424,8 +356,8 @@ class Receiver:
                     self.answers.drop(outcome.envelope.msg_id)  # no answer to hold
                 exc = StateUnavailableError(f"audit trail unavailable: {failure}")
                 done = Done(exc, outcome.envelope, outcome.signer, outcome.msg_type)
-                refusal = self._reject(done)
-                return self.settle(refusal, _wait(refusal))
+                refusal = queue_row(self.audit, self._reject(done), on_loop=False)
+                return self.settle(refusal, wait(refusal))
             self._hold(pending, failure, warning)  # safety beats the audit trail
         if outcome.accepted:
             self.stats.accepted += 1
@@ -478,62 +410,6 @@ class Receiver:
                 failure,
             )
 
-    def _remember_copy(self, raw: bytes, expires_at: float, qos: bool, outcome: Outcome) -> None:
-        """Memo of accepted bodies: a byte-identical copy is a replay, known before parsing.
-
-        Only authenticated, accepted, non-ESTOP messages enter it (a fresh duplicate ESTOP
-        must still be processed), keyed by Python's keyed SipHash of the body plus its
-        length; it is bounded (oldest forgotten first) and forgetting only means the copy
-        takes the full path, where the window rejects it as before.  A copy of a message
-        that declared ``qos`` >= 1 is not refused here: it goes on to step 3, where the
-        retry rule is decided (one decision point; a parse, no crypto).
-        """
-        copies = self._copies
-        if len(copies) >= self.config.msg_id_cache_size:
-            copies.pop(next(iter(copies)), None)
-        sender = outcome.envelope.sender if outcome.envelope is not None else None
-        copies[hash(raw)] = _Copy(
-            len(raw), expires_at, outcome.msg_id, outcome.msg_type, sender, qos
-        )
-
-    def _known_copy(self, raw: bytes) -> _Copy | None:
-        copy = self._copies.get(hash(raw)) if type(raw) is bytes else None
-        if copy is not None and copy.length == len(raw) and copy.expires_at >= self.clock.wall():
-            return None if copy.qos else copy
-        return None
-
-    def _reject_copy(self, copy: _Copy, *, on_loop: bool = False) -> Pending:
-        exc = ReplayDetectedError("an identical message was already accepted")
-        return self._reject(Done(exc, None, None, copy.type), copy=copy, on_loop=on_loop)
-
-    def reject_known_copy(self, raw: bytes) -> Pending | None:
-        """Step 0 without blocking: a byte-identical copy of an accepted message is refused
-        with no parsing, no lock and no I/O; its audit row is queued for the next group
-        commit (answer with :meth:`settle` once ``Pending.audit`` is done).  ``None``: not
-        a known copy, run :meth:`receive_later`."""
-        copy = self._known_copy(raw)
-        return None if copy is None else self._reject_copy(copy, on_loop=True)
-
-    def _reject(self, done: Done, *, copy: _Copy | None = None, on_loop: bool = False) -> Pending:
-        """The NACK outcome of a refusal; ``copy`` describes a memo hit (nothing parsed)."""
-        outcome = self.steps.refuse(done, None if copy is None else copy.msg_id)
-        self.stats.rejected[done.error.code] += 1
-        sender = None if copy is None else copy.sender
-        return self._queue_refusal(Pending(outcome), sender, on_loop=on_loop)
-
-    def _queue_refusal(
-        self, pending: Pending, sender: str | None = None, *, on_loop: bool = False
-    ) -> Pending:
-        """A refusal's row if the auditor gives it one, else folded into its summary."""
-        if self.audit is None:
-            return pending
-        fields = audit_row(pending.outcome, self.clock.wall(), sender)
-        key = {name: fields[name] for name in ("code", "sender", "msg_id")}
-        if not self.refusals.admit(authentic=fields["sender_verified"], **key):
-            self.stats.unaudited += 1
-            return pending
-        return self._queue_audit(pending, fields, on_loop=on_loop)
-
     def close(self) -> None:
         """Write the folded refusals' summary rows, then close the audit trail."""
         if self.audit is not None:
@@ -554,28 +430,8 @@ class Receiver:
         except StateUnavailableError:
             self.stats.audit_failures += 1
 
-    def _queue_audit(
-        self, pending: Pending, fields: dict[str, Any] | None = None, *, on_loop: bool = False
-    ) -> Pending:
-        """Queue the outcome's audit row (``fields``: already built; ``on_loop``: awaited by
-        the running event loop); a trail that is closing fails the row at once."""
-        if self.audit is not None:
-            if fields is None:
-                fields = audit_row(pending.outcome, self.clock.wall())
-            if pending.estop:  # a thread's future: withdrawn if it is not written in time
-                pending.row = fields
-            try:
-                pending.audit = self.audit.append_later(
-                    **fields, on_loop=on_loop and not pending.estop
-                )
-            except RuntimeError as exc:
-                failed: Future[int] = Future()
-                failed.set_exception(exc)
-                pending.audit = failed
-        return pending
 
-
-def _not_held(done: Done, why: str) -> Done:
+def not_held(done: Done, why: str) -> Done:
     """The plain ``REPLAY_DETECTED`` refusal of a retry whose original answer is not here."""
     exc = ReplayDetectedError(f"msg_id already accepted; {why}")
     return Done(exc, done.env, done.signer, done.msg_type)
