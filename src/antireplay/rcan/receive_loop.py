@@ -72,12 +72,9 @@ class LoopDriver:
         return queue_row(self.receiver.audit, pending, on_loop=True)
 
     async def receive(
-        self,
-        raw: bytes,
-        headers: Mapping[str, str] | None = None,
-        offload: Offload | None = None,
-        urgent: Offload | None = None,
-    ) -> Outcome:
+        self, raw: bytes, headers: Mapping[str, str] | None, offload: Offload | None,
+        urgent: Offload | None,
+    ) -> Outcome:  # fmt: skip
         """The settled outcome, its audit row durable, awaited without holding a thread."""
         pending = await self.receive_later(raw, headers, offload, urgent)
         failure = await durable(pending)
@@ -88,12 +85,9 @@ class LoopDriver:
         return self.receiver.settle(pending, failure)
 
     async def receive_later(
-        self,
-        raw: bytes,
-        headers: Mapping[str, str] | None = None,
-        offload: Offload | None = None,
-        urgent: Offload | None = None,
-    ) -> Pending:
+        self, raw: bytes, headers: Mapping[str, str] | None, offload: Offload | None,
+        urgent: Offload | None,
+    ) -> Pending:  # fmt: skip
         """Every step through the commit, a thread handed at most ONE job; the audit row
         queued for the loop to await (answer with ``settle`` once ``Pending.audit`` is done)."""
         copy = self.reject_known_copy(raw)
