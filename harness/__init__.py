@@ -1,5 +1,6 @@
-"""The test harness: one place for what tests share besides fixtures (those are in
-``tests/conftest.py``).
+"""The process harness: what the tests and the benchmarks share (fixtures are in
+``tests/conftest.py``).  It imports neither ``tests`` nor ``benchmarks``, and neither
+imports the other; it is not part of the installed package.
 
 The package keeps only what ``antireplay demo`` runs
 (:func:`antireplay.cli.demo.start_gateway` and :func:`~antireplay.cli.demo.stop_gateway`);
@@ -10,7 +11,8 @@ vocabulary over ours.  Submodules: :mod:`~harness.envelopes` (signed RCAN
 messages), :mod:`~harness.asgi` (a gateway in process), :mod:`~harness.audit`
 (trails), :mod:`~harness.stores` (Redis replicas), :mod:`~harness.mavlink_frames`
 and :mod:`~harness.mavproxy` (MAVLink links), :mod:`~harness.redis_server`
-(a real Redis), :mod:`~harness.workers` (subprocesses for kill -9 tests).
+(a real Redis), :mod:`~harness.radio` and :mod:`~harness.pq_radio` (a lossy radio and
+the PQ ends over it), :mod:`~harness.workers` (subprocesses for kill -9 tests).
 """
 
 from __future__ import annotations
