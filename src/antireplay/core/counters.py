@@ -154,7 +154,9 @@ class NonceCounter:
         floor = 0 if self._anchor is None else self._anchor()
         with self._lock:
             while True:
-                value = max(self._next, floor)
+                value = self._next
+                if floor > value:
+                    value = floor
                 if value >= self.limit:
                     raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
                 persist = self._persist
