@@ -155,8 +155,7 @@ class NonceCounter:
         with self._lock:
             while True:
                 value = self._next
-                if floor > value:
-                    value = floor
+                value = floor if floor > value else value  # max() costs a call per value
                 if value >= self.limit:
                     raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
                 persist = self._persist
