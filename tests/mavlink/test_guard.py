@@ -225,7 +225,7 @@ def test_honest_sender_continues_right_after_a_clean_restart(
         guard.open(frame)
     guard.stop()  # flushes, releases the lease at the stop time
     restarted = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
-    restarted.start(wait_s=0)  # no waiting: the lease was released
+    restarted.start()  # the lease was released: claimed at once
     try:
         for frame in captures:
             with pytest.raises((MessageStaleError, CounterReplayedError)):
