@@ -18,7 +18,7 @@ from antireplay.core.clock import ManualClock
 from antireplay.core.errors import AuditFileError
 from antireplay.state.outbox import read_trail_head
 from antireplay.state.sqlite import SqliteStore
-from tests.harness.audit import SMALL_SEGMENT, append, segmented, sql, trail
+from harness.audit import SMALL_SEGMENT, append, segmented, sql, trail
 
 
 def _put(audit: AuditLog, i: int) -> None:

@@ -13,9 +13,9 @@ from click.testing import CliRunner
 from antireplay.audit import AuditLog, verify
 from antireplay.cli import main
 from antireplay.config import AuditConfig
-from tests.harness import free_port, free_udp_port, metrics_router
-from tests.harness.flood import flood_until_rotated, trail_bytes
-from tests.harness.mavlink_frames import unsigned_heartbeat
+from harness import free_port, free_udp_port, metrics_router
+from harness.flood import flood_until_rotated, trail_bytes
+from harness.mavlink_frames import unsigned_heartbeat
 
 
 @pytest.mark.parametrize(("host", "why"), [("192.0.2.1", "assign"), ("bad..host", "label")])

@@ -19,15 +19,15 @@ from click.testing import CliRunner
 from prometheus_client.parser import text_string_to_metric_families
 
 os.environ["MAVLINK20"] = "1"
-from benchmarks import bench_pq_radio
 from pymavlink import mavutil
 
 from antireplay.audit import verify
 from antireplay.cli import main
 from antireplay.mavlink.pq.wire import status_frame
-from tests.harness import free_port, free_udp_port, metrics_pq, until
-from tests.harness.flood import flood_until_rotated, trail_bytes
-from tests.harness.radio import SIK_BAUD, SIK_QUEUE_BYTES
+from harness import free_port, free_udp_port, metrics_pq, until
+from harness.flood import flood_until_rotated, trail_bytes
+from harness.pq_radio import Plan, make_keys, run_pq
+from harness.radio import SIK_BAUD, SIK_QUEUE_BYTES
 
 CLI = [sys.executable, "-m", "antireplay"]
 
@@ -268,12 +268,12 @@ def test_commands_cross_a_lossy_slow_radio_once_each(tmp_path: Path) -> None:
     station retrying as QGroundControl does and a pymavlink vehicle: the session comes up
     within 5 s, every command is executed once and acknowledged, and no retry after a lost
     ACK runs a command again (the retry is answered from what the ends hold)."""
-    bench_pq_radio.make_keys(tmp_path)
-    plan = bench_pq_radio.Plan(
+    make_keys(tmp_path)
+    plan = Plan(
         commands=8, tries=4, retry_s=1.5, session_timeout_s=30.0,
         queue_bytes=SIK_QUEUE_BYTES, keys=tmp_path, air_bps=True,
     )  # fmt: skip
-    row = bench_pq_radio.run_pq(0.10, SIK_BAUD, 3, plan)
+    row = run_pq(0.10, SIK_BAUD, 3, plan)
     assert row.note == "" and row.session_s is not None and row.session_s < 5.0
     assert row.delivered >= 7, row  # 8 in every run so far; one may need all 4 tries
     assert row.replays == row.re_executed == row.unacked_executed == 0, row

@@ -25,8 +25,8 @@ from antireplay.cli._common import importable_cwd
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.cli.serve import settled_heap
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import GatewayProcess, free_port, metric, one_line_error, post, serving, until
-from tests.harness.redis_server import RedisServer
+from harness import GatewayProcess, free_port, metric, one_line_error, post, serving, until
+from harness.redis_server import RedisServer
 
 
 def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(

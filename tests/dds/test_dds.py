@@ -27,7 +27,7 @@ from antireplay.core.errors import Code, ConfigError, StateFileError
 from antireplay.dds.config import DdsConfig
 from antireplay.epochs import EpochSigner, Kind, derive_key
 from antireplay.epochs.policy import seal
-from tests.harness import dds_writer_process, started_before, until
+from harness import dds_writer_process, started_before, until
 
 try:
     from antireplay.dds import relay as relay_module

@@ -16,7 +16,7 @@ from pathlib import Path
 import httpx
 
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
-from tests.harness import metric, post, serving
+from harness import metric, post, serving
 
 
 def _antireplay(*args: str | Path) -> subprocess.CompletedProcess[str]:

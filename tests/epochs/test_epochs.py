@@ -46,7 +46,7 @@ from antireplay.epochs.policy import seal
 from antireplay.state.durable import repair
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import assert_never_reused, kill9_runs, started_before
+from harness import assert_never_reused, kill9_runs, started_before
 
 PSK = b"fleet-pre-shared-key-0123456789ab"
 
@@ -421,7 +421,7 @@ def test_block_reservation_writes_rarely(tmp_path: Path) -> None:
 
 
 def test_sender_kill9_at_random_moments_never_repeats(tmp_path: Path) -> None:
-    args = ["-m", "tests.harness.workers.epoch_worker", str(tmp_path / "signer.state"), "0.000002"]
+    args = ["-m", "harness.workers.epoch_worker", str(tmp_path / "signer.state"), "0.000002"]
     assert_never_reused(kill9_runs(args, 100, 150, seed=99), "sender")
 
 

@@ -13,7 +13,7 @@ import httpx
 import pytest
 
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
-from tests.harness import metric, post, serving
+from harness import metric, post, serving
 
 SLOW_ROBOT = """\
 import time

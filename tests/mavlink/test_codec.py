@@ -25,7 +25,7 @@ from antireplay.mavlink import (
     passphrase_key,
     sign_frame,
 )
-from tests.harness.mavlink_frames import KEY, Sink, command_frame, encoder, v1_radio_status
+from harness.mavlink_frames import KEY, Sink, command_frame, encoder, v1_radio_status
 
 
 @pytest.mark.parametrize(

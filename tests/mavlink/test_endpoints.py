@@ -39,8 +39,8 @@ from antireplay.mavlink.endpoints import (
     Transport,
 )
 from antireplay.wiring import router_metrics
-from tests.harness import free_port, until
-from tests.harness.mavlink_frames import (
+from harness import free_port, until
+from harness.mavlink_frames import (
     KEY,
     command_frame,
     encoder,

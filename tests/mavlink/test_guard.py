@@ -23,7 +23,7 @@ from antireplay.core.errors import (
 from antireplay.mavlink import TS_LIMIT, UNITS_PER_S, MavlinkGuard, mav_time
 from antireplay.mavlink.guard import Admission
 from antireplay.state.sqlite import SqliteStore
-from tests.harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
+from harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
 
 
 def test_signed_frame_accepted_once(clock: ManualClock) -> None:

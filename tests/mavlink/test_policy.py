@@ -27,7 +27,7 @@ from antireplay.mavlink.policy import (
     lease_parts,
     lease_value,
 )
-from tests.harness.mavlink_frames import command_frame, encoder, unsigned_heartbeat
+from harness.mavlink_frames import command_frame, encoder, unsigned_heartbeat
 
 S = UNITS_PER_S
 NOW = 300_000 * S  # a manual receiver time, in MAVLink units

@@ -53,9 +53,9 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavgen
 
-from tests.harness import until
-from tests.harness.mavlink_frames import FakeTransport
-from tests.harness.pq_ends import (
+from harness import until
+from harness.mavlink_frames import FakeTransport
+from harness.pq_ends import (
     ARM,
     GCS_KEY,
     ROBOT_KEM,

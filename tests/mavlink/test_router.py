@@ -45,8 +45,8 @@ from antireplay.mavlink import (
 from antireplay.mavlink import guard as guard_module
 from antireplay.mavlink.codec import UNITS_PER_S, Frame
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import ROOT, free_port, free_udp_port, until
-from tests.harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
+from harness import ROOT, free_port, free_udp_port, until
+from harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
 
 
 class Rig:

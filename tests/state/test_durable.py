@@ -17,7 +17,7 @@ from antireplay.core.errors import StateFileError
 from antireplay.epochs import EpochSigner
 from antireplay.state.ceilings import persistent_counter
 from antireplay.state.durable import DurableState, repair
-from tests.harness import ROOT
+from harness import ROOT
 
 
 def make(tmp_path: Path, gens: int = 1) -> DurableState:

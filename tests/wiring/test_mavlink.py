@@ -24,8 +24,8 @@ from antireplay.wiring import (
     mavlink_auditor,
     open_router,
 )
-from tests.harness import free_port
-from tests.harness.mavlink_frames import KEY
+from harness import free_port
+from harness.mavlink_frames import KEY
 
 
 def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(

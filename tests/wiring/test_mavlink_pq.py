@@ -10,7 +10,7 @@ from antireplay.audit import Retention
 from antireplay.config import AppConfig
 from antireplay.core.errors import ConfigError
 from antireplay.wiring import open_pq_end
-from tests.harness import free_udp_port, pq_keys
+from harness import free_udp_port, pq_keys
 
 
 def test_a_vehicle_end_opens_its_trail_rotated_retained_and_floored(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ from antireplay.mavlink.pq import (
 
 os.environ["MAVLINK20"] = "1"
 
-from tests.harness.pq_ends import Link, arm, connected, plain
+from harness.pq_ends import Link, arm, connected, plain
 
 
 def test_queued_commands_go_out_after_the_handshake(clock: ManualClock) -> None:

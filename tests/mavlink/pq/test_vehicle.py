@@ -25,7 +25,7 @@ from antireplay.pq.session import Initiator, Responder
 os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
-from tests.harness.pq_ends import (
+from harness.pq_ends import (
     GCS_KEY,
     ROBOT_KEM,
     Link,

@@ -9,7 +9,7 @@ import sys
 
 from antireplay import ManualClock
 from antireplay.epochs import EpochSigner
-from tests.harness.workers import emit_forever
+from harness.workers import emit_forever
 
 
 def main() -> None:
