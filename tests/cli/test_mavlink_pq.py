@@ -253,7 +253,7 @@ def test_a_lost_first_handshake_is_retried_and_each_end_reports_its_session(
         assert end.said("sessions established=1"), end.lines  # the counts at SIGTERM
     assert vehicle.said("local:NO_SESSION="), vehicle.lines
     for trail in ("ground.db", "vehicle.db"):
-        assert _audited(keys / trail) == [("session", "ESTABLISHED")]
+        assert _audited(keys / trail) == [("session", "ESTABLISHED")], _audited(keys / trail)
 
 
 def test_the_system_id_options_say_what_they_set() -> None:
