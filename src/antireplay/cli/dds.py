@@ -20,6 +20,8 @@ import click
 from antireplay.cli._common import _fail, stop_on_signal
 from antireplay.core.errors import AntiReplayError, ConfigError
 from antireplay.dds.config import DdsConfig, parse_udp
+from antireplay.epochs import signer_state
+from antireplay.state import open_store
 
 CONFIG = click.option(
     "--config",
@@ -73,7 +75,7 @@ def read(config_path: Path, topic: str | None, count: int, timeout_s: float) -> 
             _participant(cfg),
             topic or cfg.reader.topic,
             cfg.psk(),
-            store=cfg.reader.store,
+            store=open_store(cfg.reader.store),
             max_age_s=cfg.max_age_s,
             max_forward_s=cfg.max_forward_s,
             audit=_audit(cfg),
@@ -130,7 +132,7 @@ def write(  # noqa: PLR0917 - one option per knob
             _participant(cfg),
             topic or cfg.writer.topic,
             cfg.psk(),
-            state_file=cfg.writer.state_file,
+            state=None if cfg.writer.state_file is None else signer_state(cfg.writer.state_file),
             max_forward_s=cfg.max_forward_s,
         )
     except (AntiReplayError, ValueError) as exc:
@@ -203,8 +205,8 @@ def relay(config_path: Path, duration_s: float) -> None:
             _participant(cfg),
             psk,
             service_name=cfg.relay.service_name,
-            signer_state=cfg.relay.signer_state,
-            verifier_store=cfg.relay.verifier_store,
+            signer_state=signer_state(cfg.relay.signer_state),
+            verifier_store=open_store(cfg.relay.verifier_store),
             max_age_s=cfg.max_age_s,
             max_forward_s=cfg.max_forward_s,
             audit=audit,
