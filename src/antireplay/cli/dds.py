@@ -33,10 +33,15 @@ CONFIG = click.option(
 
 
 def _load(path: Path) -> DdsConfig:
+    from antireplay.config import AppConfig  # noqa: PLC0415
+
     try:
-        return DdsConfig.from_yaml(path)
+        block = AppConfig.from_yaml(path).dds  # every section checked: no key out of place
     except ConfigError as exc:
         _fail(str(exc))
+    if block is None:
+        _fail(f"{path}: no dds: block (allowed: a mapping with at least psk_file)")
+    return block
 
 
 def _participant(cfg: DdsConfig) -> Any:
