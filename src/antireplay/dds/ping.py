@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import socket
 from collections import Counter
+from collections.abc import Callable
 
 from antireplay.audit import AuditLog
 from antireplay.core.clock import Clock, resolve
@@ -83,6 +84,7 @@ class PingListener:
         max_age_s: float = MAX_AGE_S,
         max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
+        quiet: Callable[[], bool] | None = None,
     ) -> None:
         self._clock = resolve(clock)
         self.verifier = EpochVerifier(
@@ -98,7 +100,7 @@ class PingListener:
         self.sock.bind(bind)
         self.peers: dict[bytes, tuple[str, int]] = {}
         self.counts: Counter[str] = Counter()
-        self._refusals = refusal_auditor(self._clock, audit, self.counts)
+        self._refusals = refusal_auditor(self._clock, audit, self.counts, quiet)
 
     @property
     def address(self) -> tuple[str, int]:

@@ -32,6 +32,7 @@ import os
 import struct
 import threading
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from cyclonedds.domain import DomainParticipant
@@ -115,6 +116,7 @@ class AnnouncementRelay:
         max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
         ping: PingListener | None = None,
+        quiet: Callable[[], bool] | None = None,
     ) -> None:
         self.service_name = service_name
         self._clock = resolve(clock)
@@ -129,6 +131,7 @@ class AnnouncementRelay:
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
             audit=audit,
+            quiet=quiet,
         )
         self.egress = SealedWriter(
             participant,

@@ -31,6 +31,7 @@ import logging
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from typing import Any
 
 from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
@@ -243,6 +244,7 @@ class SealedReader:
         audit: AuditLog | None = None,
         qos: Qos | None = None,
         challenge: bool = True,
+        quiet: Callable[[], bool] | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
         self._decode = None if data_type is None else data_type.deserialize
@@ -258,7 +260,7 @@ class SealedReader:
         )
         self.audit = audit
         self.counts: Counter[str] = Counter()
-        self._refusals = refusal_auditor(self._clock, audit, self.counts)
+        self._refusals = refusal_auditor(self._clock, audit, self.counts, quiet)
         self._lock = threading.Lock()
         qos = qos or default_qos()
         self._reader = DataReader(participant, _topic(participant, topic, qos), qos=qos)
@@ -354,10 +356,16 @@ class SealedReader:
         return verdicts
 
 
-def refusal_auditor(clock: Clock, audit: AuditLog | None, counts: Counter[str]) -> RefusalAuditor:
+def refusal_auditor(
+    clock: Clock,
+    audit: AuditLog | None,
+    counts: Counter[str],
+    quiet: Callable[[], bool] | None = None,
+) -> RefusalAuditor:
     """The rate-limited auditor of a reader's or listener's refusals; what it folds is
-    counted in ``counts`` as ``audit_rate_limited``."""
-    return RefusalAuditor(audit, clock, per_s=AUDIT_PER_S, counts=counts)
+    counted in ``counts`` as ``audit_rate_limited``; while ``quiet()`` (free space under
+    the trail below its first floor) refusals are counted, not written."""
+    return RefusalAuditor(audit, clock, per_s=AUDIT_PER_S, counts=counts, quiet=quiet)
 
 
 def record_refusal(
