@@ -8,6 +8,7 @@ the refusal auditor write rows.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import random
 import re
@@ -16,17 +17,18 @@ import sys
 import time
 from pathlib import Path
 
+import httpx
 import pytest
 
 from antireplay.audit import verify
-from antireplay.audit.segments import rotated
+from antireplay.audit.segments import next_path, rotated
 from antireplay.dds.domain import join_domain
 from antireplay.dds.topics import SealedWriter
 from antireplay.dds.wire import SealedSample
 from antireplay.epochs import Kind, derive_key
 from antireplay.epochs.policy import seal, to_ns
 from antireplay.epochs.sealing import RAW, frame, topic_key
-from tests.harness import until
+from tests.harness import free_port, until
 
 SEGMENT = 64 * 1024
 BUDGET = 4 * SEGMENT
@@ -34,8 +36,6 @@ BUDGET = 4 * SEGMENT
 ROTATIONS = 2 * BUDGET // SEGMENT
 #: A long topic name makes every refusal row long (its warning names the topic).
 TOPIC = "flood/" + "x" * 200
-#: The trail's files on disk: live and rotated segments, the WAL, a rotation's next segment.
-_TRAIL = re.compile(r"dds-audit\.db(\.[0-9]{6,}|-wal|\.next)?")
 
 
 def _domain() -> int:
@@ -50,16 +50,15 @@ def _dds(*args: str, **kwargs: object) -> subprocess.Popen[str]:
 
 
 def _on_disk(trail: Path) -> int:
-    """The trail's bytes on disk now, each file once (a rotation hard-links the live one)."""
-    files = {}
-    for found in trail.parent.glob(trail.name + "*"):
-        if _TRAIL.fullmatch(found.name):
-            try:
-                st = found.stat()
-            except FileNotFoundError:  # removed by retention since the listing
-                continue
-            files[st.st_ino] = st.st_size
-    return sum(files.values())
+    """The trail's bytes on disk now, as ``du`` counts them: the live segment and its WAL, a
+    rotation's next segment, the rotated ones; each file once (a rotation hard-links)."""
+    sizes: dict[int, int] = {}
+    wal = trail.with_name(trail.name + "-wal")
+    for file in (trail, wal, next_path(trail), *(found for _, found in rotated(trail))):
+        with contextlib.suppress(FileNotFoundError):  # removed by retention meanwhile
+            st = file.stat()
+            sizes[st.st_ino] = st.st_size
+    return sum(sizes.values())
 
 
 def _newest_segment(trail: Path) -> int:
@@ -90,14 +89,16 @@ def test_reader_trail_stays_within_audit_max_bytes_under_a_refusal_flood(
         until("DDS discovery", lambda: rogue.matched_readers() >= 1)
         stale_key = derive_key(topic_key(psk, TOPIC, RAW, domain), Kind.ANNOUNCEMENT)
         long_ago = to_ns(time.time() - 600)
-        peak, deadline = 0, time.monotonic() + 120
+        senders = [os.urandom(8) for _ in range(16)]  # enough to fill the authentic budget
+        peak, deadline, sent = 0, time.monotonic() + 120, 0
         while _newest_segment(trail) < ROTATIONS:  # several budgets written
             assert time.monotonic() < deadline, f"{_newest_segment(trail)} rotations in 120 s"
-            for n in range(100):  # each from its own claimed sender: spread over the keys
+            for _ in range(100):
                 rogue.write(b"forged", instance="")
-                sealed = seal(stale_key, Kind.ANNOUNCEMENT, os.urandom(8), long_ago + n,
+                sealed = seal(stale_key, Kind.ANNOUNCEMENT, senders[sent % 16], long_ago + sent,
                               frame("", b"stale capture"))  # fmt: skip
                 rogue.publish(SealedSample(instance="", sealed=sealed))
+                sent += 1
             rogue.flush()
             peak = max(peak, _on_disk(trail))
             assert peak <= BUDGET, f"the trail passed its budget: {peak} bytes on disk"
@@ -113,28 +114,73 @@ def test_reader_trail_stays_within_audit_max_bytes_under_a_refusal_flood(
 
 
 @pytest.mark.parametrize(
-    ("misplaced", "key", "belongs"),
+    ("command", "text", "said"),
     [
-        ("reader: {store: 'sqlite:r.db'}\n", "reader", "dds:"),
-        ("max_age_s: 5\n", "max_age_s", "dds:"),
-        ("audit: {path: a.db, max_forward_s: 2}\n", "audit.max_forward_s", "dds:"),
+        # a DDS key outside its block: refused naming the key and where it belongs
+        ("read", "dds: {psk_file: PSK}\nreader: {store: 'sqlite:r.db'}", "reader: not a top-level"),
+        ("read", "dds: {psk_file: PSK}\nmax_age_s: 5", "max_age_s: not a top-level"),
+        ("relay", "dds: {psk_file: PSK}\naudit: {max_forward_s: 2}", "audit.max_forward_s"),
+        ("read", "dds: {psk_file: PSK, reader: {max_age_s: 5}}", "dds.reader.max_age_s"),
+        # and the block's own mistakes
+        ("read", "dds: {psk_file: gone.psk}", "dds.psk_file: file not found: gone.psk"),
+        ("write", "dds: {psk_file: gone.psk}", "dds.psk_file: file not found: gone.psk"),
+        ("relay", "dds: {psk_file: gone.psk}", "dds.psk_file: file not found"),
+        ("relay", "dds: {psk_file: PSK}", "dds.relay=None: allowed a relay block"),
+        ("replay", "dds: {psk_file: PSK, max_age_s: fast}", "dds.max_age_s"),
+        ("read", "audit: {segment_bytes: 65536}", "dds=None: allowed a dds: block"),
     ],
 )
-def test_a_dds_key_outside_its_block_exits_2_naming_where_it_belongs(
-    tmp_path: Path, misplaced: str, key: str, belongs: str
+def test_config_mistakes_exit_2_with_one_line_naming_the_key(
+    tmp_path: Path, command: str, text: str, said: str
 ) -> None:
-    """A DDS key at the top level (or in another section) no longer leaves the default in
-    force: the command exits 2 naming the key and the block it belongs to."""
+    """A key where it does not belong no longer leaves a default in force (a top-level
+    ``reader:`` or ``max_age_s:`` ran on the memory store and 30 s before): every mistake
+    is one line naming the key, with exit status 2, before anything is opened."""
+    (tmp_path / "fleet.psk").write_text(os.urandom(32).hex())
+    config = tmp_path / "antireplay.yaml"
+    config.write_text(text.replace("PSK", str(tmp_path / "fleet.psk")) + "\n")
+    (tmp_path / "cap.jsonl").write_text("")
+    extra = {"read": ["--timeout", "1"], "write": ["hello"], "relay": ["--duration", "1"],
+             "replay": [str(tmp_path / "cap.jsonl")]}[command]  # fmt: skip
+    run = _dds(command, "--config", str(config), *extra,
+               stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    out, err = run.communicate(timeout=60)
+    assert (run.returncode, out) == (2, ""), err
+    assert len(err.splitlines()) == 1 and err.startswith("antireplay: error: "), err
+    assert said in err, err
+    if "top-level" in said or said == "audit.max_forward_s":
+        assert "belongs under" in err and "dds:" in err, err
+
+
+def test_reader_serves_its_verdicts_and_trail_to_prometheus(tmp_path: Path) -> None:
+    """``--metrics-port``: the reader's verdicts per outcome and its trail's bytes, as the
+    gateway and the router serve theirs."""
+    domain, port = _domain(), free_port()
     (tmp_path / "fleet.psk").write_text(os.urandom(32).hex())
     config = tmp_path / "antireplay.yaml"
     config.write_text(
-        f"dds:\n  domain_id: {_domain()}\n  psk_file: {tmp_path / 'fleet.psk'}\n{misplaced}"
+        f"dds:\n  domain_id: {domain}\n  psk_file: {tmp_path / 'fleet.psk'}\n"
+        f"  audit: {tmp_path / 'dds-audit.db'}\n  reader: {{topic: robot/cmd}}\n"
     )
-    run = _dds(
-        "read", "--config", str(config), "--timeout", "1",
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-    )  # fmt: skip
-    out, err = run.communicate(timeout=60)
-    assert (run.returncode, out) == (2, ""), err
-    assert err.startswith(f"antireplay: error: {key}") and belongs in err, err
-    assert len(err.splitlines()) == 1
+    reader = _dds("read", "--config", str(config), "--metrics-port", str(port),
+                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
+    try:
+        rogue = SealedWriter(join_domain(domain), "robot/cmd", os.urandom(32))
+        until("DDS discovery", lambda: rogue.matched_readers() >= 1)
+        rogue.write(b"forged", instance="arm")
+        rogue.flush()
+
+        def scraped() -> str:
+            try:
+                return httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
+            except httpx.TransportError:  # not listening yet
+                return ""
+
+        until("the forged sample counted", lambda: 'outcome="forged"} 1.0' in scraped())
+        text = scraped()
+        assert 'antireplay_dds_verdicts_total{endpoint="robot/cmd",outcome="forged"} 1.0' in text
+        assert re.search(r"^antireplay_audit_trail_bytes [1-9]", text, re.MULTILINE), text
+    finally:
+        reader.terminate()
+        _, err = reader.communicate(timeout=30)
+    assert reader.returncode == 0, err

@@ -55,6 +55,35 @@ def _wired(path: Path) -> Iterator[DdsCommand]:
         yield command
 
 
+METRICS_PORT = click.option(
+    "--metrics-port",
+    type=click.IntRange(0, 65535),
+    default=None,
+    help="Serve Prometheus metrics here (verdicts per outcome, the trail's bytes).",
+)
+METRICS_HOST = click.option(
+    "--metrics-host",
+    default="127.0.0.1",
+    show_default=True,
+    help="The address the metrics port binds (0.0.0.0 for a Prometheus on another host).",
+)
+
+
+def _serve_metrics(wired: DdsCommand, counts: dict[str, Any], port: int | None, host: str) -> None:
+    """``--metrics-port``: the command's counters, read at each scrape."""
+    if port is None:
+        return
+    from antireplay.wiring.metrics import serve_metrics  # noqa: PLC0415
+
+    try:
+        serve_metrics(lambda: wired.metrics(counts), port, host)
+    except (OSError, ValueError) as exc:  # an unknown host, a busy port, a bad name
+        _fail(
+            f"--metrics-host {host} --metrics-port {port}: cannot serve metrics there "
+            f"({getattr(exc, 'strerror', None) or exc})"
+        )
+
+
 def _built(build: Any, *args: Any) -> Any:
     """``build(*args)``, a configuration or state error as one line and exit 2."""
     try:
@@ -73,10 +102,20 @@ def dds() -> None:
 @click.option("--topic", default=None, help="Topic to read (default: dds.reader.topic).")
 @click.option("--count", default=0, type=int, help="Stop after this many verdicts (0: never).")
 @click.option("--timeout", "timeout_s", default=0.0, type=float, help="Stop after S seconds.")
-def read(config_path: Path, topic: str | None, count: int, timeout_s: float) -> None:
+@METRICS_PORT
+@METRICS_HOST
+def read(  # noqa: PLR0917 - one option per knob
+    config_path: Path,
+    topic: str | None,
+    count: int,
+    timeout_s: float,
+    metrics_port: int | None,
+    metrics_host: str,
+) -> None:
     """Print one verdict per received sample: ACCEPTED, or REFUSED with its code."""
     with _wired(config_path) as wired:
         reader = _built(wired.reader, topic)
+        _serve_metrics(wired, {reader.topic_name: reader.counts}, metrics_port, metrics_host)
         click.echo(f"reading {reader.topic_name} on domain {wired.domain_id}", err=True)
         stop = stop_on_signal()
         deadline = time.monotonic() + timeout_s if timeout_s > 0 else None
@@ -167,10 +206,18 @@ def replay(config_path: Path, wait_readers: int, captured: Path) -> None:
 @dds.command()
 @CONFIG
 @click.option("--duration", "duration_s", default=0.0, type=float, help="Stop after S seconds.")
-def relay(config_path: Path, duration_s: float) -> None:
+@METRICS_PORT
+@METRICS_HOST
+def relay(
+    config_path: Path, duration_s: float, metrics_port: int | None, metrics_host: str
+) -> None:
     """Run the announcement relay (Cloud Discovery Service role) until stopped."""
     with _wired(config_path) as wired:
         service = _built(wired.relay)
+        counts = {"relay": service.counts, service.ingress.topic_name: service.ingress.counts}
+        if service.ping is not None:
+            counts["ping"] = service.ping.counts
+        _serve_metrics(wired, counts, metrics_port, metrics_host)
         click.echo(f"relay {service.service_name!r} on domain {wired.domain_id}", err=True)
         stop = stop_on_signal()
         deadline = time.monotonic() + duration_s if duration_s > 0 else None

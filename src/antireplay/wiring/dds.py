@@ -13,8 +13,10 @@ auditor goes quiet); a SQLite store through :func:`~.leaves.open_state`, anchore
 :class:`~antireplay.state.durable.DurableState`.  Then it builds the adapter on them
 (:class:`~antireplay.dds.topics.SealedReader`, :class:`~antireplay.dds.topics.SealedWriter`,
 :class:`~antireplay.dds.relay.AnnouncementRelay` with its ping listener), handing down only
-built objects and values.  :meth:`DdsCommand.close` closes what it opened in reverse
-order: endpoints (their folded refusals' summary rows) before their stores and the trail.
+built objects and values.  :meth:`DdsCommand.metrics` gives a command's counters to
+``--metrics-port`` (:func:`~.metrics.serve_metrics`).  :meth:`DdsCommand.close` closes what it
+opened in reverse order: endpoints (their folded refusals' summary rows) before their stores
+and the trail.
 
 Cyclone DDS is imported with this module, which only the ``dds`` commands import.
 """
@@ -23,7 +25,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections import Counter
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from antireplay.audit import AuditLog
 from antireplay.config import AppConfig
@@ -37,6 +41,9 @@ from antireplay.dds.topics import SealedReader, SealedWriter
 from antireplay.epochs import signer_state
 from antireplay.state import ReplayStore, StoreSpec, open_store
 from antireplay.wiring.leaves import open_state, open_trail
+
+if TYPE_CHECKING:
+    from prometheus_client.core import Metric
 
 
 class DdsCommand:
@@ -71,6 +78,32 @@ class DdsCommand:
 
     def __exit__(self, *_: object) -> None:
         self.close()
+
+    def metrics(self, counts: dict[str, Counter[str]]) -> list[Metric]:
+        """The command's counters now, for ``--metrics-port``: verdicts per endpoint and
+        outcome (``counts``: endpoint name -> its counter, read at scrape time) and, with a
+        trail, the bytes and segments it holds on disk."""
+        from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily  # noqa: PLC0415
+
+        verdicts = CounterMetricFamily(
+            "antireplay_dds_verdicts",
+            "Samples, pings, challenges and answers judged, per endpoint and outcome",
+            labels=["endpoint", "outcome"],
+        )
+        for endpoint, counter in counts.items():
+            for outcome, n in list(counter.items()):
+                verdicts.add_metric([endpoint, outcome], n)
+        found: list[Metric] = [verdicts]
+        if self.audit is not None:
+            usage = self.audit.usage()
+            for name, doc, value in (
+                ("antireplay_audit_trail_bytes", "Bytes the audit trail holds on disk",
+                 usage.bytes),
+                ("antireplay_audit_trail_segments", "Segments of the audit trail",
+                 usage.segments),
+            ):  # fmt: skip
+                found.append(GaugeMetricFamily(name, doc, value=value))
+        return found
 
     def store(self, text: str) -> ReplayStore:
         """The replay store ``text`` names: SQLite through the leaves (anchored when
