@@ -19,13 +19,17 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from antireplay.audit import AuditLog
 from antireplay.cli import main
 from antireplay.cli.demo import write_demo_config
-from antireplay.cli.mavlink import _allowed, _link_key, _signing_keys
 from antireplay.core.errors import StateFileError
 from antireplay.mavlink import passphrase_key
 from antireplay.mavlink.sim import SimVehicle
 from antireplay.rcan.auth import SDK_PRIVATE_MAGIC, write_key_pair
 from antireplay.state.ceilings import persistent_counter
-from antireplay.wiring import Allowed
+from antireplay.wiring.mavlink import (
+    Allowed,
+    allowed_messages,
+    link_key,
+    read_signing_keys,
+)
 from tests.harness import ROOT, GatewayProcess, one_line_error
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
@@ -271,11 +275,13 @@ def test_mavlink_router_key_and_allow_list_options(
     environment variable, per-direction allow-lists; mistakes are one line naming them."""
     keys = tmp_path / "signing.keys"
     keys.write_text("udpin:0.0.0.0:14550 ground-pass\n127.0.0.1:14560 radio-pass\nbad line here\n")
-    found = _signing_keys(keys)
-    assert _link_key("udpin:0.0.0.0:14550", found, None) == passphrase_key("ground-pass")
-    assert _link_key("udpout:127.0.0.1:14560", found, None) == passphrase_key("radio-pass")
-    assert _link_key("/dev/ttyACM0,57600", found, b"d" * 32) == b"d" * 32
-    to_vehicle, from_vehicle = _allowed(("RADIO_STATUS:v1", "to-vehicle:0", "from-vehicle:166"))
+    found = read_signing_keys(keys)
+    assert link_key("udpin:0.0.0.0:14550", found, None) == passphrase_key("ground-pass")
+    assert link_key("udpout:127.0.0.1:14560", found, None) == passphrase_key("radio-pass")
+    assert link_key("/dev/ttyACM0,57600", found, b"d" * 32) == b"d" * 32
+    to_vehicle, from_vehicle = allowed_messages(
+        ("RADIO_STATUS:v1", "to-vehicle:0", "from-vehicle:166")
+    )
     assert to_vehicle == Allowed(frozenset({109, 0}), frozenset({109}))
     assert from_vehicle == Allowed(frozenset({109, 166}), frozenset({109}))
     run = CliRunner().invoke
@@ -418,7 +424,7 @@ def test_mavlink_keys_add_is_idempotent(tmp_path: Path, monkeypatch: pytest.Monk
     monkeypatch.setenv("MAV_PASSPHRASE", "second-pass")
     assert run(main, add).stdout == f"{path}: udpout:127.0.0.1:14550 replaced\n"
     assert path.read_text() == "udpin:0.0.0.0:14551 other\nudpout:127.0.0.1:14550 second-pass\n"
-    assert _link_key("udpout:127.0.0.1:14550", _signing_keys(path), None) == passphrase_key(
+    assert link_key("udpout:127.0.0.1:14550", read_signing_keys(path), None) == passphrase_key(
         "second-pass"
     )
     monkeypatch.setenv("MAV_PASSPHRASE", "two words")

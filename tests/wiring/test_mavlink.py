@@ -8,16 +8,21 @@ from pathlib import Path
 
 import pytest
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, Retention
+from antireplay.config import AppConfig
 from antireplay.core.clock import ManualClock
+from antireplay.core.errors import ConfigError
 from antireplay.mavlink import Refusal, Role, passphrase_key
 from antireplay.state.memory import MemoryStore
+from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import (
     MAVLINK_AUDIT_PER_S,
     Allowed,
+    MavlinkRefusals,
     RouterOptions,
     build_mavlink_router,
     mavlink_auditor,
+    open_router,
 )
 from tests.harness import free_port
 from tests.harness.mavlink_frames import KEY
@@ -118,3 +123,42 @@ def test_endpoint_that_is_not_a_serial_port_names_itself_and_closes_the_others(
         socket.create_server(("127.0.0.1", port)).close()  # closed again
     finally:
         log.close()
+
+
+def test_open_router_builds_on_the_leaves_serve_opens(tmp_path: Path) -> None:
+    """The router's store is the ``mavlink.store`` spec, anchored as ``state.anchor`` says;
+    its trail is rotated and retained as ``audit:`` says, with the spill and the floors."""
+    key = tmp_path / "link.key"
+    key.write_bytes(KEY)
+    (tmp_path / "anchor").mkdir()
+    (tmp_path / "state").mkdir()
+    config = AppConfig.from_mapping({
+        "state": {"anchor": {"path": str(tmp_path / "anchor" / "mav.anchor")}},
+        "audit": {"path": str(tmp_path / "router.db"), "segment_bytes": 1 << 20,
+                  "max_bytes": 4 << 20},
+        "audit_space": {"min_free_bytes": 1 << 62, "refuse_free_bytes": 0},
+        "mavlink": {"vehicle": ["udpin:127.0.0.1:0"], "key_file": str(key),
+                    "store": f"sqlite:{tmp_path / 'state' / 'mav.db'}"},
+    })  # fmt: skip
+    parts = open_router(config)
+    try:
+        assert isinstance(parts.store, SqliteStore) and parts.store.anchor is not None
+        assert parts.audit.path == tmp_path / "router.db"
+        assert parts.audit.retention == Retention(1 << 20, 86_400, 4 << 20, None)
+        assert tmp_path.joinpath("router.db.spill").exists()
+        refusals = parts.router.on_reject
+        assert isinstance(refusals, MavlinkRefusals) and refusals.auditor.quiet()  # floor
+    finally:
+        parts.close()
+
+
+def test_open_router_refuses_an_anchor_beside_a_store_that_is_not_sqlite(tmp_path: Path) -> None:
+    config = AppConfig.from_mapping({
+        "state": {"anchor": {"path": str(tmp_path / "mav.anchor")}},
+        "audit": str(tmp_path / "router.db"),
+        "mavlink": {"vehicle": ["udpin:127.0.0.1:0"], "passphrase_env": "PATH",
+                    "store": "memory"},
+    })  # fmt: skip
+    with pytest.raises(ConfigError) as refused:
+        open_router(config)
+    assert refused.value.key == "state.anchor" and "store memory" in refused.value.allowed

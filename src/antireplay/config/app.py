@@ -27,6 +27,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    PrivateAttr,
     ValidationError,
     field_validator,
     model_validator,
@@ -63,15 +64,23 @@ class AppConfig(BaseModel):
     mavlink_pq: MavlinkPqConfig = Field(default_factory=MavlinkPqConfig)
     dds: DdsConfig | None = None  # its psk_file is required once the block is there
 
+    _store_spec: StoreSpec = PrivateAttr()
+
     @field_validator("store")
     @classmethod
-    def _store_spec(cls, value: str) -> str:
+    def _store_grammar(cls, value: str) -> str:
         StoreSpec.parse(value)  # the one grammar; its ConfigError names what is allowed
         return value
 
+    @property
+    def store_spec(self) -> StoreSpec:
+        """The gateway's ``store``, parsed once (when the file was validated)."""
+        return self._store_spec
+
     @model_validator(mode="after")
     def _anchor_backend(self) -> AppConfig:
-        backend = StoreSpec.parse(self.store).backend
+        self._store_spec = StoreSpec.parse(self.store)
+        backend = self._store_spec.backend
         if self.state.anchor.configured and backend != "sqlite":
             raise ConfigError(
                 "state.anchor", self.state.anchor.model_dump(exclude_defaults=True),

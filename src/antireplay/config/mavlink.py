@@ -15,7 +15,7 @@ by the command, which says which flag or key supplies them.
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, field_validator, model_validator
 
 from antireplay.core.counters import DEFAULT_WINDOW
 from antireplay.state.spec import StoreSpec
@@ -51,11 +51,23 @@ class MavlinkConfig(_Block):
     write_through: bool = False
     metrics: MetricsConfig = Field(default_factory=MetricsConfig)
 
+    _store_spec: StoreSpec = PrivateAttr()
+
     @field_validator("store")
     @classmethod
-    def _store_spec(cls, value: str) -> str:
+    def _store_grammar(cls, value: str) -> str:
         StoreSpec.parse(value, "mavlink.store")  # the one grammar names what is allowed
         return value
+
+    @model_validator(mode="after")
+    def _parsed(self) -> MavlinkConfig:
+        self._store_spec = StoreSpec.parse(self.store, "mavlink.store")
+        return self
+
+    @property
+    def store_spec(self) -> StoreSpec:
+        """The router's ``store``, parsed once (when the file was validated)."""
+        return self._store_spec
 
 
 class PqGroundConfig(_Block):

@@ -41,7 +41,6 @@ from antireplay.rcan.auth import (
     write_key_pair,
 )
 from antireplay.rcan.receive import Receiver
-from antireplay.state import StoreSpec
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring.leaves import open_state, open_trail
 
@@ -83,6 +82,21 @@ def build_registry(config: AppConfig) -> KeyRegistry:
     return keys
 
 
+def check_gateway(config: AppConfig) -> None:
+    """What ``serve`` loads before it opens anything, loaded and dropped (``config check``,
+    ``serve``'s preflight): the key registry, the JWT keys, the upstream; ConfigError."""
+    build_registry(config)
+    for kid, pem in config.jwt.keys.items():
+        try:
+            load_public_key(Path(pem).read_bytes())
+        except FileNotFoundError:
+            raise ConfigError.file_not_found(f"jwt.keys.{kid}", pem) from None
+        except (OSError, ValueError) as exc:
+            allowed = f"a readable PEM public key ({exc})"
+            raise ConfigError(f"jwt.keys.{kid}", pem, allowed) from None
+    resolve_upstream(config.upstream, config.upstream_timeout_s)
+
+
 def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
     """Wire a Receiver from configuration: keys, store, audit, JWT."""
     verifier = None
@@ -97,7 +111,7 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
             clock=clock,
         )
     store = open_state(
-        config, StoreSpec.parse(config.store), audit_path=config.audit.path, clock=clock,
+        config, config.store_spec, audit_path=config.audit.path, clock=clock,
         max_entries=config.security.msg_id_cache_size, skew_s=config.security.skew_s,
     )  # fmt: skip
     with contextlib.suppress(StateUnavailableError):  # down now: noticed on the first commit

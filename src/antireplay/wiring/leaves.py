@@ -6,7 +6,8 @@ Every long-running command (``serve``, ``mavlink-router``, ``mavlink-pq``, the `
 commands) opens its leaves here, from one :class:`~antireplay.config.AppConfig`, so what
 the file says about them holds for each alike:
 
-* :func:`open_trail` opens the audit trail at ``audit.path`` (or a command's own path),
+* :func:`open_trail` opens the audit trail at ``audit.path`` (or a command's own path:
+  :func:`trail_path`, so two commands never share one trail unasked),
   rotated and retained as ``audit:`` says (:func:`open_audit`), with its ESTOP spill
   (``audit_space.spill``) and the free-space floors under it (``audit_space``, a
   :class:`~antireplay.audit.space.DiskSpace` the command's refusal auditor goes quiet by);
@@ -45,6 +46,12 @@ def open_trail(
     return open_audit(block, clock, spill=floors.spill), space
 
 
+def trail_path(config: AppConfig, default: str) -> str:
+    """A command's audit trail: ``audit.path`` when the file (or ``--audit``) names it,
+    else the command's own ``default``, so two commands never share one trail unasked."""
+    return config.audit.path if config.audit.path_set() else default
+
+
 def open_state(
     config: AppConfig,
     spec: StoreSpec,
@@ -61,6 +68,22 @@ def open_state(
     )  # fmt: skip
 
 
+def check_state(spec: StoreSpec) -> None:
+    """What a command's first commit would find, found without using anything up: a SQLite
+    file is read read-only (opening it would use up its loss detection); another store is
+    reached (the PING and eviction check ``ready()`` runs), then closed."""
+    if spec.backend == "sqlite":
+        from antireplay.state.sqlite import check_readable  # noqa: PLC0415
+
+        check_readable(spec.target)
+        return
+    store = open_store(spec)
+    try:
+        store.ready()
+    finally:
+        store.close()
+
+
 def build_anchor(
     config: AppConfig, spec: StoreSpec | None = None, audit_path: str | None = None
 ) -> StateAnchor | None:
@@ -70,7 +93,7 @@ def build_anchor(
     anchor = config.state.anchor
     if not anchor.configured:
         return None
-    spec = spec or StoreSpec.parse(config.store)
+    spec = spec or config.store_spec
     if spec.backend != "sqlite":
         raise ConfigError(
             "state.anchor", anchor.model_dump(exclude_defaults=True),
@@ -94,7 +117,7 @@ def anchor_summary(config: AppConfig, spec: StoreSpec | None = None) -> str:
     """What guards the store (``spec``; default the gateway's) against a restored copy, for
     the startup line."""
     anchor = config.state.anchor
-    if (spec or StoreSpec.parse(config.store)).backend != "sqlite":
+    if (spec or config.store_spec).backend != "sqlite":
         return ""
     if not anchor.configured:
         return "no state anchor, "
@@ -109,7 +132,7 @@ def anchor_warnings(config: AppConfig, spec: StoreSpec | None = None) -> list[st
     """What a snapshot restore could re-open with this configuration (``config check``,
     ``serve``): a SQLite store (``spec``; default the gateway's) without an anchor, or an
     anchor file beside the state."""
-    spec = spec or StoreSpec.parse(config.store)
+    spec = spec or config.store_spec
     if spec.backend != "sqlite":
         return []
     anchor, window = config.state.anchor, config.security.replay_window_s

@@ -7,7 +7,9 @@ Theory of operation
 :func:`router_metrics` turns the MAVLink router's counters into metric families (frames
 forwarded and dropped per direction and code, accepted per stream, refusals unaudited or
 folded by the rate limit, transport errors per endpoint and kind) and
-:func:`serve_router_metrics` serves them.  Counters are read at scrape time, never pushed.
+:func:`serve_router_metrics` serves them; :func:`pq_metrics` does the same for a
+post-quantum end's link (sessions, handshakes, chunks, air bytes by kind, repairs).
+Counters are read at scrape time, never pushed.
 """
 
 from __future__ import annotations
@@ -15,12 +17,13 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING
 
-from antireplay.wiring.mavlink import MavlinkRefusals
+from antireplay.wiring.refusals import MavlinkRefusals
 
 if TYPE_CHECKING:
     from prometheus_client.core import Metric
 
     from antireplay.mavlink import MavlinkRouter
+    from antireplay.mavlink.pq.link import LinkCounts
 
 
 def serve_metrics(
@@ -99,3 +102,56 @@ def router_metrics(router: MavlinkRouter) -> list[Metric]:
         summarised.add_metric(["recorded"], auditor.summarised)
         summarised.add_metric(["unrecorded"], auditor.unrecorded)
     return [forwarded, dropped, streams, unaudited, folded, summarised, transport]
+
+
+def pq_metrics(counts: LinkCounts) -> list[Metric]:
+    """A link's counts as Prometheus metrics, labelled with its end (ground, vehicle)."""
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily  # noqa: PLC0415
+
+    from antireplay.mavlink.pq.link import SESSION_EVENTS  # noqa: PLC0415
+    from antireplay.mavlink.pq.repair import AIR_KINDS  # noqa: PLC0415
+
+    end = counts.end
+    up = GaugeMetricFamily(
+        "antireplay_mavlink_pq_session_up",
+        "1 while a session is live (the other end heard within its silence limit)",
+        labels=["end"],
+    )
+    up.add_metric([end], int(counts.up))
+    families: list[Metric] = [up]
+    for name, text, label, fixed, counter in (
+        ("sessions", "Session changes", "event", SESSION_EVENTS, counts.sessions),
+        ("handshakes", "Handshakes", "outcome", ("started", "completed", "failed"),
+         counts.handshakes),
+        ("chunks", "PQ_CHUNK frames", "what", ("sent", "received", "reassembled"),
+         counts.chunks),
+        ("air_bytes", "Bytes handed to the air, by what they carry", "kind", AIR_KINDS,
+         counts.airtime),
+        ("repairs", "Repair requests sent, chunks resent, held answers sent again", "what",
+         ("nack_sent", "poke_sent", "resent", "answered", "ignored"), counts.repairs),
+        ("retries", "A ground station's command retries, by how they were answered", "how",
+         ("poked", "answered", "sending", "queued"), counts.retries),
+    ):  # fmt: skip
+        family = CounterMetricFamily(f"antireplay_mavlink_pq_{name}", text, labels=["end", label])
+        for key in fixed:
+            family.add_metric([end, key], counter[key])
+        families.append(family)
+    for name, text, label, counter in (
+        ("refusals", "Frames refused, by side and code", "code", counts.refused),
+        ("dropped", "Frames dropped without a refusal (no session, queue, reassembly, plain)",
+         "reason", counts.dropped),
+    ):  # fmt: skip
+        family = CounterMetricFamily(
+            f"antireplay_mavlink_pq_{name}", text, labels=["end", "side", label]
+        )
+        for key, n in sorted(counter.items()):
+            side, _, what = key.partition(":")
+            family.add_metric([end, side, what], n)
+        families.append(family)
+    unaudited = CounterMetricFamily(
+        "antireplay_mavlink_pq_unaudited",
+        "Refusals and session changes the audit trail could not record (it was down)",
+        labels=["end"],
+    )
+    unaudited.add_metric([end], counts.unaudited)
+    return [*families, unaudited]
