@@ -8,7 +8,6 @@ the refusal auditor write rows.
 
 from __future__ import annotations
 
-import contextlib
 import os
 import random
 import re
@@ -21,7 +20,7 @@ import httpx
 import pytest
 
 from antireplay.audit import verify
-from antireplay.audit.segments import next_path, rotated
+from antireplay.audit.segments import rotated
 from antireplay.dds.domain import join_domain
 from antireplay.dds.topics import SealedWriter
 from antireplay.dds.wire import SealedSample
@@ -29,6 +28,7 @@ from antireplay.epochs import Kind, derive_key
 from antireplay.epochs.policy import seal, to_ns
 from antireplay.epochs.sealing import RAW, frame, topic_key
 from tests.harness import free_port, until
+from tests.harness.flood import trail_bytes
 
 SEGMENT = 64 * 1024
 BUDGET = 4 * SEGMENT
@@ -47,18 +47,6 @@ def _dds(*args: str, **kwargs: object) -> subprocess.Popen[str]:
     return subprocess.Popen(  # type: ignore[call-overload, no-any-return]
         [sys.executable, "-m", "antireplay", "dds", *args], text=True, **kwargs
     )
-
-
-def _on_disk(trail: Path) -> int:
-    """The trail's bytes on disk now, as ``du`` counts them: the live segment and its WAL, a
-    rotation's next segment, the rotated ones; each file once (a rotation hard-links)."""
-    sizes: dict[int, int] = {}
-    wal = trail.with_name(trail.name + "-wal")
-    for file in (trail, wal, next_path(trail), *(found for _, found in rotated(trail))):
-        with contextlib.suppress(FileNotFoundError):  # removed by retention meanwhile
-            st = file.stat()
-            sizes[st.st_ino] = st.st_size
-    return sum(sizes.values())
 
 
 def _newest_segment(trail: Path) -> int:
@@ -100,7 +88,7 @@ def test_reader_trail_stays_within_audit_max_bytes_under_a_refusal_flood(
                 rogue.publish(SealedSample(instance="", sealed=sealed))
                 sent += 1
             rogue.flush()
-            peak = max(peak, _on_disk(trail))
+            peak = max(peak, trail_bytes(trail))
             assert peak <= BUDGET, f"the trail passed its budget: {peak} bytes on disk"
     finally:
         reader.terminate()
@@ -108,7 +96,7 @@ def test_reader_trail_stays_within_audit_max_bytes_under_a_refusal_flood(
     errors = (tmp_path / "err").read_text()
     assert reader.returncode == 0, errors
     assert "forged=" in errors and "stale=" in errors, errors
-    assert _on_disk(trail) <= BUDGET
+    assert trail_bytes(trail) <= BUDGET
     report = verify(trail)  # the chain holds from where retention cut it
     assert report.ok and report.first_row > 1 and report.first_segment > 1, report
 

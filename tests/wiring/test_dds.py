@@ -70,3 +70,9 @@ def test_no_dds_block_is_a_config_error() -> None:
     with pytest.raises(ConfigError) as refused:
         DdsCommand(AppConfig.from_mapping({}))
     assert refused.value.key == "dds"
+
+
+def test_the_files_audit_path_is_the_trail_when_dds_audit_is_not_set(tmp_path: Path) -> None:
+    trail = tmp_path / "shared-audit.db"
+    with DdsCommand(_config(tmp_path, audit={"path": str(trail)})) as wired:
+        assert wired.audit is not None and Path(wired.audit.path) == trail

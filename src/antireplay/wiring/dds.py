@@ -5,18 +5,19 @@ Theory of operation
 A :class:`DdsCommand` is what one ``antireplay dds`` command runs on, built from the one
 :class:`~antireplay.config.AppConfig` (its ``dds:`` block; a key outside it was refused by
 the loader, naming where it belongs).  It opens the leaves the way every command does
-(:mod:`.leaves`): the trail ``dds.audit`` names through :func:`~.leaves.open_trail`, so
-``audit:`` retention (``max_bytes``, ``segment_bytes``, ages), the ESTOP spill and the
-``audit_space`` floors hold for it as for ``serve`` (below the first floor the refusal
-auditor goes quiet); a SQLite store through :func:`~.leaves.open_state`, anchored as
-``state.anchor`` says; a signer's state file as a built
-:class:`~antireplay.state.durable.DurableState`.  Then it builds the adapter on them
-(:class:`~antireplay.dds.topics.SealedReader`, :class:`~antireplay.dds.topics.SealedWriter`,
+(:mod:`.leaves`): the trail ``dds.audit`` names (else ``audit.path`` if the file names one;
+neither: no trail) through :func:`~.leaves.open_trail`, so ``audit:`` retention
+(``max_bytes``, ``segment_bytes``, ages), the ESTOP spill and the ``audit_space`` floors
+hold for it as for ``serve`` (below the first floor the refusal auditor goes quiet); a
+SQLite store through :func:`~.leaves.open_state`, anchored as ``state.anchor`` says; a
+signer's state file as a built :class:`~antireplay.state.durable.DurableState`.  Then it
+builds the adapter on them (:class:`~antireplay.dds.topics.SealedReader`,
+:class:`~antireplay.dds.topics.SealedWriter`,
 :class:`~antireplay.dds.relay.AnnouncementRelay` with its ping listener), handing down only
 built objects and values.  :meth:`DdsCommand.metrics` gives a command's counters to
-``--metrics-port`` (:func:`~.metrics.serve_metrics`).  :meth:`DdsCommand.close` closes what it
-opened in reverse order: endpoints (their folded refusals' summary rows) before their stores
-and the trail.
+``--metrics-port`` (:func:`~.metrics.serve_metrics`).  :meth:`DdsCommand.close` closes what
+it opened in reverse order: endpoints (their folded refusals' summary rows) before their
+stores and the trail.
 
 Cyclone DDS is imported with this module, which only the ``dds`` commands import.
 """
@@ -59,8 +60,9 @@ class DdsCommand:
         self.audit: AuditLog | None = None
         #: True while free space under the trail is below ``audit_space.min_free_bytes``.
         self.quiet: Callable[[], bool] | None = None
-        if self.block.audit is not None:
-            audit, space = open_trail(config, self.block.audit, clock)
+        path = self.block.audit or (config.audit.path if config.audit.path_set() else None)
+        if path is not None:
+            audit, space = open_trail(config, path, clock)
             self._opened.callback(audit.close)
             self.audit, self.quiet = audit, space.low
         self.participant = join_domain(self.block.domain_id, loopback=self.block.loopback_only)
@@ -110,8 +112,8 @@ class DdsCommand:
         ``state.anchor`` is set), memory or Redis as the spec says."""
         spec = StoreSpec.parse(text)
         if spec.backend == "sqlite":
-            audit_path = self.block.audit or self.config.audit.path
-            store = open_state(self.config, spec, audit_path=audit_path, clock=self.clock)
+            audit_path = self.audit.path if self.audit is not None else self.config.audit.path
+            store = open_state(self.config, spec, audit_path=str(audit_path), clock=self.clock)
         else:
             store = open_store(spec, clock=self.clock)
         self._opened.callback(store.close)
