@@ -31,6 +31,7 @@ from antireplay.epochs import MIN_LEN, EpochSigner, EpochVerifier, Kind
 from antireplay.epochs.sealing import SampleVerdict
 from antireplay.state import ReplayStore
 from antireplay.state.durable import DurableState
+from antireplay.state.memory import MemoryStore
 
 #: A binding ping is small; anything larger is dropped before any crypto.
 MAX_PING = 1024
@@ -89,7 +90,7 @@ class PingListener:
         self._clock = resolve(clock)
         self.verifier = EpochVerifier(
             psk,
-            store=store,
+            store=MemoryStore(clock=self._clock) if store is None else store,
             namespace="dds:ping",
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,

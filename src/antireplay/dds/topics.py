@@ -52,6 +52,7 @@ from antireplay.epochs import Announcement, EpochSigner, EpochVerifier, Kind, se
 from antireplay.epochs.sealing import RAW, ChallengeTimer, SampleVerdict, claim, topic_key
 from antireplay.state import ReplayStore
 from antireplay.state.durable import DurableState
+from antireplay.state.memory import MemoryStore
 
 log = logging.getLogger("antireplay.dds")
 
@@ -250,9 +251,10 @@ class SealedReader:
         self._decode = None if data_type is None else data_type.deserialize
         self._clock = resolve(clock)
         type_name, domain = type_name_of(data_type), _domain_of(participant)
+        self._own_store = store is None  # in memory, as large as ``open_store("memory")``
         self.verifier = EpochVerifier(
             topic_key(psk, topic, type_name, domain),
-            store=store,
+            store=MemoryStore(clock=self._clock) if store is None else store,
             namespace=f"dds:{domain}:{topic}:{type_name}",
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
@@ -278,10 +280,11 @@ class SealedReader:
         return matched_writers(self._reader)
 
     def close(self) -> None:
-        """Write the folded refusals' summaries and let the verifier go, as a stopping
-        process does (the store is closed by whoever opened it)."""
+        """Write the folded refusals' summaries, as a stopping process does; the store is
+        closed by whoever opened it (this reader, for its default memory store)."""
         self._refusals.close()
-        self.verifier.close()
+        if self._own_store:
+            self.verifier.store.close()
 
     def judge(self, sample: SealedSample) -> SampleVerdict:
         """Check, authenticate, commit one sample; never raises for hostile input."""
