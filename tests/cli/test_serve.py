@@ -528,6 +528,10 @@ def test_config_check_validates_every_section(tmp_path: Path) -> None:
     config.write_text(yaml.safe_dump({**base, "mavlink": router}))
     done = run(main, ["config", "check", str(config)])
     assert done.exit_code == 0 and "ok: mavlink: 2 endpoints, store memory" in done.output
+    alone = tmp_path / "router.yaml"  # a router's file: no gateway keys to warn about
+    alone.write_text(yaml.safe_dump({"mavlink": router, "audit": str(tmp_path / "r.db")}))
+    done = run(main, ["config", "check", str(alone)])
+    assert done.exit_code == 0 and "no keys" not in done.stderr, done.stderr
     for wrong, named in (
         ({"mavlink": {**router, "key_file": str(tmp_path / "gone.key")}}, "mavlink.key_file"),
         ({"mavlink": {**router, "allow_unsigned": ["NOPE"]}}, "mavlink.allow_unsigned"),

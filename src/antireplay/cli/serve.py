@@ -263,7 +263,7 @@ def config_check(path: Path, verbose: bool) -> None:
     _probe_upstream(cfg.upstream, cfg.upstream_timeout_s)
     if verbose:
         console.print_json(data=cfg.model_dump())
-    others = {"mavlink", "mavlink_pq", "dds"} & cfg.model_fields_set
+    others = {"mavlink", "mavlink_pq"} & cfg.model_fields_set or cfg.dds is not None
     if not cfg.keys and not others:  # a file for the router, a PQ end or DDS needs none
         click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
                    "so every command will be refused", err=True)  # fmt: skip
