@@ -32,13 +32,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
-from tests.harness import free_port
 
 from antireplay import ManualClock
 from antireplay.core.clock import SystemClock
 from antireplay.core.errors import CounterReplayedError
 from antireplay.mavlink import MavlinkGuard, mav_time, passphrase_key
 from benchmarks._timing import per_op_ns, rate, rejected
+from harness import free_port
 
 PASSPHRASE = "bench-passphrase"
 KEY = passphrase_key(PASSPHRASE)

@@ -16,7 +16,7 @@ from rcan.signing import MLDSAKeyPair
 from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.rcan.auth import write_key_pair
-from tests.harness import antireplay, one_line_error, serving
+from harness import antireplay, one_line_error, serving
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 

@@ -15,7 +15,7 @@ from antireplay.audit import verify
 from antireplay.audit.segments import bytes_of, rotated
 from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
-from tests.harness import serving
+from harness import serving
 
 SEGMENT = 65_536
 BUDGET = 4 * SEGMENT

@@ -37,8 +37,8 @@ from antireplay.mavlink.pq.link import PqLink
 from antireplay.pq.session import Initiator, Responder
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
-from tests.harness import free_port, until
-from tests.harness.mavproxy import KEY, PqRig, PtyVehicle
+from harness import free_port, until
+from harness.mavproxy import KEY, PqRig, PtyVehicle
 
 ARM, SERVO = 400, 183
 

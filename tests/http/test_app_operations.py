@@ -29,7 +29,7 @@ from antireplay.audit import AuditLog, tail
 from antireplay.cli import main
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.wiring import create_app, embedded_default
-from tests.harness import (
+from harness import (
     GatewayProcess,
     accepted_fresh,
     data_losses,
@@ -38,8 +38,8 @@ from tests.harness import (
     reencoded,
     until,
 )
-from tests.harness.asgi import demo_app, request
-from tests.harness.redis_server import RedisServer
+from harness.asgi import demo_app, request
+from harness.redis_server import RedisServer
 
 
 def get(app: Starlette, path: str) -> httpx.Response:

@@ -31,7 +31,7 @@ from antireplay.mavlink import (
     parse_endpoint,
     passphrase_key,
 )
-from antireplay.mavlink.codec import FrameReader, mav_time
+from antireplay.mavlink.codec import Frame, FrameReader, mav_time
 from antireplay.mavlink.endpoints import (
     LOG_EVERY_S,
     Peer,
@@ -39,8 +39,8 @@ from antireplay.mavlink.endpoints import (
     Transport,
 )
 from antireplay.wiring import router_metrics
-from tests.harness import free_port, until
-from tests.harness.mavlink_frames import (
+from harness import free_port, until
+from harness.mavlink_frames import (
     KEY,
     command_frame,
     encoder,
@@ -248,14 +248,16 @@ def test_vehicle_over_tcp_as_sitl_offers_it() -> None:
 
 
 class Delivered:
-    """A transport's ``deliver``: what it handed over, frame by frame, with the peer."""
+    """A transport's ``deliver``: what it handed over (parsed once: each frame's bytes here),
+    frame by frame, with the peer."""
 
     def __init__(self) -> None:
         self.frames: list[tuple[Peer | None, bytes]] = []
         self.skipped: list[int] = []  # the bytes dropped, one entry per hand-over that had some
 
-    def __call__(self, _t: Transport, peer: Peer | None, frames: list[bytes], skipped: int) -> None:
-        self.frames.extend((peer, frame) for frame in frames)
+    def __call__(self, _t: Transport, peer: Peer | None, frames: list[Frame], skipped: int) -> None:
+        assert all(isinstance(frame, Frame) for frame in frames)
+        self.frames.extend((peer, frame.raw) for frame in frames)
         if skipped:
             self.skipped.append(skipped)
 

@@ -23,7 +23,7 @@ from antireplay.core.errors import (
 from antireplay.mavlink import TS_LIMIT, UNITS_PER_S, MavlinkGuard, mav_time
 from antireplay.mavlink.guard import Admission
 from antireplay.state.sqlite import SqliteStore
-from tests.harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
+from harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
 
 
 def test_signed_frame_accepted_once(clock: ManualClock) -> None:
@@ -225,7 +225,7 @@ def test_honest_sender_continues_right_after_a_clean_restart(
         guard.open(frame)
     guard.stop()  # flushes, releases the lease at the stop time
     restarted = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
-    restarted.start(wait_s=0)  # no waiting: the lease was released
+    restarted.start()  # the lease was released: claimed at once
     try:
         for frame in captures:
             with pytest.raises((MessageStaleError, CounterReplayedError)):

@@ -11,6 +11,7 @@ import jwt as pyjwt
 import pytest
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, mldsa
+from rcan import RCANMessage
 from rcan.signing import MLDSAKeyPair, verify_message
 
 from antireplay import ManualClock, SecurityConfig
@@ -26,9 +27,8 @@ from antireplay.rcan.auth import (
     sign_sdk,
 )
 from antireplay.rcan.receive import Receiver
-from rcan import RCANMessage
-from tests.harness import antireplay, fresh_receiver, serving
-from tests.harness.envelopes import (
+from harness import antireplay, fresh_receiver, serving
+from harness.envelopes import (
     ED,
     JWT_KEY,
     NOW,

@@ -152,6 +152,7 @@ class Checkpoint:
         self.workers = Workers()
         #: Held for a fresh SAFETY message until its answer: ESTOP first (workers.py).
         self.door = Door()
+        self.metrics.watch(self.door)
         self._ticker = resolve(None)
         self._closed = False
 
@@ -177,11 +178,13 @@ class Checkpoint:
     async def _first(self, fn: Callable[..., Any], *args: Any) -> Any:
         """The urgent lane (only a fresh SAFETY message takes it), holding the door: from
         the start while the early budget lasts, else once authenticated; a refusal lets
-        it go, an authenticated one keeps it until this request's answer."""
-        early = self.door.hold_early()
+        it go, an authenticated one keeps it until this request's answer; a copy of an
+        ESTOP in flight or delivered holds none."""
+        claimed = getattr(getattr(args[0], "env", None), "msg_id", None) if args else None
+        early = self.door.hold_early(claimed)
         result = await self.workers.first(fn, *args)
         if type(result) is NeedsCommit:
-            self.door.hold()
+            self.door.hold(result.env.msg_id)  # a copy of one in flight or delivered: none
         elif early:
             self.door.release()
         return result

@@ -36,7 +36,7 @@ from antireplay.mavlink.pq.link import PqLink
 from antireplay.pq.session import Initiator, Responder
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
-from tests.harness import free_port
+from harness import free_port
 
 PASSPHRASE = "correct-horse-battery-staple"
 

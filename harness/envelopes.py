@@ -12,11 +12,11 @@ from typing import Any
 
 import jwt as pyjwt
 from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa
+from rcan import RCANMessage
 from rcan.signing import MLDSAKeyPair, sign_message
 
 from antireplay.rcan.auth import KeyRegistry, sign_envelope
 from antireplay.rcan.receive import Outcome
-from rcan import RCANMessage
 
 ED = ed25519.Ed25519PrivateKey.generate()
 PQ = mldsa.MLDSA65PrivateKey.generate()

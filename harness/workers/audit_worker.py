@@ -16,7 +16,7 @@ import threading
 from pathlib import Path
 
 from antireplay.audit import AuditLog, Retention
-from tests.harness.audit import SMALL_SEGMENT, append
+from harness.audit import SMALL_SEGMENT, append
 
 #: The retention the concurrent writers share: rotate every small segment, keep four.
 BUDGET = Retention(segment_bytes=SMALL_SEGMENT, max_bytes=4 * SMALL_SEGMENT)

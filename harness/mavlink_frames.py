@@ -9,7 +9,9 @@ from pymavlink.dialects.v10 import ardupilotmega as dialect_v1
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay import ManualClock
+from antireplay.core.errors import InvalidFrameError
 from antireplay.mavlink import mav_time
+from antireplay.mavlink.codec import split_parsed
 from antireplay.mavlink.endpoints import Transport, parse_endpoint
 
 KEY = bytes(range(32))
@@ -73,4 +75,10 @@ class FakeTransport(Transport):
         """Nothing to release."""
 
     def inject(self, raw: bytes, peer: Any = None) -> None:
-        self._deliver(self, peer, [raw], 0)
+        """Deliver ``raw`` as a UDP transport would: parsed, or all its bytes dropped."""
+        try:
+            frames = split_parsed(raw)
+        except InvalidFrameError:
+            self._deliver(self, peer, [], len(raw))
+            return
+        self._deliver(self, peer, frames, 0)

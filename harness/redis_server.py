@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import redis
 
-from tests.harness import free_port
+from harness import free_port
 
 
 def _binary(name: str) -> str:

@@ -1,36 +1,31 @@
-"""The wiring: what a configuration or the router's options turn into."""
+"""The router wiring: guards per key and direction, endpoints, refusals on the record."""
 
 from __future__ import annotations
 
 import logging
 import socket
 from pathlib import Path
-from types import SimpleNamespace
-from typing import Any
 
 import pytest
-from cryptography.hazmat.primitives.asymmetric import ed25519
 
 from antireplay.audit import AuditLog, Retention
-from antireplay.config import AppConfig, AuditConfig, KeyConfig
+from antireplay.config import AppConfig
 from antireplay.core.clock import ManualClock
 from antireplay.core.errors import ConfigError
 from antireplay.mavlink import Refusal, Role, passphrase_key
-from antireplay.mavlink.router import RouterStats
-from antireplay.rcan.auth import write_key_pair
 from antireplay.state.memory import MemoryStore
+from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import (
     MAVLINK_AUDIT_PER_S,
     Allowed,
+    MavlinkRefusals,
     RouterOptions,
     build_mavlink_router,
-    build_registry,
     mavlink_auditor,
-    open_audit,
-    router_metrics,
+    open_router,
 )
-from tests.harness import free_port
-from tests.harness.mavlink_frames import KEY
+from harness import free_port
+from harness.mavlink_frames import KEY
 
 
 def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(
@@ -130,44 +125,40 @@ def test_endpoint_that_is_not_a_serial_port_names_itself_and_closes_the_others(
         log.close()
 
 
-def test_two_keys_under_one_kid_are_a_config_error(tmp_path: Path) -> None:
-    """A kid names one key: a second entry would shadow the first (or leave it answering
-    under an alias with its old scopes), and the audit could not tell which key signed."""
-    entries = []
-    for name, scopes in (("old", ["control", "safety"]), ("new", ["control"])):
-        public = tmp_path / f"{name}.pub.pem"
-        write_key_pair(ed25519.Ed25519PrivateKey.generate(), tmp_path / f"{name}.pem", public)
-        key = KeyConfig(kid="operator", owner="op", alg="ed25519", public_keys=[str(public)],
-                        scopes=scopes)  # fmt: skip
-        entries.append(key)
-    with pytest.raises(ConfigError, match=r"keys\.operator\.kid"):
-        build_registry(AppConfig(keys=entries))
-
-
-def test_mavlink_refusals_folded_by_the_rate_limit_are_a_metric(tmp_path: Path) -> None:
-    log = AuditLog(tmp_path / "audit.db")
-    audit = mavlink_auditor(log, ManualClock())
-    flood = int(MAVLINK_AUDIT_PER_S) + 7
-    for _ in range(flood):
-        audit(Refusal("inbound", "udpin:0.0.0.0:14550", "INVALID_FRAME", "x", b"\xfd"))
-    router: Any = SimpleNamespace(stats=RouterStats(), links=[], on_reject=audit)
-    folded = {
-        sample.labels["class"]: sample.value
-        for family in router_metrics(router)
-        if family.name == "antireplay_mavlink_refusals_rate_limited"
-        for sample in family.samples
-    }
-    assert folded == {"authenticated": 0, "unauthenticated": 7}
-    assert log.count() + folded["unauthenticated"] == flood
-    log.close()
-
-
-def test_the_audit_block_reaches_the_writer(tmp_path: Path) -> None:
-    config = AuditConfig(path=str(tmp_path / "audit.db"), segment_bytes=1 << 20,
-                         segment_age_s=600, max_bytes=4 << 20, max_age_s=3600)  # fmt: skip
-    log = open_audit(config)
+def test_open_router_builds_on_the_leaves_serve_opens(tmp_path: Path) -> None:
+    """The router's store is the ``mavlink.store`` spec, anchored as ``state.anchor`` says;
+    its trail is rotated and retained as ``audit:`` says, with the spill and the floors."""
+    key = tmp_path / "link.key"
+    key.write_bytes(KEY)
+    (tmp_path / "anchor").mkdir()
+    (tmp_path / "state").mkdir()
+    config = AppConfig.from_mapping({
+        "state": {"anchor": {"path": str(tmp_path / "anchor" / "mav.anchor")}},
+        "audit": {"path": str(tmp_path / "router.db"), "segment_bytes": 1 << 20,
+                  "max_bytes": 4 << 20},
+        "audit_space": {"min_free_bytes": 1 << 62, "refuse_free_bytes": 0},
+        "mavlink": {"vehicle": ["udpin:127.0.0.1:0"], "key_file": str(key),
+                    "store": f"sqlite:{tmp_path / 'state' / 'mav.db'}"},
+    })  # fmt: skip
+    parts = open_router(config)
     try:
-        assert log.path == tmp_path / "audit.db"
-        assert log.retention == Retention(1 << 20, 600, 4 << 20, 3600)
+        assert isinstance(parts.store, SqliteStore) and parts.store.anchor is not None
+        assert parts.audit.path == tmp_path / "router.db"
+        assert parts.audit.retention == Retention(1 << 20, 86_400, 4 << 20, None)
+        assert tmp_path.joinpath("router.db.spill").exists()
+        refusals = parts.router.on_reject
+        assert isinstance(refusals, MavlinkRefusals) and refusals.auditor.quiet()  # floor
     finally:
-        log.close()
+        parts.close()
+
+
+def test_open_router_refuses_an_anchor_beside_a_store_that_is_not_sqlite(tmp_path: Path) -> None:
+    config = AppConfig.from_mapping({
+        "state": {"anchor": {"path": str(tmp_path / "mav.anchor")}},
+        "audit": str(tmp_path / "router.db"),
+        "mavlink": {"vehicle": ["udpin:127.0.0.1:0"], "passphrase_env": "PATH",
+                    "store": "memory"},
+    })  # fmt: skip
+    with pytest.raises(ConfigError) as refused:
+        open_router(config)
+    assert refused.value.key == "state.anchor" and "store memory" in refused.value.allowed

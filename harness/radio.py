@@ -20,7 +20,7 @@ lost ones included), delivered, lost and overflowed; ``on_air`` sees every datag
 on air (a benchmark may classify them).  Threads: one receiver per direction, and one
 transmitter per direction when ``bps`` is set; :meth:`Radio.stop` joins them all.
 
-Run as a process: ``python -m tests.harness.radio --remote HOST:PORT [--port P] [--loss
+Run as a process: ``python -m harness.radio --remote HOST:PORT [--port P] [--loss
 0.05] [--bps 57600] [--queue-bytes 2048] [--seed 1]`` prints ``radio PORT`` once it
 listens and, at SIGTERM or SIGINT, the counts as one JSON line.
 """
@@ -248,7 +248,7 @@ def _address(text: str) -> Address:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m tests.harness.radio", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m harness.radio", description=__doc__)
     parser.add_argument("--remote", type=_address, required=True, help="the vehicle side")
     parser.add_argument("--port", type=int, default=0, help="the ground side's port (0: any)")
     parser.add_argument("--loss", type=float, default=0.0, help="loss probability per datagram")

@@ -8,15 +8,15 @@ from __future__ import annotations
 import sys
 
 from antireplay import ManualClock
-from antireplay.epochs import EpochSigner
-from tests.harness.workers import emit_forever
+from antireplay.epochs import EpochSigner, signer_state
+from harness.workers import emit_forever
 
 
 def main() -> None:
     signer = EpochSigner(
         b"k" * 32,
         service_name="svc",
-        state_file=sys.argv[1],
+        state=signer_state(sys.argv[1]),
         clock=ManualClock(wall=1_000.0),
         reserve_s=float(sys.argv[2]),
     )

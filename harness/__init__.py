@@ -1,16 +1,18 @@
-"""The test harness: one place for what tests share besides fixtures (those are in
-``tests/conftest.py``).
+"""The process harness: what the tests and the benchmarks share (fixtures are in
+``tests/conftest.py``).  It imports neither ``tests`` nor ``benchmarks``, and neither
+imports the other; it is not part of the installed package.
 
 The package keeps only what ``antireplay demo`` runs
 (:func:`antireplay.cli.demo.start_gateway` and :func:`~antireplay.cli.demo.stop_gateway`);
 what tests need beyond it lives here: polling for an event under a deadline, free ports,
 gateway processes and what is said to them, threads released together, helpers killed
 mid-stride, caches and receivers started before the test's "now", and the rcan SDK's
-vocabulary over ours.  Submodules: :mod:`~tests.harness.envelopes` (signed RCAN
-messages), :mod:`~tests.harness.asgi` (a gateway in process), :mod:`~tests.harness.audit`
-(trails), :mod:`~tests.harness.stores` (Redis replicas), :mod:`~tests.harness.mavlink_frames`
-and :mod:`~tests.harness.mavproxy` (MAVLink links), :mod:`~tests.harness.redis_server`
-(a real Redis), :mod:`~tests.harness.workers` (subprocesses for kill -9 tests).
+vocabulary over ours.  Submodules: :mod:`~harness.envelopes` (signed RCAN
+messages), :mod:`~harness.asgi` (a gateway in process), :mod:`~harness.audit`
+(trails), :mod:`~harness.stores` (Redis replicas), :mod:`~harness.mavlink_frames`
+and :mod:`~harness.mavproxy` (MAVLink links), :mod:`~harness.redis_server`
+(a real Redis), :mod:`~harness.radio` and :mod:`~harness.pq_radio` (a lossy radio and
+the PQ ends over it), :mod:`~harness.workers` (subprocesses for kill -9 tests).
 """
 
 from __future__ import annotations
@@ -275,7 +277,7 @@ def metrics_router(tmp_path: Path, host: str | None = None) -> Iterator[int]:
         proc.wait(timeout=30)
 
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 
 
 T = TypeVar("T")
@@ -550,7 +552,7 @@ def dds_writer_process(
     """A second process with one sealed DDS writer (loopback domain ``domain_id``) that
     writes ``#n`` every ``period_s`` and prints each sample's sealed hex (a capture)."""
     args = [str(domain_id), psk.hex(), topic, str(period_s), str(max_forward_s)]
-    code = "from tests.harness import dds_writer_main; dds_writer_main()"
+    code = "from harness import dds_writer_main; dds_writer_main()"
     return subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)  # fmt: skip
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 
 from antireplay.state.ceilings import persistent_counter
-from tests.harness.workers import emit_forever
+from harness.workers import emit_forever
 
 
 def main() -> None:
