@@ -197,3 +197,41 @@ def test_the_router_exports_its_readiness_and_trail_as_the_gateway_does(tmp_path
     assert 'antireplay_ready{command="mavlink-router"} 1.0' in text
     assert 'antireplay_audit_trail_segments{command="mavlink-router"} 1.0' in text
     assert 'antireplay_audit_disk_pressure{command="mavlink-router"} 0.0' in text
+
+
+@pytest.mark.parametrize("given", ["flag", "config"])
+def test_a_link_key_open_to_others_is_warned_about_by_its_flag_or_its_key(
+    tmp_path: Path, given: str
+) -> None:
+    """The router reads its key files through wiring; the CLI checks them first: a key file
+    group or others may read gets one warning line naming the flag, or the key of the file
+    that named it (here the run then stops at a trail that is not one)."""
+    key, keys = tmp_path / "link.key", tmp_path / "signing.keys"
+    key.write_bytes(bytes(range(32)))
+    keys.write_text("udpin:127.0.0.1:9 passphrase\n")
+    key.chmod(0o644)
+    keys.chmod(0o640)
+    (tmp_path / "audit.db").write_bytes(b"not a trail")
+    args = ["--forward", "udp:127.0.0.1:9", "--audit", "audit.db"]
+    if given == "flag":
+        args += ["--key-file", "link.key", "--signing-keys", "signing.keys"]
+        named = ("--key-file", "--signing-keys")
+    else:
+        (tmp_path / "router.yaml").write_text(
+            "mavlink: {key_file: link.key, signing_keys: signing.keys}\n"
+        )
+        args += ["--config", "router.yaml"]
+        named = ("mavlink.key_file", "mavlink.signing_keys")
+    done = subprocess.run(
+        [sys.executable, "-m", "antireplay", "mavlink-router", *args],
+        capture_output=True, text=True, timeout=60, check=False, cwd=tmp_path,
+    )  # fmt: skip
+    assert done.returncode == 2, done.stderr
+    warned, failed = done.stderr.splitlines()[:2], done.stderr.splitlines()[2]
+    assert warned == [
+        f"antireplay: warning: {named[0]} link.key is open to group or others (mode 0644); "
+        "keep a secret mode 0600: chmod 600 link.key",
+        f"antireplay: warning: {named[1]} signing.keys is open to group or others (mode 0640); "
+        "keep a secret mode 0600: chmod 600 signing.keys",
+    ], done.stderr
+    assert failed.startswith("antireplay: error: audit.db is not an antireplay audit trail")

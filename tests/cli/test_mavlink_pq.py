@@ -347,3 +347,31 @@ def test_a_pq_end_exports_its_readiness_and_trail_as_the_gateway_does(tmp_path: 
         text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
     assert 'antireplay_ready{command="mavlink-pq ground"} 1.0' in text
     assert 'antireplay_audit_trail_segments{command="mavlink-pq ground"} 1.0' in text
+
+
+def test_a_private_key_open_to_others_is_warned_about_by_its_flag_or_its_key(keys: Path) -> None:
+    """Wiring loads the ends' keys; the CLI checks the private ones first: one warning line
+    each, named by its flag or by its key in ``--config`` (a public key may be shared)."""
+    for name in ("gcs.key.pem", "gcs.pub.pem", "vehicle.key.pem", "vehicle.pub.pem"):
+        (keys / name).chmod(0o644)
+    (keys / "audit.db").write_bytes(b"not a trail")
+    (keys / "pq.yaml").write_text("mavlink_pq:\n  vehicle: {kem_key: vehicle.key.pem}\n")
+    cli = [sys.executable, "-m", "antireplay", "mavlink-pq"]
+    runs = {
+        "--signing-key gcs.key.pem": [*cli, "ground", "--air", "udpout:127.0.0.1:9",
+            "--signing-key", "gcs.key.pem", "--vehicle-key", "vehicle.pub.pem"],
+        "mavlink_pq.vehicle.kem_key vehicle.key.pem": [*cli, "vehicle", "--config", "pq.yaml",
+            "--fc", "udpout:127.0.0.1:9", "--air", "udpin:127.0.0.1:0",
+            "--peer", "gcs=gcs.pub.pem"],
+    }  # fmt: skip
+    for named, args in runs.items():
+        done = subprocess.run(
+            [*args, "--audit", "audit.db"], capture_output=True, text=True, timeout=60,
+            check=False, cwd=keys,
+        )  # fmt: skip
+        assert done.returncode == 2, done.stderr
+        assert done.stderr.splitlines()[0] == (
+            f"antireplay: warning: {named} is open to group or others (mode 0644); "
+            f"keep a secret mode 0600: chmod 600 {named.split()[1]}"
+        ), done.stderr
+        assert "audit.db is not an antireplay audit trail" in done.stderr.splitlines()[1]
