@@ -29,7 +29,7 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay.audit import AuditLog
 from antireplay.core.clock import SystemClock
-from antireplay.mavlink import MavlinkRouter, Refusal, Role, mav_time, passphrase_key
+from antireplay.mavlink import FrameRefusal, MavlinkRouter, Role, mav_time, passphrase_key
 from antireplay.mavlink.endpoints import open_transport, parse_endpoint
 from antireplay.mavlink.pq import GroundEnd, VehicleEnd
 from antireplay.mavlink.pq.link import PqLink
@@ -167,7 +167,7 @@ class RouterRig:
 
     def start_router(self) -> MavlinkRouter:
         """A router on the SQLite store in ``tmp`` (a restart keeps it); refusals from now."""
-        self.refused: list[Refusal] = []
+        self.refused: list[FrameRefusal] = []
         self.store = SqliteStore(self.tmp / "mav.db")
         self.audit = AuditLog(self.tmp / "audit.db")
         router = build_mavlink_router(
@@ -183,7 +183,7 @@ class RouterRig:
         reported = router.on_reject
         assert reported is not None
 
-        def keep(refusal: Refusal) -> None:
+        def keep(refusal: FrameRefusal) -> None:
             self.refused.append(refusal)
             reported(refusal)  # the log line and the audit record, as in production
 
@@ -210,7 +210,7 @@ class RouterRig:
 
         return check
 
-    def refusals_of(self, frames: list[bytes]) -> list[Refusal]:
+    def refusals_of(self, frames: list[bytes]) -> list[FrameRefusal]:
         """The refusals of exactly these frames (other senders' drops are not counted)."""
         wanted = set(frames)
         return [refusal for refusal in list(self.refused) if refusal.raw in wanted]

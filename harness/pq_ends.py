@@ -51,7 +51,7 @@ def arm(target: int = 1, param1: float = 1.0) -> bytes:
     return plain(lambda m: m.command_long_send(target, 1, ARM, 0, param1, 0, 0, 0, 0, 0, 0))
 
 
-class Link:
+class EndPair:
     """Both ends, the air between them a list the test can reorder, drop or tamper with."""
 
     def __init__(self, clock: ManualClock, max_sessions: int = 4) -> None:
@@ -115,8 +115,8 @@ def blob(frames: list[bytes]) -> bytes:
     return b"".join(c.piece for c in sorted(chunks, key=lambda c: c.index))
 
 
-def connected(clock: ManualClock) -> Link:
+def connected(clock: ManualClock) -> EndPair:
     """Both ends, hand-shaken."""
-    made = Link(clock)
+    made = EndPair(clock)
     made.connect()
     return made

@@ -21,11 +21,11 @@ from pymavlink import mavutil
 from antireplay.core.clock import SystemClock
 from antireplay.mavlink import (
     EndpointSpec,
-    Link,
+    FrameRefusal,
     MavlinkGuard,
     MavlinkRouter,
-    Refusal,
     Role,
+    RouterLink,
     TimestampSource,
     open_transport,
     parse_endpoint,
@@ -98,10 +98,10 @@ class Net:
         )
         to_vehicle = f"{vehicle_over}{'out' if vehicle_over == 'udp' else ''}:127.0.0.1:{vport}"
         self.vehicle.setup_signing(KEY, sign_outgoing=True, link_id=7)
-        self.refused: list[Refusal] = []
+        self.refused: list[FrameRefusal] = []
         keys = {KEY, ground_key}
-        self.ground = Link(open_transport(parse_endpoint(ground)), Role.GROUND, ground_key)
-        vehicle = Link(open_transport(parse_endpoint(to_vehicle)), Role.VEHICLE, KEY)
+        self.ground = RouterLink(open_transport(parse_endpoint(ground)), Role.GROUND, ground_key)
+        vehicle = RouterLink(open_transport(parse_endpoint(to_vehicle)), Role.VEHICLE, KEY)
 
         self.router = MavlinkRouter(
             [vehicle, self.ground],
@@ -443,10 +443,10 @@ def test_full_tcpin_evicts_the_oldest_client_that_never_authenticated(
     takes the slot of the oldest client that never sent a frame the router accepted;
     when every client authenticated, the newcomer is refused.  All of it is counted in
     the router's metrics and logged once per kind."""
-    ground = Link(
+    ground = RouterLink(
         TcpServerTransport(parse_endpoint("tcpin:127.0.0.1:0"), max_clients=2), Role.GROUND, KEY
     )
-    vehicle = Link(open_transport(parse_endpoint("udpout:127.0.0.1:9")), Role.VEHICLE, KEY)
+    vehicle = RouterLink(open_transport(parse_endpoint("udpout:127.0.0.1:9")), Role.VEHICLE, KEY)
     router = MavlinkRouter([ground, vehicle], {KEY: MavlinkGuard(KEY)}, MavlinkGuard(KEY))
     router.start()
     address = ground.transport.address

@@ -21,7 +21,7 @@ from antireplay.core.errors import (
     WrongTargetError,
 )
 from antireplay.mavlink import TS_LIMIT, UNITS_PER_S, MavlinkGuard, mav_time
-from antireplay.mavlink.guard import Admission
+from antireplay.mavlink.guard import FrameAdmission
 from antireplay.state.sqlite import SqliteStore
 from harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
 
@@ -377,10 +377,10 @@ def test_admission_of_a_routers_links(clock: ManualClock) -> None:
     any other (the router signed it for a link no guard commits for)."""
     guard = MavlinkGuard(KEY, clock=clock)
     plain, ours = unsigned_heartbeat(7), command_frame(*encoder(link_id=251))
-    assert guard.admit(plain, trusted=True, own_link_id=251) is Admission.SIGN
-    assert guard.admit(ours, trusted=True, own_link_id=251) is Admission.JUDGE
-    assert guard.admit(plain, trusted=False, own_link_id=251) is Admission.JUDGE
-    assert guard.admit(ours, trusted=False, own_link_id=250) is Admission.JUDGE
+    assert guard.admit(plain, trusted=True, own_link_id=251) is FrameAdmission.SIGN
+    assert guard.admit(ours, trusted=True, own_link_id=251) is FrameAdmission.JUDGE
+    assert guard.admit(plain, trusted=False, own_link_id=251) is FrameAdmission.JUDGE
+    assert guard.admit(ours, trusted=False, own_link_id=250) is FrameAdmission.JUDGE
     with pytest.raises(WrongDirectionError):
         guard.admit(ours, trusted=False, own_link_id=251)
     assert len(guard) == 0

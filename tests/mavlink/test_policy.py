@@ -20,8 +20,8 @@ from antireplay.mavlink import MAV_EPOCH, UNITS_PER_S, parse_frame
 from antireplay.mavlink.codec import Frame
 from antireplay.mavlink.policy import (
     AHEAD_STEP,
-    Admission,
     Facts,
+    FrameAdmission,
     MavPolicy,
     Persist,
     lease_parts,
@@ -99,11 +99,16 @@ def test_a_reorder_window_takes_late_frames_once() -> None:
 
 
 ADMISSIONS = [
-    ("trusted unsigned v2: sign it", unsigned(0), True, Admission.SIGN),
-    ("trusted unsigned v1: as it came", unsigned(0, version=1), True, Admission.JUDGE),
-    ("trusted signed with our id: as it came", signed(NOW, link_id=251), True, Admission.JUDGE),
-    ("ground unsigned: as it came", unsigned(0), False, Admission.JUDGE),
-    ("ground signed, another id", signed(NOW, link_id=250), False, Admission.JUDGE),
+    ("trusted unsigned v2: sign it", unsigned(0), True, FrameAdmission.SIGN),
+    ("trusted unsigned v1: as it came", unsigned(0, version=1), True, FrameAdmission.JUDGE),
+    (
+        "trusted signed with our id: as it came",
+        signed(NOW, link_id=251),
+        True,
+        FrameAdmission.JUDGE,
+    ),
+    ("ground unsigned: as it came", unsigned(0), False, FrameAdmission.JUDGE),
+    ("ground signed, another id", signed(NOW, link_id=250), False, FrameAdmission.JUDGE),
     ("ground signed with our id", signed(NOW, link_id=251), False, WrongDirectionError),
 ]
 
@@ -112,10 +117,10 @@ ADMISSIONS = [
     ("what", "frame", "trusted", "answer"), ADMISSIONS, ids=[a[0] for a in ADMISSIONS]
 )
 def test_admission_of_a_routers_links(
-    what: str, frame: Frame, trusted: bool, answer: Admission | type[ReplayAttackError]
+    what: str, frame: Frame, trusted: bool, answer: FrameAdmission | type[ReplayAttackError]
 ) -> None:
     policy = MavPolicy()
-    if isinstance(answer, Admission):
+    if isinstance(answer, FrameAdmission):
         assert policy.admit(frame, trusted=trusted, own_link_id=251) is answer
     else:
         with pytest.raises(answer):

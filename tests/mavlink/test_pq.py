@@ -43,7 +43,7 @@ from antireplay.mavlink.pq import (
     parse_chunk,
 )
 from antireplay.mavlink.pq.link import PqLink, SessionEvent
-from antireplay.mavlink.router import Refusal
+from antireplay.mavlink.router import FrameRefusal
 from antireplay.pq.session import REKEY_AFTER, Initiator, Purpose, Responder
 from antireplay.pq.session import Direction as Dir
 from antireplay.pq.session import Opened as Open
@@ -59,8 +59,8 @@ from harness.pq_ends import (
     ARM,
     GCS_KEY,
     ROBOT_KEM,
+    EndPair,
     Keep,
-    Link,
     arm,
     connected,
     plain,
@@ -69,7 +69,7 @@ from harness.pq_ends import (
 
 
 @pytest.fixture
-def link(clock: ManualClock) -> Link:
+def link(clock: ManualClock) -> EndPair:
     return connected(clock)
 
 
@@ -93,7 +93,7 @@ def test_dialect_xml_crc_extras_and_pymavlink_decodes_our_chunks(tmp_path: Path)
     assert module.mavlink_map[MSG_REPAIR].crc_extra == DIALECT[MSG_REPAIR][0]
 
 
-def test_arm_arrives_once_and_its_replay_is_dropped(link: Link) -> None:
+def test_arm_arrives_once_and_its_replay_is_dropped(link: EndPair) -> None:
     frames = link.ground.from_local(arm())
     assert len(frames) == 22  # 4,627-byte ML-DSA-87 signature: 20 chunks, and 2 parity
     link.up(frames)
@@ -106,7 +106,7 @@ def test_arm_arrives_once_and_its_replay_is_dropped(link: Link) -> None:
     assert link.refused == ["REPLAY_DETECTED"] * 22
 
 
-def test_telemetry_both_ways_is_hmac_in_one_chunk(link: Link) -> None:
+def test_telemetry_both_ways_is_hmac_in_one_chunk(link: EndPair) -> None:
     beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
     (frame,) = link.ground.from_local(beat)  # a GCS heartbeat: data purpose, one chunk
     link.up([frame])
@@ -120,7 +120,7 @@ def test_telemetry_both_ways_is_hmac_in_one_chunk(link: Link) -> None:
     assert link.telemetry == [attitude] and link.refused == ["COUNTER_REPLAYED"]
 
 
-def test_capture_from_a_previous_session_is_dropped(link: Link) -> None:
+def test_capture_from_a_previous_session_is_dropped(link: EndPair) -> None:
     old = link.ground.from_local(arm())
     link.up(old)
     link.ground = link.new_ground()  # the ground end restarts: a new session
@@ -131,7 +131,7 @@ def test_capture_from_a_previous_session_is_dropped(link: Link) -> None:
     assert [c.param1 for c in link.commands()] == [1.0, 0.0]
 
 
-def test_reordered_duplicated_chunks_deliver_once(link: Link) -> None:
+def test_reordered_duplicated_chunks_deliver_once(link: EndPair) -> None:
     frames = link.ground.from_local(arm())
     shuffled = frames + frames[:5]
     random.Random(7).shuffle(shuffled)
@@ -141,7 +141,7 @@ def test_reordered_duplicated_chunks_deliver_once(link: Link) -> None:
     assert set(link.refused) <= {"REPLAY_DETECTED"}
 
 
-def test_a_lost_chunk_costs_that_chunk_not_the_command(link: Link, clock: ManualClock) -> None:
+def test_a_lost_chunk_costs_that_chunk_not_the_command(link: EndPair, clock: ManualClock) -> None:
     first = link.ground.from_local(arm(param1=1.0))
     link.up(first[:7] + first[8:])  # chunk 7 lost: its parity group rebuilds it
     assert link.vehicle.reassembly.rebuilt == 1 and link.ground.repairs["resent"] == 0
@@ -175,7 +175,7 @@ def _tamper(raw: bytes, at: int, value: int) -> bytes:
     )
 
 
-def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> None:
+def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: EndPair) -> None:
     # the target system sits in the first chunk: chunk header, compact header, inner header,
     # then COMMAND_LONG's target_system at payload offset 30
     target_at = 6 + 10 + 6 + 30
@@ -205,7 +205,7 @@ def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> No
     assert link.refused[-1] == "SIGNATURE_INVALID" and len(link.commands()) == 1
 
 
-def test_chunk_flood_cannot_crowd_out_a_command(link: Link) -> None:
+def test_chunk_flood_cannot_crowd_out_a_command(link: EndPair) -> None:
     rng = random.Random(3)
     flood = []
     for transfer in range(500):  # session-frame chunks with made-up MACs: refused unbuffered
@@ -245,7 +245,7 @@ def test_chunk_bounds(fields: tuple[int, ...], why: str) -> None:
         parse_chunk(parse_frame(raw))
 
 
-def test_rekey_before_the_counter_limit(link: Link) -> None:
+def test_rekey_before_the_counter_limit(link: EndPair) -> None:
     session = link.ground.session
     assert session is not None
     session._send[Purpose.DATA] = NonceCounter(REKEY_AFTER)
@@ -274,13 +274,13 @@ def test_fuzzed_chunk_payloads_raise_only_typed_errors(payload: bytes) -> None:
         FUZZ.vehicle.from_air(raw)
 
 
-FUZZ = Link(ManualClock())
+FUZZ = EndPair(ManualClock())
 FUZZ.connect()
 
 
 def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
     vehicle_x25519 = x25519.X25519PrivateKey.generate()
-    link = Link(clock)
+    link = EndPair(clock)
     link.responder = Responder(
         ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock, x25519_key=vehicle_x25519
     )
@@ -296,7 +296,7 @@ def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
     assert len(link.commands()) == 1 and link.refused == ["REPLAY_DETECTED"] * 22
 
 
-def test_a_frame_withheld_from_a_superseded_session_never_plays(link: Link) -> None:
+def test_a_frame_withheld_from_a_superseded_session_never_plays(link: EndPair) -> None:
     withheld = link.ground.from_local(arm(param1=1.0))  # jammed and recorded, never delivered
     link.connect()  # the ground end rekeys
     link.up(link.ground.from_local(arm(param1=0.0)))  # the new session carries a frame
@@ -349,7 +349,7 @@ def test_a_shared_handle_never_lets_one_session_refuse_the_others_frames() -> No
         open_compact(bytes(forged), sessions, Dir.I2R, receiver)
 
 
-def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: Link) -> None:
+def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: EndPair) -> None:
     old = []
     for n in range(6):  # the attacker records six commands, all delivered
         frames = link.ground.from_local(arm(param1=float(n)))
@@ -366,7 +366,7 @@ def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: Lin
 
 
 def test_a_silent_vehicle_end_gets_a_handshake_without_its_hint(
-    link: Link, clock: ManualClock
+    link: EndPair, clock: ManualClock
 ) -> None:
     link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
     link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted; its hints stolen
@@ -382,8 +382,8 @@ def test_a_silent_vehicle_end_gets_a_handshake_without_its_hint(
 def test_the_link_counts_plain_mavlink_quietly_and_exports_the_ends_drops(
     clock: ManualClock,
 ) -> None:
-    refusals: list[Refusal] = []
-    made = Link(clock)
+    refusals: list[FrameRefusal] = []
+    made = EndPair(clock)
     local, air = FakeTransport("udpin:0.0.0.0:1", fixed=False), FakeTransport("udpout:1.2.3.4:5")
     pq = PqLink(made.ground, local, air, on_reject=refusals.append)
     pq.start()  # the first HS1 goes out, and is lost
@@ -405,7 +405,7 @@ def test_the_link_counts_plain_mavlink_quietly_and_exports_the_ends_drops(
 def test_a_chunk_planted_ahead_cannot_spoil_the_next_handshake(
     clock: ManualClock, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    link = Link(clock)
+    link = EndPair(clock)
     planted = link.ground.sender.transfer + 1  # the next transfer number, were it counted
     # The handshake's number is random; pinned here to one the attacker did not guess.
     monkeypatch.setattr(secrets, "randbelow", lambda n: (planted + 1) % n)
@@ -429,7 +429,7 @@ class Wire(FakeTransport):
 
 def _ends(clock: ManualClock) -> tuple[PqLink, PqLink, Wire, Wire, list[SessionEvent]]:
     """A ground and a vehicle link whose timers never fire on their own (the test ticks)."""
-    made, events = Link(clock), list[SessionEvent]()
+    made, events = EndPair(clock), list[SessionEvent]()
     ground_air, vehicle_air = Wire("udpout:1.2.3.4:5"), Wire("udpout:1.2.3.4:6")
     ground = PqLink(
         made.ground, FakeTransport("udpin:0.0.0.0:1", fixed=False), ground_air,
@@ -444,7 +444,7 @@ def _ends(clock: ManualClock) -> tuple[PqLink, PqLink, Wire, Wire, list[SessionE
 
 
 def test_the_timer_thread_retries_without_being_asked(clock: ManualClock) -> None:
-    made = Link(clock)
+    made = EndPair(clock)
     air = FakeTransport("udpout:1.2.3.4:5")
     ground = PqLink(made.ground, FakeTransport("udpin:0.0.0.0:1", fixed=False), air, tick_s=0.01)
     ground.start()
@@ -501,8 +501,8 @@ def test_each_session_change_is_reported_once_and_counted(clock: ManualClock) ->
 
 
 def test_telemetry_without_a_session_is_counted_not_refused(clock: ManualClock) -> None:
-    refusals: list[Refusal] = []
-    made = Link(clock)
+    refusals: list[FrameRefusal] = []
+    made = EndPair(clock)
     fc = FakeTransport("udpout:1.2.3.4:7")
     vehicle = PqLink(
         made.vehicle, fc, FakeTransport("udpin:0.0.0.0:1", fixed=False),

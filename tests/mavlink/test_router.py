@@ -30,11 +30,11 @@ from antireplay.core.clock import SystemClock
 from antireplay.core.errors import StateUnavailableError
 from antireplay.mavlink import (
     TS_LIMIT,
-    Link,
+    FrameRefusal,
     MavlinkGuard,
     MavlinkRouter,
-    Refusal,
     Role,
+    RouterLink,
     TimestampSource,
     codec,
     mav_time,
@@ -64,13 +64,15 @@ class Rig:
             f"udpin:127.0.0.1:{vport}", source_system=system_id, source_component=1
         )
         self.rejections: queue.Queue[tuple[str, str]] = queue.Queue()
-        self.ground = Link(open_transport(parse_endpoint("udpin:127.0.0.1:0")), Role.GROUND, KEY)
+        self.ground = RouterLink(
+            open_transport(parse_endpoint("udpin:127.0.0.1:0")), Role.GROUND, KEY
+        )
         vehicle = open_transport(parse_endpoint(f"udpout:127.0.0.1:{vport}"))
         inbound = MavlinkGuard(
             KEY, system_id=system_id if bind_system_id else None, allow_unsigned=allow_unsigned
         )
         self.router = MavlinkRouter(
-            [self.ground, Link(vehicle, Role.VEHICLE, KEY)],
+            [self.ground, RouterLink(vehicle, Role.VEHICLE, KEY)],
             {KEY: inbound},
             MavlinkGuard(KEY),
             on_reject=self._rejected,
@@ -90,7 +92,7 @@ class Rig:
         self.gcs.mav.send(msg)
         return bytes(msg.get_msgbuf())
 
-    def _rejected(self, refusal: Refusal) -> None:
+    def _rejected(self, refusal: FrameRefusal) -> None:
         self.rejections.put((refusal.direction, refusal.code))
 
     @property
@@ -494,7 +496,7 @@ def test_cli_proxy_refuses_a_bad_key_file_naming_it(tmp_path: Path, content: byt
 
 
 def test_an_audit_trail_that_is_down_does_not_stop_the_forwarding(rig: Rig) -> None:
-    def audit_down(refusal: Refusal) -> None:
+    def audit_down(refusal: FrameRefusal) -> None:
         raise StateUnavailableError("audit trail: disk full")
 
     rig.router.on_reject = audit_down
@@ -514,7 +516,7 @@ def signed_sender(sysid: int, key: bytes, clock: ManualClock) -> tuple[Any, Sink
 
 
 def test_a_frame_the_router_signed_for_a_ground_link_cannot_be_reflected() -> None:
-    """Link B has its own key: the router signs what it forwards there afresh (link id
+    """RouterLink B has its own key: the router signs what it forwards there afresh (link id
     251).  An attacker on B who sends such a copy back gets WRONG_DIRECTION: it neither
     reaches the vehicle twice nor steals the route of the station that sent it."""
     clock, other_key = ManualClock(1_800_000_000.0), bytes(range(1, 33))
@@ -523,9 +525,9 @@ def test_a_frame_the_router_signed_for_a_ground_link_cannot_be_reflected() -> No
     b = FakeTransport("udpin:0.0.0.0:3", fixed=False)
     router = MavlinkRouter(
         [
-            Link(vehicle, Role.VEHICLE, KEY),
-            Link(a, Role.GROUND, KEY),
-            Link(b, Role.GROUND, other_key),
+            RouterLink(vehicle, Role.VEHICLE, KEY),
+            RouterLink(a, Role.GROUND, KEY),
+            RouterLink(b, Role.GROUND, other_key),
         ],
         {
             KEY: MavlinkGuard(KEY, clock=clock, system_id=1),
@@ -631,9 +633,9 @@ def fake_router(clock: ManualClock, store: SqliteStore, other_key: bytes) -> Mav
 
     return MavlinkRouter(
         [
-            Link(FakeTransport("udpout:127.0.0.1:1"), Role.VEHICLE, KEY),
-            Link(FakeTransport("udpin:0.0.0.0:2", fixed=False), Role.GROUND, KEY),
-            Link(FakeTransport("udpin:0.0.0.0:3", fixed=False), Role.GROUND, other_key),
+            RouterLink(FakeTransport("udpout:127.0.0.1:1"), Role.VEHICLE, KEY),
+            RouterLink(FakeTransport("udpin:0.0.0.0:2", fixed=False), Role.GROUND, KEY),
+            RouterLink(FakeTransport("udpin:0.0.0.0:3", fixed=False), Role.GROUND, other_key),
         ],
         {KEY: guard("in", KEY), other_key: guard("in-b", other_key)},
         MavlinkGuard(KEY, clock=clock, store=store, store_prefix="out"),

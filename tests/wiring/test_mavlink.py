@@ -12,7 +12,7 @@ from antireplay.audit import AuditLog, Retention
 from antireplay.config import AppConfig
 from antireplay.core.clock import ManualClock
 from antireplay.core.errors import ConfigError
-from antireplay.mavlink import Refusal, Role, passphrase_key
+from antireplay.mavlink import FrameRefusal, Role, passphrase_key
 from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import (
@@ -36,10 +36,10 @@ def test_mavlink_rejections_are_audited_with_the_claimed_source_rate_limited(
     audit = mavlink_auditor(log, clock)
     frame = bytes([0xFD, 9, 0, 0, 0, 255, 190]) + bytes(14)
     for _ in range(int(MAVLINK_AUDIT_PER_S) + 10):
-        audit(Refusal("inbound", "udpin:0.0.0.0:14550", "INVALID_FRAME", "x", frame))
+        audit(FrameRefusal("inbound", "udpin:0.0.0.0:14550", "INVALID_FRAME", "x", frame))
     clock.advance(2 / MAVLINK_AUDIT_PER_S)  # a token back (and a spare for rounding)
     with caplog.at_level(logging.WARNING, logger="antireplay.mavlink"):
-        audit(Refusal("outbound", "/dev/ttyACM0,57600", "INVALID_FRAME", "x", b"\xfd\x00"))
+        audit(FrameRefusal("outbound", "/dev/ttyACM0,57600", "INVALID_FRAME", "x", b"\xfd\x00"))
     records = log.tail(1_000)
     log.close()
     assert len(records) == MAVLINK_AUDIT_PER_S + 1

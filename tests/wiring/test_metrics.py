@@ -9,9 +9,10 @@ from typing import Any
 from antireplay.audit import AuditLog
 from antireplay.config import AppConfig
 from antireplay.core.clock import ManualClock
-from antireplay.mavlink import Refusal
+from antireplay.mavlink import FrameRefusal
 from antireplay.mavlink.router import RouterStats
 from antireplay.state.memory import MemoryStore
+from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import (
     MAVLINK_AUDIT_PER_S,
     mavlink_auditor,
@@ -26,7 +27,7 @@ def test_mavlink_refusals_folded_by_the_rate_limit_are_a_metric(tmp_path: Path) 
     audit = mavlink_auditor(log, ManualClock())
     flood = int(MAVLINK_AUDIT_PER_S) + 7
     for _ in range(flood):
-        audit(Refusal("inbound", "udpin:0.0.0.0:14550", "INVALID_FRAME", "x", b"\xfd"))
+        audit(FrameRefusal("inbound", "udpin:0.0.0.0:14550", "INVALID_FRAME", "x", b"\xfd"))
     router: Any = SimpleNamespace(stats=RouterStats(), links=[], on_reject=audit)
     folded = {
         sample.labels["class"]: sample.value
@@ -39,8 +40,9 @@ def test_mavlink_refusals_folded_by_the_rate_limit_are_a_metric(tmp_path: Path) 
     log.close()
 
 
-class DownStore(MemoryStore):
-    """A store that cannot take a commit now."""
+class DownStore(SqliteStore):
+    """A store that cannot take a commit now (SQLite: the compiled MemoryStore takes no
+    interpreted subclass)."""
 
     def ready(self) -> None:
         raise ConnectionError("connection refused")
@@ -60,8 +62,10 @@ def test_a_commands_leaves_are_exported_as_the_gateways_are(tmp_path: Path) -> N
         assert samples["antireplay_ready"].labels == {"command": "mavlink-router"}
         assert samples["antireplay_audit_trail_segments"].value >= 1
         assert samples["antireplay_audit_free_bytes"].value > 0
-        down = trail_metrics("mavlink-router", audit, space, DownStore())
+        down_store = DownStore(tmp_path / "down.db")
+        down = trail_metrics("mavlink-router", audit, space, down_store)
         assert down[0].samples[0].value == 0
-        assert leaves_ready(audit, space, DownStore()) == "store: connection refused"
+        assert leaves_ready(audit, space, down_store) == "store: connection refused"
+        down_store.close()
     finally:
         audit.close()

@@ -18,9 +18,10 @@ import math
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import Field, ValidationError, field_validator
 from pydantic_core import ErrorDetails
 
+from antireplay.config.loader import Section
 from antireplay.core.errors import ConfigError
 from antireplay.state import STORE_SPECS, StoreSpec
 
@@ -29,10 +30,6 @@ MAX_DOMAIN_ID = 232  # Cyclone's port arithmetic; antireplay.dds.domain checks t
 #: older than ``MAX_AGE_S`` or sealed more than ``MAX_FORWARD_S`` ahead; writers rotate their
 #: prefix past the same ``MAX_FORWARD_S`` (a forward glitch the readers would refuse).
 MAX_AGE_S, MAX_FORWARD_S = 30.0, 5.0
-
-
-class _Block(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
 def _store_spec(value: str) -> str:
@@ -56,7 +53,7 @@ RENAMED: dict[str, str] = {
 }
 
 
-class ReaderConfig(_Block):
+class ReaderConfig(Section):
     topic: str = Field(default="antireplay/commands", min_length=1, max_length=256)
     #: ``memory`` fences at start (module docstring of antireplay.dds.topics).
     store: str = "memory"
@@ -67,12 +64,12 @@ class ReaderConfig(_Block):
         return _store_spec(value)
 
 
-class WriterConfig(_Block):
+class WriterConfig(Section):
     topic: str = Field(default="antireplay/commands", min_length=1, max_length=256)
     state_file: str | None = None
 
 
-class RelayConfig(_Block):
+class RelayConfig(Section):
     service_name: str = Field(min_length=1, max_length=128)
     signer_state: str
     verifier_store: str
@@ -84,7 +81,7 @@ class RelayConfig(_Block):
         return _store_spec(value)
 
 
-class DdsConfig(_Block):
+class DdsConfig(Section):
     """The whole ``dds:`` block."""
 
     domain_id: int = Field(default=0, ge=0, le=MAX_DOMAIN_ID)

@@ -20,10 +20,16 @@ from types import NoneType, UnionType
 from typing import Any, Union, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict
 
 from antireplay.core.errors import ConfigError
 from antireplay.core.settings import unknown_key
+
+
+class Section(BaseModel):
+    """What every block of the file is: strict types, no unknown key, frozen once loaded."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:

@@ -15,24 +15,21 @@ by the command, which says which flag or key supplies them.
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, field_validator, model_validator
+from pydantic import Field, PrivateAttr, field_validator, model_validator
 
+from antireplay.config.loader import Section
 from antireplay.core.counters import DEFAULT_WINDOW
 from antireplay.state.spec import StoreSpec
 
 
-class _Block(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
-
-
-class MetricsConfig(_Block):
+class MetricsConfig(Section):
     """Where a command serves its Prometheus metrics (``metrics:`` of its section)."""
 
     port: int | None = Field(default=None, ge=0, le=65_535)  # None: no metrics
     host: str = Field(default="127.0.0.1", min_length=1)  # loopback unless asked
 
 
-class MavlinkConfig(_Block):
+class MavlinkConfig(Section):
     """``mavlink:``: the ``mavlink-router`` command."""
 
     vehicle: list[str] = Field(default_factory=list)
@@ -70,7 +67,7 @@ class MavlinkConfig(_Block):
         return self._store_spec
 
 
-class PqGroundConfig(_Block):
+class PqGroundConfig(Section):
     """``mavlink_pq.ground:``: the end next to the ground station."""
 
     local: str = Field(default="udpin:127.0.0.1:14550", min_length=1)
@@ -85,7 +82,7 @@ class PqGroundConfig(_Block):
     metrics: MetricsConfig = Field(default_factory=MetricsConfig)
 
 
-class PqVehicleConfig(_Block):
+class PqVehicleConfig(Section):
     """``mavlink_pq.vehicle:``: the end next to the autopilot."""
 
     fc: str | None = Field(default=None, min_length=1)
@@ -100,7 +97,7 @@ class PqVehicleConfig(_Block):
     metrics: MetricsConfig = Field(default_factory=MetricsConfig)
 
 
-class MavlinkPqConfig(_Block):
+class MavlinkPqConfig(Section):
     """``mavlink_pq:``: the two post-quantum ends, one block each."""
 
     ground: PqGroundConfig = Field(default_factory=PqGroundConfig)

@@ -28,10 +28,13 @@ from antireplay.mavlink.codec import (
 )
 from antireplay.mavlink.endpoints import EndpointSpec, open_transport, parse_endpoint
 from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
-from antireplay.mavlink.policy import Admission, MavPolicy
-from antireplay.mavlink.router import Link, MavlinkRouter, Refusal, Role, RouterStats
+from antireplay.mavlink.policy import FrameAdmission, MavPolicy
+from antireplay.mavlink.router import FrameRefusal, MavlinkRouter, Role, RouterLink, RouterStats
 from antireplay.mavlink.signer import TimestampSource
 from antireplay.mavlink.signing import SignTimestamps
+
+#: The names these classes had before they were made unique across the package.
+Admission, Link, Refusal = FrameAdmission, RouterLink, FrameRefusal
 
 __all__ = [
     "MAV_EPOCH",
@@ -40,7 +43,9 @@ __all__ = [
     "Admission",
     "EndpointSpec",
     "Frame",
+    "FrameAdmission",
     "FrameReader",
+    "FrameRefusal",
     "Link",
     "MavPolicy",
     "MavVerdict",
@@ -48,6 +53,7 @@ __all__ = [
     "MavlinkRouter",
     "Refusal",
     "Role",
+    "RouterLink",
     "RouterStats",
     "SignTimestamps",
     "TimestampSource",

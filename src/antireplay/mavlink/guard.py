@@ -40,10 +40,10 @@ from antireplay.core.errors import (
     StateUnavailableError,
 )
 from antireplay.mavlink.codec import UNITS_PER_S, Frame, mav_time, parse_frame
-from antireplay.mavlink.policy import Admission, Facts, MavPolicy, Persist
+from antireplay.mavlink.policy import Facts, FrameAdmission, MavPolicy, Persist
 from antireplay.state import ReplayStore
 
-__all__ = ["Admission", "MavVerdict", "MavlinkGuard"]
+__all__ = ["FrameAdmission", "MavVerdict", "MavlinkGuard"]
 
 _MAX_STEPS = 8  # Persist steps one frame may need (claim, lookup, renew, ahead, through)
 
@@ -168,7 +168,7 @@ class MavlinkGuard:
             self.policy.check(frame, now)
         return frame
 
-    def admit(self, raw: bytes | Frame, *, trusted: bool, own_link_id: int) -> Admission:
+    def admit(self, raw: bytes | Frame, *, trusted: bool, own_link_id: int) -> FrameAdmission:
         """Records nothing: what a frame a router received for this guard needs before
         :meth:`open` (:meth:`MavPolicy.admit <antireplay.mavlink.policy.MavPolicy.admit>`)."""
         frame = raw if isinstance(raw, Frame) else parse_frame(raw)

@@ -51,7 +51,7 @@ GENERATION = 2**42  # lease value = generation * 2**42 + expiry (ms): 139 years 
 AHEAD_STEP = UNITS_PER_S // 10  # the persisted ahead margin grows by 0.1 s steps
 
 
-class Admission(StrEnum):
+class FrameAdmission(StrEnum):
     """What a frame from a router's link needs before its guard judges it."""
 
     JUDGE = "judge"  # as it came
@@ -164,20 +164,20 @@ class MavPolicy:
         if stream is None and not self.stored and frame.timestamp < now - self.new_stream_max_age:
             raise MessageStaleError(self._too_old(frame.timestamp, now))
 
-    def admit(self, frame: Frame, *, trusted: bool, own_link_id: int) -> Admission:
+    def admit(self, frame: Frame, *, trusted: bool, own_link_id: int) -> FrameAdmission:
         """A trusted link's unsigned v2 frame is signed on its behalf; a frame from an
         untrusted link carrying ``own_link_id`` (the link id the router signs with) is
         ``WRONG_DIRECTION``: the router signed it for a link whose key has no guard
         committing it, so a copy reflected back must not count as a new stream."""
         if trusted:
             unsigned_v2 = frame.version == 2 and not frame.signed
-            return Admission.SIGN if unsigned_v2 else Admission.JUDGE
+            return FrameAdmission.SIGN if unsigned_v2 else FrameAdmission.JUDGE
         if frame.signed and frame.link_id == own_link_id:
             raise WrongDirectionError(
                 f"wrong link: a frame this router signed (link id {own_link_id}) "
                 "came back from a ground link"
             )
-        return Admission.JUDGE
+        return FrameAdmission.JUDGE
 
     def bind(self, frame: Frame) -> None:
         """``WRONG_TARGET`` for a frame addressed to another vehicle than ``system_id``."""

@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-A :class:`MavlinkRouter` joins any number of :class:`Link` s, each a transport
+A :class:`MavlinkRouter` joins any number of :class:`RouterLink` s, each a transport
 (:mod:`antireplay.mavlink.endpoints`) with a **role**:
 
 * ``vehicle``: the flight controller side (a serial port, SITL, a companion's
@@ -20,7 +20,7 @@ The router holds no replay rule: every frame goes through exactly one guard
 call (:meth:`~antireplay.mavlink.guard.MavlinkGuard.open`, two when a ground
 link has its own key: its guard, then the vehicle key's guard on the frame the
 router signed again), and whatever the guard refuses is a counted drop with its
-code and reason, handed to ``on_reject`` (:class:`Refusal`, one line that says
+code and reason, handed to ``on_reject`` (:class:`FrameRefusal`, one line that says
 why: bad signature, old timestamp and the gap in seconds, wrong link, not
 allow-listed).  Frames the router signs are committed in the vehicle key's
 inbound guard, so a capture of them replayed on a ground link that shares the
@@ -91,14 +91,14 @@ from antireplay.core.messages import StrEnum
 from antireplay.mavlink.codec import Frame, claimed_source, sign, target
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
-from antireplay.mavlink.policy import Admission
+from antireplay.mavlink.policy import FrameAdmission
 from antireplay.mavlink.signer import TimestampSource
 
 log = logging.getLogger("antireplay.mavlink")
 _CLAIM_RETRY_S = 0.05  # how often the timer tries a lease a crashed run still holds
 
 INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
-Location = tuple["Link", Peer | None]
+Location = tuple["RouterLink", Peer | None]
 
 
 class Role(StrEnum):
@@ -110,7 +110,7 @@ class Role(StrEnum):
 
 
 @dataclass(eq=False)
-class Link:
+class RouterLink:
     """One endpoint of the router: a transport, its role and its key (None: trusted)."""
 
     transport: Transport
@@ -126,7 +126,7 @@ class Link:
 
 
 @dataclass(frozen=True)
-class Refusal:
+class FrameRefusal:
     """A dropped frame: where, the code, and why (the log line an operator reads)."""
 
     direction: str
@@ -166,13 +166,13 @@ class MavlinkRouter:
 
     def __init__(
         self,
-        links: Sequence[Link],
+        links: Sequence[RouterLink],
         inbound: Mapping[bytes, MavlinkGuard],
         outbound: MavlinkGuard,
         *,
         signers: Mapping[bytes, TimestampSource] | None = None,
         sign_link_id: int = 251,
-        on_reject: Callable[[Refusal], Any] | None = None,
+        on_reject: Callable[[FrameRefusal], Any] | None = None,
         max_routes: int = 1024,
         max_stream_stats: int = 1024,
     ) -> None:
@@ -305,14 +305,17 @@ class MavlinkRouter:
             for where, to in targets:
                 self._send(where, to, verdict.frame)
 
-    def _judge(self, link: Link, frame: Frame) -> MavVerdict:
+    def _judge(self, link: RouterLink, frame: Frame) -> MavVerdict:
         """The guard's verdict on ``frame`` (module docstring); raises ReplayAttackError."""
         if link.role is Role.VEHICLE:
             return self.outbound.open(frame)
         key = self.vehicle_key if link.key is None else link.key  # None: a trusted link
         guard = self.inbound[key]
         trusted = link.role is Role.TRUSTED
-        if guard.admit(frame, trusted=trusted, own_link_id=self.sign_link_id) is Admission.SIGN:
+        if (
+            guard.admit(frame, trusted=trusted, own_link_id=self.sign_link_id)
+            is FrameAdmission.SIGN
+        ):
             frame = self._sign(frame, key)
         verdict = guard.open(frame)
         if key != self.vehicle_key and verdict.signed:  # a ground link with its own key
@@ -329,7 +332,7 @@ class MavlinkRouter:
         except (ValueError, NonceExhaustedError) as exc:
             raise InvalidFrameError(f"cannot sign on behalf: {exc}") from None
 
-    def _account(self, link: Link, peer: Peer | None, verdict: MavVerdict) -> None:
+    def _account(self, link: RouterLink, peer: Peer | None, verdict: MavVerdict) -> None:
         """Learn from an authenticated frame; count the stream (caller holds ``_lock``)."""
         frame = verdict.frame
         if verdict.signed:
@@ -356,7 +359,7 @@ class MavlinkRouter:
             if len(streams) > self.max_stream_stats:
                 streams.popitem(last=False)
 
-    def _greet(self, link: Link, peer: Peer | None, system: int) -> None:
+    def _greet(self, link: RouterLink, peer: Peer | None, system: int) -> None:
         """Log a ground station's first authenticated frame, once per station (bounded)."""
         station = (link.name, peer, system)
         stations = self.stats.stations
@@ -375,7 +378,9 @@ class MavlinkRouter:
         )
         log.info("%s: ground station system %d authenticated%s", link.name, system, where)
 
-    def _destinations(self, source: Link, aimed: tuple[int | None, int | None]) -> list[Location]:
+    def _destinations(
+        self, source: RouterLink, aimed: tuple[int | None, int | None]
+    ) -> list[Location]:
         """Where a frame with target ``aimed`` goes (module docstring); caller holds ``_lock``."""
         system, component = aimed
         if not system:
@@ -398,7 +403,7 @@ class MavlinkRouter:
             for to in _receivers(link)
         ]
 
-    def _send(self, link: Link, to: Peer | None, frame: Frame) -> None:
+    def _send(self, link: RouterLink, to: Peer | None, frame: Frame) -> None:
         """Write the judged frame (signed again where ``link`` has a key of its own)."""
         data = frame.raw
         if frame.signed and link.key is not None and link.key != self.vehicle_key:
@@ -411,17 +416,17 @@ class MavlinkRouter:
             direction = INBOUND if link.role is Role.VEHICLE else OUTBOUND
             self.stats.dropped[f"{direction}:UNREACHABLE"] += 1
 
-    def _refuse(self, direction: str, link: Link, code: str, reason: str, raw: bytes) -> None:
+    def _refuse(self, direction: str, link: RouterLink, code: str, reason: str, raw: bytes) -> None:
         self.stats.dropped[f"{direction}:{code}"] += 1
         if self.on_reject is None:
             return
         try:
-            self.on_reject(Refusal(direction, link.name, str(code), reason, raw))
+            self.on_reject(FrameRefusal(direction, link.name, str(code), reason, raw))
         except AntiReplayError:  # an audit trail that is down must not stop the forwarding
             self.stats.unaudited += 1
 
 
-def _receivers(link: Link) -> Iterable[Peer | None]:
+def _receivers(link: RouterLink) -> Iterable[Peer | None]:
     """A fixed endpoint's one destination, or the peers that authenticated on it."""
     return (None,) if link.transport.fixed else list(link.peers)
 

@@ -16,7 +16,7 @@ its state lives:
 commands' options and :func:`~antireplay.state.open_store` all call it, so a
 spec accepted by one is accepted by every one.  Anything else is a
 :class:`~antireplay.core.errors.ConfigError` naming the key, the text and the
-forms allowed.  Parsing opens nothing; :meth:`StoreSpec.open` builds the store.
+forms allowed.  Parsing opens nothing; :func:`~antireplay.state.open_store` builds the store.
 """
 
 from __future__ import annotations

@@ -82,10 +82,10 @@ def build_mavlink_router(
     already opened are closed again).
     """
     from antireplay.mavlink import (  # noqa: PLC0415 - the dialect loads on use
-        Link,
         MavlinkGuard,
         MavlinkRouter,
         Role,
+        RouterLink,
         TimestampSource,
         open_transport,
         parse_endpoint,
@@ -118,11 +118,11 @@ def build_mavlink_router(
         )
         for key in keys
     }
-    links: list[Link] = []
+    links: list[RouterLink] = []
     try:
         for role, spec, key in specs:
             try:
-                links.append(Link(open_transport(spec), role, key))
+                links.append(RouterLink(open_transport(spec), role, key))
             except OSError as exc:
                 raise OSError(exc.errno, f"{spec.text}: {exc.strerror or exc}") from exc
     except BaseException:

@@ -21,7 +21,7 @@ from antireplay.audit import AuditLog, RefusalAuditor
 from antireplay.core.clock import Clock
 
 if TYPE_CHECKING:
-    from antireplay.mavlink import Refusal
+    from antireplay.mavlink import FrameRefusal
 
 #: Audit records and log lines per second for refused MAVLink frames (the rest are counted).
 MAVLINK_AUDIT_PER_S = 50.0
@@ -51,7 +51,7 @@ class MavlinkRefusals:
         """Write the folded refusals' summary rows (before the trail closes)."""
         self.auditor.close()
 
-    def __call__(self, refusal: Refusal) -> None:
+    def __call__(self, refusal: FrameRefusal) -> None:
         from antireplay.mavlink import claimed_source  # noqa: PLC0415 - the dialect loads on use
 
         source = claimed_source(refusal.raw)

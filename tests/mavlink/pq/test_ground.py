@@ -17,18 +17,18 @@ from antireplay.mavlink.pq import (
 
 os.environ["MAVLINK20"] = "1"
 
-from harness.pq_ends import Link, arm, connected, plain
+from harness.pq_ends import EndPair, arm, connected, plain
 
 
 def test_queued_commands_go_out_after_the_handshake(clock: ManualClock) -> None:
-    link = Link(clock)
+    link = EndPair(clock)
     hs1 = link.ground.from_local(arm())  # no session yet: queued, the handshake starts
     link.up(hs1)
     assert len(link.commands()) == 1
 
 
 def test_heartbeats_do_not_push_a_queued_command_out(clock: ManualClock) -> None:
-    link = Link(clock)
+    link = EndPair(clock)
     hs1 = link.ground.from_local(arm())
     beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
     for _ in range(50):
@@ -38,7 +38,7 @@ def test_heartbeats_do_not_push_a_queued_command_out(clock: ManualClock) -> None
 
 
 def test_queued_commands_expire_and_every_drop_is_counted(clock: ManualClock) -> None:
-    link = Link(clock)
+    link = EndPair(clock)
     for p in range(10):  # no vehicle: every HS1 is lost, commands queue
         link.ground.from_local(arm(param1=float(p)))
     assert link.ground.drops == {"QUEUE_FULL": 2}

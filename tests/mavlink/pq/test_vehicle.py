@@ -28,7 +28,7 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from harness.pq_ends import (
     GCS_KEY,
     ROBOT_KEM,
-    Link,
+    EndPair,
     arm,
     blob,
     connected,
@@ -38,7 +38,7 @@ from harness.pq_ends import (
 
 
 def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
-    link = Link(clock)
+    link = EndPair(clock)
     hs1 = link.ground.handshake()
     link.up(hs1)
     assert len(link.responder) == 1
@@ -57,7 +57,7 @@ def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
 
 
 def test_handshake_flood_keeps_the_almost_complete_handshake(clock: ManualClock) -> None:
-    link = Link(clock)
+    link = EndPair(clock)
     hs1 = link.ground.handshake()
     assert len(hs1) == 29  # 26 chunks and 3 parity
     link.up([raw for i, raw in enumerate(hs1) if i not in (0, 3, 28)])  # two of one group
@@ -71,7 +71,7 @@ def test_handshake_flood_keeps_the_almost_complete_handshake(clock: ManualClock)
 
 
 def test_the_vehicle_end_draws_session_ids_whose_handles_differ(clock: ManualClock) -> None:
-    link = Link(clock, max_sessions=8)
+    link = EndPair(clock, max_sessions=8)
     for _ in range(8):  # eight live sessions, none carrying a frame (none superseded)
         link.connect()
     assert len({s.session_id[-1] for s in link.vehicle._sessions}) == 8
@@ -84,7 +84,7 @@ def test_the_vehicle_end_draws_session_ids_whose_handles_differ(clock: ManualClo
 
 
 def test_a_message_that_must_be_signed_is_refused_in_a_data_frame(clock: ManualClock) -> None:
-    link = Link(clock)
+    link = EndPair(clock)
     link.ground = GroundEnd(
         Initiator("gcs", GCS_KEY, clock), ROBOT_KEM.public_key(), clock=clock, signed=frozenset()
     )

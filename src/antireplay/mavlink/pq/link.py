@@ -57,7 +57,7 @@ from antireplay.mavlink.pq.ground import GroundEnd
 from antireplay.mavlink.pq.repair import Output, air_kind
 from antireplay.mavlink.pq.vehicle import VehicleEnd
 from antireplay.mavlink.pq.wire import LINE_BITS
-from antireplay.mavlink.router import Refusal
+from antireplay.mavlink.router import FrameRefusal
 from antireplay.pq.session import Session
 
 _HINTED = {Code.UNKNOWN_SESSION, Code.SESSION_CLOSED}
@@ -173,7 +173,7 @@ class PqLink:
         local: Transport,
         air: Transport,
         *,
-        on_reject: Callable[[Refusal], Any] | None = None,
+        on_reject: Callable[[FrameRefusal], Any] | None = None,
         on_session: Callable[[SessionEvent], Any] | None = None,
         tap: Callable[[bytes], Any] | None = None,
         max_local_peers: int = 8,
@@ -421,6 +421,6 @@ class PqLink:
         if self.on_reject is None:
             return
         try:
-            self.on_reject(Refusal(side, f"pq {side}", str(code), reason, raw))
+            self.on_reject(FrameRefusal(side, f"pq {side}", str(code), reason, raw))
         except AntiReplayError:
             self._count("unaudited")
