@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import uuid
+from pathlib import Path
+from typing import Any
 
 import pytest
 
 from antireplay import ManualClock, MessageStaleError, ReplayCache
+from antireplay.core.clock import Clock
 from antireplay.state.redis import RedisStore
+from antireplay.state.sqlite import SqliteStore
+from tests.harness import started_before
 
 
 def assert_fenced(cache: ReplayCache, mid: str, ts: float) -> None:
@@ -32,3 +37,16 @@ def fresh_deployment(cache: ReplayCache, clock: ManualClock) -> None:
     assert isinstance(cache.store, RedisStore)
     cache.store.verify()
     clock.advance(cache.policy.skew_s + 1)
+
+
+def sqlite_store(path: str | Path, *, clock: Clock | None = None, **kwargs: Any) -> SqliteStore:
+    """A :class:`SqliteStore` on ``path``.  A state with no history (neither database nor
+    witness yet) fences its first start; on a :class:`ManualClock` it is created with the
+    clock stepped back (:func:`~tests.harness.started_before`), so that fence lies long
+    behind the test's "now", as a deployment started earlier (the fence has its own
+    tests).  An existing state is opened as it is, loss detection and all."""
+    db = Path(path)
+    witness = db.with_name(f".{db.name}.witness")
+    if isinstance(clock, ManualClock) and not db.exists() and not witness.exists():
+        return started_before(clock, lambda: SqliteStore(db, clock=clock, **kwargs))
+    return SqliteStore(db, clock=clock, **kwargs)
