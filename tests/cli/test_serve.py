@@ -512,3 +512,57 @@ def test_what_startup_built_is_frozen_out_of_the_collectors_sight() -> None:
         assert gc.get_freeze_count() > 10_000
     finally:
         gc.unfreeze()
+
+
+def test_a_wiped_state_directory_fences_its_start_and_says_so(tmp_path: Path) -> None:
+    """X accepted on SQLite; the state directory wiped (database, WAL, witness, audit trail:
+    a redeploy, or an attacker with the disk); the gateway starts on a state with no
+    history, and X replayed within its window is refused by the restart fence, as a
+    memory store's start would refuse it.  The start line, readiness, the metric and an
+    audit row say "no history"."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    with serving(config) as first:  # waits out its own first start's fence
+        x = command(key)
+        assert post(first, x).status_code == 200
+    kept = {config.name, "operator.key.pem", "operator.pub.pem"}
+    for leftover in state.iterdir():
+        if leftover.name not in kept:
+            shutil.rmtree(leftover) if leftover.is_dir() else leftover.unlink()
+    port = free_port()
+    args = [sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
+    proc = subprocess.Popen(
+        [*args, "--host", "127.0.0.1", "--port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        said = [proc.stdout.readline(), proc.stdout.readline()]
+        assert said[0].startswith("listening on") and said[1].startswith("fenced until"), said
+        assert "no history" in said[1]
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
+            until("the gateway to answer", lambda: _answers(client))
+            replayed = post(client, x)
+            body = replayed.json()
+            assert (replayed.status_code, body["code"], body["detail"]) == (
+                408, "MESSAGE_STALE", "restart_fence",
+            ), replayed.text  # fmt: skip
+            ready = client.get("/readyz")
+            assert ready.status_code == 503 and "fenced until" in ready.json()["reason"]
+            assert "no history" in ready.json()["reason"]
+            assert metric(client, "antireplay_state_no_history_total", '{backend="sqlite"}') == 1
+            assert metric(client, "antireplay_state_data_loss_total", '{backend="sqlite"}') == 0
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
+    rows = [r for r in AuditLog(state / "audit.db").tail(50) if r.code == "STATE_LOST"]
+    assert len(rows) == 1 and str(rows[0].warning).startswith("no history"), rows
+
+
+def _answers(client: httpx.Client) -> bool:
+    try:
+        return client.get("/healthz").status_code == 200
+    except httpx.HTTPError:
+        return False
