@@ -538,15 +538,11 @@ def test_a_wiped_state_directory_fences_its_start_and_says_so(tmp_path: Path) ->
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
-        assert proc.stdout is not None
-        said = [proc.stdout.readline(), proc.stdout.readline()]
-        assert said[0].startswith("listening on") and said[1].startswith("fenced until"), said
-        assert "no history" in said[1]
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
             until("the gateway to answer", lambda: _answers(client))
             replayed = post(client, x)
             body = replayed.json()
-            assert (replayed.status_code, body["code"], body["detail"]) == (
+            assert (replayed.status_code, body.get("code"), body.get("detail")) == (
                 408, "MESSAGE_STALE", "restart_fence",
             ), replayed.text  # fmt: skip
             ready = client.get("/readyz")
@@ -556,7 +552,10 @@ def test_a_wiped_state_directory_fences_its_start_and_says_so(tmp_path: Path) ->
             assert metric(client, "antireplay_state_data_loss_total", '{backend="sqlite"}') == 0
     finally:
         proc.terminate()
-        proc.communicate(timeout=30)
+        out, _ = proc.communicate(timeout=30)
+    said = out.splitlines()
+    assert said[0].startswith("listening on") and said[1].startswith("fenced until"), said
+    assert "no history" in said[1]
     rows = [r for r in AuditLog(state / "audit.db").tail(50) if r.code == "STATE_LOST"]
     assert len(rows) == 1 and str(rows[0].warning).startswith("no history"), rows
 
