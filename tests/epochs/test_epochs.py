@@ -47,6 +47,7 @@ from antireplay.state.durable import repair
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
 from tests.harness import assert_never_reused, kill9_runs, started_before
+from tests.harness.stores import sqlite_store
 
 PSK = b"fleet-pre-shared-key-0123456789ab"
 
@@ -442,7 +443,7 @@ def test_verifier_restart_rejects_everything_old(tmp_path: Path, clock: ManualCl
 
 
 def test_each_accept_is_one_store_advance(tmp_path: Path, clock: ManualClock) -> None:
-    store = SqliteStore(tmp_path / "verifier.db", clock=clock)
+    store = sqlite_store(tmp_path / "verifier.db", clock=clock)
     signer = EpochSigner(PSK, clock=clock)
     verifier = EpochVerifier(PSK, store=store, clock=clock)
     verifier.open(signer.seal(b"first"))  # a new prefix: its epoch and its successor's mark
@@ -611,7 +612,7 @@ class _FlakySqlite(SqliteStore):
 def test_failed_store_write_moves_no_mark_and_redelivery_is_accepted(
     tmp_path: Path, clock: ManualClock, caplog: pytest.LogCaptureFixture
 ) -> None:
-    store = _FlakySqlite(tmp_path / "verifier.db", clock=clock)
+    store = started_before(clock, lambda: _FlakySqlite(tmp_path / "verifier.db", clock=clock))
     signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, store=store, clock=clock)
     first = verifier.open(signer.seal(b"first"))
     clock.advance(0.001)
@@ -630,7 +631,7 @@ def test_failed_store_write_moves_no_mark_and_redelivery_is_accepted(
 def test_failed_first_write_of_a_new_prefix_leaves_it_unknown(
     tmp_path: Path, clock: ManualClock
 ) -> None:
-    store = _FlakySqlite(tmp_path / "verifier.db", clock=clock)
+    store = started_before(clock, lambda: _FlakySqlite(tmp_path / "verifier.db", clock=clock))
     signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, store=store, clock=clock)
     sealed = signer.seal(b"hello")
     store.down = True
@@ -654,7 +655,7 @@ def test_wrong_typed_floor_in_sqlite_refuses_start_naming_the_file(
     db = tmp_path / "verifier.db"
     EpochVerifier(PSK, store=f"sqlite:{db}", clock=clock).close()
     _poison_sqlite(db, "epoch:announcement:floor")
-    store = SqliteStore(db, clock=clock)
+    store = sqlite_store(db, clock=clock)
     with pytest.raises(StateFileError) as refused:
         store.current("epoch:announcement:floor")
     assert str(db) in str(refused.value) and refused.value.recovery
@@ -849,7 +850,7 @@ def test_forgotten_prefixes_leave_no_counters_and_stay_refused(
     of counters (the table's prefixes, their markers, the floor), and every forgotten
     prefix's epoch is still refused, by this verifier and by one restarted on the file."""
     table, senders = 4, 60
-    store = SqliteStore(tmp_path / "verifier.db", clock=clock)
+    store = sqlite_store(tmp_path / "verifier.db", clock=clock)
     verifier = EpochVerifier(PSK, store=store, clock=clock, max_prefixes=table)
     sent = []
     for _ in range(senders):
@@ -865,7 +866,7 @@ def test_forgotten_prefixes_leave_no_counters_and_stay_refused(
             verifier.open(sealed)
     verifier.close()
     store.close()
-    reopened = SqliteStore(tmp_path / "verifier.db", clock=clock)
+    reopened = sqlite_store(tmp_path / "verifier.db", clock=clock)
     restarted = EpochVerifier(PSK, store=reopened, clock=clock, max_prefixes=table)
     for sealed in sent:
         with pytest.raises(ReplayAttackError):
@@ -879,7 +880,7 @@ def test_forget_persists_the_floor_before_the_table_moves(
 ) -> None:
     """Persist, then believe: a failed forget leaves the table holding the old prefix (a
     real store whose forget fails, not a patched one: the memory store is compiled)."""
-    store = _FlakySqlite(tmp_path / "verifier.db", clock=clock)
+    store = started_before(clock, lambda: _FlakySqlite(tmp_path / "verifier.db", clock=clock))
     verifier = EpochVerifier(PSK, store=store, clock=clock, max_prefixes=1)
     first, second = EpochSigner(PSK, clock=clock), EpochSigner(PSK, clock=clock)
     held = verifier.open(first.seal(b"a")).nonce_prefix
@@ -904,7 +905,7 @@ def test_a_prefix_forgotten_by_one_verifier_stays_refused_by_another(
 
     def store() -> SqliteStore | RedisStore:
         if backend == "sqlite":
-            return SqliteStore(tmp_path / "shared.db", clock=clock)
+            return sqlite_store(tmp_path / "shared.db", clock=clock)
         return RedisStore(request.getfixturevalue("redis_url"), prefix=prefix, clock=clock)
 
     a = EpochVerifier(PSK, store=store(), clock=clock, max_prefixes=2)

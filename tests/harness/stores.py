@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from antireplay import ManualClock, MessageStaleError, ReplayCache
-from antireplay.core.clock import Clock
+from antireplay.core.clock import Clock, SystemClock
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
 from tests.harness import started_before
@@ -50,3 +50,14 @@ def sqlite_store(path: str | Path, *, clock: Clock | None = None, **kwargs: Any)
     if isinstance(clock, ManualClock) and not db.exists() and not witness.exists():
         return started_before(clock, lambda: SqliteStore(db, clock=clock, **kwargs))
     return SqliteStore(db, clock=clock, **kwargs)
+
+
+def aged_state(path: str | Path, clock: Clock | None = None) -> Path:
+    """Create the SQLite state at ``path`` if it has no history, as a deployment first
+    started ``STARTED_BEFORE_S`` before ``clock``'s now (the real clock if None): the
+    gateway or store a test opens on it next proves its continuity, and its first start's
+    fence lies long behind what the test sends (that fence has its own tests)."""
+    db = Path(path)
+    now = (clock or SystemClock()).wall()
+    sqlite_store(db, clock=ManualClock(wall=now)).close()
+    return db
