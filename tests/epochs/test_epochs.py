@@ -47,7 +47,7 @@ from antireplay.state.durable import repair
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
 from tests.harness import assert_never_reused, kill9_runs, started_before
-from tests.harness.stores import sqlite_store
+from tests.harness.stores import aged_state, sqlite_store
 
 PSK = b"fleet-pre-shared-key-0123456789ab"
 
@@ -251,7 +251,7 @@ def test_rotation_is_audited(tmp_path: Path, clock: ManualClock) -> None:
 
 
 def test_rotation_recognised_by_a_restarted_verifier(tmp_path: Path, clock: ManualClock) -> None:
-    path = f"sqlite:{tmp_path / 'verifier.db'}"
+    path = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"
     signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
     verifier = EpochVerifier(PSK, clock=clock, store=path)
     verifier.open(signer.seal(b"a"))
@@ -280,7 +280,7 @@ def test_rotation_is_reported_once_not_after_each_restart(
 ) -> None:
     """A verifier restarted on its store does not report a rotation it already reported
     (review finding 6): the warning is for the new prefix's first epoch in the store."""
-    path = f"sqlite:{tmp_path / 'verifier.db'}"
+    path = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"
     signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
     verifier = EpochVerifier(PSK, clock=clock, store=path)
     rotated(clock, signer, verifier)
@@ -308,7 +308,7 @@ def test_rotation_is_not_reported_again_after_eviction(clock: ManualClock) -> No
 def test_refused_new_prefix_evicts_no_live_sender(tmp_path: Path, clock: ManualClock) -> None:
     """An authentic new prefix at or below the lowest held epoch of a full table is refused
     and changes nothing: the live senders stay, no fence rises (review finding 5)."""
-    verifier = EpochVerifier(PSK, clock=clock, store=f"sqlite:{tmp_path / 'v.db'}",
+    verifier = EpochVerifier(PSK, clock=clock, store=f"sqlite:{aged_state(tmp_path / 'v.db', clock)}",
                              max_prefixes=2)  # fmt: skip
     a, b = EpochSigner(PSK, clock=clock), EpochSigner(PSK, clock=clock)
     behind = ManualClock(wall=clock.wall() - 0.001)  # a sender 1 ms behind the others
@@ -427,10 +427,10 @@ def test_sender_kill9_at_random_moments_never_repeats(tmp_path: Path) -> None:
 
 
 def test_verifier_restart_rejects_everything_old(tmp_path: Path, clock: ManualClock) -> None:
-    spec = f"sqlite:{tmp_path / 'verifier.db'}"
+    spec = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"  # started earlier
     signer = EpochSigner(PSK, clock=clock)
     sent = [signer.seal(f"a{i}".encode()) for i in range(5)]
-    verifier = EpochVerifier(PSK, store=spec, clock=clock)  # a new deployment: no fence
+    verifier = EpochVerifier(PSK, store=spec, clock=clock)
     for sealed in sent[::2]:
         verifier.open(sealed)  # accept 0, 2, 4; 1 and 3 are superseded
     verifier.close()
@@ -478,7 +478,7 @@ def test_memory_store_verifier_refuses_what_was_sealed_before_it_started(
 
 
 def test_verifier_on_a_store_that_lost_its_state_fences(tmp_path: Path, clock: ManualClock) -> None:
-    db = tmp_path / "verifier.db"
+    db = aged_state(tmp_path / "verifier.db", clock)
     signer = EpochSigner(PSK, clock=clock)
     verifier = EpochVerifier(PSK, store=f"sqlite:{db}", clock=clock, max_forward_s=5)
     old = signer.seal(b"old")
@@ -497,7 +497,7 @@ def test_verifier_on_a_store_that_lost_its_state_fences(tmp_path: Path, clock: M
 def test_two_verifiers_on_one_store_accept_each_epoch_once(
     tmp_path: Path, clock: ManualClock
 ) -> None:
-    spec = f"sqlite:{tmp_path / 'shared.db'}"
+    spec = f"sqlite:{aged_state(tmp_path / 'shared.db', clock)}"
     signer = EpochSigner(PSK, clock=clock)
     first = EpochVerifier(PSK, store=spec, clock=clock)
     second = EpochVerifier(PSK, store=spec, clock=clock)
@@ -669,7 +669,7 @@ def test_wrong_typed_floor_in_sqlite_refuses_start_naming_the_file(
 def test_wrong_typed_epoch_while_running_is_state_unavailable(
     tmp_path: Path, clock: ManualClock
 ) -> None:
-    db = tmp_path / "verifier.db"
+    db = aged_state(tmp_path / "verifier.db", clock)
     signer = EpochSigner(PSK, clock=clock)
     verifier = EpochVerifier(PSK, store=f"sqlite:{db}", clock=clock)
     _poison_sqlite(db, f"epoch:announcement:{signer.nonce_prefix.hex()}")

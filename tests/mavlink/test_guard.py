@@ -24,6 +24,7 @@ from antireplay.mavlink import TS_LIMIT, UNITS_PER_S, MavlinkGuard, mav_time
 from antireplay.mavlink.guard import Admission
 from antireplay.state.sqlite import SqliteStore
 from tests.harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
+from tests.harness.stores import sqlite_store
 
 
 def test_signed_frame_accepted_once(clock: ManualClock) -> None:
@@ -327,7 +328,7 @@ def test_write_through_guards_share_a_store_and_accept_each_frame_once(
 
 
 def test_store_data_loss_fences_by_the_forward_bound(tmp_path: Path, clock: ManualClock) -> None:
-    store = SqliteStore(tmp_path / "mav.db", clock=clock)
+    store = sqlite_store(tmp_path / "mav.db", clock=clock)
     guard = MavlinkGuard(KEY, clock=clock, store=store)
     ahead = frames_at(clock, [40])
     guard.open(ahead[0])
