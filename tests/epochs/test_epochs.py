@@ -308,8 +308,8 @@ def test_rotation_is_not_reported_again_after_eviction(clock: ManualClock) -> No
 def test_refused_new_prefix_evicts_no_live_sender(tmp_path: Path, clock: ManualClock) -> None:
     """An authentic new prefix at or below the lowest held epoch of a full table is refused
     and changes nothing: the live senders stay, no fence rises (review finding 5)."""
-    verifier = EpochVerifier(PSK, clock=clock, store=f"sqlite:{aged_state(tmp_path / 'v.db', clock)}",
-                             max_prefixes=2)  # fmt: skip
+    spec = f"sqlite:{aged_state(tmp_path / 'v.db', clock)}"
+    verifier = EpochVerifier(PSK, clock=clock, store=spec, max_prefixes=2)
     a, b = EpochSigner(PSK, clock=clock), EpochSigner(PSK, clock=clock)
     behind = ManualClock(wall=clock.wall() - 0.001)  # a sender 1 ms behind the others
     lagging = EpochSigner(PSK, clock=behind)
