@@ -1,5 +1,6 @@
-"""A durable write is reported as durable: a SQLite witness that cannot be written after
-COMMIT fails no epoch (the verifier's store step is durable), and is surfaced on its own."""
+"""The epoch verifier on a SQLite store: a durable write is reported as durable (a witness
+that cannot be written after COMMIT fails no epoch, and is surfaced on its own), and a
+store with no history fences the verifier's start as a memory store does."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from antireplay import ManualClock
-from antireplay.core.errors import EpochReplayedError, StateUnavailableError
+from antireplay.core.errors import EpochReplayedError, MessageStaleError, StateUnavailableError
 from antireplay.epochs import EpochSigner, EpochVerifier
 from antireplay.state.sqlite import SqliteStore
 from tests.harness import started_before
@@ -63,4 +64,26 @@ def test_a_witness_failure_is_no_failed_commit(
     assert seen.recorded
     assert not store.commit("a", clock.wall() + 30, clock.wall()).recorded  # it is durable
     assert store.advance("counter", 5) and store.current("counter") == 5
+    store.close()
+
+
+def test_a_verifier_on_a_new_sqlite_store_fences_like_a_memory_one(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """A reader on a state with no history fences ``max_forward_s`` from its start, as on
+    a memory store; a challenge answered by the sender opens it at once."""
+    signer = EpochSigner(PSK, clock=clock)
+    captured = signer.seal(b"sealed before the reader's state began")
+    store = SqliteStore(tmp_path / "reader.db", clock=clock)
+    verifier = EpochVerifier(PSK, store=store, clock=clock, max_forward_s=5)
+    on_memory = EpochVerifier(PSK, clock=clock, max_forward_s=5)
+    assert verifier.restart_fence() == on_memory.restart_fence() and verifier.fenced()
+    with pytest.raises(MessageStaleError) as refused:
+        verifier.open(captured)
+    assert refused.value.detail == "restart_fence"
+    challenge = verifier.challenge()
+    assert challenge is not None
+    verifier.open_answer(signer.answer(challenge))
+    clock.advance(0.001)
+    assert verifier.open(signer.seal(b"fresh, above the answer")).payload.startswith(b"fresh")
     store.close()
