@@ -27,6 +27,7 @@ from antireplay.rcan.auth import SDK_PRIVATE_MAGIC, write_key_pair
 from antireplay.state.ceilings import persistent_counter
 from antireplay.wiring import Allowed
 from tests.harness import ROOT, GatewayProcess, one_line_error
+from tests.harness.stores import aged_state
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 
@@ -42,6 +43,7 @@ def test_demo_passes(args: list[str]) -> None:
 def test_keygen_sign_send_and_audit(tmp_path: Path) -> None:
     runner = CliRunner()
     gw = GatewayProcess(write_demo_config(tmp_path))
+    aged_state(tmp_path / "state.db")  # a deployment started earlier: no first-start row
     gw.start()
     try:
         signed = runner.invoke(

@@ -30,8 +30,12 @@ LIMIT = 4096
 
 
 def config(state: Path, public: Path, **overrides: Any) -> AppConfig:
-    """The default deployment's shape: SQLite seen-set and audit trail on disk."""
+    """The default deployment's shape: SQLite seen-set and audit trail on disk, of a
+    deployment started before the test's now (:func:`~tests.harness.stores.aged_state`:
+    the real clock's, below every manual clock's ``NOW``)."""
     state.mkdir(exist_ok=True)
+    if "store" not in overrides:
+        aged_state(state / "state.db")
     return AppConfig.from_mapping({
         "store": f"sqlite:{state / 'state.db'}", "audit": str(state / "audit.db"),
         "max_body_bytes": LIMIT,
