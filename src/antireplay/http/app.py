@@ -28,7 +28,7 @@ import sqlite3
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
@@ -116,7 +116,7 @@ def fence_notice(receiver: Receiver) -> str | None:
     until = cache.store.fence() + cache.policy.skew_s
     if receiver.clock.wall() > until:
         return None
-    when = datetime.fromtimestamp(until, UTC).isoformat(timespec="milliseconds")
+    when = datetime.fromtimestamp(until, timezone.utc).isoformat(timespec="milliseconds")
     why = getattr(cache.store, "loss_reason", None) or "the store's start (no history)"
     return f"fenced until {when} ({until:.3f}): {why}; a fresh ESTOP still passes"
 

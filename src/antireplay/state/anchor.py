@@ -48,6 +48,9 @@ from antireplay.state.durable import read_record, seal_record
 from antireplay.state.loss import Anchored, Read
 from antireplay.state.spec import StoreSpec
 
+#: ``Anchored`` and ``Read`` stay importable from here (they live in :mod:`.loss`).
+__all__ = ["AnchorUnavailableError", "Anchored", "Read", "StateAnchor", "check_anchor_path"]
+
 #: The anchor file's magic (``ARANCH01``: the previous layout, still recognised as ours).
 ANCHOR_MAGIC: Final = b"ARANCH02"
 _OLD_MAGIC: Final = b"ARANCH01"

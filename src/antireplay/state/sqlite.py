@@ -60,6 +60,8 @@ from antireplay.state.outbox import Forget, Outbox, Put, Renew
 from antireplay.state.sqlite_check import META_SELECT as _META_SELECT
 from antireplay.state.sqlite_check import check_readable, decode_meta, move_aside
 
+#: ``check_readable`` stays importable from here (it moved to :mod:`.sqlite_check`).
+__all__ = ["SAFETY_WAIT_S", "STALLED_WAIT_S", "WITNESS_SYNC_S", "SqliteStore", "check_readable"]
 T = TypeVar("T")
 log = logging.getLogger("antireplay.state.sqlite")
 PURGE_BATCH: Final = 32
