@@ -96,6 +96,7 @@ WITNESS_SYNC_S: Final = 1.0
 #: The meta row as a transaction read it: generation, watermark, fence, data-loss events.
 _Meta = tuple[int, float, float, int]
 _FLOOR = loss.FLOOR
+_HOLDS_STATE = "SELECT EXISTS (SELECT 1 FROM seen) OR EXISTS (SELECT 1 FROM counters)"
 
 
 class SqliteStore:
@@ -199,28 +200,21 @@ class SqliteStore:
         def body(db: sqlite3.Connection) -> tuple[None, _Meta]:
             meta = db.execute(_META_SELECT).fetchone()
             row = None if meta is None else decode_meta(meta, self.path, self._aside)
-            rows = db.execute("SELECT count(*) FROM seen").fetchone()[0]
-            counters = db.execute("SELECT count(*) FROM counters").fetchone()[0]
+            held = db.execute(_HOLDS_STATE).fetchone()[0]
             found = self.witness.read()
-            known = loss.known_deployment(row, found)
-            copies = {} if self.anchor is None else self.anchor.read(known)
+            copies = (
+                {} if self.anchor is None else self.anchor.read(loss.known_deployment(row, found))
+            )
             lazy = self.anchor is not None and self.anchor.lazy
-            wall = self._clock.wall()
-            decision = loss.decide(
-                row, found, bool(rows or counters), copies, lazy=lazy, wall=wall,
+            d = loss.decide(
+                row, found, bool(held), copies, lazy=lazy, wall=self._clock.wall(),
                 wall_hw=self._wall_hw, new_id=uuid.uuid4().hex,
             )  # fmt: skip
-            self._wall_hw = decision.wall_hw
-            if decision.reason is not None:
-                self.loss_reason = decision.reason
-                self.no_history = decision.no_history
+            self._wall_hw, self._deployment = d.wall_hw, d.deployment
+            if d.reason is not None:
+                self.loss_reason, self.no_history = d.reason, d.no_history
                 self._lost_pending = self._opened  # found late: the next commit says so
-                log.warning(
-                    "replay state %s: %s; fence raised to %s",
-                    self.path, decision.reason, decision.fence,
-                )  # fmt: skip
-            self._deployment = decision.deployment
-            d = decision
+                log.warning("replay state %s: %s; fence raised to %s", self.path, d.reason, d.fence)
             return None, (d.generation, d.watermark, d.fence, d.losses)
 
         self._transaction(body)
