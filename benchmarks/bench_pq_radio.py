@@ -52,7 +52,9 @@ from pymavlink import mavutil
 from tests.harness import free_udp_port
 from tests.harness.radio import SIK_BAUD, SIK_QUEUE_BYTES, Radio
 
+from antireplay.core.clock import ManualClock
 from antireplay.mavlink import passphrase_key
+from antireplay.state.sqlite import SqliteStore
 
 CLI = [sys.executable, "-m", "antireplay"]
 PASSPHRASE = "bench-radio-passphrase"
@@ -317,6 +319,8 @@ def run_signed(loss: float, bps: int | None, seed: int, plan: Plan) -> Row:
     env = dict(os.environ, MAV_PASSPHRASE=PASSPHRASE)
     with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
         work = Path(tmp)
+        # A deployment started 10 min ago: a new state fences the router's first start.
+        SqliteStore(work / "mav.db", clock=ManualClock(wall=time.time() - 600)).close()
         router = _Process(
             [
                 "mavlink-router", "--vehicle", f"udpin:127.0.0.1:{vehicle_port}",
