@@ -34,10 +34,10 @@ from starlette.applications import Starlette
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
-from tests.harness import free_port
 
 from antireplay.rcan.auth import sign_envelope
 from antireplay.wiring import DEMO_KID
+from harness import free_port
 
 JSON = {"content-type": "application/json"}
 

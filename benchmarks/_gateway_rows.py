@@ -24,7 +24,6 @@ from pathlib import Path
 import httpx
 from cryptography.hazmat.primitives.asymmetric import ed25519
 from rcan.replay import ReplayCache as RcanCache
-from tests.harness import free_port
 
 from antireplay import ReplayCache
 from antireplay.core.errors import ReplayAttackError
@@ -33,6 +32,7 @@ from benchmarks import bench_mavlink as mav
 from benchmarks import bench_window as window
 from benchmarks._gateway_load import JSON, Server, envelope
 from benchmarks._timing import Batch
+from harness import free_port
 
 
 def accepting(server: Server, key: ed25519.Ed25519PrivateKey) -> None:

@@ -45,13 +45,13 @@ from pathlib import Path
 
 import httpx
 import yaml
-from tests.harness import free_port
 
 from antireplay.config import AuditConfig
 from antireplay.wiring import embedded_default
 from benchmarks._gateway_load import wait_ready
 from benchmarks.bench_gateway import WRK_SCRIPT, envelope, signer, stop, wait_healthy, wrk
 from benchmarks.bench_gateway import write_lines as write
+from harness import free_port
 
 #: ``main`` before the trail was summarised and bounded: the baseline.
 BEFORE = "41b328a"

@@ -14,16 +14,18 @@ import time
 from pathlib import Path
 
 from antireplay.core.clock import ManualClock
-from antireplay.epochs import EpochSigner, EpochVerifier
+from antireplay.epochs import EpochSigner, EpochVerifier, signer_state
+from antireplay.state import open_store
 from benchmarks._timing import per_op_ns, rate
 
 PSK = b"bench-pre-shared-key-0123456789abcdef"
 PAYLOAD = b"participant guid=0102030405060708 locators=udpv4://10.0.0.5:7400 " * 3
 
 
-def _started_earlier(store: str | None = None) -> EpochVerifier:
+def _started_earlier(spec: str | None = None) -> EpochVerifier:
     """A verifier whose store (and restart fence) began two minutes ago."""
     clock = ManualClock(wall=time.time() - 120)
+    store = None if spec is None else open_store(spec, clock=clock)
     verifier = EpochVerifier(PSK, store=store, clock=clock)
     clock.step_wall(120)
     return verifier
@@ -35,8 +37,8 @@ def main() -> None:
     sealed = iter([signer.seal(PAYLOAD) for _ in range(7 * 20_000)])
     rows.append(("open (memory)", per_op_ns(lambda: verifier.open(next(sealed)), 20_000)))
     with tempfile.TemporaryDirectory() as tmp:
-        block = EpochSigner(PSK, state_file=Path(tmp) / "block", reserve_s=1.0)
-        per_epoch = EpochSigner(PSK, state_file=Path(tmp) / "each", reserve_s=0.0)
+        block = EpochSigner(PSK, state=signer_state(Path(tmp) / "block"), reserve_s=1.0)
+        per_epoch = EpochSigner(PSK, state=signer_state(Path(tmp) / "each"), reserve_s=0.0)
         block_ns = per_op_ns(lambda: block.seal(PAYLOAD), 5_000)
         each_ns = per_op_ns(lambda: per_epoch.seal(PAYLOAD), 50, repeats=5)
         rows.append(("seal + block reservation (1 s)", block_ns))

@@ -361,7 +361,7 @@ class Pass:
         ]  # fmt: skip
 
     def redis(self) -> list[Row]:
-        from tests.harness.redis_server import RedisServer  # noqa: PLC0415 - needs pytest
+        from harness.redis_server import RedisServer  # noqa: PLC0415 - needs pytest
 
         directory = self.work / "redis"
         directory.mkdir(exist_ok=True)

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa
+from rcan import RCANMessage
 from rcan.signing import MLDSAKeyPair, sign_message, verify_message
 
 from antireplay import ManualClock
@@ -31,7 +32,6 @@ from antireplay.rcan.receive import Receiver
 from antireplay.state import open_store
 from antireplay.wiring import embedded_default
 from benchmarks._timing import per_op_ns, rate
-from rcan import RCANMessage
 
 NOW = 1_800_000_000.0
 

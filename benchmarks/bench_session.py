@@ -34,7 +34,6 @@ from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 from pymavlink.dialects.v20 import ardupilotmega as dialect
-from tests.harness import free_port
 
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
@@ -46,6 +45,7 @@ from antireplay.pq.session import Initiator, Responder
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
 from benchmarks._timing import per_op_ns, rate
+from harness import free_port
 
 os.environ["MAVLINK20"] = "1"
 BAUD_BYTES_S = 57_600 / 10

@@ -36,7 +36,6 @@ from itertools import count
 from pathlib import Path
 
 import redis
-from tests.harness.redis_server import RedisServer
 
 from antireplay import ManualClock, ReplayCache
 from antireplay.state import open_store
@@ -44,6 +43,7 @@ from antireplay.state.anchor import StateAnchor
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
 from benchmarks._timing import Batch, interleaved_ns_per_op, rate
+from harness.redis_server import RedisServer
 
 LIVE = 10_000
 REPEATS = 11

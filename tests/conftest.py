@@ -1,4 +1,4 @@
-"""Shared fixtures (helpers live in :mod:`tests.harness`)."""
+"""Shared fixtures (helpers live in :mod:`harness`)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import pytest
 from antireplay import ManualClock, ReplayCache, SecurityConfig
 from antireplay.audit import AuditLog
 from antireplay.rcan.receive import Receiver
-from tests.harness import fresh_cache, fresh_receiver
-from tests.harness.envelopes import NOW, registry
-from tests.harness.redis_server import RedisServer
+from harness import fresh_cache, fresh_receiver
+from harness.envelopes import NOW, registry
+from harness.redis_server import RedisServer
 
 
 @pytest.fixture
@@ -29,7 +29,7 @@ def clock() -> ManualClock:
 
 @pytest.fixture
 def receiver(tmp_path: Path, clock: ManualClock) -> Receiver:
-    """A Receiver trusting :func:`tests.harness.envelopes.registry`, auditing to ``tmp_path``."""
+    """A Receiver trusting :func:`harness.envelopes.registry`, auditing to ``tmp_path``."""
     return fresh_receiver(
         SecurityConfig(), registry(), None, AuditLog(tmp_path / "audit.db"), clock
     )

@@ -7,14 +7,14 @@ from pathlib import Path
 
 import pytest
 
-from antireplay import AppConfig, ConfigError, ManualClock, ReplayCache, SecurityConfig
+from antireplay import AppConfig, ConfigError, ManualClock, ReplayCache
 from antireplay.state.memory import MemoryStore
 
 
 def test_yaml_config_round_trip(impl: Callable[..., ReplayCache], tmp_path: Path) -> None:
     path = tmp_path / "robot.yaml"
     path.write_text("security:\n  replay_window_s: 60\n  msg_id_cache_size: 500\n  skew_s: 2\n")
-    cfg = SecurityConfig.from_yaml(path)
+    cfg = AppConfig.from_yaml(path).security
     cache = ReplayCache.from_config(cfg, ManualClock())
     assert isinstance(cache.store, MemoryStore)
     assert (cache.window_s, cache.store.max_entries, cache.policy.skew_s) == (60, 500, 2)
@@ -38,7 +38,7 @@ def test_yaml_errors_name_key_value_and_range(
     path = tmp_path / "robot.yaml"
     path.write_text(yaml_text)
     with pytest.raises(ConfigError) as err:
-        SecurityConfig.from_yaml(path)
+        AppConfig.from_yaml(path)
     assert err.value.key == key
     assert err.value.value == value
     assert "allowed" in str(err.value)
@@ -47,19 +47,19 @@ def test_yaml_errors_name_key_value_and_range(
 def test_legacy_nack_type_31_is_accepted(tmp_path: Path) -> None:
     path = tmp_path / "robot.yaml"
     path.write_text("security:\n  nack_type: 31\n")
-    assert SecurityConfig.from_yaml(path).nack_type == 31
+    assert AppConfig.from_yaml(path).security.nack_type == 31
 
 
 def test_missing_and_broken_yaml_are_config_errors(tmp_path: Path) -> None:
     with pytest.raises(ConfigError):
-        SecurityConfig.from_yaml(tmp_path / "absent.yaml")
+        AppConfig.from_yaml(tmp_path / "absent.yaml")
     broken = tmp_path / "broken.yaml"
     broken.write_text("security: [\n")
     with pytest.raises(ConfigError):
-        SecurityConfig.from_yaml(broken)
+        AppConfig.from_yaml(broken)
     empty = tmp_path / "empty.yaml"
     empty.write_text("")
-    assert SecurityConfig.from_yaml(empty).replay_window_s == 30
+    assert AppConfig.from_yaml(empty).security.replay_window_s == 30
 
 
 @pytest.mark.parametrize("spec", ["memroy", "sqlite:", "sqlite: state.db", "postgres://h"])
@@ -74,7 +74,7 @@ def test_app_config_store_is_checked_by_the_store_grammar(spec: str) -> None:
     ("yaml_text", "message"),
     [
         ("replay_window_s: 30\n",
-         "unknown key `replay_window_s` (did you mean `security.replay_window_s`?)"),
+         "replay_window_s: not a top-level key; it belongs under security:"),
         ("security:\n  replay_windows_s: 30\n",
          "unknown key `security.replay_windows_s` (did you mean `security.replay_window_s`?)"),
         ("stor: memory\n", "unknown key `stor` (did you mean `store`?)"),
@@ -139,3 +139,76 @@ def test_an_unknown_audit_key_names_the_one_it_resembles() -> None:
     with pytest.raises(ConfigError) as err:
         AppConfig.from_mapping({"audit": {"max_byte": 1}})
     assert str(err.value) == "unknown key `audit.max_byte` (did you mean `audit.max_bytes`?)"
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"max_age_s": 5}, "max_age_s: not a top-level key; it belongs under "
+         "audit: or mavlink_pq.vehicle: or dds:"),
+        ({"reader": {"store": "memory"}},
+         "reader: not a top-level key; it belongs under dds:"),
+        ({"signing_key": "op.pem"},
+         "signing_key: not a top-level key; it belongs under mavlink_pq.ground:"),
+        ({"key_file": "k"}, "key_file: not a top-level key; it belongs under mavlink:"),
+        ({"dds": {"psk_file": "k", "key_file": "k"}},
+         "dds.key_file: not a key of dds:; it belongs under mavlink:"),
+        ({"mavlink": {"replay_window_s": 30}},
+         "mavlink.replay_window_s: not a key of mavlink:; it belongs under security:"),
+        ({"mavlink_pq": {"ground": {"kem_key": "k"}}}, "mavlink_pq.ground.kem_key: not a key "
+         "of mavlink_pq.ground:; it belongs under mavlink_pq.vehicle:"),
+        ({"mavlink": {"store": "memory", "metrics": {"prot": 1}}},
+         "unknown key `mavlink.metrics.prot` (did you mean `mavlink.metrics.port`?)"),
+        ({"audit": {"store": "memory"}},
+         "audit.store: not a key of audit:; it belongs at the top level or under "
+         "mavlink: or dds.reader:"),
+    ],
+)  # fmt: skip
+def test_a_key_out_of_its_block_names_where_it_belongs(
+    data: dict[str, object], message: str
+) -> None:
+    """Every section, at any depth: a key in the wrong block is refused by name before a
+    default could stand in for it."""
+    with pytest.raises(ConfigError) as err:
+        AppConfig.from_mapping(data)
+    assert str(err.value) == message
+
+
+def test_a_renamed_dds_key_is_named_in_the_whole_file() -> None:
+    with pytest.raises(ConfigError) as err:
+        AppConfig.from_mapping({"dds": {"psk_file": "k", "reader": {"state_file": "r"}}})
+    assert err.value.key == "dds.reader.state_file"
+    assert "renamed to dds.reader.store" in str(err.value)
+
+
+def test_every_section_is_validated() -> None:
+    config = AppConfig.from_mapping({
+        "mavlink": {"vehicle": ["udpin:127.0.0.1:14555"], "store": "memory", "system_id": 3},
+        "mavlink_pq": {"vehicle": {"peers": {"gcs": "gcs.pem"}, "max_age_s": 4}},
+        "dds": {"psk_file": "fleet.psk", "max_age_s": 5},
+    })  # fmt: skip
+    assert (config.mavlink.system_id, config.mavlink.store) == (3, "memory")
+    assert config.mavlink_pq.vehicle.peers == {"gcs": "gcs.pem"}
+    assert config.dds is not None and config.dds.max_age_s == 5
+    for data, key in (
+        ({"mavlink": {"store": "memroy"}}, "mavlink.store"),
+        ({"mavlink": {"system_id": 0}}, "mavlink.system_id"),
+        ({"mavlink_pq": {"ground": {"air_bps": 10}}}, "mavlink_pq.ground.air_bps"),
+        ({"dds": {"max_age_s": 5}}, "dds.psk_file"),
+    ):
+        with pytest.raises(ConfigError) as err:
+            AppConfig.from_mapping(data)
+        assert err.value.key == key, err.value
+
+
+def test_flags_override_keys_and_are_held_to_the_same_rules(tmp_path: Path) -> None:
+    path = tmp_path / "antireplay.yaml"
+    path.write_text("audit: trail.db\nmavlink:\n  store: memory\n  vehicle: [udpin:h:1]\n")
+    config = AppConfig.load(path, {"mavlink.store": None, "mavlink.vehicle": ("udpin:h:2",),
+                                   "audit.max_bytes": 1 << 30})  # fmt: skip
+    assert (config.mavlink.store, config.mavlink.vehicle) == ("memory", ["udpin:h:2"])
+    assert (config.audit.path, config.audit.max_bytes) == ("trail.db", 1 << 30)
+    with pytest.raises(ConfigError) as err:
+        AppConfig.load(path, {"mavlink.system_id": 300})
+    assert err.value.key == "mavlink.system_id"
+    assert AppConfig.load(None).mavlink.store == "sqlite:.antireplay/mavlink.db"

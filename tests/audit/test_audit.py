@@ -18,8 +18,8 @@ from antireplay.core.clock import ManualClock
 from antireplay.core.errors import AuditFileError, StateUnavailableError
 from antireplay.rcan.receive import Receiver
 from antireplay.wiring import build_receiver, embedded_default
-from tests.harness.audit import sql, trail
-from tests.harness.envelopes import MARKER, NOW, message, signed
+from harness.audit import sql, trail
+from harness.envelopes import MARKER, NOW, message, signed
 
 
 @pytest.fixture

@@ -19,7 +19,7 @@ from antireplay.audit.segments import bytes_of, numbered, rotated
 from antireplay.cli import main
 from antireplay.core.clock import ManualClock
 from antireplay.core.errors import AuditFileError, StateUnavailableError
-from tests.harness.audit import SMALL_SEGMENT, append, segmented, sql, trail
+from harness.audit import SMALL_SEGMENT, append, segmented, sql, trail
 
 
 def rows_of(path: Path) -> list[tuple[int, str, str]]:

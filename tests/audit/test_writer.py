@@ -14,9 +14,9 @@ import pytest
 from antireplay.audit import AuditLog, Retention, tail, verify
 from antireplay.audit.segments import bytes_of, rotated
 from antireplay.core.errors import AuditFileError, StateUnavailableError
-from tests.harness import ROOT
-from tests.harness.audit import SMALL_SEGMENT, append, trail
-from tests.harness.workers.audit_worker import BUDGET
+from harness import ROOT
+from harness.audit import SMALL_SEGMENT, append, trail
+from harness.workers.audit_worker import BUDGET
 
 
 @pytest.mark.parametrize("key_too", [False, True], ids=["db", "db-and-key"])
@@ -59,7 +59,7 @@ def kill_at(path: Path, step: str, nth: int) -> list[int]:
     """Run a real writer appending in a loop, SIGKILL it once it hangs at ``step`` of its
     ``nth`` rotation (or retention); the sequence numbers it had acknowledged."""
     worker = subprocess.Popen(
-        [sys.executable, "-m", "tests.harness.workers.audit_worker", str(path), step, str(nth)],
+        [sys.executable, "-m", "harness.workers.audit_worker", str(path), step, str(nth)],
         stdout=subprocess.PIPE, text=True, cwd=ROOT,
         env={**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"},
     )  # fmt: skip
@@ -133,7 +133,7 @@ def test_writer_processes_on_one_trail_rotate_and_retain_within_budget(tmp_path:
     path = tmp_path / "audit.db"
     AuditLog(path, retention=BUDGET).close()  # the key and head exist before both start
     env = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"}
-    command = [sys.executable, "-m", "tests.harness.workers.audit_worker", str(path), "append"]
+    command = [sys.executable, "-m", "harness.workers.audit_worker", str(path), "append"]
     workers = [
         subprocess.Popen(
             [*command, "700", name],

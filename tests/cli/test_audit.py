@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from antireplay.audit import AuditLog, verify
 from antireplay.audit.segments import rotated
 from antireplay.cli import main
-from tests.harness.audit import segmented, sql, trail
+from harness.audit import segmented, sql, trail
 
 REASON = "database missing, truncated or replaced (the witness says it existed)"
 

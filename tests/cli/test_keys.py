@@ -13,7 +13,7 @@ from rcan.signing import MLDSAKeyPair
 
 from antireplay.cli import main
 from antireplay.rcan.auth import write_key_pair
-from tests.harness import one_line_error
+from harness import one_line_error
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 

@@ -6,13 +6,16 @@ import subprocess
 import sys
 from pathlib import Path
 
+import httpx
 import pytest
 from click.testing import CliRunner
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, verify
 from antireplay.cli import main
 from antireplay.config import AuditConfig
-from tests.harness import free_port, free_udp_port
+from harness import free_port, free_udp_port, metrics_router
+from harness.flood import flood_until_rotated, trail_bytes
+from harness.mavlink_frames import unsigned_heartbeat
 
 
 @pytest.mark.parametrize(("host", "why"), [("192.0.2.1", "assign"), ("bad..host", "label")])
@@ -35,14 +38,15 @@ def test_mavlink_router_metrics_host_errors_name_the_option(
 def test_mavlink_router_opens_its_trail_rotated_and_retained(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The router's trail has the ``audit:`` defaults' segments and budget, and a spill."""
+    """The router's trail has the ``audit:`` defaults' segments and budget, and a spill;
+    a router that cannot be built leaves its trail closed."""
     opened: list[AuditLog] = []
 
-    def build(_endpoints: object, _store: object, audit: AuditLog, _options: object) -> None:
+    def build(_endpoints: object, _store: object, audit: AuditLog, *_: object) -> None:
         opened.append(audit)
         raise ValueError("stop here")
 
-    monkeypatch.setattr("antireplay.wiring.build_mavlink_router", build)
+    monkeypatch.setattr("antireplay.wiring.mavlink.build_mavlink_router", build)
     key = tmp_path / "link.key"
     key.write_bytes(bytes(range(32)))
     trail = tmp_path / "audit.db"
@@ -51,10 +55,95 @@ def test_mavlink_router_opens_its_trail_rotated_and_retained(
             "--listen", f"udp:127.0.0.1:{free_udp_port()}"]  # fmt: skip
     done = CliRunner().invoke(main, args)
     assert done.exit_code == 2 and "stop here" in done.output, done.output
-    (audit,) = opened
-    audit.close()
+    (audit,) = opened  # closed again by the wiring when the router could not be built
     defaults = AuditConfig(path=str(trail))
     assert (audit.retention.segment_bytes, audit.retention.max_bytes) == (
         defaults.segment_bytes, defaults.max_bytes,
     )  # fmt: skip
     assert trail.with_name("audit.db.spill").exists()
+
+
+SEGMENT, BUDGET = 65_536, 131_072  # the smallest segments; a budget of two
+
+
+def test_the_routers_trail_stays_within_its_configured_budget_under_a_refusal_flood(
+    tmp_path: Path,
+) -> None:
+    """``audit:`` in the router's ``--config`` reaches its trail: unsigned frames flooding a
+    ground link are refused and recorded, the trail rotates and retention keeps it within
+    ``audit.max_bytes``; ``audit verify`` proves the chain from where retention cut it."""
+    key, audit, ground = tmp_path / "link.key", tmp_path / "router.db", free_udp_port()
+    key.write_bytes(bytes(range(32)))
+    config = tmp_path / "router.yaml"
+    config.write_text(
+        f"audit: {{path: {audit}, segment_bytes: {SEGMENT}, segment_age_s: 1, "
+        f"max_bytes: {BUDGET}}}\n"
+        f"mavlink:\n  ground: ['udpin:127.0.0.1:{ground}']\n"
+        f"  vehicle: ['udpout:127.0.0.1:{free_udp_port()}']\n"
+        f"  key_file: {key}\n  store: memory\n"
+    )
+    args = [sys.executable, "-m", "antireplay", "mavlink-router", "--config", str(config)]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None and "mavlink-router" in proc.stdout.readline()
+        frames = [unsigned_heartbeat(system) for system in range(2, 200)]
+        flood_until_rotated(ground, frames, audit, segments=2)
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "SIGNATURE_REQUIRED" in err and "removed by retention" in err
+    assert trail_bytes(audit) <= BUDGET
+    report = verify(audit)
+    assert report.ok and report.first_segment > 2, report
+
+
+@pytest.mark.parametrize(
+    ("yaml_text", "said"),
+    [
+        ("signing_key: op.pem\n",
+         "signing_key: not a top-level key; it belongs under mavlink_pq.ground:"),
+        ("key_file: link.key\n", "key_file: not a top-level key; it belongs under mavlink:"),
+        ("dds:\n  psk_file: fleet.psk\n  system_id: 1\n",
+         "dds.system_id: not a key of dds:; it belongs under mavlink: or mavlink_pq.ground: "
+         "or mavlink_pq.vehicle:"),
+        ("mavlink:\n  replay_window_s: 30\n",
+         "mavlink.replay_window_s: not a key of mavlink:; it belongs under security:"),
+        ("mavlink:\n  store: memroy\n", "mavlink.store='memroy'"),
+    ],
+)  # fmt: skip
+def test_a_mavlink_key_outside_its_block_is_refused_by_name(
+    tmp_path: Path, yaml_text: str, said: str
+) -> None:
+    """A key where it does not belong (or a value it cannot take) stops the router before
+    it opens anything: one line naming the key and where it belongs, status 2."""
+    config = tmp_path / "router.yaml"
+    config.write_text(yaml_text)
+    args = [sys.executable, "-m", "antireplay", "mavlink-router", "--config", str(config),
+            "--forward", "udp:127.0.0.1:9"]  # fmt: skip
+    done = subprocess.run(
+        args, capture_output=True, text=True, timeout=60, check=False, cwd=tmp_path
+    )
+    assert (done.returncode, done.stdout) == (2, ""), done.stderr
+    (line,) = done.stderr.splitlines()
+    assert line.startswith("antireplay: error: ") and said in line, line
+    assert not (tmp_path / ".antireplay").exists()
+
+
+def test_flags_override_the_config_file(tmp_path: Path) -> None:
+    """``--store`` over ``mavlink.store``: the flag's value is held to the key's rules and
+    named by its flag when it breaks them."""
+    config = tmp_path / "router.yaml"
+    config.write_text("mavlink:\n  store: memory\n  vehicle: ['udpout:127.0.0.1:9']\n")
+    args = ["mavlink-router", "--config", str(config), "--store", "bogus:x"]
+    done = CliRunner().invoke(main, args)
+    assert done.exit_code == 2
+    assert done.output.startswith("antireplay: error: --store: invalid config mavlink.store")
+
+
+def test_the_router_exports_its_readiness_and_trail_as_the_gateway_does(tmp_path: Path) -> None:
+    with metrics_router(tmp_path) as port:
+        text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
+    assert 'antireplay_ready{command="mavlink-router"} 1.0' in text
+    assert 'antireplay_audit_trail_segments{command="mavlink-router"} 1.0' in text
+    assert 'antireplay_audit_disk_pressure{command="mavlink-router"} 0.0' in text

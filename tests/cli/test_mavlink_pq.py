@@ -19,12 +19,15 @@ from click.testing import CliRunner
 from prometheus_client.parser import text_string_to_metric_families
 
 os.environ["MAVLINK20"] = "1"
-from benchmarks import bench_pq_radio
 from pymavlink import mavutil
 
+from antireplay.audit import verify
 from antireplay.cli import main
-from tests.harness import free_port, free_udp_port, until
-from tests.harness.radio import SIK_BAUD, SIK_QUEUE_BYTES
+from antireplay.mavlink.pq.wire import status_frame
+from harness import free_port, free_udp_port, metrics_pq, until
+from harness.flood import flood_until_rotated, trail_bytes
+from harness.pq_radio import Plan, make_keys, run_pq
+from harness.radio import SIK_BAUD, SIK_QUEUE_BYTES
 
 CLI = [sys.executable, "-m", "antireplay"]
 
@@ -250,7 +253,7 @@ def test_a_lost_first_handshake_is_retried_and_each_end_reports_its_session(
         assert end.said("sessions established=1"), end.lines  # the counts at SIGTERM
     assert vehicle.said("local:NO_SESSION="), vehicle.lines
     for trail in ("ground.db", "vehicle.db"):
-        assert _audited(keys / trail) == [("session", "ESTABLISHED")]
+        assert _audited(keys / trail) == [("session", "ESTABLISHED")], _audited(keys / trail)
 
 
 def test_the_system_id_options_say_what_they_set() -> None:
@@ -265,12 +268,80 @@ def test_commands_cross_a_lossy_slow_radio_once_each(tmp_path: Path) -> None:
     station retrying as QGroundControl does and a pymavlink vehicle: the session comes up
     within 5 s, every command is executed once and acknowledged, and no retry after a lost
     ACK runs a command again (the retry is answered from what the ends hold)."""
-    bench_pq_radio.make_keys(tmp_path)
-    plan = bench_pq_radio.Plan(
+    make_keys(tmp_path)
+    plan = Plan(
         commands=8, tries=4, retry_s=1.5, session_timeout_s=30.0,
         queue_bytes=SIK_QUEUE_BYTES, keys=tmp_path, air_bps=True,
     )  # fmt: skip
-    row = bench_pq_radio.run_pq(0.10, SIK_BAUD, 3, plan)
+    row = run_pq(0.10, SIK_BAUD, 3, plan)
     assert row.note == "" and row.session_s is not None and row.session_s < 5.0
     assert row.delivered >= 7, row  # 8 in every run so far; one may need all 4 tries
     assert row.replays == row.re_executed == row.unacked_executed == 0, row
+
+
+SEGMENT, BUDGET = 65_536, 131_072  # the smallest segments; a budget of two
+
+
+def test_a_vehicle_ends_trail_stays_within_its_configured_budget_under_a_refusal_flood(
+    keys: Path,
+) -> None:
+    """``audit:`` in the end's ``--config`` reaches its trail: frames that are no chunk
+    flooding the air port are refused and recorded, the trail rotates and retention keeps
+    it within ``audit.max_bytes``; ``audit verify`` proves the chain from where it was cut."""
+    audit, air = keys / "vehicle.db", free_udp_port()
+    config = keys / "vehicle.yaml"
+    config.write_text(
+        f"audit: {{path: {audit}, segment_bytes: {SEGMENT}, segment_age_s: 1, "
+        f"max_bytes: {BUDGET}}}\n"
+        "mavlink_pq:\n  vehicle:\n"
+        f"    fc: udpout:127.0.0.1:{free_udp_port()}\n    air: udpin:127.0.0.1:{air}\n"
+        f"    kem_key: {keys / 'vehicle.key.pem'}\n    peers: {{gcs: {keys / 'gcs.pub.pem'}}}\n"
+    )
+    end = Process(["mavlink-pq", "vehicle", "--config", str(config)], keys)
+    try:
+        until("the vehicle end runs", lambda: end.said("mavlink-pq vehicle"))
+        frames = [status_frame(1, system, 1) for system in range(2, 200)]  # no chunks
+        flood_until_rotated(air, frames, audit, segments=2)
+    finally:
+        assert end.stop() == 0, end.lines
+    assert end.said("refused") and end.said("removed by retention"), end.lines[-5:]
+    assert trail_bytes(audit) <= BUDGET
+    report = verify(audit)
+    assert report.ok and report.first_segment > 2, report
+
+
+@pytest.mark.parametrize(
+    ("which", "yaml_text", "said"),
+    [
+        ("ground", "signing_key: gcs.key.pem\n",
+         "signing_key: not a top-level key; it belongs under mavlink_pq.ground:"),
+        ("vehicle", "mavlink_pq:\n  ground:\n    kem_key: k.pem\n",
+         "mavlink_pq.ground.kem_key: not a key of mavlink_pq.ground:; it belongs under "
+         "mavlink_pq.vehicle:"),
+        ("ground", "mavlink_pq:\n  signing_key: gcs.key.pem\n",
+         "mavlink_pq.signing_key: not a key of mavlink_pq:; it belongs under "
+         "mavlink_pq.ground:"),
+        ("vehicle", "dds:\n  psk_file: f.psk\n  peers: {gcs: gcs.pub.pem}\n",
+         "dds.peers: not a key of dds:; it belongs under mavlink_pq.vehicle:"),
+    ],
+)  # fmt: skip
+def test_a_pq_key_outside_its_block_is_refused_by_name(
+    tmp_path: Path, which: str, yaml_text: str, said: str
+) -> None:
+    config = tmp_path / "pq.yaml"
+    config.write_text(yaml_text)
+    done = subprocess.run(
+        [*CLI, "mavlink-pq", which, "--config", str(config), "--air", "udpin:127.0.0.1:0"],
+        capture_output=True, text=True, timeout=60, check=False, cwd=tmp_path,
+    )  # fmt: skip
+    assert (done.returncode, done.stdout) == (2, ""), done.stderr
+    (line,) = done.stderr.splitlines()
+    assert line.startswith("antireplay: error: ") and said in line, line
+    assert not (tmp_path / ".antireplay").exists()
+
+
+def test_a_pq_end_exports_its_readiness_and_trail_as_the_gateway_does(tmp_path: Path) -> None:
+    with metrics_pq(tmp_path) as port:
+        text = httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=10).text
+    assert 'antireplay_ready{command="mavlink-pq ground"} 1.0' in text
+    assert 'antireplay_audit_trail_segments{command="mavlink-pq ground"} 1.0' in text

@@ -25,7 +25,7 @@ from antireplay.cli._common import importable_cwd
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.cli.serve import settled_heap
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import (
+from harness import (
     GatewayProcess,
     free_port,
     metric,
@@ -35,7 +35,7 @@ from tests.harness import (
     until,
     wait_past_fence,
 )
-from tests.harness.redis_server import RedisServer
+from harness.redis_server import RedisServer
 
 
 def test_the_working_directory_goes_on_sys_path_only_for_a_module_upstream(
@@ -528,6 +528,35 @@ def test_what_startup_built_is_frozen_out_of_the_collectors_sight() -> None:
         assert gc.get_freeze_count() > 10_000
     finally:
         gc.unfreeze()
+
+
+def test_config_check_validates_every_section(tmp_path: Path) -> None:
+    """``config check`` loads what the router, the PQ ends and the DDS commands would load
+    from their sections (key files, allow-lists, PEM keys), and names the first that
+    fails; ``serve``'s own checks run as before."""
+    run = CliRunner().invoke
+    config = write_demo_config(tmp_path)
+    key = tmp_path / "link.key"
+    key.write_bytes(bytes(range(32)))
+    base = yaml.safe_load(config.read_text())
+    router = {"vehicle": ["udpin:127.0.0.1:14555"], "ground": ["udpin:127.0.0.1:14550"],
+              "key_file": str(key), "store": "memory"}  # fmt: skip
+    config.write_text(yaml.safe_dump({**base, "mavlink": router}))
+    done = run(main, ["config", "check", str(config)])
+    assert done.exit_code == 0 and "ok: mavlink: 2 endpoints, store memory" in done.output
+    alone = tmp_path / "router.yaml"  # a router's file: no gateway keys to warn about
+    alone.write_text(yaml.safe_dump({"mavlink": router, "audit": str(tmp_path / "r.db")}))
+    done = run(main, ["config", "check", str(alone)])
+    assert done.exit_code == 0 and "no keys" not in done.stderr, done.stderr
+    for wrong, named in (
+        ({"mavlink": {**router, "key_file": str(tmp_path / "gone.key")}}, "mavlink.key_file"),
+        ({"mavlink": {**router, "allow_unsigned": ["NOPE"]}}, "mavlink.allow_unsigned"),
+        ({"mavlink_pq": {"vehicle": {"kem_key": str(key), "peers": {"g": "x"}}}},
+         "mavlink_pq.vehicle.kem_key"),
+        ({"dds": {"psk_file": str(tmp_path / "gone.psk")}}, "dds.psk_file"),
+    ):  # fmt: skip
+        config.write_text(yaml.safe_dump({**base, **wrong}))
+        one_line_error(run(main, ["config", "check", str(config)]), named)
 
 
 def test_a_wiped_state_directory_fences_its_start_and_says_so(tmp_path: Path) -> None:

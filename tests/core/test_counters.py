@@ -30,7 +30,7 @@ from antireplay.core.errors import (
     ReplayAttackError,
 )
 from antireplay.state.ceilings import persistent_counter
-from tests.harness import assert_never_reused, kill9_runs, race, run_threads
+from harness import assert_never_reused, kill9_runs, race, run_threads
 
 
 def commits(window: CounterWindow, counter: int) -> bool:
@@ -211,9 +211,60 @@ def test_restart_persists_the_new_binding_before_its_first_value(tmp_path: Path)
     assert counter.reservations == writes + 1
 
 
-def test_counter_from_time_is_above_time_ns() -> None:
-    before = time.time_ns()
-    assert NonceCounter.from_time().next() >= before
+def test_counter_from_time_starts_at_the_time_it_is_given() -> None:
+    """The counter reads no clock: the caller passes ``now_ns``."""
+    assert NonceCounter.from_time(1_234_567).next() == 1_234_567
+    assert NonceCounter.from_time(time.time_ns()).next() > 0
+
+
+class BlockingCeiling:
+    """A ceiling whose first claim, before it lands, has another thread restart the counter
+    (``restarted``: whether that thread's call returned while the claim was in flight)."""
+
+    counter: NonceCounter
+
+    def __init__(self) -> None:
+        self.claims: list[tuple[int, int]] = []
+        self.restarted: list[bool] = []
+
+    def claim(self, value: int, span: int) -> int:
+        self.claims.append((value, span))
+        if len(self.claims) == 1:
+            done = threading.Event()
+
+            def restart() -> None:
+                self.counter.restart(100)
+                done.set()
+
+            threading.Thread(target=restart).start()
+            self.restarted.append(done.wait(30))  # a lock held across this claim: never set
+        return value
+
+    def release(self) -> None:
+        pass
+
+
+def test_no_lock_is_held_while_a_ceiling_is_persisted() -> None:
+    """Persist outside the lock, then believe: while one thread's reservation is being
+    written another thread can restart the counter, and the reservation made for the old
+    binding is not believed: the first value comes from a reservation of the new one."""
+    ceiling = BlockingCeiling()
+    counter = ceiling.counter = NonceCounter.on_ceiling(ceiling, 0, 10)
+    assert counter.next() == 100
+    assert ceiling.restarted == [True]  # restart() ran while the claim was in flight
+    assert ceiling.claims == [(1, 10), (100, 10)]
+    assert [counter.next() for _ in range(9)] == list(range(101, 110))
+    assert counter.reservations == 2
+
+
+def test_threads_past_the_ceiling_wait_for_one_reservation(tmp_path: Path) -> None:
+    """Eight threads drawing from a counter with a lease of 5: every value distinct, and
+    no value handed out above a ceiling before it was durable (one claim at a time)."""
+    counter = persistent_counter(tmp_path / "ctr.state", lease=5)
+    drawn: list[list[int]] = [[] for _ in range(8)]
+    run_threads(8, lambda i: drawn[i].extend([counter.next() for _ in range(50)]))
+    assert sorted(itertools.chain.from_iterable(drawn)) == list(range(1, 401))
+    assert counter.reservations == 80
 
 
 def test_persistent_counter_writes_once_per_lease(tmp_path: Path) -> None:
@@ -236,7 +287,7 @@ def test_persistent_counter_resumes_above_ceiling(tmp_path: Path) -> None:
 
 def test_persistent_counter_never_reuses_across_kill9(tmp_path: Path) -> None:
     """100 real subprocesses, each SIGKILLed at a random moment."""
-    args = ["-m", "tests.harness.workers.counter_worker", str(tmp_path / "ctr.state"), "16"]
+    args = ["-m", "harness.workers.counter_worker", str(tmp_path / "ctr.state"), "16"]
     assert_never_reused(kill9_runs(args, 100, 120, seed=1234), "counter")
 
 

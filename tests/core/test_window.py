@@ -23,7 +23,7 @@ from antireplay import (
     ReplayDetectedError,
 )
 from antireplay.state.memory import MemoryStore
-from tests.harness import race
+from harness import race
 
 
 def memory(cache: ReplayCache) -> MemoryStore:

@@ -1,7 +1,7 @@
 """The audit trail under a replay flood, on a real small filesystem made by the test.
 
 Each test runs ``antireplay serve`` inside a mount namespace holding an 8 MiB tmpfs
-(:mod:`tests.harness.small_fs`) with its replay state and audit trail on it, and speaks to
+(:mod:`harness.small_fs`) with its replay state and audit trail on it, and speaks to
 it over loopback: the flood is fully counted by rows and summaries (metrics agree); with a
 small ``audit:`` budget, a flood beside fresh commands rotates and retains the trail,
 whose bytes on disk stay within the budget throughout and whose chain ``antireplay audit
@@ -30,8 +30,8 @@ from antireplay.audit import tail, verify
 from antireplay.audit.refusals import SUMMARY, summary_count
 from antireplay.audit.segments import rotated
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
-from tests.harness import GatewayProcess, metric, post, run_threads, until
-from tests.harness.small_fs import SmallFs, small_fs
+from harness import GatewayProcess, metric, post, run_threads, until
+from harness.small_fs import SmallFs, small_fs
 
 MIB = 1024 * 1024
 SIZE = 8 * MIB

@@ -15,8 +15,8 @@ from antireplay.audit import verify
 from antireplay.audit.segments import bytes_of, rotated
 from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
-from tests.harness import serving
-from tests.harness.stores import aged_state
+from harness import serving
+from harness.stores import aged_state
 
 SEGMENT = 65_536
 BUDGET = 4 * SEGMENT

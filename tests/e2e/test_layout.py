@@ -1,5 +1,7 @@
 """The house rules of the tree, checked mechanically: tests mirror modules, no test file
-imports another, module docstrings carry no project history, modules stay small or say why."""
+imports another, tests and benchmarks share only the process harness (``harness/``, at the
+top of the checkout, importing neither), module docstrings carry no project history,
+modules stay small or say why."""
 
 from __future__ import annotations
 
@@ -7,10 +9,12 @@ import ast
 import re
 from pathlib import Path
 
-from tests.harness import ROOT
+from harness import ROOT
 
 SRC = ROOT / "src" / "antireplay"
 TESTS = ROOT / "tests"
+HARNESS = ROOT / "harness"
+BENCHMARKS = ROOT / "benchmarks"
 #: Suites about the whole system rather than one module.
 CROSS_CUTTING = {"e2e", "conformance", "fuzz"}
 #: A module longer than this says why in a docstring line starting with "Size:".
@@ -69,6 +73,40 @@ def test_no_test_file_imports_another() -> None:
         for path in sorted(TESTS.rglob("*.py"))
     }
     assert {k: v for k, v in offenders.items() if v} == {}
+
+
+def importers_of(tree: Path, packages: set[str]) -> dict[str, list[str]]:
+    """Files under ``tree`` that import a module of one of ``packages``, and what."""
+    found = {
+        str(path.relative_to(ROOT)): sorted(
+            m for m in imported_modules(path) if m.split(".")[0] in packages
+        )
+        for path in sorted(tree.rglob("*.py"))
+    }
+    return {k: v for k, v in found.items() if v}
+
+
+def test_tests_and_benchmarks_share_only_the_harness() -> None:
+    """One process harness that both import; neither imports the other, and the harness
+    imports neither (so a benchmark runs without the test suite and the other way round)."""
+    assert (HARNESS / "__init__.py").is_file() and importers_of(TESTS, {"harness"})
+    assert importers_of(BENCHMARKS, {"harness"}), "the benchmarks use the same harness"
+    assert importers_of(TESTS, {"benchmarks"}) == {}
+    assert importers_of(BENCHMARKS, {"tests"}) == {}
+    assert importers_of(HARNESS, {"tests", "benchmarks"}) == {}
+
+
+def test_helpers_live_in_the_harness() -> None:
+    """Outside the cross-cutting suites (the fuzzer has its own runner), ``tests/`` holds
+    only test files, ``conftest.py`` and package markers."""
+    helpers = [
+        str(path.relative_to(TESTS))
+        for path in sorted(TESTS.rglob("*.py"))
+        if path.relative_to(TESTS).parts[0] not in CROSS_CUTTING
+        and not path.name.startswith("test_")
+        and path.name not in {"conftest.py", "__init__.py"}
+    ]
+    assert helpers == [], f"helpers outside harness/: {helpers}"
 
 
 def docstring(path: Path) -> str:

@@ -20,8 +20,8 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay.core.clock import SystemClock
 from antireplay.mavlink import mav_time
-from tests.harness import until
-from tests.harness.mavproxy import TOOL_SYSTEM, RouterRig
+from harness import until
+from harness.mavproxy import TOOL_SYSTEM, RouterRig
 
 ARM = 400  # MAV_CMD_COMPONENT_ARM_DISARM
 

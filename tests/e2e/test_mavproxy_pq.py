@@ -37,9 +37,9 @@ from antireplay.mavlink.pq.link import PqLink
 from antireplay.pq.session import Initiator, Responder
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
-from tests.harness import free_port, until
-from tests.harness.mavproxy import KEY, PqRig, PtyVehicle
-from tests.harness.stores import aged_state
+from harness import free_port, until
+from harness.mavproxy import KEY, PqRig, PtyVehicle
+from harness.stores import aged_state
 
 ARM, SERVO = 400, 183
 

@@ -12,6 +12,7 @@ import pytest
 import yaml
 from click.testing import CliRunner
 from cryptography.hazmat.primitives.asymmetric import mldsa
+from rcan import RCANMessage, RCANResponse
 from rcan.qos import make_estop_with_qos
 from rcan.safety import make_estop_message
 from rcan.signing import MLDSAKeyPair, sign_message, verify_message
@@ -24,9 +25,8 @@ from antireplay.core.errors import ConfigError
 from antireplay.rcan.auth import load_public_key, sdk_key_id, write_key_pair
 from antireplay.rcan.receive import Receiver
 from antireplay.wiring import build_registry
-from rcan import RCANMessage, RCANResponse
-from tests.harness import GatewayProcess, fresh_receiver
-from tests.harness.envelopes import NOW
+from harness import GatewayProcess, fresh_receiver
+from harness.envelopes import NOW
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 JSON = {"content-type": "application/json"}

@@ -39,8 +39,8 @@ from antireplay.state import ReplayStore
 from antireplay.state.memory import MemoryStore
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
-from tests.harness.redis_server import RedisServer
-from tests.harness.stores import sqlite_store
+from harness.redis_server import RedisServer
+from harness.stores import sqlite_store
 
 WINDOW, SAFETY_WINDOW, SKEW, MEMORY_MAX = 30.0, 10.0, 5.0, 6
 #: Far enough ahead of the real clock that Redis's server time never sets a fence.

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, precondition, rule
 
 from antireplay import ManualClock, MessageType, ReplayAttackError, ReplayCache
-from tests.harness import fresh_cache
+from harness import fresh_cache
 
 WINDOW, SAFETY_WINDOW, SKEW, MAX_SIZE = 30.0, 10.0, 5.0, 8
 IDS = st.sampled_from([f"id{i}" for i in range(6)])

@@ -40,14 +40,16 @@ from antireplay.epochs import (
     Kind,
     derive_key,
     prefix_for_service,
+    signer_state,
     successor_prefix,
 )
 from antireplay.epochs.policy import seal
+from antireplay.state import open_store
 from antireplay.state.durable import repair
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import assert_never_reused, kill9_runs, started_before
-from tests.harness.stores import aged_state, sqlite_store
+from harness import assert_never_reused, kill9_runs, started_before
+from harness.stores import aged_state, sqlite_store
 
 PSK = b"fleet-pre-shared-key-0123456789ab"
 
@@ -210,23 +212,29 @@ def test_glitch_persisted_in_the_state_file_is_recovered_after_restart(
     """The glitched ceiling reached the state file; the restarted sender rotates at once."""
     path = tmp_path / "signer.state"
     verifier = verifier_on(clock, max_forward_s=30)
-    signer = EpochSigner(PSK, service_name="svc", state_file=path, clock=clock, max_forward_s=30)
+    signer = EpochSigner(
+        PSK, service_name="svc", state=signer_state(path), clock=clock, max_forward_s=30
+    )
     verifier.open(signer.seal(b"before"))
     clock.step_wall(3_600)
     signer.seal(b"glitch")  # ceiling one hour ahead, durably saved
     signer.close()  # the host restarts; NTP corrects the clock
     clock.step_wall(-3_600)
-    restarted = EpochSigner(PSK, service_name="svc", state_file=path, clock=clock, max_forward_s=30)
+    restarted = EpochSigner(
+        PSK, service_name="svc", state=signer_state(path), clock=clock, max_forward_s=30
+    )
     got = verifier.open(restarted.seal(b"after restart"))
     assert got.warning == "EPOCH_SENDER_ROTATED"
     assert got.nonce_prefix == successor_prefix(prefix_for_service("svc"))
     restarted.close()
-    again = EpochSigner(PSK, service_name="svc", state_file=path, clock=clock, max_forward_s=30)
+    again = EpochSigner(
+        PSK, service_name="svc", state=signer_state(path), clock=clock, max_forward_s=30
+    )
     assert again.nonce_prefix == got.nonce_prefix and again.rotations == 1
     assert again.next_epoch() > got.epoch  # the rotated stream resumes above its ceiling
     again.close()
     sealed = EpochSigner(
-        PSK, service_name="svc", state_file=path, clock=clock, max_forward_s=30
+        PSK, service_name="svc", state=signer_state(path), clock=clock, max_forward_s=30
     ).seal(b"x")
     verifier.open(sealed)
 
@@ -253,15 +261,15 @@ def test_rotation_is_audited(tmp_path: Path, clock: ManualClock) -> None:
 def test_rotation_recognised_by_a_restarted_verifier(tmp_path: Path, clock: ManualClock) -> None:
     path = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"
     signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
-    verifier = EpochVerifier(PSK, clock=clock, store=path)
+    verifier = EpochVerifier(PSK, clock=clock, store=open_store(path, clock=clock))
     verifier.open(signer.seal(b"a"))
-    verifier.close()
+    verifier.store.close()
     clock.step_wall(60)
     signer.seal(b"lost")
     clock.step_wall(-60)
-    restarted = EpochVerifier(PSK, clock=clock, store=path)
+    restarted = EpochVerifier(PSK, clock=clock, store=open_store(path, clock=clock))
     assert restarted.open(signer.seal(b"b")).warning == "EPOCH_SENDER_ROTATED"
-    restarted.close()
+    restarted.store.close()
 
 
 def rotated(clock: ManualClock, signer: EpochSigner, verifier: EpochVerifier) -> None:
@@ -282,15 +290,15 @@ def test_rotation_is_reported_once_not_after_each_restart(
     (review finding 6): the warning is for the new prefix's first epoch in the store."""
     path = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"
     signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
-    verifier = EpochVerifier(PSK, clock=clock, store=path)
+    verifier = EpochVerifier(PSK, clock=clock, store=open_store(path, clock=clock))
     rotated(clock, signer, verifier)
-    verifier.close()
+    verifier.store.close()
     for _ in range(2):
         clock.advance(1)
-        restarted = EpochVerifier(PSK, clock=clock, store=path)
+        restarted = EpochVerifier(PSK, clock=clock, store=open_store(path, clock=clock))
         assert restarted.open(signer.seal(b"c")).warning is None
         assert (restarted.rotations, sum(restarted.warnings.values())) == (0, 0)
-        restarted.close()
+        restarted.store.close()
 
 
 def test_rotation_is_not_reported_again_after_eviction(clock: ManualClock) -> None:
@@ -308,8 +316,8 @@ def test_rotation_is_not_reported_again_after_eviction(clock: ManualClock) -> No
 def test_refused_new_prefix_evicts_no_live_sender(tmp_path: Path, clock: ManualClock) -> None:
     """An authentic new prefix at or below the lowest held epoch of a full table is refused
     and changes nothing: the live senders stay, no fence rises (review finding 5)."""
-    spec = f"sqlite:{aged_state(tmp_path / 'v.db', clock)}"
-    verifier = EpochVerifier(PSK, clock=clock, store=spec, max_prefixes=2)
+    store = open_store(f"sqlite:{aged_state(tmp_path / 'v.db', clock)}", clock=clock)
+    verifier = EpochVerifier(PSK, clock=clock, store=store, max_prefixes=2)
     a, b = EpochSigner(PSK, clock=clock), EpochSigner(PSK, clock=clock)
     behind = ManualClock(wall=clock.wall() - 0.001)  # a sender 1 ms behind the others
     lagging = EpochSigner(PSK, clock=behind)
@@ -329,7 +337,7 @@ def test_refused_new_prefix_evicts_no_live_sender(tmp_path: Path, clock: ManualC
     verifier.open(lagging.seal(b"d"))  # later, above the lowest mark: now one is evicted...
     assert table.evictions == 1
     assert verifier.store.current("epoch:announcement:floor") == table.fence  # ...persisted
-    verifier.close()
+    verifier.store.close()
 
 
 def test_signer_bound_must_exceed_its_reservation() -> None:
@@ -392,29 +400,31 @@ def test_prefix_table_is_bounded_and_fenced(clock: ManualClock) -> None:
 def test_sender_restart_with_state_file_keeps_increasing(tmp_path: Path) -> None:
     frozen = ManualClock(wall=1_000.0)
     path = tmp_path / "signer.state"
-    a = EpochSigner(PSK, service_name="svc", state_file=path, clock=frozen)
+    a = EpochSigner(PSK, service_name="svc", state=signer_state(path), clock=frozen)
     emitted = [a.next_epoch() for _ in range(10)]
     a.close()
-    b = EpochSigner(PSK, service_name="svc", state_file=path, clock=frozen)  # "host reboot"
+    b = EpochSigner(
+        PSK, service_name="svc", state=signer_state(path), clock=frozen
+    )  # "host reboot"
     assert b.next_epoch() > max(emitted)
     assert b.nonce_prefix == a.nonce_prefix
 
 
 def test_random_prefix_is_kept_across_restart(tmp_path: Path, clock: ManualClock) -> None:
     path = tmp_path / "signer.state"
-    a = EpochSigner(PSK, state_file=path, clock=clock)
+    a = EpochSigner(PSK, state=signer_state(path), clock=clock)
     a.seal(b"x")
     a.close()
-    b = EpochSigner(PSK, state_file=path, clock=clock)
+    b = EpochSigner(PSK, state=signer_state(path), clock=clock)
     assert b.nonce_prefix == a.nonce_prefix
     b.close()
     with pytest.raises(StateFileError, match="another nonce_prefix"):
-        EpochSigner(PSK, state_file=path, clock=clock, nonce_prefix=b"\0" * 8)
+        EpochSigner(PSK, state=signer_state(path), clock=clock, nonce_prefix=b"\0" * 8)
 
 
 def test_block_reservation_writes_rarely(tmp_path: Path) -> None:
     clock = ManualClock(wall=1_000.0)
-    signer = EpochSigner(PSK, state_file=tmp_path / "s", clock=clock, reserve_s=1.0)
+    signer = EpochSigner(PSK, state=signer_state(tmp_path / "s"), clock=clock, reserve_s=1.0)
     for _ in range(1_000):
         clock.advance(0.01)
         signer.seal(b"busy")
@@ -422,24 +432,26 @@ def test_block_reservation_writes_rarely(tmp_path: Path) -> None:
 
 
 def test_sender_kill9_at_random_moments_never_repeats(tmp_path: Path) -> None:
-    args = ["-m", "tests.harness.workers.epoch_worker", str(tmp_path / "signer.state"), "0.000002"]
+    args = ["-m", "harness.workers.epoch_worker", str(tmp_path / "signer.state"), "0.000002"]
     assert_never_reused(kill9_runs(args, 100, 150, seed=99), "sender")
 
 
 def test_verifier_restart_rejects_everything_old(tmp_path: Path, clock: ManualClock) -> None:
-    spec = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"  # started earlier
+    spec = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"
     signer = EpochSigner(PSK, clock=clock)
     sent = [signer.seal(f"a{i}".encode()) for i in range(5)]
-    verifier = EpochVerifier(PSK, store=spec, clock=clock)
+    verifier = EpochVerifier(
+        PSK, store=open_store(spec, clock=clock), clock=clock
+    )  # a deployment started earlier
     for sealed in sent[::2]:
         verifier.open(sealed)  # accept 0, 2, 4; 1 and 3 are superseded
-    verifier.close()
-    restarted = EpochVerifier(PSK, store=spec, clock=clock)
+    verifier.store.close()
+    restarted = EpochVerifier(PSK, store=open_store(spec, clock=clock), clock=clock)
     for sealed in sent:
         with pytest.raises(EpochReplayedError):
             restarted.open(sealed)
     restarted.open(signer.seal(b"fresh"))
-    restarted.close()
+    restarted.store.close()
 
 
 def test_each_accept_is_one_store_advance(tmp_path: Path, clock: ManualClock) -> None:
@@ -480,18 +492,22 @@ def test_memory_store_verifier_refuses_what_was_sealed_before_it_started(
 def test_verifier_on_a_store_that_lost_its_state_fences(tmp_path: Path, clock: ManualClock) -> None:
     db = aged_state(tmp_path / "verifier.db", clock)
     signer = EpochSigner(PSK, clock=clock)
-    verifier = EpochVerifier(PSK, store=f"sqlite:{db}", clock=clock, max_forward_s=5)
+    verifier = EpochVerifier(
+        PSK, store=open_store(f"sqlite:{db}", clock=clock), clock=clock, max_forward_s=5
+    )
     old = signer.seal(b"old")
     verifier.open(old)
-    verifier.close()
+    verifier.store.close()
     db.unlink()  # the database is gone; its witness remains: loss is detected, not forgotten
     clock.advance(1)
-    restarted = EpochVerifier(PSK, store=f"sqlite:{db}", clock=clock, max_forward_s=5)
+    restarted = EpochVerifier(
+        PSK, store=open_store(f"sqlite:{db}", clock=clock), clock=clock, max_forward_s=5
+    )
     with pytest.raises(MessageStaleError, match="before this verifier's state began"):
         restarted.open(old)
     clock.advance(6)
     restarted.open(signer.seal(b"after the fence"))
-    restarted.close()
+    restarted.store.close()
 
 
 def test_two_verifiers_on_one_store_accept_each_epoch_once(
@@ -499,14 +515,14 @@ def test_two_verifiers_on_one_store_accept_each_epoch_once(
 ) -> None:
     spec = f"sqlite:{aged_state(tmp_path / 'shared.db', clock)}"
     signer = EpochSigner(PSK, clock=clock)
-    first = EpochVerifier(PSK, store=spec, clock=clock)
-    second = EpochVerifier(PSK, store=spec, clock=clock)
+    first = EpochVerifier(PSK, store=open_store(spec, clock=clock), clock=clock)
+    second = EpochVerifier(PSK, store=open_store(spec, clock=clock), clock=clock)
     sealed = signer.seal(b"once")
     first.open(sealed)
     with pytest.raises(EpochReplayedError):
         second.open(sealed)
-    first.close()
-    second.close()
+    first.store.close()
+    second.store.close()
 
 
 def test_check_records_nothing_and_counts_nothing(clock: ManualClock) -> None:
@@ -540,16 +556,16 @@ def test_signer_exhaustion_is_its_own_not_a_peer_rejection() -> None:
 def test_damaged_signer_state_refused_then_repaired_above(tmp_path: Path) -> None:
     path = tmp_path / "signer.state"
     frozen = ManualClock(wall=1_000.0)
-    signer = EpochSigner(PSK, state_file=path, clock=frozen, reserve_s=5)
+    signer = EpochSigner(PSK, state=signer_state(path), clock=frozen, reserve_s=5)
     emitted = [signer.next_epoch() for _ in range(3)]
     signer.close()
     path.write_bytes(b"\0" * 20)
     with pytest.raises(StateFileError):
-        EpochSigner(PSK, state_file=path, clock=frozen)
+        EpochSigner(PSK, state=signer_state(path), clock=frozen)
     repair(path, "epoch-signer", now_ns=0)
     with pytest.raises(StateFileError, match="another nonce_prefix"):
-        EpochSigner(PSK, state_file=path, clock=frozen, nonce_prefix=signer.nonce_prefix)
-    again = EpochSigner(PSK, state_file=path, clock=ManualClock(wall=2_000.0))
+        EpochSigner(PSK, state=signer_state(path), clock=frozen, nonce_prefix=signer.nonce_prefix)
+    again = EpochSigner(PSK, state=signer_state(path), clock=ManualClock(wall=2_000.0))
     assert again.next_epoch() > max(emitted)
 
 
@@ -652,8 +668,8 @@ def _poison_sqlite(db: Path, key: str) -> None:
 def test_wrong_typed_floor_in_sqlite_refuses_start_naming_the_file(
     tmp_path: Path, clock: ManualClock
 ) -> None:
-    db = tmp_path / "verifier.db"
-    EpochVerifier(PSK, store=f"sqlite:{db}", clock=clock).close()
+    db = aged_state(tmp_path / "verifier.db", clock)
+    EpochVerifier(PSK, store=open_store(f"sqlite:{db}", clock=clock), clock=clock).store.close()
     _poison_sqlite(db, "epoch:announcement:floor")
     store = sqlite_store(db, clock=clock)
     with pytest.raises(StateFileError) as refused:
@@ -671,12 +687,12 @@ def test_wrong_typed_epoch_while_running_is_state_unavailable(
 ) -> None:
     db = aged_state(tmp_path / "verifier.db", clock)
     signer = EpochSigner(PSK, clock=clock)
-    verifier = EpochVerifier(PSK, store=f"sqlite:{db}", clock=clock)
+    verifier = EpochVerifier(PSK, store=open_store(f"sqlite:{db}", clock=clock), clock=clock)
     _poison_sqlite(db, f"epoch:announcement:{signer.nonce_prefix.hex()}")
     with pytest.raises(StateUnavailableError, match=str(db)):
         verifier.open(signer.seal(b"hello"))
     assert verifier.last(signer.nonce_prefix, Kind.PING) is None
-    verifier.close()
+    verifier.store.close()
 
 
 def test_wrong_typed_value_in_redis_is_a_state_file_error(

@@ -13,8 +13,8 @@ from antireplay import ManualClock
 from antireplay.core.errors import EpochReplayedError, MessageStaleError, StateUnavailableError
 from antireplay.epochs import EpochSigner, EpochVerifier
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import started_before
-from tests.harness.stores import sqlite_store
+from harness import started_before
+from harness.stores import sqlite_store
 
 PSK = b"fleet-pre-shared-key-0123456789ab"
 

@@ -22,6 +22,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import mldsa
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from rcan import RCANMessage
 from rcan.signing import MLDSAKeyPair, sign_message
 
 from antireplay import ManualClock, SecurityConfig
@@ -33,9 +34,7 @@ from antireplay.rcan.auth import b64encode
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, Envelope, canonical_bytes
 from antireplay.state.redis import RedisStore
 from antireplay.wiring import create_app, embedded_default
-from rcan import RCANMessage
-from tests.fuzz.targets import http_app
-from tests.harness import (
+from harness import (
     GatewayProcess,
     free_port,
     metric,
@@ -45,8 +44,9 @@ from tests.harness import (
     serving,
     state_rows,
 )
-from tests.harness.asgi import demo_app, request, send_command
-from tests.harness.redis_server import RedisServer
+from harness.asgi import demo_app, request, send_command
+from harness.redis_server import RedisServer
+from tests.fuzz.targets import http_app
 
 
 @pytest.fixture(scope="module")

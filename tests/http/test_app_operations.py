@@ -29,7 +29,7 @@ from antireplay.audit import AuditLog, tail
 from antireplay.cli import main
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.wiring import create_app, embedded_default
-from tests.harness import (
+from harness import (
     GatewayProcess,
     accepted_fresh,
     data_losses,
@@ -38,9 +38,9 @@ from tests.harness import (
     reencoded,
     until,
 )
-from tests.harness.asgi import demo_app, request
-from tests.harness.redis_server import RedisServer
-from tests.harness.stores import aged_state
+from harness.asgi import demo_app, request
+from harness.redis_server import RedisServer
+from harness.stores import aged_state
 
 
 def get(app: Starlette, path: str) -> httpx.Response:

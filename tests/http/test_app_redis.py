@@ -18,7 +18,7 @@ import httpx
 
 from antireplay.audit import AuditLog, Record
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
-from tests.harness import (
+from harness import (
     GatewayProcess,
     accepted_fresh,
     data_losses,
@@ -28,7 +28,7 @@ from tests.harness import (
     reencoded,
     serving,
 )
-from tests.harness.redis_server import RedisServer, primary_and_replica, wait_replicated
+from harness.redis_server import RedisServer, primary_and_replica, wait_replicated
 
 #: A short skew keeps the fence a fresh deployment (or a loss) raises short.
 SKEW_S = 1

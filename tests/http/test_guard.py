@@ -34,8 +34,8 @@ from antireplay.rcan.envelope import encode, parse
 from antireplay.rcan.receive import Outcome
 from antireplay.rcan.steps import Done
 from antireplay.wiring import Guard, RcanGuard, build_receiver, create_app
-from tests.harness import free_port, recording_upstream, state_rows, until
-from tests.harness.asgi import LIMIT, NOW, Answer, call, config
+from harness import free_port, recording_upstream, state_rows, until
+from harness.asgi import LIMIT, NOW, Answer, call, config
 
 #: What the module:function upstream of the gateway under test was called with.
 CALLS: list[tuple[dict[str, Any], Signer]] = []

@@ -9,7 +9,7 @@ from pathlib import Path
 from antireplay.audit import tail
 from antireplay.audit.refusals import SUMMARY, summary_count
 from antireplay.cli.demo import command, load_operator_key
-from tests.harness.asgi import demo_app, request
+from harness.asgi import demo_app, request
 
 
 def _samples(text: str, name: str) -> float:

@@ -30,10 +30,10 @@ from antireplay.audit.segments import rotated
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.http.status import AUDIT_COLUMNS, _audit, render, security_headers
 from antireplay.rcan.receive import Receiver
-from tests.harness import ROOT, GatewayProcess, metrics_pq, metrics_router, post, serving
-from tests.harness.audit import segmented, trail
-from tests.harness.redis_server import RedisServer
-from tests.harness.stores import aged_state
+from harness import ROOT, GatewayProcess, metrics_pq, metrics_router, post, serving
+from harness.audit import segmented, trail
+from harness.redis_server import RedisServer
+from harness.stores import aged_state
 
 DASH = "\u2014"
 CHROMIUM = "/usr/bin/chromium"

@@ -18,6 +18,7 @@ import pytest
 from click.testing import CliRunner
 from cryptography.hazmat.primitives.asymmetric import ed25519
 from fastapi import Depends, FastAPI, Request
+from rcan import RCANResponse
 from starlette._utils import get_route_path
 from starlette.responses import Response, StreamingResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -31,8 +32,7 @@ from antireplay.http.middleware import route_path
 from antireplay.http.upstream import takes_signer
 from antireplay.rcan.auth import Signer
 from antireplay.wiring import Guard, RcanGuard, create_app
-from rcan import RCANResponse
-from tests.harness.asgi import NOW, Answer, call, config
+from harness.asgi import NOW, Answer, call, config
 
 #: Released by the test: the blocking module:function upstream waits for it.
 RELEASE = threading.Event()

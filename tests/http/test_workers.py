@@ -208,3 +208,97 @@ def test_holds_before_the_signature_check_are_bounded_by_their_budget() -> None:
         return [*got, await asyncio.create_task(early())]
 
     assert asyncio.run(scenario()) == [(True, False), (True, False), (False, False), (True, False)]
+
+
+def test_copies_of_an_estop_in_flight_or_delivered_hold_no_door() -> None:
+    """One hold per ESTOP, not per copy: while E1's request holds the door, its copies take
+    none; once E1 is delivered its copies take none either; a new ESTOP holds it."""
+    door = Door()
+
+    async def copy(msg_id: str) -> tuple[bool, bool]:
+        early = door.hold_early(msg_id)  # claimed before the signature check: E1 is known
+        return early, door.hold(msg_id)
+
+    async def scenario() -> list[object]:
+        go = asyncio.Event()
+
+        async def original() -> None:
+            assert door.hold("E1")
+            await go.wait()
+            door.release()
+
+        held = asyncio.create_task(original())
+        await asyncio.sleep(0)
+        in_flight = [await asyncio.create_task(copy("E1")) for _ in range(8)]
+        holders = len(door.holders)
+        go.set()
+        await held
+        delivered = await asyncio.create_task(copy("E1"))
+        opened = door._opened is None
+        new = await asyncio.create_task(copy("E2"))
+        return [in_flight, holders, delivered, opened, new]
+
+    in_flight, holders, delivered, opened, new = asyncio.run(scenario())
+    assert in_flight == [(False, False)] * 8 and holders == 1
+    assert delivered == (False, False) and opened
+    assert new == (False, True)  # the copies spent the early budget: held once authenticated
+    assert (door.holds, door.copies) == (2, 9)
+
+
+def test_a_copy_before_its_signature_check_spends_the_early_budget() -> None:
+    """Copies count against the early budget: with a burst of 2, one copy leaves one early
+    hold for a new SAFETY message, then none."""
+    clock = ManualClock(wall=1_800_000_000.0)
+    door = Door(early_per_s=1.0, early_burst=2.0, clock=clock)
+
+    async def scenario() -> list[bool]:
+        async def deliver() -> None:
+            door.hold("E1")
+            door.release()
+
+        await asyncio.create_task(deliver())
+
+        async def early(msg_id: str) -> bool:
+            taken = door.hold_early(msg_id)
+            if taken:
+                door.release()
+            return taken
+
+        return [await asyncio.create_task(early(m)) for m in ("E1", "E2", "E3")]
+
+    assert asyncio.run(scenario()) == [False, True, False]
+
+
+def test_a_copy_arriving_at_a_door_a_new_estop_holds_does_not_hold_it_longer() -> None:
+    """The door opens when the new ESTOP is answered, whatever copies of an old one do."""
+    door = Door()
+
+    async def scenario() -> bool:
+        async def delivered() -> None:
+            door.hold("old")
+            door.release()
+
+        await asyncio.create_task(delivered())
+        go = asyncio.Event()
+
+        async def new() -> None:
+            door.hold("new")
+            await go.wait()
+            door.release()
+
+        async def copy() -> None:
+            door.hold_early("old")
+            door.hold("old")
+            await asyncio.Event().wait()  # the robot never answers the copy
+
+        held = asyncio.create_task(new())
+        copies = [asyncio.create_task(copy()) for _ in range(8)]
+        await asyncio.sleep(0)
+        go.set()
+        await held
+        opened = door._opened is None
+        for task in copies:
+            task.cancel()
+        return opened
+
+    assert asyncio.run(scenario())

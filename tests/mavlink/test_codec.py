@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -13,13 +11,10 @@ from pymavlink.generator.mavcrc import x25crc
 from antireplay import ManualClock
 from antireplay.core.errors import (
     InvalidFrameError,
-    NonceExhaustedError,
     SignatureInvalidError,
     SignatureRequiredError,
 )
 from antireplay.mavlink import (
-    TS_LIMIT,
-    UNITS_PER_S,
     FrameReader,
     MavlinkGuard,
     TimestampSource,
@@ -30,8 +25,7 @@ from antireplay.mavlink import (
     passphrase_key,
     sign_frame,
 )
-from antireplay.state.sqlite import SqliteStore
-from tests.harness.mavlink_frames import KEY, Sink, command_frame, encoder, v1_radio_status
+from harness.mavlink_frames import KEY, Sink, command_frame, encoder, v1_radio_status
 
 
 @pytest.mark.parametrize(
@@ -40,16 +34,6 @@ from tests.harness.mavlink_frames import KEY, Sink, command_frame, encoder, v1_r
 def test_malformed_frames_are_typed(clock: ManualClock, bad: bytes) -> None:
     with pytest.raises(InvalidFrameError):
         MavlinkGuard(KEY, clock=clock).open(bad)
-
-
-def test_timestamp_source_tracks_time_and_refuses_wrap(clock: ManualClock) -> None:
-    source = TimestampSource(clock)
-    a, b = source.next(), source.next()
-    assert a == mav_time(clock) and b == a + 1
-    clock.advance(1)
-    assert source.next() == mav_time(clock)
-    with pytest.raises(NonceExhaustedError):
-        TimestampSource(clock, last=TS_LIMIT - 1).next()
 
 
 def test_sign_frame_is_accepted_by_guard_and_pymavlink(clock: ManualClock) -> None:
@@ -101,19 +85,6 @@ def test_frame_reader_cuts_a_stream_and_resynchronises() -> None:
     assert out == [frames[0], v1_radio_status(), frames[2]]
     assert reader.skipped == 9 + len(corrupt) and reader.pending == 0
     assert FrameReader().feed(b"\xfd" * 5_000) == []  # a flood buffers at most one frame
-
-
-def test_durable_timestamp_source_never_repeats_across_restarts(
-    tmp_path: Path, clock: ManualClock
-) -> None:
-    store = SqliteStore(tmp_path / "sign.db")
-    first = TimestampSource(clock, store=store, store_key="sign")
-    handed = [first.next() for _ in range(1_000)]
-    assert store.current("sign") == max(handed) - 999 + UNITS_PER_S - 1  # one write per second
-    clock.step_wall(-30)  # the wall clock steps back (NTP) across a restart
-    again = TimestampSource(clock, store=store, store_key="sign")
-    assert again.next() > max(handed)
-    store.close()
 
 
 @given(st.binary(min_size=1, max_size=300), st.integers(0, 255))

@@ -21,17 +21,17 @@ from pymavlink import mavutil
 from antireplay.core.clock import SystemClock
 from antireplay.mavlink import (
     EndpointSpec,
-    Link,
+    FrameRefusal,
     MavlinkGuard,
     MavlinkRouter,
-    Refusal,
     Role,
+    RouterLink,
     TimestampSource,
     open_transport,
     parse_endpoint,
     passphrase_key,
 )
-from antireplay.mavlink.codec import FrameReader, mav_time
+from antireplay.mavlink.codec import Frame, FrameReader, mav_time
 from antireplay.mavlink.endpoints import (
     LOG_EVERY_S,
     Peer,
@@ -39,8 +39,8 @@ from antireplay.mavlink.endpoints import (
     Transport,
 )
 from antireplay.wiring import router_metrics
-from tests.harness import free_port, until
-from tests.harness.mavlink_frames import (
+from harness import free_port, until
+from harness.mavlink_frames import (
     KEY,
     command_frame,
     encoder,
@@ -98,10 +98,10 @@ class Net:
         )
         to_vehicle = f"{vehicle_over}{'out' if vehicle_over == 'udp' else ''}:127.0.0.1:{vport}"
         self.vehicle.setup_signing(KEY, sign_outgoing=True, link_id=7)
-        self.refused: list[Refusal] = []
+        self.refused: list[FrameRefusal] = []
         keys = {KEY, ground_key}
-        self.ground = Link(open_transport(parse_endpoint(ground)), Role.GROUND, ground_key)
-        vehicle = Link(open_transport(parse_endpoint(to_vehicle)), Role.VEHICLE, KEY)
+        self.ground = RouterLink(open_transport(parse_endpoint(ground)), Role.GROUND, ground_key)
+        vehicle = RouterLink(open_transport(parse_endpoint(to_vehicle)), Role.VEHICLE, KEY)
 
         self.router = MavlinkRouter(
             [vehicle, self.ground],
@@ -248,14 +248,16 @@ def test_vehicle_over_tcp_as_sitl_offers_it() -> None:
 
 
 class Delivered:
-    """A transport's ``deliver``: what it handed over, frame by frame, with the peer."""
+    """A transport's ``deliver``: what it handed over (parsed once: each frame's bytes here),
+    frame by frame, with the peer."""
 
     def __init__(self) -> None:
         self.frames: list[tuple[Peer | None, bytes]] = []
         self.skipped: list[int] = []  # the bytes dropped, one entry per hand-over that had some
 
-    def __call__(self, _t: Transport, peer: Peer | None, frames: list[bytes], skipped: int) -> None:
-        self.frames.extend((peer, frame) for frame in frames)
+    def __call__(self, _t: Transport, peer: Peer | None, frames: list[Frame], skipped: int) -> None:
+        assert all(isinstance(frame, Frame) for frame in frames)
+        self.frames.extend((peer, frame.raw) for frame in frames)
         if skipped:
             self.skipped.append(skipped)
 
@@ -441,10 +443,10 @@ def test_full_tcpin_evicts_the_oldest_client_that_never_authenticated(
     takes the slot of the oldest client that never sent a frame the router accepted;
     when every client authenticated, the newcomer is refused.  All of it is counted in
     the router's metrics and logged once per kind."""
-    ground = Link(
+    ground = RouterLink(
         TcpServerTransport(parse_endpoint("tcpin:127.0.0.1:0"), max_clients=2), Role.GROUND, KEY
     )
-    vehicle = Link(open_transport(parse_endpoint("udpout:127.0.0.1:9")), Role.VEHICLE, KEY)
+    vehicle = RouterLink(open_transport(parse_endpoint("udpout:127.0.0.1:9")), Role.VEHICLE, KEY)
     router = MavlinkRouter([ground, vehicle], {KEY: MavlinkGuard(KEY)}, MavlinkGuard(KEY))
     router.start()
     address = ground.transport.address

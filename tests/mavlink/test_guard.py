@@ -21,11 +21,11 @@ from antireplay.core.errors import (
     WrongTargetError,
 )
 from antireplay.mavlink import TS_LIMIT, UNITS_PER_S, MavlinkGuard, mav_time
-from antireplay.mavlink.guard import Admission
+from antireplay.mavlink.guard import FrameAdmission
 from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
-from tests.harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
-from tests.harness.stores import sqlite_store
+from harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
+from harness.stores import sqlite_store
 
 
 def test_signed_frame_accepted_once(clock: ManualClock) -> None:
@@ -227,7 +227,7 @@ def test_honest_sender_continues_right_after_a_clean_restart(
         guard.open(frame)
     guard.stop()  # flushes, releases the lease at the stop time
     restarted = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
-    restarted.start(wait_s=0)  # no waiting: the lease was released
+    restarted.start()  # the lease was released: claimed at once
     try:
         for frame in captures:
             with pytest.raises((MessageStaleError, CounterReplayedError)):
@@ -379,10 +379,10 @@ def test_admission_of_a_routers_links(clock: ManualClock) -> None:
     any other (the router signed it for a link no guard commits for)."""
     guard = MavlinkGuard(KEY, clock=clock)
     plain, ours = unsigned_heartbeat(7), command_frame(*encoder(link_id=251))
-    assert guard.admit(plain, trusted=True, own_link_id=251) is Admission.SIGN
-    assert guard.admit(ours, trusted=True, own_link_id=251) is Admission.JUDGE
-    assert guard.admit(plain, trusted=False, own_link_id=251) is Admission.JUDGE
-    assert guard.admit(ours, trusted=False, own_link_id=250) is Admission.JUDGE
+    assert guard.admit(plain, trusted=True, own_link_id=251) is FrameAdmission.SIGN
+    assert guard.admit(ours, trusted=True, own_link_id=251) is FrameAdmission.JUDGE
+    assert guard.admit(plain, trusted=False, own_link_id=251) is FrameAdmission.JUDGE
+    assert guard.admit(ours, trusted=False, own_link_id=250) is FrameAdmission.JUDGE
     with pytest.raises(WrongDirectionError):
         guard.admit(ours, trusted=False, own_link_id=251)
     assert len(guard) == 0

@@ -8,11 +8,10 @@ import os
 import random
 import secrets
 import struct
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
+from cryptography.hazmat.primitives.asymmetric import x25519
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -21,10 +20,8 @@ from antireplay.core.counters import NonceCounter
 from antireplay.core.errors import (
     CounterReplayedError,
     InvalidFrameError,
-    MessageStaleError,
     ReplayAttackError,
     SignatureInvalidError,
-    UnknownSessionError,
 )
 from antireplay.mavlink.codec import parse_frame
 from antireplay.mavlink.pq import (
@@ -33,8 +30,6 @@ from antireplay.mavlink.pq import (
     MAX_CHUNKS,
     MSG_CHUNK,
     MSG_REPAIR,
-    REKEY_TRANSFERS,
-    TRANSFER_LIMIT,
     ChunkKind,
     ChunkSender,
     GroundEnd,
@@ -48,7 +43,7 @@ from antireplay.mavlink.pq import (
     parse_chunk,
 )
 from antireplay.mavlink.pq.link import PqLink, SessionEvent
-from antireplay.mavlink.router import Refusal
+from antireplay.mavlink.router import FrameRefusal
 from antireplay.pq.session import REKEY_AFTER, Initiator, Purpose, Responder
 from antireplay.pq.session import Direction as Dir
 from antireplay.pq.session import Opened as Open
@@ -58,100 +53,24 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 from pymavlink.generator import mavgen
 
-from tests.harness import until
-from tests.harness.mavlink_frames import FakeTransport
-
-GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
-ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
-ARM = 400
-
-
-class _Keep:
-    def __init__(self) -> None:
-        self.frames: list[bytes] = []
-
-    def write(self, data: bytes) -> None:
-        self.frames.append(bytes(data))
-
-
-def plain(build: Callable[[dialect.MAVLink], None], sysid: int = 255) -> bytes:
-    """One unsigned MAVLink v2 frame built by pymavlink."""
-    keep = _Keep()
-    mav = dialect.MAVLink(keep, srcSystem=sysid, srcComponent=190)
-    build(mav)
-    return keep.frames[-1]
-
-
-def raw_chunk(fields: tuple[int, ...], data: bytes, sysid: int = 255, compid: int = 197) -> bytes:
-    """A PQ_CHUNK frame with any header fields (what an attacker can send)."""
-    payload = struct.pack("<HBBBB", *fields) + data
-    return pack_v2(MSG_CHUNK, payload, DIALECT[MSG_CHUNK][0], sysid=sysid, compid=compid, seq=0)
-
-
-def arm(target: int = 1, param1: float = 1.0) -> bytes:
-    return plain(lambda m: m.command_long_send(target, 1, ARM, 0, param1, 0, 0, 0, 0, 0, 0))
-
-
-class Link:
-    """Both ends, the air between them a list the test can reorder, drop or tamper with."""
-
-    def __init__(self, clock: ManualClock, max_sessions: int = 4) -> None:
-        self.clock = clock
-        self.responder = Responder(
-            ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock, max_sessions=max_sessions
-        )
-        self.ground = self.new_ground()
-        self.vehicle = VehicleEnd(self.responder, clock=clock)
-        self.delivered: list[bytes] = []  # plain frames at the flight controller
-        self.telemetry: list[bytes] = []  # plain frames at the ground station
-        self.refused: list[str] = []
-        self.captured: list[bytes] = []  # everything that went ground -> vehicle
-
-    def new_ground(self) -> GroundEnd:
-        return GroundEnd(
-            Initiator("gcs", GCS_KEY, self.clock), ROBOT_KEM.public_key(), clock=self.clock
-        )
-
-    def connect(self) -> None:
-        self.up(self.ground.handshake())
-        assert self.ground.session is not None
-
-    def up(self, frames: list[bytes]) -> None:
-        """Deliver ``frames`` to the vehicle end; answers go back down."""
-        for raw in frames:
-            self.captured.append(raw)
-            try:
-                out = self.vehicle.from_air(raw)
-            except ReplayAttackError as exc:
-                self.refused.append(str(exc.code))
-                continue
-            self.delivered += out.local
-            self.down(out.air)
-
-    def down(self, frames: list[bytes]) -> None:
-        for raw in frames:
-            try:
-                out = self.ground.from_air(raw)
-            except ReplayAttackError as exc:
-                self.refused.append(str(exc.code))
-                continue
-            self.telemetry += out.local
-            self.up(out.air)
-
-    def commands(self) -> list[dialect.MAVLink_command_long_message]:
-        decoder = dialect.MAVLink(_Keep())
-        return [
-            m
-            for raw in self.delivered
-            if (m := decoder.decode(bytearray(raw))).get_type() == "COMMAND_LONG"
-        ]
+from harness import until
+from harness.mavlink_frames import FakeTransport
+from harness.pq_ends import (
+    ARM,
+    GCS_KEY,
+    ROBOT_KEM,
+    EndPair,
+    Keep,
+    arm,
+    connected,
+    plain,
+    raw_chunk,
+)
 
 
 @pytest.fixture
-def link(clock: ManualClock) -> Link:
-    made = Link(clock)
-    made.connect()
-    return made
+def link(clock: ManualClock) -> EndPair:
+    return connected(clock)
 
 
 def test_dialect_xml_crc_extras_and_pymavlink_decodes_our_chunks(tmp_path: Path) -> None:
@@ -165,7 +84,7 @@ def test_dialect_xml_crc_extras_and_pymavlink_decodes_our_chunks(tmp_path: Path)
     spec.loader.exec_module(module)
     assert module.mavlink_map[MSG_CHUNK].crc_extra == DIALECT[MSG_CHUNK][0]
     frames = ChunkSender(255, 197).frames(bytes(range(256)) * 2, ChunkKind.HS1)
-    decoder = module.MAVLink(_Keep())
+    decoder = module.MAVLink(Keep())
     decoded = [decoder.decode(bytearray(raw)) for raw in frames]
     assert [(m.index, m.count, m.kind) for m in decoded] == [
         (0, 3, 0x11), (1, 3, 0x11), (2, 3, 0x11), (3, 3, 0x11),
@@ -174,7 +93,7 @@ def test_dialect_xml_crc_extras_and_pymavlink_decodes_our_chunks(tmp_path: Path)
     assert module.mavlink_map[MSG_REPAIR].crc_extra == DIALECT[MSG_REPAIR][0]
 
 
-def test_arm_arrives_once_and_its_replay_is_dropped(link: Link) -> None:
+def test_arm_arrives_once_and_its_replay_is_dropped(link: EndPair) -> None:
     frames = link.ground.from_local(arm())
     assert len(frames) == 22  # 4,627-byte ML-DSA-87 signature: 20 chunks, and 2 parity
     link.up(frames)
@@ -187,7 +106,7 @@ def test_arm_arrives_once_and_its_replay_is_dropped(link: Link) -> None:
     assert link.refused == ["REPLAY_DETECTED"] * 22
 
 
-def test_telemetry_both_ways_is_hmac_in_one_chunk(link: Link) -> None:
+def test_telemetry_both_ways_is_hmac_in_one_chunk(link: EndPair) -> None:
     beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
     (frame,) = link.ground.from_local(beat)  # a GCS heartbeat: data purpose, one chunk
     link.up([frame])
@@ -201,7 +120,7 @@ def test_telemetry_both_ways_is_hmac_in_one_chunk(link: Link) -> None:
     assert link.telemetry == [attitude] and link.refused == ["COUNTER_REPLAYED"]
 
 
-def test_capture_from_a_previous_session_is_dropped(link: Link) -> None:
+def test_capture_from_a_previous_session_is_dropped(link: EndPair) -> None:
     old = link.ground.from_local(arm())
     link.up(old)
     link.ground = link.new_ground()  # the ground end restarts: a new session
@@ -212,7 +131,7 @@ def test_capture_from_a_previous_session_is_dropped(link: Link) -> None:
     assert [c.param1 for c in link.commands()] == [1.0, 0.0]
 
 
-def test_reordered_duplicated_chunks_deliver_once(link: Link) -> None:
+def test_reordered_duplicated_chunks_deliver_once(link: EndPair) -> None:
     frames = link.ground.from_local(arm())
     shuffled = frames + frames[:5]
     random.Random(7).shuffle(shuffled)
@@ -222,7 +141,7 @@ def test_reordered_duplicated_chunks_deliver_once(link: Link) -> None:
     assert set(link.refused) <= {"REPLAY_DETECTED"}
 
 
-def test_a_lost_chunk_costs_that_chunk_not_the_command(link: Link, clock: ManualClock) -> None:
+def test_a_lost_chunk_costs_that_chunk_not_the_command(link: EndPair, clock: ManualClock) -> None:
     first = link.ground.from_local(arm(param1=1.0))
     link.up(first[:7] + first[8:])  # chunk 7 lost: its parity group rebuilds it
     assert link.vehicle.reassembly.rebuilt == 1 and link.ground.repairs["resent"] == 0
@@ -256,7 +175,7 @@ def _tamper(raw: bytes, at: int, value: int) -> bytes:
     )
 
 
-def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> None:
+def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: EndPair) -> None:
     # the target system sits in the first chunk: chunk header, compact header, inner header,
     # then COMMAND_LONG's target_system at payload offset 30
     target_at = 6 + 10 + 6 + 30
@@ -286,31 +205,7 @@ def test_mitm_rewriting_target_msgid_or_splicing_gains_nothing(link: Link) -> No
     assert link.refused[-1] == "SIGNATURE_INVALID" and len(link.commands()) == 1
 
 
-def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
-    link = Link(clock)
-    hs1 = link.ground.handshake()
-    link.up(hs1)
-    assert len(link.responder) == 1
-    link.up(hs1)
-    assert link.refused == ["REPLAY_DETECTED"] and len(link.responder) == 1
-    clock.advance(40)
-    link.up(hs1)
-    assert link.refused[-1] == "MESSAGE_STALE" and len(link.responder) == 1
-    with pytest.raises(MessageStaleError):  # the reassembled blob is the HS1 itself
-        link.responder.accept_handshake(_blob(hs1))
-    # a replayed HS2 at the ground end finishes nothing: no handshake is pending
-    session = link.ground.session
-    hs2 = ChunkSender(1, 197).frames(b"\xa2" + bytes(81), ChunkKind.HS2)
-    link.down(hs2)
-    assert link.refused[-1] == "UNKNOWN_SESSION" and link.ground.session is session
-
-
-def _blob(frames: list[bytes]) -> bytes:
-    chunks = [c for raw in frames if not (c := parse_chunk(parse_frame(raw))).is_parity]
-    return b"".join(c.piece for c in sorted(chunks, key=lambda c: c.index))
-
-
-def test_chunk_flood_cannot_crowd_out_a_command(link: Link) -> None:
+def test_chunk_flood_cannot_crowd_out_a_command(link: EndPair) -> None:
     rng = random.Random(3)
     flood = []
     for transfer in range(500):  # session-frame chunks with made-up MACs: refused unbuffered
@@ -321,20 +216,6 @@ def test_chunk_flood_cannot_crowd_out_a_command(link: Link) -> None:
     link.up(mixed)
     assert len(link.commands()) == 1
     assert link.refused.count("SIGNATURE_INVALID") == 500
-
-
-def test_handshake_flood_keeps_the_almost_complete_handshake(clock: ManualClock) -> None:
-    link = Link(clock)
-    hs1 = link.ground.handshake()
-    assert len(hs1) == 29  # 26 chunks and 3 parity
-    link.up([raw for i, raw in enumerate(hs1) if i not in (0, 3, 28)])  # two of one group
-    rng = random.Random(5)
-    for transfer in range(200):  # first chunks of made-up handshakes from other systems
-        fields = (transfer, 0, 26, CHUNK_DATA, ChunkKind.HS1)
-        link.up([raw_chunk(fields, rng.randbytes(CHUNK_DATA), sysid=rng.randrange(256))])
-    link.up(hs1[:1])
-    assert link.ground.session is not None
-    assert link.vehicle.reassembly.evicted == 199
 
 
 def test_memory_is_bounded(clock: ManualClock) -> None:
@@ -364,7 +245,7 @@ def test_chunk_bounds(fields: tuple[int, ...], why: str) -> None:
         parse_chunk(parse_frame(raw))
 
 
-def test_rekey_before_the_counter_limit(link: Link) -> None:
+def test_rekey_before_the_counter_limit(link: EndPair) -> None:
     session = link.ground.session
     assert session is not None
     session._send[Purpose.DATA] = NonceCounter(REKEY_AFTER)
@@ -373,37 +254,6 @@ def test_rekey_before_the_counter_limit(link: Link) -> None:
     link.up(out)
     assert link.ground.session is not session
     link.up(link.ground.from_local(arm()))
-    assert len(link.commands()) == 1
-
-
-def test_vehicle_end_restart_the_ground_end_handshakes_again(
-    link: Link, clock: ManualClock
-) -> None:
-    link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
-    link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted: no session
-    with pytest.raises(UnknownSessionError):
-        link.vehicle.from_air(
-            link.ground.from_local(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4)))[0]
-        )
-    hint = link.vehicle.hint()
-    assert link.vehicle.hint() == []  # rate-limited
-    clock.advance(3)  # the ground end heard nothing authenticated for retry_s
-    link.down(hint)
-    link.up(link.ground.from_local(arm()))
-    assert len(link.commands()) == 1
-
-
-def test_forged_hint_is_ignored_while_telemetry_flows(link: Link) -> None:
-    link.down(link.vehicle.from_local(plain(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), sysid=1)))
-    session = link.ground.session
-    assert link.ground.from_air(link.vehicle.hint()[0]).air == []
-    assert link.ground.session is session
-
-
-def test_queued_commands_go_out_after_the_handshake(clock: ManualClock) -> None:
-    link = Link(clock)
-    hs1 = link.ground.from_local(arm())  # no session yet: queued, the handshake starts
-    link.up(hs1)
     assert len(link.commands()) == 1
 
 
@@ -424,13 +274,13 @@ def test_fuzzed_chunk_payloads_raise_only_typed_errors(payload: bytes) -> None:
         FUZZ.vehicle.from_air(raw)
 
 
-FUZZ = Link(ManualClock())
+FUZZ = EndPair(ManualClock())
 FUZZ.connect()
 
 
 def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
     vehicle_x25519 = x25519.X25519PrivateKey.generate()
-    link = Link(clock)
+    link = EndPair(clock)
     link.responder = Responder(
         ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock, x25519_key=vehicle_x25519
     )
@@ -446,7 +296,7 @@ def test_hybrid_ends_carry_arm_once(clock: ManualClock) -> None:
     assert len(link.commands()) == 1 and link.refused == ["REPLAY_DETECTED"] * 22
 
 
-def test_a_frame_withheld_from_a_superseded_session_never_plays(link: Link) -> None:
+def test_a_frame_withheld_from_a_superseded_session_never_plays(link: EndPair) -> None:
     withheld = link.ground.from_local(arm(param1=1.0))  # jammed and recorded, never delivered
     link.connect()  # the ground end rekeys
     link.up(link.ground.from_local(arm(param1=0.0)))  # the new session carries a frame
@@ -455,23 +305,6 @@ def test_a_frame_withheld_from_a_superseded_session_never_plays(link: Link) -> N
     assert link.refused[-20:] == ["SIGNATURE_INVALID"] * 20  # no live session's chunk key
     beat = link.ground.session
     assert beat is not None and len(link.responder) == 1  # the old session's keys are gone
-
-
-def test_heartbeats_do_not_push_a_queued_command_out(clock: ManualClock) -> None:
-    link = Link(clock)
-    hs1 = link.ground.from_local(arm())
-    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
-    for _ in range(50):
-        link.ground.from_local(beat)
-    link.up(hs1)
-    assert len(link.commands()) == 1 and link.ground.unsent == 50
-
-
-def test_unknown_local_message_is_refused_before_sealing(link: Link) -> None:
-    raw = bytearray(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4)))
-    raw[7:10] = (60999).to_bytes(3, "little")  # a message id nobody knows
-    with pytest.raises(InvalidFrameError, match="not in the dialect"):
-        link.ground.from_local(bytes(raw))
 
 
 class _Sessions:
@@ -516,66 +349,7 @@ def test_a_shared_handle_never_lets_one_session_refuse_the_others_frames() -> No
         open_compact(bytes(forged), sessions, Dir.I2R, receiver)
 
 
-def test_the_vehicle_end_draws_session_ids_whose_handles_differ(clock: ManualClock) -> None:
-    link = Link(clock, max_sessions=8)
-    for _ in range(8):  # eight live sessions, none carrying a frame (none superseded)
-        link.connect()
-    assert len({s.session_id[-1] for s in link.vehicle._sessions}) == 8
-    avoid = lambda sid: sid[-1] < 0x80  # noqa: E731 - half the handles taken: 2**-64 to miss
-    handles = []
-    for _ in range(8):  # without the redraw, all eight in the free half by chance: 1 in 256
-        hs1 = link.ground.initiator.start(ROBOT_KEM.public_key())
-        handles.append(link.responder.accept_handshake(hs1, avoid)[1][2 + 15])
-    assert min(handles) >= 0x80, handles
-
-
-def test_queued_commands_expire_and_every_drop_is_counted(clock: ManualClock) -> None:
-    link = Link(clock)
-    for p in range(10):  # no vehicle: every HS1 is lost, commands queue
-        link.ground.from_local(arm(param1=float(p)))
-    assert link.ground.drops == {"QUEUE_FULL": 2}
-    clock.advance(3)
-    link.ground.from_local(arm(param1=10.0))
-    clock.advance(3)  # all but the last are older than queue_ttl_s (5 s)
-    link.up(link.ground.handshake())
-    assert [c.param1 for c in link.commands()] == [10.0]
-    assert link.ground.drops == {"QUEUE_FULL": 3, "QUEUE_EXPIRED": 7}
-    assert link.ground.unsent == 10
-
-
-def test_a_message_that_must_be_signed_is_refused_in_a_data_frame(clock: ManualClock) -> None:
-    link = Link(clock)
-    link.ground = GroundEnd(
-        Initiator("gcs", GCS_KEY, clock), ROBOT_KEM.public_key(), clock=clock, signed=frozenset()
-    )
-    link.connect()
-    (frame,) = link.ground.from_local(arm())  # an HMAC data frame
-    link.up([frame])
-    assert not link.commands() and link.refused == ["SIGNATURE_REQUIRED"]
-
-
-@pytest.mark.parametrize(
-    "build",
-    [
-        lambda m: m.mission_item_send(1, 1, 0, 0, 16, 0, 1, 0, 0, 0, 0, 1.0, 2.0, 30.0),
-        lambda m: m.mission_write_partial_list_send(1, 1, 0, 3),
-        lambda m: m.param_ext_set_send(1, 1, b"ARMING_CHECK", b"0", 6),
-        lambda m: m.serial_control_send(10, 0, 0, 0, 4, [ord(c) for c in "rebo"] + [0] * 66),
-        lambda m: m.file_transfer_protocol_send(0, 1, 1, [0] * 251),
-        lambda m: m.set_position_target_local_ned_send(0, 1, 1, 1, 0, 1, 2, 3, *[0] * 8),
-        lambda m: m.set_position_target_global_int_send(0, 1, 1, 5, 0, 1, 2, 3, *[0] * 8),
-    ],
-)
-def test_command_carrying_messages_are_signed_by_default(
-    link: Link, build: Callable[[dialect.MAVLink], None]
-) -> None:
-    frames = link.ground.from_local(plain(build))
-    assert len(frames) > 1  # an ML-DSA-87 signature: several chunks
-    link.up(frames)
-    assert len(link.delivered) == 1 and link.refused == []
-
-
-def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: Link) -> None:
+def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: EndPair) -> None:
     old = []
     for n in range(6):  # the attacker records six commands, all delivered
         frames = link.ground.from_local(arm(param1=float(n)))
@@ -592,7 +366,7 @@ def test_replayed_chunks_of_opened_commands_cannot_crowd_out_a_new_one(link: Lin
 
 
 def test_a_silent_vehicle_end_gets_a_handshake_without_its_hint(
-    link: Link, clock: ManualClock
+    link: EndPair, clock: ManualClock
 ) -> None:
     link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
     link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted; its hints stolen
@@ -605,26 +379,11 @@ def test_a_silent_vehicle_end_gets_a_handshake_without_its_hint(
     assert len(link.commands()) == 1
 
 
-def test_the_ground_end_rekeys_before_its_transfer_numbers_wrap(link: Link) -> None:
-    session = link.ground.session
-    beat = plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4))
-    first = link.ground.sender.transfer  # where the session began
-    link.ground.sender.transfer = first + REKEY_TRANSFERS - 2
-    assert len(link.ground.from_local(beat)) == 1
-    out = link.ground.from_local(beat)  # the 30,000th transfer: a new handshake goes out
-    assert len(out) > 1
-    link.ground.sender.transfer = first + TRANSFER_LIMIT  # its HS1 lost meanwhile
-    link.ground.from_local(arm())  # no more sending in the old session: queued
-    assert link.ground.session is None
-    link.up(link.ground.handshake())
-    assert link.ground.session is not session and len(link.commands()) == 1
-
-
 def test_the_link_counts_plain_mavlink_quietly_and_exports_the_ends_drops(
     clock: ManualClock,
 ) -> None:
-    refusals: list[Refusal] = []
-    made = Link(clock)
+    refusals: list[FrameRefusal] = []
+    made = EndPair(clock)
     local, air = FakeTransport("udpin:0.0.0.0:1", fixed=False), FakeTransport("udpout:1.2.3.4:5")
     pq = PqLink(made.ground, local, air, on_reject=refusals.append)
     pq.start()  # the first HS1 goes out, and is lost
@@ -646,7 +405,7 @@ def test_the_link_counts_plain_mavlink_quietly_and_exports_the_ends_drops(
 def test_a_chunk_planted_ahead_cannot_spoil_the_next_handshake(
     clock: ManualClock, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    link = Link(clock)
+    link = EndPair(clock)
     planted = link.ground.sender.transfer + 1  # the next transfer number, were it counted
     # The handshake's number is random; pinned here to one the attacker did not guess.
     monkeypatch.setattr(secrets, "randbelow", lambda n: (planted + 1) % n)
@@ -670,7 +429,7 @@ class Wire(FakeTransport):
 
 def _ends(clock: ManualClock) -> tuple[PqLink, PqLink, Wire, Wire, list[SessionEvent]]:
     """A ground and a vehicle link whose timers never fire on their own (the test ticks)."""
-    made, events = Link(clock), list[SessionEvent]()
+    made, events = EndPair(clock), list[SessionEvent]()
     ground_air, vehicle_air = Wire("udpout:1.2.3.4:5"), Wire("udpout:1.2.3.4:6")
     ground = PqLink(
         made.ground, FakeTransport("udpin:0.0.0.0:1", fixed=False), ground_air,
@@ -684,34 +443,8 @@ def _ends(clock: ManualClock) -> tuple[PqLink, PqLink, Wire, Wire, list[SessionE
     return ground, vehicle, ground_air, vehicle_air, events
 
 
-def test_the_ground_end_retries_a_lost_handshake_on_its_timer(clock: ManualClock) -> None:
-    """No local traffic at all: the timer alone hand-shakes again, every retry_s, until
-    a session answers, and then stops."""
-    ground, vehicle, ground_air, vehicle_air, events = _ends(clock)
-    ground.start()  # the vehicle's air is not connected yet: this HS1 is lost
-    first = len(ground_air.sent)
-    ground.tick()
-    assert len(ground_air.sent) == first  # not before retry_s
-    ground_air.peer, vehicle_air.peer = vehicle_air, ground_air
-    clock.advance(2)
-    ground.tick()
-    assert len(ground_air.sent) == 2 * first
-    ground_session = ground.end.live
-    assert ground_session is not None
-    assert sorted(map(str, events)) == [
-        f"pq ground: session established ({ground_session.session_id.hex()}, peer responder)",
-        f"pq vehicle: session established ({ground_session.session_id.hex()}, peer gcs)",
-    ]
-    clock.advance(2)
-    ground.tick()
-    assert len(ground_air.sent) == 2 * first  # a session: no more handshakes
-    assert ground.counts().handshakes == {"started": 2, "completed": 1, "failed": 1}
-    ground.stop()
-    vehicle.stop()
-
-
 def test_the_timer_thread_retries_without_being_asked(clock: ManualClock) -> None:
-    made = Link(clock)
+    made = EndPair(clock)
     air = FakeTransport("udpout:1.2.3.4:5")
     ground = PqLink(made.ground, FakeTransport("udpin:0.0.0.0:1", fixed=False), air, tick_s=0.01)
     ground.start()
@@ -768,8 +501,8 @@ def test_each_session_change_is_reported_once_and_counted(clock: ManualClock) ->
 
 
 def test_telemetry_without_a_session_is_counted_not_refused(clock: ManualClock) -> None:
-    refusals: list[Refusal] = []
-    made = Link(clock)
+    refusals: list[FrameRefusal] = []
+    made = EndPair(clock)
     fc = FakeTransport("udpout:1.2.3.4:7")
     vehicle = PqLink(
         made.vehicle, fc, FakeTransport("udpin:0.0.0.0:1", fixed=False),
@@ -781,4 +514,30 @@ def test_telemetry_without_a_session_is_counted_not_refused(clock: ManualClock) 
     assert refusals == []
     counts = vehicle.counts()
     assert counts.dropped == {"local:NO_SESSION": 84} and counts.refused == {}
+    vehicle.stop()
+
+
+def test_the_ground_end_retries_a_lost_handshake_on_its_timer(clock: ManualClock) -> None:
+    """No local traffic at all: the timer alone hand-shakes again, every retry_s, until
+    a session answers, and then stops."""
+    ground, vehicle, ground_air, vehicle_air, events = _ends(clock)
+    ground.start()  # the vehicle's air is not connected yet: this HS1 is lost
+    first = len(ground_air.sent)
+    ground.tick()
+    assert len(ground_air.sent) == first  # not before retry_s
+    ground_air.peer, vehicle_air.peer = vehicle_air, ground_air
+    clock.advance(2)
+    ground.tick()
+    assert len(ground_air.sent) == 2 * first
+    ground_session = ground.end.live
+    assert ground_session is not None
+    assert sorted(map(str, events)) == [
+        f"pq ground: session established ({ground_session.session_id.hex()}, peer responder)",
+        f"pq vehicle: session established ({ground_session.session_id.hex()}, peer gcs)",
+    ]
+    clock.advance(2)
+    ground.tick()
+    assert len(ground_air.sent) == 2 * first  # a session: no more handshakes
+    assert ground.counts().handshakes == {"started": 2, "completed": 1, "failed": 1}
+    ground.stop()
     vehicle.stop()

@@ -37,8 +37,8 @@ from antireplay.mavlink.pq.repair import (
 )
 from antireplay.mavlink.pq.wire import MAX_PARITY, MSG_REPAIR, inner_of
 from antireplay.pq.session import Initiator, Responder
-from tests.harness.lossy_air import Radio, build
-from tests.harness.mavlink_frames import FakeTransport
+from harness.lossy_air import Radio, build
+from harness.mavlink_frames import FakeTransport
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()

@@ -30,20 +30,24 @@ from antireplay.core.clock import SystemClock
 from antireplay.core.errors import StateUnavailableError
 from antireplay.mavlink import (
     TS_LIMIT,
-    Link,
+    FrameRefusal,
     MavlinkGuard,
     MavlinkRouter,
-    Refusal,
     Role,
+    RouterLink,
     TimestampSource,
+    codec,
     mav_time,
     open_transport,
     parse_endpoint,
     parse_frame,
 )
-from tests.harness import ROOT, free_port, free_udp_port, until
-from tests.harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
-from tests.harness.stores import aged_state
+from antireplay.mavlink import guard as guard_module
+from antireplay.mavlink.codec import UNITS_PER_S, Frame
+from antireplay.state.sqlite import SqliteStore
+from harness import ROOT, free_port, free_udp_port, until
+from harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
+from harness.stores import aged_state
 
 
 class Rig:
@@ -61,13 +65,15 @@ class Rig:
             f"udpin:127.0.0.1:{vport}", source_system=system_id, source_component=1
         )
         self.rejections: queue.Queue[tuple[str, str]] = queue.Queue()
-        self.ground = Link(open_transport(parse_endpoint("udpin:127.0.0.1:0")), Role.GROUND, KEY)
+        self.ground = RouterLink(
+            open_transport(parse_endpoint("udpin:127.0.0.1:0")), Role.GROUND, KEY
+        )
         vehicle = open_transport(parse_endpoint(f"udpout:127.0.0.1:{vport}"))
         inbound = MavlinkGuard(
             KEY, system_id=system_id if bind_system_id else None, allow_unsigned=allow_unsigned
         )
         self.router = MavlinkRouter(
-            [self.ground, Link(vehicle, Role.VEHICLE, KEY)],
+            [self.ground, RouterLink(vehicle, Role.VEHICLE, KEY)],
             {KEY: inbound},
             MavlinkGuard(KEY),
             on_reject=self._rejected,
@@ -87,7 +93,7 @@ class Rig:
         self.gcs.mav.send(msg)
         return bytes(msg.get_msgbuf())
 
-    def _rejected(self, refusal: Refusal) -> None:
+    def _rejected(self, refusal: FrameRefusal) -> None:
         self.rejections.put((refusal.direction, refusal.code))
 
     @property
@@ -491,7 +497,7 @@ def test_cli_proxy_refuses_a_bad_key_file_naming_it(tmp_path: Path, content: byt
 
 
 def test_an_audit_trail_that_is_down_does_not_stop_the_forwarding(rig: Rig) -> None:
-    def audit_down(refusal: Refusal) -> None:
+    def audit_down(refusal: FrameRefusal) -> None:
         raise StateUnavailableError("audit trail: disk full")
 
     rig.router.on_reject = audit_down
@@ -511,7 +517,7 @@ def signed_sender(sysid: int, key: bytes, clock: ManualClock) -> tuple[Any, Sink
 
 
 def test_a_frame_the_router_signed_for_a_ground_link_cannot_be_reflected() -> None:
-    """Link B has its own key: the router signs what it forwards there afresh (link id
+    """RouterLink B has its own key: the router signs what it forwards there afresh (link id
     251).  An attacker on B who sends such a copy back gets WRONG_DIRECTION: it neither
     reaches the vehicle twice nor steals the route of the station that sent it."""
     clock, other_key = ManualClock(1_800_000_000.0), bytes(range(1, 33))
@@ -520,9 +526,9 @@ def test_a_frame_the_router_signed_for_a_ground_link_cannot_be_reflected() -> No
     b = FakeTransport("udpin:0.0.0.0:3", fixed=False)
     router = MavlinkRouter(
         [
-            Link(vehicle, Role.VEHICLE, KEY),
-            Link(a, Role.GROUND, KEY),
-            Link(b, Role.GROUND, other_key),
+            RouterLink(vehicle, Role.VEHICLE, KEY),
+            RouterLink(a, Role.GROUND, KEY),
+            RouterLink(b, Role.GROUND, other_key),
         ],
         {
             KEY: MavlinkGuard(KEY, clock=clock, system_id=1),
@@ -617,3 +623,103 @@ def test_cli_router_and_simulated_vehicle_answer_a_signed_command(tmp_path: Path
     greeted = [line for line in router_err.splitlines() if "authenticated" in line]
     assert len(greeted) == 1 and "ground station system 255 authenticated" in greeted[0]
     assert router_err.splitlines()[-1].startswith("forwarded inbound ")
+
+
+def fake_router(clock: ManualClock, store: SqliteStore, other_key: bytes) -> MavlinkRouter:
+    """A vehicle, a ground link with the vehicle key and one with a key of its own, every
+    guard and signer on ``store``."""
+
+    def guard(prefix: str, key: bytes) -> MavlinkGuard:
+        return MavlinkGuard(key, clock=clock, store=store, store_prefix=prefix, system_id=1)
+
+    return MavlinkRouter(
+        [
+            RouterLink(FakeTransport("udpout:127.0.0.1:1"), Role.VEHICLE, KEY),
+            RouterLink(FakeTransport("udpin:0.0.0.0:2", fixed=False), Role.GROUND, KEY),
+            RouterLink(FakeTransport("udpin:0.0.0.0:3", fixed=False), Role.GROUND, other_key),
+        ],
+        {KEY: guard("in", KEY), other_key: guard("in-b", other_key)},
+        MavlinkGuard(KEY, clock=clock, store=store, store_prefix="out"),
+        signers={
+            KEY: TimestampSource(clock, store=store, store_key="sign-a"),
+            other_key: TimestampSource(clock, store=store, store_key="sign-b"),
+        },
+    )
+
+
+def test_one_router_timer_drives_every_guards_lease_and_no_guard_has_a_thread(
+    tmp_path: Path,
+) -> None:
+    """Three guards on a store: one timer thread for the router (no flusher per guard);
+    its tick renews every lease on the router's clock."""
+    clock, store = ManualClock(1_800_000_000.0), SqliteStore(tmp_path / "mav.db")
+    before = {t.name for t in threading.enumerate()}
+    router = fake_router(clock, store, bytes(range(1, 33)))
+    router.start(wait_s=30)
+    try:
+        started = [t.name for t in threading.enumerate() if t.name not in before]
+        assert started == ["mavlink timer"]
+        guards = [*router.inbound.values(), router.outbound]
+        assert all(g.claimed for g in guards)
+        leases = [g.policy.lease for g in guards]
+        clock.advance(1.0)
+        router.tick()  # what the timer does every persist interval
+        assert [g.policy.lease for g in guards] == [lease + UNITS_PER_S for lease in leases]
+    finally:
+        router.stop()
+        store.close()
+    assert [t.name for t in threading.enumerate() if t.name not in before] == []
+
+
+def test_guard_start_never_sleeps_a_held_lease_is_refused_at_once(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``start`` claims a free lease or answers STATE_UNAVAILABLE now; waiting out a crashed
+    run's lease is its owner's timer's (the router's), not a sleep in the guard."""
+
+    def no_sleep(seconds: float) -> None:
+        raise AssertionError(f"slept {seconds} s")
+
+    clock = ManualClock(1_800_000_000.0)
+    holder = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
+    holder.start()
+    monkeypatch.setattr(time, "sleep", no_sleep)
+    second = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
+    with pytest.raises(StateUnavailableError, match="holds the MAVLink state"):
+        second.start()
+    clock.advance(3)  # the holder crashed: its lease runs out on the wall clock
+    second.tick()  # the owner's timer tries again
+    assert second.claimed and second.restart_fence > 0
+
+
+def test_a_frame_is_parsed_once_from_the_transport_to_the_vehicle(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A ground link with its own key: its guard, the router's signature with the vehicle
+    key and the vehicle key's guard all share the frame its transport parsed."""
+    clock, store = ManualClock(1_800_000_000.0), SqliteStore(tmp_path / "mav.db")
+    other_key = bytes(range(1, 33))
+    router = fake_router(clock, store, other_key)
+    router.start(wait_s=30)
+    parses: list[bytes] = []
+    real = codec.parse_frame
+
+    def counted(raw: bytes) -> Frame:
+        parses.append(raw)
+        return real(raw)
+
+    monkeypatch.setattr(codec, "parse_frame", counted)
+    monkeypatch.setattr(guard_module, "parse_frame", counted)
+    try:
+        station, sink = signed_sender(254, other_key, clock)
+        station.command_long_send(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)
+        link_b = router.links[2].transport
+        assert isinstance(link_b, FakeTransport)
+        link_b.inject(sink.frames[-1], ("10.0.0.2", 14550))
+        vehicle = router.links[0].transport
+        assert isinstance(vehicle, FakeTransport)
+        assert len(vehicle.sent) == 1 and router.stats.forwarded["inbound"] == 1
+        assert parses == [sink.frames[-1]]  # the transport's parse, and no other
+    finally:
+        router.stop()
+        store.close()

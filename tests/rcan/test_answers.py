@@ -14,6 +14,7 @@ import httpx
 import pytest
 import yaml
 from click.testing import CliRunner
+from rcan import RCANMessage, RCANResponse
 from rcan.exceptions import QoSAckTimeoutError
 from rcan.qos import QoSManager
 from rcan.signing import MLDSAKeyPair, sign_message
@@ -27,9 +28,8 @@ from antireplay.rcan.auth import JwtVerifier, Signer
 from antireplay.rcan.envelope import parse
 from antireplay.rcan.receive import Outcome, Receiver
 from antireplay.state.loss import NO_HISTORY
-from rcan import RCANMessage, RCANResponse
-from tests.harness import GatewayProcess, free_port, fresh_receiver
-from tests.harness.envelopes import (
+from harness import GatewayProcess, free_port, fresh_receiver
+from harness.envelopes import (
     ED,
     JWT_KEY,
     NOW,

@@ -10,6 +10,7 @@ import jwt as pyjwt
 import pytest
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, mldsa
+from rcan import RCANMessage
 from rcan.signing import MLDSAKeyPair, verify_message
 
 from antireplay import ManualClock, SecurityConfig
@@ -24,9 +25,8 @@ from antireplay.rcan.auth import (
     sign_sdk,
 )
 from antireplay.rcan.receive import Receiver
-from rcan import RCANMessage
-from tests.harness import fresh_receiver
-from tests.harness.envelopes import (
+from harness import fresh_receiver
+from harness.envelopes import (
     ED,
     JWT_KEY,
     NOW,

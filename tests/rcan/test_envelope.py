@@ -8,6 +8,7 @@ from typing import Any
 
 import msgspec
 import pytest
+from rcan import RCANMessage
 from rcan.signing import _canonical_message_bytes
 
 from antireplay.core.errors import Code, InvalidEnvelopeError, InvalidTimestampError, WarningCode
@@ -19,8 +20,7 @@ from antireplay.rcan.envelope import (
     parse,
     safety_class,
 )
-from rcan import RCANMessage
-from tests.harness.envelopes import MITM_FIELDS
+from harness.envelopes import MITM_FIELDS
 
 BASE = b'{"msg_id":"m","cmd":"c","target":"t","rcan":"3.2",'
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import json
 import logging
 import sqlite3
@@ -21,8 +20,8 @@ from antireplay.audit import AuditLog, verify
 from antireplay.rcan.auth import JwtVerifier, sign_envelope
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.rcan.receive import Outcome, Receiver
-from tests.harness import fresh_receiver, race
-from tests.harness.envelopes import (
+from harness import fresh_receiver, race
+from harness.envelopes import (
     ED,
     JWT_KEY,
     MITM_FIELDS,
@@ -38,7 +37,7 @@ from tests.harness.envelopes import (
     signed,
     token,
 )
-from tests.harness.stores import sqlite_store
+from harness.stores import sqlite_store
 
 # --- acceptance and the basic answers ------------------------------------------------------------
 
@@ -423,69 +422,3 @@ def test_a_fresh_estop_is_prompt_while_another_process_holds_the_state_lock(
     assert rows == [("accepted", "STATE_UNAVAILABLE")]  # once: withdrawn from the outbox
     assert verify(tmp_path / "audit.db").ok
     store.close()
-
-
-class _NoThreads(concurrent.futures.ThreadPoolExecutor):
-    """A default executor that refuses work: any hand-off but the given offload fails."""
-
-    def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
-        raise AssertionError(f"{fn!r} went to the loop's default executor")
-
-
-def test_the_event_loop_driver_hands_work_only_to_its_offload_and_keeps_the_estop_rule(
-    receiver: Receiver,
-) -> None:
-    """On a loop, with the audit trail closed: an ESTOP is delivered flagged, anything else
-    is refused 503, as on a thread; every thread hand-off goes through ``offload``."""
-    assert receiver.audit is not None
-    receiver.audit.close()
-    handed: list[Callable[..., Any]] = []
-
-    async def offload(fn: Callable[..., Any], *args: Any) -> Any:
-        handed.append(fn)
-        return fn(*args)
-
-    async def scenario() -> tuple[Outcome, Outcome]:
-        asyncio.get_running_loop().set_default_executor(_NoThreads(1))
-        estop = signed(type=6, safety_event="ESTOP", cmd="estop")
-        return (
-            await receiver.receive_async(estop, None, offload),
-            await receiver.receive_async(signed(), None, offload),
-        )
-
-    estop, other = asyncio.run(scenario())
-    assert (estop.accepted, estop.warning) == (True, "AUDIT_UNAVAILABLE")
-    assert (other.accepted, other.status, other.code) == (False, 503, "STATE_UNAVAILABLE")
-    assert len(handed) >= 4  # each: its steps 1-6 and its commit; the 503's settle
-
-
-def test_the_event_loop_driver_hands_a_thread_one_job_at_most_and_safety_the_urgent_lane(
-    receiver: Receiver,
-) -> None:
-    """Junk, a byte-identical copy and a known replay (new bytes, spent msg_id) are refused
-    on the loop with no hand-off; a command's signature is one ordinary job; a fresh
-    ESTOP's is the urgent lane's."""
-    signatures: list[str] = []  # the lane each signature check was handed to
-
-    def lane(name: str) -> Callable[..., Any]:
-        async def run(fn: Callable[..., Any], *args: Any) -> Any:
-            if getattr(fn, "__name__", "") == "authenticate":
-                signatures.append(name)
-            return fn(*args)
-
-        return run
-
-    command, estop = signed(msg_id="m-1"), signed(type=6, safety_event="ESTOP", cmd="estop")
-    bodies = [b"{not json", command, command, signed(msg_id="m-1", cmd="turn"), estop]
-
-    async def scenario() -> list[Outcome]:
-        asyncio.get_running_loop().set_default_executor(_NoThreads(1))
-        ordinary, urgent = lane("ordinary"), lane("urgent")
-        return [await receiver.receive_async(raw, None, ordinary, urgent) for raw in bodies]
-
-    outcomes = asyncio.run(scenario())
-    assert [(o.accepted, o.code) for o in outcomes] == [
-        (False, "INVALID_ENVELOPE"), (True, None), (False, "REPLAY_DETECTED"),
-        (False, "REPLAY_DETECTED"), (True, None),
-    ]  # fmt: skip
-    assert signatures == ["ordinary", "urgent"]

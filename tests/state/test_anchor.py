@@ -18,9 +18,9 @@ from antireplay import ManualClock, ReplayCache
 from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
 from antireplay.state.anchor import Anchored, StateAnchor, check_anchor_path
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import STARTED_BEFORE_S
-from tests.harness.redis_server import RedisServer
-from tests.harness.stores import assert_fenced, sqlite_store
+from harness import STARTED_BEFORE_S
+from harness.redis_server import RedisServer
+from harness.stores import assert_fenced, sqlite_store
 
 NOW = 2_000_000_000.0
 MakeAnchor = Callable[..., StateAnchor | None]

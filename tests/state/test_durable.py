@@ -14,10 +14,10 @@ from click.testing import CliRunner
 
 from antireplay.cli import main
 from antireplay.core.errors import StateFileError
-from antireplay.epochs import EpochSigner
+from antireplay.epochs import EpochSigner, signer_state
 from antireplay.state.ceilings import persistent_counter
 from antireplay.state.durable import DurableState, repair
-from tests.harness import ROOT
+from harness import ROOT
 
 
 def make(tmp_path: Path, gens: int = 1) -> DurableState:
@@ -154,7 +154,7 @@ def test_wrong_typed_content_is_refused_naming_file_and_repair(
     forge(path, kind, data)
     owners: dict[str, Callable[[], object]] = {
         "nonce-counter": lambda: persistent_counter(path),
-        "epoch-signer": lambda: EpochSigner(b"k" * 32, state_file=path),
+        "epoch-signer": lambda: EpochSigner(b"k" * 32, state=signer_state(path)),
     }
     with pytest.raises(StateFileError) as err:
         owners[kind]()
@@ -172,9 +172,9 @@ def hold(path: Path, kind: str) -> subprocess.Popen[str]:
     """A real second process that opens the state file as its owner and waits on stdin."""
     code = (
         "import sys; from antireplay.state.ceilings import persistent_counter; "
-        "from antireplay.epochs import EpochSigner; p = sys.argv[1]; "
+        "from antireplay.epochs import EpochSigner, signer_state; p = sys.argv[1]; "
         "o = persistent_counter(p) if sys.argv[2] == 'nonce-counter' "
-        "else EpochSigner(b'k' * 32, state_file=p); "
+        "else EpochSigner(b'k' * 32, state=signer_state(p)); "
         "print(o.next() if sys.argv[2] == 'nonce-counter' else o.next_epoch(), flush=True); "
         "sys.stdin.read()"
     )
@@ -198,9 +198,9 @@ def test_second_process_on_one_state_file_is_refused(tmp_path: Path, kind: str) 
         probe = subprocess.run(
             [sys.executable, "-c", (
                 "import sys; from antireplay.state.ceilings import persistent_counter; "
-                "from antireplay.epochs import EpochSigner; p = sys.argv[1]; "
+                "from antireplay.epochs import EpochSigner, signer_state; p = sys.argv[1]; "
                 "persistent_counter(p) if sys.argv[2] == 'nonce-counter' "
-                "else EpochSigner(b'k' * 32, state_file=p)"
+                "else EpochSigner(b'k' * 32, state=signer_state(p))"
             ), str(path), kind],
             capture_output=True, text=True, env=dict(os.environ, PYTHONPATH=str(ROOT / "src")),
             timeout=60, check=False,

@@ -35,7 +35,7 @@ from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_con
 from antireplay.state import groupcommit
 from antireplay.state.groupcommit import GroupCommitter
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import GatewayProcess
+from harness import GatewayProcess
 
 WAIT_S = 30.0  # liveness bound only: a correct run never gets near it
 

@@ -20,7 +20,7 @@ from antireplay.state.sqlite import SqliteStore
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"}
-WORKER = [sys.executable, "-m", "tests.harness.workers.outbox_worker"]
+WORKER = [sys.executable, "-m", "harness.workers.outbox_worker"]
 #: Fsyncs of opening and closing a store and a trail (creating files, keys, the head).
 SETUP_FSYNCS = 40
 #: One row of ``strace -c``'s table: % time, seconds, usecs/call, calls, [errors], the call.

@@ -22,9 +22,9 @@ from antireplay.cli.demo import write_demo_config
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.core.window import Seen
 from antireplay.state.redis import RedisStore
-from tests.harness import accepted_fresh, data_losses, post_after_cut, reencoded, serving
-from tests.harness.redis_server import RedisCluster, RedisServer, wait_replicated
-from tests.harness.stores import assert_fenced, fresh_deployment, redis_replicas
+from harness import accepted_fresh, data_losses, post_after_cut, reencoded, serving
+from harness.redis_server import RedisCluster, RedisServer, wait_replicated
+from harness.stores import assert_fenced, fresh_deployment, redis_replicas
 
 NOW = 2_000_000_000.0  # 2033: after any Redis server's real time in these tests
 

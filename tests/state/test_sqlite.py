@@ -13,7 +13,7 @@ import pytest
 from antireplay import ManualClock, MessageType, ReplayCache
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.state.sqlite import SAFETY_WAIT_S, STALLED_WAIT_S, SqliteStore, check_readable
-from tests.harness.stores import sqlite_store
+from harness.stores import sqlite_store
 
 NOW = 2_000_000_000.0
 

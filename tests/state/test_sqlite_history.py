@@ -11,7 +11,7 @@ from antireplay import ManualClock, MessageType, ReplayCache
 from antireplay.state.anchor import StateAnchor
 from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
-from tests.harness.stores import assert_fenced
+from harness.stores import assert_fenced
 
 NOW = 2_000_000_000.0
 

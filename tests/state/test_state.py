@@ -38,19 +38,19 @@ from antireplay.state import ReplayStore, Seen, open_store
 from antireplay.state.memory import MemoryStore
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
-from tests.harness import kill9_runs, run_threads
-from tests.harness.mavlink_frames import KEY, command_frame, encoder
-from tests.harness.redis_server import (
+from harness import kill9_runs, run_threads
+from harness.mavlink_frames import KEY, command_frame, encoder
+from harness.redis_server import (
     RedisCluster,
     RedisServer,
     primary_and_replica,
     wait_replicated,
 )
-from tests.harness.stores import assert_fenced as _assert_fenced
-from tests.harness.stores import fresh_deployment as _fresh_deployment
-from tests.harness.stores import redis_replicas as _replicas
-from tests.harness.stores import sqlite_store
-from tests.harness.workers import store_worker
+from harness.stores import assert_fenced as _assert_fenced
+from harness.stores import fresh_deployment as _fresh_deployment
+from harness.stores import redis_replicas as _replicas
+from harness.stores import sqlite_store
+from harness.workers import store_worker
 
 BACKENDS = ["memory", "sqlite", "redis", "redis-cluster"]
 NOW = 2_000_000_000.0  # 2033: after any Redis server's real time in these tests
@@ -775,7 +775,7 @@ def test_two_processes_one_redis_exactly_one_acceptance(redis_url: str) -> None:
 
 def test_sqlite_kill9_under_load_never_accepts_twice(tmp_path: Path) -> None:
     runs = kill9_runs(
-        ["-m", "tests.harness.workers.store_worker", str(tmp_path / "receiver.db")], 15, 60, 5
+        ["-m", "harness.workers.store_worker", str(tmp_path / "receiver.db")], 15, 60, 5
     )
     accepted = [msg_id for run in runs for msg_id in run]
     assert accepted, "nothing was accepted"

@@ -23,14 +23,16 @@ refusals are only counted; below the second, new commands are refused with
 through any audit failure; its row goes to the reserved **spill** (:mod:`.spill`) and is
 merged into the trail, chained, with the next batch it takes.  A file that is not a
 trail, or was rewritten, raises :class:`~antireplay.core.errors.AuditFileError` naming
-the recovery (``antireplay audit verify`` / ``reanchor``).
+the recovery (``antireplay audit verify`` / ``reanchor``).  The head is also kept in the
+state database and in exports an operator keeps (:mod:`.consistency`): a trail rolled back
+against them is ``AUDIT_ROLLED_BACK``.
 """
 
 from antireplay.audit.chain import GENESIS, Checkpoint, HeadAnchor, Record, sanitize
 from antireplay.audit.reader import shown, tail
 from antireplay.audit.refusals import RefusalAuditor
 from antireplay.audit.segments import Retention, TrailUsage
-from antireplay.audit.verifier import ChainReport, reanchor, verify
+from antireplay.audit.verifier import ChainReport, export_head, reanchor, verify
 from antireplay.audit.writer import AuditLog
 
 __all__ = [
@@ -43,6 +45,7 @@ __all__ = [
     "RefusalAuditor",
     "Retention",
     "TrailUsage",
+    "export_head",
     "reanchor",
     "sanitize",
     "shown",

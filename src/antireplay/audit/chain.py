@@ -228,6 +228,11 @@ class HeadAnchor:
         text = f"antireplay/v1 audit head|{rows}|{head}" + (f"|first {first}" if first > 1 else "")
         return hmac.new(key, text.encode(), "sha256").hexdigest()
 
+    @classmethod
+    def mac_ok(cls, key: bytes, head: Checkpoint, mac: str) -> bool:
+        """Whether ``mac`` is ``head``'s MAC under ``key``."""
+        return hmac.compare_digest(mac, cls.mac(key, head.rows, head.hash, head.first))
+
     @staticmethod
     def link(key: bytes, n: int, first: int, prev: str) -> Link:
         """A segment's start, MACed: proof that the writer, not a deleter, cut the chain there."""

@@ -5,6 +5,9 @@ What it proves and what it cannot is in :mod:`antireplay.audit`; how segments li
 what retention may remove is in :mod:`.segments`.  Each segment kept is walked in order:
 its link must start where the previous segment ends (and carry the head key's MAC), its
 rows must chain; the oldest segment's link is the proven cut point retention left.
+Given the state database (``state``) or an exported head (``since``), it also proves the
+trail extends the head recorded there (:mod:`.consistency`): a trail rolled back, truncated
+or rewritten before it fails.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from os import PathLike
 from pathlib import Path
 from typing import TypeVar
 
-from antireplay.audit import segments
+from antireplay.audit import consistency, segments
 from antireplay.audit.chain import (
     _ALL,
     _FIELDS,
@@ -30,7 +33,9 @@ from antireplay.audit.chain import (
     _link,
     _wrongly_typed,
 )
+from antireplay.audit.consistency import Consistency
 from antireplay.core.errors import AuditFileError
+from antireplay.state.outbox import read_trail_head
 
 T = TypeVar("T")
 
@@ -53,6 +58,11 @@ class ChainReport:
     first_hash: str = GENESIS
     #: The last row kept (``records`` when nothing was removed); ``None``: none walked yet.
     last_row: int | None = None
+    #: The trail against heads recorded elsewhere: the state database's, an exported one.
+    state: Consistency | None = None
+    since: Consistency | None = None
+    #: Why a recorded head could not be compared (no state record, no key).
+    unproven: tuple[str, ...] = ()
 
     @property
     def chain_ok(self) -> bool:
@@ -60,8 +70,10 @@ class ChainReport:
 
     @property
     def ok(self) -> bool:
-        """The chain links and a genuine checkpoint matches it (no truncation, no rewrite)."""
-        return self.broken_at is None and self.head == "match"
+        """The chain links and a genuine checkpoint matches it (no truncation, no rewrite),
+        and it extends every head recorded elsewhere that was given."""
+        extended = all(c is None or c.ok for c in (self.state, self.since))
+        return self.broken_at is None and self.head == "match" and extended
 
     def lines(self) -> list[str]:
         """What was proven and what was not, one fact per line."""
@@ -95,6 +107,16 @@ class ChainReport:
             out.append("head key missing: the checkpoint's MAC cannot be checked")
         else:
             out.append(f"head checkpoint does not match: {self.head}")
+        for name, found in (("state database", self.state), ("exported head", self.since)):
+            if found is None:
+                continue
+            if found.problem is not None:
+                out.append(f"{consistency.ROLLED_BACK}: against the {name}: {found.problem}")
+            elif found.cut is not None:
+                out.append(f"{name} at row {found.head.rows}: not comparable: {found.cut}")
+            else:
+                out.append(f"{name} at row {found.head.rows}: the chain extends it (MAC verified)")
+        out.extend(self.unproven)
         return out
 
 
@@ -167,14 +189,58 @@ def verify(
     *,
     head_key: str | Path | None = None,
     head_path: str | Path | None = None,
+    state: str | Path | None = None,
+    since: str | Path | None = None,
 ) -> ChainReport:
     """Recompute the hash chain across segments and check it against the head checkpoint
-    (read-only).
+    (read-only); with ``state`` (a SQLite state database) or ``since`` (an exported head),
+    prove the trail extends the head recorded there.
 
     A file that is not an audit trail, or a segment missing, renamed or out of order, raises
     ``AuditFileError``; a missing, damaged or forged checkpoint or key is *reported* in
-    ``head`` (the report says what is provable)."""
-    path = Path(path)
+    ``head`` (the report says what is provable); so is a rollback against a recorded head.
+    An export that is not one, or forged, raises ``AuditFileError``."""
+    report = _verify(Path(path), head_key, head_path)
+    if state is None and since is None:
+        return report
+    anchor = HeadAnchor(Path(path), Path(head_key) if head_key else None)
+    key = anchor.load_key()
+    if key is None:
+        return replace(report, unproven=("head key missing: recorded heads not compared",))
+    trail = _Trail(Path(path))
+    try:
+        unproven: tuple[str, ...] = ()
+        found = None
+        if state is not None:
+            recorded = _state_head(Path(state))
+            found = consistency.against_state(trail.path, trail.live, recorded, key)
+            if recorded is None:
+                unproven = (f"state database {state}: no trail head recorded yet",)
+        exported = None
+        if since is not None:
+            head = consistency.read_export(Path(since), key, trail.path)
+            if head is None:
+                raise AuditFileError(str(since), "does not exist", recovery="give an exported head")
+            exported = consistency.extends(trail.path, trail.live, head)
+    finally:
+        trail.close()
+    return replace(report, state=found, since=exported, unproven=unproven)
+
+
+def _state_head(path: Path) -> consistency.TrailHead | None:
+    """The trail head the SQLite state database at ``path`` records."""
+    try:
+        return read_trail_head(path)
+    except sqlite3.DatabaseError as exc:
+        raise AuditFileError(
+            str(path),
+            f"not a readable SQLite state database ({exc})",
+            recovery="give the state database the gateway uses (state: sqlite:PATH)",
+        ) from None
+
+
+def _verify(path: Path, head_key: str | Path | None, head_path: str | Path | None) -> ChainReport:
+    """:func:`verify` without recorded heads."""
     anchor = HeadAnchor(path, Path(head_key) if head_key else None,
                         Path(head_path) if head_path else None)  # fmt: skip
     trail = _Trail(path)
@@ -260,3 +326,26 @@ def reanchor(
     seq = chain.first_row - 1 + chain.records
     anchor.write(key, seq, head, first=chain.first_segment)
     return replace(chain, checkpoint_rows=seq)
+
+
+def export_head(
+    path: str | PathLike[str],
+    file: str | Path,
+    *,
+    head_key: str | Path | None = None,
+    head_path: str | Path | None = None,
+) -> ChainReport:
+    """Write the trail's head checkpoint, MACed with the head key, to ``file`` (for an
+    operator to keep elsewhere; ``verify(since=file)`` later proves the trail extends it),
+    after :func:`verify` proves it.  Refuses a trail that does not verify."""
+    report = verify(path, head_key=head_key, head_path=head_path)
+    if not report.ok or report.checkpoint_rows is None:
+        raise AuditFileError(str(path), "not exported: " + "; ".join(report.lines()),
+                             recovery=f"antireplay audit verify {path}")  # fmt: skip
+    anchor = HeadAnchor(Path(path), Path(head_key) if head_key else None,
+                        Path(head_path) if head_path else None)  # fmt: skip
+    key = anchor.load_key()
+    checkpoint = anchor.read(key)
+    assert key is not None and checkpoint is not None, "verified: both exist"
+    consistency.export(anchor, key, checkpoint, Path(file))
+    return report

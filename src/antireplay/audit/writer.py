@@ -1,9 +1,10 @@
 """The audit writer: group-committed, hash-chained appends with an anchored head.
 
-See :mod:`antireplay.audit` for the theory of operation and :mod:`.segments` for how
-the trail rotates and what retention removes.  Each batch is one transaction in
-:meth:`AuditLog._write_batch`; rotation and retention run after it, under the same lock,
-and never fail the batch (its rows are durable: a failed rotation is retried next batch).
+See :mod:`antireplay.audit` for the theory of operation, :mod:`.segments` for how the
+trail rotates and what retention removes, :mod:`.rotation` for the writer's side of that.
+Each batch is one transaction in :meth:`AuditLog._write_batch`; rotation and retention run
+after it, under the same lock, and never fail the batch (its rows are durable: a failed
+rotation is retried next batch).
 Rows waiting in the ESTOP spill (:mod:`.spill`) are merged first in each batch.
 
 With a SQLite state store's outbox (:meth:`AuditLog.attach`, :mod:`antireplay.state.outbox`)
@@ -14,10 +15,9 @@ every ``head_sync_s`` (``synchronous=NORMAL`` otherwise: a ``kill -9`` loses not
 power cut may lose the newest rows, which the outbox still holds and the next drain moves
 again, the mark having gone back with them); after an fsynced one the head is
 checkpointed and the outbox forgets what the trail now holds durably.  Opening drains
-first; closing drains with an fsync.  The head never claims a row not yet durable.
-
-Size: the writer, the spill merge, the outbox drain, rotation and retention share one
-lock and one batch.
+first; closing drains with an fsync.  The head never claims a row not yet durable.  Each
+fsynced drain also records the head in the state database (:mod:`.consistency`); a trail
+found behind that record when it attaches is ``AUDIT_ROLLED_BACK``.
 """
 
 from __future__ import annotations
@@ -27,28 +27,27 @@ import contextlib
 import logging
 import sqlite3
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from concurrent.futures import Future
 from os import PathLike
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from antireplay.audit import segments
+from antireplay.audit import consistency, segments
 from antireplay.audit.chain import (
     _FIELDS,
     Checkpoint,
     HeadAnchor,
     Record,
     _compare,
-    _connect,
     _digest,
     _last,
-    _link,
     _recovery,
     sanitize,
     valid_at,
 )
-from antireplay.audit.segments import Kept, Retention, TrailUsage
+from antireplay.audit.rotation import SegmentLifecycle, mark_of, rows_in
+from antireplay.audit.segments import Retention
 from antireplay.audit.spill import SLOTS, Spill
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AuditFileError, StateUnavailableError
@@ -61,8 +60,6 @@ log = logging.getLogger("antireplay.audit")
 _DRAIN: dict[str, Any] = {}
 #: Outbox rows moved per transaction at most (more: another drain follows at once).
 DRAIN_BATCH = 4096
-#: Longest a due rotation waits for other writers' batches in flight (then postponed).
-ROTATION_WAIT_S = 0.5
 
 
 class _Appended(NamedTuple):
@@ -86,7 +83,7 @@ def _stored(fields: dict[str, Any]) -> dict[str, Any]:
     }  # fmt: skip
 
 
-class AuditLog:
+class AuditLog(SegmentLifecycle):
     """Append-only, hash-chained audit trail: the live segment at ``path`` and the rotated
     segments beside it (:mod:`.segments`), head anchored outside them."""
 
@@ -110,31 +107,16 @@ class AuditLog:
         self.head_sync_s = head_sync_s
         #: When the live segment rotates and what is removed (default: one growing file).
         self.retention = retention or Retention()
-        self._rotates = self.retention.segment_bytes is not None or (
-            self.retention.segment_age_s is not None
-        )
         self._clock = resolve(clock)
         self._head_synced = self._clock.monotonic()
         self._head_dirty = False
-        #: Rotations that were due but had to wait (another writer or reader had the trail).
-        self.rotations_postponed = 0
-        self._waiting = False
         self._refuse_deleted_trail()
-        self._rotation = segments.RotationLock(self.path)  # shared: no writer is rotating now
-        try:
-            segments.recover(self.path)  # a rotation killed half-way: the live file holds it all
-            db, self._file = _open_live(self.path, self.retention.segment_bytes)
-            self._db: sqlite3.Connection | None = db
-        except BaseException:
-            self._rotation.close()
-            raise
+        db = self._open_lifecycle()  # the rotation lock held shared until _opened
         self._lock = threading.Lock()
         try:
             self._key = self._open_anchor(db)
             self._rows, self._head = _last(db)  # what this writer knows the chain to be
-            self._kept = self._open_segments(db)
-            self._rotation.release()
-            self._retain_at_open()
+            self._opened(db)
         except BaseException as exc:
             self._close_live()
             self._rotation.close()
@@ -149,6 +131,13 @@ class AuditLog:
         self._outbox: Outbox | None = None
         self._drain_queued = False
         self._forgotten: Mark = (None, 0)
+        self._recorded: tuple[int, str] | None = None
+        #: Record the head in the state database with each drain (off: to measure its cost).
+        self.record_head = True
+        #: Why the trail was found rolled back against the state's record (``None``: it was
+        #: not), and how often; the flag holds until the process stops.
+        self.rolled_back: str | None = None
+        self.rollbacks = 0
         self._last_moved = 0
         self._spill = self._open_spill(spill_path, spill_slots)
         self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
@@ -187,159 +176,6 @@ class AuditLog:
     def spilled(self) -> int:
         """Rows waiting in the spill."""
         return 0 if self._spill is None else len(self._spill.pending())
-
-    def _refuse_deleted_trail(self) -> None:
-        """A head checkpoint without its trail means the trail was deleted: refuse before
-        ``_connect`` would create an empty file in its place (a refused start creates
-        nothing), saying how many records the checkpoint says existed."""
-        if self.path.exists() or not self.anchor.path.exists():
-            return
-        try:
-            checkpoint = self.anchor.read(None)
-        except AuditFileError:
-            checkpoint = None  # unreadable too: still deleted, count unknown
-        held = "records" if checkpoint is None else f"{checkpoint.rows} records"
-        raise AuditFileError(
-            str(self.path),
-            f"deleted: its head checkpoint {self.anchor.path} says the trail held {held}",
-            recovery=(
-                f"restore {self.path} from a backup; or, to start a new trail and keep the "
-                f"evidence, move {self.anchor.path} and {self.anchor.key_path} aside"
-            ),
-        )
-
-    def _open_anchor(self, db: sqlite3.Connection) -> bytes:
-        """Check the database against its checkpoint before appending anything."""
-        key = self.anchor.load_key()
-        checkpoint = self.anchor.read(key)
-        seq, head = _last(db)
-        if key is None:
-            if checkpoint is not None:
-                raise AuditFileError(
-                    str(self.anchor.key_path), "missing while the head checkpoint exists",
-                    recovery=_recovery(self.path),
-                )  # fmt: skip
-            if seq:
-                raise AuditFileError(
-                    str(self.path),
-                    f"has {seq} rows but no head checkpoint or key (made before anchoring, "
-                    "or both deleted): cannot prove the newest rows were not deleted",
-                    recovery=_recovery(self.path),
-                )
-            key = self.anchor.create_key()
-        elif checkpoint is None:
-            if seq:
-                raise AuditFileError(
-                    str(self.anchor.path),
-                    "missing: cannot prove the newest rows of the trail were not deleted",
-                    recovery=_recovery(self.path),
-                )
-        else:
-            problem = segments.compare(self.path, db, checkpoint)
-            if problem is not None:
-                raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
-        self._first = 1 if checkpoint is None else checkpoint.first
-        if checkpoint is None or checkpoint.rows != seq:
-            self.anchor.write(key, seq, head, first=self._first)
-        return key
-
-    def _open_segments(self, db: sqlite3.Connection) -> list[Kept]:
-        """The rotated segments, checked in order against the live one and the head."""
-        found = [segments.kept(file, n) for n, file in segments.rotated(self.path)]
-        live = _link(db)
-        order = [(k.path, k.link) for k in found] + [(self.path, live)]
-        segments.check_order(self.path, order, self._first)
-        if found and found[-1].end != (live.first - 1, live.prev):
-            raise AuditFileError(
-                str(self.path), f"does not start where {found[-1].path.name} ends (row "
-                f"{found[-1].end[0]}): rows of the segment before it missing or rewritten",
-                recovery=_recovery(self.path),
-            )  # fmt: skip
-        self._link = live
-        return found
-
-    def _retain_at_open(self) -> None:
-        """Finish a retention a crash interrupted and apply retention, alone on the trail
-        (two writers would race on the head's oldest segment); else after a rotation."""
-        with self._lock:
-            if not self._rotation.exclusive(ROTATION_WAIT_S):
-                return
-            try:
-                self._follow()
-                for k in [k for k in self._kept if k.n < self._first]:  # marked removed
-                    k.path.unlink()
-                self._kept = [k for k in self._kept if k.n >= self._first]
-                self._retain()
-            finally:
-                self._rotation.release()
-
-    @contextlib.contextmanager
-    def _shared(self) -> Iterator[sqlite3.Connection]:
-        """The live segment, current, with the rotation lock held shared (the caller holds
-        the writer's lock)."""
-        self._rotation.shared()
-        try:
-            yield self._follow()
-        finally:
-            self._rotation.release()
-
-    def _live(self) -> sqlite3.Connection:
-        assert self._db is not None, "the live segment is open while the rotation lock is held"
-        return self._db
-
-    def _follow(self) -> sqlite3.Connection:
-        """The live segment (the caller holds the rotation lock): reopened if it is closed,
-        another writer rotated it, or another writer's retention removed segments.  The file
-        this writer had open must now be a rotated segment (same inode) or one retention
-        removed (the head says so); the chain must still hold the last row this writer knew.
-        Anything else was deleted or replaced under it: refused."""
-        identity = file_identity(self.path)
-        current = not self._kept or self._kept[0].path.exists()
-        if self._db is not None and identity == self._file and current:
-            return self._db
-        if identity is None:
-            log.error("audit trail %s deleted; refusing to append", self.path)
-            raise self._gone()
-        if self._db is None and identity == self._file and current:  # closed by this writer
-            self._db = _open_live(self.path, self.retention.segment_bytes)[0]
-            return self._db
-        self._close_live()
-        db, file = _open_live(self.path, self.retention.segment_bytes)
-        try:
-            checkpoint = self.anchor.read(self._key)
-            if checkpoint is not None:
-                self._first = max(self._first, checkpoint.first)
-            if file != self._file:
-                renamed = file_identity(segments.numbered(self.path, self._link.n)) == self._file
-                if not (renamed or self._link.n < self._first):
-                    log.error("audit trail %s replaced; refusing to append", self.path)
-                    raise self._gone()
-            kept = self._open_segments(db)
-            oldest = kept[0].link.first if kept else self._link.first
-            if self._rows >= oldest - 1:  # else retention removed the segment holding it
-                problem = segments.compare(self.path, db, Checkpoint(self._rows, self._head))
-                if problem is not None:
-                    raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
-        except BaseException:
-            db.close()
-            raise
-        self._db, self._file, self._kept = db, file, kept
-        self._rows, self._head = _last(db)
-        self._live_since = self._first_at(db)
-        return db
-
-    def _close_live(self) -> None:
-        """Close this writer's live connection (reopened by the next batch): leaving WAL
-        mode for a rotation needs every connection but the rotating one's closed."""
-        if self._db is not None:
-            with contextlib.suppress(sqlite3.Error):
-                self._db.close()
-            self._db = None
-
-    def _first_at(self, db: sqlite3.Connection) -> float | None:
-        """Wall time of the live segment's first row (its age decides rotation)."""
-        row = db.execute("SELECT at FROM audit ORDER BY seq LIMIT 1").fetchone()
-        return None if row is None else valid_at(row[0])
 
     def append(
         self,
@@ -436,29 +272,12 @@ class AuditLog:
                     self._head_dirty = True
             if spilled:
                 self._merged(len(spilled))
-            if self._rotation_due():
-                self._close_live()  # whichever writer gets the lock rotates: see .segments
-                try:
-                    why = self._rotate()
-                except (sqlite3.Error, OSError, AuditFileError) as exc:
-                    why = str(exc)
-                if why is not None:
-                    self._close_live()
-                self._postponed(why)
-            elif self._rotates and not self._rotation.alone():
-                self._close_live()  # an idle writer's connection would stop the others' rotation
+            self._after_batch()
             self._last_moved = done.moved
             if done.moved == DRAIN_BATCH:
                 self._wake()  # more waiting: drain on
             seqs = iter(range(done.first, done.rows + 1))
             return [0 if fields is _DRAIN else next(seqs) for fields in batch]
-
-    def _gone(self) -> AuditFileError:
-        """The error of a trail deleted or replaced under this writer."""
-        return AuditFileError(
-            str(self.path), "deleted or replaced under the running writer",
-            recovery=f"stop it, restore {self.path} or see antireplay audit reanchor",
-        )  # fmt: skip
 
     def _append(
         self, db: sqlite3.Connection, spilled: list[dict[str, Any]], direct: list[dict[str, Any]]
@@ -475,7 +294,7 @@ class AuditLog:
         moved: list[tuple[int, dict[str, Any]]] = []
         mark: Mark = (None, 0)
         if self._outbox is not None:
-            mark = _mark(db)
+            mark = mark_of(db)
             epoch, moved = self._outbox.pending(mark, DRAIN_BATCH)
             mark = (epoch, mark[1] if mark[0] == epoch else 0)
         seq, prev = _last(db)
@@ -498,10 +317,24 @@ class AuditLog:
         the accepted rows that follow them); what it already holds is drained first."""
         with self._lock, self._shared() as db:
             db.execute(segments.MARK_SCHEMA)
+            found = consistency.against_state(self.path, db, outbox.trail_head(), self._key)
+        if found is not None and found.problem is not None:
+            self._roll_back(f"behind the state database {outbox.store.path}: {found.problem}")
         self._outbox = outbox
         outbox.store.defer_commits()
         self.drain()
         outbox.on_rows = self._wake
+
+    def _roll_back(self, problem: str) -> None:
+        """The trail disagrees with the state's record of its head: say so (log, flag,
+        counter) and put it on the record, an ``AUDIT_ROLLED_BACK`` row chained now."""
+        self.rolled_back, self.rollbacks = problem, self.rollbacks + 1
+        log.error("audit trail %s rolled back: %s", self.path, problem)
+        row = _stored({"at": self._clock.wall(), "outcome": "alert",
+                       "code": consistency.ROLLED_BACK, "warning": problem[:200],
+                       "msg_type": None, "sender": None, "sender_verified": False,
+                       "msg_id": None})  # fmt: skip
+        self._write_batch([row], sync=True)
 
     def drain(self) -> None:
         """Move everything the outbox holds into the trail now, durably (a database behind
@@ -509,10 +342,11 @@ class AuditLog:
         if self._outbox is None:
             return
         with self._lock, self._shared() as db:
-            mark = _mark(db)
+            mark = mark_of(db)
         if self._outbox.behind(mark):
-            log.warning("audit outbox of %s is behind the trail's mark: new epoch",
-                        self._outbox.store.path)  # fmt: skip
+            self._roll_back(f"the state database {self._outbox.store.path} is behind the "
+                            "trail (its outbox never reached the trail's mark): restored "
+                            "from an older copy; its outbox starts a new epoch")  # fmt: skip
             self._outbox.renew().result()
         while True:
             self._write_batch([_DRAIN], sync=True)
@@ -530,12 +364,20 @@ class AuditLog:
     def _forget(self, outbox: Outbox, mark: Mark) -> None:
         """The trail holds rows up to ``mark`` durably: delete them from the outbox (of
         that epoch: the delete names it)."""
-        if mark == self._forgotten or mark[1] == 0:
+        head = (self._rows, self._head)
+        if (mark == self._forgotten or mark[1] == 0) and (
+            not self.record_head or head == self._recorded or not self._rows
+        ):
             return
         self._forgotten = mark
+        record = None
+        if self.record_head:  # the head, durable now: kept in the state database too
+            self._recorded = head
+            mac = HeadAnchor.mac(self._key, self._rows, self._head, self._first)
+            record = (self._rows, self._head, self._first, mac)
         self._forget_point()
         with contextlib.suppress(RuntimeError):  # the store is closing: deleted next time
-            outbox.forget(mark)
+            outbox.forget(mark, record)
 
     def _forget_point(self) -> None:
         """Called between a durable drain and the outbox's delete (a test stops there)."""
@@ -550,18 +392,6 @@ class AuditLog:
         else:
             log.warning("audit trail writable again: %d spilled rows merged", n)
 
-    def _postponed(self, why: str | None) -> None:
-        """Count a rotation that is due but waits (retried after the next batch); say so
-        once per streak, so a reader that never lets go is visible, not silent."""
-        if why is None:
-            self._waiting = False
-            return
-        self.rotations_postponed += 1
-        if not self._waiting:
-            log.warning("audit trail %s: rotation postponed (%s); retried after each batch",
-                        self.path, why)  # fmt: skip
-        self._waiting = True
-
     def _checkpoint(self, *, sync: bool = False) -> None:
         """Rewrite the head after a batch (the caller holds the lock); fsync it only once
         ``head_sync_s`` has passed since the last fsync (see the module docstring)."""
@@ -571,109 +401,6 @@ class AuditLog:
         if sync:
             self._head_synced = now
         self._head_dirty = not sync
-
-    def _rotation_due(self) -> bool:
-        """The live segment is over its size on disk (its WAL included) or its age; an empty
-        live segment never rotates."""
-        limit, age = self.retention.segment_bytes, self.retention.segment_age_s
-        if self._rows < self._link.first:
-            return False
-        since = self._live_since
-        if age is not None and since is not None and self._clock.wall() - since >= age:
-            return True
-        return limit is not None and segments.bytes_of(self.path) >= limit
-
-    def _rotation_point(self, step: str) -> None:
-        """Called after each step of a rotation (a test stops a real writer there)."""
-
-    def _rotate(self) -> str | None:
-        """Make the live segment a rotated one and start the next from its last row (the
-        caller holds the lock; the order of steps is argued in :mod:`.segments`); why it
-        must wait, if it must."""
-        if not self._rotation.exclusive(ROTATION_WAIT_S):
-            return "another writer's batch held the trail"
-        try:
-            n = self._link.n
-            self._follow()
-            if self._link.n != n:
-                return None  # another writer rotated it meanwhile
-            return self._rotate_alone()
-        finally:
-            self._rotation.release()
-
-    def _rotate_alone(self) -> str | None:
-        segments.recover(self.path)
-        db = self._live()
-        if not segments.seal(db):
-            return "another connection has the live segment open"
-        try:
-            db.execute("BEGIN IMMEDIATE")  # another writer waits, then sees the new name
-            self._rotation_point("sealed")
-            problem = _compare(db, Checkpoint(self._rows, self._head))
-            if problem is not None:
-                raise AuditFileError(str(self.path), problem, recovery=_recovery(self.path))
-            self._rows, self._head = _last(db)  # other writers' rows included
-            following = self.anchor.link(self._key, self._link.n + 1, self._rows + 1, self._head)
-            mark = _mark(db)
-            segments.prepare(self.path, following, mark if mark[0] is not None else None)
-            self._rotation_point("prepared")
-            old = segments.publish(self.path, self._link.n)
-        except BaseException:
-            db.execute("ROLLBACK")
-            db.execute("PRAGMA journal_mode=WAL")
-            raise
-        self._rotation_point("published")
-        db.execute("ROLLBACK")
-        live, identity = _open_live(self.path, self.retention.segment_bytes)
-        db.close()
-        self._db, self._file = live, identity
-        self._kept.append(segments.kept(old, self._link.n))
-        self._link, self._live_since = following, None
-        self._checkpoint(sync=True)  # a power cut never brings back a head in a rotated segment
-        log.info("audit trail %s: segment %d rotated to %s", self.path, following.n - 1, old)
-        self._retain()
-        return None
-
-    def _retain(self) -> None:
-        """Remove the oldest rotated segments past the byte or age budget (the caller holds
-        the lock): the head, fsynced, first says they are gone on purpose.  The live segment
-        counts as full, as large as the largest rotated one (a segment rotates once a batch
-        has taken it past ``segment_bytes``), with its WAL at the most it holds before being
-        folded in, so the trail stays within budget until the next rotation."""
-        budget, age = self.retention.max_bytes, self.retention.max_age_s
-        full = max([self.retention.segment_bytes or 0, *(k.bytes for k in self._kept)])
-        wal = _wal_bytes(self.retention.segment_bytes or 0)
-        live = max(segments.bytes_of(self.path), full + wal)
-        total = sum(k.bytes for k in self._kept) + live
-        horizon = None if age is None else self._clock.wall() - age
-        doomed = 0
-        for k in self._kept:
-            old = horizon is not None and k.last_at is not None and k.last_at < horizon
-            if not (old or (budget is not None and total > budget)):
-                break
-            total -= k.bytes
-            doomed += 1
-        if not doomed:
-            return
-        gone, self._kept = self._kept[:doomed], self._kept[doomed:]
-        self._first = gone[-1].n + 1
-        self._checkpoint(sync=True)
-        self._rotation_point("retaining")
-        for k in gone:  # oldest first: a crash leaves the rest in a row
-            k.path.unlink(missing_ok=True)
-        log.info("audit trail %s: segments %d-%d removed by retention", self.path, gone[0].n,
-                 gone[-1].n)  # fmt: skip
-
-    def usage(self) -> TrailUsage:
-        """Bytes on disk across segments (WAL included), segments kept, oldest row's time
-        (the files on disk, which other writers rotate and retain too; the oldest row's
-        time as this writer last saw it)."""
-        with self._lock:
-            files = [file for _, file in segments.rotated(self.path)]
-            live = segments.bytes_of(self.path)
-            oldest = next((k.first_at for k in self._kept if k.first_at is not None),
-                          self._live_since)  # fmt: skip
-        return TrailUsage(sum(map(segments.bytes_of, files)) + live, len(files) + 1, oldest)
 
     def tail(self, n: int = 20) -> list[Record]:
         """The newest ``n`` records across segments (read-only connections), the outbox's
@@ -693,7 +420,7 @@ class AuditLog:
         self._moved_now()
         with self._lock, self._shared() as db:
             live = int(db.execute("SELECT count(*) FROM audit").fetchone()[0])
-            return live + sum(_rows_in(k.path) for k in self._kept)
+            return live + sum(rows_in(k.path) for k in self._kept)
 
     @property
     def group_commit(self) -> GroupCommitter[Any, Any]:
@@ -724,46 +451,6 @@ class AuditLog:
                 self._rotation.close()
                 if self._spill is not None:
                     self._spill.close()
-
-
-def _open_live(
-    path: Path, segment_bytes: int | None
-) -> tuple[sqlite3.Connection, tuple[int, int] | None]:
-    """The live segment and the file it is (not just its name).  With a segment size, its
-    WAL is folded in and cut back once it holds a quarter of one (at most SQLite's default
-    1000 pages), so the bytes on disk, not only the rows, decide rotation and the budget."""
-    db = _connect(path, read_only=False)
-    if segment_bytes is not None:
-        page = int(db.execute("PRAGMA page_size").fetchone()[0])
-        pages = max(1, _wal_bytes(segment_bytes) // page)
-        db.execute(f"PRAGMA wal_autocheckpoint={pages}")
-        db.execute(f"PRAGMA journal_size_limit={pages * page}")
-    return db, file_identity(path)
-
-
-def _wal_bytes(segment_bytes: int) -> int:
-    """What the live segment's WAL holds before it is folded in (and retention keeps room
-    for): a quarter segment, at most SQLite's default checkpoint of 1000 4-KiB pages."""
-    return min(segment_bytes // 4, 1000 * 4096)
-
-
-def _rows_in(path: Path) -> int:
-    with contextlib.suppress(FileNotFoundError, AuditFileError):
-        db = _connect(path, read_only=True)
-        try:
-            return int(db.execute("SELECT count(*) FROM audit").fetchone()[0])
-        finally:
-            db.close()
-    return 0
-
-
-def _mark(db: sqlite3.Connection) -> Mark:
-    """The outbox epoch and highest id the trail holds (``(None, 0)``: never drained)."""
-    try:
-        row = db.execute("SELECT epoch, moved FROM outbox_moved").fetchone()
-    except sqlite3.OperationalError:  # no such table: never drained into
-        return None, 0
-    return (None, 0) if row is None else (row[0], int(row[1]))
 
 
 def _failed(error: BaseException, *, on_loop: bool) -> Future[int] | asyncio.Future[int]:

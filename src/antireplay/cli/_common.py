@@ -15,7 +15,7 @@ import tempfile
 import threading
 from pathlib import Path
 from types import FrameType
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import Any, NoReturn
 
 import click
 from rich.console import Console
@@ -23,13 +23,6 @@ from rich.console import Console
 from antireplay.audit import verify
 from antireplay.config import AppConfig
 from antireplay.core.errors import AntiReplayError, ConfigError, StateFileError
-from antireplay.rcan.auth import (
-    load_public_key,
-)
-
-if TYPE_CHECKING:
-    pass
-
 
 console = Console()
 
@@ -68,6 +61,17 @@ def _load_config(path: Path | None, state_dir: Path) -> AppConfig:
         _fail(str(exc))
     except OSError as exc:
         _fail(f"state directory {state_dir}: {exc.strerror or exc}")
+
+
+def load_with_flags(path: Path | None, flags: dict[str, tuple[str, Any]]) -> AppConfig:
+    """The configuration at ``path`` (none: the defaults) with a command's flags over its
+    keys: ``flags`` maps a dotted key to ``(flag, value)``, ``None`` or ``()`` when the
+    flag was not given.  A mistake is one line naming the flag when a flag made it."""
+    try:
+        return AppConfig.load(path, {key: value for key, (_, value) in flags.items()})
+    except ConfigError as exc:
+        flag, given = flags.get(exc.key, ("", None))
+        _fail(f"{flag}: {exc}" if given not in (None, ()) else str(exc))
 
 
 def _audit_problem(path: Path) -> str | None:
@@ -144,38 +148,18 @@ def importable_cwd(upstream: str | None) -> None:
 
 def preflight(config: AppConfig) -> None:
     """Every check ``serve`` makes before it listens; exits with one line on the first failure."""
-    from antireplay.http.upstream import resolve_upstream  # noqa: PLC0415
-    from antireplay.state import StoreSpec, open_store  # noqa: PLC0415
-    from antireplay.wiring import build_registry  # noqa: PLC0415
+    from antireplay.wiring.gateway import check_gateway  # noqa: PLC0415
+    from antireplay.wiring.leaves import check_state  # noqa: PLC0415
 
     importable_cwd(config.upstream)
     try:
-        build_registry(config)
-        for kid, pem in config.jwt.keys.items():
-            try:
-                load_public_key(Path(pem).read_bytes())
-            except FileNotFoundError:
-                raise ConfigError.file_not_found(f"jwt.keys.{kid}", pem) from None
-            except (OSError, ValueError) as exc:
-                allowed = f"a readable PEM public key ({exc})"
-                raise ConfigError(f"jwt.keys.{kid}", pem, allowed) from None
-        resolve_upstream(config.upstream, config.upstream_timeout_s)
+        check_gateway(config)
     except ConfigError as exc:
         _fail(str(exc))
     _check_audit_file(Path(config.audit), f"audit: {_MOVE_ASIDE}")
     _check_audit_anchor(Path(config.audit))
     try:
-        spec = StoreSpec.parse(config.store)
-        if spec.backend == "sqlite":
-            from antireplay.state.sqlite import check_readable  # noqa: PLC0415
-
-            check_readable(spec.target)  # read-only: opening would use up the loss detection
-        else:
-            store = open_store(spec)
-            try:
-                store.ready()  # reaches it: the PING and eviction check serve's first commit runs
-            finally:
-                store.close()
+        check_state(config.store_spec)
     except (ConfigError, StateFileError) as exc:  # each names its input and the recovery
         _fail(str(exc))
     except Exception as exc:  # any backend's own failure, named with its spec

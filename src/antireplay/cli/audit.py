@@ -1,9 +1,11 @@
-"""``audit verify``, ``audit reanchor`` and ``audit tail``: the audit trail for operators."""
+"""``audit verify``, ``audit head``, ``audit reanchor`` and ``audit tail``: the audit trail
+for operators."""
 
 from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -13,7 +15,7 @@ from rich.measure import Measurement
 from rich.table import Table
 from rich.text import Text
 
-from antireplay.audit import reanchor, shown, verify
+from antireplay.audit import export_head, reanchor, shown, verify
 from antireplay.audit import tail as audit_tail_records
 from antireplay.core.errors import StateFileError
 
@@ -36,23 +38,59 @@ _HEAD_FILE = click.option(
 )
 
 
+def _recorded(name: str, text: str) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """An option naming an existing file that records a head (``--state``, ``--since``)."""
+    kind = click.Path(exists=True, dir_okay=False, path_type=Path)
+    return click.option(f"--{name}", name, type=kind, default=None, help=text)
+
+
 @audit.command("verify")
 @click.argument("path", type=click.Path(exists=True, path_type=Path))
 @_HEAD_KEY
 @_HEAD_FILE
-def audit_verify(path: Path, head_key: Path | None, head_file: Path | None) -> None:
+@_recorded("state", "The SQLite state database: prove the trail extends the head it recorded.")
+@_recorded("since", "A head exported by `audit head --export`: prove the trail extends it.")
+def audit_verify(
+    path: Path, head_key: Path | None, head_file: Path | None, state: Path | None,
+    since: Path | None,
+) -> None:  # fmt: skip
     """Check the hash chain and the head checkpoint; say what is proven and what is not.
 
-    Exits 1 on a broken chain, truncation, rewrite or a missing/forged checkpoint."""
+    Exits 1 on a broken chain, truncation, rewrite or a missing/forged checkpoint, and
+    (AUDIT_ROLLED_BACK) on a trail that does not extend the head the state database or
+    an exported head recorded."""
     _check_audit_file(path, _OPEN_ONLY_AUDIT)
     try:
-        report = verify(path, head_key=head_key, head_path=head_file)
+        report = verify(path, head_key=head_key, head_path=head_file, state=state, since=since)
     except StateFileError as exc:
         _fail(str(exc))
     for line in report.lines():
         click.echo(line)  # never wrapped: scripts and operators grep these lines
     if not report.ok:
         sys.exit(1)
+
+
+@audit.command("head")
+@click.argument("path", type=click.Path(exists=True, path_type=Path))
+@_HEAD_KEY
+@_HEAD_FILE
+@click.option(
+    "--export",
+    "export",
+    type=click.Path(dir_okay=False, path_type=Path),
+    required=True,
+    help="Write the verified head, MACed with the head key, to this file (keep it elsewhere).",
+)
+def audit_head(path: Path, head_key: Path | None, head_file: Path | None, export: Path) -> None:
+    """Export the trail's verified head; `audit verify --since FILE` later proves the
+    trail extends it (a rollback, truncation or rewrite before it fails)."""
+    _check_audit_file(path, _OPEN_ONLY_AUDIT)
+    try:
+        report = export_head(path, export, head_key=head_key, head_path=head_file)
+    except StateFileError as exc:
+        _fail(str(exc))
+        return
+    click.echo(f"exported the head of {path} at row {report.checkpoint_rows} to {export}")
 
 
 @audit.command("reanchor")

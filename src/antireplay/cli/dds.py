@@ -1,25 +1,30 @@
 """``antireplay dds …``: run the relay, a reader that prints verdicts, a writer, a rogue replayer.
 
-Registered by :mod:`antireplay.cli`; Cyclone DDS is imported only when a
-command runs, so ``antireplay --help`` works without the ``dds`` extra.
-Every command reads the ``dds:`` block of ``--config`` (see
-:mod:`antireplay.dds.config`).
+Registered by :mod:`antireplay.cli`; Cyclone DDS is imported only when a command runs, so
+``antireplay --help`` works without the ``dds`` extra.  Every command reads the one
+configuration file (``--config``: its ``dds:`` block, and ``audit:``, ``audit_space:`` and
+``state:`` as for every command; a key out of place is refused, naming where it belongs)
+and builds what it runs on through :class:`antireplay.wiring.dds.DdsCommand`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
-import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from antireplay.cli._common import _fail, stop_on_signal
+from antireplay.config import AppConfig
 from antireplay.core.errors import AntiReplayError, ConfigError
-from antireplay.dds.config import DdsConfig, parse_udp
+
+if TYPE_CHECKING:
+    from antireplay.wiring.dds import DdsCommand
 
 CONFIG = click.option(
     "--config",
@@ -30,27 +35,61 @@ CONFIG = click.option(
 )
 
 
-def _load(path: Path) -> DdsConfig:
+@contextlib.contextmanager
+def _wired(path: Path) -> Iterator[DdsCommand]:
+    """The command's leaves and participant from the file at ``path``; a configuration or
+    state error is one line and exit 2; everything opened is closed on the way out."""
     try:
-        return DdsConfig.from_yaml(path)
+        config = AppConfig.from_yaml(path)  # every section checked: no key out of place
     except ConfigError as exc:
         _fail(str(exc))
-
-
-def _participant(cfg: DdsConfig) -> Any:
     try:
-        from antireplay.dds.domain import join_domain  # noqa: PLC0415 - needs the dds extra
+        from antireplay.wiring.dds import DdsCommand  # noqa: PLC0415 - needs the dds extra
     except ImportError as exc:
         _fail(f"{exc}; install the dds extra: pip install 'antireplay[dds]'")
-    return join_domain(cfg.domain_id, loopback=cfg.loopback_only)
+    try:
+        command = DdsCommand(config)
+    except (AntiReplayError, ValueError, OSError) as exc:
+        _fail(str(exc))
+    with command:
+        yield command
 
 
-def _audit(cfg: DdsConfig) -> Any:
-    """The ``dds.audit`` trail, rotated and retained by the ``audit:`` defaults, with a spill."""
-    from antireplay.config import AuditConfig  # noqa: PLC0415
-    from antireplay.wiring import open_audit  # noqa: PLC0415
+METRICS_PORT = click.option(
+    "--metrics-port",
+    type=click.IntRange(0, 65535),
+    default=None,
+    help="Serve Prometheus metrics here (verdicts per outcome, the trail's bytes).",
+)
+METRICS_HOST = click.option(
+    "--metrics-host",
+    default="127.0.0.1",
+    show_default=True,
+    help="The address the metrics port binds (0.0.0.0 for a Prometheus on another host).",
+)
 
-    return None if cfg.audit is None else open_audit(AuditConfig(path=cfg.audit))
+
+def _serve_metrics(wired: DdsCommand, counts: dict[str, Any], port: int | None, host: str) -> None:
+    """``--metrics-port``: the command's counters, read at each scrape."""
+    if port is None:
+        return
+    from antireplay.wiring.metrics import serve_metrics  # noqa: PLC0415
+
+    try:
+        serve_metrics(lambda: wired.metrics(counts), port, host)
+    except (OSError, ValueError) as exc:  # an unknown host, a busy port, a bad name
+        _fail(
+            f"--metrics-host {host} --metrics-port {port}: cannot serve metrics there "
+            f"({getattr(exc, 'strerror', None) or exc})"
+        )
+
+
+def _built(build: Any, *args: Any) -> Any:
+    """``build(*args)``, a configuration or state error as one line and exit 2."""
+    try:
+        return build(*args)
+    except (AntiReplayError, ValueError, OSError) as exc:
+        _fail(str(exc))
 
 
 @click.group()
@@ -63,35 +102,32 @@ def dds() -> None:
 @click.option("--topic", default=None, help="Topic to read (default: dds.reader.topic).")
 @click.option("--count", default=0, type=int, help="Stop after this many verdicts (0: never).")
 @click.option("--timeout", "timeout_s", default=0.0, type=float, help="Stop after S seconds.")
-def read(config_path: Path, topic: str | None, count: int, timeout_s: float) -> None:
+@METRICS_PORT
+@METRICS_HOST
+def read(  # noqa: PLR0917 - one option per knob
+    config_path: Path,
+    topic: str | None,
+    count: int,
+    timeout_s: float,
+    metrics_port: int | None,
+    metrics_host: str,
+) -> None:
     """Print one verdict per received sample: ACCEPTED, or REFUSED with its code."""
-    from antireplay.dds.topics import SealedReader  # noqa: PLC0415
-
-    cfg = _load(config_path)
-    try:
-        reader = SealedReader(
-            _participant(cfg),
-            topic or cfg.reader.topic,
-            cfg.psk(),
-            store=cfg.reader.store,
-            max_age_s=cfg.max_age_s,
-            max_forward_s=cfg.max_forward_s,
-            audit=_audit(cfg),
-        )
-    except (AntiReplayError, ValueError) as exc:
-        _fail(str(exc))
-    click.echo(f"reading {reader.topic_name} on domain {cfg.domain_id}", err=True)
-    stop = stop_on_signal()
-    deadline = time.monotonic() + timeout_s if timeout_s > 0 else None
-    seen = 0
-    while not stop.is_set() and (count == 0 or seen < count):
-        if deadline is not None and time.monotonic() >= deadline:
-            break
-        for verdict in reader.poll(0.1)[: count - seen if count else None]:
-            click.echo(verdict.line())
-            seen += 1
-    summary = ", ".join(f"{k}={v}" for k, v in sorted(reader.counts.items()))
-    click.echo(f"verdicts: {summary or 'none'}", err=True)
+    with _wired(config_path) as wired:
+        reader = _built(wired.reader, topic)
+        _serve_metrics(wired, {reader.topic_name: reader.counts}, metrics_port, metrics_host)
+        click.echo(f"reading {reader.topic_name} on domain {wired.domain_id}", err=True)
+        stop = stop_on_signal()
+        deadline = time.monotonic() + timeout_s if timeout_s > 0 else None
+        seen = 0
+        while not stop.is_set() and (count == 0 or seen < count):
+            if deadline is not None and time.monotonic() >= deadline:
+                break
+            for verdict in reader.poll(0.1)[: count - seen if count else None]:
+                click.echo(verdict.line())
+                seen += 1
+        summary = ", ".join(f"{k}={v}" for k, v in sorted(reader.counts.items()))
+        click.echo(f"verdicts: {summary or 'none'}", err=True)
     if count and seen < count:
         sys.exit(1)
 
@@ -122,31 +158,20 @@ def write(  # noqa: PLR0917 - one option per knob
     messages: tuple[str, ...],
 ) -> None:
     """Seal and publish MESSAGES (after waiting for readers to match)."""
-    from antireplay.dds.topics import SealedWriter  # noqa: PLC0415
-
-    cfg = _load(config_path)
-    try:
-        writer = SealedWriter(
-            _participant(cfg),
-            topic or cfg.writer.topic,
-            cfg.psk(),
-            state_file=cfg.writer.state_file,
-            max_forward_s=cfg.max_forward_s,
-        )
-    except (AntiReplayError, ValueError) as exc:
-        _fail(str(exc))
-    _wait_readers(writer, wait_readers)
-    if capture is not None:
-        capture.write_text("", encoding="ascii")  # this run's samples only: re-runnable
-    for message in messages:
-        sample = writer.write(message.encode(), instance=instance)
+    with _wired(config_path) as wired:
+        writer = _built(wired.writer, topic)
+        _wait_readers(writer, wait_readers)
         if capture is not None:
-            line = {"topic": writer.topic_name, "instance": instance,
-                    "sealed": bytes(sample.sealed).hex()}  # fmt: skip
-            with capture.open("a", encoding="ascii") as handle:
-                handle.write(json.dumps(line) + "\n")
-        click.echo(f"sent {message!r} prefix={writer.nonce_prefix.hex()}")
-    writer.flush()
+            capture.write_text("", encoding="ascii")  # this run's samples only: re-runnable
+        for message in messages:
+            sample = writer.write(message.encode(), instance=instance)
+            if capture is not None:
+                line = {"topic": writer.topic_name, "instance": instance,
+                        "sealed": bytes(sample.sealed).hex()}  # fmt: skip
+                with capture.open("a", encoding="ascii") as handle:
+                    handle.write(json.dumps(line) + "\n")
+            click.echo(f"sent {message!r} prefix={writer.nonce_prefix.hex()}")
+        writer.flush()
 
 
 @dds.command()
@@ -161,68 +186,49 @@ def write(  # noqa: PLR0917 - one option per knob
 @click.argument("captured", type=click.Path(path_type=Path, exists=True, dir_okay=False))
 def replay(config_path: Path, wait_readers: int, captured: Path) -> None:
     """Play the attacker: republish captured samples from a participant without the key."""
-    from antireplay.dds.topics import SealedWriter  # noqa: PLC0415
-    from antireplay.dds.wire import SealedSample  # noqa: PLC0415
+    from antireplay.dds.wire import SealedSample  # noqa: PLC0415 - needs the dds extra
 
-    cfg = _load(config_path)
-    participant, own_key = _participant(cfg), os.urandom(32)  # the attacker's key, not the fleet's
-    writers: dict[str, SealedWriter] = {}
-    for raw in captured.read_text(encoding="ascii").splitlines():
-        line = json.loads(raw)
-        topic = str(line["topic"])
-        if topic not in writers:
-            writers[topic] = SealedWriter(participant, topic, own_key)
-            _wait_readers(writers[topic], wait_readers)
-        sealed = bytes.fromhex(str(line["sealed"]))
-        writers[topic].publish(SealedSample(instance=str(line["instance"]), sealed=sealed))
-        click.echo(f"replayed a captured sample on {topic}")
-    for writer in writers.values():
-        writer.flush()
+    with _wired(config_path) as wired:
+        writers: dict[str, Any] = {}
+        for raw in captured.read_text(encoding="ascii").splitlines():
+            line = json.loads(raw)
+            topic = str(line["topic"])
+            if topic not in writers:
+                writers[topic] = wired.rogue(topic)
+                _wait_readers(writers[topic], wait_readers)
+            sealed = bytes.fromhex(str(line["sealed"]))
+            writers[topic].publish(SealedSample(instance=str(line["instance"]), sealed=sealed))
+            click.echo(f"replayed a captured sample on {topic}")
+        for writer in writers.values():
+            writer.flush()
 
 
 @dds.command()
 @CONFIG
 @click.option("--duration", "duration_s", default=0.0, type=float, help="Stop after S seconds.")
-def relay(config_path: Path, duration_s: float) -> None:
+@METRICS_PORT
+@METRICS_HOST
+def relay(
+    config_path: Path, duration_s: float, metrics_port: int | None, metrics_host: str
+) -> None:
     """Run the announcement relay (Cloud Discovery Service role) until stopped."""
-    from antireplay.dds.ping import PingListener  # noqa: PLC0415
-    from antireplay.dds.relay import AnnouncementRelay  # noqa: PLC0415
-
-    cfg = _load(config_path)
-    if cfg.relay is None:
-        _fail(f"{config_path} has no dds.relay block (service_name, signer_state, verifier_store)")
-    try:
-        psk = cfg.psk()
-        audit = _audit(cfg)
-        listen = cfg.relay.ping_listen
-        ping = None if listen is None else PingListener(
-            psk, bind=parse_udp(listen), max_age_s=cfg.max_age_s,
-            max_forward_s=cfg.max_forward_s, audit=audit,
-        )  # fmt: skip
-        service = AnnouncementRelay(
-            _participant(cfg),
-            psk,
-            service_name=cfg.relay.service_name,
-            signer_state=cfg.relay.signer_state,
-            verifier_store=cfg.relay.verifier_store,
-            max_age_s=cfg.max_age_s,
-            max_forward_s=cfg.max_forward_s,
-            audit=audit,
-            ping=ping,
-        )
-    except (AntiReplayError, ValueError, OSError) as exc:
-        _fail(str(exc))
-    click.echo(f"relay {cfg.relay.service_name!r} on domain {cfg.domain_id}", err=True)
-    stop = stop_on_signal()
-    deadline = time.monotonic() + duration_s if duration_s > 0 else None
-    reported = 0
-    while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-        for verdict in service.pump(0.1):
-            click.echo(verdict.line())
-        for twin in service.twins[reported:]:
-            click.echo(twin.line())
-        reported = len(service.twins)
-    click.echo(f"relayed {service.relayed}; twins reported {reported}", err=True)
+    with _wired(config_path) as wired:
+        service = _built(wired.relay)
+        counts = {"relay": service.counts, service.ingress.topic_name: service.ingress.counts}
+        if service.ping is not None:
+            counts["ping"] = service.ping.counts
+        _serve_metrics(wired, counts, metrics_port, metrics_host)
+        click.echo(f"relay {service.service_name!r} on domain {wired.domain_id}", err=True)
+        stop = stop_on_signal()
+        deadline = time.monotonic() + duration_s if duration_s > 0 else None
+        reported = 0
+        while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            for verdict in service.pump(0.1):
+                click.echo(verdict.line())
+            for twin in service.twins[reported:]:
+                click.echo(twin.line())
+            reported = len(service.twins)
+        click.echo(f"relayed {service.relayed}; twins reported {reported}", err=True)
 
 
 def _wait_readers(writer: Any, count: int) -> None:

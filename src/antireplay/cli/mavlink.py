@@ -1,147 +1,47 @@
-"""``mavlink-router`` (first name ``mavlink-proxy``): the signing MAVLink router."""
+"""``mavlink-router`` (first name ``mavlink-proxy``), ``mavlink-sim``, ``mavlink-keys``.
+
+``mavlink-router`` parses its flags, reads ``--config`` (the ``mavlink:`` section with
+``audit:``, ``audit_space:`` and ``state:``; each flag overrides its key) and calls
+:func:`~antireplay.wiring.mavlink.open_router`; then it waits for a signal.
+"""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import click
 
+from antireplay.cli._common import (
+    _MOVE_ASIDE,
+    _check_audit_file,
+    _fail,
+    load_with_flags,
+    stop_on_signal,
+)
 from antireplay.core.counters import DEFAULT_WINDOW
 from antireplay.core.errors import ConfigError, ReplayAttackError, StateFileError
-from antireplay.wiring import Allowed, stop_router
-
-if TYPE_CHECKING:
-    from antireplay.mavlink import Role
-
-from antireplay.cli._common import _MOVE_ASIDE, _check_audit_file, _fail, stop_on_signal
 
 
 def _signing_key(path: Path) -> bytes:
-    """The link key: exactly 32 raw bytes (taken as they are: a raw key may begin or end
-    with a whitespace byte), or 64 hex characters with optional surrounding whitespace."""
+    """A key file as ``--key-file`` reads it (:func:`~antireplay.wiring.mavlink.read_key_file`)."""
+    from antireplay.wiring.mavlink import read_key_file  # noqa: PLC0415
+
     try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise click.BadParameter(f"{path}: unreadable ({exc.strerror})") from None
-    if len(raw) == 32:
-        return raw
-    text = raw.strip()
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text.decode("ascii"))
-        except ValueError:
-            pass
-    raise click.BadParameter(f"{path}: not a MAVLink signing key (32 raw bytes or 64 hex digits)")
-
-
-def _signing_keys(path: Path | None) -> dict[str, str]:
-    """MAVProxy's ``signing.keys``: lines ``ENDPOINT PASSPHRASE`` (endpoint as typed)."""
-    if path is None:
-        return {}
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise click.BadParameter(f"{path}: unreadable ({exc})") from None
-    found = {}
-    for line in lines:
-        words = line.split()
-        if len(words) == 2:
-            found[words[0].lower()] = words[1]
-    return found
-
-
-def _link_key(endpoint: str, keys: dict[str, str], default: bytes | None) -> bytes:
-    """A link's key: its passphrase in the signing-keys file (matched as MAVProxy matches:
-    the whole string, or ``HOST:PORT`` against ``PROTO:HOST:PORT``), else the default."""
-    from antireplay.mavlink import passphrase_key  # noqa: PLC0415
-
-    text = endpoint.lower()
-    host_port = text.partition(":")[2] if text.count(":") == 2 else None
-    passphrase = keys.get(text) or (keys.get(host_port) if host_port else None)
-    if passphrase is not None:
-        return passphrase_key(passphrase)
-    if default is None:
-        raise click.BadParameter(
-            f"{endpoint}: no key (give --key-file, --passphrase-env or a --signing-keys entry)"
-        )
-    return default
-
-
-def _allowed(entries: tuple[str, ...]) -> tuple[Allowed, Allowed]:
-    """``--allow-unsigned [to-vehicle:|from-vehicle:]MESSAGE[:v1]`` entries, per direction."""
-    from pymavlink.dialects.v20 import ardupilotmega as dialect  # noqa: PLC0415
-
-    sets: dict[str, tuple[set[int], set[int]]] = {
-        "to-vehicle": (set(), set()),
-        "from-vehicle": (set(), set()),
-    }
-    for entry in entries:
-        parts = entry.split(":")
-        directions = list(sets)
-        if parts[0].lower() in sets:
-            directions = [parts.pop(0).lower()]
-        v1 = len(parts) == 2 and parts[1].lower() == "v1"
-        name = parts[0] if len(parts) == 1 or v1 else ""
-        msgid = (
-            int(name)
-            if name.isdigit()
-            else getattr(dialect, f"MAVLINK_MSG_ID_{name.upper()}", None)
-        )
-        if msgid is None or not 0 <= msgid < 2**24:
-            raise click.BadParameter(
-                f"{entry!r}: expected [to-vehicle:|from-vehicle:]MESSAGE[:v1], MESSAGE a name "
-                "(RADIO_STATUS) or an id",
-                param_hint="'--allow-unsigned'",
-            )
-        for direction in directions:
-            sets[direction][0].add(msgid)
-            if v1:
-                sets[direction][1].add(msgid)
-    to_vehicle, from_vehicle = (
-        Allowed(frozenset(unsigned), frozenset(v1)) for unsigned, v1 in sets.values()
-    )
-    return to_vehicle, from_vehicle
-
-
-def _router_endpoints(  # noqa: PLR0917 - the endpoint and key options, as given
-    vehicle: tuple[str, ...],
-    ground: tuple[str, ...],
-    trusted: tuple[str, ...],
-    listen: str | None,
-    forward: str | None,
-    key_file: Path | None,
-    passphrase_env: str | None,
-    signing_keys: Path | None,
-) -> list[tuple[Role, str, bytes | None]]:
-    """``(role, connection string, key)`` for every endpoint the options name."""
-    from antireplay.mavlink import Role, passphrase_key  # noqa: PLC0415
-
-    grounds = [*ground, *([_udp_shorthand(listen, "udpin", "--listen")] if listen else [])]
-    vehicles = [*vehicle, *([_udp_shorthand(forward, "udpout", "--forward")] if forward else [])]
-    if not vehicles:
-        raise click.UsageError("give at least one --vehicle (or --forward)")
-    default = _signing_key(key_file) if key_file is not None else None
-    if passphrase_env is not None:
-        if default is not None:
-            raise click.UsageError("give --key-file or --passphrase-env, not both")
-        phrase = os.environ.get(passphrase_env)
-        if not phrase:
-            raise click.BadParameter(
-                f"{passphrase_env} is not set", param_hint="'--passphrase-env'"
-            )
-        default = passphrase_key(phrase)
-    keys = _signing_keys(signing_keys)
-    endpoints: list[tuple[Role, str, bytes | None]] = [
-        (Role.VEHICLE, text, _link_key(text, keys, default)) for text in vehicles
-    ]
-    endpoints += [(Role.GROUND, text, _link_key(text, keys, default)) for text in grounds]
-    endpoints += [(Role.TRUSTED, text, None) for text in trusted]
-    return endpoints
+        return read_key_file(str(path), "--key")
+    except ConfigError as exc:
+        raise click.BadParameter(str(exc)) from None
 
 
 @click.command("mavlink-router")
+@click.option(
+    "--config",
+    "config_path",
+    type=click.Path(path_type=Path, dir_okay=False),
+    default=None,
+    help="YAML configuration: the mavlink: section, with audit:, audit_space: and state: "
+    "(each flag overrides its key).",
+)
 @click.option(
     "--vehicle",
     multiple=True,
@@ -188,24 +88,24 @@ def _router_endpoints(  # noqa: PLR0917 - the endpoint and key options, as given
 @click.option(
     "--system-id",
     type=click.IntRange(1, 255),
-    default=1,
-    show_default=True,
+    default=None,
     help="This vehicle's system id (ArduPilot's and PX4's default is 1): frames addressed "
-    "elsewhere, and frames from it reflected back from a ground link, are refused.",
+    "elsewhere, and frames from it reflected back from a ground link, are refused.  "
+    "[default: 1]",
 )
 @click.option(
     "--store",
     "store_spec",
-    default="sqlite:.antireplay/mavlink.db",
-    show_default=True,
-    help="Where each stream's last timestamp is kept (memory, sqlite:PATH, redis://...).",
+    default=None,
+    help="Where each stream's last timestamp is kept (memory, sqlite:PATH, redis://...).  "
+    "[default: sqlite:.antireplay/mavlink.db]",
 )
 @click.option(
     "--audit",
     "audit_path",
-    default=".antireplay/mavlink-audit.db",
-    show_default=True,
-    help="The audit trail of refusals and first authentications (SQLite).",
+    default=None,
+    help="The audit trail of refusals and first authentications (SQLite), rotated and "
+    "retained as audit: says.  [default: audit.path, else .antireplay/mavlink-audit.db]",
 )
 @click.option(
     "--metrics-port",
@@ -215,9 +115,9 @@ def _router_endpoints(  # noqa: PLR0917 - the endpoint and key options, as given
 )
 @click.option(
     "--metrics-host",
-    default="127.0.0.1",
-    show_default=True,
-    help="The address the metrics port binds (0.0.0.0 for a Prometheus on another host).",
+    default=None,
+    help="The address the metrics port binds (0.0.0.0 for a Prometheus on another host).  "
+    "[default: 127.0.0.1]",
 )
 @click.option(
     "--allow-unsigned",
@@ -228,40 +128,38 @@ def _router_endpoints(  # noqa: PLR0917 - the endpoint and key options, as given
 @click.option(
     "--reorder-window",
     type=click.IntRange(0, DEFAULT_WINDOW),
-    default=0,
-    show_default=True,
-    help="Accept out-of-order timestamps within this many (0: strictly increasing).",
+    default=None,
+    help="Accept out-of-order timestamps within this many (0: strictly increasing).  [default: 0]",
 )
 @click.option(
     "--max-forward-s",
     type=click.FloatRange(0, min_open=True),
-    default=60.0,
-    show_default=True,
-    help="Refuse timestamps more than this far ahead of the router's clock.",
+    default=None,
+    help="Refuse timestamps more than this far ahead of the router's clock.  [default: 60]",
 )
 @click.option(
     "--new-stream-max-age-s",
     type=click.FloatRange(0, min_open=True),
-    default=60.0,
-    show_default=True,
+    default=None,
     help="A new stream's first timestamp may be this far behind the router's clock (the "
-    "MAVLink 60 s rule; raise it for slow links).",
+    "MAVLink 60 s rule; raise it for slow links).  [default: 60]",
 )
 @click.option(
     "--sign-link-id",
     type=click.IntRange(0, 255),
-    default=251,
-    show_default=True,
-    help="The link id in the signatures the router makes (on behalf of trusted tools).",
+    default=None,
+    help="The link id in the signatures the router makes (on behalf of trusted tools).  "
+    "[default: 251]",
 )
 @click.option(
-    "--write-through",
-    is_flag=True,
+    "--write-through/--no-write-through",
+    default=None,
     help="Write every accepted timestamp to the store before forwarding (several routers "
     "active at once on one store); default: persist every second behind a lease and a "
     "restart fence.",
 )
 def mavlink_router(  # noqa: PLR0917 - one option per knob
+    config_path: Path | None,
     vehicle: tuple[str, ...],
     ground: tuple[str, ...],
     trusted: tuple[str, ...],
@@ -270,79 +168,90 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     key_file: Path | None,
     passphrase_env: str | None,
     signing_keys: Path | None,
-    system_id: int,
-    store_spec: str,
-    audit_path: str,
+    system_id: int | None,
+    store_spec: str | None,
+    audit_path: str | None,
     metrics_port: int | None,
-    metrics_host: str,
+    metrics_host: str | None,
     allow_unsigned: tuple[str, ...],
-    reorder_window: int,
-    max_forward_s: float,
-    new_stream_max_age_s: float,
-    sign_link_id: int,
-    write_through: bool,
+    reorder_window: int | None,
+    max_forward_s: float | None,
+    new_stream_max_age_s: float | None,
+    sign_link_id: int | None,
+    write_through: bool | None,
 ) -> None:
     """Route MAVLink between vehicle, trusted and ground endpoints; forward only what the
     guards accept (also answers to its first name, mavlink-proxy)."""
     import logging  # noqa: PLC0415
 
-    from antireplay.config import AuditConfig  # noqa: PLC0415
-    from antireplay.state import open_store  # noqa: PLC0415
-    from antireplay.wiring import (  # noqa: PLC0415
-        RouterOptions,
-        build_mavlink_router,
-        open_audit,
-        serve_router_metrics,
+    from antireplay.wiring.leaves import trail_path  # noqa: PLC0415
+    from antireplay.wiring.mavlink import ROUTER_AUDIT, open_router  # noqa: PLC0415
+    from antireplay.wiring.metrics import (  # noqa: PLC0415
+        router_metrics,
+        serve_metrics,
+        trail_metrics,
     )
 
-    endpoints = _router_endpoints(
-        vehicle, ground, trusted, listen, forward, key_file, passphrase_env, signing_keys
-    )
-    to_vehicle, from_vehicle = _allowed(allow_unsigned)
-    options = RouterOptions(
-        system_id, to_vehicle, from_vehicle, reorder_window, write_through, max_forward_s,
-        new_stream_max_age_s, sign_link_id,
-    )  # fmt: skip
-    _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")  # before opening anything
+    grounds = [*ground, *([_udp_shorthand(listen, "udpin", "--listen")] if listen else [])]
+    vehicles = [*vehicle, *([_udp_shorthand(forward, "udpout", "--forward")] if forward else [])]
+    config = load_with_flags(config_path, {
+        "mavlink.vehicle": ("--vehicle", tuple(vehicles)),
+        "mavlink.ground": ("--ground", tuple(grounds)),
+        "mavlink.trusted": ("--trusted", trusted),
+        "mavlink.key_file": ("--key-file", key_file and str(key_file)),
+        "mavlink.passphrase_env": ("--passphrase-env", passphrase_env),
+        "mavlink.signing_keys": ("--signing-keys", signing_keys and str(signing_keys)),
+        "mavlink.system_id": ("--system-id", system_id),
+        "mavlink.store": ("--store", store_spec),
+        "audit.path": ("--audit", audit_path),
+        "mavlink.metrics.port": ("--metrics-port", metrics_port),
+        "mavlink.metrics.host": ("--metrics-host", metrics_host),
+        "mavlink.allow_unsigned": ("--allow-unsigned", allow_unsigned),
+        "mavlink.reorder_window": ("--reorder-window", reorder_window),
+        "mavlink.max_forward_s": ("--max-forward-s", max_forward_s),
+        "mavlink.new_stream_max_age_s": ("--new-stream-max-age-s", new_stream_max_age_s),
+        "mavlink.sign_link_id": ("--sign-link-id", sign_link_id),
+        "mavlink.write_through": ("--write-through", write_through),
+    })  # fmt: skip
+    section = config.mavlink
+    trail = trail_path(config, ROUTER_AUDIT)
+    _check_audit_file(Path(trail), f"--audit: {_MOVE_ASIDE}")  # before opening anything
     try:
-        audit_log = open_audit(AuditConfig(path=audit_path))  # rotated, retained, with a spill
-    except StateFileError as exc:
+        parts = open_router(config, trail)
+    except (ConfigError, StateFileError) as exc:
         _fail(str(exc))
-    try:
-        store = open_store(store_spec)
-    except ConfigError as exc:
-        raise click.BadParameter(f"{store_spec!r}: {exc.allowed}", param_hint="'--store'") from None
-    except StateFileError as exc:
-        _fail(str(exc))
-    try:
-        router = build_mavlink_router(endpoints, store, audit_log, options)
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
     except OSError as exc:
         _fail(str(exc.strerror or exc))  # names the endpoint
     except ReplayAttackError as exc:
-        _fail(f"--store {store_spec}: {exc}")
-    if metrics_port is not None:
+        _fail(f"--store {section.store}: {exc}")
+    metrics = section.metrics
+    if metrics.port is not None:
         try:
-            serve_router_metrics(router, metrics_port, metrics_host)
+            serve_metrics(
+                lambda: [
+                    *router_metrics(parts.router),
+                    *trail_metrics("mavlink-router", parts.audit, parts.space, parts.store),
+                ],
+                metrics.port, metrics.host,
+            )  # fmt: skip
         except (OSError, ValueError) as exc:  # an unknown host, a busy port, a bad name
             _fail(
-                f"--metrics-host {metrics_host} --metrics-port {metrics_port}: cannot serve "
+                f"--metrics-host {metrics.host} --metrics-port {metrics.port}: cannot serve "
                 f"metrics there ({getattr(exc, 'strerror', None) or exc})"
             )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = stop_on_signal()
     try:
-        router.start()  # claims each guard's lease, waiting out a crashed run's (seconds)
+        parts.router.start()  # claims each guard's lease, waiting out a crashed run's (seconds)
     except ReplayAttackError as exc:
-        _fail(f"--store {store_spec}: {exc}")
-    roles = ", ".join(f"{role} {text}" for role, text, _ in endpoints)
-    click.echo(f"mavlink-router {roles} (system id {system_id})")  # one line, never wrapped
+        _fail(f"--store {section.store}: {exc}")
+    roles = ", ".join(f"{role} {text}" for role, text, _ in parts.endpoints)
+    click.echo(f"mavlink-router {roles} (system id {section.system_id})")  # one line
     done.wait()
-    stop_router(router)
-    audit_log.close()
-    store.close()
-    stats = router.stats
+    parts.close()
+    stats = parts.router.stats
     forwarded = ", ".join(f"{k} {v}" for k, v in sorted(stats.forwarded.items())) or "none"
     dropped = ", ".join(f"{k} {v}" for k, v in sorted(stats.dropped.items())) or "none"
     click.echo(f"forwarded {forwarded}; dropped {dropped}", err=True)

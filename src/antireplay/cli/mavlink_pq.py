@@ -1,15 +1,14 @@
 """``antireplay mavlink-pq ground|vehicle``: the two post-quantum ends as commands.
 
-Registered by :mod:`antireplay.cli`; it lives outside :mod:`antireplay.mavlink` so that
-the pymavlink dialect is imported only when a command runs.
-Keys are PEM files from ``antireplay keygen`` (``--alg ml-dsa-87`` for the operator,
-``ml-kem-1024`` and, for the hybrid option, ``x25519`` for the vehicle).  Each command
-runs one :class:`~antireplay.mavlink.pq.link.PqLink` until SIGINT or SIGTERM and prints
-the counts when it stops.  Refusals go to the rate-limited refusal auditor (an audit
-record and a log line each, the rest counted); a change of the session (established,
-rekeyed, lost, resumed) is logged at INFO and always audited (``--audit``).  With
-``--metrics-port`` the link's counts (:func:`pq_metrics`) are served to Prometheus, air
-bytes by kind among them; ``--air-bps`` paces the air side to the radio's serial rate.
+Registered by :mod:`antireplay.cli`; the pymavlink dialect is imported only when a
+command runs.  Each command parses its flags, reads ``--config`` (the ``mavlink_pq:``
+block of its end, with ``audit:``, ``audit_space:`` and ``state:``; each flag overrides its
+key), calls :func:`~antireplay.wiring.mavlink_pq.open_pq_end` and runs the link until
+SIGINT or SIGTERM, then prints the counts.  Keys are PEM files from ``antireplay keygen``
+(``--alg ml-dsa-87`` for the operator, ``ml-kem-1024`` and, for the hybrid option,
+``x25519`` for the vehicle).  With ``--metrics-port`` the link's counts
+(:func:`~antireplay.wiring.metrics.pq_metrics`) are served to Prometheus; ``--air-bps``
+paces the air side to the radio's serial rate.
 """
 
 from __future__ import annotations
@@ -17,46 +16,47 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import click
-from cryptography.exceptions import UnsupportedAlgorithm
-from cryptography.hazmat.primitives import serialization
-from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 
-from antireplay.audit import AuditLog
-from antireplay.cli._common import _MOVE_ASIDE, _check_audit_file, _fail, stop_on_signal
-from antireplay.core.clock import SystemClock
-from antireplay.core.errors import StateFileError
+from antireplay.cli._common import (
+    _MOVE_ASIDE,
+    _check_audit_file,
+    _fail,
+    load_with_flags,
+    stop_on_signal,
+)
+from antireplay.core.errors import ConfigError, StateFileError
 
-if TYPE_CHECKING:
-    from prometheus_client.core import Metric
-
-    from antireplay.mavlink.pq import GroundEnd, VehicleEnd
-    from antireplay.mavlink.pq.link import LinkCounts, SessionEvent
-
-log = logging.getLogger("antireplay.mavlink.pq")
 PEM = click.Path(path_type=Path, dir_okay=False, exists=True)
 F = TypeVar("F", bound=Callable[..., Any])
 
 
 def _operations(end: str) -> Callable[[F], F]:
-    """The options every end shares: its audit trail, its metrics port, its air budget."""
+    """The options every end shares: its config, audit trail, metrics port, air budget."""
 
     def apply(command: F) -> F:
         for option in (
             click.option(
-                "--audit", "audit_path", default=f".antireplay/mavlink-pq-{end}-audit.db",
-                show_default=True, help="The audit trail: refusals and session changes.",
+                "--config", "config_path", type=click.Path(path_type=Path, dir_okay=False),
+                default=None, help=f"YAML configuration: the mavlink_pq.{end} block, with "
+                "audit:, audit_space: and state: (each flag overrides its key).",
+            ),
+            click.option(
+                "--audit", "audit_path", default=None,
+                help="The audit trail: refusals and session changes, rotated and retained "
+                f"as audit: says.  [default: audit.path, else .antireplay/mavlink-pq-{end}-"
+                "audit.db]",
             ),
             click.option(
                 "--metrics-port", type=click.IntRange(0, 65535), default=None,
                 help="Serve Prometheus metrics here.",
             ),
             click.option(
-                "--metrics-host", default="127.0.0.1", show_default=True,
+                "--metrics-host", default=None,
                 help="The address the metrics port binds (0.0.0.0 for a Prometheus on "
-                "another host).",
+                "another host).  [default: 127.0.0.1]",
             ),
             click.option(
                 "--air-bps", type=click.IntRange(1_200, 10_000_000), default=None,
@@ -70,139 +70,50 @@ def _operations(end: str) -> Callable[[F], F]:
     return apply
 
 
-def pq_metrics(counts: LinkCounts) -> list[Metric]:
-    """A link's counts as Prometheus metrics, labelled with its end (ground, vehicle)."""
-    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily  # noqa: PLC0415
-
-    from antireplay.mavlink.pq.link import SESSION_EVENTS  # noqa: PLC0415
-    from antireplay.mavlink.pq.repair import AIR_KINDS  # noqa: PLC0415
-
-    end = counts.end
-    up = GaugeMetricFamily(
-        "antireplay_mavlink_pq_session_up",
-        "1 while a session is live (the other end heard within its silence limit)",
-        labels=["end"],
-    )
-    up.add_metric([end], int(counts.up))
-    families: list[Metric] = [up]
-    for name, text, label, fixed, counter in (
-        ("sessions", "Session changes", "event", SESSION_EVENTS, counts.sessions),
-        ("handshakes", "Handshakes", "outcome", ("started", "completed", "failed"),
-         counts.handshakes),
-        ("chunks", "PQ_CHUNK frames", "what", ("sent", "received", "reassembled"),
-         counts.chunks),
-        ("air_bytes", "Bytes handed to the air, by what they carry", "kind", AIR_KINDS,
-         counts.airtime),
-        ("repairs", "Repair requests sent, chunks resent, held answers sent again", "what",
-         ("nack_sent", "poke_sent", "resent", "answered", "ignored"), counts.repairs),
-        ("retries", "A ground station's command retries, by how they were answered", "how",
-         ("poked", "answered", "sending", "queued"), counts.retries),
-    ):  # fmt: skip
-        family = CounterMetricFamily(f"antireplay_mavlink_pq_{name}", text, labels=["end", label])
-        for key in fixed:
-            family.add_metric([end, key], counter[key])
-        families.append(family)
-    for name, text, label, counter in (
-        ("refusals", "Frames refused, by side and code", "code", counts.refused),
-        ("dropped", "Frames dropped without a refusal (no session, queue, reassembly, plain)",
-         "reason", counts.dropped),
-    ):  # fmt: skip
-        family = CounterMetricFamily(
-            f"antireplay_mavlink_pq_{name}", text, labels=["end", "side", label]
-        )
-        for key, n in sorted(counter.items()):
-            side, _, what = key.partition(":")
-            family.add_metric([end, side, what], n)
-        families.append(family)
-    unaudited = CounterMetricFamily(
-        "antireplay_mavlink_pq_unaudited",
-        "Refusals and session changes the audit trail could not record (it was down)",
-        labels=["end"],
-    )
-    unaudited.add_metric([end], counts.unaudited)
-    return [*families, unaudited]
-
-
-def _key(path: Path, kind: Any, option: str) -> Any:
-    """The PEM key of type ``kind`` in ``path`` (private or public, as ``kind`` is)."""
-    private = "Private" in kind.__name__
-    what = "an unencrypted PEM private key" if private else "a PEM public key"
-    try:
-        data = path.read_bytes()
-        key = (
-            serialization.load_pem_private_key(data, None)
-            if private
-            else serialization.load_pem_public_key(data)
-        )
-    except (OSError, ValueError, TypeError, UnsupportedAlgorithm) as exc:
-        raise click.BadParameter(f"{path}: not {what} ({exc})", param_hint=option) from None
-    if not isinstance(key, kind):
-        message = f"{path}: a {type(key).__name__}, not a {kind.__name__}"
-        raise click.BadParameter(message, param_hint=option)
-    return key
-
-
-def _session_recorder(audit: AuditLog) -> Callable[[SessionEvent], None]:
-    """Log a session change at INFO and audit it (always: it is authentic, and rare)."""
-    clock = SystemClock()
-
-    def record(event: SessionEvent) -> None:
-        log.info("%s", event)
-        audit.append(
-            at=clock.wall(), outcome="session", code=event.kind.upper(), warning=None,
-            msg_type=None, sender=f"pq:{event.peer}", sender_verified=True,
-            msg_id=event.session_id.hex(),
-        )  # fmt: skip
-
-    return record
-
-
-def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
-    end: GroundEnd | VehicleEnd,
-    local: str,
-    air: str,
-    audit_path: str,
-    metrics_port: int | None,
-    metrics_host: str,
-    air_bps: int | None,
+def _run(
+    which: Literal["ground", "vehicle"], config_path: Path | None, flags: dict[str, Any]
 ) -> None:
-    from antireplay.config import AuditConfig  # noqa: PLC0415
-    from antireplay.mavlink.endpoints import open_transport, parse_endpoint  # noqa: PLC0415
-    from antireplay.mavlink.pq.link import PqLink  # noqa: PLC0415
-    from antireplay.wiring import mavlink_auditor, open_audit, serve_metrics  # noqa: PLC0415
+    """Read the configuration with ``flags`` (``--option``: (key under the end, value))
+    over it, open the end through wiring, run it until a signal, print its counts."""
+    from antireplay.wiring.mavlink_pq import open_pq_end, pq_audit_path  # noqa: PLC0415
+    from antireplay.wiring.metrics import pq_metrics, serve_metrics, trail_metrics  # noqa: PLC0415
 
-    _check_audit_file(Path(audit_path), f"--audit: {_MOVE_ASIDE}")  # before opening anything
+    at = f"mavlink_pq.{which}"
+    config = load_with_flags(config_path, {
+        "audit.path" if key == "audit" else f"{at}.{key}": (flag, value)
+        for flag, (key, value) in flags.items()
+    })  # fmt: skip
+    trail = pq_audit_path(config, which)
+    _check_audit_file(Path(trail), f"--audit: {_MOVE_ASIDE}")  # before opening anything
     try:
-        transports = [open_transport(parse_endpoint(text)) for text in (local, air)]
+        parts = open_pq_end(config, which, trail)
+    except (ConfigError, StateFileError) as exc:
+        _fail(str(exc))
     except ValueError as exc:
         raise click.BadParameter(str(exc)) from None
     except OSError as exc:
-        raise click.ClickException(f"{local} / {air}: {exc.strerror or exc}") from None
-    try:
-        audit_log = open_audit(AuditConfig(path=audit_path))  # rotated, retained
-    except StateFileError as exc:
-        _fail(str(exc))
-    refusals = mavlink_auditor(audit_log)
-    link = PqLink(
-        end, *transports, on_reject=refusals, on_session=_session_recorder(audit_log),
-        air_bps=air_bps,
-    )  # fmt: skip
-    if metrics_port is not None:
+        _fail(str(exc.strerror or exc))  # names the endpoint
+    link, metrics = parts.link, getattr(config.mavlink_pq, which).metrics
+    if metrics.port is not None:
         try:
-            serve_metrics(lambda: pq_metrics(link.counts()), metrics_port, metrics_host)
+            serve_metrics(
+                lambda: [
+                    *pq_metrics(link.counts()),
+                    *trail_metrics(f"mavlink-pq {which}", parts.audit, parts.space),
+                ],
+                metrics.port, metrics.host,
+            )  # fmt: skip
         except (OSError, ValueError) as exc:  # an unknown host, a busy port, a bad name
             _fail(
-                f"--metrics-host {metrics_host} --metrics-port {metrics_port}: cannot serve "
+                f"--metrics-host {metrics.host} --metrics-port {metrics.port}: cannot serve "
                 f"metrics there ({getattr(exc, 'strerror', None) or exc})"
             )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = stop_on_signal()
     link.start()
-    click.echo(f"mavlink-pq {link.name}: local {local}, air {air}", err=True)
+    click.echo(f"mavlink-pq {link.name}: local {parts.local}, air {parts.air}", err=True)
     done.wait()
-    link.stop()
-    refusals.close()  # the folded refusals' summary rows, before the trail closes
-    audit_log.close()
+    parts.close()
     forwarded = " ".join(f"{k}={v}" for k, v in sorted(link.forwarded.items())) or "none"
     dropped = " ".join(f"{k}={v}" for k, v in sorted(link.dropped.items())) or "none"
     sessions = " ".join(f"{k}={v}" for k, v in sorted(link.sessions.items())) or "none"
@@ -214,6 +125,18 @@ def _run(  # noqa: PLR0917 - the end, its endpoints and its operations options
     )
 
 
+def _operation_flags(
+    audit_path: str | None,
+    metrics_port: int | None,
+    metrics_host: str | None,
+    air_bps: int | None,
+) -> dict[str, Any]:
+    return {
+        "--audit": ("audit", audit_path), "--metrics-port": ("metrics.port", metrics_port),
+        "--metrics-host": ("metrics.host", metrics_host), "--air-bps": ("air_bps", air_bps),
+    }  # fmt: skip
+
+
 @click.group("mavlink-pq")
 def mavlink_pq() -> None:
     """Post-quantum MAVLink: a ground end and a vehicle end with any routers between."""
@@ -222,147 +145,133 @@ def mavlink_pq() -> None:
 @mavlink_pq.command()
 @click.option(
     "--local",
-    default="udpin:127.0.0.1:14550",
-    show_default=True,
-    help="Where ground stations connect.",
+    default=None,
+    help="Where ground stations connect.  [default: udpin:127.0.0.1:14550]",
 )
-@click.option("--air", required=True, help="Towards the vehicle (radio, MAVProxy, a router).")
+@click.option("--air", default=None, help="Towards the vehicle (radio, MAVProxy, a router).")
 @click.option(
     "--identity",
-    default="gcs",
-    show_default=True,
-    help="The name the vehicle knows this operator by.",
+    default=None,
+    help="The name the vehicle knows this operator by.  [default: gcs]",
 )
-@click.option(
-    "--signing-key", required=True, type=PEM, help="The operator's ML-DSA-87 private key."
-)
-@click.option(
-    "--vehicle-key", required=True, type=PEM, help="The vehicle's ML-KEM-1024 public key."
-)
+@click.option("--signing-key", type=PEM, help="The operator's ML-DSA-87 private key.")
+@click.option("--vehicle-key", type=PEM, help="The vehicle's ML-KEM-1024 public key.")
 @click.option(
     "--vehicle-x25519", type=PEM, help="The vehicle's X25519 public key: hybrid handshakes."
 )
 @click.option(
     "--system-id",
-    default=255,
-    show_default=True,
+    default=None,
     type=click.IntRange(1, 255),
-    help="The MAVLink system id of the PQ_CHUNK frames this end sends (a ground station's).",
+    help="The MAVLink system id of the PQ_CHUNK frames this end sends (a ground station's).  "
+    "[default: 255]",
 )
 @click.option(
     "--queue-ttl",
-    default=5.0,
-    show_default=True,
+    default=None,
     type=click.FloatRange(0, 600),
-    help="Seconds a command waits for a session before it is dropped (counted).",
+    help="Seconds a command waits for a session before it is dropped (counted).  [default: 5]",
 )
 @_operations("ground")
 def ground(  # noqa: PLR0917 - one option per knob
-    local: str,
-    air: str,
-    identity: str,
-    signing_key: Path,
-    vehicle_key: Path,
+    local: str | None,
+    air: str | None,
+    identity: str | None,
+    signing_key: Path | None,
+    vehicle_key: Path | None,
     vehicle_x25519: Path | None,
-    system_id: int,
-    queue_ttl: float,
-    audit_path: str,
+    system_id: int | None,
+    queue_ttl: float | None,
+    config_path: Path | None,
+    audit_path: str | None,
     metrics_port: int | None,
-    metrics_host: str,
+    metrics_host: str | None,
     air_bps: int | None,
 ) -> None:
     """The end next to the ground station: opens the session, wraps its peers' messages."""
-    from antireplay.mavlink.pq import GroundEnd  # noqa: PLC0415
-    from antireplay.pq.session import Initiator  # noqa: PLC0415
-
-    key: mldsa.MLDSA87PrivateKey = _key(signing_key, mldsa.MLDSA87PrivateKey, "'--signing-key'")
-    kem: mlkem.MLKEM1024PublicKey = _key(vehicle_key, mlkem.MLKEM1024PublicKey, "'--vehicle-key'")
-    hybrid = None
-    if vehicle_x25519 is not None:
-        hybrid = _key(vehicle_x25519, x25519.X25519PublicKey, "'--vehicle-x25519'")
-    try:
-        initiator = Initiator(identity, key)
-    except ValueError as exc:
-        raise click.BadParameter(str(exc), param_hint="'--identity'") from None
-    end = GroundEnd(
-        initiator, kem, system_id=system_id, hybrid=hybrid, queue_ttl_s=queue_ttl,
-        air_bps=air_bps,
-    )  # fmt: skip
-    _run(end, local, air, audit_path, metrics_port, metrics_host, air_bps)
+    _run("ground", config_path, {
+        "--local": ("local", local), "--air": ("air", air), "--identity": ("identity", identity),
+        "--signing-key": ("signing_key", _text(signing_key)),
+        "--vehicle-key": ("vehicle_key", _text(vehicle_key)),
+        "--vehicle-x25519": ("vehicle_x25519", _text(vehicle_x25519)),
+        "--system-id": ("system_id", system_id), "--queue-ttl": ("queue_ttl_s", queue_ttl),
+        **_operation_flags(audit_path, metrics_port, metrics_host, air_bps),
+    })  # fmt: skip
 
 
 @mavlink_pq.command()
 @click.option(
-    "--fc", required=True, help="The flight controller (serial DEVICE,BAUD, udpout:, ...)."
+    "--fc", default=None, help="The flight controller (serial DEVICE,BAUD, udpout:, ...)."
 )
 @click.option(
     "--air",
-    required=True,
+    default=None,
     help="Towards the ground (udpin: learns its peer from authenticated blobs).",
 )
-@click.option("--kem-key", required=True, type=PEM, help="The vehicle's ML-KEM-1024 private key.")
+@click.option("--kem-key", type=PEM, help="The vehicle's ML-KEM-1024 private key.")
 @click.option(
     "--peer",
     "peers",
     multiple=True,
-    required=True,
     metavar="NAME=PEM",
-    help="An operator's ML-DSA-87 public key.",
+    help="An operator's ML-DSA-87 public key (one or more).",
 )
 @click.option(
     "--x25519-key", type=PEM, help="The vehicle's X25519 private key: hybrid handshakes only."
 )
 @click.option(
     "--system-id",
-    default=1,
-    show_default=True,
+    default=None,
     type=click.IntRange(1, 255),
-    help="The MAVLink system id of the PQ_CHUNK frames this end sends (the vehicle's).",
+    help="The MAVLink system id of the PQ_CHUNK frames this end sends (the vehicle's).  "
+    "[default: 1]",
 )
 @click.option(
     "--max-sessions",
-    default=4,
-    show_default=True,
+    default=None,
     type=click.IntRange(1, 256),
-    help="Sessions held at once (operators, rekeys); a new one evicts the oldest with its keys.",
+    help="Sessions held at once (operators, rekeys); a new one evicts the oldest with its "
+    "keys.  [default: 4]",
 )
 @click.option(
     "--max-age",
     "max_age_s",
-    default=10.0,
-    show_default=True,
+    default=None,
     type=click.FloatRange(min=0.5),
-    help="Seconds a command may take from the ground end to here; an older one is refused.",
+    help="Seconds a command may take from the ground end to here; an older one is refused.  "
+    "[default: 10]",
 )
 @_operations("vehicle")
 def vehicle(  # noqa: PLR0917 - one option per knob
-    fc: str,
-    air: str,
-    kem_key: Path,
+    fc: str | None,
+    air: str | None,
+    kem_key: Path | None,
     peers: tuple[str, ...],
     x25519_key: Path | None,
-    system_id: int,
-    max_sessions: int,
-    max_age_s: float,
-    audit_path: str,
+    system_id: int | None,
+    max_sessions: int | None,
+    max_age_s: float | None,
+    config_path: Path | None,
+    audit_path: str | None,
     metrics_port: int | None,
-    metrics_host: str,
+    metrics_host: str | None,
     air_bps: int | None,
 ) -> None:
     """The end next to the autopilot: verifies, unwraps, delivers plain MAVLink to it."""
-    from antireplay.mavlink.pq import VehicleEnd  # noqa: PLC0415
-    from antireplay.pq.session import Responder  # noqa: PLC0415
-
-    kem: mlkem.MLKEM1024PrivateKey = _key(kem_key, mlkem.MLKEM1024PrivateKey, "'--kem-key'")
-    registry: dict[str, mldsa.MLDSA87PublicKey] = {}
+    registry: dict[str, str] = {}
     for entry in peers:
         name, sep, path = entry.partition("=")
         if not sep or not name or not path:
             raise click.BadParameter(f"{entry!r}: expected NAME=PEM", param_hint="'--peer'")
-        registry[name] = _key(Path(path), mldsa.MLDSA87PublicKey, "'--peer'")
-    hybrid = None
-    if x25519_key is not None:
-        hybrid = _key(x25519_key, x25519.X25519PrivateKey, "'--x25519-key'")
-    responder = Responder(kem, registry, max_sessions=max_sessions, x25519_key=hybrid)
-    end = VehicleEnd(responder, system_id=system_id, max_age_s=max_age_s)
-    _run(end, fc, air, audit_path, metrics_port, metrics_host, air_bps)
+        registry[name] = path
+    _run("vehicle", config_path, {
+        "--fc": ("fc", fc), "--air": ("air", air), "--kem-key": ("kem_key", _text(kem_key)),
+        "--peer": ("peers", registry or None), "--x25519-key": ("x25519_key", _text(x25519_key)),
+        "--system-id": ("system_id", system_id), "--max-sessions": ("max_sessions", max_sessions),
+        "--max-age": ("max_age_s", max_age_s),
+        **_operation_flags(audit_path, metrics_port, metrics_host, air_bps),
+    })  # fmt: skip
+
+
+def _text(path: Path | None) -> str | None:
+    return None if path is None else str(path)

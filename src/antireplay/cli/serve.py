@@ -28,8 +28,7 @@ from rich.table import Table
 
 from antireplay.cli.demo import StepResult, run_gateway_demo, run_window_demo
 from antireplay.config import AppConfig
-from antireplay.core.errors import ConfigError, StateUnavailableError
-from antireplay.state import StoreSpec
+from antireplay.core.errors import AntiReplayError, ConfigError, StateUnavailableError
 
 if TYPE_CHECKING:
     from starlette.applications import Starlette
@@ -142,7 +141,7 @@ def serve(  # noqa: PLR0917 - one option per knob
     where = f"[{host}]" if family == socket.AF_INET6 else host
     click.echo(
         f"listening on {scheme}://{where}:{bound} "
-        f"(store {StoreSpec.parse(config.store).redacted()}, {anchor_summary(config)}"
+        f"(store {config.store_spec.redacted()}, {anchor_summary(config)}"
         f"audit {config.audit})"
     )
     for warning in anchor_warnings(config):
@@ -173,7 +172,7 @@ _SERVE_ENV = "ANTIREPLAY_SERVE_WORKER"
 def shared_state(config: AppConfig, workers: int) -> None:
     """``ConfigError`` if ``workers`` processes cannot share ``config``'s store: a memory
     store is one process's (another process would accept the same msg_id again)."""
-    if workers > 1 and StoreSpec.parse(config.store).backend == "memory":
+    if workers > 1 and config.store_spec.backend == "memory":
         raise ConfigError(
             "store", config.store, "a sqlite: or redis:// store with --workers > 1 (a memory "
             "store is one process's: another process would accept the same message again)",
@@ -249,12 +248,14 @@ def config() -> None:
     "--verbose", is_flag=True, help="Also print the whole configuration, defaults filled in."
 )
 def config_check(path: Path, verbose: bool) -> None:
-    """Validate a YAML config: everything serve checks (keys, store, audit), and that an
-    HTTP upstream answers a connection."""
+    """Validate a YAML config: every section's keys and values; everything serve checks
+    (keys, store, audit), and that an HTTP upstream answers a connection; the router's and
+    each PQ end's keys and allow-lists when their section is there; the DDS key file."""
     from antireplay.wiring import anchor_warnings, build_anchor  # noqa: PLC0415
 
     try:
         cfg = AppConfig.from_yaml(path)
+        sections = _check_sections(cfg)
         anchor = build_anchor(cfg)
         if anchor is not None:
             try:
@@ -267,12 +268,49 @@ def config_check(path: Path, verbose: bool) -> None:
     _probe_upstream(cfg.upstream, cfg.upstream_timeout_s)
     if verbose:
         console.print_json(data=cfg.model_dump())
-    if not cfg.keys:
+    others = {"mavlink", "mavlink_pq"} & cfg.model_fields_set or cfg.dds is not None
+    if not cfg.keys and not others:  # a file for the router, a PQ end or DDS needs none
         click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
                    "so every command will be refused", err=True)  # fmt: skip
     for warning in anchor_warnings(cfg):
         click.echo(f"antireplay: warning: {warning}", err=True)
     click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
+    for line in sections:
+        click.echo(f"ok: {line}")
+
+
+def _check_sections(cfg: AppConfig) -> list[str]:
+    """What the commands other than ``serve`` would load from their sections (key files,
+    allow-lists, PEM keys), loaded and dropped: nothing opened, nothing bound."""
+    from antireplay.wiring.leaves import check_state  # noqa: PLC0415
+    from antireplay.wiring.mavlink import router_endpoints, router_options  # noqa: PLC0415
+    from antireplay.wiring.mavlink_pq import ground_end, vehicle_end  # noqa: PLC0415
+
+    said = []
+    given = cfg.model_fields_set
+    if "mavlink" in given and cfg.mavlink.vehicle:
+        endpoints = router_endpoints(cfg.mavlink)
+        router_options(cfg.mavlink)
+        spec = cfg.mavlink.store_spec
+        try:
+            check_state(spec)
+        except AntiReplayError:
+            raise  # names the file and the recovery
+        except Exception as exc:  # any backend's own failure, named with its key
+            allowed = f"a store that opens ({type(exc).__name__}: {exc})"
+            raise ConfigError("mavlink.store", spec.redacted(), allowed) from None
+        said.append(f"mavlink: {len(endpoints)} endpoints, store {cfg.mavlink.store}")
+    pq = cfg.mavlink_pq
+    if "mavlink_pq" in given and "ground" in pq.model_fields_set:
+        ground_end(pq.ground)
+        said.append("mavlink_pq.ground: keys load")
+    if "mavlink_pq" in given and "vehicle" in pq.model_fields_set:
+        vehicle_end(pq.vehicle)
+        said.append(f"mavlink_pq.vehicle: keys load, {len(pq.vehicle.peers)} peers")
+    if cfg.dds is not None:
+        cfg.dds.psk()
+        said.append(f"dds: domain {cfg.dds.domain_id}, key file {cfg.dds.psk_file}")
+    return said
 
 
 def _probe_upstream(upstream: str | None, timeout_s: float) -> None:

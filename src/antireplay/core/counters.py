@@ -5,9 +5,12 @@ each number at most once.  Four types, one job each; every receiver policy is bu
 
 * :class:`NonceCounter` (sender): unique, strictly increasing values under any number of
   threads, **never wrapping** (``NonceExhaustedError`` at ``limit``); with an ``anchor``
-  each value is ``max(last + 1, anchor())`` (tied to wall time, never repeating on a step
-  back); with a :class:`Ceiling` it reserves ``lease`` values durably before handing any
-  out, so it resumes above them after ``kill -9`` (ceilings: :mod:`antireplay.state.ceilings`).
+  (the caller's clock, read before the lock) each value is ``max(last + 1, anchor())``
+  (tied to wall time, never repeating on a step back); with a :class:`Ceiling` it
+  reserves ``lease`` values durably before handing any out, so it resumes above them
+  after ``kill -9`` (ceilings: :mod:`antireplay.state.ceilings`).  Persist, then believe:
+  one reservation at a time runs outside the lock, and only a durable one raises the
+  ceiling; values below it are handed out meanwhile.
 * :class:`CounterWindow` (lossy, reordering links): the RFC 6479 bitmap as WireGuard has it;
   ``c`` is accepted once iff ``0 <= c < limit`` and ``last - c <= size``, O(1) per packet.
 * :class:`NonceTracker` (in-order links): strictly above the last accepted value; equal is
@@ -21,13 +24,13 @@ each number at most once.  Four types, one job each; every receiver policy is bu
 Two phases everywhere: ``check`` raises the typed refusal and **records nothing**; ``commit``
 runs only after the tag or signature verified (no jamming without the key) and re-checks, so
 of two racers exactly one wins.  ``open`` is check, authenticate, commit.  The first three
-types lock themselves; a :class:`FencedTable`'s owner holds a lock around ``commit``.
+types lock themselves (no lock is held across I/O); a :class:`FencedTable`'s owner holds a
+lock around ``commit``.  Nothing here reads a clock: a time is the caller's argument.
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable, Hashable
 from typing import Generic, Protocol, TypeVar
 
@@ -81,6 +84,11 @@ class NonceCounter:
         self.limit = limit
         self._anchor = anchor
         self._lock = threading.Lock()
+        #: Signalled when a reservation lands (threads past the ceiling wait for it).
+        self._landed = threading.Condition(self._lock)
+        self._claiming = False
+        #: Bumped by :meth:`restart`: a reservation made for an older binding is not believed.
+        self._binding = 0
         self._persist: Ceiling | None = None
         self._ceiling = limit
         self._lease = 0
@@ -88,12 +96,13 @@ class NonceCounter:
         self.reservations = 0
 
     @classmethod
-    def from_time(cls, *, limit: int = COUNTER_LIMIT) -> NonceCounter:
-        """Seed from ``time.time_ns()``, so a restarted sender starts above its last run.
+    def from_time(cls, now_ns: int, *, limit: int = COUNTER_LIMIT) -> NonceCounter:
+        """Seed from the caller's ``now_ns`` (``time.time_ns()``), so a restarted sender
+        starts above its last run.
 
-        Only as good as the clock: use :meth:`persistent` where the clock may step back.
+        Only as good as the clock: use a persisted ceiling where the clock may step back.
         """
-        return cls(time.time_ns(), limit=limit)
+        return cls(now_ns, limit=limit)
 
     @classmethod
     def on_ceiling(
@@ -139,17 +148,49 @@ class NonceCounter:
         return self._next - 1
 
     def next(self) -> int:
-        """Hand out the next value; raises :class:`NonceExhaustedError` at the limit."""
+        """Hand out the next value; raises :class:`NonceExhaustedError` at the limit.  A
+        value above the persisted ceiling waits for a durable reservation (made by one
+        thread at a time, outside the lock)."""
+        floor = 0 if self._anchor is None else self._anchor()
         with self._lock:
-            value = self._next
-            if self._anchor is not None:
-                value = max(value, self._anchor())
-            if value >= self.limit:
+            while True:
+                value = self._next
+                value = floor if floor > value else value  # max() costs a call per value
+                if value >= self.limit:
+                    raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
+                persist = self._persist
+                if persist is None or value <= self._ceiling:
+                    self._next = value + 1
+                    return value
+                if not self._claiming:
+                    break
+                self._landed.wait()
+            self._claiming = True
+            binding, span = self._binding, min(self._lease, self.limit - value)
+        try:
+            claimed = persist.claim(value, span)  # the I/O: no lock held
+        except BaseException:
+            self._landed_at(None, binding)
+            raise
+        self._landed_at(claimed, binding)
+        return self.next()
+
+    def _landed_at(self, claimed: int | None, binding: int) -> None:
+        """The reservation is over: durable from ``claimed`` (``None``: it failed, nothing
+        believed).  Raise the ceiling to it unless a restart began a new binding meanwhile;
+        wake the threads waiting past the ceiling."""
+        with self._lock:
+            self._claiming = False
+            self._landed.notify_all()
+            if claimed is None:
+                return
+            self.reservations += 1
+            if claimed >= self.limit:
                 raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
-            if self._persist is not None and value > self._ceiling:
-                value = self._reserve(value)
-            self._next = value + 1
-            return value
+            if binding == self._binding:
+                # A co-owner may have reserved past the value asked for: skip to ``claimed``.
+                self._next = max(self._next, claimed)
+                self._ceiling = min(claimed + self._lease - 1, self.limit - 1)
 
     def restart(self, start: int = 1) -> None:
         """Start over at ``start`` for a **new binding** (the owner changed what the values
@@ -157,19 +198,9 @@ class NonceCounter:
         bindings, never within one; with a state file the next value is persisted first."""
         with self._lock:
             self._next = start
+            self._binding += 1
             if self._persist is not None:
                 self._ceiling = start - 1
-
-    def _reserve(self, value: int) -> int:
-        """Persist a new ceiling *before* handing out any value under it; the value to hand
-        out (a co-owner of a store's key may already have reserved past ``value``)."""
-        assert self._persist is not None
-        value = self._persist.claim(value, min(self._lease, self.limit - value))
-        self.reservations += 1
-        if value >= self.limit:
-            raise NonceExhaustedError(f"counter reached its limit {self.limit}; rekey")
-        self._ceiling = min(value + self._lease - 1, self.limit - 1)
-        return value
 
 
 class CounterWindow:

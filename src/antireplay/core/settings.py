@@ -6,8 +6,9 @@ error that names the key, the value and the allowed range
 clamps ``replay_window_s=1000`` to 300 without a word).  Unknown keys are errors
 too, so a typo such as ``replay_windows_s`` cannot leave the default in force
 unnoticed.  pydantic does the type work; this module only turns its errors into
-ours.  The window policy reads these settings, so they live in the core; the
-whole application file (:mod:`antireplay.config`) builds on them.
+ours.  The window policy reads these settings, so they live in the core, which reads no
+files: the YAML is read by the configuration layer (:mod:`antireplay.config`; a
+``security:`` block alone is ``AppConfig.from_yaml(path).security``).
 
 ``nack_type`` is 18 (COMMAND_NACK in the current canonical RCAN numbering) or
 31, the number §8.3's text uses, which dates from RCAN v1.5/v1.6; set 31 only
@@ -18,10 +19,8 @@ from __future__ import annotations
 
 import difflib
 from collections.abc import Iterable
-from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from antireplay.core.errors import ConfigError
@@ -68,11 +67,6 @@ class SecurityConfig(BaseModel):
             allowed = ALLOWED.get(key, "only " + ", ".join(sorted(cls.model_fields)))
             raise ConfigError(f"{section}.{key}", err.get("input"), allowed) from None
 
-    @classmethod
-    def from_yaml(cls, path: str | Path) -> SecurityConfig:
-        """Read the ``security:`` block of a YAML file."""
-        return cls.from_mapping(load_yaml(path).get("security"))
-
 
 def unknown_key(path: str, known: Iterable[str]) -> ConfigError:
     """An unknown key, with the known one it most resembles: the same name at another level
@@ -86,23 +80,6 @@ def unknown_key(path: str, known: Iterable[str]) -> ConfigError:
         close = [leaves[m] for m in difflib.get_close_matches(leaf, list(leaves), 1, 0.7)]
     hint = f" (did you mean `{close[0]}`?)" if close else ""
     return ConfigError(path, path, "a known key", message=f"unknown key `{path}`{hint}")
-
-
-def load_yaml(path: str | Path) -> dict[str, Any]:
-    """A YAML file's top-level mapping, or ConfigError."""
-    try:
-        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError.file_not_found("config", str(path)) from None
-    except OSError as exc:
-        raise ConfigError("file", str(path), f"a readable YAML file ({exc.strerror})") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError("file", str(path), f"valid YAML ({exc})") from None
-    if doc is None:
-        return {}
-    if not isinstance(doc, dict):
-        raise ConfigError("file", str(path), "a YAML mapping at the top level")
-    return doc
 
 
 def _widen_ints(data: dict[Any, Any]) -> dict[Any, Any]:

@@ -11,7 +11,8 @@ extra) so an application sees only authentic, fresh samples:
   with its own :class:`~antireplay.epochs.EpochSigner` (nonce prefix, strictly
   increasing epoch, HMAC); a :class:`SealedReader` opens it with an
   :class:`~antireplay.epochs.EpochVerifier` and hands over only what passed,
-  giving every other sample a typed :class:`Verdict` (counted, audited).  The
+  giving every other sample a typed :class:`SampleVerdict` (counted, audited; the pure
+  framing and judging are :mod:`antireplay.epochs.sealing`).  The
   MAC key is derived per (topic name, type name), so a sample moved to another
   topic does not verify; the instance key travels inside the MAC.
 * :mod:`~antireplay.dds.relay`: an announcement relay in the role of a Cloud
@@ -38,6 +39,7 @@ if TYPE_CHECKING:
     from antireplay.dds.relay import AnnouncementRelay, RelayedAnnouncement
     from antireplay.dds.topics import SealedReader, SealedWriter, Verdict
     from antireplay.dds.wire import SealedSample
+    from antireplay.epochs.sealing import SampleVerdict
 
 _HOMES = {
     "join_domain": "domain",
@@ -46,6 +48,7 @@ _HOMES = {
     "PingSender": "ping",
     "AnnouncementRelay": "relay",
     "RelayedAnnouncement": "relay",
+    "SampleVerdict": "topics",
     "SealedReader": "topics",
     "SealedSample": "wire",
     "SealedWriter": "topics",
@@ -57,6 +60,7 @@ __all__ = [
     "PingListener",
     "PingSender",
     "RelayedAnnouncement",
+    "SampleVerdict",
     "SealedReader",
     "SealedSample",
     "SealedWriter",

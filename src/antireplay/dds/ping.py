@@ -18,17 +18,20 @@ judges a bounded number of datagrams per call.
 
 from __future__ import annotations
 
-import os
 import socket
 from collections import Counter
+from collections.abc import Callable
 
 from antireplay.audit import AuditLog
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import Code
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
-from antireplay.dds.topics import Verdict, open_judged, record_refusal, refusal_auditor
+from antireplay.dds.topics import open_judged, record_refusal, refusal_auditor
 from antireplay.epochs import MIN_LEN, EpochSigner, EpochVerifier, Kind
+from antireplay.epochs.sealing import SampleVerdict
 from antireplay.state import ReplayStore
+from antireplay.state.durable import DurableState
+from antireplay.state.memory import MemoryStore
 
 #: A binding ping is small; anything larger is dropped before any crypto.
 MAX_PING = 1024
@@ -44,12 +47,12 @@ class PingSender:
         psk: bytes,
         *,
         nonce_prefix: bytes | None = None,
-        state_file: str | os.PathLike[str] | None = None,
+        state: DurableState | None = None,
         clock: Clock | None = None,
         bind: tuple[str, int] = ("127.0.0.1", 0),
         max_forward_s: float = MAX_FORWARD_S,
     ) -> None:
-        self.signer = EpochSigner(psk, nonce_prefix=nonce_prefix, state_file=state_file,
+        self.signer = EpochSigner(psk, nonce_prefix=nonce_prefix, state=state,
                                   clock=clock, max_forward_s=max_forward_s)  # fmt: skip
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind(bind)
@@ -77,16 +80,17 @@ class PingListener:
         psk: bytes,
         *,
         bind: tuple[str, int] = ("127.0.0.1", 0),
-        store: ReplayStore | str = "memory",
+        store: ReplayStore | None = None,
         clock: Clock | None = None,
         max_age_s: float = MAX_AGE_S,
         max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
+        quiet: Callable[[], bool] | None = None,
     ) -> None:
         self._clock = resolve(clock)
         self.verifier = EpochVerifier(
             psk,
-            store=store,
+            store=MemoryStore(clock=self._clock) if store is None else store,
             namespace="dds:ping",
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
@@ -97,25 +101,25 @@ class PingListener:
         self.sock.bind(bind)
         self.peers: dict[bytes, tuple[str, int]] = {}
         self.counts: Counter[str] = Counter()
-        self._refusals = refusal_auditor(self._clock, audit, self.counts)
+        self._refusals = refusal_auditor(self._clock, audit, self.counts, quiet)
 
     @property
     def address(self) -> tuple[str, int]:
         host, port = self.sock.getsockname()
         return str(host), int(port)
 
-    def judge(self, datagram: bytes, source: tuple[str, int]) -> Verdict:
+    def judge(self, datagram: bytes, source: tuple[str, int]) -> SampleVerdict:
         """Check, authenticate, commit one ping; ``instance`` is the source address."""
         where = f"{source[0]}:{source[1]}"
         if not MIN_LEN <= len(datagram) <= MAX_PING:
-            verdict = Verdict("malformed", Code.INVALID_FRAME, "bad ping length", where)
+            verdict = SampleVerdict("malformed", Code.INVALID_FRAME, "bad ping length", where)
         else:
             opened = open_judged(self.verifier, datagram, Kind.PING, where)
-            if isinstance(opened, Verdict):
+            if isinstance(opened, SampleVerdict):
                 verdict = opened
             else:
                 self.peers[opened.nonce_prefix] = source
-                verdict = Verdict(
+                verdict = SampleVerdict(
                     "accepted", None, "", where, opened.nonce_prefix, opened.epoch, opened.payload
                 )
         self.counts[verdict.outcome] += 1
@@ -123,7 +127,7 @@ class PingListener:
             record_refusal(self._refusals, verdict, "dds ping", self.counts)
         return verdict
 
-    def receive(self, timeout_s: float) -> Verdict | None:
+    def receive(self, timeout_s: float) -> SampleVerdict | None:
         """Judge the next datagram, or None if none came within ``timeout_s``."""
         self.sock.settimeout(timeout_s)
         try:
@@ -132,11 +136,11 @@ class PingListener:
             return None
         return self.judge(datagram, (str(source[0]), int(source[1])))
 
-    def drain(self, limit: int = DRAIN_LIMIT) -> list[Verdict]:
+    def drain(self, limit: int = DRAIN_LIMIT) -> list[SampleVerdict]:
         """Judge the datagrams already waiting, at most ``limit``, without blocking: a
         flood cannot hold the caller's thread (the rest wait in the socket buffer, and
         the kernel drops what does not fit)."""
-        verdicts: list[Verdict] = []
+        verdicts: list[SampleVerdict] = []
         while len(verdicts) < limit and (verdict := self.receive(0.0)) is not None:
             verdicts.append(verdict)
         return verdicts

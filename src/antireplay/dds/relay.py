@@ -5,7 +5,7 @@ Theory of operation
 Participants publish sealed announcements on the ingress topic
 (:data:`ANNOUNCE_TOPIC`).  The relay opens each with its own
 :class:`~antireplay.epochs.EpochVerifier` on a replay store
-(``verifier_store``, e.g. ``sqlite:PATH``; a replayed, forged or stale
+(``verifier_store``, e.g. SQLite, opened by :mod:`antireplay.wiring`; a replayed, forged or stale
 announcement is refused there and renews nothing), and only an accepted one is
 announced again on the egress topic (:data:`RELAYED_TOPIC`), sealed by the
 relay's signer under its *service-name* prefix, carrying the origin's prefix
@@ -32,6 +32,7 @@ import os
 import struct
 import threading
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from cyclonedds.domain import DomainParticipant
@@ -41,9 +42,11 @@ from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import InvalidFrameError, StateUnavailableError, WarningCode
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.ping import PingListener
-from antireplay.dds.topics import SealedReader, SealedWriter, Verdict
+from antireplay.dds.topics import SealedReader, SealedWriter
 from antireplay.dds.wire import SealedSample
+from antireplay.epochs.sealing import SampleVerdict
 from antireplay.state import ReplayStore
+from antireplay.state.durable import DurableState
 
 log = logging.getLogger("antireplay.dds.relay")
 
@@ -104,8 +107,8 @@ class AnnouncementRelay:
         psk: bytes,
         *,
         service_name: str,
-        signer_state: str | os.PathLike[str],
-        verifier_store: ReplayStore | str,
+        signer_state: DurableState,
+        verifier_store: ReplayStore,
         ingress: str = ANNOUNCE_TOPIC,
         egress: str = RELAYED_TOPIC,
         clock: Clock | None = None,
@@ -113,6 +116,7 @@ class AnnouncementRelay:
         max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
         ping: PingListener | None = None,
+        quiet: Callable[[], bool] | None = None,
     ) -> None:
         self.service_name = service_name
         self._clock = resolve(clock)
@@ -127,13 +131,14 @@ class AnnouncementRelay:
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
             audit=audit,
+            quiet=quiet,
         )
         self.egress = SealedWriter(
             participant,
             egress,
             psk,
             service_name=service_name,
-            state_file=signer_state,
+            state=signer_state,
             clock=self._clock,
             max_forward_s=max_forward_s,  # the subscribers' bound: rotate, never be refused
         )
@@ -148,11 +153,11 @@ class AnnouncementRelay:
         self.counts: Counter[str] = Counter()
 
     def close(self) -> None:
-        """Release the relay's state (the signer's file lock, the stores it opened)."""
+        """Release the relay's state (the signer's file lock; the stores are the opener's)."""
         for part in (self.ingress, self.egress, self._watch):
             part.close()
 
-    def pump(self, timeout_s: float = 0.1) -> list[Verdict]:
+    def pump(self, timeout_s: float = 0.1) -> list[SampleVerdict]:
         """One round: answer fresh subscribers' challenges, judge waiting announcements,
         relay the accepted, look for a twin,
         judge at most ``PINGS_PER_PUMP`` waiting pings (a ping flood cannot stall the
@@ -173,7 +178,7 @@ class AnnouncementRelay:
         while not stop.is_set():
             self.pump(period_s)
 
-    def _relay(self, verdict: Verdict) -> None:
+    def _relay(self, verdict: SampleVerdict) -> None:
         assert verdict.nonce_prefix is not None and verdict.epoch is not None
         body = RelayedAnnouncement(
             verdict.nonce_prefix, verdict.epoch, self.relay_id, verdict.value
@@ -183,7 +188,7 @@ class AnnouncementRelay:
         self.egress.publish(sample)
         self.relayed += 1
 
-    def _check_twin(self, sample: SealedSample, seen: Verdict) -> None:
+    def _check_twin(self, sample: SealedSample, seen: SampleVerdict) -> None:
         """An authentic sample under our prefix that we did not emit comes from a twin."""
         if seen.nonce_prefix != self.egress.nonce_prefix or not seen.authentic:
             return

@@ -1,52 +1,39 @@
-"""Sealed topics: every DDS sample carries its sender's nonce prefix, epoch and HMAC.
-
-Size: the reader, the writer and the challenge channel share the sealed wire
-format and one lock discipline; they stay together so the judging order reads in one place.
+"""Sealed topics on Cyclone DDS: the writer, the reader and the challenge channel (the driver).
 
 Theory of operation
 -------------------
 On the wire a sealed topic has one DDS type, :class:`SealedSample`: the instance key
-(a DDS key field) and an :mod:`antireplay.epochs` announcement whose payload is
-``instance_len u16 | instance utf-8 | data``.  The topic's HMAC key is
-``HKDF(psk, info="antireplay/v1 dds topic" | domain | topic | type)``, so a sample
-captured on one domain, topic or type fails the MAC on any other, and the instance
-key is inside the MAC (the DDS key field is only a routing copy, compared first).
+(a DDS key field) and an :mod:`antireplay.epochs` announcement framed and judged by the
+pure core :mod:`antireplay.epochs.sealing` (topic key, framing, the check before any
+crypto, the :class:`SampleVerdict` of each sample).  This module does the I/O around it:
+Cyclone DDS endpoints, the signer's and verifier's state, the lock, the audit trail.
 
-A reader judges each sample cheapest first: size and shape, the claimed instance
-against the DDS key field (no crypto, no state), then :meth:`EpochVerifier.open`
-(MAC, freshness, ``epoch > last[prefix]``, then one ``advance`` on the replay
-store, durable before it returns).  Only then is the data decoded and handed over.
+A reader judges each sample cheapest first: :func:`~antireplay.epochs.sealing.check`
+(no crypto, no state), then :meth:`EpochVerifier.open` (MAC, freshness,
+``epoch > last[prefix]``, then one ``advance`` on the replay store, durable before it
+returns), and only then is the data decoded and handed over.
 
 **Start fence.**  A reader refuses every sample sealed before it started (plus
-``max_forward_s``) unless its store proves otherwise: ``memory`` cannot know what a
-previous process accepted; a ``sqlite:PATH`` store that survived sets no fence.
-A fenced reader does not wait it out: it sends a challenge on :data:`PING_TOPIC`, every
-writer answers in its next :meth:`SealedWriter.write`, and the reader accepts that
-writer's epochs above the answer at once (captures stay refused;
-:mod:`antireplay.epochs.policy`).  ``max_age_s`` bounds a writer it never heard of.
-Every refusal is a :class:`Verdict`
-with a stable :class:`~antireplay.core.errors.Code`, counted in
-:attr:`SealedReader.counts` and recorded through the rate-limited
+``max_forward_s``) unless its store proves otherwise: a memory store cannot know what a
+previous process accepted; a SQLite store that survived sets no fence.  A fenced reader
+does not wait it out: it sends a challenge on :data:`PING_TOPIC` (when
+:class:`~antireplay.epochs.sealing.ChallengeTimer` says), every writer answers in its
+next :meth:`SealedWriter.write`, and the reader accepts that writer's epochs above the
+answer at once (captures stay refused; :mod:`antireplay.epochs.policy`).  Every refusal
+is counted in :attr:`SealedReader.counts` and recorded through the rate-limited
 :class:`~antireplay.audit.RefusalAuditor` (authentic refusals on their own budget).
-Several writers share a topic, each under its own prefix; a writer restarted with
-its state file resumes above every epoch it could have used.
+Stores, state files and the audit trail are built by :mod:`antireplay.wiring` and handed in.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
-import math
-import os
-import struct
 import threading
 import time
 from collections import Counter
-from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any
 
-from cryptography.hazmat.primitives import hashes
-from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
@@ -58,56 +45,31 @@ from cyclonedds.util import duration
 
 from antireplay.audit import AuditLog, RefusalAuditor
 from antireplay.core.clock import Clock, resolve
-from antireplay.core.errors import (
-    Code,
-    EpochReplayedError,
-    EpochTooFarAheadError,
-    InvalidFrameError,
-    MessageStaleError,
-    ReplayAttackError,
-    SignatureInvalidError,
-    StateUnavailableError,
-)
+from antireplay.core.errors import Code, ReplayAttackError, StateUnavailableError
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.wire import SealedSample
-from antireplay.epochs import (
-    MAX_LEN,
-    MIN_LEN,
-    TAG_LEN,
-    Announcement,
-    EpochSigner,
-    EpochVerifier,
-    Kind,
-)
-from antireplay.epochs.policy import HEAD, LABELS
+from antireplay.epochs import Announcement, EpochSigner, EpochVerifier, Kind, sealing
+from antireplay.epochs.sealing import RAW, ChallengeTimer, SampleVerdict, claim, topic_key
 from antireplay.state import ReplayStore
+from antireplay.state.durable import DurableState
+from antireplay.state.memory import MemoryStore
 
 log = logging.getLogger("antireplay.dds")
 
-#: The documented announcement head (version, kind, nonce prefix, epoch), read before any crypto.
-_CLAIM = HEAD  # version, kind, nonce prefix, epoch
-_ILEN = struct.Struct(">H")
-MAX_INSTANCE = 256
-#: Type name bound in the MAC for topics whose samples are raw bytes.
-RAW = "octets"
+#: The name of earlier releases for :class:`~antireplay.epochs.sealing.SampleVerdict`.
+Verdict = SampleVerdict
 #: Refusals audited per second, per class (:class:`~antireplay.audit.RefusalAuditor`).
 AUDIT_PER_S = 50.0
+#: The control topic of freshness challenges and answers; the instance names the topic asked
+#: about (a cheap filter: the MAC key already binds it).
+PING_TOPIC = "antireplay/ping"
+#: Ping samples one call judges at most (the rest wait in the reader's history).
+PINGS_PER_CALL = 64
 
 
 def default_qos(depth: int = 256) -> Qos:
     """Reliable, keep-last ``depth`` per instance: a sealed topic's defaults."""
     return Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(depth))
-
-
-def topic_key(psk: bytes, topic: str, type_name: str, domain_id: int = 0) -> bytes:
-    """The per-topic MAC secret: binds the domain id, the topic name and the type name, so a
-    sample captured on one domain (one robot's ROS_DOMAIN_ID) fails the MAC on another."""
-    if not isinstance(psk, bytes) or len(psk) < 16:
-        raise ValueError("psk must be at least 16 bytes")
-    info = b"antireplay/v1 dds topic"
-    for part in (str(domain_id).encode(), topic.encode(), type_name.encode()):
-        info += _ILEN.pack(len(part)) + part
-    return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(psk)
 
 
 def _domain_of(participant: Any) -> int:
@@ -119,24 +81,8 @@ def type_name_of(data_type: type[IdlStruct] | None) -> str:
     return RAW if data_type is None else str(data_type.__idl_typename__)
 
 
-def _inner(instance: str, data: bytes) -> bytes:
-    raw = instance.encode()
-    if len(raw) > MAX_INSTANCE:
-        raise ValueError(f"instance key longer than {MAX_INSTANCE} bytes")
-    return _ILEN.pack(len(raw)) + raw + data
-
-
 def _topic(participant: DomainParticipant, name: str, qos: Qos) -> Topic[SealedSample]:
     return Topic(participant, name, SealedSample, qos=qos)
-
-
-#: The control topic of freshness challenges and answers; the instance names the topic asked
-#: about (a cheap filter: the MAC key already binds it).
-PING_TOPIC = "antireplay/ping"
-#: Seconds between a fenced reader's retries when no new peer matched (doubling up to the cap).
-RETRY_S, RETRY_MAX_S = 0.25, 2.0
-#: Ping samples one call judges at most (the rest wait in the reader's history).
-PINGS_PER_CALL = 64
 
 
 def matched_readers(writer: DataWriter[Any]) -> int:
@@ -196,7 +142,7 @@ class SealedWriter:
         data_type: type[IdlStruct] | None = None,
         nonce_prefix: bytes | None = None,
         service_name: str | None = None,
-        state_file: str | os.PathLike[str] | None = None,
+        state: DurableState | None = None,
         clock: Clock | None = None,
         reserve_s: float = 1.0,
         max_forward_s: float = MAX_FORWARD_S,
@@ -211,7 +157,7 @@ class SealedWriter:
             topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
             nonce_prefix=nonce_prefix,
             service_name=service_name,
-            state_file=state_file,
+            state=state,
             clock=clock,
             reserve_s=reserve_s,
             max_forward_s=max_forward_s,
@@ -233,7 +179,7 @@ class SealedWriter:
             try:
                 self._pings.send(self.signer.answer(challenge))
             except ReplayAttackError as exc:
-                self.counts["challenge_" + _OUTCOMES.get(type(exc), "refused")] += 1
+                self.counts["challenge_" + sealing.OUTCOMES.get(type(exc), "refused")] += 1
                 continue
             answered += 1
         self.counts["challenge_answered"] += answered
@@ -242,7 +188,9 @@ class SealedWriter:
     def seal(self, value: bytes | IdlStruct, *, instance: str = "") -> SealedSample:
         """The sealed sample for ``value`` (not yet written): each call takes a new epoch."""
         data = value if isinstance(value, bytes) else value.serialize()
-        return SealedSample(instance=instance, sealed=self.signer.seal(_inner(instance, data)))
+        return SealedSample(
+            instance=instance, sealed=self.signer.seal(sealing.frame(instance, data))
+        )
 
     def write(self, value: bytes | IdlStruct, *, instance: str = "") -> SealedSample:
         """Answer waiting challenges, then seal and publish one sample."""
@@ -280,54 +228,6 @@ class SealedWriter:
         return True
 
 
-@dataclass(frozen=True)
-class Verdict:
-    """The judgment of one received sample; only ``accepted`` ones carry ``value``."""
-
-    outcome: str
-    code: Code | None
-    reason: str
-    instance: str
-    nonce_prefix: bytes | None = None
-    epoch: int | None = None
-    value: Any = None
-
-    @property
-    def accepted(self) -> bool:
-        return self.code is None
-
-    @property
-    def authentic(self) -> bool:
-        """True when the MAC verified (accepted, or refused only for freshness or order)."""
-        return self.outcome in {"accepted", "replayed", "prefix_collision", "stale", "ahead"}
-
-    def named(self, noun: str) -> Verdict:
-        """This verdict with its reason naming what was refused (a topic's sealed value is
-        an epoch announcement underneath; its reader calls it a ``sample``)."""
-        head = LABELS[Kind.ANNOUNCEMENT]
-        if not self.reason.startswith(head):
-            return self
-        return dataclasses.replace(self, reason=noun + self.reason[len(head) :])
-
-    def line(self) -> str:
-        """One printable line (what ``antireplay dds read`` prints)."""
-        who = "-" if self.nonce_prefix is None else self.nonce_prefix.hex()
-        head = "ACCEPTED" if self.accepted else f"REFUSED {self.code} {self.outcome}"
-        shown = self.value if self.accepted else self.reason
-        return f"{head} instance={self.instance!r} prefix={who} epoch={self.epoch} {shown!r}"
-
-
-#: Rejection class -> the outcome word counted and audited (prefix collisions are told apart).
-_OUTCOMES: dict[type[ReplayAttackError], str] = {
-    InvalidFrameError: "malformed",
-    SignatureInvalidError: "forged",
-    MessageStaleError: "stale",
-    EpochTooFarAheadError: "ahead",
-    EpochReplayedError: "replayed",
-    StateUnavailableError: "state_unavailable",
-}
-
-
 class SealedReader:
     """A DDS reader that hands over only authentic, fresh samples and judges the rest."""
 
@@ -338,20 +238,23 @@ class SealedReader:
         psk: bytes,
         *,
         data_type: type[IdlStruct] | None = None,
-        store: ReplayStore | str = "memory",
+        store: ReplayStore | None = None,
         clock: Clock | None = None,
         max_age_s: float = MAX_AGE_S,
         max_forward_s: float = MAX_FORWARD_S,
         audit: AuditLog | None = None,
         qos: Qos | None = None,
         challenge: bool = True,
+        quiet: Callable[[], bool] | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
+        self._decode = None if data_type is None else data_type.deserialize
         self._clock = resolve(clock)
         type_name, domain = type_name_of(data_type), _domain_of(participant)
+        self._own_store = store is None  # in memory, as large as ``open_store("memory")``
         self.verifier = EpochVerifier(
             topic_key(psk, topic, type_name, domain),
-            store=store,
+            store=MemoryStore(clock=self._clock) if store is None else store,
             namespace=f"dds:{domain}:{topic}:{type_name}",
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
@@ -359,7 +262,7 @@ class SealedReader:
         )
         self.audit = audit
         self.counts: Counter[str] = Counter()
-        self._refusals = refusal_auditor(self._clock, audit, self.counts)
+        self._refusals = refusal_auditor(self._clock, audit, self.counts, quiet)
         self._lock = threading.Lock()
         qos = qos or default_qos()
         self._reader = DataReader(participant, _topic(participant, topic, qos), qos=qos)
@@ -371,18 +274,19 @@ class SealedReader:
         if challenge and self.verifier.fenced():
             self._pings = PingChannel(participant, topic)
             self._waitset.attach(self._pings.waiting)
-        self._peers, self._retry_at, self._retry_s = -1, -math.inf, RETRY_S
+        self._timer = ChallengeTimer()
 
     def matched_writers(self) -> int:
         return matched_writers(self._reader)
 
     def close(self) -> None:
-        """Write the folded refusals' summaries, close the verifier's store if the reader
-        opened it, as a stopping process does."""
+        """Write the folded refusals' summaries, as a stopping process does; the store is
+        closed by whoever opened it (this reader, for its default memory store)."""
         self._refusals.close()
-        self.verifier.close()
+        if self._own_store:
+            self.verifier.store.close()
 
-    def judge(self, sample: SealedSample) -> Verdict:
+    def judge(self, sample: SealedSample) -> SampleVerdict:
         """Check, authenticate, commit one sample; never raises for hostile input."""
         with self._lock:
             verdict = self._judge(sample)
@@ -392,39 +296,22 @@ class SealedReader:
             record_refusal(self._refusals, verdict, f"dds {self.topic_name}", self.counts)
         return verdict
 
-    def _judge(self, sample: SealedSample) -> Verdict:
+    def _judge(self, sample: SealedSample) -> SampleVerdict:
         instance = sample.instance if isinstance(sample.instance, str) else ""
         sealed = bytes(sample.sealed)
-        if not MIN_LEN + _ILEN.size <= len(sealed) <= MAX_LEN:
-            return Verdict("malformed", Code.INVALID_FRAME, "bad sealed length", instance)
-        prefix, epoch = claim(sealed)
-        claimed = _claimed_instance(sealed)
-        if claimed != instance:
-            return Verdict(
-                "wrong_instance",
-                Code.INVALID_FRAME,
-                "instance key does not match the sealed one",
-                instance,
-                prefix,
-                epoch,
-            )
+        early = sealing.check(instance, sealed)
+        if early is not None:
+            return early
         opened = open_judged(self.verifier, sealed, Kind.ANNOUNCEMENT, instance)
-        if isinstance(opened, Verdict):
+        if isinstance(opened, SampleVerdict):
             return opened.named("sample")
-        data = opened.payload[_ILEN.size + len(instance.encode()) :]
-        if self.data_type is None:
-            return Verdict("accepted", None, "", instance, prefix, epoch, data)
-        try:
-            value = self.data_type.deserialize(data)
-        except Exception:  # an authentic sender's undecodable sample: refused, not raised
-            return Verdict("malformed", Code.INVALID_FRAME, "undecodable data", instance)
-        return Verdict("accepted", None, "", instance, prefix, epoch, value)
+        return sealing.accepted(instance, opened, self._decode)
 
-    def take(self, limit: int = 256) -> list[Verdict]:
+    def take(self, limit: int = 256) -> list[SampleVerdict]:
         """Judge every sample waiting (up to ``limit``)."""
         return [verdict for _, verdict in self.take_judged(limit)]
 
-    def take_judged(self, limit: int = 256) -> list[tuple[SealedSample, Verdict]]:
+    def take_judged(self, limit: int = 256) -> list[tuple[SealedSample, SampleVerdict]]:
         """Like :meth:`take`, keeping each wire sample beside its verdict (a fenced reader
         first judges waiting answers and sends a challenge when one is due)."""
         if self._pings is not None:
@@ -433,18 +320,15 @@ class SealedReader:
         return [(s, self.judge(s)) for s in samples if isinstance(s, SealedSample)]
 
     def _freshen(self, pings: PingChannel) -> None:
-        """Judge the answers waiting; challenge when a new ping peer matched or the retry
-        timer ran out; once past the start fence, leave the ping topic for good."""
+        """Judge the answers waiting; challenge when the timer says so; once past the start
+        fence, leave the ping topic for good."""
         for sealed in pings.take(Kind.ANSWER):
             self._answer(sealed)
         if not self.verifier.fenced():
             self._waitset.detach(pings.waiting)
             self._pings = None
             return
-        peers, now = pings.peers(), self._clock.monotonic()
-        if peers > self._peers or now >= self._retry_at:
-            self._retry_s = RETRY_S if peers > self._peers else min(2 * self._retry_s, RETRY_MAX_S)
-            self._peers, self._retry_at = peers, now + self._retry_s
+        if self._timer.due(pings.peers(), self._clock.monotonic()):
             challenge = self.verifier.challenge()
             if challenge is not None:
                 pings.send(challenge)
@@ -466,7 +350,7 @@ class SealedReader:
         """Block until data may be waiting, or ``timeout_s``."""
         self._waitset.wait(duration(seconds=timeout_s))
 
-    def poll(self, timeout_s: float = 0.1) -> list[Verdict]:
+    def poll(self, timeout_s: float = 0.1) -> list[SampleVerdict]:
         """Wait up to ``timeout_s`` for data, then judge what arrived."""
         verdicts = self.take()
         if not verdicts:
@@ -475,14 +359,20 @@ class SealedReader:
         return verdicts
 
 
-def refusal_auditor(clock: Clock, audit: AuditLog | None, counts: Counter[str]) -> RefusalAuditor:
+def refusal_auditor(
+    clock: Clock,
+    audit: AuditLog | None,
+    counts: Counter[str],
+    quiet: Callable[[], bool] | None = None,
+) -> RefusalAuditor:
     """The rate-limited auditor of a reader's or listener's refusals; what it folds is
-    counted in ``counts`` as ``audit_rate_limited``."""
-    return RefusalAuditor(audit, clock, per_s=AUDIT_PER_S, counts=counts)
+    counted in ``counts`` as ``audit_rate_limited``; while ``quiet()`` (free space under
+    the trail below its first floor) refusals are counted, not written."""
+    return RefusalAuditor(audit, clock, per_s=AUDIT_PER_S, counts=counts, quiet=quiet)
 
 
 def record_refusal(
-    auditor: RefusalAuditor, verdict: Verdict, where: str, counts: Counter[str]
+    auditor: RefusalAuditor, verdict: SampleVerdict, where: str, counts: Counter[str]
 ) -> None:
     """One row for a refusal (sender = claimed prefix; never the payload), authentic
     refusals on their own budget; a trail that is down is counted and logged."""
@@ -499,48 +389,27 @@ def record_refusal(
         log.error("audit trail unavailable; a %s refusal was not recorded", where)
 
 
-def claim(sealed: bytes) -> tuple[bytes, int]:
-    """The (nonce prefix, epoch) a sealed announcement claims; authenticated by nobody yet."""
-    _, _, prefix, epoch = _CLAIM.unpack_from(sealed)
-    return prefix, epoch
-
-
 def open_judged(
     verifier: EpochVerifier, sealed: bytes, kind: Kind, instance: str
-) -> Announcement | Verdict:
-    """``verifier.open`` with every refusal turned into a typed :class:`Verdict`."""
-    prefix, epoch = claim(sealed)
+) -> Announcement | SampleVerdict:
+    """``verifier.open`` with every refusal turned into a typed :class:`SampleVerdict`."""
     collisions = verifier.prefix_collisions
     try:
         if kind is Kind.ANSWER:
             return verifier.open_answer(sealed)
         return verifier.open(sealed, kind=kind)
     except ReplayAttackError as exc:
-        outcome = _OUTCOMES.get(type(exc), "refused")
-        if verifier.prefix_collisions != collisions:
-            outcome = "prefix_collision"
-        return Verdict(outcome, exc.code, exc.reason, instance, prefix, epoch)
+        collided = verifier.prefix_collisions != collisions
+        return sealing.refused(exc, instance, sealed, collided=collided)
     except OSError as exc:  # the store could not persist the epoch: fail closed
         reason = f"verifier state not persisted: {exc.strerror or exc}"
-        return Verdict("state_unavailable", Code.STATE_UNAVAILABLE, reason, instance)
-
-
-def _claimed_instance(sealed: bytes) -> str | None:
-    """The instance key inside the (not yet verified) payload, or None if unreadable."""
-    start = _CLAIM.size
-    (size,) = _ILEN.unpack_from(sealed, start)
-    raw = sealed[start + _ILEN.size : start + _ILEN.size + size]
-    if len(raw) != size or start + _ILEN.size + size > len(sealed) - TAG_LEN:
-        return None
-    try:
-        return raw.decode()
-    except UnicodeDecodeError:
-        return None
+        return SampleVerdict("state_unavailable", Code.STATE_UNAVAILABLE, reason, instance)
 
 
 __all__ = [
     "PING_TOPIC",
     "PingChannel",
+    "SampleVerdict",
     "SealedReader",
     "SealedSample",
     "SealedWriter",

@@ -2,12 +2,14 @@
 
 Theory of operation
 -------------------
-Three modules, one direction of imports:
+Four modules, one direction of imports:
 
 * :mod:`~antireplay.epochs.policy` is the pure core: the sealed frame, its per-kind HKDF
   keys, prefixes and successors, and :class:`EpochPolicy`, which judges values and a time
   against its in-memory marks and returns typed refusals, admissions and events.  It
   touches no file, store, audit trail, log, clock or lock.
+* :mod:`~antireplay.epochs.sealing` is pure too: a sealed topic's key, sample framing and
+  the verdict on one sample (the DDS topics drive it).
 * :mod:`~antireplay.epochs.signer` seals with strictly increasing, wall-anchored epochs,
   crash-safe through a durable state file, rotating its prefix after a forward glitch.
 * :mod:`~antireplay.epochs.verifier` drives the policy on a replay store: it reads and
@@ -44,7 +46,7 @@ from antireplay.epochs.policy import (
     prefix_for_service,
     successor_prefix,
 )
-from antireplay.epochs.signer import EpochSigner
+from antireplay.epochs.signer import EpochSigner, signer_state
 from antireplay.epochs.verifier import EpochVerifier
 
 __all__ = [
@@ -72,5 +74,6 @@ __all__ = [
     "derive_key",
     "parse",
     "prefix_for_service",
+    "signer_state",
     "successor_prefix",
 ]

@@ -14,13 +14,14 @@ or below the verifiers', above ``reserve_s``), it **rotates** to
 :func:`~antireplay.epochs.policy.successor_prefix` and restarts the stream at the current
 time.  No epoch repeats or drops within a prefix; the old prefix is never used again.
 
-With ``state_file`` the signer reserves ``reserve_s`` of epochs at a time through
-:mod:`antireplay.state.durable` (one fsync a second for a busy sender) before emitting any of
-them, so after a crash it starts above anything it could have sent.  The file records the
-current prefix, the one it started from (``base``, which ``nonce_prefix`` or
-``service_name`` must match) and the rotation count; a rotation is saved before its first
-epoch.  The file has one owner (an OS lock): two signers on it would repeat epochs.
-:meth:`EpochSigner.answer` answers a fresh verifier's challenge at the next epoch.
+With ``state`` (a :class:`~antireplay.state.durable.DurableState` its caller built with
+:func:`signer_state`) the signer reserves ``reserve_s`` of epochs at a time (one fsync a
+second for a busy sender) before emitting any of them, so after a crash it starts above
+anything it could have sent.  The file records the current prefix, the one it started from
+(``base``, which ``nonce_prefix`` or ``service_name`` must match) and the rotation count; a
+rotation is saved before its first epoch.  The file has one owner (an OS lock): two signers
+on it would repeat epochs.  :meth:`EpochSigner.answer` answers a fresh verifier's challenge
+at the next epoch.
 """
 
 from __future__ import annotations
@@ -59,6 +60,14 @@ from antireplay.state.ceilings import counter_on_state
 from antireplay.state.durable import DurableState, as_hex, as_int, register_repair
 
 log = logging.getLogger("antireplay.epochs")
+#: The kind a signer's state file records (and ``antireplay state repair`` knows).
+STATE_KIND = "epoch-signer"
+
+
+def signer_state(path: str | os.PathLike[str]) -> DurableState:
+    """The signer's state file at ``path``, not yet read: one owner (an OS lock), checksum,
+    generation and rollback witness (:mod:`antireplay.state.durable`)."""
+    return DurableState(Path(path), kind=STATE_KIND, exclusive=True)
 
 
 @dataclass(frozen=True)
@@ -89,7 +98,7 @@ class EpochSigner:
         *,
         nonce_prefix: bytes | None = None,
         service_name: str | None = None,
-        state_file: str | os.PathLike[str] | None = None,
+        state: DurableState | None = None,
         clock: Clock | None = None,
         reserve_s: float = 1.0,
         max_forward_s: float = 60.0,
@@ -113,11 +122,12 @@ class EpochSigner:
         def anchor() -> int:
             return to_ns(clock.wall())
 
-        if state_file is None:
+        if state is None:
             self._epochs = NonceCounter(1, limit=EPOCH_LIMIT, anchor=anchor)
             return
-        state = DurableState(Path(state_file), kind="epoch-signer", exclusive=True)
-        wanted, path = nonce_prefix, str(state_file)
+        if state.kind != STATE_KIND or not state.exclusive:
+            raise ValueError(f"an epoch signer's state is exclusive, of kind {STATE_KIND!r}")
+        wanted, path = nonce_prefix, str(state.path)
 
         def parse(data: dict[str, Any]) -> _SignerState:
             got = _parse_signer(data)
@@ -219,4 +229,4 @@ def _reseed_signer(data: dict[str, Any] | None, now_ns: int) -> dict[str, Any]:
     }  # fmt: skip
 
 
-register_repair("epoch-signer", _reseed_signer)
+register_repair(STATE_KIND, _reseed_signer)

@@ -79,7 +79,7 @@ from antireplay.epochs.policy import (
     successor_prefix,
     to_ns,
 )
-from antireplay.state import ReplayStore, open_store
+from antireplay.state import ReplayStore
 from antireplay.state.memory import MemoryStore
 
 if TYPE_CHECKING:
@@ -96,7 +96,7 @@ class EpochVerifier:
         self,
         psk: bytes,
         *,
-        store: ReplayStore | str | None = None,
+        store: ReplayStore | None = None,
         namespace: str = "epoch",
         max_age_s: float | None = None,
         max_forward_s: float = 60.0,
@@ -117,12 +117,10 @@ class EpochVerifier:
         )
         self.audit = audit
         self.namespace = namespace
-        self._owns_store = not isinstance(store, ReplayStore)
-        if store is None:
-            store = MemoryStore(max_entries=1, clock=self._clock)
-        elif isinstance(store, str):
-            store = open_store(store, clock=self._clock)
-        self.store: ReplayStore = store
+        self._owns_store = store is None  # the caller that opened a store closes it
+        self.store: ReplayStore = (
+            MemoryStore(max_entries=1, clock=self._clock) if store is None else store
+        )
         self._lock = threading.Lock()
         self.prefix_collisions = 0
         self.forward_rejections = 0
@@ -140,7 +138,7 @@ class EpochVerifier:
         return self.policy.tables[Kind.ANNOUNCEMENT].max_keys
 
     def close(self) -> None:
-        """Close the store if this verifier opened it."""
+        """Close the store if this verifier made it (the in-memory default)."""
         if self._owns_store:
             self.store.close()
 

@@ -40,6 +40,7 @@ from starlette.routing import Route
 from antireplay.audit import AuditLog
 from antireplay.http.metrics import Metrics
 from antireplay.http.middleware import GuardMiddleware
+from antireplay.http.status import rolled_back
 from antireplay.http.status import routes as status_routes
 from antireplay.http.upstream import Forward, Upstream
 from antireplay.rcan.receive import Receiver
@@ -58,7 +59,8 @@ def gateway_app(receiver: Receiver, upstream: Upstream | None, timeout_s: float)
         reason = await run_in_threadpool(readiness, receiver)
         if reason is not None:
             return JSONResponse({"status": "unavailable", "reason": reason}, status_code=503)
-        return JSONResponse({"status": "ready"})
+        warning = None if receiver.audit is None else rolled_back(receiver.audit)
+        return JSONResponse({"status": "ready", **({"warning": warning} if warning else {})})
 
     async def summaries() -> None:
         """The folded refusals' summary rows, every interval (queued, not awaited)."""

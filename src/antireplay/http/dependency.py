@@ -1,9 +1,9 @@
 """The guard as a FastAPI dependency, and the layer that keeps the signer headers its own.
 
 ``Depends(guard)`` reads the request body itself, runs
-:meth:`~antireplay.http.guard.Checkpoint.open` and returns the
+:meth:`~antireplay.http.guard.GuardBase.open` and returns the
 :class:`~antireplay.http.guard.Verified` message; a refusal raises
-:class:`~antireplay.http.guard.Refused`, which the handler :meth:`GuardDependency.install`
+:class:`~antireplay.http.guard.HttpRefusal`, which the handler :meth:`GuardDependency.install`
 adds answers with the gateway's exact NACK and status.  The dependency does not see the
 route's answer, so a QoS retransmission behind it is refused (409), never run again, rather
 than kept waiting for an answer nobody holds.  The route's request headers carry the
@@ -20,8 +20,8 @@ from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from antireplay.http.guard import (
-    Checkpoint,
-    Refused,
+    GuardBase,
+    HttpRefusal,
     Verified,
     framing,
     signer_pairs,
@@ -31,7 +31,7 @@ from antireplay.http.guard import (
 from antireplay.rcan.receive import Receiver
 
 
-class GuardDependency(Checkpoint):
+class GuardDependency(GuardBase):
     """The gateway's request path on ``receiver`` as a FastAPI dependency."""
 
     def __init__(self, receiver: Receiver, *, owns_receiver: bool = False) -> None:
@@ -42,7 +42,7 @@ class GuardDependency(Checkpoint):
         result = self.ambiguous(framed) or await self.open(
             request.scope, _streamed(request), framed
         )
-        if isinstance(result, Refused):
+        if isinstance(result, HttpRefusal):
             raise result
         verified, outcome = result
         if outcome.envelope is not None and type(outcome.envelope.msg_id) is str:
@@ -53,10 +53,10 @@ class GuardDependency(Checkpoint):
         return verified
 
     def install(self, app: Starlette) -> None:
-        """Answer :class:`Refused` with the NACK itself (not wrapped in ``detail``), and drop
+        """Answer :class:`HttpRefusal` with the NACK itself (not wrapped in ``detail``), and drop
         a client's ``SIGNER_HEADERS`` from every request (HTTP and WebSocket), on every
         route (call it before the app starts)."""
-        app.add_exception_handler(Refused, _refused_response)
+        app.add_exception_handler(HttpRefusal, _refused_response)
         app.add_middleware(Unclaimed)
 
 
@@ -81,7 +81,7 @@ def _speak_for_signer(scope: Scope, verified: Verified) -> None:
 
 
 async def _refused_response(_: Request, exc: Exception) -> Response:
-    assert isinstance(exc, Refused)
+    assert isinstance(exc, HttpRefusal)
     return exc.response()
 
 

@@ -1,6 +1,6 @@
 """The guard: one POSTed envelope's request path, shared by the middleware and the dependency.
 
-:class:`Checkpoint` is what :class:`~antireplay.http.middleware.GuardMiddleware` (ASGI
+:class:`GuardBase` is what :class:`~antireplay.http.middleware.GuardMiddleware` (ASGI
 middleware, and so the gateway itself) and :class:`~antireplay.http.dependency.GuardDependency`
 (a FastAPI dependency) both run, so the two give the same answers, metrics and audit trail.
 Transport framing comes first and records nothing: a request with both ``Content-Length``
@@ -8,14 +8,14 @@ and ``Transfer-Encoding`` is refused with 400 and the connection closed (RFC 911
 proxy in front that honours the other header would see a different request boundary),
 then a content type other than JSON (415), a declared or actual body over the limit (413)
 or a client gone mid-body.  Those refusals are counted like the receiver's.  Then
-:meth:`Checkpoint.open` runs :meth:`~antireplay.rcan.receive.Receiver.receive_async`
+:meth:`GuardBase.open` runs :meth:`~antireplay.rcan.receive.Receiver.receive_async`
 (check -> authenticate -> commit; the signature in one job on a few
 :class:`~antireplay.http.workers.Workers`, a fresh SAFETY message's in their urgent lane,
 holding the :class:`~antireplay.http.workers.Door` that other requests wait at until its answer;
 the commit and audit row awaited on the loop)
 and observes the outcome.  An accepted message becomes a :class:`Verified` (the envelope
 as verified, built once from the parsed envelope: its canonical re-encoding, with the
-signature re-encoded from its decoded form); a refusal becomes :class:`Refused`, the
+signature re-encoded from its decoded form); a refusal becomes :class:`HttpRefusal`, the
 COMMAND_NACK and its HTTP status (a QoS retransmission's: the original answer again).
 
 ``SIGNER_HEADERS`` are the request headers only the guard sets (the verified signer); a
@@ -98,7 +98,7 @@ def as_forwarded(env: Envelope) -> dict[str, Any]:
     return body
 
 
-class Refused(HTTPException):
+class HttpRefusal(HTTPException):
     """A refusal: the COMMAND_NACK and its HTTP status, exactly as the gateway answers them.
     The dependency raises it; the handler its ``install`` adds answers it with the NACK as
     the body.  An HTTPException (``detail``: the NACK's JSON text), so without that handler
@@ -114,7 +114,7 @@ class Refused(HTTPException):
         self.body = body
 
     @classmethod
-    def retry(cls, held: HeldAnswer) -> Refused:
+    def retry(cls, held: HeldAnswer) -> HttpRefusal:
         """A QoS retransmission: the original answer again, marked, never a second run."""
         return cls(held.status, held.body, held=held)
 
@@ -136,7 +136,7 @@ class Refused(HTTPException):
 Framing = tuple[bytes | None, bytes | None, bool]
 
 
-class Checkpoint:
+class GuardBase:
     """One POST's request path on a built receiver: framing refusals, the body limit,
     :meth:`Receiver.receive_async`, metrics.  ``owns_receiver``: :meth:`close` closes its
     audit trail too (the receiver was built for this guard alone)."""
@@ -152,6 +152,7 @@ class Checkpoint:
         self.workers = Workers()
         #: Held for a fresh SAFETY message until its answer: ESTOP first (workers.py).
         self.door = Door()
+        self.metrics.watch(self.door)
         self._ticker = resolve(None)
         self._closed = False
 
@@ -177,28 +178,30 @@ class Checkpoint:
     async def _first(self, fn: Callable[..., Any], *args: Any) -> Any:
         """The urgent lane (only a fresh SAFETY message takes it), holding the door: from
         the start while the early budget lasts, else once authenticated; a refusal lets
-        it go, an authenticated one keeps it until this request's answer."""
-        early = self.door.hold_early()
+        it go, an authenticated one keeps it until this request's answer; a copy of an
+        ESTOP in flight or delivered holds none."""
+        claimed = getattr(getattr(args[0], "env", None), "msg_id", None) if args else None
+        early = self.door.hold_early(claimed)
         result = await self.workers.first(fn, *args)
         if type(result) is NeedsCommit:
-            self.door.hold()
+            self.door.hold(result.env.msg_id)  # a copy of one in flight or delivered: none
         elif early:
             self.door.release()
         return result
 
-    def ambiguous(self, framing: Framing) -> Refused | None:
+    def ambiguous(self, framing: Framing) -> HttpRefusal | None:
         """Both Content-Length and Transfer-Encoding: refused and closed (RFC 9112)."""
         if framing[1] is None or not framing[2]:
             return None
         reason = "both Content-Length and Transfer-Encoding (RFC 9112 section 6.1)"
         nack = InvalidEnvelopeError(reason).to_nack(None, nack_type=self.nack_type)
-        return Refused(400, nack, close=True)
+        return HttpRefusal(400, nack, close=True)
 
     async def open(
         self, scope: Scope, receive: Receive, framing: Framing, *, hold: bool = False
-    ) -> tuple[Verified, Outcome] | Refused:
+    ) -> tuple[Verified, Outcome] | HttpRefusal:
         """One POSTed envelope, checked, authenticated and committed: its :class:`Verified`
-        and outcome, or its refusal (a QoS retransmission's: :meth:`Refused.retry`).
+        and outcome, or its refusal (a QoS retransmission's: :meth:`HttpRefusal.retry`).
         ``hold``: a fresh SAFETY message keeps the door held after this returns, until the
         caller (which forwards and answers it) calls :meth:`let_go`, also if this raises."""
         refusal = _framing_refusal(framing[0], framing[1], self.limit)
@@ -207,7 +210,7 @@ class Checkpoint:
             # Transport-level refusals: the same NACK as the pipeline's, with the configured
             # type; the code decides the status (errors.HTTP_STATUS); counted like the rest.
             self.metrics.rejected.labels(str(raw.code)).inc()
-            return Refused(raw.http_status, raw.to_nack(None, nack_type=self.nack_type))
+            return HttpRefusal(raw.http_status, raw.to_nack(None, nack_type=self.nack_type))
         await self.door.enter()
         started = self._ticker.monotonic()
         headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
@@ -218,10 +221,10 @@ class Checkpoint:
                 self.let_go()
         self.metrics.observe(outcome, self._ticker.monotonic() - started)
         if outcome.retry is not None:
-            return Refused.retry(outcome.retry)
+            return HttpRefusal.retry(outcome.retry)
         nack = outcome.nack
         if nack is not None:
-            return Refused(outcome.status, nack)
+            return HttpRefusal(outcome.status, nack)
         assert outcome.envelope is not None and outcome.signer is not None
         ack = outcome.ack or {}  # COMMAND_ACK: readable by the rcan SDK
         envelope = as_forwarded(outcome.envelope)

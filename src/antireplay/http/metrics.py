@@ -31,6 +31,7 @@ from starlette.responses import Response
 from antireplay.audit import AuditLog
 from antireplay.audit.segments import TrailUsage
 from antireplay.core.errors import StateUnavailableError
+from antireplay.http.workers import Door
 from antireplay.rcan.receive import Outcome, Receiver
 from antireplay.state.groupcommit import GroupCommitter
 
@@ -65,6 +66,13 @@ class Metrics:
             "antireplay_retries_answered", "QoS retries given the original answer", registry=r
         )
         r.register(StateCollector(receiver))
+        #: The ESTOP doors of the guards counting here (:class:`~.workers.Door`).
+        self.doors: list[Door] = []
+        r.register(DoorCollector(self.doors))
+
+    def watch(self, door: Door) -> None:
+        """Count ``door``'s waits, holds and copies here too."""
+        self.doors.append(door)
 
     async def endpoint(self, _: Request) -> Response:
         """``GET /metrics`` (a Starlette endpoint: ``app.add_route("/metrics", ...)``)."""
@@ -83,6 +91,24 @@ class Metrics:
                 self.store_errors.inc()
             if outcome.retry is not None:
                 self.retries.inc()
+
+
+class DoorCollector(Collector):
+    """The ESTOP doors: requests that waited at one, holds taken, ESTOP copies that took none."""
+
+    def __init__(self, doors: list[Door]) -> None:
+        self.doors = doors
+
+    def collect(self) -> Iterator[Metric]:
+        for name, doc, attr in (
+            ("antireplay_door_waits", "Requests that waited at a door an ESTOP held", "waited"),
+            ("antireplay_door_holds", "Doors held by an authenticated ESTOP (one per msg_id)",
+             "holds"),
+            ("antireplay_estop_copies", "ESTOP copies delivered holding no door", "copies"),
+        ):  # fmt: skip
+            counter = CounterMetricFamily(name, doc)
+            counter.add_metric([], sum(getattr(door, attr) for door in self.doors))
+            yield counter
 
 
 class StateCollector(Collector):
@@ -193,6 +219,9 @@ class StateCollector(Collector):
              receiver.stats.spilled),
             ("antireplay_audit_disk_refusals", "Commands refused below the free-space floor",
              receiver.stats.disk_refusals),
+            ("antireplay_audit_rolled_back",
+             "Trails found rolled back against the head the state database recorded",
+             0 if receiver.audit is None else receiver.audit.rollbacks),
             ("antireplay_audit_rotations_postponed",
              "Due rotations that waited for another writer or reader of the trail",
              0 if receiver.audit is None else receiver.audit.rotations_postponed),

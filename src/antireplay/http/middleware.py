@@ -1,6 +1,6 @@
 """The guard as ASGI middleware: the gateway's request path inside any ASGI application.
 
-``POST`` on one of ``paths`` runs :meth:`~antireplay.http.guard.Checkpoint.open` exactly as
+``POST`` on one of ``paths`` runs :meth:`~antireplay.http.guard.GuardBase.open` exactly as
 ``antireplay serve`` does (the gateway *is* this middleware around its forwarding app).  A
 refusal is answered here with the gateway's NACK and status, before routing and without a
 Request object.  An accepted message reaches the app (or ``accepted``, the gateway's
@@ -32,8 +32,8 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from antireplay.core.errors import InvalidEnvelopeError
 from antireplay.http.guard import (
     SIGNER_HEADER_NAMES,
-    Checkpoint,
-    Refused,
+    GuardBase,
+    HttpRefusal,
     Verified,
     encode_json,
     framing,
@@ -53,7 +53,7 @@ _HOP_BY_HOP = frozenset({
 })  # fmt: skip
 
 
-class GuardMiddleware(Checkpoint):
+class GuardMiddleware(GuardBase):
     """ASGI middleware that runs the gateway's request path on ``receiver`` for ``paths``;
     an accepted message goes to ``accepted`` (default ``app``)."""
 
@@ -89,7 +89,7 @@ class GuardMiddleware(Checkpoint):
             return await self._not_post().answer(send)
         try:  # an ESTOP holds the door until it is forwarded and answered
             result = await self.open(scope, receive, framed, hold=True)
-            if isinstance(result, Refused):
+            if isinstance(result, HttpRefusal):
                 return await result.answer(send)
             verified, outcome = result
             body = encode_json(verified.envelope)
@@ -116,9 +116,9 @@ class GuardMiddleware(Checkpoint):
         if scope["type"] == "websocket":
             await _refuse_websocket(scope, receive, send, self._not_post())
 
-    def _not_post(self) -> Refused:
+    def _not_post(self) -> HttpRefusal:
         nack = InvalidEnvelopeError("method must be POST").to_nack(None, nack_type=self.nack_type)
-        return Refused(405, nack)
+        return HttpRefusal(405, nack)
 
     def _holding(self, outcome: Outcome, send: Send) -> tuple[Send, Callable[[], None]]:
         """``send`` passing the answer through as it comes, and copying it (at most
@@ -177,7 +177,9 @@ def route_path(scope: Scope) -> str:
     return get_route_path(scope)
 
 
-async def _refuse_websocket(scope: Scope, receive: Receive, send: Send, refusal: Refused) -> None:
+async def _refuse_websocket(
+    scope: Scope, receive: Receive, send: Send, refusal: HttpRefusal
+) -> None:
     """Refuse a WebSocket handshake: ``refusal`` as an HTTP answer where the server offers
     denial responses, else a close before accepting (1008, policy violation; HTTP 403)."""
     if (await receive())["type"] != "websocket.connect":

@@ -48,7 +48,7 @@ from starlette.requests import Request
 from starlette.responses import HTMLResponse, JSONResponse, Response
 from starlette.routing import Route
 
-from antireplay.audit import shown, tail
+from antireplay.audit import AuditLog, shown, tail
 from antireplay.core.errors import StateFileError
 from antireplay.rcan.receive import Receiver
 
@@ -74,6 +74,12 @@ footer{color:#777;font-size:.9em}
 Samples = dict[str, list[tuple[dict[str, str], float]]]
 
 
+def rolled_back(audit: AuditLog) -> str | None:
+    """``AUDIT_ROLLED_BACK: why`` while the trail was found rolled back against the state's
+    record of its head (commands are still served: the replay state is intact)."""
+    return None if audit.rolled_back is None else f"AUDIT_ROLLED_BACK: {audit.rolled_back}"
+
+
 def snapshot(
     receiver: Receiver, registry: CollectorRegistry, readiness: Readiness, records: int = RECENT
 ) -> dict[str, Any]:
@@ -91,6 +97,7 @@ def snapshot(
         "generated_at": time.time(),
         "ready": reason is None,
         "reason": reason,
+        "warning": None if receiver.audit is None else rolled_back(receiver.audit),
         "counters": {
             "accepted": _total(samples, "antireplay_accepted_total"),
             "rejected_total": sum(v or 0 for v in rejected.values()),
@@ -203,6 +210,8 @@ def render(data: dict[str, Any], nonce: str) -> str:
         state = '<p id="readiness" class="ready">ready: store and audit trail answer</p>'
     else:
         state = f'<p id="readiness" class="unready">not ready: {_text(data["reason"])}</p>'
+    if data.get("warning"):
+        state += f'<p id="warning" class="unready">{_text(data["warning"])}</p>'
     totals = [
         ("accepted", _text(counters["accepted"])),
         ("rejected", _text(counters["rejected_total"])),

@@ -24,7 +24,10 @@ asyncio future.  Thread traffic is what costs here, not the hand-off's bookkeepi
   until its answer: from the lane on while a small budget lasts (``EARLY_PER_S``: what a
   forged flood can take), else from its authentication; requests arriving meanwhile wait
   before they start (at most :data:`HOLD_S`; another ESTOP too), and a flood's clients
-  fall quiet.  The gateway lets go once the ESTOP is forwarded and answered.
+  fall quiet.  The gateway lets go once the ESTOP is forwarded and answered.  One hold per
+  ESTOP, not per copy: a copy of an authenticated ESTOP in flight or delivered here (its
+  msg_id) is delivered as the ESTOP invariant says but holds nothing; before its signature
+  check it still spends the early budget like any SAFETY message.
 
 A future already cancelled (the client went away) is left alone; a closed loop has
 nobody left to answer.  ``shutdown`` lets the queued jobs finish, then stops the threads.
@@ -49,6 +52,8 @@ HOLD_S = 0.25
 #: Holds taken before the signature check, per second: what a forged SAFETY flood can take.
 EARLY_PER_S = 20.0
 EARLY_BURST = 5.0
+#: Delivered ESTOPs' msg_ids remembered, so their copies hold no door (oldest forgotten).
+DELIVERED = 4096
 
 _Job = tuple[asyncio.AbstractEventLoop, "asyncio.Future[Any]", Callable[..., Any], tuple[Any, ...]]
 _Result = tuple["asyncio.Future[Any]", Any, BaseException | None]
@@ -188,7 +193,8 @@ def _resolve(done: list[_Result]) -> None:
 class Door:
     """Held by a fresh SAFETY message's request until its answer (from before its
     signature check within the early budget, else from its authentication); other
-    requests :meth:`enter` after it (see the module docstring)."""
+    requests :meth:`enter` after it; one hold per ESTOP, none for its copies (see the
+    module docstring)."""
 
     def __init__(
         self,
@@ -203,31 +209,64 @@ class Door:
         #: The tasks holding the door (an ESTOP's request each).
         self.holders: set[asyncio.Task[Any]] = set()
         self._opened: asyncio.Event | None = None
-        #: Requests that waited at the door, and of them those it let in at ``hold_s``.
+        #: The authenticated ESTOPs holding it (msg_id -> task) and those delivered since.
+        self._flight: dict[str, asyncio.Task[Any]] = {}
+        self._delivered: collections.OrderedDict[str, None] = collections.OrderedDict()
+        #: Requests that waited at the door, and of them those it let in at ``hold_s``;
+        #: holds taken once authenticated; copies that took none.
         self.waited = 0
         self.timeouts = 0
+        self.holds = 0
+        self.copies = 0
 
-    async def enter(self) -> None:
-        """Return at once while nobody holds the door; else when it opens, or ``hold_s``."""
+    async def enter(self) -> bool:
+        """Return at once while nobody holds the door; else when it opens, or ``hold_s``.
+        ``True``: this request waited."""
         opened = self._opened
         if opened is None:
-            return
+            return False
         self.waited += 1
         try:
             await asyncio.wait_for(opened.wait(), self.hold_s)
         except asyncio.TimeoutError:
             self.timeouts += 1
-
-    def hold_early(self) -> bool:
-        """Hold the door before the signature is checked, if the budget for that allows
-        (``False``: not taken now, or the current task holds it already)."""
-        if asyncio.current_task() in self.holders or not self._early.take():
-            return False
-        self.hold()
         return True
 
-    def hold(self) -> None:
-        """The current task holds the door until :meth:`release`."""
+    def copy(self, msg_id: object) -> bool:
+        """Whether ``msg_id`` is an authenticated ESTOP's holding the door or delivered."""
+        return type(msg_id) is str and (msg_id in self._flight or msg_id in self._delivered)
+
+    def hold_early(self, msg_id: object = None) -> bool:
+        """Hold the door before the signature is checked, if the budget for that allows
+        (``False``: not taken now, the current task holds it already, or ``msg_id`` (as
+        claimed) is a copy: it spends the budget all the same)."""
+        if asyncio.current_task() in self.holders or not self._early.take():
+            return False
+        if self.copy(msg_id):
+            return False
+        self._hold()
+        return True
+
+    def hold(self, msg_id: object = None) -> bool:
+        """The current task, an authenticated ESTOP's ``msg_id``, holds the door until
+        :meth:`release`; a copy (that msg_id holds it or was delivered) lets go of an early
+        hold and holds nothing (``False``)."""
+        task = asyncio.current_task()
+        if task is None:
+            return False
+        if type(msg_id) is str:
+            if self._flight.get(msg_id, task) is not task or msg_id in self._delivered:
+                self.copies += 1
+                if task in self.holders:
+                    self.release()
+                return False
+            if msg_id not in self._flight:
+                self._flight[msg_id] = task
+                self.holds += 1
+        self._hold()
+        return True
+
+    def _hold(self) -> None:
         task = asyncio.current_task()
         if task is None or task in self.holders:
             return
@@ -236,8 +275,15 @@ class Door:
             self._opened = asyncio.Event()
 
     def release(self) -> None:
-        """The current task lets go; the last holder opens the door."""
-        self.holders.discard(asyncio.current_task())
+        """The current task lets go (its ESTOP counts as delivered); the last holder opens
+        the door."""
+        task = asyncio.current_task()
+        self.holders.discard(task)
+        for msg_id in [m for m, t in self._flight.items() if t is task]:
+            del self._flight[msg_id]
+            self._delivered[msg_id] = None
+            if len(self._delivered) > DELIVERED:
+                self._delivered.popitem(last=False)
         if not self.holders and self._opened is not None:
             self._opened.set()
             self._opened = None

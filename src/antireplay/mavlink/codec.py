@@ -25,16 +25,12 @@ names, from any bytes, unauthenticated.  :func:`passphrase_key` derives a link
 key from a passphrase as MAVProxy, QGroundControl and Mission Planner do
 (SHA-256 of the passphrase).
 
-:func:`mav_time` is the wall clock in signing units.  Sender side:
-:class:`TimestampSource` keeps a link's timestamp tied to real time
-(``max(last + 1, now)``) and raises :class:`NonceExhaustedError` at ``2**48``
-instead of truncating.  Given a store it is durable: it reserves a ceiling
-``reserve_s`` ahead (one store write per ``reserve_s`` of signing) and a new
-source starts above the stored ceiling, so a restarted signer never repeats a
-timestamp (the MAVLink spec's rule), whatever the wall clock did; after a store
-data loss it starts above the loss time plus the reserve.  :func:`sign_frame`
-signs a v2 frame with it (a signed frame is signed again: a router forwarding
-between links with different keys).
+:func:`mav_time` is a clock's wall time in signing units.  :func:`sign_frame`
+(:func:`sign`: the signed :class:`Frame`) signs a v2 frame with a link's next
+timestamp (:mod:`antireplay.mavlink.signing`, :mod:`antireplay.mavlink.signer`);
+a signed frame is signed again: a router forwarding between links with different
+keys.  :func:`split_parsed` and :meth:`FrameReader.feed_parsed` hand out the
+parsed frames, so that a frame is parsed once on its way through a router.
 """
 
 from __future__ import annotations
@@ -43,16 +39,13 @@ import hashlib
 import struct
 from dataclasses import dataclass
 from functools import cache
+from typing import Protocol
 
 from fastcrc.crc16 import mcrf4xx
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
-from antireplay.core.clock import Clock, resolve
-from antireplay.core.counters import NonceCounter
-from antireplay.core.errors import InvalidFrameError, NonceExhaustedError
-from antireplay.core.window import NEVER
-from antireplay.state import ReplayStore
-from antireplay.state.ceilings import StoreCeiling
+from antireplay.core.clock import Clock
+from antireplay.core.errors import InvalidFrameError
 
 STX_V2 = 0xFD
 STX_V1 = 0xFE
@@ -92,19 +85,23 @@ class Frame:
 
 
 def split_frames(datagram: bytes) -> list[bytes]:
+    """Cut a datagram into whole frames (v1 or v2), each parsed strictly (:func:`split_parsed`)."""
+    return [frame.raw for frame in split_parsed(datagram)]
+
+
+def split_parsed(datagram: bytes) -> list[Frame]:
     """Cut a datagram into whole frames (v1 or v2), each parsed strictly.  A datagram is
     judged alone, never resynchronised: a byte before, between or after its frames, or a
     frame cut short, raises ``INVALID_FRAME`` for the whole datagram."""
-    frames, at = [], 0
+    frames: list[Frame] = []
+    at = 0
     while at < len(datagram):
         if datagram[at] not in (STX_V2, STX_V1):
             raise InvalidFrameError(f"byte {at} of the datagram is no MAVLink start marker")
         length = frame_length(datagram, at)
         if length is None or len(datagram) - at < length:
             raise InvalidFrameError(f"truncated frame at byte {at} of the datagram")
-        raw = bytes(datagram[at : at + length])
-        parse_frame(raw)
-        frames.append(raw)
+        frames.append(parse_frame(bytes(datagram[at : at + length])))
         at += length
     if not frames:
         raise InvalidFrameError("empty datagram")
@@ -135,7 +132,12 @@ class FrameReader:
 
     def feed(self, data: bytes) -> list[bytes]:
         """Append ``data``; return the complete frames (v1 or v2) it finished."""
-        buffer, frames = self._buffer, []
+        return [frame.raw for frame in self.feed_parsed(data)]
+
+    def feed_parsed(self, data: bytes) -> list[Frame]:
+        """:meth:`feed`, as the parsed frames."""
+        buffer: bytearray = self._buffer
+        frames: list[Frame] = []
         buffer += data
         while buffer:
             start = _next_start(buffer)
@@ -150,14 +152,13 @@ class FrameReader:
             length = frame_length(buffer)
             if length is None or len(buffer) < length:
                 break
-            raw = bytes(buffer[:length])
             try:
-                parse_frame(raw)
+                frame = parse_frame(bytes(buffer[:length]))
             except InvalidFrameError:
                 self.skipped += 1  # a false start or a corrupt frame: resynchronise
                 del buffer[:1]
                 continue
-            frames.append(raw)
+            frames.append(frame)
             del buffer[:length]
         return frames
 
@@ -257,39 +258,21 @@ def passphrase_key(passphrase: str) -> bytes:
     return hashlib.sha256(passphrase.encode()).digest()
 
 
-class TimestampSource(NonceCounter):
-    """A sender's link timestamp: the project's one sender source
-    (:class:`~antireplay.core.counters.NonceCounter`) anchored to MAVLink time, never past
-    ``2**48``; with a store, never repeating across restarts (module docstring)."""
+class Timestamps(Protocol):
+    """What signs with: the next timestamp of a link (:class:`~.signer.TimestampSource`)."""
 
-    def __init__(
-        self,
-        clock: Clock | None = None,
-        last: int = 0,
-        *,
-        store: ReplayStore | None = None,
-        store_key: str = "mav-sign",
-        reserve_s: float = 1.0,
-    ) -> None:
-        self.clock = clock_ = resolve(clock)
-        reserve = int(reserve_s * UNITS_PER_S)
-        if store is not None:
-            last = max(last, store.current(store_key) or 0)
-            lost = store.verify().fence
-            if lost != NEVER:  # the store forgot its ceiling: resume above what it could hold
-                last = max(last, int((lost - MAV_EPOCH) * UNITS_PER_S) + reserve)
-        if last + 1 >= TS_LIMIT:
-            raise NonceExhaustedError("MAVLink timestamp reached 2**48; rekey the link")
-        super().__init__(last + 1, limit=TS_LIMIT, anchor=lambda: mav_time(clock_))
-        if store is not None:
-            self.attach(StoreCeiling(store, store_key), reserve)
+    def next(self) -> int: ...
 
 
-def sign_frame(
-    frame: bytes | Frame, key: bytes, link_id: int, timestamps: TimestampSource
-) -> bytes:
+def sign_frame(frame: bytes | Frame, key: bytes, link_id: int, timestamps: Timestamps) -> bytes:
     """Sign a v2 frame of a message known to the dialect with ``key``; a signed frame is
     signed again (a router forwarding between links with different keys)."""
+    return sign(frame, key, link_id, timestamps).raw
+
+
+def sign(frame: bytes | Frame, key: bytes, link_id: int, timestamps: Timestamps) -> Frame:
+    """:func:`sign_frame`, as the parsed :class:`Frame` of the signed bytes (built, not
+    parsed again)."""
     parsed = frame if isinstance(frame, Frame) else parse_frame(frame)
     if parsed.version != 2:
         raise ValueError("a MAVLink v1 frame cannot be signed")
@@ -300,5 +283,9 @@ def sign_frame(
     head[2] |= SIGNED
     body = bytes(head) + parsed.payload
     signed = body + _crc(body, len(body), spec.crc_extra).to_bytes(2, "little")
-    signed += bytes([link_id]) + timestamps.next().to_bytes(6, "little")
-    return signed + hashlib.sha256(key + signed).digest()[:6]
+    timestamp = timestamps.next()
+    signed += bytes([link_id]) + timestamp.to_bytes(6, "little")
+    signed += hashlib.sha256(key + signed).digest()[:6]
+    return Frame(
+        signed, parsed.sysid, parsed.compid, parsed.msgid, parsed.payload, True, link_id, timestamp
+    )

@@ -11,11 +11,12 @@ alias of ``udpin``), ``tcp:HOST:PORT`` (connect, reconnecting), ``tcpin:HOST:POR
 bare device at 57,600 baud, MAVProxy's default).
 
 A :class:`Transport` moves bytes and nothing else: it cuts what it receives into
-frames and hands them, with the peer they came from and the count of garbage
-bytes dropped, to the router's ``deliver``.  A stream (a TCP client, a serial
+frames and hands them, parsed once (:class:`~antireplay.mavlink.codec.Frame`),
+with the peer they came from and the count of garbage bytes dropped, to the
+router's ``deliver``.  A stream (a TCP client, a serial
 port) goes through its own :class:`~antireplay.mavlink.codec.FrameReader`, which
 resynchronises past garbage as flight stacks do; a UDP datagram is whole frames
-or nothing (:func:`~antireplay.mavlink.codec.split_frames`): one that is not is
+or nothing (:func:`~antireplay.mavlink.codec.split_parsed`): one that is not is
 dropped whole, all its bytes counted, so an authentic frame wrapped in garbage
 never passes.  It never decides
 where to send: :meth:`Transport.send` writes to the peer the router names
@@ -62,12 +63,12 @@ from dataclasses import dataclass
 from functools import partial
 
 from antireplay.core.errors import InvalidFrameError
-from antireplay.mavlink.codec import FrameReader, split_frames
+from antireplay.mavlink.codec import Frame, FrameReader, split_parsed
 
 #: A ``udpin`` sender's address or a ``tcpin`` client's connection number.
 Peer = tuple[str, int] | int
 #: ``deliver(transport, peer, frames, dropped_bytes)``: what a transport hands the router.
-Deliver = Callable[["Transport", Peer | None, list[bytes], int], None]
+Deliver = Callable[["Transport", Peer | None, list[Frame], int], None]
 DEFAULT_BAUD = 57_600
 REOPEN_S, REOPEN_MAX_S = 0.05, 2.0  # a serial device's reopen backoff: first, longest
 LOG_EVERY_S = 60.0  # one log line per endpoint and error kind at most this often
@@ -163,7 +164,7 @@ class Transport:
         thread.start()
 
     def _hand(self, peer: Peer | None, reader: FrameReader, data: bytes) -> None:
-        frames = reader.feed(data)
+        frames = reader.feed_parsed(data)
         skipped, reader.skipped = reader.skipped, 0
         if (frames or skipped) and self._deliver is not None:
             self._deliver(self, peer, frames, skipped)
@@ -227,7 +228,7 @@ class UdpTransport(Transport):
                     self._stop.wait(_POLL_S)
                 continue
             try:
-                frames, dropped = split_frames(datagram), 0
+                frames, dropped = split_parsed(datagram), 0
             except InvalidFrameError:  # garbage around a frame, a frame cut short
                 frames, dropped = [], len(datagram)
             if self._deliver is not None:

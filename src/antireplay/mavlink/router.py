@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-A :class:`MavlinkRouter` joins any number of :class:`Link` s, each a transport
+A :class:`MavlinkRouter` joins any number of :class:`RouterLink` s, each a transport
 (:mod:`antireplay.mavlink.endpoints`) with a **role**:
 
 * ``vehicle``: the flight controller side (a serial port, SITL, a companion's
@@ -13,14 +13,14 @@ A :class:`MavlinkRouter` joins any number of :class:`Link` s, each a transport
 * ``trusted``: a local tool that cannot sign (mavros, BlueOS, Cockpit,
   mavlink2rest, a script).  Its unsigned v2 frames are **signed on its behalf**
   with the vehicle key, the router's ``sign_link_id`` and a durable
-  :class:`~antireplay.mavlink.codec.TimestampSource` (never repeats, even across
+  :class:`~antireplay.mavlink.signer.TimestampSource` (never repeats, even across
   restarts), then judged by the vehicle key's inbound guard like any frame.
 
 The router holds no replay rule: every frame goes through exactly one guard
 call (:meth:`~antireplay.mavlink.guard.MavlinkGuard.open`, two when a ground
 link has its own key: its guard, then the vehicle key's guard on the frame the
 router signed again), and whatever the guard refuses is a counted drop with its
-code and reason, handed to ``on_reject`` (:class:`Refusal`, one line that says
+code and reason, handed to ``on_reject`` (:class:`FrameRefusal`, one line that says
 why: bad signature, old timestamp and the gap in seconds, wrong link, not
 allow-listed).  Frames the router signs are committed in the vehicle key's
 inbound guard, so a capture of them replayed on a ground link that shares the
@@ -55,13 +55,20 @@ for a system nobody announced goes to the vehicle links (the configured side),
 or, from the vehicle, is dropped as ``NO_ROUTE``.  A frame with no receiver at
 all is dropped as ``NO_PEER`` (counted, not reported: telemetry before a ground
 station authenticated is normal).  A source system that authenticated on one side
-is refused on the other (*Direction binding* in :mod:`antireplay.mavlink.guard`).
+is refused on the other (:meth:`~antireplay.mavlink.policy.MavPolicy.bind_direction`).
 
 Bounded work: the route table holds ``max_routes`` systems, per-stream counters
 ``max_stream_stats`` streams (accepted streams only: a forged frame cannot add
 one), transports buffer one frame per reader; a refused frame costs a parse and
 at most one HMAC.  Routing decisions are made under one lock; writes happen
 outside it, so a slow TCP client cannot stall the other links.
+
+**Parsed once, one timer.**  A transport parses each frame once; the router, the guards
+and the signer share that :class:`~antireplay.mavlink.codec.Frame` (a frame the router
+signs is built as a ``Frame``, not parsed again).  One timer thread per router
+(:meth:`MavlinkRouter.tick`) claims and renews every guard's lease, flushes its streams and
+reserves every signer's timestamps ahead; :meth:`MavlinkRouter.start` waits for it to hold
+every lease (a crashed run's runs out), then starts the transports.
 """
 
 from __future__ import annotations
@@ -81,20 +88,17 @@ from antireplay.core.errors import (
     ReplayAttackError,
 )
 from antireplay.core.messages import StrEnum
-from antireplay.mavlink.codec import (
-    Frame,
-    TimestampSource,
-    claimed_source,
-    sign_frame,
-    target,
-)
+from antireplay.mavlink.codec import Frame, claimed_source, sign, target
 from antireplay.mavlink.endpoints import Peer, Transport
-from antireplay.mavlink.guard import Admission, MavlinkGuard, MavVerdict
+from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
+from antireplay.mavlink.policy import FrameAdmission
+from antireplay.mavlink.signer import TimestampSource
 
 log = logging.getLogger("antireplay.mavlink")
+_CLAIM_RETRY_S = 0.05  # how often the timer tries a lease a crashed run still holds
 
 INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
-Location = tuple["Link", Peer | None]
+Location = tuple["RouterLink", Peer | None]
 
 
 class Role(StrEnum):
@@ -106,7 +110,7 @@ class Role(StrEnum):
 
 
 @dataclass(eq=False)
-class Link:
+class RouterLink:
     """One endpoint of the router: a transport, its role and its key (None: trusted)."""
 
     transport: Transport
@@ -122,7 +126,7 @@ class Link:
 
 
 @dataclass(frozen=True)
-class Refusal:
+class FrameRefusal:
     """A dropped frame: where, the code, and why (the log line an operator reads)."""
 
     direction: str
@@ -145,6 +149,8 @@ class RouterStats:
     dropped: Counter[str] = field(default_factory=Counter)  # "direction:CODE"
     #: Refusals the handler could not record (the audit trail is down): still dropped.
     unaudited: int = 0
+    #: Timer ticks whose signer reservation failed (the store is down).
+    timer_failures: int = 0
     #: Accepted frames per stream ``(link name, system, component, link id)``, bounded.
     streams: OrderedDict[tuple[str, int, int, int], int] = field(default_factory=OrderedDict)
     #: Ground stations ``(link name, peer, system)`` whose first authentication was logged.
@@ -160,13 +166,13 @@ class MavlinkRouter:
 
     def __init__(
         self,
-        links: Sequence[Link],
+        links: Sequence[RouterLink],
         inbound: Mapping[bytes, MavlinkGuard],
         outbound: MavlinkGuard,
         *,
         signers: Mapping[bytes, TimestampSource] | None = None,
         sign_link_id: int = 251,
-        on_reject: Callable[[Refusal], Any] | None = None,
+        on_reject: Callable[[FrameRefusal], Any] | None = None,
         max_routes: int = 1024,
         max_stream_stats: int = 1024,
     ) -> None:
@@ -193,20 +199,65 @@ class MavlinkRouter:
         self._by_transport = {id(link.transport): link for link in links}
         self._routes: OrderedDict[int, dict[int, Location]] = OrderedDict()
         self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._claimed = threading.Event()
+        self._timer: threading.Thread | None = None
 
-    def start(self) -> None:
-        """Start every guard (lease, flusher), then every transport."""
-        for guard in self._guards():
-            guard.start()
+    def start(self, wait_s: float | None = None) -> None:
+        """Start the timer, wait until every guard holds its lease (a crashed run's lease
+        runs out on the wall clock: by default up to one lease and a second), then start
+        every transport.  ``STATE_UNAVAILABLE`` if a lease stays held (another router)."""
+        guards = self._guards()
+        budget = max((2 * g.persist_interval_s + 1.25 for g in guards), default=0.0)
+        self._stopping.clear()
+        self._timer = threading.Thread(target=self._run_timer, daemon=True, name="mavlink timer")
+        self._timer.start()
+        if not self._claimed.wait(budget if wait_s is None else wait_s):
+            try:
+                for guard in guards:
+                    if not guard.claimed:
+                        guard.start()  # the last try: its refusal names the holder
+            except ReplayAttackError:
+                self._stop_timer()
+                raise
         for link in self.links:
             link.transport.start(self._deliver)
 
     def stop(self) -> None:
-        """Stop every transport, then flush every guard and release its lease."""
+        """Stop every transport and the timer, then flush every guard and release its lease."""
         for link in self.links:
             link.transport.close()
+        self._stop_timer()
         for guard in self._guards():
             guard.stop()
+
+    def tick(self) -> None:
+        """The router's timer, once per its period: every guard claims its lease or flushes
+        and renews it (:meth:`MavlinkGuard.tick`), every signer reserves ahead."""
+        for guard in self._guards():
+            guard.tick_safely()
+        for signer in self.signers.values():
+            try:
+                signer.tick()
+            except ReplayAttackError:  # the store is down: the signing path fails closed
+                self.stats.timer_failures += 1
+        if all(guard.claimed for guard in self._guards()):
+            self._claimed.set()
+
+    def _run_timer(self) -> None:
+        """One timer for every guard and signer (no thread per guard): the router's period
+        is its guards' shortest persist interval, a twentieth of a second while a lease is
+        still to be claimed."""
+        period = min((g.persist_interval_s for g in self._guards()), default=1.0)
+        self.tick()
+        while not self._stopping.wait(period if self._claimed.is_set() else _CLAIM_RETRY_S):
+            self.tick()
+
+    def _stop_timer(self) -> None:
+        if self._timer is not None:
+            self._stopping.set()
+            self._timer.join()
+            self._timer = None
 
     def routes(self) -> dict[tuple[int, int], str]:
         """The learned routes: ``(system, component)`` to the link's name."""
@@ -223,7 +274,7 @@ class MavlinkRouter:
     # --- the frame path --------------------------------------------------------------------
 
     def _deliver(
-        self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
+        self, transport: Transport, peer: Peer | None, frames: list[Frame], skipped: int
     ) -> None:
         link = self._by_transport[id(transport)]
         direction = OUTBOUND if link.role is Role.VEHICLE else INBOUND
@@ -235,49 +286,53 @@ class MavlinkRouter:
                 f"{skipped} bytes that are not whole MAVLink frames",
                 b"",
             )
-        for raw in frames:
+        for frame in frames:
             try:
-                verdict = self._judge(link, raw)
+                verdict = self._judge(link, frame)
             except ReplayAttackError as exc:
-                self._refuse(direction, link, exc.code, exc.reason, raw)
+                self._refuse(direction, link, exc.code, exc.reason, frame.raw)
                 continue
+            aimed = target(verdict.frame)
             with self._lock:
                 self._account(link, peer, verdict)
                 self.stats.forwarded[direction] += 1
-                targets = self._destinations(link, verdict.frame)
+                targets = self._destinations(link, aimed)
             if not targets:
-                if target(verdict.frame)[0]:
-                    self._refuse(direction, link, "NO_ROUTE", "target never seen", raw)
+                if aimed[0]:
+                    self._refuse(direction, link, "NO_ROUTE", "target never seen", frame.raw)
                 else:  # telemetry before any receiver authenticated: counted, not logged
                     self.stats.dropped[f"{direction}:NO_PEER"] += 1
             for where, to in targets:
                 self._send(where, to, verdict.frame)
 
-    def _judge(self, link: Link, raw: bytes) -> MavVerdict:
-        """The guard's verdict on ``raw`` (module docstring); raises ReplayAttackError."""
+    def _judge(self, link: RouterLink, frame: Frame) -> MavVerdict:
+        """The guard's verdict on ``frame`` (module docstring); raises ReplayAttackError."""
         if link.role is Role.VEHICLE:
-            return self.outbound.open(raw)
+            return self.outbound.open(frame)
         key = self.vehicle_key if link.key is None else link.key  # None: a trusted link
         guard = self.inbound[key]
         trusted = link.role is Role.TRUSTED
-        if guard.admit(raw, trusted=trusted, own_link_id=self.sign_link_id) is Admission.SIGN:
-            raw = self._sign(raw, key)
-        verdict = guard.open(raw)
+        if (
+            guard.admit(frame, trusted=trusted, own_link_id=self.sign_link_id)
+            is FrameAdmission.SIGN
+        ):
+            frame = self._sign(frame, key)
+        verdict = guard.open(frame)
         if key != self.vehicle_key and verdict.signed:  # a ground link with its own key
             return self.inbound[self.vehicle_key].open(self._sign(verdict.frame, self.vehicle_key))
         return verdict
 
-    def _sign(self, frame: bytes | Frame, key: bytes) -> bytes:
+    def _sign(self, frame: Frame, key: bytes) -> Frame:
         """``frame`` signed by the router with ``key``; a frame it cannot sign is refused."""
         signer = self.signers.get(key)
         if signer is None:
             raise InvalidFrameError("no timestamp source for this key: cannot sign")
         try:
-            return sign_frame(frame, key, self.sign_link_id, signer)
+            return sign(frame, key, self.sign_link_id, signer)
         except (ValueError, NonceExhaustedError) as exc:
             raise InvalidFrameError(f"cannot sign on behalf: {exc}") from None
 
-    def _account(self, link: Link, peer: Peer | None, verdict: MavVerdict) -> None:
+    def _account(self, link: RouterLink, peer: Peer | None, verdict: MavVerdict) -> None:
         """Learn from an authenticated frame; count the stream (caller holds ``_lock``)."""
         frame = verdict.frame
         if verdict.signed:
@@ -304,7 +359,7 @@ class MavlinkRouter:
             if len(streams) > self.max_stream_stats:
                 streams.popitem(last=False)
 
-    def _greet(self, link: Link, peer: Peer | None, system: int) -> None:
+    def _greet(self, link: RouterLink, peer: Peer | None, system: int) -> None:
         """Log a ground station's first authenticated frame, once per station (bounded)."""
         station = (link.name, peer, system)
         stations = self.stats.stations
@@ -323,9 +378,11 @@ class MavlinkRouter:
         )
         log.info("%s: ground station system %d authenticated%s", link.name, system, where)
 
-    def _destinations(self, source: Link, frame: Frame) -> list[Location]:
-        """Where ``frame`` goes (module docstring); caller holds ``_lock``."""
-        system, component = target(frame)
+    def _destinations(
+        self, source: RouterLink, aimed: tuple[int | None, int | None]
+    ) -> list[Location]:
+        """Where a frame with target ``aimed`` goes (module docstring); caller holds ``_lock``."""
+        system, component = aimed
         if not system:
             return [
                 (link, to) for link in self.links if link is not source for to in _receivers(link)
@@ -346,12 +403,12 @@ class MavlinkRouter:
             for to in _receivers(link)
         ]
 
-    def _send(self, link: Link, to: Peer | None, frame: Frame) -> None:
+    def _send(self, link: RouterLink, to: Peer | None, frame: Frame) -> None:
         """Write the judged frame (signed again where ``link`` has a key of its own)."""
         data = frame.raw
         if frame.signed and link.key is not None and link.key != self.vehicle_key:
             try:
-                data = self._sign(frame, link.key)
+                data = self._sign(frame, link.key).raw
             except ReplayAttackError as exc:
                 self._refuse(OUTBOUND, link, exc.code, exc.reason, frame.raw)
                 return
@@ -359,17 +416,17 @@ class MavlinkRouter:
             direction = INBOUND if link.role is Role.VEHICLE else OUTBOUND
             self.stats.dropped[f"{direction}:UNREACHABLE"] += 1
 
-    def _refuse(self, direction: str, link: Link, code: str, reason: str, raw: bytes) -> None:
+    def _refuse(self, direction: str, link: RouterLink, code: str, reason: str, raw: bytes) -> None:
         self.stats.dropped[f"{direction}:{code}"] += 1
         if self.on_reject is None:
             return
         try:
-            self.on_reject(Refusal(direction, link.name, str(code), reason, raw))
+            self.on_reject(FrameRefusal(direction, link.name, str(code), reason, raw))
         except AntiReplayError:  # an audit trail that is down must not stop the forwarding
             self.stats.unaudited += 1
 
 
-def _receivers(link: Link) -> Iterable[Peer | None]:
+def _receivers(link: RouterLink) -> Iterable[Peer | None]:
     """A fixed endpoint's one destination, or the peers that authenticated on it."""
     return (None,) if link.transport.fixed else list(link.peers)
 

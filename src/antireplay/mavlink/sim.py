@@ -2,7 +2,7 @@
 
 It speaks MAVLink 2 with signing, as a flight controller with a key does: every frame it
 sends is signed with a wall-anchored, strictly increasing timestamp
-(:class:`~antireplay.mavlink.codec.TimestampSource`, the router's own sender source), so
+(:class:`~antireplay.mavlink.signer.TimestampSource`, the router's own sender source), so
 the router's vehicle guard accepts it as it would a real autopilot's.  It sends HEARTBEAT
 and ATTITUDE at a few hertz, and answers each COMMAND_LONG that verifies with a
 COMMAND_ACK addressed to its sender.  Frames that do not verify (unsigned, another key, a
@@ -29,7 +29,7 @@ from typing import Any
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay.core.clock import Clock
-from antireplay.mavlink.codec import TimestampSource
+from antireplay.mavlink.signer import TimestampSource
 
 __all__ = ["DEFAULT_UDP", "SimVehicle"]
 

@@ -1,233 +1,71 @@
-"""The RCAN receive drivers: one sans-I/O core (:mod:`~antireplay.rcan.steps`), two drivers.
-
-Size: the thread driver and the event-loop driver share every piece of I/O between the
-core's calls (the check, the commit, the audit row, the memos); apart, each would copy it.
+"""The RCAN receive path: one sans-I/O core (:mod:`~antireplay.rcan.steps`), two drivers.
 
 Theory of operation
 -------------------
 :class:`Receiver` runs RCAN §8.3's check -> authenticate -> commit through
-:class:`~antireplay.rcan.steps.Steps` and performs the I/O between its steps: the
-replay check and the one atomic commit (:class:`~antireplay.state.replay.ReplayCache`),
-the audit row, the memos.  :meth:`Receiver.receive` drives it on a thread;
-:meth:`Receiver.receive_async` on an event loop: it parses and (for a store that answers
-in process) runs the replay check on the loop, so junk and known replays cost no thread;
-what needs the signature is ONE job on a thread (``offload``; a fresh SAFETY message's in
-``urgent``, the lane the gateway's workers take first); the store's ``commit_async`` and
-the audit row are awaited on the loop.
+:class:`~antireplay.rcan.steps.Steps`; the rules between the core's calls (the memo of
+accepted bodies, the disk floor, QoS retransmissions, the refusal auditor, what an audit
+failure does to the answer) are :class:`~antireplay.rcan.receive_shared.ReceiverBase`'s,
+written once.  This module is the thread driver: :meth:`Receiver.receive` parses, checks,
+authenticates, commits (:class:`~antireplay.state.replay.ReplayCache`) and queues the
+audit row on the calling thread, then blocks until the row is durable.  The event-loop
+driver (:class:`~antireplay.rcan.receive_loop.LoopDriver`) serves
+:meth:`Receiver.receive_async`: it refuses junk and known replays on the loop and hands a
+thread at most one job (the signature).
 
-Step 0, before any parse: a byte-identical copy of a message accepted here is refused
-``REPLAY_DETECTED`` from a bounded memo (no I/O); ESTOPs, warned messages and ``qos``
->= 1 ones never enter it.  A ``REPLAY_DETECTED`` message with ``qos`` >= 1 whose
-authenticated content matches the accepted one is a QoS retransmission: answered with
-the original's held answer (:mod:`~antireplay.rcan.answers`, :attr:`Outcome.retry`),
-waited for on the loop while in flight, never executed again.
-
-No answer goes out before its audit row is durable: ``receive_later`` queues the row for
-the trail's next group commit and :meth:`Receiver.settle` answers once it is.  An
-accepted message whose row failed is refused ``STATE_UNAVAILABLE``, except a fresh,
-authentic ESTOP (:func:`~antireplay.core.window.estop_survives`, the rule the store
-outage follows too): delivered flagged ``AUDIT_UNAVAILABLE``, its row spilled to the
-trail's reserved file (:mod:`~antireplay.audit.spill`), merged into the trail later.
-Refusals pass the one :class:`~antireplay.audit.RefusalAuditor` (rate-limited rows, the
-rest summarised); below the disk's second floor (:mod:`~antireplay.audit.space`) all but
-a fresh ESTOP is refused ``STATE_UNAVAILABLE`` before its commit.  Nothing raises.
-A fresh ESTOP waits for its commit and its row at most ``SAFETY_WAIT_S`` each (a row
-not written by then is withdrawn and spilled, or, already in a batch, spilled only if
-that batch fails).
+No answer goes out before its audit row is durable: :meth:`Receiver.receive_later` queues
+the row for the trail's next group commit and :meth:`~ReceiverBase.settle` answers once
+it is.  A fresh ESTOP waits for its commit and its row at most ``SAFETY_WAIT_S`` each (a
+row not written by then is withdrawn and spilled, or, already in a batch, spilled only if
+that batch fails).  Nothing raises for anything a peer can send.
 """
 
 from __future__ import annotations
 
-import asyncio
-import logging
-from collections import Counter
-from collections.abc import Iterable, Mapping
-from concurrent.futures import Future
-from dataclasses import dataclass, field
-from typing import Any
+from collections.abc import Mapping
+from functools import cached_property
 
-from antireplay.audit import AuditLog, RefusalAuditor
-from antireplay.audit.refusals import AUDIT_PER_S
-from antireplay.audit.space import DiskSpace
-from antireplay.audit.spill import SLOTS as HELD_ROWS  # ESTOP rows held for the trail
-from antireplay.core.clock import Clock, resolve
-from antireplay.core.errors import (
-    Code,
-    ReplayAttackError,
-    ReplayDetectedError,
-    StateUnavailableError,
-    WarningCode,
+from antireplay.core.errors import ReplayAttackError
+from antireplay.rcan.receive_loop import LoopDriver
+from antireplay.rcan.receive_shared import (
+    HELD_ROWS,
+    SHAPE_ERRORS,
+    Pending,
+    ReceiverBase,
+    Stats,
+    not_held,
+    queue_row,
+    wait,
 )
-from antireplay.core.messages import MessageType
-from antireplay.core.settings import SecurityConfig
-from antireplay.core.window import Refusal, Verdict, estop_survives, is_estop
-from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
-from antireplay.rcan.auth import JwtVerifier, KeyRegistry
-from antireplay.rcan.envelope import MAX_BYTES
-from antireplay.rcan.steps import Checked, Done, NeedsCommit, Outcome, Steps, audit_row, may_retry
-from antireplay.state import Offload, ReplayStore, in_executor
-from antireplay.state.replay import ReplayCache
-from antireplay.state.sqlite import SAFETY_WAIT_S
-
-#: Stores whose replay check an event loop runs itself (no network round trip).
-LOCAL_BACKENDS = frozenset({"memory", "sqlite"})
-SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
-
-log = logging.getLogger("antireplay.rcan.receive")
+from antireplay.rcan.steps import Checked, NeedsCommit, Outcome
+from antireplay.state import Offload
 
 __all__ = ["HELD_ROWS", "SHAPE_ERRORS", "Offload", "Outcome", "Pending", "Receiver", "Stats"]
 
 
-@dataclass(slots=True)
-class Pending:
-    """An outcome whose audit row may not be durable yet; :meth:`Receiver.settle` answers."""
-
-    outcome: Outcome
-    #: The queued audit row (``None``: nothing to wait for: no trail, or not audited);
-    #: an asyncio future when an event loop queued it (:meth:`Receiver.reject_known_copy`).
-    audit: Future[int] | asyncio.Future[int] | None = None
-    #: An accepted body, its expiry and whether it declared ``qos`` >= 1, remembered as a
-    #: known copy once audited.
-    memo: tuple[bytes, float, bool] | None = None
-    #: A fresh, authentic ESTOP: delivered even when its audit row cannot be made durable.
-    estop: bool = False
-    #: The audit row queued (kept to be held and appended later if it fails).
-    row: dict[str, Any] | None = None
-
-
-def _patience(pending: Pending) -> float | None:
-    """How long an answer waits for its audit row (``None``: until the row is durable or
-    failed): a fresh ESTOP's at most :data:`SAFETY_WAIT_S` (then delivered flagged, its
-    row withdrawn and spilled)."""
-    return SAFETY_WAIT_S if pending.estop else None
-
-
-def _wait(pending: Pending) -> BaseException | None:
-    """Block until the audit row is durable: ``None``, or why it could not be made so
-    (``TimeoutError``: not within :func:`_patience`; the row is still queued)."""
-    audit = pending.audit
-    if audit is None:
-        return None
-    assert isinstance(audit, Future), "a row queued by an event loop is awaited there"
-    try:
-        audit.result(_patience(pending))
-    except Exception as exc:  # any failure to record is the answer
-        return exc
-    return None
-
-
-async def _durable(pending: Pending) -> BaseException | None:
-    """:func:`_wait` on an event loop, holding no thread."""
-    audit = pending.audit
-    if audit is None:
-        return None
-    waiter = audit if isinstance(audit, asyncio.Future) else asyncio.wrap_future(audit)
-    patience = _patience(pending)
-    try:
-        await (waiter if patience is None else asyncio.wait_for(asyncio.shield(waiter), patience))
-    except Exception as exc:  # any failure to record is the answer
-        return exc
-    return None
-
-
-@dataclass(frozen=True, slots=True)
-class _Copy:
-    """What is remembered of an accepted body (never the body itself)."""
-
-    length: int
-    expires_at: float
-    msg_id: str | None
-    type: int | None  # the type the policy applied (the message's class)
-    sender: str | None
-    qos: bool  # declared qos >= 1: a copy goes on to step 3, where its retry is decided
-
-
-@dataclass
-class Stats:
-    """Counters for metrics: accepted, rejected by code, warnings, refusals folded."""
-
-    accepted: int = 0
-    rejected: Counter[str] = field(default_factory=Counter)
-    warnings: Counter[str] = field(default_factory=Counter)
-    #: Refusals given no row of their own (rate limit or disk floor; summarised later).
-    unaudited: int = 0
-    audit_failures: int = 0
-    losses: int = 0
-    #: QoS retransmissions answered with their original answer (also in ``rejected``).
-    retries: int = 0
-    #: ESTOPs delivered while their audit row could not be written; of them, rows spilled.
-    held_estops: int = 0
-    spilled: int = 0
-    #: Commands refused because free space was below the second floor.
-    disk_refusals: int = 0
-    #: ESTOP rows neither the trail nor its spill could take (each one logged whole).
-    held_dropped: int = 0
-
-
-class Receiver:
+class Receiver(ReceiverBase):
     """One robot's receive path; thread-safe (the window and stores are atomic)."""
-
-    def __init__(
-        self,
-        config: SecurityConfig,
-        keys: KeyRegistry,
-        store: ReplayStore | None = None,
-        audit: AuditLog | None = None,
-        clock: Clock | None = None,
-        *,
-        jwt: JwtVerifier | None = None,
-        jwt_required: bool = False,
-        versions: frozenset[str] = frozenset({"3"}),
-        invalid_audit_per_s: float = 10.0,
-        max_bytes: int = MAX_BYTES,
-        space: DiskSpace | None = None,
-    ) -> None:
-        self.config = config
-        self.max_bytes = max_bytes  # the gateway passes its max_body_bytes: one limit in force
-        self.keys = keys
-        self.audit = audit
-        self.clock = resolve(clock)
-        self.cache = ReplayCache.from_config(config, self.clock, store)
-        self.cache.on_loss = self._audit_loss
-        self.jwt = jwt
-        self.jwt_required = jwt_required
-        self.versions = versions
-        self.steps = Steps(
-            config, keys, jwt=jwt, jwt_required=jwt_required, versions=versions,
-            max_bytes=max_bytes,
-        )  # fmt: skip
-        self.stats = Stats()
-        #: Whether an event loop runs the replay check itself: the store answers in process
-        #: (a dict, a SQLite read from the page cache); a network store's round trip stays
-        #: on the thread, in the one job with the signature.
-        self.check_on_loop = self.cache.store.backend in LOCAL_BACKENDS
-        self._copies: dict[int, _Copy] = {}
-        self.answers = AnswerMemo(config.msg_id_cache_size)
-        #: How long an event loop waits for the answer of an original still in flight.
-        self.answer_wait_s = 5.0
-        #: Free space under the trail and its floors (``None``: not watched).
-        self.space = space
-        self.refusals = RefusalAuditor(
-            audit, self.clock, per_s=invalid_audit_per_s, authentic_per_s=AUDIT_PER_S,
-            log=log, quiet=None if space is None else space.low,
-        )  # fmt: skip
-        reason = getattr(self.cache.store, "loss_reason", None)
-        if reason is not None:  # noticed while the store opened (a lost or rolled-back file)
-            self._audit_loss(str(reason))
 
     def receive(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Outcome:
         """Run the §8.3 steps; never raises for anything a peer can send."""
         pending = self.receive_later(raw, headers)
-        return self.settle(pending, _wait(pending))
+        return self.settle(pending, wait(pending))
 
     def receive_later(self, raw: bytes, headers: Mapping[str, str] | None = None) -> Pending:
         """Every step through the commit; the outcome's audit row is queued for the next
         group commit, not awaited.  Answer with :meth:`settle` once ``Pending.audit`` is
         done (:meth:`receive` blocks on it)."""
+        return queue_row(self.audit, self._decide(raw, headers), on_loop=False)
+
+    def _decide(self, raw: bytes, headers: Mapping[str, str] | None) -> Pending:
         copy = self._known_copy(raw)
         if copy is not None:
-            return self._reject_copy(copy)
-        step = self._floor(self._authenticate(raw, headers))
+            return copy
+        parsed = self.steps.parse(raw)
+        step = (
+            self._check_and_authenticate(parsed, headers) if isinstance(parsed, Checked) else parsed
+        )
+        step = self._floor(step)
         if isinstance(step, NeedsCommit):
             env = step.env
             try:
@@ -240,8 +78,15 @@ class Receiver:
         if entry is not None and entry.answer is not None:
             return self._answer_retry(entry, entry.answer, step)
         if entry is not None:  # in flight: only an event loop waits (receive_async)
-            step = _not_held(step, "original answer not held here yet (still in flight)")
+            step = not_held(step, "original answer not held here yet (still in flight)")
         return self._reject(step)
+
+    # --- the event-loop driver's entry points ------------------------------------------------
+
+    @cached_property
+    def loop(self) -> LoopDriver:
+        """The event-loop driver over this receiver's state."""
+        return LoopDriver(self)
 
     async def receive_async(
         self,
@@ -250,15 +95,8 @@ class Receiver:
         offload: Offload | None = None,
         urgent: Offload | None = None,
     ) -> Outcome:
-        """:meth:`receive` for an event loop: the settled outcome, its audit row durable,
-        awaited without holding a thread (:meth:`receive_later_async`, then :meth:`settle`)."""
-        pending = await self.receive_later_async(raw, headers, offload, urgent)
-        failure = await _durable(pending)
-        if failure is not None and pending.outcome.accepted:  # its refusal is audited: blocks
-            lane = urgent if urgent is not None and pending.estop else offload or in_executor
-            outcome: Outcome = await lane(self.settle, pending, failure)
-            return outcome
-        return self.settle(pending, failure)
+        """:meth:`receive` for an event loop (:meth:`LoopDriver.receive`)."""
+        return await self.loop.receive(raw, headers, offload, urgent)
 
     async def receive_later_async(
         self,
@@ -267,315 +105,14 @@ class Receiver:
         offload: Offload | None = None,
         urgent: Offload | None = None,
     ) -> Pending:
-        """:meth:`receive_later` for an event loop, handing a thread at most ONE job: a
-        byte-identical copy is refused on the loop, and so is what fails the parse; the
-        replay check runs on the loop where the store answers in process (memory, SQLite),
-        so a known replay is refused with no hand-off; the rest (the signature, and a
-        network store's check) is one job in ``offload(fn, *args)`` (default: the loop's
-        executor), a fresh SAFETY message's in ``urgent`` (the lane taken first; on a
-        network store, chosen before its check).  The store's ``commit_async`` and every
-        audit row are awaited on the loop."""
-        pending = self.reject_known_copy(raw)
-        if pending is not None:
-            return pending
-        run = offload or in_executor
-        parsed = self.steps.parse(raw)
-        step: NeedsCommit | Done
-        if isinstance(parsed, Done):
-            step = parsed
-        elif not self.check_on_loop:
-            lane = urgent if urgent is not None and parsed.cls[0] == MessageType.SAFETY else run
-            step = await lane(self._check_and_authenticate, parsed, headers)
-        else:
-            replayed = self._check(parsed)
-            if replayed is not None and not may_retry(replayed, parsed.env):
-                step = self.steps.authenticate(parsed, replayed, headers)  # refused: no crypto
-            else:
-                fresh_safety = replayed is None and parsed.cls[0] == MessageType.SAFETY
-                lane = urgent if urgent is not None and fresh_safety else run
-                step = await lane(self.steps.authenticate, parsed, replayed, headers)
-        step = self._floor(step)
-        if isinstance(step, Done):
-            return await self._reject_async(step)
-        env = step.env
-        try:
-            verdict = await self.cache.commit_async(env.msg_id, env.seconds, *step.cls, run)
-        except ReplayAttackError as exc:
-            return await self._reject_async(step.refused(exc))
-        return self._accept(raw, step, verdict, on_loop=True)
-
-    async def _reject_async(self, done: Done) -> Pending:
-        """The refusal, or a QoS retransmission's original answer, awaited on the loop
-        while the original is still in flight (at most ``answer_wait_s``)."""
-        entry, done = self._retry_entry(done)
-        if entry is not None:
-            held = await self.answers.wait(entry, self.answer_wait_s)
-            if held is not None:
-                return self._answer_retry(entry, held, done, on_loop=True)
-            done = _not_held(done, "original answer not held here (none arrived in time)")
-        return self._reject(done, on_loop=True)
-
-    def _retry_entry(self, done: Done) -> tuple[Entry | None, Done]:
-        """For a ``REPLAY_DETECTED`` message that declares ``qos`` >= 1 and carries the
-        same authenticated content as the message accepted under its msg_id: that
-        message's answer entry (held or in flight; no signature check, answers.py).
-        Otherwise ``None`` and the refusal to send."""
-        env = done.env
-        if env is None or not may_retry(done.error, env):
-            return None, done
-        entry = self.answers.find(env, self.clock.wall())
-        if entry is None:
-            return None, _not_held(done, "original answer not held here")
-        return entry, done
-
-    def hold_answer(
-        self,
-        outcome: Outcome,
-        status: int,
-        headers: Iterable[tuple[str, str]],
-        body: bytes,
-    ) -> None:
-        """Keep the answer a transport produced for an accepted message (also an upstream
-        failure's), for its QoS retransmissions; call it before sending the answer.  A
-        no-op unless the message declared ``qos`` >= 1 (answers.py bounds what is kept)."""
-        env = outcome.envelope
-        if outcome.accepted and env is not None and type(env.msg_id) is str:
-            self.answers.hold(env.msg_id, status, headers, body)
-
-    async def record_upstream_failure(self, outcome: Outcome, error: ReplayAttackError) -> None:
-        """Audit that an accepted message's upstream failed (``UPSTREAM_FAILED``, warning
-        ``delivered=…``, under its verified sender), queued with the other rows and durable
-        before the failure is answered; a row that cannot be written is counted."""
-        done = Done(error, outcome.envelope, outcome.signer, outcome.msg_type)
-        failed = self.steps.refuse(done)
-        failed.msg_id = outcome.msg_id
-        if await _durable(self._queue_audit(Pending(failed), on_loop=True)) is not None:
-            self.stats.audit_failures += 1  # the failure is still answered
-
-    def _answer_retry(
-        self, entry: Entry, held: HeldAnswer, done: Done, *, on_loop: bool = False
-    ) -> Pending:
-        """A QoS retransmission: the original answer, audited as a refused replay
-        (``REPLAY_DETECTED``, warning ``QOS_RETRY``) by the original's verified signer."""
-        exc = ReplayDetectedError(
-            "QoS retransmission: the original answer, not executed again", detail=QOS_RETRY
-        )
-        outcome = self.steps.refuse(Done(exc, done.env, entry.signer, done.msg_type))
-        outcome.retry = held  # status, nack: still 409, what a retry-unaware transport sends
-        self.stats.rejected[exc.code] += 1
-        self.stats.retries += 1
-        return self._queue_refusal(Pending(outcome), on_loop=on_loop)
-
-    def _authenticate(self, raw: bytes, headers: Mapping[str, str] | None) -> NeedsCommit | Done:
-        """Steps 1-6 on a thread: the core's parse, then :meth:`_check_and_authenticate`."""
-        step = self.steps.parse(raw)
-        if not isinstance(step, Checked):
-            return step
-        return self._check_and_authenticate(step, headers)
-
-    def _check_and_authenticate(
-        self, checked: Checked, headers: Mapping[str, str] | None
-    ) -> NeedsCommit | Done:
-        """Steps 3-6: the replay check (records nothing), then the core's token, signature
-        and scopes."""
-        return self.steps.authenticate(checked, self._check(checked), headers)
-
-    def _check(self, checked: Checked) -> ReplayAttackError | None:
-        """Step 3, the replay check (records nothing): its refusal, as a value (a flood of
-        replays raises nothing on its way to the answer)."""
-        env = checked.env
-        verdict = self.cache.try_check(env.msg_id, env.seconds, *checked.cls)
-        return verdict.error() if isinstance(verdict, Refusal) else None
-
-    def _floor(self, step: NeedsCommit | Done) -> NeedsCommit | Done:
-        """Below the disk's second floor only an ESTOP goes on to its commit."""
-        if self.space is None or not isinstance(step, NeedsCommit) or is_estop(*step.cls):
-            return step
-        reason = self.space.reason()
-        if reason is None:
-            return step
-        self.stats.disk_refusals += 1
-        return step.refused(StateUnavailableError(reason))
-
-    def _accept(
-        self, raw: bytes, need: NeedsCommit, verdict: Verdict, *, on_loop: bool = False
-    ) -> Pending:
-        accepted = self.steps.accept(need, verdict)
-        if accepted.entry is not None:
-            self.answers.expect(need.env.msg_id, accepted.entry, self.clock.wall())
-        memo = (raw, verdict.expires_at, accepted.qos) if accepted.memo else None
-        pending = Pending(accepted.outcome, memo=memo, estop=verdict.estop)
-        return self._queue_audit(pending, on_loop=on_loop)
-
-    def settle(self, pending: Pending, failure: BaseException | None) -> Outcome:
-        """The answer, once the outcome's audit row is durable (``failure`` is ``None``) or
-        could not be made durable.  Only an accepted message whose row failed blocks (its
-        refusal is audited in turn): run that case off the event loop."""
-        outcome = pending.outcome
-        if failure is not None:
-            self.stats.audit_failures += 1
-            if not outcome.accepted:
-                return outcome  # the rejection stands; it could not be recorded (yet)
-            warning = estop_survives(pending.estop, outcome.warning, WarningCode.AUDIT_UNAVAILABLE)
-            if warning is None:
-                # Nothing accepted may be missing from the audit trail: refuse to act on it.
-                # Its msg_id is spent; the sender resends with a new one once the disk is back.
-                if outcome.envelope is not None and type(outcome.envelope.msg_id) is str:
-                    self.answers.drop(outcome.envelope.msg_id)  # no answer to hold
-                exc = StateUnavailableError(f"audit trail unavailable: {failure}")
-                done = Done(exc, outcome.envelope, outcome.signer, outcome.msg_type)
-                refusal = self._reject(done)
-                return self.settle(refusal, _wait(refusal))
-            self._hold(pending, failure, warning)  # safety beats the audit trail
-        if outcome.accepted:
-            self.stats.accepted += 1
-            if outcome.warning:
-                self.stats.warnings[outcome.warning] += 1
-            elif pending.memo is not None and outcome.envelope is not None:
-                self._remember_copy(*pending.memo, outcome)
-        return outcome
-
-    @property
-    def held_rows(self) -> int:
-        """Audit rows of delivered ESTOPs spilled, waiting for the trail to be writable."""
-        return 0 if self.audit is None else self.audit.spilled
-
-    def _hold(self, pending: Pending, failure: BaseException, warning: str) -> None:
-        """Deliver an ESTOP whose audit row failed: warn, spill its row (said once per
-        outage); a row the spill cannot take is logged whole, its only record, and counted."""
-        outcome = pending.outcome
-        outcome.warning = warning
-        self.stats.held_estops += 1
-        if pending.row is None or self.audit is None:
-            return
-        row = {**pending.row, "warning": warning}
-        audit = pending.audit
-        if isinstance(failure, TimeoutError) and isinstance(audit, Future) and not audit.cancel():
-            # Already in a batch (cannot be withdrawn): it lands, or is spilled if it fails.
-            audit.add_done_callback(lambda done: self._spill_late(done, row))
-            return
-        self._spill(row, failure)
-
-    def _spill_late(self, done: Future[int], row: dict[str, Any]) -> None:
-        """An ESTOP row's batch finished after its answer: spilled only if it failed."""
-        failure = None if done.cancelled() else done.exception()
-        if failure is not None:
-            self._spill(row, failure)
-
-    def _spill(self, row: dict[str, Any], failure: BaseException) -> None:
-        """Keep one delivered ESTOP's row in the spill (merged into the trail later)."""
-        assert self.audit is not None
-        first = self.held_rows == 0
-        if not self.audit.spill(**row):
-            self.stats.held_dropped += 1
-            log.error("audit trail and its spill unavailable (%s); ESTOP row: %s", failure, row)
-            return
-        self.stats.spilled += 1
-        if first:
-            log.error(
-                "audit trail unavailable (%s): ESTOP delivered, its row spilled to the reserved "
-                "file until the trail takes a row again; other messages get STATE_UNAVAILABLE",
-                failure,
-            )
-
-    def _remember_copy(self, raw: bytes, expires_at: float, qos: bool, outcome: Outcome) -> None:
-        """Memo of accepted bodies: a byte-identical copy is a replay, known before parsing.
-
-        Only authenticated, accepted, non-ESTOP messages enter it (a fresh duplicate ESTOP
-        must still be processed), keyed by Python's keyed SipHash of the body plus its
-        length; it is bounded (oldest forgotten first) and forgetting only means the copy
-        takes the full path, where the window rejects it as before.  A copy of a message
-        that declared ``qos`` >= 1 is not refused here: it goes on to step 3, where the
-        retry rule is decided (one decision point; a parse, no crypto).
-        """
-        copies = self._copies
-        if len(copies) >= self.config.msg_id_cache_size:
-            copies.pop(next(iter(copies)), None)
-        sender = outcome.envelope.sender if outcome.envelope is not None else None
-        copies[hash(raw)] = _Copy(
-            len(raw), expires_at, outcome.msg_id, outcome.msg_type, sender, qos
-        )
-
-    def _known_copy(self, raw: bytes) -> _Copy | None:
-        copy = self._copies.get(hash(raw)) if type(raw) is bytes else None
-        if copy is not None and copy.length == len(raw) and copy.expires_at >= self.clock.wall():
-            return None if copy.qos else copy
-        return None
-
-    def _reject_copy(self, copy: _Copy, *, on_loop: bool = False) -> Pending:
-        exc = ReplayDetectedError("an identical message was already accepted")
-        return self._reject(Done(exc, None, None, copy.type), copy=copy, on_loop=on_loop)
+        """:meth:`receive_later` for an event loop (:meth:`LoopDriver.receive_later`)."""
+        return await self.loop.receive_later(raw, headers, offload, urgent)
 
     def reject_known_copy(self, raw: bytes) -> Pending | None:
-        """Step 0 without blocking: a byte-identical copy of an accepted message is refused
-        with no parsing, no lock and no I/O; its audit row is queued for the next group
-        commit (answer with :meth:`settle` once ``Pending.audit`` is done).  ``None``: not
-        a known copy, run :meth:`receive_later`."""
-        copy = self._known_copy(raw)
-        return None if copy is None else self._reject_copy(copy, on_loop=True)
+        """Step 0 on an event loop (:meth:`LoopDriver.reject_known_copy`)."""
+        return self.loop.reject_known_copy(raw)
 
-    def _reject(self, done: Done, *, copy: _Copy | None = None, on_loop: bool = False) -> Pending:
-        """The NACK outcome of a refusal; ``copy`` describes a memo hit (nothing parsed)."""
-        outcome = self.steps.refuse(done, None if copy is None else copy.msg_id)
-        self.stats.rejected[done.error.code] += 1
-        sender = None if copy is None else copy.sender
-        return self._queue_refusal(Pending(outcome), sender, on_loop=on_loop)
-
-    def _queue_refusal(
-        self, pending: Pending, sender: str | None = None, *, on_loop: bool = False
-    ) -> Pending:
-        """A refusal's row if the auditor gives it one, else folded into its summary."""
-        if self.audit is None:
-            return pending
-        fields = audit_row(pending.outcome, self.clock.wall(), sender)
-        key = {name: fields[name] for name in ("code", "sender", "msg_id")}
-        if not self.refusals.admit(authentic=fields["sender_verified"], **key):
-            self.stats.unaudited += 1
-            return pending
-        return self._queue_audit(pending, fields, on_loop=on_loop)
-
-    def close(self) -> None:
-        """Write the folded refusals' summary rows, then close the audit trail."""
-        if self.audit is not None:
-            self.refusals.close()
-            self.audit.close()
-
-    def _audit_loss(self, reason: str) -> None:
-        """A store noticed it may have forgotten accepted messages: fenced, and on the record."""
-        self.stats.losses += 1
-        if self.audit is None:
-            return
-        try:
-            self.audit.append(
-                at=self.clock.wall(), outcome="state", code=WarningCode.STATE_LOST,
-                warning=reason[:200], msg_type=None, sender=None, sender_verified=False,
-                msg_id=None,
-            )  # fmt: skip
-        except StateUnavailableError:
-            self.stats.audit_failures += 1
-
-    def _queue_audit(
-        self, pending: Pending, fields: dict[str, Any] | None = None, *, on_loop: bool = False
-    ) -> Pending:
-        """Queue the outcome's audit row (``fields``: already built; ``on_loop``: awaited by
-        the running event loop); a trail that is closing fails the row at once."""
-        if self.audit is not None:
-            if fields is None:
-                fields = audit_row(pending.outcome, self.clock.wall())
-            if pending.estop:  # a thread's future: withdrawn if it is not written in time
-                pending.row = fields
-            try:
-                pending.audit = self.audit.append_later(
-                    **fields, on_loop=on_loop and not pending.estop
-                )
-            except RuntimeError as exc:
-                failed: Future[int] = Future()
-                failed.set_exception(exc)
-                pending.audit = failed
-        return pending
-
-
-def _not_held(done: Done, why: str) -> Done:
-    """The plain ``REPLAY_DETECTED`` refusal of a retry whose original answer is not here."""
-    exc = ReplayDetectedError(f"msg_id already accepted; {why}")
-    return Done(exc, done.env, done.signer, done.msg_type)
+    async def record_upstream_failure(self, outcome: Outcome, error: ReplayAttackError) -> None:
+        """Audit an accepted message's upstream failure
+        (:meth:`LoopDriver.record_upstream_failure`)."""
+        await self.loop.record_upstream_failure(outcome, error)

@@ -27,6 +27,11 @@ every other caller's of that batch) are made durable by one WAL fsync.
   of another epoch counts as nothing moved.  A database found *behind* the mark (its
   highest id ever below it: a restored copy) gets a new epoch at the drain's start, so
   the rows it puts from then on are moved, never skipped.
+* **The trail's head, kept here too.**  Each deletion carries the trail's head as the
+  writer made it durable (rows, last hash, oldest segment kept, MACed with the trail's
+  head key) into table ``trail_head``, in the same transaction: a trail later found
+  behind that record, or holding another hash at its row, was rolled back
+  (:mod:`antireplay.audit.consistency`).
 """
 
 from __future__ import annotations
@@ -50,9 +55,19 @@ CREATE TABLE IF NOT EXISTS outbox_epoch (
     epoch TEXT NOT NULL
 );
 INSERT OR IGNORE INTO outbox_epoch VALUES (1, lower(hex(randomblob(16))));
+CREATE TABLE IF NOT EXISTS trail_head (
+    id INTEGER PRIMARY KEY CHECK (id = 1),
+    rows INTEGER NOT NULL,
+    hash TEXT NOT NULL,
+    first INTEGER NOT NULL,
+    mac TEXT NOT NULL
+);
 """
 #: Where the trail stands in one outbox: its epoch and the highest id moved.
 Mark = tuple[str | None, int]
+#: The trail's head as its writer made it durable: rows, last hash, oldest segment kept, MAC.
+TrailHead = tuple[int, str, int, str]
+_HEAD_SELECT = "SELECT rows, hash, first, mac FROM trail_head"
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,13 +83,17 @@ class Put:
 
 @dataclass(frozen=True, slots=True)
 class Forget:
-    """Delete the rows up to ``mark`` (if still of its epoch): the trail holds them durably."""
+    """Delete the rows up to ``mark`` (if still of its epoch): the trail holds them durably
+    (and record its ``head``, if given, in the same transaction)."""
 
     mark: Mark
     durable: bool = False
+    head: TrailHead | None = None
 
     def apply(self, db: sqlite3.Connection) -> int:
         epoch, upto = self.mark
+        if self.head is not None:
+            db.execute("INSERT OR REPLACE INTO trail_head VALUES (1, ?, ?, ?, ?)", self.head)
         return db.execute(
             "DELETE FROM outbox WHERE id <= ? AND (SELECT epoch FROM outbox_epoch) = ?",
             (upto, epoch),
@@ -150,9 +169,14 @@ class Outbox:
         """Give the outbox a new epoch (its rows are all moved again, none skipped)."""
         return self.store.enqueue_outbox(Renew(uuid.uuid4().hex))
 
-    def forget(self, mark: Mark) -> Future[int]:
-        """Delete the rows up to ``mark`` with the store's next batch (no fsync of its own)."""
-        return self.store.enqueue_outbox(Forget(mark))
+    def forget(self, mark: Mark, head: TrailHead | None = None) -> Future[int]:
+        """Delete the rows up to ``mark`` with the store's next batch (no fsync of its own),
+        recording the trail's ``head`` in the same transaction."""
+        return self.store.enqueue_outbox(Forget(mark, head=head))
+
+    def trail_head(self) -> TrailHead | None:
+        """The trail's head as last recorded here (``None``: never recorded)."""
+        return self.store.read_outbox(_trail_head)
 
     def flush(self) -> None:
         """Return once every row queued so far is committed (the writer's queue is FIFO)."""
@@ -163,3 +187,28 @@ class Outbox:
         return self.store.read_outbox(
             lambda db: int(db.execute("SELECT count(*) FROM outbox").fetchone()[0])
         )
+
+
+def _trail_head(db: sqlite3.Connection) -> TrailHead | None:
+    try:
+        row = db.execute(_HEAD_SELECT).fetchone()
+    except sqlite3.OperationalError:  # a database from before the record: nothing recorded
+        return None
+    if row is None:
+        return None
+    rows, digest, first, mac = row
+    if not (type(rows) is int and isinstance(digest, str) and type(first) is int
+            and isinstance(mac, str)):  # fmt: skip
+        raise sqlite3.DatabaseError("its trail_head row is not one antireplay writes")
+    return rows, digest, first, mac
+
+
+def read_trail_head(path: Path) -> TrailHead | None:
+    """The trail's head recorded in the SQLite state database at ``path``, read-only
+    (``audit verify --state``); a file that is not one raises ``sqlite3.DatabaseError``."""
+    db = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True)
+    try:
+        db.execute("SELECT count(*) FROM sqlite_master").fetchone()
+        return _trail_head(db)
+    finally:
+        db.close()

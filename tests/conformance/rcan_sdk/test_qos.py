@@ -10,12 +10,12 @@ from __future__ import annotations
 import json
 
 import pytest
+from rcan import RCANMessage
 from rcan.qos import make_estop_with_qos
 
 from antireplay import MessageType, safety_class
 from antireplay.rcan.envelope import parse
-from rcan import RCANMessage
-from tests.harness import SDK_NOW, SdkReplayAdapter
+from harness import SDK_NOW, SdkReplayAdapter
 
 TARGET = "rcan://registry.rcan.dev/acme/arm/v1/unit-001"
 

@@ -1,5 +1,5 @@
 """The rcan SDK's ``tests/test_replay.py``, restated: its ``ReplayCache`` cases through
-:class:`~tests.harness.SdkReplayAdapter` over our :class:`~antireplay.ReplayCache`.
+:class:`~harness.SdkReplayAdapter` over our :class:`~antireplay.ReplayCache`.
 
 Every case runs on a cache that has been up a minute: a cache that starts at "now"
 refuses what is stamped before its start plus its skew (its restart fence), which
@@ -8,10 +8,10 @@ refuses what is stamped before its start plus its skew (its restart fence), whic
 from __future__ import annotations
 
 import pytest
+from rcan import RCANMessage
 
 from antireplay import ConfigError
-from rcan import RCANMessage
-from tests.harness import SDK_NOW, SdkReplayAdapter
+from harness import SDK_NOW, SdkReplayAdapter
 
 TARGET = "rcan://registry.rcan.dev/acme/arm/v1/unit-001"
 

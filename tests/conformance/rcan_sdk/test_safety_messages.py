@@ -1,7 +1,7 @@
 """The rcan SDK's ``tests/test_safety_messages.py``, restated: what its ``rcan.safety``
 builders produce, as our vocabulary (:class:`~antireplay.MessageType`,
 :class:`~antireplay.SafetyEvent`, :func:`~antireplay.safety_class`) reads it through
-:class:`~tests.harness.SdkReplayAdapter`.  We build no messages: a receiver's part is how
+:class:`~harness.SdkReplayAdapter`.  We build no messages: a receiver's part is how
 it classes and refuses them."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from rcan.safety import (
 
 from antireplay import MessageType, SafetyEvent
 from antireplay.rcan.envelope import parse
-from tests.harness import SdkReplayAdapter
+from harness import SdkReplayAdapter
 
 RURI = "rcan://rcan.dev/boston-dynamics/spot/bd-spot-001a2b3c"
 REASON = "Unit test safety check"

@@ -121,8 +121,9 @@ from antireplay.mavlink.pq.chunks import (
     chunk_key,
     parse_chunk,
 )
-from antireplay.mavlink.pq.ends import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.ground import GroundEnd
 from antireplay.mavlink.pq.repair import Output
+from antireplay.mavlink.pq.vehicle import VehicleEnd
 from antireplay.mavlink.pq.wire import (
     CHUNK_DATA,
     DIALECT,

@@ -7,7 +7,7 @@ between two :class:`~antireplay.mavlink.endpoints.Transport` s.  The **ground** 
 ``local`` is where ground stations connect (a trusted ``udpin``: every peer that sends
 receives the telemetry), ``air`` the path to the vehicle; it hand-shakes at
 :meth:`~PqLink.start` and, from a timer (:meth:`~PqLink.tick`, every ``tick_s``), pokes
-and hand-shakes again (:mod:`.ends`) until a session answers, whether or not local traffic
+and hand-shakes again (:mod:`.ground`) until a session answers, whether or not local traffic
 arrives; the timer also drives repair requests for transfers gone quiet.  The
 **vehicle** end's ``local`` is the flight controller, ``air`` the path to the ground; a
 ``udpin`` air peer is learned only from the first blob of each session that
@@ -50,12 +50,14 @@ from typing import Any
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AntiReplayError, Code, ReplayAttackError
 from antireplay.core.ratelimit import TokenBucket
+from antireplay.mavlink.codec import Frame
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.pq.chunks import PlainFrameError
-from antireplay.mavlink.pq.ends import GroundEnd, VehicleEnd
+from antireplay.mavlink.pq.ground import GroundEnd
 from antireplay.mavlink.pq.repair import Output, air_kind
+from antireplay.mavlink.pq.vehicle import VehicleEnd
 from antireplay.mavlink.pq.wire import LINE_BITS
-from antireplay.mavlink.router import Refusal
+from antireplay.mavlink.router import FrameRefusal
 from antireplay.pq.session import Session
 
 _HINTED = {Code.UNKNOWN_SESSION, Code.SESSION_CLOSED}
@@ -171,7 +173,7 @@ class PqLink:
         local: Transport,
         air: Transport,
         *,
-        on_reject: Callable[[Refusal], Any] | None = None,
+        on_reject: Callable[[FrameRefusal], Any] | None = None,
         on_session: Callable[[SessionEvent], Any] | None = None,
         tap: Callable[[bytes], Any] | None = None,
         max_local_peers: int = 8,
@@ -249,7 +251,7 @@ class PqLink:
             self._send_air(ready)
 
     def _from_local(
-        self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
+        self, transport: Transport, peer: Peer | None, frames: list[Frame], skipped: int
     ) -> None:
         if skipped:
             self._refuse("local", Code.INVALID_FRAME, f"{skipped} bytes that are no frame", b"")
@@ -257,7 +259,8 @@ class PqLink:
             self._local_peers[peer] = None
             if len(self._local_peers) > self.max_local_peers:
                 del self._local_peers[next(iter(self._local_peers))]
-        for raw in frames:
+        for frame in frames:
+            raw = frame.raw
             try:
                 with self._lock:
                     out = self.end.handle_local(raw)
@@ -271,12 +274,12 @@ class PqLink:
         self._observe()
 
     def _from_air(
-        self, transport: Transport, peer: Peer | None, frames: list[bytes], skipped: int
+        self, transport: Transport, peer: Peer | None, frames: list[Frame], skipped: int
     ) -> None:
         if skipped:
             self._refuse("air", Code.INVALID_FRAME, f"{skipped} bytes that are no frame", b"")
-        for raw in frames:
-            hint: list[bytes] = []
+        for frame in frames:
+            raw, hint = frame.raw, []
             try:
                 with self._lock:
                     out: Output = self.end.from_air(raw)
@@ -418,6 +421,6 @@ class PqLink:
         if self.on_reject is None:
             return
         try:
-            self.on_reject(Refusal(side, f"pq {side}", str(code), reason, raw))
+            self.on_reject(FrameRefusal(side, f"pq {side}", str(code), reason, raw))
         except AntiReplayError:
             self._count("unaudited")

@@ -38,6 +38,9 @@ CHUNK_DATA, CHUNK_MAC, MAX_CHUNKS = 249, 8, 32
 MAX_PARITY, PARITY_EVERY = 4, 10
 #: Bits a byte takes on a radio's serial line (start, 8 data, stop): ``--air-bps`` is baud.
 LINE_BITS = 10
+#: A command's age stamp, sealed after its inner frame: ms since its session came up at the
+#: ground end (:mod:`.ground` writes it, :mod:`.vehicle` judges it).
+AGE_STAMP = struct.Struct("<I")
 STATUS_NO_SESSION = 1
 #: A ground end rekeys once its session used this many transfer numbers, and stops
 #: sending in it at ``TRANSFER_LIMIT``: within a session they never wrap (module docstring).

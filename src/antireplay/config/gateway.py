@@ -1,0 +1,41 @@
+"""The gateway's own sections: the sender keys (``keys:``) and bearer tokens (``jwt:``).
+
+Theory of operation
+-------------------
+Each block is a strict, frozen model: a wrong type or an unknown key is an error, never a
+default.  Key files are named here, never read: :mod:`antireplay.wiring.gateway` loads
+them into a key registry (the one loader, :func:`~antireplay.rcan.auth.load_public_key`).
+The store, anchor and audit sections the gateway shares with every other command live in
+:mod:`antireplay.config.common`; the whole file is :class:`~antireplay.config.AppConfig`.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class KeyConfig(BaseModel):
+    """One signing key of the registry (``keys:`` list)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    kid: str = Field(min_length=1, max_length=128)
+    owner: str = Field(min_length=1, max_length=128)
+    alg: Literal["ed25519", "ml-dsa-65", "ml-dsa-87", "ed25519+ml-dsa-65"]
+    public_keys: list[str] = Field(min_length=1, max_length=2)  # PEM file paths
+    scopes: list[str] = Field(default_factory=lambda: ["control"])
+
+
+class JwtConfig(BaseModel):
+    """Bearer tokens (``jwt:``)."""
+
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+    required: bool = False
+    audience: str | None = None
+    issuer: str | None = None
+    keys: dict[str, str] = Field(default_factory=dict)  # kid -> PEM path (EdDSA / ES256)
+    hs256_secret_env: str | None = None  # name of an environment variable; HS256 only if set
+    leeway_s: float = Field(default=0.0, ge=0, le=300)

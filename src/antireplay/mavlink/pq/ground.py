@@ -1,0 +1,407 @@
+"""The ground end of a PQ link (the initiator), next to the ground station.
+
+Theory of operation
+-------------------
+Sans-I/O: bytes and a time in, frames out; :mod:`.link` drives it over transports and
+calls ``tick`` on a timer, so that a transfer gone quiet is repaired (:mod:`.repair`)
+and a lost handshake is poked, then retried, whether or not local traffic arrives: the
+ground end POKEs its HS1 ``poke_s`` after its chunks left (by ``air_bps``) or were last
+repaired (twice at most; the vehicle end answers with its held HS2 or a NACK), and
+hand-shakes anew only after ``retry_s`` of quiet, so repairs never race a new HS1.
+:attr:`GroundEnd.live` is the session held while something authenticated was heard from
+the vehicle end within ``silence_s``; handshakes, drops, repairs and airtime are counted.
+
+A GCS retry (:meth:`GroundEnd.handle_local`) is keyed on what the ground end itself
+sealed and sent: a later identical command within ``retry_window_s`` of the first try
+(a fixed window, a GCS's whole retry horizon: repeats never keep it open) asks the
+vehicle end, by an authenticated POKE naming that transfer (and a fresh nonce), for what
+it holds (:mod:`.vehicle`).  Every ACK travels bound to the transfer it answers
+(:func:`~.repair.bind_ack`): the ground end gives a try only its own transfer's ACK, and
+passes on none twice nor one for a try it no longer has, so a replayed POKE, or another
+command with the same number, never tells a GCS that a command it sent was accepted.
+A "not delivered" answer echoing the nonce makes it send that command anew, whole.
+
+A command carries, sealed with it, its age stamp (:data:`~.wire.AGEAGE_STAMP`): milliseconds
+since its session came up here (the HS2 arrived); the vehicle end judges it.
+"""
+
+from __future__ import annotations
+
+import secrets
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+
+from cryptography.hazmat.primitives.asymmetric import mlkem, x25519
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from antireplay.core.clock import Clock
+from antireplay.core.errors import (
+    UnknownSessionError,
+)
+from antireplay.mavlink.codec import parse_frame
+from antireplay.mavlink.pq.chunks import (
+    chunk_key,
+    parse_chunk,
+)
+from antireplay.mavlink.pq.repair import (
+    IN_PROGRESS,
+    Op,
+    Output,
+    Repair,
+    RepairingEnd,
+    _parse,
+    command_of,
+    parse_repair,
+    repair_frame,
+    repair_key,
+    retry_key,
+    unbind_ack,
+)
+from antireplay.mavlink.pq.wire import (
+    AGE_STAMP,
+    LINE_BITS,
+    MSG_REPAIR,
+    MSG_STATUS,
+    REKEY_TRANSFERS,
+    SIGNED_MESSAGES,
+    STATUS_NO_SESSION,
+    TRANSFER_LIMIT,
+    ChunkKind,
+    compact,
+    inner_of,
+    open_compact,
+    plain_frame,
+    read_status,
+)
+from antireplay.pq.session import (
+    Direction,
+    Initiator,
+    Purpose,
+    Session,
+)
+
+
+@dataclass
+class _Try:
+    """A command the ground end sent: its transfer, its session, the ACK once seen."""
+
+    transfer: int
+    session: Session
+    command: int
+    first: float  # when the GCS first sent it: the retry window runs from here, fixed
+    due: float  # when its last chunk should have left (by air_bps)
+    raw: bytes  # the GCS's frame, sealed anew if the vehicle end says it never arrived
+    ack: bytes | None = None
+    nonce: int = 0  # the outstanding POKE's, echoed in a "not delivered" answer (0: none)
+
+
+class GroundEnd(RepairingEnd):
+    """The initiator's end, next to the ground station (module docstring)."""
+
+    def __init__(
+        self,
+        initiator: Initiator,
+        responder_key: mlkem.MLKEM1024PublicKey,
+        *,
+        system_id: int = 255,
+        component_id: int = 197,
+        signed: frozenset[int] = SIGNED_MESSAGES,
+        retry_s: float = 2.0,
+        silence_s: float = 5.0,
+        max_queued: int = 8,
+        queue_ttl_s: float = 5.0,
+        hybrid: x25519.X25519PublicKey | None = None,
+        poke_s: float = 0.5,
+        gap_s: float = 0.25,
+        retry_window_s: float = 6.0,
+        air_bps: int | None = None,
+        clock: Clock | None = None,
+    ) -> None:
+        super().__init__(system_id, component_id, gap_s, clock)
+        self.initiator, self.responder_key = initiator, responder_key
+        self.hybrid = hybrid  # the vehicle's static X25519 key: hybrid handshakes
+        self.signed = signed
+        self.retry_s, self.silence_s = retry_s, silence_s
+        self.poke_s, self.retry_window_s, self.air_bps = poke_s, retry_window_s, air_bps
+        self._first_transfer = 0  # the sender's transfer number when the session began
+        self.session: Session | None = None
+        self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
+        self._hs_transfer, self._hs_quiet, self._hs_pokes = 0, 0.0, 0
+        self._hs_keyed = False  # the pending HS1 is a rekey's: unsigned NACKs are refused
+        self._hs2: bytes | None = None  # the HS2 that finished the session (a repeat is no news)
+        self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
+        self._queue: deque[tuple[bytes, float]] = deque()  # commands and when they came
+        self._tries: OrderedDict[tuple[int, int, int, bytes], _Try] = OrderedDict()
+        self._last_ack, self._last_ack_at = b"", float("-inf")  # the ACK last passed on
+        self._heard = float("-inf")  # when an authenticated frame last came from the vehicle
+        self._epoch = 0.0  # when this session came up here (HS2): commands' age stamps
+        # drops: NO_SESSION (not a command, no session), QUEUE_FULL (the oldest queued
+        # command, pushed out by a newer one), QUEUE_EXPIRED (waited over queue_ttl_s)
+
+    def _sessions_held(self) -> list[Session]:
+        return [] if self.session is None else [self.session]
+
+    def _airtime_s(self, frames: list[bytes]) -> float:
+        """How long ``frames`` take on a radio of ``air_bps`` baud (0 when unknown)."""
+        return 0.0 if not self.air_bps else LINE_BITS * sum(map(len, frames)) / self.air_bps
+
+    def handshake(self) -> list[bytes]:
+        """Start a new handshake (the current session keeps working until HS2 arrives).  Its
+        transfer number is random: nobody can plant a conflicting chunk ahead of it."""
+        if self._pending is not None:
+            self.handshakes["failed"] += 1  # never answered: superseded
+            self._sent.forget(self._hs_transfer)
+        self.handshakes["started"] += 1
+        hs1 = self.initiator.start(self.responder_key, self.hybrid)
+        now = self._clock.monotonic()
+        self._pending = (hs1, now)
+        self._hs_transfer = secrets.randbelow(0x10000)
+        frames = self.sender.frames(hs1, ChunkKind.HS1, transfer=self._hs_transfer)
+        live = self.live  # a rekey: its NACKs must come MACed in the live session
+        self._hs_keyed = live is not None
+        key = None if live is None else repair_key(live.recv_key)
+        self._sent.add(self._hs_transfer, frames, key)
+        self._hs_quiet, self._hs_pokes = now + self._airtime_s(frames), 0
+        return self._air(frames)
+
+    def from_local(self, raw: bytes) -> list[bytes]:
+        """:meth:`handle_local`'s air frames."""
+        return self.handle_local(raw).air
+
+    def handle_local(self, raw: bytes) -> Output:
+        """Wrap one plain frame from a local peer.  While there is no session, commands wait
+        in a bounded queue, each at most ``queue_ttl_s`` (a command is meant for now, not
+        for whenever the link comes back), and the rest is dropped: a heartbeat comes
+        again, and must not push a command out of the queue.  Every drop is counted in
+        :attr:`drops`.  A GCS's retry of a command in flight (same source, target, command
+        and parameters within ``retry_window_s`` of the first try) is no new transfer: a
+        POKE asks the vehicle end where it stands, or the ACK already seen answers it."""
+        frame = _parse(raw)
+        session = self._usable()
+        tried = retry_key(frame)
+        if session is None:
+            if frame.msgid in self.signed:
+                self._expire_queue()
+                if tried is not None and any(tried == retry_key(_parse(q)) for q, _ in self._queue):
+                    self.retries["queued"] += 1
+                    return Output(air=self._retry())
+                if len(self._queue) >= self.max_queued:
+                    self._queue.popleft()
+                    self.drops["QUEUE_FULL"] += 1
+                self._queue.append((raw, self._clock.monotonic()))
+            else:
+                self.drops["NO_SESSION"] += 1
+            return Output(air=self._retry())
+        if tried is not None:
+            answer = self._answer_retry(tried, session)
+            if answer is not None:
+                return answer
+        purpose = Purpose.COMMAND if frame.msgid in self.signed else Purpose.DATA
+        air = self._seal(session, inner_of(frame), purpose)
+        if tried is not None:
+            now = self._clock.monotonic()
+            due = now + self._airtime_s(air)
+            transfer = self.sender.transfer
+            self._tries[tried] = _Try(transfer, session, command_of(frame), now, due, raw)
+            while len(self._tries) > self._sent.max_transfers:
+                self._tries.popitem(last=False)
+        return Output(air=air + self._renew(session))
+
+    def _answer_retry(self, tried: tuple[int, int, int, bytes], session: Session) -> Output | None:
+        attempt, now = self._tries.get(tried), self._clock.monotonic()
+        if attempt is None or attempt.session is not session:
+            return None
+        if now - attempt.first > self.retry_window_s:
+            del self._tries[tried]
+            return None
+        if attempt.ack is not None:
+            self.retries["answered"] += 1
+            return Output(local=[attempt.ack])
+        if now < attempt.due:  # its chunks are still going out: nothing to ask yet
+            self.retries["sending"] += 1
+            return Output()
+        self.retries["poked"] += 1
+        self.repairs["poke_sent"] += 1
+        attempt.nonce = secrets.randbits(63) | 1
+        poke = repair_frame(
+            Op.POKE, attempt.transfer, (0, 0), attempt.nonce, repair_key(session.send_key),
+            sysid=self.sender.sysid, compid=self.sender.compid,
+        )  # fmt: skip
+        return Output(air=self._air([poke], "repair"))
+
+    def tick(self) -> list[bytes]:
+        """What time alone calls for: expire queued commands, ask for chunks of transfers
+        that went quiet, and poke or hand-shake again (:meth:`_retry`) while there is
+        no session or this one should end (:meth:`_renew`)."""
+        self._expire_queue()
+        session = self._usable()
+        out = self._stale_nacks()
+        return out + (self._retry() if session is None else self._renew(session))
+
+    @property
+    def live(self) -> Session | None:
+        """The session, while the vehicle was heard within ``silence_s``."""
+        silent = self._clock.monotonic() - self._heard >= self.silence_s
+        return None if silent else self.session
+
+    def _usable(self) -> Session | None:
+        if self.session is not None and self._transfers_used() >= TRANSFER_LIMIT:
+            self.session = None  # its transfer numbers would wrap: wait for the new one
+        return self.session
+
+    def _renew(self, session: Session) -> list[bytes]:
+        """A new handshake (rate-limited by ``retry_s``) when this session should end: its
+        counters near their limit, its chunks' transfer numbers near half their range
+        (:data:`REKEY_TRANSFERS`), or nothing authenticated came from the vehicle for
+        ``silence_s`` (a restarted vehicle end; its ``PQ_STATUS`` hint can be lost or
+        outrun by an attacker's junk)."""
+        silent = self._clock.monotonic() - self._heard >= self.silence_s
+        if session.needs_rekey or silent or self._transfers_used() >= REKEY_TRANSFERS:
+            return self._retry()
+        return []
+
+    def _transfers_used(self) -> int:
+        return (self.sender.transfer - self._first_transfer) & 0xFFFF
+
+    def _seal(self, session: Session, inner: bytes, purpose: Purpose) -> list[bytes]:
+        """Seal a frame; a command with its age stamp (module docstring)."""
+        if purpose is Purpose.COMMAND:
+            age_ms = int(max(0.0, self._clock.monotonic() - self._epoch) * 1000)
+            inner += AGE_STAMP.pack(min(age_ms, 0xFFFFFFFF))
+        blob = compact(session.seal(inner, purpose))
+        frames = self.sender.frames(blob, ChunkKind.FRAME, chunk_key(session.send_key))
+        self._sent.add(self.sender.transfer, frames, repair_key(session.recv_key))
+        return self._air(frames)
+
+    def _retry(self) -> list[bytes]:
+        """The pending handshake's timer: quiet for ``poke_s`` after its chunks left (by
+        ``air_bps``) or were last repaired, a POKE (twice at most: the HS2 may be lost, or
+        the tail of HS1); quiet for ``retry_s``, a new handshake."""
+        now = self._clock.monotonic()
+        if self._pending is None or now - self._hs_quiet >= self.retry_s:
+            return self.handshake()
+        if now - self._hs_quiet < self.poke_s or self._hs_pokes >= 2:
+            return []
+        self._hs_pokes += 1
+        self._hs_quiet = now
+        self.repairs["poke_sent"] += 1
+        poke = repair_frame(
+            Op.POKE, self._hs_transfer, (0, 0), 0, None,
+            sysid=self.sender.sysid, compid=self.sender.compid,
+        )  # fmt: skip
+        return self._air([poke], "repair")
+
+    def from_air(self, raw: bytes) -> Output:
+        """One frame from the air: HS2, telemetry, a repair request, or the vehicle's hint."""
+        frame = _parse(raw)
+        if frame.msgid == MSG_STATUS:  # unauthenticated: heeded only when the vehicle is silent
+            silent = self._clock.monotonic() - self._heard >= self.retry_s
+            hinted = read_status(frame) == STATUS_NO_SESSION and silent
+            return Output(air=self._retry() if hinted else [])
+        if frame.msgid == MSG_REPAIR:
+            return self._repair(parse_repair(frame))
+        keys = [chunk_key(self.session.recv_key)] if self.session is not None else []
+        chunk = parse_chunk(frame)
+        done = self._feed(chunk, keys)
+        if not isinstance(done, tuple):
+            return done or Output()
+        kind, blob = done
+        if kind is ChunkKind.HS2:
+            return self._finish(blob)
+        if kind not in (ChunkKind.FRAME, ChunkKind.FRAME_CHUNKED) or self.session is None:
+            raise UnknownSessionError(f"{kind.name} blob with no session to take it")
+        opened = open_compact(blob, [self.session], Direction.R2I, self.session)
+        self._reassembler.opened(chunk, keys[0])
+        self._heard = self._clock.monotonic()
+        inner, bound = unbind_ack(opened.payload)
+        plain = plain_frame(inner)
+        if not self._hold_ack(plain, bound):  # a copy of an ACK passed on, or a stale one
+            return Output(authenticated=True)
+        return Output(local=[plain], authenticated=True)
+
+    def _repair(self, repair: Repair) -> Output:
+        """A NACK for one of our transfers; a NACK for the pending HS1 (unauthenticated,
+        module :mod:`.repair`, unless a session was live when it left: a rekey's are MACed
+        in that session, so nobody can make it resend the HS1 for free) also restarts its
+        timer.  A POKE from the vehicle end is its
+        answer "never delivered" to ours (:meth:`_undelivered`)."""
+        if repair.target != (self.sender.sysid, self.sender.compid):
+            return Output()
+        if repair.op is Op.POKE:
+            return self._undelivered(repair)
+        handshake = self._pending is not None and repair.transfer == self._hs_transfer
+        if not repair.signed and (not handshake or self._hs_keyed):
+            self.repairs["ignored"] += 1
+            return Output()
+        frames = self._resend(repair)
+        if handshake and frames:
+            self._hs_quiet = self._clock.monotonic() + self._airtime_s(frames)
+        return Output(air=frames)
+
+    def _undelivered(self, repair: Repair) -> Output:
+        """The vehicle end's answer to our POKE: that transfer never opened there and never
+        can (a later one did).  Believed once, for the try whose POKE carried that nonce
+        (a replay of it finds the nonce spent): the command is sealed anew, whole."""
+        attempt = next((t for t in self._tries.values() if t.transfer == repair.transfer), None)
+        session = self.session
+        if attempt is None or attempt.nonce != repair.missing or attempt.session is not session:
+            self.repairs["ignored"] += 1
+            return Output()
+        repair.verify([repair_key(attempt.session.recv_key)])
+        self.repairs["undelivered"] += 1
+        self._sent.forget(attempt.transfer)
+        air = self._seal(attempt.session, inner_of(_parse(attempt.raw)), Purpose.COMMAND)
+        attempt.transfer, attempt.nonce = self.sender.transfer, 0
+        attempt.due = self._clock.monotonic() + self._airtime_s(air)
+        return Output(air=air)
+
+    def _hold_ack(self, plain: bytes, bound: int | None) -> bool:
+        """A final COMMAND_ACK the vehicle end bound to a command transfer (sealed with it)
+        answers the try of that transfer, and only that one: a GCS retry of it from now
+        on is answered with it (within ``retry_window_s``).  False (counted) for a copy
+        of an ACK already passed on (the vehicle end sends each twice, and answers POKEs)
+        and for a bound ACK whose try is gone: neither may reach a GCS that waits for
+        another command's ACK (MAVLink names only the command number)."""
+        frame = parse_frame(plain)
+        if frame.msgid != dialect.MAVLINK_MSG_ID_COMMAND_ACK:
+            return True
+        now = self._clock.monotonic()
+        if self._last_ack == plain and now - self._last_ack_at < self.retry_window_s:
+            self.repairs["ack_duplicate"] += 1
+            return False
+        if bound is None:  # a command from elsewhere (the vehicle end holds none for it)
+            self._last_ack, self._last_ack_at = plain, now
+            return True
+        attempt = next((t for t in self._tries.values() if t.transfer == bound), None)
+        if attempt is None or attempt.ack is not None:
+            self.repairs["ack_duplicate" if attempt else "ack_stale"] += 1
+            return False
+        self._last_ack, self._last_ack_at = plain, now
+        if frame.payload[2:3] != bytes([IN_PROGRESS]):
+            attempt.ack = plain
+            self._sent.forget(attempt.transfer)
+        return True
+
+    def _finish(self, hs2: bytes) -> Output:
+        if self._pending is None:
+            if hs2 == self._hs2:  # the vehicle end answered a POKE that crossed the HS2
+                self.reassembly.duplicates += 1
+                return Output()
+            raise UnknownSessionError("HS2 with no handshake in progress")
+        self.session = self.initiator.finish(self._pending[0], hs2)
+        self.handshakes["completed"] += 1
+        self._sent.forget(self._hs_transfer)
+        self._pending, self._heard, self._hs2 = None, self._clock.monotonic(), hs2
+        self._epoch = self._heard
+        self._first_transfer = self.sender.transfer
+        out = Output(authenticated=True)
+        self._expire_queue()
+        while self._queue:
+            out.air += self.from_local(self._queue.popleft()[0])
+        return out
+
+    def _expire_queue(self) -> None:
+        horizon = self._clock.monotonic() - self.queue_ttl_s
+        while self._queue and self._queue[0][1] < horizon:
+            self._queue.popleft()
+            self.drops["QUEUE_EXPIRED"] += 1

@@ -1,0 +1,132 @@
+"""The PQ vehicle end (the responder): handshakes it accepts or refuses, what it requires signed."""
+
+from __future__ import annotations
+
+import os
+import random
+from collections.abc import Callable
+
+import pytest
+
+from antireplay import ManualClock
+from antireplay.core.errors import (
+    MessageStaleError,
+    UnknownSessionError,
+)
+from antireplay.mavlink.pq import (
+    CHUNK_DATA,
+    ChunkKind,
+    ChunkSender,
+    GroundEnd,
+    VehicleEnd,
+)
+from antireplay.pq.session import Initiator, Responder
+
+os.environ["MAVLINK20"] = "1"
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from harness.pq_ends import (
+    GCS_KEY,
+    ROBOT_KEM,
+    EndPair,
+    arm,
+    blob,
+    connected,
+    plain,
+    raw_chunk,
+)
+
+
+def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
+    link = EndPair(clock)
+    hs1 = link.ground.handshake()
+    link.up(hs1)
+    assert len(link.responder) == 1
+    link.up(hs1)
+    assert link.refused == ["REPLAY_DETECTED"] and len(link.responder) == 1
+    clock.advance(40)
+    link.up(hs1)
+    assert link.refused[-1] == "MESSAGE_STALE" and len(link.responder) == 1
+    with pytest.raises(MessageStaleError):  # the reassembled blob is the HS1 itself
+        link.responder.accept_handshake(blob(hs1))
+    # a replayed HS2 at the ground end finishes nothing: no handshake is pending
+    session = link.ground.session
+    hs2 = ChunkSender(1, 197).frames(b"\xa2" + bytes(81), ChunkKind.HS2)
+    link.down(hs2)
+    assert link.refused[-1] == "UNKNOWN_SESSION" and link.ground.session is session
+
+
+def test_handshake_flood_keeps_the_almost_complete_handshake(clock: ManualClock) -> None:
+    link = EndPair(clock)
+    hs1 = link.ground.handshake()
+    assert len(hs1) == 29  # 26 chunks and 3 parity
+    link.up([raw for i, raw in enumerate(hs1) if i not in (0, 3, 28)])  # two of one group
+    rng = random.Random(5)
+    for transfer in range(200):  # first chunks of made-up handshakes from other systems
+        fields = (transfer, 0, 26, CHUNK_DATA, ChunkKind.HS1)
+        link.up([raw_chunk(fields, rng.randbytes(CHUNK_DATA), sysid=rng.randrange(256))])
+    link.up(hs1[:1])
+    assert link.ground.session is not None
+    assert link.vehicle.reassembly.evicted == 199
+
+
+def test_the_vehicle_end_draws_session_ids_whose_handles_differ(clock: ManualClock) -> None:
+    link = EndPair(clock, max_sessions=8)
+    for _ in range(8):  # eight live sessions, none carrying a frame (none superseded)
+        link.connect()
+    assert len({s.session_id[-1] for s in link.vehicle._sessions}) == 8
+    avoid = lambda sid: sid[-1] < 0x80  # noqa: E731 - half the handles taken: 2**-64 to miss
+    handles = []
+    for _ in range(8):  # without the redraw, all eight in the free half by chance: 1 in 256
+        hs1 = link.ground.initiator.start(ROBOT_KEM.public_key())
+        handles.append(link.responder.accept_handshake(hs1, avoid)[1][2 + 15])
+    assert min(handles) >= 0x80, handles
+
+
+def test_a_message_that_must_be_signed_is_refused_in_a_data_frame(clock: ManualClock) -> None:
+    link = EndPair(clock)
+    link.ground = GroundEnd(
+        Initiator("gcs", GCS_KEY, clock), ROBOT_KEM.public_key(), clock=clock, signed=frozenset()
+    )
+    link.connect()
+    (frame,) = link.ground.from_local(arm())  # an HMAC data frame
+    link.up([frame])
+    assert not link.commands() and link.refused == ["SIGNATURE_REQUIRED"]
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda m: m.mission_item_send(1, 1, 0, 0, 16, 0, 1, 0, 0, 0, 0, 1.0, 2.0, 30.0),
+        lambda m: m.mission_write_partial_list_send(1, 1, 0, 3),
+        lambda m: m.param_ext_set_send(1, 1, b"ARMING_CHECK", b"0", 6),
+        lambda m: m.serial_control_send(10, 0, 0, 0, 4, [ord(c) for c in "rebo"] + [0] * 66),
+        lambda m: m.file_transfer_protocol_send(0, 1, 1, [0] * 251),
+        lambda m: m.set_position_target_local_ned_send(0, 1, 1, 1, 0, 1, 2, 3, *[0] * 8),
+        lambda m: m.set_position_target_global_int_send(0, 1, 1, 5, 0, 1, 2, 3, *[0] * 8),
+    ],
+)
+def test_command_carrying_messages_are_signed_by_default(
+    clock: ManualClock, build: Callable[[dialect.MAVLink], None]
+) -> None:
+    link = connected(clock)
+    frames = link.ground.from_local(plain(build))
+    assert len(frames) > 1  # an ML-DSA-87 signature: several chunks
+    link.up(frames)
+    assert len(link.delivered) == 1 and link.refused == []
+
+
+def test_vehicle_end_restart_the_ground_end_handshakes_again(clock: ManualClock) -> None:
+    link = connected(clock)
+    link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
+    link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted: no session
+    with pytest.raises(UnknownSessionError):
+        link.vehicle.from_air(
+            link.ground.from_local(plain(lambda m: m.heartbeat_send(6, 8, 0, 0, 4)))[0]
+        )
+    hint = link.vehicle.hint()
+    assert link.vehicle.hint() == []  # rate-limited
+    clock.advance(3)  # the ground end heard nothing authenticated for retry_s
+    link.down(hint)
+    link.up(link.ground.from_local(arm()))
+    assert len(link.commands()) == 1
