@@ -359,8 +359,8 @@ def test_a_lazy_anchors_restart_fence_is_said_like_any_fence(tmp_path: Path) -> 
         second.stop()
     assert "lazy state anchor's lease" in (second.stderr_text or "")
     rows = [r for r in AuditLog(state / "audit.db").tail(50) if r.code == "STATE_LOST"]
-    first, lease = sorted(rows, key=lambda r: r.seq)  # the first start's, then the lease's
-    assert str(first.warning).startswith("no history") and "lease" in str(lease.warning)
+    new, lease = sorted(rows, key=lambda r: r.seq)  # the first start's, then the lease's
+    assert str(new.warning).startswith("no history") and "lease" in str(lease.warning)
 
 
 def _race(urls: list[str], raw: bytes, connections: int) -> list[int]:
