@@ -239,7 +239,9 @@ def gateway(
                 raise SystemExit(f"{name}: the tracer started nothing")
             time.sleep(0.01)
         server.pid = int(kids[0])
-    return healthy(server, "/healthz")
+    healthy(server, "/healthz")
+    wait_ready(server.url)  # past a new state's first-start fence
+    return server
 
 
 def signer(state: Path) -> ed25519.Ed25519PrivateKey:
@@ -275,6 +277,16 @@ def hog() -> subprocess.Popen[bytes]:
 
 def wait_healthy(url: str, proc: subprocess.Popen[bytes], path: str) -> None:
     healthy(Server(url, url, proc), path)
+
+
+def wait_ready(url: str, timeout_s: float = 60.0) -> None:
+    """Until ``/readyz`` answers 200: a new state fences its first start for about
+    ``skew_s`` ("fenced until T"), refusing every command stamped before T."""
+    deadline = time.monotonic() + timeout_s
+    while httpx.get(url + "/readyz").status_code != 200:
+        if time.monotonic() > deadline:
+            raise SystemExit(f"{url}: not ready within {timeout_s:g} s")
+        time.sleep(0.05)
 
 
 def stop(proc: subprocess.Popen[bytes]) -> None:

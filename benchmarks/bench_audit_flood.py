@@ -48,6 +48,7 @@ import yaml
 
 from antireplay.config import AuditConfig
 from antireplay.wiring import embedded_default
+from benchmarks._gateway_load import wait_ready
 from benchmarks.bench_gateway import WRK_SCRIPT, envelope, signer, stop, wait_healthy, wrk
 from benchmarks.bench_gateway import write_lines as write
 from harness import free_port
@@ -208,6 +209,7 @@ def flood(
     proc = subprocess.Popen([*args, "--port", str(port)], env=env, stderr=subprocess.DEVNULL)
     try:
         wait_healthy(url, proc, "/healthz")
+        wait_ready(url)  # past a new state's first-start fence
         key = signer(state)
         captured = envelope(key)
         httpx.post(url + "/v1/messages", content=captured, headers=_JSON).raise_for_status()

@@ -33,10 +33,10 @@ from pathlib import Path
 
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
-from antireplay import ManualClock
-from antireplay.core.clock import SystemClock
+from antireplay.core.clock import ManualClock, SystemClock
 from antireplay.core.errors import CounterReplayedError
 from antireplay.mavlink import MavlinkGuard, mav_time, passphrase_key
+from antireplay.state.sqlite import SqliteStore
 from benchmarks._timing import per_op_ns, rate, rejected
 from harness import free_port
 
@@ -197,6 +197,9 @@ def link_rows() -> None:
             "--system-id",
             "1",
         ]  # default --store (SQLite on disk) and --audit
+        # A deployment started 10 min ago: a new state fences the router's first start.
+        state = cwd / ".antireplay" / "mavlink.db"
+        SqliteStore(state, clock=ManualClock(wall=time.time() - 600)).close()
         forwarders: list[tuple[Launch, list[tuple[str, int, bool]]]] = [
             (
                 lambda: start([sys.executable, "-c", RELAY, str(port), str(vport)], cwd, b"relay"),

@@ -53,13 +53,14 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for audited in (True, False):
             config = embedded_default(Path(tmp, "audited" if audited else "bare"))
-            clock = ManualClock(NOW)
-            store = open_store(
+            clock = ManualClock(NOW - 600)  # the store opens before the rows' messages: a
+            store = open_store(  # new state fences its first start, as a memory store does
                 config.store,
                 clock=clock,
                 max_entries=config.security.msg_id_cache_size,
                 skew_s=config.security.skew_s,
             )
+            clock.advance(600)
             audit = AuditLog(config.audit) if audited else None
             label = "default config" if audited else "same, no audit"
             print(f"{label}: store {config.store.replace(tmp, '$TMP')}, audit {audit is not None}")

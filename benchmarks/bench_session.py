@@ -208,6 +208,8 @@ def _pq_path(fc: socket.socket) -> list[float]:
 def _router_path(fc: socket.socket) -> list[float]:
     trusted, fc_port = free_port(), fc.getsockname()[1]
     with tempfile.TemporaryDirectory() as tmp:
+        # A deployment started 10 min ago: a new state fences the router's first start.
+        SqliteStore(Path(tmp) / "mav.db", clock=ManualClock(wall=time.time() - 600)).close()
         store, audit = SqliteStore(Path(tmp) / "mav.db"), AuditLog(Path(tmp) / "audit.db")
         key = passphrase_key("bench")
         router = build_mavlink_router(

@@ -110,8 +110,14 @@ class GatewayProcess:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout_s: float = 30.0) -> None:
+    def start(self, timeout_s: float = 30.0, *, past_fence: bool = True) -> None:
+        """Start and wait until healthy; ``past_fence``: and until ``/readyz`` no longer
+        says "fenced until" (a state with no history fences its first start, as a memory
+        store fences every start: about ``skew_s``), so what the test sends is judged by
+        the rule it tests, not by that fence (which has its own tests)."""
         self.proc = start_gateway(self.config, self.port, timeout_s, self.prefix)
+        if past_fence:
+            wait_past_fence(self.url, timeout_s)
 
     def stop(self) -> None:
         """Graceful stop (uvicorn finishes in-flight requests); keeps what it said on stderr."""
@@ -137,6 +143,17 @@ def child_pids(pid: int) -> list[int]:
         except OSError:  # the task ended meanwhile
             continue
     return found
+
+
+def wait_past_fence(url: str, timeout_s: float = 30.0) -> None:
+    """Poll ``url``'s ``/readyz`` until its reason is no longer a fence ("fenced until T"):
+    ready, or not ready for another reason the test is about."""
+
+    def past() -> bool:
+        reply = httpx.get(f"{url}/readyz", timeout=10)
+        return reply.status_code == 200 or "fenced until" not in reply.text
+
+    until("the start's fence to pass", past, timeout_s)
 
 
 @contextmanager

@@ -23,14 +23,19 @@ from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_con
 from antireplay.config import AppConfig
 from antireplay.core.clock import Clock
 from antireplay.wiring import create_app
+from harness.stores import aged_state
 
 NOW = 1_800_000_000.0
 LIMIT = 4096
 
 
 def config(state: Path, public: Path, **overrides: Any) -> AppConfig:
-    """The default deployment's shape: SQLite seen-set and audit trail on disk."""
+    """The default deployment's shape: SQLite seen-set and audit trail on disk, of a
+    deployment started before the test's now (:func:`~harness.stores.aged_state`:
+    the real clock's, below every manual clock's ``NOW``)."""
     state.mkdir(exist_ok=True)
+    if "store" not in overrides:
+        aged_state(state / "state.db")
     return AppConfig.from_mapping({
         "store": f"sqlite:{state / 'state.db'}", "audit": str(state / "audit.db"),
         "max_body_bytes": LIMIT,
@@ -104,7 +109,10 @@ def request(app: Starlette, method: str, path: str, content: bytes | None = None
 def demo_app(state: Path, clock: Clock | None = None, **overrides: Any) -> Iterator[Starlette]:
     """The demo deployment's gateway (its files in ``state``) in process; its store closed
     afterwards."""
-    app = create_app(AppConfig.from_yaml(write_demo_config(state, **overrides)), clock=clock)
+    written = AppConfig.from_yaml(write_demo_config(state, **overrides))
+    if written.store.startswith("sqlite:"):  # a deployment started before the test's now
+        aged_state(written.store.removeprefix("sqlite:"), clock)
+    app = create_app(written, clock=clock)
     try:
         yield app
     finally:

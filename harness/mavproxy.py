@@ -37,6 +37,7 @@ from antireplay.pq.session import Initiator, Responder
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
 from harness import free_port
+from harness.stores import aged_state
 
 PASSPHRASE = "correct-horse-battery-staple"
 
@@ -168,7 +169,7 @@ class RouterRig:
     def start_router(self) -> MavlinkRouter:
         """A router on the SQLite store in ``tmp`` (a restart keeps it); refusals from now."""
         self.refused: list[FrameRefusal] = []
-        self.store = SqliteStore(self.tmp / "mav.db")
+        self.store = SqliteStore(aged_state(self.tmp / "mav.db"))  # started earlier, or kept
         self.audit = AuditLog(self.tmp / "audit.db")
         router = build_mavlink_router(
             [

@@ -40,7 +40,9 @@ from typing import Any
 os.environ["MAVLINK20"] = "1"  # pymavlink's mavutil speaks MAVLink 1 unless told otherwise
 from pymavlink import mavutil
 
+from antireplay.core.clock import ManualClock
 from antireplay.mavlink import passphrase_key
+from antireplay.state.sqlite import SqliteStore
 from harness import free_udp_port
 from harness.radio import Radio
 
@@ -307,6 +309,8 @@ def run_signed(loss: float, bps: int | None, seed: int, plan: Plan) -> Row:
     env = dict(os.environ, MAV_PASSPHRASE=PASSPHRASE)
     with tempfile.TemporaryDirectory() as tmp, ExitStack() as stack:
         work = Path(tmp)
+        # A deployment started 10 min ago: a new state fences the router's first start.
+        SqliteStore(work / "mav.db", clock=ManualClock(wall=time.time() - 600)).close()
         router = _Process(
             [
                 "mavlink-router", "--vehicle", f"udpin:127.0.0.1:{vehicle_port}",

@@ -32,6 +32,7 @@ from antireplay.wiring.mavlink import (
     read_signing_keys,
 )
 from harness import ROOT, GatewayProcess, one_line_error
+from harness.stores import aged_state
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 
@@ -47,6 +48,7 @@ def test_demo_passes(args: list[str]) -> None:
 def test_keygen_sign_send_and_audit(tmp_path: Path) -> None:
     runner = CliRunner()
     gw = GatewayProcess(write_demo_config(tmp_path))
+    aged_state(tmp_path / "state.db")  # a deployment started earlier: no first-start row
     gw.start()
     try:
         signed = runner.invoke(

@@ -18,6 +18,7 @@ from antireplay.config import AuditConfig
 from harness import free_port, free_udp_port, metrics_router, until
 from harness.flood import flood_until_rotated, trail_bytes
 from harness.mavlink_frames import unsigned_heartbeat
+from harness.stores import aged_state
 
 
 @pytest.mark.parametrize(("host", "why"), [("192.0.2.1", "assign"), ("bad..host", "label")])
@@ -75,8 +76,9 @@ def test_the_routers_exit_counts_say_what_no_peer_means(tmp_path: Path) -> None:
     router = subprocess.Popen(
         [*cli, "mavlink-router", "--vehicle", f"udpin:127.0.0.1:{vehicle}",
          "--ground", f"udpin:127.0.0.1:{free_udp_port()}", "--passphrase-env", "MAV_PASSPHRASE",
-         "--store", f"sqlite:{tmp_path / 'state.db'}", "--audit", str(tmp_path / "audit.db"),
-         "--metrics-port", str(metrics)],  # a new store: no start fence (memory's refuses 60 s)
+         "--store", f"sqlite:{aged_state(tmp_path / 'state.db')}",
+         "--audit", str(tmp_path / "audit.db"),
+         "--metrics-port", str(metrics)],  # a state with history: no first start's fence
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     sim = subprocess.Popen(

@@ -36,6 +36,7 @@ from harness import (
     post,
     serving,
     until,
+    wait_past_fence,
 )
 from harness.redis_server import RedisServer
 
@@ -159,8 +160,11 @@ def _restore_after_accepting(tmp_path: Path, anchor: dict[str, object] | None) -
         losses = metric(b, "antireplay_state_data_loss_total", '{backend="sqlite"}')
     finally:
         b.stop()
-    codes = [r.code for r in AuditLog(state / "audit.db").tail(50)]
-    assert (losses == 1) is (anchor is not None) and ("STATE_LOST" in codes) is (losses == 1)
+    lost = [  # loss rows (the first start's "no history" row is not one)
+        r for r in AuditLog(state / "audit.db").tail(50)
+        if r.code == "STATE_LOST" and not str(r.warning).startswith("no history")
+    ]  # fmt: skip
+    assert (losses == 1) is (anchor is not None) and bool(lost) is (losses == 1)
     return replay.status_code, b.stderr_text or ""
 
 
@@ -311,6 +315,7 @@ def test_an_unreachable_redis_anchor_starts_unready_and_recovers(tmp_path: Path)
         estop = post(gateway, command(key, type=6, safety_event="ESTOP", cmd="estop"))
         assert estop.status_code == 200, estop.text
         server.start()
+        wait_past_fence(gateway.url)  # verified now: a state with no history fences from here
         assert httpx.get(f"{gateway.url}/readyz", timeout=5).status_code == 200
         assert post(gateway, command(key)).status_code == 200
         server.kill()
@@ -408,7 +413,7 @@ def test_a_lazy_anchors_restart_fence_is_said_like_any_fence(tmp_path: Path) -> 
     with serving(config) as first:
         assert post(first, command(key)).status_code == 200
     second = GatewayProcess(config)
-    second.start()
+    second.start(past_fence=False)  # the lease's fence is what this test is about
     try:
         assert post(second, command(key)).status_code == 408
         estop = post(second, command(key, type=6, safety_event="ESTOP", cmd="estop"))
@@ -418,7 +423,8 @@ def test_a_lazy_anchors_restart_fence_is_said_like_any_fence(tmp_path: Path) -> 
         second.stop()
     assert "lazy state anchor's lease" in (second.stderr_text or "")
     rows = [r for r in AuditLog(state / "audit.db").tail(50) if r.code == "STATE_LOST"]
-    assert len(rows) == 1 and "lease" in str(rows[0].warning)
+    new, lease = sorted(rows, key=lambda r: r.seq)  # the first start's, then the lease's
+    assert str(new.warning).startswith("no history") and "lease" in str(lease.warning)
 
 
 def _race(urls: list[str], raw: bytes, connections: int) -> list[int]:
@@ -505,6 +511,7 @@ def test_serve_workers_runs_n_processes_that_accept_a_message_once(tmp_path: Pat
     url = f"http://127.0.0.1:{port}"
     try:
         until("serving", lambda: len(_workers_of(proc.pid)) == 2 and _healthy(url), 60)
+        wait_past_fence(url)  # a new state: its first start's fence (its own test above)
         for _ in range(4):
             statuses = _race([url], command(key), 32)
             assert sorted(statuses) == [200] + [409] * 31, statuses
@@ -553,6 +560,7 @@ def test_serve_workers_rotate_and_retain_one_trail_within_its_budget(tmp_path: P
     url = f"http://127.0.0.1:{port}"
     try:
         until("serving", lambda: len(_workers_of(proc.pid)) == 2 and _healthy(url), 60)
+        wait_past_fence(url)  # a new state: its first start's fence (its own test above)
 
         def send(n: int) -> list[int]:
             with httpx.Client(base_url=url, timeout=30) as client:
@@ -613,3 +621,56 @@ def test_config_check_validates_every_section(tmp_path: Path) -> None:
     ):  # fmt: skip
         config.write_text(yaml.safe_dump({**base, **wrong}))
         one_line_error(run(main, ["config", "check", str(config)]), named)
+
+
+def test_a_wiped_state_directory_fences_its_start_and_says_so(tmp_path: Path) -> None:
+    """X accepted on SQLite; the state directory wiped (database, WAL, witness, audit trail:
+    a redeploy, or an attacker with the disk); the gateway starts on a state with no
+    history, and X replayed within its window is refused by the restart fence, as a
+    memory store's start would refuse it.  The start line, readiness, the metric and an
+    audit row say "no history"."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    with serving(config) as first:  # waits out its own first start's fence
+        x = command(key)
+        assert post(first, x).status_code == 200
+    kept = {config.name, "operator.key.pem", "operator.pub.pem"}
+    for leftover in state.iterdir():
+        if leftover.name not in kept:
+            shutil.rmtree(leftover) if leftover.is_dir() else leftover.unlink()
+    port = free_port()
+    args = [sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
+    proc = subprocess.Popen(
+        [*args, "--host", "127.0.0.1", "--port", str(port)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10) as client:
+            until("the gateway to answer", lambda: _answers(client))
+            replayed = post(client, x)
+            body = replayed.json()
+            assert (replayed.status_code, body.get("code"), body.get("detail")) == (
+                408, "MESSAGE_STALE", "restart_fence",
+            ), replayed.text  # fmt: skip
+            ready = client.get("/readyz")
+            assert ready.status_code == 503 and "fenced until" in ready.json()["reason"]
+            assert "no history" in ready.json()["reason"]
+            assert metric(client, "antireplay_state_no_history_total", '{backend="sqlite"}') == 1
+            assert metric(client, "antireplay_state_data_loss_total", '{backend="sqlite"}') == 0
+    finally:
+        proc.terminate()
+        out, _ = proc.communicate(timeout=30)
+    said = out.splitlines()
+    assert said[0].startswith("listening on") and said[1].startswith("fenced until"), said
+    assert "no history" in said[1]
+    rows = [r for r in AuditLog(state / "audit.db").tail(50) if r.code == "STATE_LOST"]
+    assert len(rows) == 1 and str(rows[0].warning).startswith("no history"), rows
+
+
+def _answers(client: httpx.Client) -> bool:
+    try:
+        return client.get("/healthz").status_code == 200
+    except httpx.HTTPError:
+        return False

@@ -29,6 +29,7 @@ from antireplay.epochs import EpochSigner, Kind, derive_key, signer_state
 from antireplay.epochs.policy import seal
 from antireplay.state import open_store
 from harness import dds_writer_process, started_before, until
+from harness.stores import aged_state
 
 try:
     from antireplay.dds import relay as relay_module
@@ -521,7 +522,7 @@ def test_cli_reader_prints_verdicts_across_processes(tmp_path: Path) -> None:
     config = tmp_path / "dds.yaml"
     config.write_text(
         f"dds:\n  domain_id: {next(_IDS)}\n  psk_file: {tmp_path / 'fleet.psk'}\n"
-        f"  reader: {{topic: robot/cmd, store: 'sqlite:{tmp_path / 'reader.db'}'}}\n"
+        f"  reader: {{topic: robot/cmd, store: 'sqlite:{aged_state(tmp_path / 'reader.db')}'}}\n"
         f"  writer: {{topic: robot/cmd, state_file: {tmp_path / 'writer.state'}}}\n"
     )
     cfg = ["--config", str(config)]
@@ -554,17 +555,17 @@ def test_cli_relay_reannounces_for_another_process(tmp_path: Path) -> None:
     config.write_text(
         f"dds:\n  domain_id: {domain_id}\n  psk_file: {tmp_path / 'fleet.psk'}\n"
         f"  relay: {{service_name: cds-1, signer_state: {tmp_path / 's.state'},"
-        f" verifier_store: 'sqlite:{tmp_path / 'v.db'}'}}\n"
+        f" verifier_store: 'sqlite:{aged_state(tmp_path / 'v.db')}'}}\n"
     )
     relay = _antireplay("relay", "--config", str(config), "--duration", "15")
     try:
         participant = join_domain(domain_id)
-        # a new sqlite store proves nobody accepted anything before: no start fence
+        # a store of a deployment started earlier: its first start's fence is long past
         subscriber = SealedReader(
             participant,
             "antireplay/relayed",
             psk,
-            store=open_store(f"sqlite:{tmp_path / 'sub.db'}"),
+            store=open_store(f"sqlite:{aged_state(tmp_path / 'sub.db')}"),  # started earlier
         )
         announcer = SealedWriter(participant, "antireplay/announce", psk)
         until(

@@ -16,6 +16,7 @@ from antireplay.audit.segments import bytes_of, rotated
 from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from harness import serving
+from harness.stores import aged_state
 
 SEGMENT = 65_536
 BUDGET = 4 * SEGMENT
@@ -27,6 +28,7 @@ def test_a_serving_gateway_rotates_and_retains_its_trail_within_budget(tmp_path:
         tmp_path, audit={"path": str(audit), "segment_bytes": SEGMENT, "max_bytes": BUDGET}
     )
     key = load_operator_key(tmp_path)
+    aged_state(tmp_path / "state.db")  # a deployment started earlier: its rows alone
     with serving(config) as gateway, httpx.Client(base_url=gateway.url, timeout=10) as client:
 
         def send(i: int) -> str:

@@ -39,6 +39,7 @@ from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import RouterOptions, build_mavlink_router
 from harness import free_port, until
 from harness.mavproxy import KEY, PqRig, PtyVehicle
+from harness.stores import aged_state
 
 ARM, SERVO = 400, 183
 
@@ -171,7 +172,8 @@ def test_vehicle_end_behind_the_mavlink_router(tmp_path: Path) -> None:
     flight controller's MAVLink key: the autopilot verifies every command it gets."""
     vehicle = PtyVehicle()  # signs and verifies with KEY
     trusted, air, local = free_port(), free_port(), free_port()
-    store, audit = SqliteStore(tmp_path / "mav.db"), AuditLog(tmp_path / "audit.db")
+    store = SqliteStore(aged_state(tmp_path / "mav.db"))  # a deployment started earlier
+    audit = AuditLog(tmp_path / "audit.db")
     router = build_mavlink_router(
         [
             (Role.VEHICLE, f"{vehicle.device},57600", KEY),

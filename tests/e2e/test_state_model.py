@@ -40,6 +40,7 @@ from antireplay.state.memory import MemoryStore
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
 from harness.redis_server import RedisServer
+from harness.stores import sqlite_store
 
 WINDOW, SAFETY_WINDOW, SKEW, MEMORY_MAX = 30.0, 10.0, 5.0, 6
 #: Far enough ahead of the real clock that Redis's server time never sets a fence.
@@ -265,7 +266,7 @@ class SqliteVsModel(StoreVsModel):
         self.dir = Path(tempfile.mkdtemp(prefix="antireplay-model-", dir=where))
         self.path = self.dir / "state.db"
         self.snapshot: Path | None = None
-        return SqliteStore(self.path, clock=self.clock)
+        return sqlite_store(self.path, clock=self.clock)
 
     def teardown(self) -> None:
         super().teardown()

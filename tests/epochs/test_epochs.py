@@ -49,6 +49,7 @@ from antireplay.state.durable import repair
 from antireplay.state.redis import RedisStore
 from antireplay.state.sqlite import SqliteStore
 from harness import assert_never_reused, kill9_runs, started_before
+from harness.stores import aged_state, sqlite_store
 
 PSK = b"fleet-pre-shared-key-0123456789ab"
 
@@ -258,7 +259,7 @@ def test_rotation_is_audited(tmp_path: Path, clock: ManualClock) -> None:
 
 
 def test_rotation_recognised_by_a_restarted_verifier(tmp_path: Path, clock: ManualClock) -> None:
-    path = f"sqlite:{tmp_path / 'verifier.db'}"
+    path = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"
     signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
     verifier = EpochVerifier(PSK, clock=clock, store=open_store(path, clock=clock))
     verifier.open(signer.seal(b"a"))
@@ -287,7 +288,7 @@ def test_rotation_is_reported_once_not_after_each_restart(
 ) -> None:
     """A verifier restarted on its store does not report a rotation it already reported
     (review finding 6): the warning is for the new prefix's first epoch in the store."""
-    path = f"sqlite:{tmp_path / 'verifier.db'}"
+    path = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"
     signer = EpochSigner(PSK, clock=clock, max_forward_s=10)
     verifier = EpochVerifier(PSK, clock=clock, store=open_store(path, clock=clock))
     rotated(clock, signer, verifier)
@@ -315,7 +316,7 @@ def test_rotation_is_not_reported_again_after_eviction(clock: ManualClock) -> No
 def test_refused_new_prefix_evicts_no_live_sender(tmp_path: Path, clock: ManualClock) -> None:
     """An authentic new prefix at or below the lowest held epoch of a full table is refused
     and changes nothing: the live senders stay, no fence rises (review finding 5)."""
-    store = open_store(f"sqlite:{tmp_path / 'v.db'}", clock=clock)
+    store = open_store(f"sqlite:{aged_state(tmp_path / 'v.db', clock)}", clock=clock)
     verifier = EpochVerifier(PSK, clock=clock, store=store, max_prefixes=2)
     a, b = EpochSigner(PSK, clock=clock), EpochSigner(PSK, clock=clock)
     behind = ManualClock(wall=clock.wall() - 0.001)  # a sender 1 ms behind the others
@@ -436,12 +437,12 @@ def test_sender_kill9_at_random_moments_never_repeats(tmp_path: Path) -> None:
 
 
 def test_verifier_restart_rejects_everything_old(tmp_path: Path, clock: ManualClock) -> None:
-    spec = f"sqlite:{tmp_path / 'verifier.db'}"
+    spec = f"sqlite:{aged_state(tmp_path / 'verifier.db', clock)}"
     signer = EpochSigner(PSK, clock=clock)
     sent = [signer.seal(f"a{i}".encode()) for i in range(5)]
     verifier = EpochVerifier(
         PSK, store=open_store(spec, clock=clock), clock=clock
-    )  # a new deployment: no fence
+    )  # a deployment started earlier
     for sealed in sent[::2]:
         verifier.open(sealed)  # accept 0, 2, 4; 1 and 3 are superseded
     verifier.store.close()
@@ -454,7 +455,7 @@ def test_verifier_restart_rejects_everything_old(tmp_path: Path, clock: ManualCl
 
 
 def test_each_accept_is_one_store_advance(tmp_path: Path, clock: ManualClock) -> None:
-    store = SqliteStore(tmp_path / "verifier.db", clock=clock)
+    store = sqlite_store(tmp_path / "verifier.db", clock=clock)
     signer = EpochSigner(PSK, clock=clock)
     verifier = EpochVerifier(PSK, store=store, clock=clock)
     verifier.open(signer.seal(b"first"))  # a new prefix: its epoch and its successor's mark
@@ -489,7 +490,7 @@ def test_memory_store_verifier_refuses_what_was_sealed_before_it_started(
 
 
 def test_verifier_on_a_store_that_lost_its_state_fences(tmp_path: Path, clock: ManualClock) -> None:
-    db = tmp_path / "verifier.db"
+    db = aged_state(tmp_path / "verifier.db", clock)
     signer = EpochSigner(PSK, clock=clock)
     verifier = EpochVerifier(
         PSK, store=open_store(f"sqlite:{db}", clock=clock), clock=clock, max_forward_s=5
@@ -512,7 +513,7 @@ def test_verifier_on_a_store_that_lost_its_state_fences(tmp_path: Path, clock: M
 def test_two_verifiers_on_one_store_accept_each_epoch_once(
     tmp_path: Path, clock: ManualClock
 ) -> None:
-    spec = f"sqlite:{tmp_path / 'shared.db'}"
+    spec = f"sqlite:{aged_state(tmp_path / 'shared.db', clock)}"
     signer = EpochSigner(PSK, clock=clock)
     first = EpochVerifier(PSK, store=open_store(spec, clock=clock), clock=clock)
     second = EpochVerifier(PSK, store=open_store(spec, clock=clock), clock=clock)
@@ -627,7 +628,7 @@ class _FlakySqlite(SqliteStore):
 def test_failed_store_write_moves_no_mark_and_redelivery_is_accepted(
     tmp_path: Path, clock: ManualClock, caplog: pytest.LogCaptureFixture
 ) -> None:
-    store = _FlakySqlite(tmp_path / "verifier.db", clock=clock)
+    store = started_before(clock, lambda: _FlakySqlite(tmp_path / "verifier.db", clock=clock))
     signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, store=store, clock=clock)
     first = verifier.open(signer.seal(b"first"))
     clock.advance(0.001)
@@ -646,7 +647,7 @@ def test_failed_store_write_moves_no_mark_and_redelivery_is_accepted(
 def test_failed_first_write_of_a_new_prefix_leaves_it_unknown(
     tmp_path: Path, clock: ManualClock
 ) -> None:
-    store = _FlakySqlite(tmp_path / "verifier.db", clock=clock)
+    store = started_before(clock, lambda: _FlakySqlite(tmp_path / "verifier.db", clock=clock))
     signer, verifier = EpochSigner(PSK, clock=clock), EpochVerifier(PSK, store=store, clock=clock)
     sealed = signer.seal(b"hello")
     store.down = True
@@ -667,10 +668,10 @@ def _poison_sqlite(db: Path, key: str) -> None:
 def test_wrong_typed_floor_in_sqlite_refuses_start_naming_the_file(
     tmp_path: Path, clock: ManualClock
 ) -> None:
-    db = tmp_path / "verifier.db"
+    db = aged_state(tmp_path / "verifier.db", clock)
     EpochVerifier(PSK, store=open_store(f"sqlite:{db}", clock=clock), clock=clock).store.close()
     _poison_sqlite(db, "epoch:announcement:floor")
-    store = SqliteStore(db, clock=clock)
+    store = sqlite_store(db, clock=clock)
     with pytest.raises(StateFileError) as refused:
         store.current("epoch:announcement:floor")
     assert str(db) in str(refused.value) and refused.value.recovery
@@ -684,7 +685,7 @@ def test_wrong_typed_floor_in_sqlite_refuses_start_naming_the_file(
 def test_wrong_typed_epoch_while_running_is_state_unavailable(
     tmp_path: Path, clock: ManualClock
 ) -> None:
-    db = tmp_path / "verifier.db"
+    db = aged_state(tmp_path / "verifier.db", clock)
     signer = EpochSigner(PSK, clock=clock)
     verifier = EpochVerifier(PSK, store=open_store(f"sqlite:{db}", clock=clock), clock=clock)
     _poison_sqlite(db, f"epoch:announcement:{signer.nonce_prefix.hex()}")
@@ -865,7 +866,7 @@ def test_forgotten_prefixes_leave_no_counters_and_stay_refused(
     of counters (the table's prefixes, their markers, the floor), and every forgotten
     prefix's epoch is still refused, by this verifier and by one restarted on the file."""
     table, senders = 4, 60
-    store = SqliteStore(tmp_path / "verifier.db", clock=clock)
+    store = sqlite_store(tmp_path / "verifier.db", clock=clock)
     verifier = EpochVerifier(PSK, store=store, clock=clock, max_prefixes=table)
     sent = []
     for _ in range(senders):
@@ -881,7 +882,7 @@ def test_forgotten_prefixes_leave_no_counters_and_stay_refused(
             verifier.open(sealed)
     verifier.close()
     store.close()
-    reopened = SqliteStore(tmp_path / "verifier.db", clock=clock)
+    reopened = sqlite_store(tmp_path / "verifier.db", clock=clock)
     restarted = EpochVerifier(PSK, store=reopened, clock=clock, max_prefixes=table)
     for sealed in sent:
         with pytest.raises(ReplayAttackError):
@@ -895,7 +896,7 @@ def test_forget_persists_the_floor_before_the_table_moves(
 ) -> None:
     """Persist, then believe: a failed forget leaves the table holding the old prefix (a
     real store whose forget fails, not a patched one: the memory store is compiled)."""
-    store = _FlakySqlite(tmp_path / "verifier.db", clock=clock)
+    store = started_before(clock, lambda: _FlakySqlite(tmp_path / "verifier.db", clock=clock))
     verifier = EpochVerifier(PSK, store=store, clock=clock, max_prefixes=1)
     first, second = EpochSigner(PSK, clock=clock), EpochSigner(PSK, clock=clock)
     held = verifier.open(first.seal(b"a")).nonce_prefix
@@ -920,7 +921,7 @@ def test_a_prefix_forgotten_by_one_verifier_stays_refused_by_another(
 
     def store() -> SqliteStore | RedisStore:
         if backend == "sqlite":
-            return SqliteStore(tmp_path / "shared.db", clock=clock)
+            return sqlite_store(tmp_path / "shared.db", clock=clock)
         return RedisStore(request.getfixturevalue("redis_url"), prefix=prefix, clock=clock)
 
     a = EpochVerifier(PSK, store=store(), clock=clock, max_prefixes=2)

@@ -40,6 +40,7 @@ from harness import (
 )
 from harness.asgi import demo_app, request
 from harness.redis_server import RedisServer
+from harness.stores import aged_state
 
 
 def get(app: Starlette, path: str) -> httpx.Response:
@@ -90,6 +91,7 @@ def test_readyz_follows_redis_and_the_fence_still_catches_the_loss(tmp_path: Pat
 
 def test_readyz_is_503_while_the_audit_trail_cannot_take_an_append(tmp_path: Path) -> None:
     config = embedded_default(tmp_path)
+    aged_state(tmp_path / "state.db")  # its first start's fence long past (its own tests)
     app = create_app(config)
     assert get(app, "/readyz").status_code == 200
     holder = sqlite3.connect(config.audit, timeout=0)

@@ -33,6 +33,7 @@ from antireplay.rcan.receive import Receiver
 from harness import ROOT, GatewayProcess, metrics_pq, metrics_router, post, serving
 from harness.audit import segmented, trail
 from harness.redis_server import RedisServer
+from harness.stores import aged_state
 
 DASH = "\u2014"
 CHROMIUM = "/usr/bin/chromium"
@@ -98,7 +99,9 @@ def state(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def gateway(state: Path) -> Iterator[GatewayProcess]:
     """A real ``antireplay serve`` that has accepted one command, refused its replay, accepted
     one with a markup msg_id and refused a forgery claiming a markup sender."""
-    with serving(write_demo_config(state)) as process:
+    config = write_demo_config(state)
+    aged_state(state / "state.db")  # a deployment started earlier: no first-start row
+    with serving(config) as process:
         key = load_operator_key(state)
         accepted = command(key)
         assert post(process, accepted).status_code == 200

@@ -22,8 +22,10 @@ from antireplay.core.errors import (
 )
 from antireplay.mavlink import TS_LIMIT, UNITS_PER_S, MavlinkGuard, mav_time
 from antireplay.mavlink.guard import FrameAdmission
+from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
 from harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
+from harness.stores import sqlite_store
 
 
 def test_signed_frame_accepted_once(clock: ManualClock) -> None:
@@ -327,7 +329,7 @@ def test_write_through_guards_share_a_store_and_accept_each_frame_once(
 
 
 def test_store_data_loss_fences_by_the_forward_bound(tmp_path: Path, clock: ManualClock) -> None:
-    store = SqliteStore(tmp_path / "mav.db", clock=clock)
+    store = sqlite_store(tmp_path / "mav.db", clock=clock)
     guard = MavlinkGuard(KEY, clock=clock, store=store)
     ahead = frames_at(clock, [40])
     guard.open(ahead[0])
@@ -396,3 +398,23 @@ def test_direction_binding_learns_only_from_signed_frames(clock: ManualClock) ->
     with pytest.raises(WrongDirectionError):
         ground_side.open(command_frame(*encoder(sysid=1, link_id=2)))
     assert not ground_side.open(unsigned_heartbeat(9)).signed
+
+
+def test_a_new_sqlite_store_fences_like_a_memory_one(tmp_path: Path, clock: ManualClock) -> None:
+    """A state with no history proves nothing about what ran before: the guard fences
+    ``max_forward_s`` from its start, exactly as on a memory store; a restart on the same
+    state (its history proven) adds no fence of its own."""
+    captured = frames_at(clock, [-1, 0])  # sent before this guard's state began
+    memory = MemoryStore(clock=clock)
+    on_memory = MavlinkGuard(KEY, clock=clock, store=memory, max_forward_s=5)
+    store = SqliteStore(tmp_path / "mav.db", clock=clock)
+    on_sqlite = MavlinkGuard(KEY, clock=clock, store=store, max_forward_s=5)
+    for guard in (on_memory, on_sqlite):
+        for frame in captured:
+            with pytest.raises(MessageStaleError, match="restart fence"):
+                guard.open(frame)
+    assert on_sqlite.restart_fence == on_memory.restart_fence > mav_time(clock)
+    clock.advance(5.001)
+    assert on_sqlite.open(frames_at(clock, [0], link_id=2)[0]).signed
+    on_sqlite.stop()
+    store.close()

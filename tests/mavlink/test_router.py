@@ -47,6 +47,7 @@ from antireplay.mavlink.codec import UNITS_PER_S, Frame
 from antireplay.state.sqlite import SqliteStore
 from harness import ROOT, free_port, free_udp_port, until
 from harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
+from harness.stores import aged_state
 
 
 class Rig:
@@ -406,8 +407,8 @@ def test_cli_proxy_kill_9_at_1000_hz_then_every_capture_dropped(tmp_path: Path) 
     args = [
         sys.executable, "-m", "antireplay", "mavlink-router", "--listen", f"udp:127.0.0.1:{pport}",
         "--forward", f"udp:127.0.0.1:{vport}", "--key-file", str(key_file), "--system-id", "1",
-        "--store", f"sqlite:{tmp_path / 'mav.db'}", "--audit", str(tmp_path / "audit.db"),
-        "--metrics-port", str(mport),
+        "--store", f"sqlite:{aged_state(tmp_path / 'mav.db')}",  # started earlier
+        "--audit", str(tmp_path / "audit.db"), "--metrics-port", str(mport),
     ]  # fmt: skip
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
 
@@ -568,7 +569,7 @@ def test_cli_router_and_simulated_vehicle_answer_a_signed_command(tmp_path: Path
     router = subprocess.Popen(
         [sys.executable, "-m", "antireplay", "mavlink-router",
          "--vehicle", f"udpin:127.0.0.1:{vport}", "--ground", f"udpin:127.0.0.1:{gport}",
-         "--key-file", str(key_file), "--store", f"sqlite:{tmp_path / 'mav.db'}",
+         "--key-file", str(key_file), "--store", f"sqlite:{aged_state(tmp_path / 'mav.db')}",
          "--audit", str(tmp_path / "audit.db")],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip

@@ -27,6 +27,7 @@ from antireplay.rcan.answers import MAX_BODY, MAX_TOTAL, AnswerMemo, Entry, Held
 from antireplay.rcan.auth import JwtVerifier, Signer
 from antireplay.rcan.envelope import parse
 from antireplay.rcan.receive import Outcome, Receiver
+from antireplay.state.loss import NO_HISTORY
 from harness import GatewayProcess, free_port, fresh_receiver
 from harness.envelopes import (
     ED,
@@ -420,6 +421,7 @@ def test_sdk_qos_manager_retry_gets_the_original_answer_upstream_called_once(
     tail = CliRunner().invoke(main, ["audit", "tail", "--json", str(tmp_path / "audit.db")])
     rows = [json.loads(line) for line in tail.output.splitlines()]
     assert [(r["outcome"], r["code"], r["warning"]) for r in rows] == [
+        ("state", "STATE_LOST", NO_HISTORY),  # its first start, on a state with no history
         ("accepted", None, None), ("rejected", "REPLAY_DETECTED", "QOS_RETRY"),
     ]  # fmt: skip
     report = verify(tmp_path / "audit.db")

@@ -23,7 +23,6 @@ from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.rcan.auth import JwtVerifier, sign_envelope
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.rcan.receive import Outcome, Receiver
-from antireplay.state.sqlite import SqliteStore
 from harness import fresh_receiver, post, race, serving
 from harness.envelopes import (
     ED,
@@ -41,6 +40,7 @@ from harness.envelopes import (
     signed,
     token,
 )
+from harness.stores import sqlite_store
 
 # --- acceptance and the basic answers ------------------------------------------------------------
 
@@ -394,7 +394,7 @@ def test_a_fresh_estop_is_prompt_while_another_process_holds_the_state_lock(
     second gateway on the same state dir, stopped mid-batch): a fresh ESTOP is delivered
     flagged within a bound far below the 10 s busy timeout (it took two of them), and its
     row, spilled, reaches the trail once the lock is released."""
-    store = SqliteStore(tmp_path / "state.db", clock=clock)  # the default 10 s busy timeout
+    store = sqlite_store(tmp_path / "state.db", clock=clock)  # the default 10 s busy timeout
     audit = AuditLog(tmp_path / "audit.db")
     audit.attach(store.outbox())
     receiver = fresh_receiver(SecurityConfig(), registry(), store, audit, clock)

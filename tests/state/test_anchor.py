@@ -18,8 +18,9 @@ from antireplay import ManualClock, ReplayCache
 from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
 from antireplay.state.anchor import Anchored, StateAnchor, check_anchor_path
 from antireplay.state.sqlite import SqliteStore
+from harness import STARTED_BEFORE_S
 from harness.redis_server import RedisServer
-from harness.stores import assert_fenced
+from harness.stores import assert_fenced, sqlite_store
 
 NOW = 2_000_000_000.0
 MakeAnchor = Callable[..., StateAnchor | None]
@@ -42,7 +43,7 @@ def make_anchor(request: pytest.FixtureRequest, tmp_path: Path) -> MakeAnchor:
 
 
 def session(tmp_path: Path, clock: ManualClock, anchor: StateAnchor | None) -> ReplayCache:
-    store = SqliteStore(tmp_path / "state" / "state.db", clock=clock, anchor=anchor)
+    store = sqlite_store(tmp_path / "state" / "state.db", clock=clock, anchor=anchor)
     return ReplayCache(clock=clock, store=store)
 
 
@@ -103,7 +104,8 @@ def test_a_clean_restart_on_an_exact_anchor_raises_no_fence(
     clock = ManualClock(wall=NOW)
     cache = restarted(tmp_path, clock, make_anchor, lambda: None)
     assert cache.store.status()["data_loss_events"] == 0
-    assert cache.store.fence() == float("-inf")
+    assert cache.store.fence() <= NOW - STARTED_BEFORE_S  # its first start's, no new one
+    assert isinstance(cache.store, SqliteStore) and cache.store.loss_reason is None
     assert cache.commit("b", NOW - 0.5).warning is None
     cache.store.close()
 
@@ -224,17 +226,17 @@ def test_two_states_on_one_anchor_file_refuse_never_adopt(tmp_path: Path) -> Non
     (tmp_path / "other").mkdir()
     shared = tmp_path / "other" / "shared.anchor"
     clock = ManualClock(wall=NOW)
-    a = SqliteStore(tmp_path / "a" / "state.db", clock=clock,
+    a = sqlite_store(tmp_path / "a" / "state.db", clock=clock,
                     anchor=StateAnchor(tmp_path / "a" / "state.db", path=shared))  # fmt: skip
     a.commit("X", NOW + 30, NOW)
     a.close()
     with pytest.raises(StateFileError) as err:
-        SqliteStore(tmp_path / "b" / "state.db", clock=clock,
+        sqlite_store(tmp_path / "b" / "state.db", clock=clock,
                     anchor=StateAnchor(tmp_path / "b" / "state.db", path=shared))  # fmt: skip
     said = str(err.value)
     assert str(shared) in said and str(tmp_path / "a" / "state.db") in said
     assert "its own state.anchor.path" in said and "\n" not in said
-    a = SqliteStore(tmp_path / "a" / "state.db", clock=clock,
+    a = sqlite_store(tmp_path / "a" / "state.db", clock=clock,
                     anchor=StateAnchor(tmp_path / "a" / "state.db", path=shared))  # fmt: skip
     assert a.status()["data_loss_events"] == 0  # still A's, untouched by B
     a.close()
@@ -253,7 +255,7 @@ def test_sharers_on_other_hosts_and_mount_paths_share_one_redis_record(
     def on(host: str, where: str) -> SqliteStore:
         monkeypatch.setattr("socket.gethostname", lambda: host)
         db = tmp_path / where / "state.db"
-        return SqliteStore(db, clock=clock, anchor=StateAnchor(db, redis_url=redis_url))
+        return sqlite_store(db, clock=clock, anchor=StateAnchor(db, redis_url=redis_url))
 
     a = on("host-a", "state")
     a.commit("before", NOW + 30, NOW)
@@ -311,7 +313,7 @@ def test_each_anchor_copy_is_checked_on_its_own(
     def anchor() -> StateAnchor:
         return StateAnchor(db, path=tmp_path / "other" / "a", redis_url=redis_url)
 
-    store = SqliteStore(db, clock=clock, anchor=anchor())
+    store = sqlite_store(db, clock=clock, anchor=anchor())
     store.commit("X", NOW + 30, NOW)
     deployment = store._deployment
     store.close()
@@ -319,7 +321,7 @@ def test_each_anchor_copy_is_checked_on_its_own(
         redis.Redis.from_url(redis_url).delete(f"antireplay:anchor:{deployment}")
     else:
         (tmp_path / "other" / "a").unlink()
-    store = SqliteStore(db, clock=clock, anchor=anchor())
+    store = sqlite_store(db, clock=clock, anchor=anchor())
     assert "no state anchor" in str(store.loss_reason), store.loss_reason
     assert store.status()["data_loss_events"] == 1
     assert_fenced(ReplayCache(clock=clock, store=store), "X", NOW - 1)
@@ -340,17 +342,17 @@ def test_an_unreachable_anchor_opens_unready_and_verifies_once_back(tmp_path: Pa
         return StateAnchor(db, redis_url=server.url, timeout_s=0.5)
 
     try:
-        store = SqliteStore(db, clock=clock, anchor=anchor())
+        store = sqlite_store(db, clock=clock, anchor=anchor())
         store.commit("before", NOW + 30, NOW)
         store.close()
         shutil.copytree(tmp_path / "state", tmp_path / "snapshot")
-        store = SqliteStore(db, clock=clock, anchor=anchor())
+        store = sqlite_store(db, clock=clock, anchor=anchor())
         store.commit("X", NOW + 30, NOW)
         store.close()
         shutil.rmtree(tmp_path / "state")
         shutil.copytree(tmp_path / "snapshot", tmp_path / "state")
         server.kill()
-        store = SqliteStore(db, clock=clock, anchor=anchor())  # opens: no exception
+        store = sqlite_store(db, clock=clock, anchor=anchor())  # opens: no exception
         with pytest.raises(StateUnavailableError, match="state anchor"):
             store.ready()
         with pytest.raises(StateUnavailableError, match="state anchor"):
@@ -373,7 +375,7 @@ def test_a_running_store_is_unready_while_its_anchor_is_down(tmp_path: Path) -> 
     server.start()
     db = tmp_path / "state" / "state.db"
     try:
-        store = SqliteStore(db, anchor=StateAnchor(db, redis_url=server.url, timeout_s=0.5))
+        store = sqlite_store(db, anchor=StateAnchor(db, redis_url=server.url, timeout_s=0.5))
         store.ready()
         server.kill()
         with pytest.raises(StateUnavailableError, match="state anchor"):
@@ -396,7 +398,7 @@ def test_an_anchor_path_that_is_not_an_anchor_is_refused_untouched(
     (tmp_path / "other").mkdir()
     (tmp_path / "notes.txt").write_text("keep me")
     db = tmp_path / "state" / "state.db"
-    SqliteStore(db).close()
+    sqlite_store(db).close()
     (tmp_path / "audit.db").write_bytes(b"SQLite format 3\0")
     path = Path(target) if target.startswith("/") else tmp_path / target
     before = path.read_bytes() if path.is_file() and not target.startswith("/") else None

@@ -13,6 +13,7 @@ import pytest
 from antireplay import ManualClock, MessageType, ReplayCache
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.state.sqlite import SAFETY_WAIT_S, STALLED_WAIT_S, SqliteStore, check_readable
+from harness.stores import sqlite_store
 
 NOW = 2_000_000_000.0
 
@@ -39,7 +40,7 @@ def edit(db: Path, sql: str) -> None:
 
 def written(db: Path, clock: ManualClock) -> SqliteStore:
     """A store on ``db`` holding one live entry, ``cmd``."""
-    store = SqliteStore(db, clock=clock)
+    store = sqlite_store(db, clock=clock)
     store.commit("cmd", NOW + 60, NOW)
     return store
 
@@ -56,7 +57,7 @@ def test_an_undecodable_value_refuses_the_open_and_the_check_naming_the_file(
         check_readable(db)  # what ``config check`` runs: read-only
     assert db.read_bytes() == before
     with pytest.raises(StateFileError) as opened:
-        SqliteStore(db, clock=clock)
+        sqlite_store(db, clock=clock)
     for refused in (checked.value, opened.value):
         assert refused.path == str(db)
         assert refused.recovery.startswith(f"mv {db} ")
@@ -101,7 +102,7 @@ def test_the_witness_claims_only_generations_made_durable(tmp_path: Path) -> Non
     """A deferred commit (no fsync of its own) moves the database, not the witness; the
     next durable commit's fsync covers it and the witness catches up: never ahead, so a
     power cut between the two cannot raise a false fence."""
-    store = SqliteStore(tmp_path / "state.db")
+    store = sqlite_store(tmp_path / "state.db")
     try:
         store.defer_commits()
         before = store.witness.read()
@@ -130,7 +131,7 @@ def test_another_process_holding_the_write_lock_costs_one_wait_and_an_estop_none
     an ESTOP's commit gives up after ``SAFETY_WAIT_S`` (its record stays queued and lands
     once the lock frees); an ordinary commit waits the busy timeout once, and after that
     wait ran out every commit fails after ``STALLED_WAIT_S`` until a transaction begins."""
-    store = SqliteStore(tmp_path / "state.db", timeout_s=30.0, clock=clock)
+    store = sqlite_store(tmp_path / "state.db", timeout_s=30.0, clock=clock)
     now = clock.wall()
     holder = sqlite3.connect(tmp_path / "state.db", isolation_level=None)
     holder.execute("BEGIN IMMEDIATE")

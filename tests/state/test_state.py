@@ -49,6 +49,7 @@ from harness.redis_server import (
 from harness.stores import assert_fenced as _assert_fenced
 from harness.stores import fresh_deployment as _fresh_deployment
 from harness.stores import redis_replicas as _replicas
+from harness.stores import sqlite_store
 from harness.workers import store_worker
 
 BACKENDS = ["memory", "sqlite", "redis", "redis-cluster"]
@@ -73,7 +74,7 @@ def make_store(kind: str, request: pytest.FixtureRequest, path: Path) -> ReplayS
     if kind == "memory":
         return MemoryStore(clock=clock)
     if kind == "sqlite":
-        return SqliteStore(path / "state.db", clock=clock)
+        return sqlite_store(path / "state.db", clock=clock)
     url = request.getfixturevalue("redis_url" if kind == "redis" else "cluster_url")
     made = RedisStore(url, prefix=f"t-{uuid.uuid4().hex}:", clock=clock)
     made.verify()  # a new deployment on this Redis: the first contact raises the fence
@@ -306,15 +307,16 @@ def test_memory_restart_fence_refuses_every_capture_from_before_the_restart() ->
 
 def test_sqlite_clean_restart_keeps_everything_and_raises_no_fence(tmp_path: Path) -> None:
     clock = ManualClock(wall=NOW)
-    store = SqliteStore(tmp_path / "state.db", clock=clock)
+    store = sqlite_store(tmp_path / "state.db", clock=clock)
+    started = store.fence()  # its first start's, long before NOW (a state with no history)
     ReplayCache(clock=clock, store=store).commit("cmd", NOW - 1)
     store.close()
-    reopened = SqliteStore(tmp_path / "state.db", clock=clock)
+    reopened = sqlite_store(tmp_path / "state.db", clock=clock)
     cache = ReplayCache(clock=clock, store=reopened)
     with pytest.raises(ReplayDetectedError):
         cache.commit("cmd", NOW - 1)
     cache.commit("fresh", NOW)
-    assert reopened.fence() == float("-inf")
+    assert reopened.fence() == started
     assert reopened.loss_reason is None
 
 
@@ -334,7 +336,7 @@ def test_redis_new_client_on_the_same_server_keeps_everything(redis_url: str) ->
 
 
 def _sqlite_session(path: Path, clock: ManualClock) -> tuple[SqliteStore, ReplayCache]:
-    store = SqliteStore(path, clock=clock)
+    store = sqlite_store(path, clock=clock)
     return store, ReplayCache(clock=clock, store=store)
 
 
@@ -383,7 +385,7 @@ def test_sqlite_forget_on_a_database_rolled_back_under_it_is_fenced(tmp_path: Pa
     """``forget`` runs the loss detection of ``advance``: a live restore under a running
     store raises the fence in the same step."""
     clock, db = ManualClock(wall=NOW), tmp_path / "state.db"
-    store = SqliteStore(db, clock=clock)
+    store = sqlite_store(db, clock=clock)
     store.advance("k", 1)
     backup = sqlite3.connect(tmp_path / "backup.db")
     with sqlite3.connect(db) as source:
@@ -427,7 +429,7 @@ def test_sqlite_garbage_file_is_refused_naming_the_file_and_the_recovery(tmp_pat
     db = tmp_path / "state.db"
     db.write_bytes(b"this is not a database" * 200)
     with pytest.raises(StateFileError) as err:
-        SqliteStore(db)
+        sqlite_store(db)
     assert str(db) in str(err.value)
     assert "mv" in err.value.recovery
 
@@ -781,7 +783,7 @@ def test_sqlite_kill9_under_load_never_accepts_twice(tmp_path: Path) -> None:
 
 
 def test_sqlite_file_stays_bounded_under_sustained_load(tmp_path: Path) -> None:
-    store = SqliteStore(tmp_path / "load.db")
+    store = sqlite_store(tmp_path / "load.db")
     clock = ManualClock(wall=NOW)
     cache = ReplayCache(window_s=5, clock=clock, store=store)
     sizes = []
@@ -826,16 +828,18 @@ def test_a_failed_commit_is_an_outage_not_a_rollback(
 ) -> None:
     """A full disk fails one batch with its own cause (503), and the next batch (or the
     next open) does not mistake the un-advanced database for a rollback."""
-    store = SqliteStore(tmp_path / "state.db")
+    clock = ManualClock(wall=NOW)
+    store = sqlite_store(tmp_path / "state.db", clock=clock)
+    started = store.fence()  # its first start's, long before NOW (a state with no history)
     assert store.commit("a", NOW + 30, NOW).recorded
     monkeypatch.setattr(store, "_db", _FullDisk(store._db))
     with pytest.raises(StateUnavailableError, match="disk is full"):
         store.commit("b", NOW + 30, NOW)
     monkeypatch.undo()
     seen = store.commit("b", NOW + 30, NOW)
-    assert seen.recorded and not seen.lost and store.fence() == float("-inf")
+    assert seen.recorded and not seen.lost and store.fence() == started
     assert store.data_loss_events == 0
     store.close()
-    reopened = SqliteStore(tmp_path / "state.db")
-    assert reopened.fence() == float("-inf") and reopened.loss_reason is None
+    reopened = sqlite_store(tmp_path / "state.db", clock=clock)
+    assert reopened.fence() == started and reopened.loss_reason is None
     reopened.close()

@@ -5,9 +5,9 @@ fails (non-zero exit in the CLI) if any step differs.
 
 * :func:`run_gateway_demo` (``antireplay demo``) starts ``antireplay serve`` on a
   free loopback port with a temporary state directory (:func:`start_gateway`),
-  plays operator and attacker over HTTP, reads the replay state's size from the
-  gateway's ``/metrics`` (as an operator would), restarts the gateway, and checks
-  the audit chain.
+  waits for ``/readyz`` (a new state fences its first start), plays operator and
+  attacker over HTTP, reads the replay state's size from the gateway's ``/metrics``
+  (as an operator would), restarts the gateway, and checks the audit chain.
 * :func:`run_window_demo` (``antireplay demo --in-process``) exercises the §8.3
   window alone with a :class:`ManualClock`: deterministic and instant.
 """
@@ -254,9 +254,20 @@ def _gateway(config: Path, port: int) -> Iterator[httpx.Client]:
     proc = start_gateway(config, port)
     try:
         with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=10) as http:
+            wait_ready(http)
             yield http
     finally:
         stop_gateway(proc)
+
+
+def wait_ready(http: httpx.Client, timeout_s: float = 30.0) -> None:
+    """Wait for ``/readyz``, as a deployment would: a new state fences its first start for
+    about ``skew_s`` ("fenced until T"), refusing every command stamped before T."""
+    deadline = time.monotonic() + timeout_s
+    while (reply := http.get("/readyz")).status_code != 200:
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"gateway not ready: {reply.text}")
+        time.sleep(0.1)
 
 
 def run_gateway_demo(flood: int = 300) -> tuple[list[StepResult], ChainReport]:

@@ -93,7 +93,8 @@ def serve(  # noqa: PLR0917 - one option per knob
     """Run the HTTP gateway (embedded default without --config).
 
     Prints one line once it listens: "listening on http(s)://HOST:PORT (store ..., anchor
-    ..., audit ...)" ("no state anchor" and a warning for a SQLite store without one);
+    ..., audit ...)" ("no state anchor" and a warning for a SQLite store without one),
+    then "fenced until T (...): why" while a fence lies ahead (a state with no history);
     GET /healthz is liveness, GET /readyz readiness (store and audit)."""
     import socket  # noqa: PLC0415
 
@@ -101,6 +102,7 @@ def serve(  # noqa: PLR0917 - one option per knob
     from uvicorn.config import LOGGING_CONFIG  # noqa: PLC0415
     from uvicorn.supervisors import Multiprocess  # noqa: PLC0415
 
+    from antireplay.http.app import fence_notice  # noqa: PLC0415
     from antireplay.wiring import anchor_summary, create_app  # noqa: PLC0415
 
     if (ssl_certfile is None) != (ssl_keyfile is None):
@@ -144,6 +146,9 @@ def serve(  # noqa: PLR0917 - one option per knob
     )
     for warning in _startup_warnings(config, anchor_summary(config)):
         click.echo(f"antireplay: warning: {warning}", err=True)
+    fenced = fence_notice(app.state.receiver)
+    if fenced is not None:  # a state with no history, or a loss noticed at open
+        click.echo(fenced)
     if workers == 1:
         settled_heap()
         with until_stopped(lambda: f"served {_served(app)}"):

@@ -7,9 +7,11 @@ budget) and returns a Starlette app: ``POST /v1/messages`` is
 forwarder (no routing on the hot path) and the gateway answers exactly what the middleware
 answers inside anybody's app.  ``GET /healthz`` is liveness (the process answers);
 ``GET /readyz`` is readiness: the replay store could take a commit and the audit trail an
-append now, and free space under the trail is above its second floor, else 503 with the
-reason, since every command would get 503 too; the folded refusals' summary rows are
-written every interval by a lifespan timer (and at shutdown);
+append now, free space under the trail is above its second floor, and the store's fence
+(a start with no history, a loss) no longer lies ahead, else 503 with the reason, since
+every command would be refused too (``fenced until T``: a fresh ESTOP still passes); the
+folded refusals' summary rows are written every interval by a lifespan timer (and at
+shutdown);
 ``GET /metrics`` is Prometheus; ``GET /`` and ``GET /status.json`` are the read-only status
 page (:mod:`antireplay.http.status`).  The readiness probes record nothing (the store's
 ``ready()``: a read, the eviction policy, a write lock taken and released; the same lock on
@@ -26,6 +28,7 @@ import sqlite3
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from datetime import datetime, timezone
 
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
@@ -98,10 +101,26 @@ def readiness(receiver: Receiver) -> str | None:
         receiver.cache.store.ready()
     except Exception as exc:  # any backend's failure is the reason, never a 500
         return f"store: {exc}"
+    fenced = fence_notice(receiver)
+    if fenced is not None:
+        return fenced
     disk = None if receiver.space is None else receiver.space.reason()
     if disk is not None:
         return disk
     return None if receiver.audit is None else audit_problem(receiver.audit)
+
+
+def fence_notice(receiver: Receiver) -> str | None:
+    """While the store's fence lies ahead (its start with no history, a loss it noticed),
+    every command stamped now is refused as ``restart_fence``: say until when, and why
+    (``None`` once a command stamped now passes; a fresh ESTOP passes throughout)."""
+    cache = receiver.cache
+    until = cache.store.fence() + cache.policy.skew_s
+    if receiver.clock.wall() > until:
+        return None
+    when = datetime.fromtimestamp(until, timezone.utc).isoformat(timespec="milliseconds")
+    why = getattr(cache.store, "loss_reason", None) or "the store's start (no history)"
+    return f"fenced until {when} ({until:.3f}): {why}; a fresh ESTOP still passes"
 
 
 def audit_problem(audit: AuditLog, timeout_s: float = 1.0) -> str | None:

@@ -138,6 +138,16 @@ class StateCollector(Collector):
         for name, doc, key in (
             ("antireplay_watermark_raises_total", "Entries evicted early (full)", "evictions"),
             ("antireplay_state_data_loss_total", "Data-loss events noticed", "data_loss_events"),
+            (
+                "antireplay_state_no_history_total",
+                "Starts fenced: state with no history",
+                "no_history_events",
+            ),
+            (
+                "antireplay_state_witness_failures_total",
+                "Witness writes failed after a COMMIT",
+                "witness_failures",
+            ),
         ):
             counter = CounterMetricFamily(name, doc, labels=["backend"])
             if key in status:

@@ -38,15 +38,18 @@ import socket
 import stat
 import struct
 import uuid
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Final, Literal
+from typing import Final
 
 import redis
 
 from antireplay.core.errors import ConfigError, StateFileError, StateUnavailableError
 from antireplay.state.durable import read_record, seal_record
+from antireplay.state.loss import Anchored, Read
 from antireplay.state.spec import StoreSpec
+
+#: ``Anchored`` and ``Read`` stay importable from here (they live in :mod:`.loss`).
+__all__ = ["AnchorUnavailableError", "Anchored", "Read", "StateAnchor", "check_anchor_path"]
 
 #: The anchor file's magic (``ARANCH01``: the previous layout, still recognised as ours).
 ANCHOR_MAGIC: Final = b"ARANCH02"
@@ -74,20 +77,6 @@ return 1
 
 class AnchorUnavailableError(StateUnavailableError):
     """The anchor cannot be reached: the store stays unverified (and unready) until it can."""
-
-
-@dataclass(frozen=True)
-class Anchored:
-    """What one copy vouches for: the deployment, its generation and the time (a lease end
-    when written lazily, the last commit's time otherwise)."""
-
-    deployment: str
-    generation: int
-    time: float
-
-
-#: One copy as read: the record, ``None`` if there is none yet, ``False`` if unreadable.
-Read = Anchored | Literal[False] | None
 
 
 def state_digest(db: str | Path) -> bytes:

@@ -64,6 +64,7 @@ class MemoryStore:
             raise ValueError("max_entries must be a positive integer")
         self.max_entries: Final = max_entries
         self._fence: float = resolve(clock).wall() if restart_fence else NEVER
+        self._started: Final = self._fence  # every start has no history: fenced as such
         self._watermark: float = NEVER
         self._expiry: dict[str, float] = {}  # msg_id -> expiry of its entry
         # slot key -> {msg_id: None}.  Dicts of str and None hold no containers, so the
@@ -238,6 +239,7 @@ class MemoryStore:
             "fence": self._fence,
             "evictions": float(self.evictions),
             "data_loss_events": float(self.data_loss_events),
+            "no_history_events": 0.0 if self._started == NEVER else 1.0,
         }
 
     def ready(self) -> None:

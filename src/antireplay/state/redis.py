@@ -15,10 +15,11 @@ Theory of operation
   records who holds our state: the process (``run_id``: a restart, failover,
   restore or slot move changes it) and its replication history (``master_replid``:
   ``REPLICAOF`` elsewhere and back keeps the process, not the data; a master's
-  first replica renews it too, which we cannot tell apart); ``FLUSHALL`` removes
-  ``meta``.  And the server's ``evicted_keys``: eviction is per key, so entries
-  could go and ``meta`` stay; any change of that count (a policy that evicted, put
-  back since) is a loss.  A loss raises the **fence** in ``meta`` to ``max(caller's
+  first replica renews it too, which we cannot tell apart); no ``meta`` at all (a new,
+  flushed or emptied Redis) is a state with **no history**, fenced alike and said so.
+  And the server's ``evicted_keys``: eviction is per key, so entries could go and
+  ``meta`` stay; any change of that count (a policy that evicted, put back since) is
+  a loss.  A loss raises the **fence** in ``meta`` to ``max(caller's
   now, server time)``, counted once; the fence lives in Redis, so every replica
   applies it.  Not detectable (they need admin rights on Redis): ``DEL`` of one
   entry, and ``CONFIG RESETSTAT`` after an eviction.
@@ -92,7 +93,9 @@ local function number(v) local n = tonumber(v) return n ~= nil and n == n end
 if not number(fence) then return {-2, 'fence', fence, '', 0} end
 if not number(wm) then return {-2, 'wm', wm, '', 0} end
 if meta[4] and not string.match(meta[4], '^%d+$') then return {-2, 'losses', meta[4], '', 0} end
-if meta[1] ~= holder then lost = 'holder' elseif meta[5] ~= evicted then lost = 'evicted' end
+if not meta[1] and not meta[2] then lost = 'new'
+elseif meta[1] ~= holder then lost = 'holder'
+elseif meta[5] ~= evicted then lost = 'evicted' end
 if lost ~= 0 then
   local f = math.max(tonumber(fence), now, server_now)
   fence = string.format('%.6f', f + 0.000001)
@@ -159,6 +162,8 @@ return {1, cur or false, fence, wm, lost}
 
 #: What the script's loss codes mean, for the log line and ``loss_reason``.
 _LOSSES: Final = {
+    "new": "no history: no meta for this deployment (a new, flushed or emptied Redis); "
+    "fenced like a memory store's start",
     "holder": "another server process or replication history holds it (restart, failover, "
     "REPLICAOF, restore) or it was flushed",
     "evicted": "the server evicted keys (a maxmemory-policy other than noeviction was set "
@@ -205,6 +210,7 @@ class RedisStore:
         self._fence = NEVER
         self._watermark = NEVER
         self.data_loss_events = 0
+        self.no_history_events = 0
         self.loss_reason: str | None = None
         self._committer: GroupCommitter[_Op, Seen | StateUnavailableError] = GroupCommitter(
             self._commit_batch, name=f"antireplay-redis:{prefix}"
@@ -332,7 +338,10 @@ class RedisStore:
             self.data_loss_events += 1
             code = str(_text(lost))
             cause = _LOSSES.get(code, code)
-            self.loss_reason = f"redis may have lost our replay state: {cause}"
+            self.no_history_events += code == "new"
+            self.loss_reason = (
+                cause if code == "new" else f"redis may have lost our replay state: {cause}"
+            )
             raised = ("watermark", self._watermark) if code == "clock" else ("fence", self._fence)
             log.warning("%s: %s; %s raised to %.6f", self.url, self.loss_reason, *raised)
         return bool(lost)
@@ -396,6 +405,7 @@ class RedisStore:
             "fence": self._fence,
             "evictions": 0.0,
             "data_loss_events": float(self.data_loss_events),
+            "no_history_events": float(self.no_history_events),
         }
 
     def close(self) -> None:

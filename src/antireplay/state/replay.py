@@ -305,7 +305,9 @@ class ReplayCache:
         if seen.lost:
             self.losses += 1
             if self.on_loss is not None:
-                self.on_loss(f"{self.store.backend} lost or replaced its state; fence raised")
+                reason = getattr(self.store, "loss_reason", None)
+                said = f"{self.store.backend} lost or replaced its state; fence raised"
+                self.on_loss(str(reason) if reason else said)
         verdict = self.policy.decide(
             plan, seen.expiry, seen.watermark, seen.fence, seen.recorded, seen.full, now
         )

@@ -1,83 +1,35 @@
 """SqliteStore: replay state on one machine that survives kill -9 and reboots, and notices loss.
 
-Size: one file on purpose: the open-time loss detection, the witness and the commit
-path share one SQLite connection and one lock, and splitting them would spread that
-invariant across modules.
+Size: one idea, one connection: the open-time check, the witness, the group commit and
+readiness share one SQLite connection and one lock (the loss decision itself is pure, in
+:mod:`.loss`; the read-only checks in :mod:`.sqlite_check`).
 
 Theory of operation
 -------------------
-WAL journal with ``synchronous=FULL``: a ``commit`` returns only after its
-transaction is durable, so a message accepted before a crash is still
-remembered after it.  Commits are **group-committed**
-(:mod:`antireplay.state.groupcommit`): concurrent callers' records share one
-transaction and one WAL fsync, each caller answered once its own record is
-durable.  With an audit outbox (:mod:`.outbox`) the batch also carries audit rows,
-and entries may be *deferred* (``synchronous=NORMAL``) to the accepted row that
-follows each, whose batch's fsync covers both: one fsync per batch, not three.
-Several processes may share one file; SQLite's write lock (``BEGIN IMMEDIATE``)
-makes each batch and ``advance`` atomic across them.  A fresh ESTOP's commit waits for
-that lock at most :data:`SAFETY_WAIT_S` (not the busy timeout): past it, the ESTOP is
-delivered flagged ``STATE_UNAVAILABLE`` while its record stays queued, committed once the
-lock frees (another process holding it, even stopped, never delays an ESTOP).  Other
-operations wait up to the busy timeout once; after a wait that ran out, each fails
-after :data:`STALLED_WAIT_S` until a transaction begins again (no pile-up of timeouts).
+WAL with ``synchronous=FULL``: a ``commit`` returns once its transaction is durable.
+Commits are **group-committed** (:mod:`.groupcommit`): one transaction and one fsync per
+batch; with an audit outbox (:mod:`.outbox`) the batch carries audit rows too, and entries
+may be *deferred* (``synchronous=NORMAL``) to the accepted row whose fsync covers both.
+Processes may share one file (``BEGIN IMMEDIATE``).  A fresh ESTOP waits for the write
+lock at most :data:`SAFETY_WAIT_S`, then is delivered flagged ``STATE_UNAVAILABLE`` while
+its record stays queued; after one busy timeout ran out, operations fail after
+:data:`STALLED_WAIT_S` until a transaction begins again.
 
-* **Entries live to their own expiry; early removal raises the watermark.**
-  Each commit purges at most ``PURGE_BATCH`` rows whose expiry is below the
-  caller's ``now`` and raises the persisted watermark (table ``meta``) to the
-  largest expiry it removed, in the same transaction.  A purge that runs while
-  the wall clock has stepped forward therefore never re-opens a replay when
-  the clock steps back.
-* **A lost, truncated, replaced or rolled-back file is detected.**  Beside the
-  database lives a small **witness** file (``<db>.witness``): a deployment id
-  and a generation (plus the highest wall time of any commit), rewritten in
-  place after each durable COMMIT with the generation that COMMIT made durable,
-  and ``fdatasync``-ed at most every :data:`WITNESS_SYNC_S` (and at open and
-  close).  So it is never ahead of the database, not even after a power cut (no
-  false alarm); a ``kill -9`` loses nothing written; a power cut may leave it an
-  older genuine generation, which only under-claims: a copy restored between the
-  two is what the anchor (below) is for.
-  Its name is hidden (``.state.db.witness``) so that ``rm state.db*`` does not
-  take it along.  While running, a database whose generation falls below the
-  one this process last wrote was rolled back under it (a live restore): also
-  a fence.  The database's ``meta`` row carries the
-  same two values.  At open:
-
-  ==========================================  =====================================
-  what is found                               what it means / what happens
-  ==========================================  =====================================
-  neither database nor witness                a new deployment: created, no fence
-  witness, database missing or empty          deleted or truncated: **fence**
-  witness of another deployment               the file was replaced: **fence**
-  database generation below the witness's     rolled back (a restored copy): **fence**
-  database with state but no witness          witness lost (or made by an older
-                                              version): **fence**
-  with an anchor (:mod:`.anchor`, outside     a restored copy of the whole directory
-  the directory), any one copy: the database  or an anchor copy lost: **fence** (a lazy
-  behind it, of another deployment, missing,  anchor also raises a restart fence to
-  or no copy for existing state               its lease's end, said as a fence)
-  an anchor file of another state             refused at start (``StateFileError``)
-  an anchor that cannot be reached            opened unverified: lookups, commits and
-                                              readiness refused until it answers
-  a file that is not a readable database,     refused at start (``StateFileError``
-  or a stored value that does not decode      names the file and the recovery:
-  (a hand-edited row)                         move it aside; the next start fences)
-  ==========================================  =====================================
-
-  A fence is the wall time at which the loss was noticed (no lower than the
-  witness's highest commit time, in case the clock stepped back), persisted in
-  ``meta``; the window refuses anything stamped at or before ``fence + skew``,
-  which covers every message the lost state could have held, and counts it
-  (``data_loss_events``).
-
-Deleting the database *and* its witness is indistinguishable from a new
-deployment; that is the documented way to reset.  Corruption found while
-running answers ``STATE_UNAVAILABLE`` (503; a fresh ESTOP still passes) and
-names the file and the recovery; so does a lookup or commit that reads a value
-that does not decode, and a database deleted or replaced while running (each
-write transaction first checks that the path still names the file it opened),
-until the restart that fences.  Readers open the existing file
-only (``mode=rw``): a lookup or a readiness probe never creates a new empty one.
+* **Entries live to their own expiry**: each commit purges at most ``PURGE_BATCH``
+  expired rows and raises the persisted watermark to the largest expiry removed, in the
+  same transaction (a clock step forward and back re-opens nothing).
+* **Continuity is proven or fenced.**  A hidden **witness** file (``.state.db.witness``,
+  so ``rm state.db*`` leaves it) holds the deployment id, the durable generation and the
+  highest commit time; it is rewritten after each durable COMMIT (never ahead of the
+  database) and fdatasync-ed at most every :data:`WITNESS_SYNC_S`.  A witness failure
+  after a COMMIT is not a failed commit: the data is durable; it is logged once, counted
+  (``witness_failures``) and readiness says so until a witness write succeeds again.  At
+  open :func:`.loss.decide` compares the meta row, the witness and each anchor copy
+  (:mod:`.anchor`); anything unproven, a state with **no history** included, raises the
+  fence to the wall time (persisted in ``meta``; the window refuses what is stamped at or
+  before ``fence + skew``).  While running, a database whose generation went back is a
+  live restore: fenced too.  A file deleted, replaced or undecodable while running
+  answers ``STATE_UNAVAILABLE`` (a fresh ESTOP still passes) and names the recovery.
 """
 
 from __future__ import annotations
@@ -98,14 +50,18 @@ from typing import Any, Final, TypeVar, cast
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import StateFileError, StateUnavailableError
 from antireplay.core.window import NEVER, Seen
-from antireplay.state import _codec
-from antireplay.state.anchor import Anchored, AnchorUnavailableError, Read, StateAnchor
+from antireplay.state import _codec, loss
+from antireplay.state.anchor import AnchorUnavailableError, StateAnchor
 from antireplay.state.contract import Offload
 from antireplay.state.durable import Witness, file_identity
 from antireplay.state.groupcommit import GroupCommitter
 from antireplay.state.outbox import SCHEMA as _OUTBOX_SCHEMA
 from antireplay.state.outbox import Forget, Outbox, Put, Renew
+from antireplay.state.sqlite_check import META_SELECT as _META_SELECT
+from antireplay.state.sqlite_check import check_readable, decode_meta, move_aside
 
+#: ``check_readable`` stays importable from here (it moved to :mod:`.sqlite_check`).
+__all__ = ["SAFETY_WAIT_S", "STALLED_WAIT_S", "WITNESS_SYNC_S", "SqliteStore", "check_readable"]
 T = TypeVar("T")
 log = logging.getLogger("antireplay.state.sqlite")
 PURGE_BATCH: Final = 32
@@ -127,10 +83,6 @@ _ADVANCE = """
 INSERT INTO counters (key, value) VALUES (?, ?)
 ON CONFLICT (key) DO UPDATE SET value = excluded.value WHERE excluded.value > counters.value
 """
-_META_SELECT = "SELECT deployment, generation, watermark, fence, data_loss_events FROM meta"
-#: Stored expiries that are not numbers: SQLite orders every number before any text or
-#: blob, so the index finds them at once (a REAL column keeps what it cannot convert).
-_SEEN_UNDECODABLE = "SELECT key, expires FROM seen WHERE expires >= '' LIMIT 1"
 #: One queued seen-set commit: key, expires_at, now, force.
 _Record = tuple[str, float, float, bool]
 #: What the writer takes: a seen-set commit or an outbox row (or its deletion).
@@ -143,9 +95,8 @@ STALLED_WAIT_S: Final = 0.05
 WITNESS_SYNC_S: Final = 1.0
 #: The meta row as a transaction read it: generation, watermark, fence, data-loss events.
 _Meta = tuple[int, float, float, int]
-#: The whole meta row, decoded: deployment id, then :data:`_Meta`.
-_MetaRow = tuple[str, int, float, float, int]
-_FLOOR = -1e300  # SQLite REAL has no -inf literal that round-trips everywhere: "nothing yet"
+_FLOOR = loss.FLOOR
+_HOLDS_STATE = "SELECT EXISTS (SELECT 1 FROM seen) OR EXISTS (SELECT 1 FROM counters)"
 
 
 class SqliteStore:
@@ -183,6 +134,9 @@ class SqliteStore:
         self._fence = NEVER
         self.data_loss_events = 0
         self.loss_reason: str | None = None
+        self.no_history = False  # this state had no history at open (fenced as such)
+        self.witness_failures = 0
+        self._witness_error: str | None = None  # the last witness write failed: why
         self._unverified: str | None = None  # why the open-time check waits for the anchor
         try:
             self._run(self._verify)
@@ -231,7 +185,7 @@ class SqliteStore:
 
     @property
     def _aside(self) -> str:
-        return _move_aside(self.path)
+        return move_aside(self.path)
 
     def _decode(self, key: str, text: object) -> int:
         return _codec.decode(str(text), where=str(self.path), key=key, recovery=self._aside)
@@ -245,45 +199,23 @@ class SqliteStore:
 
         def body(db: sqlite3.Connection) -> tuple[None, _Meta]:
             meta = db.execute(_META_SELECT).fetchone()
-            row = None if meta is None else _decode_meta(meta, self.path, self._aside)
-            rows = db.execute("SELECT count(*) FROM seen").fetchone()[0]
-            counters = db.execute("SELECT count(*) FROM counters").fetchone()[0]
+            row = None if meta is None else decode_meta(meta, self.path, self._aside)
+            held = db.execute(_HOLDS_STATE).fetchone()[0]
             found = self.witness.read()
-            known = row[0] if row is not None else found[0] if isinstance(found, tuple) else None
-            copies = {} if self.anchor is None else self.anchor.read(known)
-            reason = _loss_reason(row, found, bool(rows or counters))
-            for where, copy in copies.items():
-                reason = reason or anchor_reason(row, found, copy, where)
-            anchored = [copy for copy in copies.values() if isinstance(copy, Anchored)]
-            if row is None:
-                deployment = known or (anchored[0].deployment if anchored else uuid.uuid4().hex)
-                generation, watermark, fence, losses = 0, _FLOOR, _FLOOR, 0
-            else:
-                deployment, generation, watermark, fence, losses = row
-            if isinstance(found, tuple):
-                generation = max(generation, found[1])
-                self._wall_hw = max(self._wall_hw, found[2])
-            lease = _FLOOR
-            for copy in anchored:
-                generation = max(generation, copy.generation)
-                if self.anchor is not None and self.anchor.lazy:
-                    lease = max(lease, copy.time)  # commits since its last write came before
-                else:  # the last commit's time
-                    self._wall_hw = max(self._wall_hw, copy.time)
-            wall = self._clock.wall()
-            if reason is None and lease > max(fence, wall):
-                reason = (
-                    f"restart fence to the lazy state anchor's lease end {lease:.3f}: a copy "
-                    "as new as the anchor may lack commits made under that lease"
-                )
-            if reason is not None:
-                fence = max(fence, wall, self._wall_hw, lease)
-                losses += 1
-                self.loss_reason = reason
+            copies = (
+                {} if self.anchor is None else self.anchor.read(loss.known_deployment(row, found))
+            )
+            lazy = self.anchor is not None and self.anchor.lazy
+            d = loss.decide(
+                row, found, bool(held), copies, lazy=lazy, wall=self._clock.wall(),
+                wall_hw=self._wall_hw, new_id=uuid.uuid4().hex,
+            )  # fmt: skip
+            self._wall_hw, self._deployment = d.wall_hw, d.deployment
+            if d.reason is not None:
+                self.loss_reason, self.no_history = d.reason, d.no_history
                 self._lost_pending = self._opened  # found late: the next commit says so
-                log.warning("replay state %s: %s; fence raised to %s", self.path, reason, fence)
-            self._deployment = deployment
-            return None, (generation, watermark, fence, losses)
+                log.warning("replay state %s: %s; fence raised to %s", self.path, d.reason, d.fence)
+            return None, (d.generation, d.watermark, d.fence, d.losses)
 
         self._transaction(body)
 
@@ -355,10 +287,28 @@ class SqliteStore:
 
     def _witness(self, generation: int) -> None:
         """Record a durable generation in the witness; fdatasync it at most every
-        :data:`WITNESS_SYNC_S` (always the first time), see the module docstring."""
+        :data:`WITNESS_SYNC_S` (always the first time), see the module docstring.  The
+        COMMIT before it is durable whatever happens here: a failure is logged once,
+        counted and shown by readiness, never raised as a failed commit (a witness left
+        behind only under-claims)."""
         now = time.monotonic()
         sync = self._witness_synced is None or now - self._witness_synced >= WITNESS_SYNC_S
-        self.witness.write(self._deployment, generation, self._wall_hw, sync=sync)
+        try:
+            self.witness.write(self._deployment, generation, self._wall_hw, sync=sync)
+        except OSError as exc:
+            self.witness_failures += 1
+            if self._witness_error is None:
+                log.error(
+                    "replay state %s: witness %s not written (%s); commits stay durable, "
+                    "the next start's loss check is weaker until it is",
+                    self.path, self.witness.path, exc,
+                )  # fmt: skip
+            self._witness_error = f"witness {self.witness.path} not written: {exc}"
+            self._witness_synced = None  # the next write syncs
+            return
+        if self._witness_error is not None:
+            log.warning("replay state %s: witness %s written again", self.path, self.witness.path)
+            self._witness_error = None
         if sync:
             self._witness_synced = now
 
@@ -420,6 +370,11 @@ class SqliteStore:
         ``ROLLBACK``), on a connection of its own."""
 
         def probe() -> None:
+            if self._witness_error is not None:  # commits go through; the check is weaker
+                with self._lock:
+                    self._witness(self._generation)  # tried again: ready once it is written
+                if self._witness_error is not None:
+                    raise StateUnavailableError(f"sqlite {self.path}: {self._witness_error}")
             if self.anchor is not None:
                 with self._lock:
                     self._verified()  # the deferred open-time check, once the anchor answers
@@ -432,7 +387,7 @@ class SqliteStore:
                     row = db.execute(_META_SELECT).fetchone()
                     if row is None:
                         raise sqlite3.DatabaseError("no meta row (replaced or truncated)")
-                    _decode_meta(row, self.path, self._aside)
+                    decode_meta(row, self.path, self._aside)
                 finally:
                     db.execute("ROLLBACK")
             finally:
@@ -540,7 +495,7 @@ class SqliteStore:
     def _meta_checked(self, db: sqlite3.Connection) -> tuple[int, float, float, int]:
         """The meta row, fenced first if the database went back under this process."""
         found = db.execute(_META_SELECT).fetchone()
-        row = None if found is None else _decode_meta(found, self.path, self._aside)[1:]
+        row = None if found is None else decode_meta(found, self.path, self._aside)[1:]
         if row is None or row[0] < self._generation:
             reason = "database rolled back or replaced while running (a live restore?)"
             fence = max(self._clock.wall(), self._wall_hw)
@@ -631,6 +586,8 @@ class SqliteStore:
             "fence": self._fence,
             "evictions": 0.0,
             "data_loss_events": float(self.data_loss_events),
+            "no_history_events": float(self.no_history),
+            "witness_failures": float(self.witness_failures),
         }
 
     @property
@@ -690,107 +647,3 @@ async def _bounded(waiter: asyncio.Future[Seen], path: Path) -> Seen:
         return await asyncio.wait_for(asyncio.shield(waiter), SAFETY_WAIT_S)
     except TimeoutError:
         raise _lock_held(path) from None
-
-
-def check_readable(path: str | Path) -> None:
-    """Refuse a file that is not a readable database, or whose meta row or expiries do not
-    decode, without writing anything (so a ``config check`` never uses up the loss
-    detection of the store's next real open)."""
-    path = Path(path)
-    if not path.exists():
-        return
-    recovery = _move_aside(path)
-    try:
-        db = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
-        try:
-            tables = {r[0] for r in db.execute("SELECT name FROM sqlite_master")}
-            if {"meta", "seen"} <= tables:
-                _check_rows(db, path, recovery)
-        finally:
-            db.close()
-    except sqlite3.Error as exc:
-        raise StateFileError(
-            str(path), f"not a readable replay-state database ({exc})", recovery=recovery
-        ) from None
-
-
-def _move_aside(path: Path) -> str:
-    """The recovery from a damaged database: the next start fences what it held."""
-    return f"mv {path} {path}.corrupt (the next start re-creates it behind a restart fence)"
-
-
-def _check_rows(db: sqlite3.Connection, path: Path, recovery: str) -> None:
-    """Every stored expiry is a number and the meta row decodes (or ``StateFileError``)."""
-    bad = db.execute(_SEEN_UNDECODABLE).fetchone()
-    if bad is not None:
-        key = f"seen {bad[0]!r} expiry"
-        raise _codec.undecodable(bad[1], "a number", where=str(path), key=key, recovery=recovery)
-    row = db.execute(_META_SELECT).fetchone()
-    if row is not None:
-        _decode_meta(row, path, recovery)
-
-
-def _decode_meta(row: tuple[object, ...], path: Path, recovery: str) -> _MetaRow:
-    """The meta row's values, each what its column holds (or ``StateFileError``)."""
-    deployment, generation, watermark, fence, losses = row
-    where = str(path)
-    return (
-        _codec.decode_hex(deployment, 32, where=where, key="meta deployment", recovery=recovery),
-        _codec.decode_int(generation, where=where, key="meta generation", recovery=recovery),
-        _codec.decode_float(watermark, where=where, key="meta watermark", recovery=recovery),
-        _codec.decode_float(fence, where=where, key="meta fence", recovery=recovery),
-        _codec.decode_int(losses, where=where, key="meta data_loss_events", recovery=recovery),
-    )
-
-
-def _loss_reason(  # noqa: PLR0911 - one answer per row of the table in the docstring
-    meta: tuple[Any, ...] | None, witness: tuple[str, int, float] | bool | None, has_state: bool
-) -> str | None:
-    """Why the database may have lost state (None: it provably has not)."""
-    if meta is None:
-        if witness is None and not has_state:
-            return None  # a new deployment
-        if witness is None:
-            return "state without meta or witness (made by an older version?)"
-        return "database missing, truncated or replaced (the witness says it existed)"
-    if witness is None:
-        return "witness file missing"
-    if witness is False:
-        return "witness file unreadable"
-    assert isinstance(witness, tuple)
-    if witness[0] != meta[0]:
-        return "database belongs to another deployment than its witness (replaced)"
-    if meta[1] < witness[1]:
-        return f"database generation {meta[1]} is behind its witness's {witness[1]} (rolled back)"
-    return None
-
-
-def anchor_reason(  # noqa: PLR0911 - one answer per anchor row of the docstring's table
-    meta: tuple[Any, ...] | None,
-    witness: tuple[str, int, float] | bool | None,
-    anchor: Read,
-    where: str = "",
-) -> str | None:
-    """Why a database its witness vouches for may still have lost state, by one copy of
-    its anchor (:mod:`antireplay.state.anchor`, at ``where``): what a restored copy of the
-    whole directory, or a lost anchor copy, shows."""
-    at = f" ({where})" if where else ""
-    if anchor is False:
-        return f"state anchor{at} unreadable"
-    if anchor is None:
-        if meta is None and witness is None:
-            return None  # a new deployment, anchored from its first commit
-        return f"no state anchor{at} for existing state (the anchor was lost, or is new here)"
-    if meta is None:
-        return (
-            f"database and witness missing but the state anchor{at} vouches for generation "
-            f"{anchor.generation} (deleted, or restored from before the anchor)"
-        )
-    if meta[0] != anchor.deployment:
-        return f"database belongs to another deployment than its state anchor{at} (replaced)"
-    if meta[1] < anchor.generation:
-        return (
-            f"database generation {meta[1]} is behind its state anchor{at}'s "
-            f"{anchor.generation} (the state directory was restored from an older copy)"
-        )
-    return None
