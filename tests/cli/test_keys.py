@@ -17,6 +17,7 @@ from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.rcan.auth import write_key_pair
 from harness import antireplay, one_line_error, serving
+from harness.stores import aged_state
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 
@@ -91,6 +92,7 @@ def test_secrets_are_written_0600_and_a_shared_one_is_warned_about(tmp_path: Pat
 def test_send_json_is_one_object_with_status_code_reason_and_body(tmp_path: Path) -> None:
     config = write_demo_config(tmp_path)
     (tmp_path / "msg.json").write_bytes(command(load_operator_key(tmp_path)))
+    aged_state(tmp_path / "state.db")  # history: no first start's fence
     with serving(config) as gateway:
         first = antireplay("send", "--json", gateway.url, "msg.json", cwd=tmp_path)
         again = antireplay("send", "--json", gateway.url, "msg.json", cwd=tmp_path)

@@ -41,6 +41,7 @@ from harness.envelopes import (
     signed,
     token,
 )
+from harness.stores import aged_state
 
 
 @pytest.mark.parametrize(
@@ -189,6 +190,7 @@ def test_an_sdk_key_id_without_sdk_compat_gets_a_hint_naming_it(tmp_path: Path) 
         other = antireplay("sign", "--key", "operator.key.pem", "--kid", kid, "--cmd", "c",
                            "--target", robot, cwd=tmp_path)  # fmt: skip
         (tmp_path / f"{kid}.json").write_text(other.stdout)
+    aged_state(tmp_path / "state.db")  # history: no first start's fence
     with serving(config) as gateway:
         sent = {n: antireplay("send", "--json", gateway.url, f"{n}.json", cwd=tmp_path)
                 for n in ("sdk", "deadbeef", "nobody")}  # fmt: skip

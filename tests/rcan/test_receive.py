@@ -40,7 +40,7 @@ from harness.envelopes import (
     signed,
     token,
 )
-from harness.stores import sqlite_store
+from harness.stores import aged_state, sqlite_store
 
 # --- acceptance and the basic answers ------------------------------------------------------------
 
@@ -438,6 +438,7 @@ def test_a_refused_replay_is_audited_under_the_key_it_claims_and_verified_only_i
     config = write_demo_config(tmp_path)
     raw = command(load_operator_key(tmp_path))
     tampered = json.dumps({**json.loads(raw), "params": {"distance_m": 9}}).encode()
+    aged_state(tmp_path / "state.db")  # history: no first start's fence
     with serving(config) as gateway:
         assert post(gateway, raw).status_code == 200
         assert post(gateway, raw).status_code == 409  # the byte-identical copy: no parse
