@@ -7,7 +7,9 @@ hash of the segment before it, which the segment's one ``segment`` row records (
 head ``(rows, last hash, oldest segment kept)`` is MACed with a key kept outside the
 database and checkpointed to a file beside it (:class:`HeadAnchor`).
 The writer (:mod:`.writer`), the reader (:mod:`.reader`) and the verifier
-(:mod:`.verifier`) share these definitions and nothing else.
+(:mod:`.verifier`) share these definitions and nothing else.  A row to write is one
+:class:`AuditRow`, whichever adapter builds it; a row read back is a :class:`Record`, the
+same fields and its ``seq``.
 """
 
 from __future__ import annotations
