@@ -5,17 +5,17 @@ from __future__ import annotations
 import sqlite3
 from pathlib import Path
 
-from antireplay.audit import AuditLog, Retention
+from antireplay.audit import AuditLog, AuditRow, Retention
 
 
 def trail(path: Path, rows: int) -> None:
     """A closed trail at ``path`` of ``rows`` accepted records, a second apart."""
     log = AuditLog(path)
     for i in range(rows):
-        log.append(
+        log.append(AuditRow(
             at=1_800_000_000.0 + i, outcome="accepted", code=None, warning=None, msg_type=1,
             sender="op", sender_verified=True, msg_id=f"m{i}",
-        )  # fmt: skip
+        ))  # fmt: skip
     log.close()
 
 
@@ -34,10 +34,10 @@ SMALL_SEGMENT = 32_768
 
 def append(log: AuditLog, i: int) -> int:
     """One accepted record ``m<i>`` at second ``i`` of the test's epoch."""
-    return log.append(
+    return log.append(AuditRow(
         at=1_800_000_000.0 + i, outcome="accepted", code=None, warning=None, msg_type=1,
         sender="op", sender_verified=True, msg_id=f"m{i}",
-    )  # fmt: skip
+    ))  # fmt: skip
 
 
 def segmented(path: Path, rows: int, retention: Retention | None = None) -> AuditLog:

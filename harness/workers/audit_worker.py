@@ -15,7 +15,7 @@ import sys
 import threading
 from pathlib import Path
 
-from antireplay.audit import AuditLog, Retention
+from antireplay.audit import AuditLog, AuditRow, Retention
 from harness.audit import SMALL_SEGMENT, append
 
 #: The retention the concurrent writers share: rotate every small segment, keep four.
@@ -48,10 +48,10 @@ def concurrent(path: Path, rows: int, name: str) -> None:
     print("READY", flush=True)
     next(told)
     for i in range(rows):
-        log.append(
+        log.append(AuditRow(
             at=1_800_000_000.0 + i, outcome="accepted", code=None, warning=None, msg_type=1,
             sender="op", sender_verified=True, msg_id=f"{name}-{i}",
-        )  # fmt: skip
+        ))  # fmt: skip
         sys.stdout.write(f"{name}-{i}\n")
         sys.stdout.flush()
     print("DONE", flush=True)

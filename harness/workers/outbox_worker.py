@@ -19,9 +19,8 @@ from __future__ import annotations
 import sys
 import threading
 from pathlib import Path
-from typing import Any
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, AuditRow
 from antireplay.core.clock import ManualClock
 from antireplay.state.sqlite import SqliteStore
 
@@ -37,18 +36,16 @@ class HangingLog(AuditLog):
         threading.Event().wait()  # killed here
 
 
-def row(outcome: str, msg_id: str, code: str | None = None) -> dict[str, Any]:
-    return {
-        "at": NOW, "outcome": outcome, "code": code, "warning": None, "msg_type": 1,
-        "sender": "op", "sender_verified": outcome == "accepted", "msg_id": msg_id,
-    }  # fmt: skip
+def row(outcome: str, msg_id: str, code: str | None = None) -> AuditRow:
+    return AuditRow(NOW, outcome, code, msg_type=1, sender="op",
+                    sender_verified=outcome == "accepted", msg_id=msg_id)  # fmt: skip
 
 
 def accept(store: SqliteStore, audit: AuditLog, key: str) -> bool:
     """An accepted message's two steps, as the receive core takes them."""
     if not store.commit(key, NOW + 30.0, NOW).recorded:
         return False
-    audit.append(**row("accepted", key))
+    audit.append(row("accepted", key))
     return True
 
 
@@ -72,13 +69,13 @@ def main() -> None:
             thread.join()
     elif mode == "refuse":
         for i in range(int(args[0])):
-            audit.append_later(**row("rejected", f"r{i}", "REPLAY_DETECTED")).result()
+            audit.append_later(row("rejected", f"r{i}", "REPLAY_DETECTED")).result()
     elif mode == "hang-forget":
         for i in range(int(args[0])):
             accept(store, audit, f"h{i}")
         audit.drain()
     elif mode == "hang-refused":
-        audit.append_later(**row("rejected", "refused-1", "REPLAY_DETECTED")).result()
+        audit.append_later(row("rejected", "refused-1", "REPLAY_DETECTED")).result()
         sys.stdout.write("ANSWERED\n")
         sys.stdout.flush()
         threading.Event().wait()  # killed here

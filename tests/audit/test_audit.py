@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from antireplay.audit import GENESIS, AuditLog, reanchor, verify
+from antireplay.audit import GENESIS, AuditLog, AuditRow, reanchor, verify
 from antireplay.audit.chain import _digest
 from antireplay.cli import main
 from antireplay.core.clock import ManualClock
@@ -220,10 +220,10 @@ def test_gateway_startup_on_a_garbage_audit_file_names_it(tmp_path: Path) -> Non
 
 
 def _append(log: AuditLog, mid: str) -> int:
-    return log.append(
+    return log.append(AuditRow(
         at=1_800_000_100.0, outcome="accepted", code=None, warning=None, msg_type=1,
         sender="op", sender_verified=True, msg_id=mid,
-    )  # fmt: skip
+    ))  # fmt: skip
 
 
 def test_rows_deleted_under_a_running_writer_are_never_adopted(db: Path) -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from antireplay.audit import AuditLog, Retention, export_head, verify
+from antireplay.audit import AuditLog, AuditRow, Retention, export_head, verify
 from antireplay.audit.consistency import ROLLED_BACK
 from antireplay.cli import main
 from antireplay.core.clock import ManualClock
@@ -22,10 +22,10 @@ from harness.audit import SMALL_SEGMENT, append, segmented, sql, trail
 
 
 def _put(audit: AuditLog, i: int) -> None:
-    audit.append(
+    audit.append(AuditRow(
         at=1_800_000_000.0 + i, outcome="accepted", code=None, warning=None, msg_type=1,
         sender="op", sender_verified=True, msg_id=f"m{i}",
-    )  # fmt: skip
+    ))  # fmt: skip
 
 
 def _gateway(where: Path, rows: range) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from antireplay.audit import AuditLog, RefusalAuditor
+from antireplay.audit import AuditLog, AuditRow, RefusalAuditor
 from antireplay.audit.refusals import FOLDED, SUMMARY, UNVERIFIED_KEYS, summary_count
 from antireplay.core.clock import ManualClock
 from antireplay.core.errors import StateUnavailableError
@@ -95,7 +95,7 @@ def test_the_next_log_line_says_how_many_were_folded(caplog: pytest.LogCaptureFi
 
 
 class _DownTrail:
-    def append(self, **_: object) -> int:
+    def append(self, row: AuditRow) -> int:
         raise StateUnavailableError("audit trail unavailable: disk full")
 
 
@@ -226,10 +226,10 @@ def test_claimed_senders_of_unauthenticated_refusals_cost_a_handful_of_summaries
 
 def test_mixed_msg_ids_are_summarised_without_one() -> None:
     clock = ManualClock()
-    rows: list[dict[str, object]] = []
+    rows: list[AuditRow] = []
 
     class Trail:
-        def append(self, **row: object) -> int:
+        def append(self, row: AuditRow) -> int:
             rows.append(row)
             return len(rows)
 
@@ -237,8 +237,8 @@ def test_mixed_msg_ids_are_summarised_without_one() -> None:
     for i in range(4):
         auditor.record(code="REPLAY_DETECTED", sender="a", sender_verified=True, msg_id=f"m{i}")
     auditor.flush()
-    assert rows[-1]["msg_id"] is None and "msg_ids=various" in str(rows[-1]["warning"])
-    assert summary_count(SUMMARY, str(rows[-1]["warning"])) == 3
+    assert rows[-1].msg_id is None and "msg_ids=various" in str(rows[-1].warning)
+    assert summary_count(SUMMARY, str(rows[-1].warning)) == 3
 
 
 def test_below_the_floor_refusals_and_summaries_are_only_counted(tmp_path: Path) -> None:

@@ -9,13 +9,14 @@ from typing import Any
 
 import pytest
 
-from antireplay.audit import AuditLog, tail, verify
+from antireplay.audit import AuditLog, AuditRow, tail, verify
 from antireplay.audit.spill import SLOT, Spill
 
 KEY = bytes(range(32))
 
 
 def _row(i: int) -> dict[str, Any]:
+    """An ESTOP's row as the spill stores it."""
     return {
         "at": 1_800_000_000.0 + i, "outcome": "accepted", "code": None,
         "warning": "AUDIT_UNAVAILABLE", "msg_type": 6, "sender": "operator",
@@ -24,9 +25,7 @@ def _row(i: int) -> dict[str, Any]:
 
 
 def _estop(log: AuditLog, i: int) -> bool:
-    row = _row(i)
-    row["sender_verified"] = True
-    return log.spill(**row)
+    return log.spill(AuditRow(**{**_row(i), "sender_verified": True}))
 
 
 def test_the_file_is_reserved_at_open_and_its_rows_survive_a_reopen(tmp_path: Path) -> None:
@@ -77,10 +76,10 @@ def test_spilled_rows_are_merged_chained_with_the_next_batch(tmp_path: Path) -> 
     log = AuditLog(tmp_path / "audit.db")
     try:
         assert _estop(log, 0) and _estop(log, 1) and log.spilled == 2
-        log.append(
+        log.append(AuditRow(
             at=1_800_000_010.0, outcome="accepted", code=None, warning=None, msg_type=1,
             sender="operator", sender_verified=True, msg_id="after",
-        )  # fmt: skip
+        ))  # fmt: skip
         assert log.spilled == 0
         assert [r.msg_id for r in log.tail(5)] == ["estop-0", "estop-1", "after"]
     finally:
@@ -95,19 +94,19 @@ def test_spilled_rows_are_merged_at_the_next_start_after_the_trail_is_restored(
     start merges them, chained."""
     trail, backup = tmp_path / "audit.db", tmp_path / "backup.db"
     log = AuditLog(trail)
-    log.append(
+    log.append(AuditRow(
         at=1_800_000_000.0, outcome="accepted", code=None, warning=None, msg_type=1,
         sender="operator", sender_verified=True, msg_id="before",
-    )  # fmt: skip
+    ))  # fmt: skip
     log.close()
     backup.write_bytes(trail.read_bytes())
     log = AuditLog(trail)
     trail.unlink()
     with pytest.raises(Exception, match="deleted or replaced"):
-        log.append(
+        log.append(AuditRow(
             at=1_800_000_001.0, outcome="accepted", code=None, warning=None, msg_type=1,
             sender="operator", sender_verified=True, msg_id="lost",
-        )  # fmt: skip
+        ))  # fmt: skip
     assert _estop(log, 1)
     log.close()
     backup.rename(trail)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from antireplay.audit import AuditLog, Retention, tail, verify
+from antireplay.audit import AuditLog, AuditRow, Retention, tail, verify
 from antireplay.audit.segments import bytes_of, rotated
 from antireplay.core.errors import AuditFileError, StateUnavailableError
 from harness import ROOT
@@ -47,10 +47,10 @@ def test_a_running_writer_refuses_to_append_to_a_deleted_trail(tmp_path: Path) -
         for file in tmp_path.glob("audit.db*"):
             file.unlink()
         with pytest.raises(StateUnavailableError, match="deleted or replaced"):
-            log.append(
+            log.append(AuditRow(
                 at=1_800_000_100.0, outcome="accepted", code=None, warning=None, msg_type=1,
                 sender="operator", sender_verified=True, msg_id="lost",
-            )  # fmt: skip
+            ))  # fmt: skip
     finally:
         log.close()
 

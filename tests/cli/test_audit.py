@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 from click.testing import CliRunner
 
-from antireplay.audit import AuditLog, verify
+from antireplay.audit import AuditLog, AuditRow, verify
 from antireplay.audit.segments import rotated
 from antireplay.cli import main
 from harness.audit import segmented, sql, trail
@@ -23,10 +23,9 @@ def lost_and_found(path: Path, reason: str) -> None:
     """A STATE_LOST row (its warning is the store's reason, free text) and a row with no
     sender (a memo hit)."""
     log = AuditLog(path)
-    log.append(at=1_800_000_000.0, outcome="state", code="STATE_LOST", warning=reason,
-               msg_type=None, sender=None, sender_verified=False, msg_id=None)  # fmt: skip
-    log.append(at=1_800_000_001.0, outcome="rejected", code="REPLAY_DETECTED", warning=None,
-               msg_type=1, sender=None, sender_verified=False, msg_id="m1")  # fmt: skip
+    log.append(AuditRow(at=1_800_000_000.0, outcome="state", code="STATE_LOST", warning=reason))
+    log.append(AuditRow(at=1_800_000_001.0, outcome="rejected", code="REPLAY_DETECTED",
+                        msg_type=1, msg_id="m1"))  # fmt: skip
     log.close()
 
 

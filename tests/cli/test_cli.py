@@ -17,7 +17,7 @@ from click.testing import CliRunner
 from cryptography.hazmat.primitives.asymmetric import ed25519
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, AuditRow
 from antireplay.cli import main
 from antireplay.cli.demo import write_demo_config
 from antireplay.core.errors import StateFileError
@@ -335,10 +335,10 @@ def test_audit_commands_refuse_files_that_are_not_audit_trails(
 def headless(path: Path) -> Path:
     """An audit trail with rows whose head checkpoint was deleted."""
     log = AuditLog(path)
-    log.append(
+    log.append(AuditRow(
         at=1_800_000_000.0, outcome="accepted", code=None, warning=None, msg_type=1,
         sender="op", sender_verified=True, msg_id="m1",
-    )  # fmt: skip
+    ))  # fmt: skip
     log.close()
     path.with_name(path.name + ".head").unlink()
     return path

@@ -25,7 +25,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 from starlette.applications import Starlette
 
-from antireplay.audit import AuditLog, tail
+from antireplay.audit import AuditLog, AuditRow, tail
 from antireplay.cli import main
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.wiring import create_app, embedded_default
@@ -232,10 +232,10 @@ def test_audit_tail_json_lines_and_a_full_table_off_a_terminal(tmp_path: Path) -
     path = tmp_path / "audit.db"
     log = AuditLog(path)
     long_id = "m" * 64
-    log.append(at=1.5, outcome="accepted", code=None, warning=None, msg_type=1,
-               sender="operator", sender_verified=True, msg_id=long_id)  # fmt: skip
-    log.append(at=2.0, outcome="rejected", code="REPLAY_DETECTED", warning=None, msg_type=1,
-               sender="x\x1b[31m", sender_verified=False, msg_id=long_id)  # fmt: skip
+    log.append(AuditRow(at=1.5, outcome="accepted", msg_type=1, sender="operator",
+                        sender_verified=True, msg_id=long_id))  # fmt: skip
+    log.append(AuditRow(at=2.0, outcome="rejected", code="REPLAY_DETECTED", msg_type=1,
+                        sender="x\x1b[31m", msg_id=long_id))  # fmt: skip
     log.close()
     with sqlite3.connect(path) as db:  # a row edited behind the trail's back
         db.execute("UPDATE audit SET msg_id = ? WHERE seq = 2", ("\x1b]0;owned\x07[red]x",))

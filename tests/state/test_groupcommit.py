@@ -30,7 +30,7 @@ from typing import Any
 import httpx
 import pytest
 
-from antireplay.audit import AuditLog, verify
+from antireplay.audit import AuditLog, AuditRow, verify
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.state import groupcommit
 from antireplay.state.groupcommit import GroupCommitter
@@ -334,10 +334,10 @@ def test_audit_racers_get_distinct_seqs_one_chain_and_few_checkpoints(tmp_path: 
     def racer(thread: int) -> None:
         barrier.wait()
         for i in range(per_thread):
-            seq = audit.append(
+            seq = audit.append(AuditRow(
                 at=time.time(), outcome="rejected", code="REPLAY_DETECTED", warning=None,
                 msg_type=1, sender="operator", sender_verified=True, msg_id=f"m-{thread}-{i}",
-            )  # fmt: skip
+            ))  # fmt: skip
             with lock:
                 seqs.append(seq)
 

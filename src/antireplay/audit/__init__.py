@@ -28,7 +28,7 @@ state database and in exports an operator keeps (:mod:`.consistency`): a trail r
 against them is ``AUDIT_ROLLED_BACK``.
 """
 
-from antireplay.audit.chain import GENESIS, Checkpoint, HeadAnchor, Record, sanitize
+from antireplay.audit.chain import GENESIS, AuditRow, Checkpoint, HeadAnchor, Record, sanitize
 from antireplay.audit.reader import shown, tail
 from antireplay.audit.refusals import RefusalAuditor
 from antireplay.audit.segments import Retention, TrailUsage
@@ -38,6 +38,7 @@ from antireplay.audit.writer import AuditLog
 __all__ = [
     "GENESIS",
     "AuditLog",
+    "AuditRow",
     "ChainReport",
     "Checkpoint",
     "HeadAnchor",

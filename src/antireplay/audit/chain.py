@@ -7,7 +7,9 @@ hash of the segment before it, which the segment's one ``segment`` row records (
 head ``(rows, last hash, oldest segment kept)`` is MACed with a key kept outside the
 database and checkpointed to a file beside it (:class:`HeadAnchor`).
 The writer (:mod:`.writer`), the reader (:mod:`.reader`) and the verifier
-(:mod:`.verifier`) share these definitions and nothing else.
+(:mod:`.verifier`) share these definitions and nothing else.  A row to write is one
+:class:`AuditRow`, whichever adapter builds it; a row read back is a :class:`Record`, the
+same fields and its ``seq``.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import re
 import secrets
 import sqlite3
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -50,17 +52,34 @@ CREATE TABLE IF NOT EXISTS segment (
     mac TEXT NOT NULL
 );
 """
-_FIELDS = (
-    "seq",
-    "at",
-    "outcome",
-    "code",
-    "warning",
-    "msg_type",
-    "sender",
-    "sender_verified",
-    "msg_id",
-)
+
+
+@dataclass(frozen=True, slots=True)
+class AuditRow:
+    """One row to write: every adapter builds this value and hands it to the writer, which
+    sanitizes ``sender`` and ``msg_id`` and chains it.  Its fields are the trail's columns
+    (after ``seq``) and the keys of the row the hash covers."""
+
+    at: float
+    outcome: str
+    code: str | None = None
+    warning: str | None = None
+    msg_type: int | None = None
+    sender: str | None = None
+    sender_verified: bool = False
+    msg_id: str | None = None
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class Record(AuditRow):
+    """One row read back (:meth:`AuditLog.tail`): the row as stored, and its ``seq``."""
+
+    seq: int
+
+
+#: The row's fields, spelled once (:class:`AuditRow`); a stored row leads with ``seq``.
+ROW_FIELDS = tuple(f.name for f in fields(AuditRow))
+_FIELDS = ("seq", *ROW_FIELDS)
 _COLUMNS = ",".join(_FIELDS)  # constants only: no user input ever reaches SQL text
 _TAIL = f"SELECT {_COLUMNS} FROM audit ORDER BY seq DESC LIMIT ?"  # noqa: S608
 _ALL = f"SELECT {_COLUMNS}, prev_hash, hash FROM audit ORDER BY seq"  # noqa: S608
@@ -375,24 +394,10 @@ def _last(db: sqlite3.Connection) -> tuple[int, str]:
     return link.first - 1, link.prev
 
 
-@dataclass(frozen=True)
-class Record:
-    """One audit row, as returned by :meth:`AuditLog.tail`."""
-
-    seq: int
-    at: float
-    outcome: str
-    code: str | None
-    warning: str | None
-    msg_type: int | None
-    sender: str | None
-    sender_verified: bool
-    msg_id: str | None
-
-
 def _records(rows: list[Any]) -> list[Record]:
     return [
-        Record(r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7] == 1, r[8]) for r in reversed(rows)
+        Record(r[1], r[2], r[3], r[4], r[5], r[6], r[7] == 1, r[8], seq=r[0])
+        for r in reversed(rows)
     ]
 
 

@@ -41,9 +41,9 @@ from collections import Counter
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Protocol
 
-from antireplay.audit.chain import sanitize
+from antireplay.audit.chain import AuditRow, sanitize
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.ratelimit import TokenBucket
 
@@ -65,18 +65,7 @@ _COUNT = re.compile(r"folded=([0-9]+)")
 class Trail(Protocol):
     """What the auditor writes to (:class:`~antireplay.audit.AuditLog`)."""
 
-    def append(
-        self,
-        *,
-        at: float,
-        outcome: str,
-        code: str | None,
-        warning: str | None,
-        msg_type: int | None,
-        sender: object,
-        sender_verified: bool,
-        msg_id: object,
-    ) -> int: ...
+    def append(self, row: AuditRow) -> int: ...
 
 
 def _class(authentic: bool) -> str:
@@ -96,7 +85,7 @@ class _Other:
 
 
 _OTHER = _Other()
-Key = tuple[bool, str, object]
+Key = tuple[bool, str, "str | _Other | None"]
 
 
 @dataclass(slots=True)
@@ -165,7 +154,7 @@ class RefusalAuditor:
         *,
         authentic: bool,
         code: str | None = None,
-        sender: object = None,
+        sender: str | None = None,
         msg_id: object = None,
     ) -> bool:
         """Whether this refusal gets a row of its own; else it is folded into its tally
@@ -206,10 +195,10 @@ class RefusalAuditor:
         self,
         *,
         code: str,
-        sender: object,
+        sender: str | None,
         sender_verified: bool,
         warning: str | None = None,
-        msg_id: object = None,
+        msg_id: str | None = None,
         line: str | None = None,
     ) -> bool:
         """One row (and, with a logger, ``line`` as a warning) unless the budgets are spent;
@@ -223,8 +212,8 @@ class RefusalAuditor:
             self.log.warning("%s%s", line, more)
         if self.audit is not None:
             self.audit.append(
-                at=self.clock.wall(), outcome="rejected", code=code, warning=warning,
-                msg_type=None, sender=sender, sender_verified=sender_verified, msg_id=msg_id,
+                AuditRow(self.clock.wall(), "rejected", code, warning, sender=sender,
+                         sender_verified=sender_verified, msg_id=msg_id)
             )  # fmt: skip
         return True
 
@@ -248,28 +237,30 @@ class RefusalAuditor:
         return len(rows)
 
     @staticmethod
-    def _summary(authentic: bool, code: str, sender: object, tally: _Tally) -> dict[str, Any]:
-        other = sender is _OTHER
+    def _summary(
+        authentic: bool, code: str, sender: str | _Other | None, tally: _Tally
+    ) -> AuditRow:
+        other = isinstance(sender, _Other)
         warning = f"folded={tally.folded} first={tally.first:.3f} last={tally.last:.3f}"
         warning += " senders=other" if other else ""
         warning += " msg_ids=various" if tally.mixed else ""
-        return {
-            "at": tally.last, "outcome": SUMMARY, "code": code, "warning": warning,
-            "msg_type": None, "sender": None if other else sender,
-            "sender_verified": authentic, "msg_id": None if tally.mixed else tally.msg_id,
-        }  # fmt: skip
+        who = None if isinstance(sender, _Other) else sender
+        return AuditRow(
+            tally.last, SUMMARY, code, warning, sender=who, sender_verified=authentic,
+            msg_id=None if tally.mixed else tally.msg_id,
+        )  # fmt: skip
 
-    def _write(self, row: dict[str, Any], folded: int) -> None:
+    def _write(self, row: AuditRow, folded: int) -> None:
         """Queue one summary row; what it stands for is counted once it is durable."""
         later = getattr(self.audit, "append_later", None)
         done: Future[int]
         try:
             if later is not None:
-                done = later(**row)
+                done = later(row)
             else:
                 assert self.audit is not None
                 done = Future()
-                done.set_result(self.audit.append(**row))
+                done.set_result(self.audit.append(row))
         except Exception:  # a closed or failing trail: counted, never raised
             done = Future()
             done.set_exception(RuntimeError("audit trail unavailable"))

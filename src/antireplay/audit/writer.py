@@ -36,6 +36,8 @@ from typing import Any, NamedTuple
 from antireplay.audit import consistency, segments
 from antireplay.audit.chain import (
     _FIELDS,
+    ROW_FIELDS,
+    AuditRow,
     Checkpoint,
     HeadAnchor,
     Record,
@@ -57,7 +59,7 @@ from antireplay.state.outbox import Mark, Outbox
 
 log = logging.getLogger("antireplay.audit")
 #: A queued "move what the outbox holds" (no row of its own).
-_DRAIN: dict[str, Any] = {}
+_DRAIN = None
 #: Outbox rows moved per transaction at most (more: another drain follows at once).
 DRAIN_BATCH = 4096
 
@@ -75,12 +77,13 @@ class _Appended(NamedTuple):
     first_at: object
 
 
-def _stored(fields: dict[str, Any]) -> dict[str, Any]:
-    """One row as stored: identifiers sanitized, the flag an integer."""
-    return {
-        **fields, "sender": sanitize(fields["sender"]),
-        "sender_verified": int(fields["sender_verified"]), "msg_id": sanitize(fields["msg_id"]),
-    }  # fmt: skip
+def _stored(row: AuditRow) -> dict[str, Any]:
+    """One row as stored and hashed (the outbox and the spill keep it as JSON):
+    identifiers sanitized, the flag an integer."""
+    stored = {name: getattr(row, name) for name in ROW_FIELDS}
+    stored["sender"], stored["msg_id"] = sanitize(row.sender), sanitize(row.msg_id)
+    stored["sender_verified"] = int(row.sender_verified)
+    return stored
 
 
 class AuditLog(SegmentLifecycle):
@@ -140,7 +143,7 @@ class AuditLog(SegmentLifecycle):
         self.rollbacks = 0
         self._last_moved = 0
         self._spill = self._open_spill(spill_path, spill_slots)
-        self._committer: GroupCommitter[dict[str, Any], int] = GroupCommitter(
+        self._committer: GroupCommitter[AuditRow | None, int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
         )
 
@@ -167,38 +170,24 @@ class AuditLog(SegmentLifecycle):
                 log.error("spilled audit rows not merged yet (%s): next batch", exc)
         return spill
 
-    def spill(self, **fields: Any) -> bool:
+    def spill(self, row: AuditRow) -> bool:
         """Keep one row that the trail could not take in the reserved spill, durably; it is
         merged, chained, with the next batch the trail commits.  ``False``: no room."""
-        return self._spill is not None and self._spill.add(_stored(fields))
+        return self._spill is not None and self._spill.add(_stored(row))
 
     @property
     def spilled(self) -> int:
         """Rows waiting in the spill."""
         return 0 if self._spill is None else len(self._spill.pending())
 
-    def append(
-        self,
-        *,
-        at: float,
-        outcome: str,
-        code: str | None,
-        warning: str | None,
-        msg_type: int | None,
-        sender: object,
-        sender_verified: bool,
-        msg_id: object,
-    ) -> int:
+    def append(self, row: AuditRow) -> int:
         """Durably append one record; returns its sequence number.
 
         Raises ``STATE_UNAVAILABLE`` when the record cannot be made durable (disk full,
         closed database): callers must not act on a message they could not audit.
         """
         try:
-            future = self.append_later(
-                at=at, outcome=outcome, code=code, warning=warning, msg_type=msg_type,
-                sender=sender, sender_verified=sender_verified, msg_id=msg_id, durable=True,
-            )  # fmt: skip
+            future = self.append_later(row, durable=True)
             assert isinstance(future, Future)
             return future.result()
         except (sqlite3.Error, OSError, RuntimeError, AuditFileError) as exc:
@@ -206,15 +195,8 @@ class AuditLog(SegmentLifecycle):
 
     def append_later(
         self,
+        row: AuditRow,
         *,
-        at: float,
-        outcome: str,
-        code: str | None,
-        warning: str | None,
-        msg_type: int | None,
-        sender: object,
-        sender_verified: bool,
-        msg_id: object,
         on_loop: bool = False,
         durable: bool | None = None,
     ) -> Future[int] | asyncio.Future[int]:
@@ -223,30 +205,25 @@ class AuditLog(SegmentLifecycle):
         answering, holding no thread).  With an outbox, a refusal's (``durable`` defaults
         to ``outcome == "accepted"``) completes once written where a ``kill -9`` cannot
         lose it, durable with the next fsynced batch."""
-        row = _stored({
-            "at": at, "outcome": outcome, "code": code, "warning": warning,
-            "msg_type": msg_type, "sender": sender, "sender_verified": sender_verified,
-            "msg_id": msg_id,
-        })  # fmt: skip
         if self._outbox is not None:
-            sync = outcome == "accepted" if durable is None else durable
+            sync = row.outcome == "accepted" if durable is None else durable
             if file_identity(self.path) is None:  # the row would wait for a lost trail
                 return _failed(self._gone(), on_loop=on_loop)
             if on_loop:
-                return self._outbox.put_async(row, durable=sync)
-            return self._outbox.put(row, durable=sync)
+                return self._outbox.put_async(_stored(row), durable=sync)
+            return self._outbox.put(_stored(row), durable=sync)
         if on_loop:
             return self._committer.enqueue_async(row)
         return self._committer.enqueue(row)
 
-    def _write_batch(self, batch: Sequence[dict[str, Any]], *, sync: bool = False) -> list[int]:
+    def _write_batch(self, batch: Sequence[AuditRow | None], *, sync: bool = False) -> list[int]:
         """Chain and commit a group of rows (spilled ones first, then the outbox's) in one
         write transaction; one head checkpoint; then rotate and retain if due (never
         failing the batch: its rows are written).  Each queued drain answers ``0``."""
         with self._lock:
             self._drain_queued = False  # a row put from now on wakes another drain
             spilled = [] if self._spill is None else self._spill.pending()  # merged first
-            direct = [fields for fields in batch if fields is not _DRAIN]
+            direct = [row for row in batch if row is not _DRAIN]
             outbox = self._outbox
             sync = sync or outbox is None or bool(spilled or direct)
             sync = sync or self._clock.monotonic() - self._head_synced >= self.head_sync_s
@@ -277,10 +254,10 @@ class AuditLog(SegmentLifecycle):
             if done.moved == DRAIN_BATCH:
                 self._wake()  # more waiting: drain on
             seqs = iter(range(done.first, done.rows + 1))
-            return [0 if fields is _DRAIN else next(seqs) for fields in batch]
+            return [0 if row is _DRAIN else next(seqs) for row in batch]
 
     def _append(
-        self, db: sqlite3.Connection, spilled: list[dict[str, Any]], direct: list[dict[str, Any]]
+        self, db: sqlite3.Connection, spilled: list[dict[str, Any]], direct: list[AuditRow]
     ) -> _Appended:
         """Inside the batch's transaction: check the file is still this writer's, chain the
         spilled rows, the outbox's above the mark (moving the mark) and ``direct``."""
@@ -298,11 +275,13 @@ class AuditLog(SegmentLifecycle):
             epoch, moved = self._outbox.pending(mark, DRAIN_BATCH)
             mark = (epoch, mark[1] if mark[0] == epoch else 0)
         seq, prev = _last(db)
-        rows = [*spilled, *(fields for _, fields in moved), *direct]
+        # Each row as stored, in a dict of its own (the outbox's are fresh from JSON) that
+        # takes its seq: the hash covers it, the columns are read from it.
+        rows = [*map(dict, spilled), *(fields for _, fields in moved), *map(_stored, direct)]
         first, values = seq + 1 + len(spilled) + len(moved), []
-        for fields in rows:
+        for row in rows:
             seq += 1
-            row = {"seq": seq, **fields}
+            row["seq"] = seq
             digest = _digest(prev, row)
             values.append((*(row[f] for f in _FIELDS), prev, digest))
             prev = digest
@@ -330,10 +309,7 @@ class AuditLog(SegmentLifecycle):
         counter) and put it on the record, an ``AUDIT_ROLLED_BACK`` row chained now."""
         self.rolled_back, self.rollbacks = problem, self.rollbacks + 1
         log.error("audit trail %s rolled back: %s", self.path, problem)
-        row = _stored({"at": self._clock.wall(), "outcome": "alert",
-                       "code": consistency.ROLLED_BACK, "warning": problem[:200],
-                       "msg_type": None, "sender": None, "sender_verified": False,
-                       "msg_id": None})  # fmt: skip
+        row = AuditRow(self._clock.wall(), "alert", consistency.ROLLED_BACK, problem[:200])
         self._write_batch([row], sync=True)
 
     def drain(self) -> None:

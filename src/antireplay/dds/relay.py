@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 from cyclonedds.domain import DomainParticipant
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, AuditRow
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import InvalidFrameError, StateUnavailableError, WarningCode
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
@@ -206,14 +206,14 @@ class AnnouncementRelay:
         assert self.audit is not None
         try:
             self.audit.append(
-                at=self._clock.wall(),
-                outcome="alert",
-                code=None,
-                warning=WarningCode.DUPLICATE_SERVICE_NAME,
-                msg_type=None,
-                sender=report.nonce_prefix.hex(),
-                sender_verified=True,
-                msg_id=str(report.epoch),
+                AuditRow(
+                    self._clock.wall(),
+                    "alert",
+                    warning=WarningCode.DUPLICATE_SERVICE_NAME,
+                    sender=report.nonce_prefix.hex(),
+                    sender_verified=True,
+                    msg_id=str(report.epoch),
+                )
             )
         except StateUnavailableError:
             self.counts["audit_unavailable"] += 1

@@ -49,6 +49,7 @@ from collections import Counter
 from collections.abc import Callable
 from typing import TYPE_CHECKING, TypeVar
 
+from antireplay.audit.chain import AuditRow
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import (
     Code,
@@ -325,7 +326,6 @@ class EpochVerifier:
     ) -> None:
         if self.audit is not None:
             self.audit.append(
-                at=self._clock.wall(), outcome=outcome, code=code, warning=warning,
-                msg_type=None, sender=f"epoch:{prefix.hex()}", sender_verified=True,
-                msg_id=str(epoch),
+                AuditRow(self._clock.wall(), outcome, code, warning, sender=f"epoch:{prefix.hex()}",
+                         sender_verified=True, msg_id=str(epoch))
             )  # fmt: skip

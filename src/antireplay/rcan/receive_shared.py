@@ -34,10 +34,9 @@ import logging
 from collections import Counter
 from collections.abc import Iterable, Mapping
 from concurrent.futures import Future
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, replace
 
-from antireplay.audit import AuditLog, RefusalAuditor
+from antireplay.audit import AuditLog, AuditRow, RefusalAuditor
 from antireplay.audit.refusals import AUDIT_PER_S
 from antireplay.audit.space import DiskSpace
 from antireplay.audit.spill import SLOTS as HELD_ROWS  # ESTOP rows held for the trail
@@ -80,7 +79,7 @@ class Pending:
     #: A fresh, authentic ESTOP: delivered even when its audit row cannot be made durable.
     estop: bool = False
     #: The outcome's audit row, for the driver to queue (kept to be spilled if it fails).
-    row: dict[str, Any] | None = None
+    row: AuditRow | None = None
 
 
 def patience(pending: Pending) -> float | None:
@@ -111,7 +110,7 @@ def queue_row(audit: AuditLog | None, pending: Pending, *, on_loop: bool) -> Pen
     if audit is None or pending.row is None:
         return pending
     try:
-        pending.audit = audit.append_later(**pending.row, on_loop=on_loop and not pending.estop)
+        pending.audit = audit.append_later(pending.row, on_loop=on_loop and not pending.estop)
     except RuntimeError as exc:
         failed: Future[int] = Future()
         failed.set_exception(exc)
@@ -277,10 +276,11 @@ class ReceiverBase:
         """A refusal's row if the auditor gives it one, else folded into its summary."""
         if self.audit is None:
             return pending
-        fields = audit_row(pending.outcome, self.clock.wall(), sender)
-        key = {name: fields[name] for name in ("code", "sender", "msg_id")}
-        if self.refusals.admit(authentic=fields["sender_verified"], **key):
-            pending.row = fields
+        row = audit_row(pending.outcome, self.clock.wall(), sender)
+        if self.refusals.admit(
+            authentic=row.sender_verified, code=row.code, sender=row.sender, msg_id=row.msg_id
+        ):
+            pending.row = row
         else:
             self.stats.unaudited += 1
         return pending
@@ -380,7 +380,7 @@ class ReceiverBase:
         self.stats.held_estops += 1
         if pending.row is None or self.audit is None:
             return
-        row = {**pending.row, "warning": warning}
+        row = replace(pending.row, warning=warning)
         audit = pending.audit
         if isinstance(failure, TimeoutError) and isinstance(audit, Future) and not audit.cancel():
             # Already in a batch (cannot be withdrawn): it lands, or is spilled if it fails.
@@ -388,17 +388,17 @@ class ReceiverBase:
             return
         self._spill(row, failure)
 
-    def _spill_late(self, done: Future[int], row: dict[str, Any]) -> None:
+    def _spill_late(self, done: Future[int], row: AuditRow) -> None:
         """An ESTOP row's batch finished after its answer: spilled only if it failed."""
         failure = None if done.cancelled() else done.exception()
         if failure is not None:
             self._spill(row, failure)
 
-    def _spill(self, row: dict[str, Any], failure: BaseException) -> None:
+    def _spill(self, row: AuditRow, failure: BaseException) -> None:
         """Keep one delivered ESTOP's row in the spill (merged into the trail later)."""
         assert self.audit is not None
         first = self.held_rows == 0
-        if not self.audit.spill(**row):
+        if not self.audit.spill(row):
             self.stats.held_dropped += 1
             log.error("audit trail and its spill unavailable (%s); ESTOP row: %s", failure, row)
             return
@@ -423,10 +423,8 @@ class ReceiverBase:
             return
         try:
             self.audit.append(
-                at=self.clock.wall(), outcome="state", code=WarningCode.STATE_LOST,
-                warning=reason[:200], msg_type=None, sender=None, sender_verified=False,
-                msg_id=None,
-            )  # fmt: skip
+                AuditRow(self.clock.wall(), "state", WarningCode.STATE_LOST, reason[:200])
+            )
         except StateUnavailableError:
             self.stats.audit_failures += 1
 

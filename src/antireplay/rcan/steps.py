@@ -29,7 +29,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from antireplay.audit import sanitize
+from antireplay.audit import AuditRow, sanitize
 from antireplay.core.errors import (
     AuthFailedError,
     Code,
@@ -244,7 +244,7 @@ class Steps:
             raise ScopeDeniedError(f"key {sanitize(signer.kid)} lacks scope {sanitize(needed)}")
 
 
-def audit_row(outcome: Outcome, at: float, sender: str | None = None) -> dict[str, Any]:
+def audit_row(outcome: Outcome, at: float, sender: str | None = None) -> AuditRow:
     """The audit row of an outcome (``sender``: a known copy's claimed sender).  Unverified,
     the sender is what the message claims: its ``sender`` field, else its key id
     (``kid:NAME``; a replay is refused before its signature is checked)."""
@@ -253,16 +253,16 @@ def audit_row(outcome: Outcome, at: float, sender: str | None = None) -> dict[st
         sender = signer.owner
     elif env is not None:
         sender = env.sender or claimed_kid(env)
-    return {
-        "at": at,
-        "outcome": "accepted" if outcome.accepted else "rejected",
-        "code": outcome.code,
-        "warning": outcome.warning or (outcome.error.detail if outcome.error else None),
-        "msg_type": outcome.msg_type,
-        "sender": sender,
-        "sender_verified": signer is not None,
-        "msg_id": outcome.msg_id,
-    }
+    return AuditRow(
+        at=at,
+        outcome="accepted" if outcome.accepted else "rejected",
+        code=outcome.code,
+        warning=outcome.warning or (outcome.error.detail if outcome.error else None),
+        msg_type=outcome.msg_type,
+        sender=sender,
+        sender_verified=signer is not None,
+        msg_id=outcome.msg_id,
+    )
 
 
 def claimed_kid(env: Envelope) -> str | None:

@@ -25,7 +25,7 @@ from cryptography.exceptions import UnsupportedAlgorithm
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem, x25519
 
-from antireplay.audit import AuditLog
+from antireplay.audit import AuditLog, AuditRow
 from antireplay.audit.space import DiskSpace
 from antireplay.config import AppConfig, PqGroundConfig, PqVehicleConfig
 from antireplay.core.clock import Clock, resolve
@@ -122,9 +122,8 @@ def session_recorder(audit: AuditLog, clock: Clock | None = None) -> Callable[[S
     def record(event: SessionEvent) -> None:
         log.info("%s", event)
         audit.append(
-            at=clock.wall(), outcome="session", code=event.kind.upper(), warning=None,
-            msg_type=None, sender=f"pq:{event.peer}", sender_verified=True,
-            msg_id=event.session_id.hex(),
+            AuditRow(clock.wall(), "session", event.kind.upper(), sender=f"pq:{event.peer}",
+                     sender_verified=True, msg_id=event.session_id.hex())
         )  # fmt: skip
 
     return record
