@@ -24,23 +24,19 @@ stops the guard's workers, then closes the audit trail.
 from __future__ import annotations
 
 import asyncio
-import sqlite3
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from datetime import datetime, timezone
 
 from starlette.applications import Starlette
-from starlette.concurrency import run_in_threadpool
 from starlette.middleware import Middleware
 from starlette.requests import Request
 from starlette.responses import JSONResponse, Response
 from starlette.routing import Route
 
-from antireplay.audit import AuditLog
 from antireplay.http.metrics import Metrics
 from antireplay.http.middleware import GuardMiddleware
-from antireplay.http.status import rolled_back
+from antireplay.http.readiness import audit_problem, fence_notice, readiness, ready_endpoint
 from antireplay.http.status import routes as status_routes
 from antireplay.http.upstream import Forward, Upstream
 from antireplay.rcan.receive import Receiver
@@ -54,13 +50,6 @@ def gateway_app(receiver: Receiver, upstream: Upstream | None, timeout_s: float)
 
     async def healthz(_: Request) -> Response:
         return JSONResponse({"status": "ok", "time": time.time()})
-
-    async def readyz(_: Request) -> Response:
-        reason = await run_in_threadpool(readiness, receiver)
-        if reason is not None:
-            return JSONResponse({"status": "unavailable", "reason": reason}, status_code=503)
-        warning = None if receiver.audit is None else rolled_back(receiver.audit)
-        return JSONResponse({"status": "ready", **({"warning": warning} if warning else {})})
 
     async def summaries() -> None:
         """The folded refusals' summary rows, every interval (queued, not awaited)."""
@@ -79,7 +68,7 @@ def gateway_app(receiver: Receiver, upstream: Upstream | None, timeout_s: float)
         routes=[
             Route("/v1/messages", forward, methods=["POST"]),
             Route("/healthz", healthz, methods=["GET"]),
-            Route("/readyz", readyz, methods=["GET"]),
+            Route("/readyz", ready_endpoint(receiver), methods=["GET"]),
             Route("/metrics", metrics.endpoint, methods=["GET"]),
             *status_routes(receiver, metrics.registry, readiness),  # GET /, GET /status.json
         ],
@@ -93,52 +82,4 @@ def gateway_app(receiver: Receiver, upstream: Upstream | None, timeout_s: float)
     return app
 
 
-def readiness(receiver: Receiver) -> str | None:
-    """Why the gateway cannot serve commands now (store or audit trail), ``None`` if it can.
-
-    Blocking I/O (run it in a thread); records nothing."""
-    try:
-        receiver.cache.store.ready()
-    except Exception as exc:  # any backend's failure is the reason, never a 500
-        return f"store: {exc}"
-    fenced = fence_notice(receiver)
-    if fenced is not None:
-        return fenced
-    disk = None if receiver.space is None else receiver.space.reason()
-    if disk is not None:
-        return disk
-    return None if receiver.audit is None else audit_problem(receiver.audit)
-
-
-def fence_notice(receiver: Receiver) -> str | None:
-    """While the store's fence lies ahead (its start with no history, a loss it noticed),
-    every command stamped now is refused as ``restart_fence``: say until when, and why
-    (``None`` once a command stamped now passes; a fresh ESTOP passes throughout)."""
-    cache = receiver.cache
-    until = cache.store.fence() + cache.policy.skew_s
-    if receiver.clock.wall() > until:
-        return None
-    when = datetime.fromtimestamp(until, timezone.utc).isoformat(timespec="milliseconds")
-    why = getattr(cache.store, "loss_reason", None) or "the store's start (no history)"
-    return f"fenced until {when} ({until:.3f}): {why}; a fresh ESTOP still passes"
-
-
-def audit_problem(audit: AuditLog, timeout_s: float = 1.0) -> str | None:
-    """Why ``audit`` could not take an append now, or ``None``: its file is still there and
-    its write lock can be taken within ``timeout_s`` (taken and released, nothing written),
-    and its head checkpoint file is writable."""
-    try:
-        db = sqlite3.connect(f"file:{audit.path}?mode=rw", uri=True, timeout=timeout_s)
-        try:
-            db.execute("BEGIN IMMEDIATE")
-            db.execute("ROLLBACK")
-        finally:
-            db.close()
-    except sqlite3.Error as exc:
-        return f"audit {audit.path}: {exc}"
-    try:
-        with audit.anchor.path.open("r+b"):
-            pass
-    except OSError as exc:
-        return f"audit head {audit.anchor.path}: {exc.strerror or exc}"
-    return None
+__all__ = ["audit_problem", "fence_notice", "gateway_app", "readiness"]

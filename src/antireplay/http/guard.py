@@ -45,6 +45,7 @@ from antireplay.core.errors import (
     UnsupportedMediaTypeError,
 )
 from antireplay.http.metrics import Metrics
+from antireplay.http.readiness import ready_endpoint
 from antireplay.http.workers import Door, Workers
 from antireplay.rcan.answers import HeldAnswer
 from antireplay.rcan.auth import Signer
@@ -160,6 +161,12 @@ class GuardBase:
     def metrics_endpoint(self) -> Callable[[Request], Awaitable[Response]]:
         """A Starlette endpoint serving these metrics: ``app.add_route("/metrics", ...)``."""
         return self.metrics.endpoint
+
+    @property
+    def ready_endpoint(self) -> Callable[[Request], Awaitable[Response]]:
+        """A Starlette endpoint answering readiness as the gateway's ``/readyz`` does:
+        ``app.add_route("/readyz", ...)`` (503 while the store's fence lies ahead)."""
+        return ready_endpoint(self.receiver)
 
     def close(self) -> None:
         """Stop the worker threads (and close the audit trail of a receiver built for it)."""

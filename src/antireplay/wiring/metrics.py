@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 from antireplay.audit import AuditLog
 from antireplay.audit.space import DiskSpace
-from antireplay.http.app import audit_problem
+from antireplay.http.readiness import audit_problem
 from antireplay.state import ReplayStore
 from antireplay.wiring.refusals import MavlinkRefusals
 
