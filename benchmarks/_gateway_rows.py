@@ -100,6 +100,7 @@ def router_bursts(rounds: int) -> dict[str, float]:
                   "--ground", f"udpin:127.0.0.1:{port}", "--trusted", f"udpin:127.0.0.1:{trusted}",
                   "--vehicle", f"udpout:127.0.0.1:{vport}", "--passphrase-env", "MAV_PASSPHRASE",
                   "--system-id", "1"]  # fmt: skip
+        mav.seed_router_state(cwd)
         launches: list[tuple[Callable[[], subprocess.Popen[bytes]], list[tuple[str, int, bool]]]]
         launches = [
             (lambda: mav.start(router, cwd, b"mavlink-router"),

@@ -170,6 +170,13 @@ def warm(port: int, vehicle: socket.socket, signed: bool) -> None:
             raise SystemExit(f"nothing came through port {port}")
 
 
+def seed_router_state(cwd: Path) -> None:
+    """The router's default store in ``cwd`` as a deployment started 10 min ago: a new state
+    fences the router's first start (``max_forward_s``), which is not what a burst measures."""
+    state = cwd / ".antireplay" / "mavlink.db"
+    SqliteStore(state, clock=ManualClock(wall=time.time() - 600)).close()
+
+
 def link_rows() -> None:
     """Each forwarder runs alone while it is measured (MAVProxy idling beside the router
     would take CPU from it on a 2-core box)."""
@@ -197,9 +204,7 @@ def link_rows() -> None:
             "--system-id",
             "1",
         ]  # default --store (SQLite on disk) and --audit
-        # A deployment started 10 min ago: a new state fences the router's first start.
-        state = cwd / ".antireplay" / "mavlink.db"
-        SqliteStore(state, clock=ManualClock(wall=time.time() - 600)).close()
+        seed_router_state(cwd)
         forwarders: list[tuple[Launch, list[tuple[str, int, bool]]]] = [
             (
                 lambda: start([sys.executable, "-c", RELAY, str(port), str(vport)], cwd, b"relay"),
