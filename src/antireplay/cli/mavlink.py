@@ -348,9 +348,7 @@ def _sim_key(value: str | None, passphrase_env: str | None) -> bytes | None:
     show_default=True,
     help="HEARTBEAT and ATTITUDE per second.",
 )
-@click.option(
-    "--armed", is_flag=True, help="Start armed (a SETUP_SIGNING is ignored while armed)."
-)
+@click.option("--armed", is_flag=True, help="Start armed (a SETUP_SIGNING is ignored while armed).")
 def mavlink_sim(  # noqa: PLR0917 - one option per knob
     udp: str,
     pty: bool,

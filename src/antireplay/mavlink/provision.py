@@ -13,7 +13,8 @@ enables a key the vehicle never took locks itself out (QGroundControl #14251).  
   armed (``MAV_MODE_FLAG_SAFETY_ARMED`` in ``base_mode``) is a refusal, else SETUP_SIGNING
   is due (again every ``resend_s`` while unconfirmed: a lost datagram).  The key is
   **confirmed** only by a HEARTBEAT from that system whose signature verifies with the new
-  key; only then is it to be enabled.  Past ``timeout_s`` without one: a refusal, and
+  key (one heard first too: the vehicle took it in an attempt whose confirmation was lost,
+  so a retry with the same key ends that lock-out); only then is it enabled.  Past ``timeout_s`` without one: a refusal, and
   nothing is enabled (the old key stays the one in use: a rotation that is not confirmed
   changes nothing).
 
@@ -118,7 +119,7 @@ class Provisioning:
         state = heartbeat_state(frame)
         if state is None or frame.sysid != self.system_id or state[0] == MAV_AUTOPILOT_INVALID:
             return self.tick(now)
-        if self.target is not None and verifies(frame, self.key):
+        if verifies(frame, self.key):  # it signs with the new key: taken (perhaps before)
             self.done = True
             return Step(StepKind.ENABLE, f"system {self.system_id} signs with the new key")
         if self.target is None:
