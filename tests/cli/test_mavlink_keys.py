@@ -100,6 +100,12 @@ def router(
         reader.join(timeout=30)
 
 
+def vehicle_only(port: int, keys: Path) -> list[str]:
+    """A router's options: the sim's port as its vehicle, its keys from ``keys`` only."""
+    ground = f"udpin:127.0.0.1:{free_udp_port()}"
+    return ["--vehicle", f"udpin:127.0.0.1:{port}", "--ground", ground, "--signing-keys", str(keys)]
+
+
 def test_a_provisioned_key_is_recorded_and_the_router_verifies_the_vehicle_with_it(
     tmp_path: Path,
 ) -> None:
@@ -115,8 +121,7 @@ def test_a_provisioned_key_is_recorded_and_the_router_verifies_the_vehicle_with_
         assert stat.S_IMODE(keys.stat().st_mode) == 0o600
         assert keys.read_text().splitlines()[0] == "udp:10.0.0.9:14550 someone-elses"
         assert record(keys) is not None
-        with router(tmp_path, "--vehicle", f"udpin:127.0.0.1:{port}", "--ground",
-                    f"udpin:127.0.0.1:{free_udp_port()}", "--signing-keys", str(keys)) as (_, m, _):  # fmt: skip
+        with router(tmp_path, *vehicle_only(port, keys)) as (_, m, _):
             until("the sim's frames accepted", lambda: 'code="NO_PEER"' in metrics_text(m))
             assert 'code="SIGNATURE_INVALID"' not in metrics_text(m)
     assert any("setup_signing 1" in line for line in sim), sim
@@ -171,8 +176,7 @@ def test_a_rotation_is_signed_with_the_old_key_and_replaces_it_once_confirmed(
         assert code == 0 and "key rotated" in out, err
         assert record(keys) == "rotated-passphrase" != old
         assert sum(line.startswith("sysid:1 ") for line in keys.read_text().splitlines()) == 1
-        with router(tmp_path, "--vehicle", f"udpin:127.0.0.1:{port}", "--ground",
-                    f"udpin:127.0.0.1:{free_udp_port()}", "--signing-keys", str(keys)) as (_, m, _):  # fmt: skip
+        with router(tmp_path, *vehicle_only(port, keys)) as (_, m, _):
             until("the sim's frames accepted", lambda: 'code="NO_PEER"' in metrics_text(m))
     assert any("setup_signing 2" in line for line in sim), sim
 
@@ -193,18 +197,21 @@ class Gcs:
         mav.heartbeat_send(dialect.MAV_TYPE_GCS, dialect.MAV_AUTOPILOT_INVALID, 0, 0, 0)
         self.sock.sendto(sink.frames[-1], self.to)
 
+    @staticmethod
+    def counts(metrics: int) -> tuple[float, float]:
+        """Frames forwarded towards the vehicle, and refused for their signature."""
+        text = metrics_text(metrics)
+        forwarded = counter(text, "antireplay_mavlink_forwarded", 'direction="inbound"')
+        return forwarded, counter(text, "antireplay_mavlink_dropped", 'code="SIGNATURE_INVALID"')
+
     def judged(self, metrics: int, passphrase: str) -> str:
         """Send one HEARTBEAT until the router counts it: ``accepted`` or ``refused``."""
-        text = metrics_text(metrics)
-        before = (counter(text, "antireplay_mavlink_forwarded", 'direction="inbound"'),
-                  counter(text, "antireplay_mavlink_dropped", 'code="SIGNATURE_INVALID"'))  # fmt: skip
+        before = self.counts(metrics)
         seen: list[str] = []
 
         def counted() -> bool:
             self.beat(passphrase)
-            text = metrics_text(metrics)
-            now = (counter(text, "antireplay_mavlink_forwarded", 'direction="inbound"'),
-                   counter(text, "antireplay_mavlink_dropped", 'code="SIGNATURE_INVALID"'))  # fmt: skip
+            now = self.counts(metrics)
             if now[0] > before[0]:
                 seen.append("accepted")
             elif now[1] > before[1]:
@@ -220,9 +227,10 @@ def test_sighup_reloads_the_ground_keys_and_a_bad_file_keeps_them(tmp_path: Path
     keys = tmp_path / "signing.keys"
     keys.write_text(f"udpin:127.0.0.1:{ground} gcs-one\n")
     env = {**os.environ, "MAV_PASSPHRASE": "vehicle-passphrase"}
-    with router(tmp_path, "--vehicle", f"udpin:127.0.0.1:{free_udp_port()}", "--ground",
-                f"udpin:127.0.0.1:{ground}", "--signing-keys", str(keys),
-                "--passphrase-env", "MAV_PASSPHRASE", env=env) as (proc, metrics, lines):  # fmt: skip
+    args = ["--vehicle", f"udpin:127.0.0.1:{free_udp_port()}", "--ground",
+            f"udpin:127.0.0.1:{ground}", "--signing-keys", str(keys),
+            "--passphrase-env", "MAV_PASSPHRASE"]  # fmt: skip
+    with router(tmp_path, *args, env=env) as (proc, metrics, lines):
         gcs = Gcs(ground)
         assert gcs.judged(metrics, "gcs-one") == "accepted"
         keys.write_text(f"udpin:127.0.0.1:{ground} gcs-two\n")

@@ -14,9 +14,9 @@ enables a key the vehicle never took locks itself out (QGroundControl #14251).  
   is due (again every ``resend_s`` while unconfirmed: a lost datagram).  The key is
   **confirmed** only by a HEARTBEAT from that system whose signature verifies with the new
   key (one heard first too: the vehicle took it in an attempt whose confirmation was lost,
-  so a retry with the same key ends that lock-out); only then is it enabled.  Past ``timeout_s`` without one: a refusal, and
-  nothing is enabled (the old key stays the one in use: a rotation that is not confirmed
-  changes nothing).
+  so a retry with the same key ends that lock-out); only then is it enabled.  Past
+  ``timeout_s`` without one: a refusal, and nothing is enabled (the old key stays the one
+  in use: a rotation that is not confirmed changes nothing).
 
 No socket, file or clock here: the driver (:mod:`antireplay.wiring.mavlink_keys`) reads
 the link, encodes the message and writes ``signing.keys``.

@@ -34,9 +34,12 @@ from antireplay.core.errors import ConfigError
 from antireplay.wiring.mavlink import _fingerprint, default_key, link_key, read_signing_keys
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from antireplay.config import MavlinkConfig
     from antireplay.mavlink import Frame, MavlinkGuard, MavlinkRouter
     from antireplay.mavlink.endpoints import Peer
+    from antireplay.mavlink.provision import Step
 
 
 def new_passphrase() -> str:
@@ -83,13 +86,13 @@ def provision(
     *,
     system_id: int = 1,
     timeout_s: float = 10.0,
-    on_sent: object = None,
+    on_sent: Callable[[Step], object] | None = None,
 ) -> Provisioned:
     """Provision vehicle ``system_id`` on ``link`` with ``passphrase`` (module docstring).
 
     ConfigError when ``link`` is not wired or the file cannot be read (nothing sent);
     ValueError for a bad connection string; OSError naming a link that cannot be opened.
-    ``on_sent`` (a callable) hears each SETUP_SIGNING sent."""
+    ``on_sent`` hears each SETUP_SIGNING sent."""
     from antireplay.mavlink import open_transport, parse_endpoint, passphrase_key  # noqa: PLC0415
     from antireplay.mavlink.provision import (  # noqa: PLC0415
         Provisioning,
@@ -130,7 +133,7 @@ def provision(
                 if step.kind is StepKind.SEND:
                     setup = _setup_signing(step.target, new_key, step.timestamp, old_key)
                     transport.send(setup, peer)
-                    if callable(on_sent):
+                    if on_sent is not None:
                         on_sent(step)
                 elif step.kind is StepKind.REFUSE:
                     return Provisioned(False, step.reason)
