@@ -175,16 +175,20 @@ class SimVehicle:
         """Telemetry every ``1 / rate_hz`` seconds, answers as frames come, until ``stop``."""
         period = 1.0 / self.rate_hz
         due = time.monotonic()
-        source = self._sock.fileno() if self._sock is not None else self._master
-        assert source is not None
         while not stop.is_set():
             now = time.monotonic()
             if now >= due:
                 self.telemetry()
                 due = max(due + period, now)
-            ready, _, _ = select.select([source], [], [], min(max(due - now, 0.0), 0.1))
-            if ready:
-                self.handle(os.read(source, 65_535))
+            self.poll(min(max(due - now, 0.0), 0.1))
+
+    def poll(self, timeout: float) -> None:
+        """Handle what arrives within ``timeout`` seconds (one read at most)."""
+        source = self._sock.fileno() if self._sock is not None else self._master
+        assert source is not None
+        ready, _, _ = select.select([source], [], [], timeout)
+        if ready:
+            self.handle(os.read(source, 65_535))
 
     def close(self) -> None:
         if self._sock is not None:
