@@ -33,7 +33,11 @@ def reload_on_sighup(router: MavlinkRouter, section: MavlinkConfig) -> None:
     from antireplay.wiring.mavlink_keys import reload_signing_keys  # noqa: PLC0415
 
     def handler(_signum: int, _frame: FrameType | None) -> None:
-        logging.getLogger("antireplay.mavlink").warning(reload_signing_keys(router, section))
+        log = logging.getLogger("antireplay.mavlink")
+        try:
+            log.warning(reload_signing_keys(router, section))
+        except Exception as exc:  # a reload never stops the router
+            log.warning("signing keys not reloaded, the old ones stay: %s", exc)
 
     signal.signal(signal.SIGHUP, handler)
 
