@@ -4,7 +4,8 @@ Theory of operation
 -------------------
 :func:`open_router` is all ``mavlink-router`` does between reading its configuration and
 waiting for a signal, leaves first: the link keys (:func:`router_endpoints`: a key file,
-a passphrase from the environment, MAVProxy's ``signing.keys``), the allow-lists
+a passphrase from the environment, MAVProxy's ``signing.keys``, whose ``sysid:N`` record,
+N the router's system id, is the default key: :func:`default_key`), the allow-lists
 (:func:`allowed_messages`), the audit trail with its retention, spill and floors, and the
 store (its spec parsed once, anchored as ``state.anchor`` says) through
 :mod:`~antireplay.wiring.leaves`, the same functions ``serve`` opens its own through.
