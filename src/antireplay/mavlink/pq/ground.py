@@ -381,14 +381,16 @@ class GroundEnd(RepairingEnd):
         """A NACK for one of our transfers; a NACK for the pending HS1 (unauthenticated,
         module :mod:`.repair`, unless a session was live when it left: a rekey's are MACed
         in that session, so nobody can make it resend the HS1 for free) also restarts its
-        timer.  A POKE from the vehicle end is its
+        timer; one that comes while its chunks are still leaving (by ``air_bps``) asks for
+        chunks on their way, and is ignored.  Its resends draw on the handshake budget.  A POKE from the vehicle end is its
         answer "never delivered" to ours (:meth:`_undelivered`)."""
         if repair.target != (self.sender.sysid, self.sender.compid):
             return Output()
         if repair.op is Op.POKE:
             return self._undelivered(repair)
         handshake = self._pending is not None and repair.transfer == self._hs_transfer
-        if not repair.signed and (not handshake or self._hs_keyed):
+        leaving = handshake and self._clock.monotonic() < self._hs_quiet  # chunks on their way
+        if leaving or (not repair.signed and (not handshake or self._hs_keyed)):
             self.repairs["ignored"] += 1
             return Output()
         frames = self._resend(repair, self.budget.take if handshake else None)

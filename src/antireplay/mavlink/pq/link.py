@@ -38,7 +38,8 @@ get a byte for each byte of one-chunk frames (``BULK_SHARE``), so a saturating R
 override cannot starve a command or a handshake.  Telemetry beyond two seconds of queue
 is dropped (``air:PACED_OUT``), and so is a long transfer's chunk still queued after
 ``bulk_ttl_s`` (``air:PACED_STALE``): the GCS has given up on it, and it must not leave
-late.
+late (an HS1's chunks never expire: they take 10 s at 7,200 baud, and the handshake
+budget, :mod:`.ground`, already spaces them).
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ from antireplay.mavlink.pq.chunks import PlainFrameError
 from antireplay.mavlink.pq.ground import GroundEnd
 from antireplay.mavlink.pq.repair import Output, air_kind
 from antireplay.mavlink.pq.vehicle import VehicleEnd
-from antireplay.mavlink.pq.wire import LINE_BITS
+from antireplay.mavlink.pq.wire import LINE_BITS, ChunkKind
 from antireplay.mavlink.router import FrameRefusal
 from antireplay.pq.session import Session
 
@@ -130,7 +131,10 @@ class Pacer:
             kind = air_kind(raw)
             if kind in ("cmd", "parity") or (kind == "hs" and len(frames) > 1):
                 self.bulk.append((raw, peer))
-                self._born.append(self._clock.monotonic())
+                # a handshake's chunks (parity too) never go stale: no GCS waits on them,
+                # and on a slow radio (7,200 baud: 10 s for an HS1) a TTL cuts them short
+                handshake = ChunkKind(raw[15] & 0x0F) in (ChunkKind.HS1, ChunkKind.HS2)
+                self._born.append(float("inf") if handshake else self._clock.monotonic())
             elif kind == "passthrough" and self.queued > self.limit:
                 self.paced_out += 1
                 continue
