@@ -382,8 +382,9 @@ class GroundEnd(RepairingEnd):
         module :mod:`.repair`, unless a session was live when it left: a rekey's are MACed
         in that session, so nobody can make it resend the HS1 for free) also restarts its
         timer; one that comes while its chunks are still leaving (by ``air_bps``) asks for
-        chunks on their way, and is ignored.  Its resends draw on the handshake budget.  A POKE from the vehicle end is its
-        answer "never delivered" to ours (:meth:`_undelivered`)."""
+        chunks on their way, and is ignored.  Its resends draw on the handshake budget.
+        A POKE from the vehicle end is its answer "never delivered" to ours
+        (:meth:`_undelivered`)."""
         if repair.target != (self.sender.sysid, self.sender.compid):
             return Output()
         if repair.op is Op.POKE:
