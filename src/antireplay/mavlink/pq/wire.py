@@ -182,8 +182,8 @@ class Refusal:
     @property
     def explained(self) -> str:
         """The reason with what to check, as the ground end logs it."""
-        hint = REFUSALS[self.code][1] if self.code in REFUSALS else "unknown refusal code"
-        return f"{self.reason or REFUSALS.get(self.code, (Code.INVALID_FRAME, ''))[0]} ({hint})"
+        code, hint = REFUSALS.get(self.code, (Code.INVALID_FRAME, "an unknown refusal code"))
+        return f"{self.reason or code} ({hint})"
 
 
 def _refusal_fields(transfer: int, target: tuple[int, int], code: int, reason: str) -> bytes:
