@@ -22,6 +22,7 @@ from antireplay.mavlink.pq import (
     GroundEnd,
     VehicleEnd,
 )
+from antireplay.mavlink.pq.repair import Op, repair_frame
 from antireplay.mavlink.pq.wire import HANDSHAKE_SHARE, parse_refusal
 from antireplay.pq.session import Initiator, Responder
 
@@ -190,3 +191,16 @@ def test_a_flood_of_bad_handshakes_gets_refusals_only_within_the_airtime_budget(
         clock.advance(0.5)
         later += _refusals(link.vehicle, frames)
     assert sum(map(len, first + later)) <= 2 * 107 + HANDSHAKE_SHARE * 5_760 * 10
+
+
+def test_a_poke_for_a_refused_hs1_gets_no_nack(clock: ManualClock) -> None:
+    """Its refusal lost, the ground end pokes: the vehicle end does not ask for the whole
+    HS1 again (it would be refused again), so a lost refusal costs no repair traffic."""
+    link = EndPair(clock)
+    (frames,) = _stranger_hs1s(clock, 1)
+    assert len(_refusals(link.vehicle, frames)) == 1
+    poke = repair_frame(Op.POKE, 0, (0, 0), 0, None, sysid=255, compid=197)
+    assert link.vehicle.from_air(poke).air == []
+    assert link.vehicle.repairs["nack_sent"] == 0
+    unknown = repair_frame(Op.POKE, 1, (0, 0), 0, None, sysid=255, compid=197)
+    assert link.vehicle.from_air(unknown).air  # a transfer never seen: NACKed whole

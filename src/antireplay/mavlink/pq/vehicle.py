@@ -22,7 +22,8 @@ under that HS1's refusal key (:func:`~antireplay.pq.session.refusal_key`: the ve
 ML-KEM key, so the ground end can verify it against the key it pins, and it fits one
 frame where an ML-DSA-87 signature would take twenty), and only within an airtime budget
 (:data:`~.wire.HANDSHAKE_SHARE` of ``air_bps``): a flood of bad HS1s is no amplifier.
-The link sends it (:meth:`VehicleEnd.answered`) as it sends the ``PQ_STATUS`` hint.
+The link sends it (:meth:`VehicleEnd.answered`) as it sends the ``PQ_STATUS`` hint; a
+POKE for a refused HS1 gets no NACK (sent again, it would be refused again).
 
 A command's age stamp (:data:`~.wire.AGEAGE_STAMP`) says when the ground end sealed it,
 in milliseconds since its session came up there.  The vehicle end refuses
@@ -146,6 +147,7 @@ class VehicleEnd(RepairingEnd):
         # refusals: their share of the air, two at once at most, one per HS1 (by hash)
         self._refusal_budget = TokenBucket(share_rate(air_bps), self._clock, burst=2 * _REFUSAL_AIR)
         self._refused: OrderedDict[bytes, None] = OrderedDict()
+        self._refused_at: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # transfers
         self._refusal_out: list[bytes] = []  # a refusal the link sends with the error
         self.responder = responder
         self.max_age_s = max_age_s  # a command older than this is refused (module docstring)
@@ -243,6 +245,7 @@ class VehicleEnd(RepairingEnd):
         if number is None:
             return []  # a replay, a malformed HS1: nothing its sender could act on
         digest = hashlib.sha256(hs1).digest()
+        _remember(self._refused_at, chunk.key, None)  # a POKE for it gets no NACK
         if digest in self._refused:
             self.refusals["withheld"] += 1
             return []
@@ -280,12 +283,14 @@ class VehicleEnd(RepairingEnd):
         return Output(air=answer, reply=True)
 
     def _poked_unsigned(self, repair: Repair) -> list[bytes]:
-        """A handshake's POKE: the HS2 held for that HS1, or a NACK for its chunks (bounded,
-        rate-limited: nothing authenticates it)."""
+        """A handshake's POKE: the HS2 held for that HS1, nothing for an HS1 refused, or a
+        NACK for its chunks (bounded, rate-limited: nothing authenticates it)."""
         at = (repair.sysid, repair.compid, repair.transfer)
         held = self._hs2.get(at)
         if held is not None:
             return self._answer(at, lambda: held)
+        if at in self._refused_at:  # refused whole: resending it would change nothing
+            return []
         found = self._reassembler.lookup(at[:2], at[2])
         if found is not None and found[0] is not ChunkKind.HS1:
             return []
