@@ -129,14 +129,18 @@ def pq_metrics(counts: LinkCounts) -> list[Metric]:
     families: list[Metric] = [up]
     for name, text, label, fixed, counter in (
         ("sessions", "Session changes", "event", SESSION_EVENTS, counts.sessions),
-        ("handshakes", "Handshakes", "outcome", ("started", "completed", "failed"),
+        ("handshakes", "Handshakes", "outcome", ("started", "completed", "failed", "refused"),
          counts.handshakes),
+        ("handshake_refusals", "PQ_REFUSALs: sent or withheld (vehicle end: one per HS1, "
+         "within its airtime budget); verified, forged or stale (ground end)", "outcome",
+         ("sent", "withheld", "verified", "forged", "stale"), counts.handshake_refusals),
         ("chunks", "PQ_CHUNK frames", "what", ("sent", "received", "reassembled"),
          counts.chunks),
         ("air_bytes", "Bytes handed to the air, by what they carry", "kind", AIR_KINDS,
          counts.airtime),
         ("repairs", "Repair requests sent, chunks resent, held answers sent again", "what",
-         ("nack_sent", "poke_sent", "resent", "answered", "ignored"), counts.repairs),
+         ("nack_sent", "poke_sent", "resent", "answered", "ignored", "withheld"),
+         counts.repairs),
         ("retries", "A ground station's command retries, by how they were answered", "how",
          ("poked", "answered", "sending", "queued"), counts.retries),
     ):  # fmt: skip
