@@ -112,9 +112,7 @@ def attitudes(count: int, signed: bool) -> list[bytes]:
     return sink.frames
 
 
-def burst(
-    port: int, vehicle: socket.socket, count: int, signed: bool = True
-) -> tuple[int, float]:
+def burst(port: int, vehicle: socket.socket, count: int, signed: bool = True) -> tuple[int, float]:
     """Send ``count`` frames built beforehand (signed just now) as fast as the path takes
     them, at most ``WINDOW`` in flight, from one thread that also counts what arrives (the
     sender is never the limit, and no queue overflows); (frames delivered, delivered frames
