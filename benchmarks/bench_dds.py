@@ -19,7 +19,9 @@ Goals (issue 38): sealed throughput >= 0.7x the plain topic's and <= +15 us per 
 (latency, and CPU per sample: process CPU time over a batch, which a busy shared box
 does not inflate the way it does wall time).  A round where a sample did not arrive
 whole, or a sealed one was refused, is a FAIL, never a ratio.  ``--rows`` picks
-``throughput`` and/or ``first`` (time to first accept; the 60 s fence takes a minute).
+``throughput``, ``stages`` (CPU per stage of a sealed sample beyond the plain topic's:
+where the added microseconds go) and ``first`` (time to first accept; the 60 s fence
+takes a minute).
 """
 
 from __future__ import annotations
@@ -40,12 +42,16 @@ from cyclonedds.topic import Topic
 from antireplay.dds.domain import join_domain
 from antireplay.dds.topics import SealedReader, SealedWriter, default_qos
 from antireplay.dds.wire import SealedSample
+from antireplay.epochs import Kind, sealing
+from antireplay.epochs.policy import derive_key, parse, tag
+from antireplay.epochs.sealing import RAW, topic_key
 
 PSK = os.urandom(32)
 PAYLOAD = b"cmd_vel linear=0.50 angular=0.10 frame=base_link " * 2
 BATCH, SINGLES, ROUNDS = 2_000, 200, 5
 PERIOD_S = 0.1
 GOAL_RATIO, GOAL_ADDED_US = 0.7, 15.0
+STAGE_N = 5_000
 
 
 class Plain:
@@ -199,9 +205,66 @@ def throughput_rows(domain_id: int, rounds: int = ROUNDS) -> dict[str, float]:
     return {"ratio": ratio, "added_us": added, "cpu_added_us": cpu_added, "refused": refused}
 
 
+def cpu_us(action: Callable[[], object], n: int = STAGE_N) -> float:
+    """Thread CPU microseconds per call of ``action`` (median of three runs of ``n``)."""
+    runs = []
+    for _ in range(3):
+        start = time.thread_time()
+        for _ in range(n):
+            action()
+        runs.append((time.thread_time() - start) / n * 1e6)
+    return statistics.median(runs)
+
+
+def stage_rows(domain_id: int) -> dict[str, float]:
+    """Where a sealed sample's CPU goes beyond the plain topic's, stage by stage (thread
+    CPU per call, the stages run alone on samples sealed beforehand); returns them."""
+    participant = join_domain(domain_id)
+    side = Sealed(participant)
+    warm_up(side)
+    writer, reader = side.writer, side.reader
+    signer, verifier = writer.signer, reader.verifier
+    plain = SealedSample(instance="arm", sealed=PAYLOAD)
+    sealed = writer.seal(PAYLOAD, instance="arm")
+    cdr = plain.serialize(), sealed.serialize()
+    framed = sealing.frame("arm", PAYLOAD)
+    raw = bytes(sealed.sealed)
+    claim = parse(raw, Kind.ANNOUNCEMENT)
+    key = derive_key(topic_key(PSK, "bench/sealed", RAW, participant.domain_id), Kind.ANNOUNCEMENT)
+    assert tag(key, Kind.ANNOUNCEMENT, claim.prefix, claim.epoch, claim.payload) == claim.tag
+    # Sealed in the order they are judged: verifier.open's, then judge's (higher epochs).
+    opened = iter(
+        [bytes(writer.seal(PAYLOAD, instance="arm").sealed) for _ in range(3 * STAGE_N)]
+    )
+    judged = iter([writer.seal(PAYLOAD, instance="arm") for _ in range(3 * STAGE_N)])
+    stages = {
+        "writer: answer_challenges (none waiting)": cpu_us(writer.answer_challenges),
+        "writer: sealing.frame": cpu_us(lambda: sealing.frame("arm", PAYLOAD)),
+        "writer: EpochSigner.seal": cpu_us(lambda: signer.seal(framed)),
+        "  of which the MAC (policy.tag)": cpu_us(
+            lambda: tag(key, Kind.ANNOUNCEMENT, claim.prefix, claim.epoch, claim.payload)
+        ),
+        "CDR: the sealed sample's extra bytes, both ways": (
+            cpu_us(sealed.serialize)
+            + cpu_us(lambda: SealedSample.deserialize(cdr[1]))
+            - cpu_us(plain.serialize)
+            - cpu_us(lambda: SealedSample.deserialize(cdr[0]))
+        ),
+        "reader: sealing.check": cpu_us(lambda: sealing.check("arm", raw)),
+        "reader: EpochVerifier.open": cpu_us(lambda: verifier.open(next(opened))),
+        "reader: SealedReader.judge (all of it)": cpu_us(lambda: reader.judge(next(judged))),
+    }
+    print("sealed sample, CPU per stage beyond the plain topic (us):")
+    for name, us in stages.items():
+        print(f"  {name:<50} {us:>6.2f}")
+    return stages
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(prog="python -m benchmarks dds")
-    parser.add_argument("--rows", default="throughput,first", help="throughput, first")
+    parser.add_argument(
+        "--rows", default="throughput,stages,first", help="throughput, stages, first"
+    )
     parser.add_argument("--rounds", type=int, default=ROUNDS)
     opts = parser.parse_args(argv)
     rows = set(opts.rows.split(","))
@@ -210,6 +273,8 @@ def main(argv: list[str] | None = None) -> None:
         first_accept_rows(domain_id)
     if "throughput" in rows:
         throughput_rows(domain_id, opts.rounds)
+    if "stages" in rows:
+        stage_rows(domain_id + 3)
 
 
 if __name__ == "__main__":
