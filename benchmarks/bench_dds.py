@@ -184,18 +184,18 @@ def throughput_rows(domain_id: int, rounds: int = ROUNDS) -> dict[str, float]:
     lat: dict[str, list[float]] = {name: [] for name in sides}
     for _ in range(rounds):
         for name, side in sides.items():
-            per_s, cpu_us = throughput(side)
+            per_s, spent_us = throughput(side)
             rates[name].append(per_s)
-            cpu[name].append(cpu_us)
+            cpu[name].append(spent_us)
             lat[name].append(latency_us(side))
     rate = {name: statistics.median(v) for name, v in rates.items()}
     us = {name: statistics.median(v) for name, v in lat.items()}
-    cpu_us = {name: statistics.median(v) for name, v in cpu.items()}
+    cpu_per = {name: statistics.median(v) for name, v in cpu.items()}
     for name in sides:
         print(f"{name:<7} topic {rate[name]:>10,.0f} samples/s   latency {us[name]:>7.0f} us"
-              f"   CPU {cpu_us[name]:>6.1f} us/sample")  # fmt: skip
+              f"   CPU {cpu_per[name]:>6.1f} us/sample")  # fmt: skip
     ratio = rate["sealed"] / rate["plain"]
-    added, cpu_added = us["sealed"] - us["plain"], cpu_us["sealed"] - cpu_us["plain"]
+    added, cpu_added = us["sealed"] - us["plain"], cpu_per["sealed"] - cpu_per["plain"]
     refused = sum(side.refused for side in sides.values())
     print(
         f"sealed/plain: throughput {ratio:.2f}x, latency +{added:.0f} us "
@@ -233,9 +233,7 @@ def stage_rows(domain_id: int) -> dict[str, float]:
     key = derive_key(topic_key(PSK, "bench/sealed", RAW, participant.domain_id), Kind.ANNOUNCEMENT)
     assert tag(key, Kind.ANNOUNCEMENT, claim.prefix, claim.epoch, claim.payload) == claim.tag
     # Sealed in the order they are judged: verifier.open's, then judge's (higher epochs).
-    opened = iter(
-        [bytes(writer.seal(PAYLOAD, instance="arm").sealed) for _ in range(3 * STAGE_N)]
-    )
+    opened = iter([bytes(writer.seal(PAYLOAD, instance="arm").sealed) for _ in range(3 * STAGE_N)])
     judged = iter([writer.seal(PAYLOAD, instance="arm") for _ in range(3 * STAGE_N)])
     stages = {
         "writer: answer_challenges (none waiting)": cpu_us(writer.answer_challenges),

@@ -162,8 +162,8 @@ def drive(
     """Send ``count`` ATTITUDE frames at ``hz`` (``inf``: a :func:`burst`, no latencies),
     signed or not; (dropped, one-way latencies in ms, delivered frames per second)."""
     if hz == float("inf"):
-        got, per_s = burst(port, vehicle, count, signed)
-        return count - got, [], per_s
+        delivered, per_s = burst(port, vehicle, count, signed)
+        return count - delivered, [], per_s
     sent: dict[int, float] = {}
     got: dict[int, float] = {}
 

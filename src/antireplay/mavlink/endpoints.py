@@ -25,8 +25,8 @@ peers may receive is the router's: a peer is learned only from an authenticated
 frame (:mod:`antireplay.mavlink.router`).  Every transport reads in its own
 thread with a short timeout so that :meth:`Transport.close` returns promptly (a UDP
 socket is read until it is empty, then waited on: one system call per datagram under
-load, not a wait and a read), and bounds what a flood can cost: one frame of buffer per reader, ``max_clients``
-TCP clients.
+load, not a wait and a read), and bounds what a flood can cost: one frame of buffer
+per reader, ``max_clients`` TCP clients.
 
 **Never blocked by a network peer.**  ``send`` runs in the thread that read the
 frame (another link's reader), so it does not wait: UDP and TCP writes are
