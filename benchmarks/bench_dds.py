@@ -199,7 +199,8 @@ def throughput_rows(domain_id: int, rounds: int = ROUNDS) -> dict[str, float]:
     refused = sum(side.refused for side in sides.values())
     print(
         f"sealed/plain: throughput {ratio:.2f}x, latency +{added:.0f} us "
-        f"({us['sealed'] / us['plain']:.2f}x), CPU +{cpu_added:.1f} us/sample   "
+        f"({us['sealed'] / us['plain']:.2f}x), CPU +{cpu_added:.1f} us/sample"
+        f" ({cpu_per['plain'] / cpu_per['sealed']:.2f}x the plain throughput by CPU)   "
         f"goal >= {GOAL_RATIO}x, <= +{GOAL_ADDED_US:.0f} us: {verdict(ratio, added, refused)}"
     )
     return {"ratio": ratio, "added_us": added, "cpu_added_us": cpu_added, "refused": refused}
