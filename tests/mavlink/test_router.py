@@ -723,3 +723,71 @@ def test_a_frame_is_parsed_once_from_the_transport_to_the_vehicle(
     finally:
         router.stop()
         store.close()
+
+
+class WriteLog:
+    """A store wrapper that records every ``advance`` (a store write): its key, and whether
+    the frame path made it (not the timer thread, not an explicit tick)."""
+
+    def __init__(self, inner: SqliteStore) -> None:
+        self.inner = inner
+        self.ticking = False
+        self.frame_path: list[str] = []
+        self.timer: list[str] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def advance(self, key: str, value: int) -> bool:
+        timer = self.ticking or threading.current_thread().name == "mavlink timer"
+        (self.timer if timer else self.frame_path).append(key)
+        return self.inner.advance(key, value)
+
+
+def test_a_burst_verified_and_signed_on_behalf_writes_the_store_only_from_the_timer(
+    tmp_path: Path,
+) -> None:
+    """5,000 signed frames from a ground station and 5,000 unsigned ones signed on a trusted
+    tool's behalf, 5,000 a second on the router's clock with its timer ticking every half
+    second: every frame forwarded, and no store write on the frame path (leases, stream
+    high-waters and the signer's timestamp ceiling are the timer's, a handful per second)."""
+    clock = ManualClock(1_800_000_000.0)
+    store = WriteLog(SqliteStore(aged_state(tmp_path / "mav.db", clock), clock=clock))
+
+    def guard(prefix: str) -> MavlinkGuard:
+        return MavlinkGuard(KEY, clock=clock, store=store, store_prefix=prefix, system_id=1)
+
+    vehicle = FakeTransport("udpout:127.0.0.1:1")
+    ground = FakeTransport("udpin:0.0.0.0:2", fixed=False)
+    trusted = FakeTransport("udpin:0.0.0.0:3", fixed=False)
+    router = MavlinkRouter(
+        [
+            RouterLink(vehicle, Role.VEHICLE, KEY),
+            RouterLink(ground, Role.GROUND, KEY),
+            RouterLink(trusted, Role.TRUSTED),
+        ],
+        {KEY: guard("in")},
+        guard("out"),
+        signers={KEY: TimestampSource(clock, store=store, store_key="sign")},
+    )
+    router.start(wait_s=30)
+    station, sink = signed_sender(255, KEY, clock)
+    tool = dialect.MAVLink(Sink(), srcSystem=254, srcComponent=190)
+    try:
+        for i in range(5_000):
+            station.command_long_send(1, 1, 400, 0, i, 0, 0, 0, 0, 0, 0)
+            ground.inject(sink.frames[-1], ("10.0.0.2", 14550))
+            tool.command_long_send(1, 1, 400, 0, i, 0, 0, 0, 0, 0, 0)
+            trusted.inject(tool.file.frames[-1], ("127.0.0.1", 5760))
+            clock.advance(0.0002)
+            if i % 2_500 == 2_499:
+                store.ticking = True
+                router.tick()  # what the timer does every half second of this clock
+                store.ticking = False
+        assert router.stats.forwarded["inbound"] == 10_000 and not router.stats.dropped
+        assert len(vehicle.sent) == 10_000
+        assert store.frame_path == []
+        assert "sign" in store.timer and len(store.timer) <= 20  # a few per tick
+    finally:
+        router.stop()
+        store.close()

@@ -23,9 +23,10 @@ where to send: :meth:`Transport.send` writes to the peer the router names
 (``None`` for the fixed destination of ``udpout``, ``tcp`` and serial).  Which
 peers may receive is the router's: a peer is learned only from an authenticated
 frame (:mod:`antireplay.mavlink.router`).  Every transport reads in its own
-thread with a short timeout so that :meth:`Transport.close` returns promptly, and
-bounds what a flood can cost: one frame of buffer per reader, ``max_clients``
-TCP clients.
+thread with a short timeout so that :meth:`Transport.close` returns promptly (a UDP
+socket is read until it is empty, then waited on: one system call per datagram under
+load, not a wait and a read), and bounds what a flood can cost: one frame of buffer
+per reader, ``max_clients`` TCP clients.
 
 **Never blocked by a network peer.**  ``send`` runs in the thread that read the
 frame (another link's reader), so it does not wait: UDP and TCP writes are
@@ -197,7 +198,7 @@ class UdpTransport(Transport):
         except OSError:
             self.sock.close()
             raise
-        self.sock.settimeout(_POLL_S)
+        self.sock.setblocking(False)  # read until empty, then wait (module docstring)
 
     @property
     def address(self) -> tuple[str, int]:
@@ -215,10 +216,14 @@ class UdpTransport(Transport):
         self.sock.close()
 
     def _run(self) -> None:
+        recvfrom, fixed = self.sock.recvfrom, self.fixed
+        poller = select.poll()
+        poller.register(self.sock, select.POLLIN)
         while not self._stop.is_set():
             try:
-                datagram, sender = self.sock.recvfrom(65_535)
-            except TimeoutError:
+                datagram, sender = recvfrom(65_535)
+            except BlockingIOError:  # drained: wait for the next (or for close())
+                poller.poll(_POLL_S * 1000)
                 continue
             except (ConnectionRefusedError, ConnectionResetError):
                 continue  # udpout: nobody listens there yet (ICMP port unreachable)
@@ -232,7 +237,7 @@ class UdpTransport(Transport):
             except InvalidFrameError:  # garbage around a frame, a frame cut short
                 frames, dropped = [], len(datagram)
             if self._deliver is not None:
-                self._deliver(self, None if self.fixed else sender, frames, dropped)
+                self._deliver(self, None if fixed else sender, frames, dropped)
 
 
 class _StalledError(OSError):
