@@ -24,8 +24,8 @@ from antireplay.mavlink.policy import (
     FrameAdmission,
     MavPolicy,
     Persist,
-    lease_parts,
     RestartFenceError,
+    lease_parts,
     lease_value,
 )
 from harness.mavlink_frames import command_frame, encoder, unsigned_heartbeat
@@ -144,7 +144,9 @@ def test_bind_refuses_another_vehicles_target_and_direction_learns_from_signed_o
 # --- commit: what must be persisted first ----------------------------------------------------
 
 
-def claimed(policy: MavPolicy, now: int = NOW, found: int | None = None, high: int | None = None) -> None:
+def claimed(
+    policy: MavPolicy, now: int = NOW, found: int | None = None, high: int | None = None
+) -> None:
     """The driver's claim, with the store holding ``found`` and ``high``."""
     value = policy.claim(found, high, NEVER, now)
     policy.claimed(value, written=True)

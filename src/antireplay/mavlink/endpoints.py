@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import ipaddress
 import logging
 import os
 import select
@@ -106,6 +107,18 @@ def parse_endpoint(text: str) -> EndpointSpec:
     if not (baud.isascii() and baud.isdigit()) or not hasattr(termios, f"B{int(baud)}"):
         raise ValueError(f"{text!r}: {baud!r} is not a baud rate this system supports")
     return EndpointSpec(text, "serial", device, int(baud))
+
+
+def is_local(spec: EndpointSpec) -> bool:
+    """Whether only this host reaches the endpoint: a serial device, or a loopback address
+    (``localhost``, ``127.0.0.0/8``, ``::1``).  A router signs on a trusted endpoint's
+    behalf, so one that is not local must be acknowledged by the operator."""
+    if spec.kind == "serial" or spec.host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(spec.host.strip("[]")).is_loopback
+    except ValueError:  # a host name: it may resolve anywhere
+        return False
 
 
 class Transport:

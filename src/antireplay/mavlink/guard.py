@@ -23,9 +23,10 @@ everything accepted before a stop or ``kill -9`` is refused, and a frame once ac
 ahead of the clock fences only until the wall clock passes its timestamp; after a crash
 the lease is claimed once the old one has expired (no waiting in
 :meth:`MavlinkGuard.start`: the owner's timer tries again).  A lost store fences at the
-loss time plus ``max_forward_s``; :meth:`MavlinkGuard.fenced_until` says until when.  The lease is exclusive (odd/even generations
-through ``advance``): a second guard on one prefix is ``STATE_UNAVAILABLE`` until it takes
-over; guards *active at once* use ``write_through=True`` (one store write per frame).
+loss time plus ``max_forward_s``; :meth:`MavlinkGuard.fenced_until` says until when.  The
+lease is exclusive (odd/even generations through ``advance``): a second guard on one prefix
+is ``STATE_UNAVAILABLE`` until it takes over; guards *active at once* use
+``write_through=True`` (one store write per frame).
 """
 
 from __future__ import annotations
