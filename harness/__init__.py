@@ -286,7 +286,8 @@ def metrics_router(tmp_path: Path, host: str | None = None) -> Iterator[int]:
         sys.executable, "-m", "antireplay", "mavlink-router", "--listen",
         f"udp:127.0.0.1:{free_udp_port()}", "--forward", f"udp:127.0.0.1:{free_udp_port()}",
         "--key-file", str(key), "--store", f"sqlite:{state}",
-        "--audit", str(tmp_path / "router.db"), "--metrics-port", str(port), *(["--metrics-host", host] if host else []),
+        "--audit", str(tmp_path / "router.db"), "--metrics-port", str(port),
+        *(["--metrics-host", host] if host else []),
     ]  # fmt: skip
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
