@@ -321,7 +321,12 @@ def trusted_endpoints(section: MavlinkConfig) -> list[str]:
     endpoint (or an acknowledgement that names no trusted network endpoint)."""
     from antireplay.mavlink import is_local, parse_endpoint  # noqa: PLC0415
 
-    local = {text: is_local(parse_endpoint(text)) for text in section.trusted}
+    local = {}
+    for text in section.trusted:
+        try:
+            local[text] = is_local(parse_endpoint(text))
+        except ValueError as exc:
+            raise ConfigError("mavlink.trusted", text, "an endpoint", message=str(exc)) from None
     for text in section.trust_network:
         if local.get(text, True):
             said = "is not a --trusted endpoint" if text not in local else "is local already"
