@@ -148,6 +148,9 @@ class FrameRefusal:
     reason: str
     raw: bytes
     frames: int = 1  # a summary of the refusals behind a restart fence: how many
+    #: Behind a restart fence, after the first on its link: a later summary says it (the
+    #: log and the audit trail skip it; a hook that counts every refusal still sees it).
+    folded: bool = False
 
     def __str__(self) -> str:
         if self.frames != 1:
@@ -487,11 +490,17 @@ class MavlinkRouter:
     def _fence_refused(
         self, direction: str, link: RouterLink, exc: RestartFenceError, frame: Frame
     ) -> None:
-        """Count a refusal behind the restart fence; report the first on a link at once and
-        fold the rest into one line per ``FENCE_SUMMARY_S`` (:meth:`_summarise_fenced`)."""
+        """Count a refusal behind the restart fence; report the first on a link at once, the
+        rest marked ``folded`` and said by one line per ``FENCE_SUMMARY_S``
+        (:meth:`_summarise_fenced`)."""
         self.stats.dropped[f"{direction}:{exc.code}"] += 1
         sender = (frame.sysid, frame.compid)
         if not self._folds.refused(direction, link.name, str(exc.code), sender, time.monotonic()):
+            self._report(
+                FrameRefusal(
+                    direction, link.name, str(exc.code), exc.reason, frame.raw, folded=True
+                )
+            )
             return
         until = until_text(self.fence(), self.outbound.clock.wall())
         self._report(
