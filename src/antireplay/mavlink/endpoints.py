@@ -8,7 +8,8 @@ Theory of operation
 alias of ``udpin``), ``tcp:HOST:PORT`` (connect, reconnecting), ``tcpin:HOST:PORT``
 (listen; each client is a peer) and a serial device ``/dev/ttyACM0,57600``
 (MAVProxy's ``DEVICE,BAUD``; ``DEVICE:BAUD`` as mavlink-router writes it, or a
-bare device at 57,600 baud, MAVProxy's default).
+bare device at 57,600 baud, MAVProxy's default).  :func:`is_local` says whether only this
+host reaches an endpoint (loopback or serial): a router's trusted endpoints must be.
 
 A :class:`Transport` moves bytes and nothing else: it cuts what it receives into
 frames and hands them, parsed once (:class:`~antireplay.mavlink.codec.Frame`),

@@ -14,7 +14,10 @@ its own store prefix (``mav-in``, ``mav-out``), a durable timestamp source per k
 router signs with, and the refusal handler (:func:`mavlink_auditor`), which logs why each
 dropped frame was refused and records it with its direction and the source its header
 claims (``mav:inbound:255/190``, unverified) through the one rate-limited
-:class:`~antireplay.audit.RefusalAuditor`; what it folds is a metric.  The MAVLink stack
+:class:`~antireplay.audit.RefusalAuditor`; what it folds is a metric.  A trusted endpoint
+(signed on its behalf) must be loopback or serial unless ``trust_network`` acknowledges it
+(:func:`trusted_endpoints`); :func:`fence_notice` says a restart fence on the start line and
+in readiness.  The MAVLink stack
 is imported only when a router is built, so the gateway does not load the MAVLink dialect.
 """
 
