@@ -4,7 +4,8 @@ Theory of operation
 -------------------
 :func:`open_router` is all ``mavlink-router`` does between reading its configuration and
 waiting for a signal, leaves first: the link keys (:func:`router_endpoints`: a key file,
-a passphrase from the environment, MAVProxy's ``signing.keys``), the allow-lists
+a passphrase from the environment, MAVProxy's ``signing.keys``, whose ``sysid:N`` record,
+N the router's system id, is the default key: :func:`default_key`), the allow-lists
 (:func:`allowed_messages`), the audit trail with its retention, spill and floors, and the
 store (its spec parsed once, anchored as ``state.anchor`` says) through
 :mod:`~antireplay.wiring.leaves`, the same functions ``serve`` opens its own through.
@@ -290,15 +291,12 @@ def allowed_messages(entries: Sequence[str]) -> tuple[Allowed, Allowed]:
     return to_vehicle, from_vehicle
 
 
-def router_endpoints(section: MavlinkConfig) -> list[tuple[Role, str, bytes | None]]:
-    """``(role, connection string, key)`` for every endpoint the section names."""
-    from antireplay.mavlink import Role  # noqa: PLC0415 - the dialect loads on use
+def default_key(section: MavlinkConfig, keys: dict[str, str]) -> bytes | None:
+    """The key of every link without a line of its own: the vehicle's provisioned record
+    (``sysid:N``, N the router's system id), else the key file or the passphrase."""
+    from antireplay.mavlink import passphrase_key  # noqa: PLC0415 - the dialect loads on use
+    from antireplay.mavlink.provision import vehicle_record  # noqa: PLC0415
 
-    if not section.vehicle:
-        raise ConfigError(
-            "mavlink.vehicle", [], "a vehicle endpoint", message="give at least one "
-            "--vehicle (or --forward; mavlink.vehicle in the configuration)",
-        )  # fmt: skip
     default = read_key_file(section.key_file) if section.key_file is not None else None
     if section.passphrase_env is not None:
         if default is not None:
@@ -308,7 +306,21 @@ def router_endpoints(section: MavlinkConfig) -> list[tuple[Role, str, bytes | No
                 "mavlink.passphrase_env), not both",
             )  # fmt: skip
         default = passphrase_from(section.passphrase_env, "mavlink.passphrase_env")
+    provisioned = keys.get(vehicle_record(section.system_id))
+    return default if provisioned is None else passphrase_key(provisioned)
+
+
+def router_endpoints(section: MavlinkConfig) -> list[tuple[Role, str, bytes | None]]:
+    """``(role, connection string, key)`` for every endpoint the section names."""
+    from antireplay.mavlink import Role  # noqa: PLC0415 - the dialect loads on use
+
+    if not section.vehicle:
+        raise ConfigError(
+            "mavlink.vehicle", [], "a vehicle endpoint", message="give at least one "
+            "--vehicle (or --forward; mavlink.vehicle in the configuration)",
+        )  # fmt: skip
     keys = read_signing_keys(section.signing_keys)
+    default = default_key(section, keys)
     endpoints: list[tuple[Role, str, bytes | None]] = [
         (Role.VEHICLE, text, link_key(text, keys, default)) for text in section.vehicle
     ]
