@@ -8,7 +8,9 @@
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
@@ -24,6 +26,10 @@ from antireplay.cli._common import (
 from antireplay.cli.mavlink_keys import reload_on_sighup
 from antireplay.core.counters import DEFAULT_WINDOW
 from antireplay.core.errors import ConfigError, ReplayAttackError, StateFileError
+
+if TYPE_CHECKING:
+    from antireplay.config import MavlinkConfig
+    from antireplay.wiring.mavlink import RouterParts
 
 
 def _signing_key(path: Path) -> bytes:
@@ -64,6 +70,13 @@ def _signing_key(path: Path) -> bytes:
     multiple=True,
     help="Trusted local tool that cannot sign (mavros, BlueOS, a script): its frames are "
     "signed on its behalf.",
+)
+@click.option(
+    "--trust-network",
+    multiple=True,
+    metavar="ENDPOINT",
+    help="Acknowledge a --trusted endpoint that is not loopback or a serial device (exactly "
+    "as given): anyone who reaches it commands the vehicle with its key.",
 )
 @click.option(
     "--listen", default=None, help="Shorthand for --ground udpin:HOST:PORT (udp:HOST:PORT)."
@@ -168,6 +181,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     vehicle: tuple[str, ...],
     ground: tuple[str, ...],
     trusted: tuple[str, ...],
+    trust_network: tuple[str, ...],
     listen: str | None,
     forward: str | None,
     key_file: Path | None,
@@ -190,7 +204,11 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     import logging  # noqa: PLC0415
 
     from antireplay.wiring.leaves import trail_path  # noqa: PLC0415
-    from antireplay.wiring.mavlink import ROUTER_AUDIT, open_router  # noqa: PLC0415
+    from antireplay.wiring.mavlink import (  # noqa: PLC0415
+        ROUTER_AUDIT,
+        fence_notice,
+        open_router,
+    )
     from antireplay.wiring.metrics import (  # noqa: PLC0415
         router_metrics,
         serve_metrics,
@@ -203,6 +221,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
         "mavlink.vehicle": ("--vehicle", tuple(vehicles)),
         "mavlink.ground": ("--ground", tuple(grounds)),
         "mavlink.trusted": ("--trusted", trusted),
+        "mavlink.trust_network": ("--trust-network", trust_network),
         "mavlink.key_file": ("--key-file", key_file and str(key_file)),
         "mavlink.passphrase_env": ("--passphrase-env", passphrase_env),
         "mavlink.signing_keys": ("--signing-keys", signing_keys and str(signing_keys)),
@@ -242,7 +261,10 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
             serve_metrics(
                 lambda: [
                     *router_metrics(parts.router),
-                    *trail_metrics("mavlink-router", parts.audit, parts.space, parts.store),
+                    *trail_metrics(
+                        "mavlink-router", parts.audit, parts.space, parts.store,
+                        lambda: fence_notice(parts.router, parts.store, time.time()),
+                    ),
                 ],
                 metrics.port, metrics.host,
             )  # fmt: skip
@@ -257,8 +279,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
         parts.router.start()  # claims each guard's lease, waiting out a crashed run's (seconds)
     except ReplayAttackError as exc:
         _fail(f"--store {section.store}: {exc}")
-    roles = ", ".join(f"{role} {text}" for role, text, _ in parts.endpoints)
-    click.echo(f"mavlink-router {roles} (system id {section.system_id})")  # one line
+    click.echo(_start_line(parts, section))  # one line
     reload_on_sighup(parts.router, section)
     done.wait()
     parts.close()
@@ -266,6 +287,24 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     forwarded = ", ".join(f"{k} {v}" for k, v in sorted(stats.forwarded.items())) or "none"
     dropped = ", ".join(f"{k} {v}{why(k)}" for k, v in sorted(stats.dropped.items())) or "none"
     click.echo(f"forwarded {forwarded}; dropped {dropped}", err=True)
+
+
+def _start_line(parts: RouterParts, section: MavlinkConfig) -> str:
+    """The router's one start line: its endpoints, the trusted ones acknowledged on the
+    network, and its restart fence while one lies ahead (until when, why, what removes it)."""
+    from antireplay.wiring.mavlink import fence_notice  # noqa: PLC0415
+
+    roles = ", ".join(f"{role} {text}" for role, text, _ in parts.endpoints)
+    said = [f"mavlink-router {roles} (system id {section.system_id})"]
+    if section.trust_network:
+        said.append(
+            "trusted on the network, acknowledged (--trust-network): "
+            f"{', '.join(section.trust_network)} (anyone who reaches it commands the vehicle)"
+        )
+    fenced = fence_notice(parts.router, parts.store, time.time())
+    if fenced is not None:  # a memory store, a new or lost state, a spike not yet passed
+        said.append(fenced)
+    return "; ".join(said)
 
 
 def _udp_shorthand(spec: str, kind: str, option: str) -> str:

@@ -8,7 +8,8 @@ Theory of operation
 alias of ``udpin``), ``tcp:HOST:PORT`` (connect, reconnecting), ``tcpin:HOST:PORT``
 (listen; each client is a peer) and a serial device ``/dev/ttyACM0,57600``
 (MAVProxy's ``DEVICE,BAUD``; ``DEVICE:BAUD`` as mavlink-router writes it, or a
-bare device at 57,600 baud, MAVProxy's default).
+bare device at 57,600 baud, MAVProxy's default).  :func:`is_local` says whether only this
+host reaches an endpoint (loopback or serial): a router's trusted endpoints must be.
 
 A :class:`Transport` moves bytes and nothing else: it cuts what it receives into
 frames and hands them, parsed once (:class:`~antireplay.mavlink.codec.Frame`),
@@ -50,6 +51,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import ipaddress
 import logging
 import os
 import select
@@ -107,6 +109,18 @@ def parse_endpoint(text: str) -> EndpointSpec:
     if not (baud.isascii() and baud.isdigit()) or not hasattr(termios, f"B{int(baud)}"):
         raise ValueError(f"{text!r}: {baud!r} is not a baud rate this system supports")
     return EndpointSpec(text, "serial", device, int(baud))
+
+
+def is_local(spec: EndpointSpec) -> bool:
+    """Whether only this host reaches the endpoint: a serial device, or a loopback address
+    (``localhost``, ``127.0.0.0/8``, ``::1``).  A router signs on a trusted endpoint's
+    behalf, so one that is not local must be acknowledged by the operator."""
+    if spec.kind == "serial" or spec.host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(spec.host.strip("[]")).is_loopback
+    except ValueError:  # a host name: it may resolve anywhere
+        return False
 
 
 class Transport:
