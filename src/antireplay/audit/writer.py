@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import sqlite3
 import threading
@@ -84,6 +85,11 @@ def _stored(row: AuditRow) -> dict[str, Any]:
     stored["sender"], stored["msg_id"] = sanitize(row.sender), sanitize(row.msg_id)
     stored["sender_verified"] = int(row.sender_verified)
     return stored
+
+
+def stored_json(row: AuditRow) -> str:
+    """One row as the outbox keeps it (JSON text of :func:`_stored`)."""
+    return json.dumps(_stored(row))
 
 
 class AuditLog(SegmentLifecycle):
@@ -179,6 +185,16 @@ class AuditLog(SegmentLifecycle):
     def spilled(self) -> int:
         """Rows waiting in the spill."""
         return 0 if self._spill is None else len(self._spill.pending())
+
+    def pairs_with(self, store: object) -> bool:
+        """Whether an accepted command's row may ride in ``store``'s commit of its entry
+        (:class:`~antireplay.state.outbox.Paired`): this trail takes its rows through that
+        store's outbox and its live segment is still there (else the row is queued apart,
+        and fails: :meth:`append_later`)."""
+        outbox = self._outbox
+        return (
+            outbox is not None and outbox.store is store and file_identity(self.path) is not None
+        )
 
     def append(self, row: AuditRow) -> int:
         """Durably append one record; returns its sequence number.

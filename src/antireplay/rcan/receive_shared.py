@@ -227,13 +227,17 @@ class ReceiverBase:
         self.stats.disk_refusals += 1
         return step.refused(StateUnavailableError(reason))
 
-    def _accept(self, raw: bytes, need: NeedsCommit, verdict: Verdict) -> Pending:
-        """A committed message: its answer expected, its row to queue."""
+    def _accept(
+        self, raw: bytes, need: NeedsCommit, verdict: Verdict, *, audited: bool = False
+    ) -> Pending:
+        """A committed message: its answer expected, its row to queue (``audited``: its row
+        was put with its entry, durable already)."""
         accepted = self.steps.accept(need, verdict)
         if accepted.entry is not None:
             self.answers.expect(need.env.msg_id, accepted.entry, self.clock.wall())
         memo = (raw, verdict.expires_at, accepted.qos) if accepted.memo else None
-        return self._with_row(Pending(accepted.outcome, memo=memo, estop=verdict.estop))
+        pending = Pending(accepted.outcome, memo=memo, estop=verdict.estop)
+        return pending if audited else self._with_row(pending)
 
     def _with_row(self, pending: Pending) -> Pending:
         """``pending`` with its audit row (always recorded: not a refusal's)."""

@@ -265,6 +265,15 @@ def audit_row(outcome: Outcome, at: float, sender: str | None = None) -> AuditRo
     )
 
 
+def accepted_row(need: NeedsCommit, at: float, warning: str | None = None) -> AuditRow:
+    """The row :func:`audit_row` writes for ``need``'s acceptance (:meth:`Steps.accept`'s
+    outcome), built before its commit: the commit's writer puts it with the entry."""
+    return AuditRow(
+        at=at, outcome="accepted", warning=warning, msg_type=need.cls[0],
+        sender=need.signer.owner, sender_verified=True, msg_id=sanitize(need.env.msg_id),
+    )  # fmt: skip
+
+
 def claimed_kid(env: Envelope) -> str | None:
     """``kid:NAME`` of the signature block ``env`` carries (unverified), or ``None``."""
     try:
