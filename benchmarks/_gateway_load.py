@@ -224,12 +224,14 @@ def bare_server() -> Server:
 
 
 def gateway(
-    name: str, state: Path, options: tuple[str, ...] = (), trace: tuple[str, ...] = ()
-) -> Server:
+    name: str, state: Path, options: tuple[str, ...] = (), trace: tuple[str, ...] = (),
+    launcher: tuple[str, ...] = ("-m", "antireplay"),
+) -> Server:  # fmt: skip
     """``antireplay serve`` as users start it (``state``: its ``--state-dir``), optionally
-    under a tracer (``trace``: the argv before it; the counted pid is then its child)."""
+    under a tracer (``trace``: the argv before it; the counted pid is then its child) or
+    another ``launcher`` (``python -m benchmarks._gateway_stages OUT``: CPU per stage)."""
     port = free_port()
-    args = [sys.executable, "-m", "antireplay", "serve", "--state-dir", str(state)]
+    args = [sys.executable, *launcher, "serve", "--state-dir", str(state)]
     proc = subprocess.Popen([*trace, *args, *options, "--port", str(port)])
     server = Server(name, f"http://127.0.0.1:{port}", proc)
     if trace:

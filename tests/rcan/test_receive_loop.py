@@ -124,7 +124,8 @@ def test_an_accepted_command_on_a_loop_is_one_durable_trip_with_the_thread_drive
     assert [getattr(loop_row, f) for f in fields] == [getattr(thread_row, f) for f in fields]
     twin = [r for r in AuditLog(tmp_path / "audit.db").tail(20) if r.msg_id == "twin"]
     assert sorted((r.outcome, r.code) for r in twin) == [
-        ("accepted", None), ("rejected", "REPLAY_DETECTED")
+        ("accepted", None),
+        ("rejected", "REPLAY_DETECTED"),
     ]
     assert verify(tmp_path / "audit.db").ok
     store.close()

@@ -192,9 +192,7 @@ class AuditLog(SegmentLifecycle):
         store's outbox and its live segment is still there (else the row is queued apart,
         and fails: :meth:`append_later`)."""
         outbox = self._outbox
-        return (
-            outbox is not None and outbox.store is store and file_identity(self.path) is not None
-        )
+        return outbox is not None and outbox.store is store and file_identity(self.path) is not None
 
     def append(self, row: AuditRow) -> int:
         """Durably append one record; returns its sequence number.

@@ -53,7 +53,9 @@ from antireplay.core.window import Refusal, Verdict, estop_survives, is_estop
 from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
 from antireplay.rcan.auth import JwtVerifier, KeyRegistry
 from antireplay.rcan.envelope import MAX_BYTES
-from antireplay.rcan.steps import Checked, Done, NeedsCommit, Outcome, Steps, audit_row, may_retry
+from antireplay.rcan.steps import (
+    Checked, Done, NeedsCommit, Outcome, Steps, audit_row, may_retry, row_sender,
+)  # fmt: skip
 from antireplay.state import ReplayStore
 from antireplay.state.replay import ReplayCache
 from antireplay.state.sqlite import SAFETY_WAIT_S
@@ -280,11 +282,13 @@ class ReceiverBase:
         """A refusal's row if the auditor gives it one, else folded into its summary."""
         if self.audit is None:
             return pending
-        row = audit_row(pending.outcome, self.clock.wall(), sender)
+        outcome = pending.outcome
+        claimed = row_sender(outcome, sender)
         if self.refusals.admit(
-            authentic=row.sender_verified, code=row.code, sender=row.sender, msg_id=row.msg_id
-        ):
-            pending.row = row
+            authentic=outcome.signer is not None, code=outcome.code, sender=claimed,
+            msg_id=outcome.msg_id,
+        ):  # fmt: skip
+            pending.row = audit_row(outcome, self.clock.wall(), claimed)  # built once admitted
         else:
             self.stats.unaudited += 1
         return pending
