@@ -54,7 +54,14 @@ from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
 from antireplay.rcan.auth import JwtVerifier, KeyRegistry
 from antireplay.rcan.envelope import MAX_BYTES
 from antireplay.rcan.steps import (
-    Checked, Done, NeedsCommit, Outcome, Steps, audit_row, may_retry, row_sender,
+    Checked,
+    Done,
+    NeedsCommit,
+    Outcome,
+    Steps,
+    audit_row,
+    may_retry,
+    row_sender,
 )  # fmt: skip
 from antireplay.state import ReplayStore
 from antireplay.state.replay import ReplayCache
