@@ -15,10 +15,16 @@ core's ``authenticate``: the Ed25519 verify, key lookup and scopes; a receive wo
 *answer* (the COMMAND_ACK or NACK built and sent), *metrics* (``Metrics.observe``),
 *refusal row* (the refusal auditor's admission and its row).  What the loop thread spends
 beyond its stages is HTTP (uvicorn, Starlette), the forwarder and the hand-offs.
+
+ESTOPs are timed inside the gateway too: from the guard's first look at the request to its
+answer sent (``GuardMiddleware.__call__``), for each request whose check took the urgent
+lane; the snapshot's ``estop_ms`` lists them, so a row can set the client's timing beside
+the gateway's (the client on a saturated 2-core box waits for a core too).
 """
 
 from __future__ import annotations
 
+import asyncio
 import functools
 import json
 import signal
@@ -48,6 +54,9 @@ STAGES: dict[str, tuple[str, str]] = {
 
 _ns: dict[str, int] = defaultdict(int)
 _calls: dict[str, int] = defaultdict(int)
+#: In-gateway milliseconds of each request that took the urgent lane (an ESTOP's).
+_estop_ms: list[float] = []
+_urgent: set[asyncio.Task[Any]] = set()
 
 
 def _timed(name: str, fn: Callable[..., Any]) -> Callable[..., Any]:
@@ -103,6 +112,33 @@ def install() -> None:
             setattr(owner, attr, timed)
 
 
+def install_estop_timer() -> None:
+    """Time each urgent request from the guard's first look to its answer."""
+    from antireplay.http.guard import GuardBase  # noqa: PLC0415
+    from antireplay.http.middleware import GuardMiddleware  # noqa: PLC0415
+
+    first, call = GuardBase._first, GuardMiddleware.__call__
+
+    async def marked(self: GuardBase, fn: Callable[..., Any], *args: Any) -> Any:
+        task = asyncio.current_task()
+        if task is not None:
+            _urgent.add(task)
+        return await first(self, fn, *args)
+
+    async def timed(self: GuardMiddleware, scope: Any, receive: Any, send: Any) -> None:
+        start = time.perf_counter()
+        try:
+            await call(self, scope, receive, send)
+        finally:
+            task = asyncio.current_task()
+            if task in _urgent:
+                _urgent.discard(task)
+                _estop_ms.append((time.perf_counter() - start) * 1e3)
+
+    GuardBase._first = marked  # type: ignore[method-assign]
+    GuardMiddleware.__call__ = timed  # type: ignore[method-assign]
+
+
 def threads_cpu_ns() -> dict[str, int]:
     """Every live thread's CPU so far, by name (numbered names folded: ``receive-0`` ...)."""
     out: dict[str, int] = defaultdict(int)
@@ -119,7 +155,8 @@ def threads_cpu_ns() -> dict[str, int]:
 
 
 def snapshot() -> dict[str, Any]:
-    return {"stages": dict(_ns), "calls": dict(_calls), "threads": threads_cpu_ns()}
+    return {"stages": dict(_ns), "calls": dict(_calls), "threads": threads_cpu_ns(),
+            "estop_ms": list(_estop_ms)}  # fmt: skip
 
 
 def main() -> None:
@@ -129,6 +166,7 @@ def main() -> None:
         out.write_text(json.dumps(snapshot()))
 
     install()
+    install_estop_timer()
     signal.signal(signal.SIGUSR1, dump)
     from antireplay.cli import main as cli  # noqa: PLC0415 - after the stages are wrapped
 

@@ -148,6 +148,8 @@ class AuditLog(SegmentLifecycle):
         self.rolled_back: str | None = None
         self.rollbacks = 0
         self._last_moved = 0
+        #: The connection whose ``synchronous`` was last set, and to FULL (True) or not.
+        self._synchronous: tuple[sqlite3.Connection | None, bool] = (None, True)
         self._spill = self._open_spill(spill_path, spill_slots)
         self._committer: GroupCommitter[AuditRow | None, int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
@@ -242,7 +244,9 @@ class AuditLog(SegmentLifecycle):
             sync = sync or outbox is None or bool(spilled or direct)
             sync = sync or self._clock.monotonic() - self._head_synced >= self.head_sync_s
             with self._shared() as db:  # no rotation meanwhile
-                db.execute(f"PRAGMA synchronous={'FULL' if sync else 'NORMAL'}")
+                if self._synchronous != (db, sync):  # a statement only when it changes
+                    db.execute(f"PRAGMA synchronous={'FULL' if sync else 'NORMAL'}")
+                    self._synchronous = (db, sync)
                 db.execute("BEGIN IMMEDIATE")
                 try:
                     done = self._append(db, spilled, direct)

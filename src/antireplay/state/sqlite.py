@@ -126,6 +126,7 @@ class SqliteStore:
         self._timeout_s = timeout_s
         self._stalled = False  # the last wait for the write lock ran out (see _begin)
         self._db = self._open(timeout_s)
+        self._synchronous = True  # the writer connection's synchronous=FULL (else NORMAL)
         check_readable(self.path)  # stored values that do not decode refuse the start
         self._file = file_identity(self.path)
         self._deployment = ""
@@ -248,7 +249,9 @@ class SqliteStore:
         self._verified()
         self._same_file()
         db = self._db
-        db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
+        if durable is not self._synchronous:  # set only when it changes (a statement each)
+            db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
+            self._synchronous = durable
         self._begin(db)
         try:
             result, (generation, watermark, fence, losses) = body(db)
