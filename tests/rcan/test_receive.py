@@ -23,6 +23,7 @@ from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.rcan.auth import JwtVerifier, sign_envelope
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.rcan.receive import Outcome, Receiver
+from antireplay.rcan.steps import audit_row
 from harness import fresh_receiver, post, race, serving
 from harness.envelopes import (
     ED,
@@ -467,16 +468,14 @@ def test_a_folded_refusal_builds_no_audit_row(
 ) -> None:
     """A flood of copies: the refusal auditor admits a few rows and folds the rest; a row
     is built only for those it admits (the folded ones cost no row, no wall clock read)."""
-    import antireplay.rcan.receive_shared as shared  # noqa: PLC0415 - the name patched
-
     built: list[object] = []
-    real = shared.audit_row
+    real = audit_row
 
     def counting(*args: Any, **kwargs: Any) -> Any:
         built.append(args[0])
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(shared, "audit_row", counting)
+    monkeypatch.setattr("antireplay.rcan.receive_shared.audit_row", counting)
     raw = signed()
     assert receiver.receive(raw).accepted
     built.clear()
