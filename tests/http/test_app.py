@@ -45,8 +45,8 @@ from harness import (
     state_rows,
 )
 from harness.asgi import demo_app, request, send_command
-from harness.stores import aged_state
 from harness.redis_server import RedisServer
+from harness.stores import aged_state
 from tests.fuzz.targets import http_app
 
 
