@@ -129,3 +129,33 @@ def test_an_accepted_command_on_a_loop_is_one_durable_trip_with_the_thread_drive
     ]
     assert verify(tmp_path / "audit.db").ok
     store.close()
+
+
+def test_a_paired_row_is_not_put_once_the_trail_is_gone(tmp_path: Path, clock: ManualClock) -> None:
+    """The trail's live segment deleted under a running gateway: the paired batch puts no
+    accepted row into the outbox (it would drain into nothing); the command is refused
+    ``STATE_UNAVAILABLE`` as before, its msg_id spent; with the trail back, commands pass."""
+    store = sqlite_store(tmp_path / "state.db", clock=clock)
+    trail = tmp_path / "audit.db"
+    audit = AuditLog(trail, clock=clock)
+    audit.attach(store.outbox())
+    receiver = fresh_receiver(SecurityConfig(), registry(), store, audit, clock)
+
+    async def offload(fn: Callable[..., Any], *args: Any) -> Any:
+        return fn(*args)
+
+    def outbox_rows() -> list[tuple[str, str]]:
+        query = "SELECT json_extract(row, '$.msg_id'), json_extract(row, '$.outcome') FROM outbox"
+        return store.read_outbox(lambda db: db.execute(query).fetchall())
+
+    aside = trail.rename(tmp_path / "aside.db")
+    gone = asyncio.run(receiver.receive_async(signed(msg_id="gone-1"), None, offload))
+    assert (gone.accepted, gone.code) == (False, "STATE_UNAVAILABLE")
+    assert ("gone-1", "accepted") not in outbox_rows()
+    aside.rename(trail)
+    back = asyncio.run(receiver.receive_async(signed(msg_id="back-1"), None, offload))
+    assert back.accepted
+    receiver.close()
+    rows = [(r.msg_id, r.outcome) for r in AuditLog(trail).tail(20)]
+    assert ("gone-1", "accepted") not in rows and ("back-1", "accepted") in rows
+    store.close()

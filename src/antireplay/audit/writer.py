@@ -191,10 +191,10 @@ class AuditLog(SegmentLifecycle):
     def pairs_with(self, store: object) -> bool:
         """Whether an accepted command's row may ride in ``store``'s commit of its entry
         (:class:`~antireplay.state.outbox.Paired`): this trail takes its rows through that
-        store's outbox and its live segment is still there (else the row is queued apart,
-        and fails: :meth:`append_later`)."""
+        store's outbox (whose writer puts no paired row once the live segment is gone: the
+        row is then queued apart, and fails: :meth:`append_later`)."""
         outbox = self._outbox
-        return outbox is not None and outbox.store is store and file_identity(self.path) is not None
+        return outbox is not None and outbox.store is store
 
     def append(self, row: AuditRow) -> int:
         """Durably append one record; returns its sequence number.
@@ -318,9 +318,14 @@ class AuditLog(SegmentLifecycle):
         if found is not None and found.problem is not None:
             self._roll_back(f"behind the state database {outbox.store.path}: {found.problem}")
         self._outbox = outbox
+        outbox.trail_there = self._there
         outbox.store.defer_commits()
         self.drain()
         outbox.on_rows = self._wake
+
+    def _there(self) -> bool:
+        """Whether the live segment is still there (not deleted under this writer)."""
+        return file_identity(self.path) is not None
 
     def _roll_back(self, problem: str) -> None:
         """The trail disagrees with the state's record of its head: say so (log, flag,

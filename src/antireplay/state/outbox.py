@@ -149,6 +149,10 @@ class Outbox:
         self.store = store
         #: Called on the store's writer thread after a batch that put rows (wakes a drain).
         self.on_rows: Callable[[], None] | None = None
+        #: Whether the trail draining this outbox is still there (its live segment not
+        #: deleted): asked once per batch holding paired rows, on the writer thread; a
+        #: batch that finds it gone puts none of them (``None``: not asked).
+        self.trail_there: Callable[[], bool] | None = None
 
     def put(self, row: dict[str, Any], *, durable: bool) -> Future[int]:
         """Queue ``row``; the future completes once it is committed (durably if asked)."""

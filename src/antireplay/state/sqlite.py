@@ -475,6 +475,7 @@ class SqliteStore:
         outbox rows, meta once, one COMMIT (with an fsync if any operation needs one)."""
         records = [op.record if isinstance(op, Paired) else op for op in ops
                    if isinstance(op, (tuple, Paired))]  # fmt: skip
+        paired_ops = any(isinstance(op, Paired) for op in ops)
 
         def body(db: sqlite3.Connection) -> tuple[list[Seen | int | PairedResult], _Meta]:
             generation, watermark, fence, losses = self._meta_checked(db)
@@ -490,6 +491,10 @@ class SqliteStore:
             fenced = NEVER if fence <= _FLOOR else fence
             lost = self._lost_pending  # said to the batch's first record only
             done: list[Seen | int | PairedResult] = []
+            # Paired rows only into an outbox whose trail is still there (once per batch,
+            # here and not on the event loop: a stat there waits for the GIL after it).
+            there = self._outbox.trail_there if self._outbox is not None else None
+            rows = not paired_ops or there is None or there()
             for op in ops:
                 if isinstance(op, (Put, Forget, Renew)):
                     done.append(op.apply(db))
@@ -498,7 +503,10 @@ class SqliteStore:
                 expiry, recorded = self._record(db, op.record if isinstance(op, Paired) else op)
                 seen = Seen(expiry, wm, fenced, recorded, False, lost)
                 lost = False
-                done.append(seen if paired is None else (seen, _put(db, paired.row(seen))))
+                if paired is None:
+                    done.append(seen)
+                else:  # not put: the caller queues its row apart, which fails (trail gone)
+                    done.append((seen, _put(db, paired.row(seen)) if rows else 0))
             return done, (generation, watermark, fence, losses)
 
         def tx() -> list[Seen | int | PairedResult]:
