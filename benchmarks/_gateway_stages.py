@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import json
+import os
 import signal
 import sys
 import threading
@@ -35,7 +36,10 @@ from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
 from types import FrameType
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from benchmarks._gateway_load import Run, Server
 
 #: Stage name -> (module, attribute path) of the function timed.
 STAGES: dict[str, tuple[str, str]] = {
@@ -157,6 +161,43 @@ def threads_cpu_ns() -> dict[str, int]:
 def snapshot() -> dict[str, Any]:
     return {"stages": dict(_ns), "calls": dict(_calls), "threads": threads_cpu_ns(),
             "estop_ms": list(_estop_ms)}  # fmt: skip
+
+
+def profile(server: Server, out: Path) -> dict[str, Any]:
+    """The stage and thread counters of a gateway under :mod:`benchmarks._gateway_stages`."""
+    out.unlink(missing_ok=True)
+    os.kill(server.pid, signal.SIGUSR1)
+    deadline = time.monotonic() + 10
+    while not out.exists() or not out.read_text().endswith("}"):
+        if time.monotonic() > deadline:
+            raise SystemExit(f"{server.name}: no stage counters written")
+        time.sleep(0.02)
+    found: dict[str, Any] = json.loads(out.read_text())
+    return found
+
+
+def stage_lines(label: str, before: dict[str, Any], after: dict[str, Any], run: Run) -> list[str]:
+    """CPU µs per request of each stage and thread over one run (what ``after`` adds)."""
+    n = max(run.requests, 1)
+
+    def per_request(kind: str) -> dict[str, float]:
+        was = before.get(kind, {})
+        return {k: (v - was.get(k, 0)) / n / 1e3 for k, v in after.get(kind, {}).items()}
+
+    staged, threads = per_request("stages"), per_request("threads")
+    calls = {k: (v - before["calls"].get(k, 0)) / n for k, v in after["calls"].items()}
+    lines = [f"CPU per request, {label} ({run.requests} requests, {run.rps:,.0f} req/s;"
+             f" process {run.cpu_ms * 1e3:.0f} µs):"]  # fmt: skip
+    by_cost = sorted(staged.items(), key=lambda kv: -kv[1])
+    lines += [f"  stage  {name:<20} {us:7.1f} µs  ({calls.get(name, 0):.2f} calls)"
+              for name, us in by_cost if us > 0.05]  # fmt: skip
+    lines += [f"  thread {name:<20} {us:7.1f} µs" for name, us in
+              sorted(threads.items(), key=lambda kv: -kv[1]) if us > 0.05]  # fmt: skip
+    on_loop = ("parse", "replay check", "accept", "refusal row", "answer",
+               "forwarded envelope", "metrics")  # fmt: skip
+    rest = threads.get("event loop", 0.0) - sum(staged.get(s, 0.0) for s in on_loop)
+    lines.append(f"  event loop beyond its stages (HTTP, hand-offs, the rest): {rest:.1f} µs")
+    return lines
 
 
 def main() -> None:

@@ -48,19 +48,16 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import logging
 import os
 import re
 import shutil
-import signal
 import statistics
 import sys
 import tempfile
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
 
 import httpx
 from cryptography.hazmat.primitives.asymmetric import ed25519
@@ -71,6 +68,7 @@ from benchmarks import bench_mavlink as mav
 from benchmarks import bench_window as window
 from benchmarks._gateway_load import (  # the flat forms: bench_audit_flood's
     JSON,
+    SLICE_S,
     WRK_SCRIPT,
     Run,
     Server,
@@ -79,8 +77,11 @@ from benchmarks._gateway_load import (  # the flat forms: bench_audit_flood's
     envelope,
     gateway,
     hog,
+    joined,
+    p99,
     settle,
     signer,
+    slices_of,
     stop,
     wait_healthy,
     write_lines,
@@ -93,13 +94,12 @@ from benchmarks._gateway_rows import (
     rcan_refusals,
     router_bursts,
 )  # fmt: skip
+from benchmarks._gateway_stages import profile, stage_lines
 from benchmarks._timing import interleaved_ns_per_op
 
 __all__ = ["WRK_SCRIPT", "envelope", "main", "signer", "stop", "wait_healthy", "write_lines", "wrk"]
 
 ROWS = ("fresh", "flood", "c1", "estop", "inproc", "router", "redis", "workers", "growth", "stages")
-#: Longest wrk run on one set of signed bodies (the window is 30 s: none goes stale).
-SLICE_S = 10.0
 #: Connections of the growth lines.
 GROWTH = (1, 32, 128)
 ESTOPS = 40
@@ -152,34 +152,6 @@ class Row:
 
 def median_run(runs: list[Run]) -> Run:
     return Run(*(statistics.median(getattr(r, f.name) for r in runs) for f in fields(Run)))
-
-
-def joined(slices: list[Run]) -> Run:
-    """One run from its slices: summed, p50 their median, p99 their highest."""
-    if len(slices) == 1:
-        return slices[0]
-    n = sum(r.requests for r in slices)
-    duration = sum(r.requests / r.rps for r in slices if r.rps)
-    weight = [r.requests / max(n, 1) for r in slices]
-    return Run(
-        n / duration if duration else 0.0,
-        statistics.median(r.p50_ms for r in slices),
-        max(r.p99_ms for r in slices),
-        n,
-        sum(r.non_2xx for r in slices),
-        sum(w * r.cpu_ms for w, r in zip(weight, slices, strict=True)),
-        sum(w * r.switches for w, r in zip(weight, slices, strict=True)),
-    )
-
-
-def slices_of(seconds: float) -> list[float]:
-    """A run of ``seconds`` as slices of at most :data:`SLICE_S`."""
-    count = max(1, -(-round(seconds) // round(SLICE_S)))
-    return [seconds / count] * count
-
-
-def p99(values: list[float]) -> float:
-    return statistics.quantiles(values, n=100)[98] if len(values) > 1 else values[0]
 
 
 class Pass:
@@ -581,43 +553,6 @@ class Pass:
                 *self.verdict("workers=2", None),
             )
         ]
-
-
-def profile(server: Server, out: Path) -> dict[str, Any]:
-    """The stage and thread counters of a gateway under :mod:`benchmarks._gateway_stages`."""
-    out.unlink(missing_ok=True)
-    os.kill(server.pid, signal.SIGUSR1)
-    deadline = time.monotonic() + 10
-    while not out.exists() or not out.read_text().endswith("}"):
-        if time.monotonic() > deadline:
-            raise SystemExit(f"{server.name}: no stage counters written")
-        time.sleep(0.02)
-    found: dict[str, Any] = json.loads(out.read_text())
-    return found
-
-
-def stage_lines(label: str, before: dict[str, Any], after: dict[str, Any], run: Run) -> list[str]:
-    """CPU µs per request of each stage and thread over one run (what ``after`` adds)."""
-    n = max(run.requests, 1)
-
-    def per_request(kind: str) -> dict[str, float]:
-        was = before.get(kind, {})
-        return {k: (v - was.get(k, 0)) / n / 1e3 for k, v in after.get(kind, {}).items()}
-
-    staged, threads = per_request("stages"), per_request("threads")
-    calls = {k: (v - before["calls"].get(k, 0)) / n for k, v in after["calls"].items()}
-    lines = [f"CPU per request, {label} ({run.requests} requests, {run.rps:,.0f} req/s;"
-             f" process {run.cpu_ms * 1e3:.0f} µs):"]  # fmt: skip
-    by_cost = sorted(staged.items(), key=lambda kv: -kv[1])
-    lines += [f"  stage  {name:<20} {us:7.1f} µs  ({calls.get(name, 0):.2f} calls)"
-              for name, us in by_cost if us > 0.05]  # fmt: skip
-    lines += [f"  thread {name:<20} {us:7.1f} µs" for name, us in
-              sorted(threads.items(), key=lambda kv: -kv[1]) if us > 0.05]  # fmt: skip
-    on_loop = ("parse", "replay check", "accept", "refusal row", "answer",
-               "forwarded envelope", "metrics")  # fmt: skip
-    rest = threads.get("event loop", 0.0) - sum(staged.get(s, 0.0) for s in on_loop)
-    lines.append(f"  event loop beyond its stages (HTTP, hand-offs, the rest): {rest:.1f} µs")
-    return lines
 
 
 def run_pass(opts: Options, loaded: bool) -> list[tuple[str, Row]]:
