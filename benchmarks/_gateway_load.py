@@ -20,6 +20,7 @@ import contextlib
 import json
 import os
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -40,6 +41,8 @@ from antireplay.wiring import DEMO_KID
 from harness import free_port
 
 JSON = {"content-type": "application/json"}
+#: Longest wrk run on one set of signed bodies (the window is 30 s: none goes stale).
+SLICE_S = 10.0
 
 WRK_SCRIPT = """
 local bodies = {}
@@ -116,6 +119,34 @@ class Run:
     non_2xx: int
     cpu_ms: float
     switches: float
+
+
+def joined(slices: list[Run]) -> Run:
+    """One run from its slices: summed, p50 their median, p99 their highest."""
+    if len(slices) == 1:
+        return slices[0]
+    n = sum(r.requests for r in slices)
+    duration = sum(r.requests / r.rps for r in slices if r.rps)
+    weight = [r.requests / max(n, 1) for r in slices]
+    return Run(
+        n / duration if duration else 0.0,
+        statistics.median(r.p50_ms for r in slices),
+        max(r.p99_ms for r in slices),
+        n,
+        sum(r.non_2xx for r in slices),
+        sum(w * r.cpu_ms for w, r in zip(weight, slices, strict=True)),
+        sum(w * r.switches for w, r in zip(weight, slices, strict=True)),
+    )
+
+
+def slices_of(seconds: float) -> list[float]:
+    """A run of ``seconds`` as slices of at most :data:`SLICE_S`."""
+    count = max(1, -(-round(seconds) // round(SLICE_S)))
+    return [seconds / count] * count
+
+
+def p99(values: list[float]) -> float:
+    return statistics.quantiles(values, n=100)[98] if len(values) > 1 else values[0]
 
 
 @dataclass
@@ -224,12 +255,14 @@ def bare_server() -> Server:
 
 
 def gateway(
-    name: str, state: Path, options: tuple[str, ...] = (), trace: tuple[str, ...] = ()
-) -> Server:
+    name: str, state: Path, options: tuple[str, ...] = (), trace: tuple[str, ...] = (),
+    launcher: tuple[str, ...] = ("-m", "antireplay"),
+) -> Server:  # fmt: skip
     """``antireplay serve`` as users start it (``state``: its ``--state-dir``), optionally
-    under a tracer (``trace``: the argv before it; the counted pid is then its child)."""
+    under a tracer (``trace``: the argv before it; the counted pid is then its child) or
+    another ``launcher`` (``python -m benchmarks._gateway_stages OUT``: CPU per stage)."""
     port = free_port()
-    args = [sys.executable, "-m", "antireplay", "serve", "--state-dir", str(state)]
+    args = [sys.executable, *launcher, "serve", "--state-dir", str(state)]
     proc = subprocess.Popen([*trace, *args, *options, "--port", str(port)])
     server = Server(name, f"http://127.0.0.1:{port}", proc)
     if trace:

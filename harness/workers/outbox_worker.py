@@ -10,18 +10,26 @@
 * ``hang-refused``: one refusal row answered (prints ``ANSWERED``), then waits to be killed.
 * ``race KEYS``: commit each of ``KEYS`` (comma-separated) and audit the ones it won;
   prints ``WON <key>`` for each.
+* ``paired N CONCURRENCY [HANG]``: N accepted messages as the gateway takes them, entry
+  and row ONE operation (``commit_with_row_async``) from an event loop, CONCURRENCY at a
+  time; prints ``ANSWERED <key>`` as each is answered.  With ``HANG``: the row of message
+  number HANG prints ``HANG`` and blocks inside its batch's transaction (killed there).
 
 The audit writer runs on a manual clock: it never fsyncs the trail by time, only when asked.
 """
 
 from __future__ import annotations
 
+import asyncio
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from antireplay.audit import AuditLog, AuditRow
+from antireplay.audit.writer import stored_json
 from antireplay.core.clock import ManualClock
+from antireplay.core.window import Seen
 from antireplay.state.sqlite import SqliteStore
 
 NOW = 1_800_000_000.0
@@ -47,6 +55,31 @@ def accept(store: SqliteStore, audit: AuditLog, key: str) -> bool:
         return False
     audit.append(row("accepted", key))
     return True
+
+
+async def paired(store: SqliteStore, n: int, concurrency: int, hang: int | None) -> None:
+    """Accepted messages as the event-loop driver takes them: one operation each."""
+    gate = asyncio.Semaphore(concurrency)
+
+    def row_of(key: str, index: int) -> Callable[[Seen], str | None]:
+        def row_for(seen: Seen) -> str | None:
+            if index == hang:
+                sys.stdout.write("HANG\n")
+                sys.stdout.flush()
+                threading.Event().wait()  # killed here, inside the transaction
+            return stored_json(row("accepted", key)) if seen.recorded else None
+
+        return row_for
+
+    async def one(index: int) -> None:
+        key = f"p{index}"
+        async with gate:
+            seen, put = await store.commit_with_row_async(key, NOW + 30.0, NOW, row_of(key, index))
+        if seen.recorded and put:
+            sys.stdout.write(f"ANSWERED {key}\n")
+            sys.stdout.flush()
+
+    await asyncio.gather(*(one(i) for i in range(n)))
 
 
 def main() -> None:
@@ -79,6 +112,9 @@ def main() -> None:
         sys.stdout.write("ANSWERED\n")
         sys.stdout.flush()
         threading.Event().wait()  # killed here
+    elif mode == "paired":
+        hang = int(args[2]) if len(args) > 2 else None
+        asyncio.run(paired(store, int(args[0]), int(args[1]), hang))
     elif mode == "race":
         for key in args[0].split(","):
             if accept(store, audit, key):

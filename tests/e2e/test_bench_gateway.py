@@ -27,7 +27,7 @@ def test_an_unknown_row_is_refused_with_the_list() -> None:
 
 def test_a_short_run_prints_a_verdict_for_every_row_it_ran() -> None:
     env = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"}
-    args = [sys.executable, "-m", "benchmarks", "gateway", "--rows=fresh,flood,estop,inproc",
+    args = [sys.executable, "-m", "benchmarks", "gateway", "--rows=fresh,flood,estop,inproc,stages",
             "--rounds=1", "--seconds=1", "--passes=quiet"]  # fmt: skip
     run = subprocess.run(
         args, check=False, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
@@ -35,7 +35,8 @@ def test_a_short_run_prints_a_verdict_for_every_row_it_ran() -> None:
     assert run.returncode == 0, run.stdout + run.stderr
     out = run.stdout
     assert "load average at start" in out and "load average at end" in out
-    assert "WARNING" not in out, out  # every answer as expected (2xx fresh, 409 replays)
+    assert "FAIL" not in out, out  # every answer as expected (2xx fresh, 409 replays)
+    assert "CPU per request, fresh c=32" in out and "inside the gateway" in out, out
     for row in ("fresh c=32", "flood c=32", "ESTOP in flood", "in-process", "refusals"):
         assert re.search(rf"^{re.escape(row)} +quiet .* (PASS|MISS)$", out, re.MULTILINE), out
     assert re.search(r"\(40/40\)", out), out  # every ESTOP accepted during the flood

@@ -46,6 +46,7 @@ from harness import (
 )
 from harness.asgi import demo_app, request, send_command
 from harness.redis_server import RedisServer
+from harness.stores import aged_state
 from tests.fuzz.targets import http_app
 
 
@@ -642,3 +643,22 @@ def test_metrics_counters_keep_their_last_value_while_the_store_is_down(
     assert 'antireplay_cache_entries{backend="sqlite"} NaN' in text  # a gauge may be unknown
     counters = [line for line in text.splitlines() if "_total{" in line]
     assert counters and not any(line.endswith("NaN") for line in counters), counters
+
+
+def test_the_served_gateway_commits_an_accepted_command_as_one_operation(tmp_path: Path) -> None:
+    """``antireplay serve`` on its SQLite state: each accepted command is ONE operation of
+    the state's group commit (its entry and its audit row together), not two; its row is in
+    the trail."""
+    config = write_demo_config(tmp_path)
+    aged_state(tmp_path / "state.db")  # history: no first start's fence
+    key = load_operator_key(tmp_path)
+    ops = "antireplay_group_commit_operations_total"
+    with serving(config) as gateway:
+        before = metric(gateway, ops, '{log="state"}')
+        sent = [command(key) for _ in range(5)]
+        assert all(post(gateway, raw).status_code == 200 for raw in sent)
+        # 5 (two each before: 10), and at most one outbox delete per fsynced drain (~1 s)
+        assert 5 <= metric(gateway, ops, '{log="state"}') - before <= 7
+    ids = {json.loads(raw)["msg_id"] for raw in sent}
+    rows = [r for r in audit_tail(tmp_path / "audit.db", 20) if r.msg_id in ids]
+    assert sorted(r.outcome for r in rows) == ["accepted"] * 5

@@ -27,15 +27,17 @@ from antireplay.audit import tail
 from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.config import AppConfig
 from antireplay.core.clock import ManualClock
-from antireplay.http.guard import SIGNER_HEADERS, Verified
+from antireplay.core.errors import UpstreamFailedError
+from antireplay.http.guard import SIGNER_HEADERS, GuardBase, Verified
 from antireplay.http.workers import Door
 from antireplay.rcan.auth import Signer
 from antireplay.rcan.envelope import encode, parse
-from antireplay.rcan.receive import Outcome
+from antireplay.rcan.receive import Outcome, Receiver
 from antireplay.rcan.steps import Done
 from antireplay.wiring import Guard, RcanGuard, build_receiver, create_app
 from harness import free_port, recording_upstream, state_rows, until
 from harness.asgi import LIMIT, NOW, Answer, call, config
+from harness.envelopes import signed
 
 #: What the module:function upstream of the gateway under test was called with.
 CALLS: list[tuple[dict[str, Any], Signer]] = []
@@ -653,3 +655,26 @@ def test_an_estop_holds_the_door_until_the_robot_has_answered_it(tmp_path: Path)
     finally:
         guard.close()
     assert guard.door.holders == set()
+
+
+def test_a_refusal_flood_is_answered_with_its_nack_encoded_once(receiver: Receiver) -> None:
+    """The same refusal (code, reason, msg_id) is answered with the same bytes, encoded
+    once, equal to its NACK; another refusal gets its own; a refusal class with fields of
+    its own (an upstream failure's ``delivered``) is encoded each time."""
+    guard = GuardBase(receiver)
+    try:
+        raw = signed(msg_id="flooded")
+        assert receiver.receive(raw).accepted
+        first, again = receiver.receive(raw), receiver.receive(raw)
+        assert first.error is not None and again.error is not None
+        body = guard._nack_body(first, first.error)
+        assert guard._nack_body(again, again.error) is body
+        assert json.loads(body) == first.nack
+        stale = receiver.receive(signed(msg_id="old", timestamp=NOW - 3600))
+        assert stale.error is not None
+        assert json.loads(guard._nack_body(stale, stale.error))["ref_msg_id"] == "old"
+        failed = Outcome(False, 502, msg_id="up", error=UpstreamFailedError("down", delivered="no"))
+        assert failed.error is not None
+        assert guard._nack_body(failed, failed.error) is not guard._nack_body(failed, failed.error)
+    finally:
+        guard.close()

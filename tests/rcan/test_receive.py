@@ -23,6 +23,7 @@ from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.rcan.auth import JwtVerifier, sign_envelope
 from antireplay.rcan.envelope import SDK_SIGNED_FIELDS, encode
 from antireplay.rcan.receive import Outcome, Receiver
+from antireplay.rcan.steps import audit_row
 from harness import fresh_receiver, post, race, serving
 from harness.envelopes import (
     ED,
@@ -460,3 +461,25 @@ def test_a_refused_replay_is_audited_under_the_key_it_claims_and_verified_only_i
     ]
     table = subprocess.run(tail, capture_output=True, text=True, timeout=60, check=True).stdout
     assert "kid:operator (claimed)" in table
+
+
+def test_a_folded_refusal_builds_no_audit_row(
+    receiver: Receiver, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A flood of copies: the refusal auditor admits a few rows and folds the rest; a row
+    is built only for those it admits (the folded ones cost no row, no wall clock read)."""
+    built: list[object] = []
+    real = audit_row
+
+    def counting(*args: Any, **kwargs: Any) -> Any:
+        built.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr("antireplay.rcan.receive_shared.audit_row", counting)
+    raw = signed()
+    assert receiver.receive(raw).accepted
+    built.clear()
+    outcomes = [receiver.receive(raw) for _ in range(200)]
+    assert all(o.code == "REPLAY_DETECTED" for o in outcomes)
+    assert receiver.stats.unaudited >= 150  # folded into the summary
+    assert len(built) == 200 - receiver.stats.unaudited  # one row per admitted refusal

@@ -6,10 +6,15 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+from antireplay import ManualClock, SecurityConfig
+from antireplay.audit import AuditLog, verify
 from antireplay.rcan.receive import Outcome, Receiver
-from harness.envelopes import signed
+from harness import fresh_receiver
+from harness.envelopes import registry, signed
+from harness.stores import sqlite_store
 
 
 class _NoThreads(concurrent.futures.ThreadPoolExecutor):
@@ -76,3 +81,81 @@ def test_the_event_loop_driver_hands_a_thread_one_job_at_most_and_safety_the_urg
         (False, "REPLAY_DETECTED"), (True, None),
     ]  # fmt: skip
     assert signatures == ["ordinary", "urgent"]
+
+
+def test_an_accepted_command_on_a_loop_is_one_durable_trip_with_the_thread_drivers_row(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """With the trail's outbox in the SQLite store, an accepted command's entry and row are
+    ONE committer operation (two before: the entry, then the row); its row is the one the
+    thread driver writes; a racer that loses the commit gets its refusal row, not the
+    accepted one; an ESTOP still takes its two bounded steps."""
+    store = sqlite_store(tmp_path / "state.db", clock=clock)
+    audit = AuditLog(tmp_path / "audit.db", clock=clock)
+    audit.attach(store.outbox())
+    receiver = fresh_receiver(SecurityConfig(), registry(), store, audit, clock)
+    committer = store.group_commit
+
+    async def offload(fn: Callable[..., Any], *args: Any) -> Any:
+        return fn(*args)
+
+    async def scenario() -> list[Outcome]:
+        before = committer.operations
+        first = await receiver.receive_async(signed(msg_id="loop-1"), None, offload)
+        assert committer.operations - before == 1  # the entry and its row: one operation
+        twins = [signed(msg_id="twin", cmd=c) for c in ("a", "b")]  # both pass the check
+        raced = await asyncio.gather(*(receiver.receive_async(t, None, offload) for t in twins))
+        before = committer.operations
+        estop = signed(type=6, safety_event="ESTOP", cmd="estop")
+        stopped = await receiver.receive_async(estop, None, offload, offload)
+        assert committer.operations - before == 2  # its entry, then its row (spillable)
+        return [first, *raced, stopped]
+
+    outcomes = asyncio.run(scenario())
+    assert receiver.receive(signed(msg_id="thread-1")).accepted
+    assert [(o.accepted, o.code) for o in outcomes] in (
+        [(True, None), (True, None), (False, "REPLAY_DETECTED"), (True, None)],
+        [(True, None), (False, "REPLAY_DETECTED"), (True, None), (True, None)],
+    )
+    receiver.close()
+    rows = {r.msg_id: r for r in AuditLog(tmp_path / "audit.db").tail(20)}
+    loop_row, thread_row = rows["loop-1"], rows["thread-1"]
+    fields = ("outcome", "code", "warning", "msg_type", "sender", "sender_verified")
+    assert [getattr(loop_row, f) for f in fields] == [getattr(thread_row, f) for f in fields]
+    twin = [r for r in AuditLog(tmp_path / "audit.db").tail(20) if r.msg_id == "twin"]
+    assert sorted((r.outcome, r.code) for r in twin) == [
+        ("accepted", None),
+        ("rejected", "REPLAY_DETECTED"),
+    ]
+    assert verify(tmp_path / "audit.db").ok
+    store.close()
+
+
+def test_a_paired_row_is_not_put_once_the_trail_is_gone(tmp_path: Path, clock: ManualClock) -> None:
+    """The trail's live segment deleted under a running gateway: the paired batch puts no
+    accepted row into the outbox (it would drain into nothing); the command is refused
+    ``STATE_UNAVAILABLE`` as before, its msg_id spent; with the trail back, commands pass."""
+    store = sqlite_store(tmp_path / "state.db", clock=clock)
+    trail = tmp_path / "audit.db"
+    audit = AuditLog(trail, clock=clock)
+    audit.attach(store.outbox())
+    receiver = fresh_receiver(SecurityConfig(), registry(), store, audit, clock)
+
+    async def offload(fn: Callable[..., Any], *args: Any) -> Any:
+        return fn(*args)
+
+    def outbox_rows() -> list[tuple[str, str]]:
+        query = "SELECT json_extract(row, '$.msg_id'), json_extract(row, '$.outcome') FROM outbox"
+        return store.read_outbox(lambda db: db.execute(query).fetchall())
+
+    aside = trail.rename(tmp_path / "aside.db")
+    gone = asyncio.run(receiver.receive_async(signed(msg_id="gone-1"), None, offload))
+    assert (gone.accepted, gone.code) == (False, "STATE_UNAVAILABLE")
+    assert ("gone-1", "accepted") not in outbox_rows()
+    aside.rename(trail)
+    back = asyncio.run(receiver.receive_async(signed(msg_id="back-1"), None, offload))
+    assert back.accepted
+    receiver.close()
+    rows = [(r.msg_id, r.outcome) for r in AuditLog(trail).tail(20)]
+    assert ("gone-1", "accepted") not in rows and ("back-1", "accepted") in rows
+    store.close()

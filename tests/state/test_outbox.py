@@ -57,6 +57,15 @@ def test_concurrent_accepts_cost_at_most_one_fsync_per_batch(tmp_path: Path) -> 
     assert fsyncs < n, f"{fsyncs} fsyncs for {n} accepted messages"
 
 
+def test_a_paired_accept_is_one_operation_and_batches_fsync_once(tmp_path: Path) -> None:
+    """The gateway's trip: entry and row ONE operation (not two), one fsync per batch."""
+    n = 640
+    fsyncs, batches, ops = traced(tmp_path, "paired", str(n), "32")
+    assert ops == n
+    assert fsyncs <= batches + SETUP_FSYNCS, f"{fsyncs} fsyncs for {batches} batches"
+    assert fsyncs < n, f"{fsyncs} fsyncs for {n} accepted messages"
+
+
 def test_refusals_are_answered_without_an_fsync(tmp_path: Path) -> None:
     fsyncs, batches, _ = traced(tmp_path, "refuse", "200")
     assert batches >= 200 and fsyncs <= SETUP_FSYNCS
@@ -118,6 +127,48 @@ def test_kill_9_between_the_trail_commit_and_the_outbox_delete_duplicates_nothin
     audit.close()
     store.close()
     assert accepted_rows(tmp_path / "audit.db") == Counter({f"h{i}": 1 for i in range(n)})
+    assert outbox_rows(tmp_path / "state.db") == 0
+    report = verify(tmp_path / "audit.db")
+    assert report.chain_ok and report.head == "match", report.lines()
+
+
+def seen_keys(state: Path) -> set[str]:
+    db = sqlite3.connect(f"file:{state}?mode=ro", uri=True)
+    try:
+        return {k for (k,) in db.execute("SELECT key FROM seen")}
+    finally:
+        db.close()
+
+
+def outbox_accepted(state: Path) -> Counter[str]:
+    db = sqlite3.connect(f"file:{state}?mode=ro", uri=True)
+    try:
+        found = db.execute("SELECT json_extract(row, '$.msg_id') FROM outbox").fetchall()
+    finally:
+        db.close()
+    return Counter(m for (m,) in found)
+
+
+@pytest.mark.parametrize("hang", [0, 7, 150])
+def test_kill_9_inside_a_paired_batch_keeps_entry_and_row_together(
+    tmp_path: Path, hang: int
+) -> None:
+    """Killed inside a batch's transaction (a row being built, its entry written but not
+    committed): that batch leaves neither entries nor rows; every answered message has
+    both; no entry without its row, no row without its entry, before and after a restart."""
+    printed = run_until(tmp_path, "HANG", "paired", "200", "16", str(hang))
+    answered = {line.split()[1] for line in printed if line.startswith("ANSWERED")}
+    assert f"p{hang}" not in answered
+    seen = seen_keys(tmp_path / "state.db")
+    trail, waiting = accepted_rows(tmp_path / "audit.db"), outbox_accepted(tmp_path / "state.db")
+    assert answered <= seen
+    assert f"p{hang}" not in seen
+    assert set(trail) | set(waiting) == seen  # moved rows stay in the outbox until durable
+    assert max([*trail.values(), *waiting.values(), 1]) == 1
+    store, audit = reopen(tmp_path)
+    audit.close()
+    store.close()
+    assert accepted_rows(tmp_path / "audit.db") == Counter(dict.fromkeys(seen, 1))
     assert outbox_rows(tmp_path / "state.db") == 0
     report = verify(tmp_path / "audit.db")
     assert report.chain_ok and report.head == "match", report.lines()

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import sqlite3
 import threading
@@ -86,6 +87,11 @@ def _stored(row: AuditRow) -> dict[str, Any]:
     return stored
 
 
+def stored_json(row: AuditRow) -> str:
+    """One row as the outbox keeps it (JSON text of :func:`_stored`)."""
+    return json.dumps(_stored(row))
+
+
 class AuditLog(SegmentLifecycle):
     """Append-only, hash-chained audit trail: the live segment at ``path`` and the rotated
     segments beside it (:mod:`.segments`), head anchored outside them."""
@@ -142,6 +148,8 @@ class AuditLog(SegmentLifecycle):
         self.rolled_back: str | None = None
         self.rollbacks = 0
         self._last_moved = 0
+        #: The connection whose ``synchronous`` was last set, and to FULL (True) or not.
+        self._synchronous: tuple[sqlite3.Connection | None, bool] = (None, True)
         self._spill = self._open_spill(spill_path, spill_slots)
         self._committer: GroupCommitter[AuditRow | None, int] = GroupCommitter(
             self._write_batch, name=f"antireplay-audit:{self.path.name}"
@@ -179,6 +187,14 @@ class AuditLog(SegmentLifecycle):
     def spilled(self) -> int:
         """Rows waiting in the spill."""
         return 0 if self._spill is None else len(self._spill.pending())
+
+    def pairs_with(self, store: object) -> bool:
+        """Whether an accepted command's row may ride in ``store``'s commit of its entry
+        (:class:`~antireplay.state.outbox.Paired`): this trail takes its rows through that
+        store's outbox (whose writer puts no paired row once the live segment is gone: the
+        row is then queued apart, and fails: :meth:`append_later`)."""
+        outbox = self._outbox
+        return outbox is not None and outbox.store is store
 
     def append(self, row: AuditRow) -> int:
         """Durably append one record; returns its sequence number.
@@ -228,7 +244,9 @@ class AuditLog(SegmentLifecycle):
             sync = sync or outbox is None or bool(spilled or direct)
             sync = sync or self._clock.monotonic() - self._head_synced >= self.head_sync_s
             with self._shared() as db:  # no rotation meanwhile
-                db.execute(f"PRAGMA synchronous={'FULL' if sync else 'NORMAL'}")
+                if self._synchronous != (db, sync):  # a statement only when it changes
+                    db.execute(f"PRAGMA synchronous={'FULL' if sync else 'NORMAL'}")
+                    self._synchronous = (db, sync)
                 db.execute("BEGIN IMMEDIATE")
                 try:
                     done = self._append(db, spilled, direct)
@@ -300,9 +318,14 @@ class AuditLog(SegmentLifecycle):
         if found is not None and found.problem is not None:
             self._roll_back(f"behind the state database {outbox.store.path}: {found.problem}")
         self._outbox = outbox
+        outbox.trail_there = self._there
         outbox.store.defer_commits()
         self.drain()
         outbox.on_rows = self._wake
+
+    def _there(self) -> bool:
+        """Whether the live segment is still there (not deleted under this writer)."""
+        return file_identity(self.path) is not None
 
     def _roll_back(self, problem: str) -> None:
         """The trail disagrees with the state's record of its head: say so (log, flag,

@@ -26,7 +26,7 @@ ASGI messages, with no Response object on the hot path.
 from __future__ import annotations
 
 import functools
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -57,6 +57,8 @@ encode_json = msgspec.json.Encoder().encode
 #: Request headers only the guard sets (the verified signer); a client's copies are dropped.
 SIGNER_HEADERS = ("rcan-signer-owner", "rcan-signer-kid", "rcan-signer-scopes", "rcan-msg-id")
 SIGNER_HEADER_NAMES = frozenset(name.encode() for name in SIGNER_HEADERS)
+#: NACK bodies kept prebuilt at most (then forgotten all at once and built again).
+PREBUILT = 4096
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,6 +158,8 @@ class GuardBase:
         self.metrics.watch(self.door)
         self._ticker = resolve(None)
         self._closed = False
+        #: Refusals' NACK bodies, encoded once (see :meth:`_nack_body`).
+        self._nacks: dict[tuple[str, str | None, str | None], bytes] = {}
 
     @property
     def metrics_endpoint(self) -> Callable[[Request], Awaitable[Response]]:
@@ -220,7 +224,7 @@ class GuardBase:
             return HttpRefusal(raw.http_status, raw.to_nack(None, nack_type=self.nack_type))
         await self.door.enter()
         started = self._ticker.monotonic()
-        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"][::-1]}
+        headers = _Headers(scope["headers"])
         try:
             outcome = await self.receiver.receive_async(raw, headers, self.workers, self._first)
         finally:
@@ -229,13 +233,52 @@ class GuardBase:
         self.metrics.observe(outcome, self._ticker.monotonic() - started)
         if outcome.retry is not None:
             return HttpRefusal.retry(outcome.retry)
-        nack = outcome.nack
-        if nack is not None:
-            return HttpRefusal(outcome.status, nack)
+        if outcome.error is not None:
+            return HttpRefusal(outcome.status, self._nack_body(outcome, outcome.error))
         assert outcome.envelope is not None and outcome.signer is not None
         ack = outcome.ack or {}  # COMMAND_ACK: readable by the rcan SDK
         envelope = as_forwarded(outcome.envelope)
         return Verified(envelope, outcome.signer, outcome.msg_id, outcome.warning, ack), outcome
+
+    def _nack_body(self, outcome: Outcome, error: ReplayAttackError) -> bytes:
+        """The NACK's JSON, prebuilt per refusal (code, reason, detail, msg_id): a flood of
+        one captured command is answered with the same bytes, encoded once.  A refusal
+        whose class adds fields of its own is encoded each time."""
+        if type(error).to_nack is not ReplayAttackError.to_nack:
+            return encode_json(error.to_nack(outcome.msg_id, nack_type=self.nack_type))
+        key = (error.coded_reason, error.detail, outcome.msg_id)
+        body = self._nacks.get(key)
+        if body is None:
+            if len(self._nacks) >= PREBUILT:
+                self._nacks.clear()
+            body = encode_json(error.to_nack(outcome.msg_id, nack_type=self.nack_type))
+            self._nacks[key] = body
+        return body
+
+
+class _Headers(Mapping[str, str]):
+    """The request headers as the receiver reads them (lower-case names, the first of a
+    repeated one), decoded only if read: a refusal before the token check reads none."""
+
+    __slots__ = ("_decoded", "_raw")
+
+    def __init__(self, raw: list[tuple[bytes, bytes]]) -> None:
+        self._raw = raw
+        self._decoded: dict[str, str] | None = None
+
+    def _dict(self) -> dict[str, str]:
+        if self._decoded is None:
+            self._decoded = {k.decode("latin-1"): v.decode("latin-1") for k, v in self._raw[::-1]}
+        return self._decoded
+
+    def __getitem__(self, key: str) -> str:
+        return self._dict()[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._dict())
+
+    def __len__(self) -> int:
+        return len(self._dict())
 
 
 def framing(scope: Scope) -> Framing:

@@ -20,6 +20,7 @@ import math
 import sqlite3
 import time
 from collections.abc import Iterator
+from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -50,6 +51,7 @@ class Metrics:
         r = self.registry
         self.accepted = Counter("antireplay_accepted", "Accepted messages", registry=r)
         self.rejected = Counter("antireplay_rejected", "Rejected messages", ["code"], registry=r)
+        self._rejected: dict[str, Any] = {}  # the code's child of ``rejected``
         self.warnings = Counter(
             "antireplay_warnings", "Accepted with warning", ["warning"], registry=r
         )
@@ -86,7 +88,11 @@ class Metrics:
             if outcome.warning:
                 self.warnings.labels(outcome.warning).inc()
         else:
-            self.rejected.labels(outcome.code or "UNKNOWN").inc()
+            code = outcome.code or "UNKNOWN"
+            child = self._rejected.get(code)
+            if child is None:  # a label's child found once, not per refusal
+                child = self._rejected[code] = self.rejected.labels(code)
+            child.inc()
             if outcome.code == "STATE_UNAVAILABLE":
                 self.store_errors.inc()
             if outcome.retry is not None:

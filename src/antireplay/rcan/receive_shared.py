@@ -53,7 +53,16 @@ from antireplay.core.window import Refusal, Verdict, estop_survives, is_estop
 from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
 from antireplay.rcan.auth import JwtVerifier, KeyRegistry
 from antireplay.rcan.envelope import MAX_BYTES
-from antireplay.rcan.steps import Checked, Done, NeedsCommit, Outcome, Steps, audit_row, may_retry
+from antireplay.rcan.steps import (
+    Checked,
+    Done,
+    NeedsCommit,
+    Outcome,
+    Steps,
+    audit_row,
+    may_retry,
+    row_sender,
+)  # fmt: skip
 from antireplay.state import ReplayStore
 from antireplay.state.replay import ReplayCache
 from antireplay.state.sqlite import SAFETY_WAIT_S
@@ -227,13 +236,17 @@ class ReceiverBase:
         self.stats.disk_refusals += 1
         return step.refused(StateUnavailableError(reason))
 
-    def _accept(self, raw: bytes, need: NeedsCommit, verdict: Verdict) -> Pending:
-        """A committed message: its answer expected, its row to queue."""
+    def _accept(
+        self, raw: bytes, need: NeedsCommit, verdict: Verdict, *, audited: bool = False
+    ) -> Pending:
+        """A committed message: its answer expected, its row to queue (``audited``: its row
+        was put with its entry, durable already)."""
         accepted = self.steps.accept(need, verdict)
         if accepted.entry is not None:
             self.answers.expect(need.env.msg_id, accepted.entry, self.clock.wall())
         memo = (raw, verdict.expires_at, accepted.qos) if accepted.memo else None
-        return self._with_row(Pending(accepted.outcome, memo=memo, estop=verdict.estop))
+        pending = Pending(accepted.outcome, memo=memo, estop=verdict.estop)
+        return pending if audited else self._with_row(pending)
 
     def _with_row(self, pending: Pending) -> Pending:
         """``pending`` with its audit row (always recorded: not a refusal's)."""
@@ -276,11 +289,13 @@ class ReceiverBase:
         """A refusal's row if the auditor gives it one, else folded into its summary."""
         if self.audit is None:
             return pending
-        row = audit_row(pending.outcome, self.clock.wall(), sender)
+        outcome = pending.outcome
+        claimed = row_sender(outcome, sender)
         if self.refusals.admit(
-            authentic=row.sender_verified, code=row.code, sender=row.sender, msg_id=row.msg_id
-        ):
-            pending.row = row
+            authentic=outcome.signer is not None, code=outcome.code, sender=claimed,
+            msg_id=outcome.msg_id,
+        ):  # fmt: skip
+            pending.row = audit_row(outcome, self.clock.wall(), claimed)  # built once admitted
         else:
             self.stats.unaudited += 1
         return pending

@@ -248,21 +248,36 @@ def audit_row(outcome: Outcome, at: float, sender: str | None = None) -> AuditRo
     """The audit row of an outcome (``sender``: a known copy's claimed sender).  Unverified,
     the sender is what the message claims: its ``sender`` field, else its key id
     (``kid:NAME``; a replay is refused before its signature is checked)."""
-    signer, env = outcome.signer, outcome.envelope
-    if signer is not None:
-        sender = signer.owner
-    elif env is not None:
-        sender = env.sender or claimed_kid(env)
     return AuditRow(
         at=at,
         outcome="accepted" if outcome.accepted else "rejected",
         code=outcome.code,
         warning=outcome.warning or (outcome.error.detail if outcome.error else None),
         msg_type=outcome.msg_type,
-        sender=sender,
-        sender_verified=signer is not None,
+        sender=row_sender(outcome, sender),
+        sender_verified=outcome.signer is not None,
         msg_id=outcome.msg_id,
     )
+
+
+def row_sender(outcome: Outcome, sender: str | None = None) -> str | None:
+    """The sender an outcome's row names (see :func:`audit_row`): the refusal auditor
+    decides on it before any row is built."""
+    signer, env = outcome.signer, outcome.envelope
+    if signer is not None:
+        return signer.owner
+    if env is not None:
+        return env.sender or claimed_kid(env)
+    return sender
+
+
+def accepted_row(need: NeedsCommit, at: float, warning: str | None = None) -> AuditRow:
+    """The row :func:`audit_row` writes for ``need``'s acceptance (:meth:`Steps.accept`'s
+    outcome), built before its commit: the commit's writer puts it with the entry."""
+    return AuditRow(
+        at=at, outcome="accepted", warning=warning, msg_type=need.cls[0],
+        sender=need.signer.owner, sender_verified=True, msg_id=sanitize(need.env.msg_id),
+    )  # fmt: skip
 
 
 def claimed_kid(env: Envelope) -> str | None:

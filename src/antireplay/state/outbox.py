@@ -32,6 +32,10 @@ every other caller's of that batch) are made durable by one WAL fsync.
   head key) into table ``trail_head``, in the same transaction: a trail later found
   behind that record, or holding another hash at its row, was rolled back
   (:mod:`antireplay.audit.consistency`).
+* **One trip for an accepted command** (:class:`Paired`): its seen-set record and its
+  row are ONE operation: the writer records the entry and, in the same transaction, puts
+  the row that ``row(seen)`` returns (``None``: the commit did not accept it, no row), so
+  the batch's one fsync makes both durable and the caller is answered once.
 """
 
 from __future__ import annotations
@@ -45,6 +49,8 @@ from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final, Protocol, TypeVar
+
+from antireplay.core.window import Seen
 
 T = TypeVar("T")
 
@@ -79,6 +85,17 @@ class Put:
 
     def apply(self, db: sqlite3.Connection) -> int:
         return int(db.execute("INSERT INTO outbox (row) VALUES (?)", (self.row,)).lastrowid or 0)
+
+
+@dataclass(frozen=True, slots=True)
+class Paired:
+    """A seen-set commit (key, expires_at, now, force) and the audit row of its acceptance:
+    ``row(seen)``, called by the writer inside the transaction with what the commit found,
+    is the row's JSON text to put, or ``None`` (not accepted: no row).  Always fsynced."""
+
+    record: tuple[str, float, float, bool]
+    row: Callable[[Seen], str | None]
+    durable: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,6 +149,10 @@ class Outbox:
         self.store = store
         #: Called on the store's writer thread after a batch that put rows (wakes a drain).
         self.on_rows: Callable[[], None] | None = None
+        #: Whether the trail draining this outbox is still there (its live segment not
+        #: deleted): asked once per batch holding paired rows, on the writer thread; a
+        #: batch that finds it gone puts none of them (``None``: not asked).
+        self.trail_there: Callable[[], bool] | None = None
 
     def put(self, row: dict[str, Any], *, durable: bool) -> Future[int]:
         """Queue ``row``; the future completes once it is committed (durably if asked)."""

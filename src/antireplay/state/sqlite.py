@@ -8,8 +8,9 @@ Theory of operation
 -------------------
 WAL with ``synchronous=FULL``: a ``commit`` returns once its transaction is durable.
 Commits are **group-committed** (:mod:`.groupcommit`): one transaction and one fsync per
-batch; with an audit outbox (:mod:`.outbox`) the batch carries audit rows too, and entries
-may be *deferred* (``synchronous=NORMAL``) to the accepted row whose fsync covers both.
+batch; with an audit outbox (:mod:`.outbox`) the batch carries audit rows too: an accepted
+command's entry and row as one operation (:meth:`SqliteStore.commit_with_row_async`), and
+other entries *deferred* (``synchronous=NORMAL``) to the accepted row whose fsync covers both.
 Processes may share one file (``BEGIN IMMEDIATE``).  A fresh ESTOP waits for the write
 lock at most :data:`SAFETY_WAIT_S`, then is delivered flagged ``STATE_UNAVAILABLE`` while
 its record stays queued; after one busy timeout ran out, operations fail after
@@ -56,7 +57,7 @@ from antireplay.state.contract import Offload
 from antireplay.state.durable import Witness, file_identity
 from antireplay.state.groupcommit import GroupCommitter
 from antireplay.state.outbox import SCHEMA as _OUTBOX_SCHEMA
-from antireplay.state.outbox import Forget, Outbox, Put, Renew
+from antireplay.state.outbox import Forget, Outbox, Paired, Put, Renew
 from antireplay.state.sqlite_check import META_SELECT as _META_SELECT
 from antireplay.state.sqlite_check import check_readable, decode_meta, move_aside
 
@@ -85,8 +86,11 @@ ON CONFLICT (key) DO UPDATE SET value = excluded.value WHERE excluded.value > co
 """
 #: One queued seen-set commit: key, expires_at, now, force.
 _Record = tuple[str, float, float, bool]
-#: What the writer takes: a seen-set commit or an outbox row (or its deletion).
-_Op = _Record | Put | Forget | Renew
+#: What the writer takes: a seen-set commit, one paired with its row, or an outbox row (or
+#: its deletion).
+_Op = _Record | Paired | Put | Forget | Renew
+#: What a paired commit answers: what the commit found, and the id of the row it put (0: none).
+PairedResult = tuple[Seen, int]
 #: How long a fresh ESTOP's commit waits for the write lock before it is delivered anyway.
 SAFETY_WAIT_S: Final = 0.2
 #: How long a transaction waits for the write lock after a wait ran out (see ``_begin``).
@@ -122,6 +126,7 @@ class SqliteStore:
         self._timeout_s = timeout_s
         self._stalled = False  # the last wait for the write lock ran out (see _begin)
         self._db = self._open(timeout_s)
+        self._synchronous = True  # the writer connection's synchronous=FULL (else NORMAL)
         check_readable(self.path)  # stored values that do not decode refuse the start
         self._file = file_identity(self.path)
         self._deployment = ""
@@ -150,7 +155,7 @@ class SqliteStore:
         self._readers: queue.SimpleQueue[sqlite3.Connection] = queue.SimpleQueue()
         self._defer = False
         self._outbox: Outbox | None = None
-        self._committer: GroupCommitter[_Op, Seen | int] = GroupCommitter(
+        self._committer: GroupCommitter[_Op, Seen | int | PairedResult] = GroupCommitter(
             self._commit_batch, name=f"antireplay-state:{self.path.name}"
         )
 
@@ -244,7 +249,9 @@ class SqliteStore:
         self._verified()
         self._same_file()
         db = self._db
-        db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
+        if durable is not self._synchronous:  # set only when it changes (a statement each)
+            db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
+            self._synchronous = durable
         self._begin(db)
         try:
             result, (generation, watermark, fence, losses) = body(db)
@@ -421,6 +428,16 @@ class SqliteStore:
             return cast("asyncio.Future[Seen]", waiter)
         return asyncio.ensure_future(_bounded(cast("asyncio.Future[Seen]", waiter), self.path))
 
+    def commit_with_row_async(
+        self, key: str, expires_at: float, now: float, row: Callable[[Seen], str | None]
+    ) -> asyncio.Future[PairedResult]:
+        """A seen-set commit and its audit row in ONE operation of the next batch, from a
+        running event loop (:class:`~.outbox.Paired`): what the commit found and the id of
+        the row put in the outbox in the same transaction (0: ``row`` gave none).  Not for
+        an ESTOP's (its bounded wait and spill need the two apart: :meth:`commit_async`)."""
+        waiter = self._committer.enqueue_async(Paired((key, expires_at, now, False), row))
+        return cast("asyncio.Future[PairedResult]", waiter)
+
     def outbox(self) -> Outbox:
         """This database's audit outbox (:mod:`antireplay.state.outbox`), made once."""
         if self._outbox is None:
@@ -452,13 +469,15 @@ class SqliteStore:
             return op[3] or not self._defer
         return op.durable
 
-    def _commit_batch(self, ops: Sequence[_Op]) -> list[Seen | int]:
+    def _commit_batch(self, ops: Sequence[_Op]) -> list[Seen | int | PairedResult]:
         """One transaction for a batch: bounded purge (raising the watermark), each record
-        in order (racers on one key: one winner), outbox rows, meta once, one COMMIT
-        (with an fsync if any operation needs one)."""
-        records = [op for op in ops if isinstance(op, tuple)]
+        in order (racers on one key: one winner), a paired record's row right after it,
+        outbox rows, meta once, one COMMIT (with an fsync if any operation needs one)."""
+        records = [op.record if isinstance(op, Paired) else op for op in ops
+                   if isinstance(op, (tuple, Paired))]  # fmt: skip
+        paired_ops = any(isinstance(op, Paired) for op in ops)
 
-        def body(db: sqlite3.Connection) -> tuple[list[tuple[float, bool] | int], _Meta]:
+        def body(db: sqlite3.Connection) -> tuple[list[Seen | int | PairedResult], _Meta]:
             generation, watermark, fence, losses = self._meta_checked(db)
             if records:
                 now = min(op[2] for op in records)  # no caller's entry is purged early
@@ -467,28 +486,38 @@ class SqliteStore:
                 if purged:
                     db.executemany("DELETE FROM seen WHERE key = ?", [(k,) for k, _ in purged])
                     watermark = max(watermark, *(e for _, e in purged))
-            done = [self._record(db, op) if isinstance(op, tuple) else op.apply(db) for op in ops]
+            # What the callers are answered: the watermark and fence this transaction commits.
+            wm = NEVER if watermark <= _FLOOR else watermark
+            fenced = NEVER if fence <= _FLOOR else fence
+            lost = self._lost_pending  # said to the batch's first record only
+            done: list[Seen | int | PairedResult] = []
+            # Paired rows only into an outbox whose trail is still there (once per batch,
+            # here and not on the event loop: a stat there waits for the GIL after it).
+            there = self._outbox.trail_there if self._outbox is not None else None
+            rows = not paired_ops or there is None or there()
+            for op in ops:
+                if isinstance(op, (Put, Forget, Renew)):
+                    done.append(op.apply(db))
+                    continue
+                paired = op if isinstance(op, Paired) else None
+                expiry, recorded = self._record(db, op.record if isinstance(op, Paired) else op)
+                seen = Seen(expiry, wm, fenced, recorded, False, lost)
+                lost = False
+                if paired is None:
+                    done.append(seen)
+                else:  # not put: the caller queues its row apart, which fails (trail gone)
+                    done.append((seen, _put(db, paired.row(seen)) if rows else 0))
             return done, (generation, watermark, fence, losses)
 
-        def tx() -> list[Seen | int]:
-            results = self._transaction(body, durable=any(self._durable(op) for op in ops))
-            wm, fence_now, lost = self._watermark, self._fence, self._lost_pending
+        def tx() -> list[Seen | int | PairedResult]:
+            answers = self._transaction(body, durable=any(self._durable(op) for op in ops))
             self._lost_pending = False
-            first = True
-            answers: list[Seen | int] = []
-            for result in results:
-                if isinstance(result, int):
-                    answers.append(result)
-                    continue
-                seen, recorded = result
-                answers.append(Seen(seen, wm, fence_now, recorded, False, lost and first))
-                first = False
             return answers
 
         with self._lock:
             answers = _codec.serving(lambda: self._run(tx))
         wake = None if self._outbox is None else self._outbox.on_rows
-        if wake is not None and any(isinstance(op, Put) for op in ops):
+        if wake is not None and any(isinstance(op, (Put, Paired)) for op in ops):
             wake()
         return answers
 
@@ -519,6 +548,8 @@ class SqliteStore:
             return self._run(tx)
 
     def _record(self, db: sqlite3.Connection, op: _Record) -> tuple[float, bool]:
+        """One seen-set record inside the batch's transaction: the expiry held before it,
+        and whether it wrote the entry."""
         key, expires_at, now, force = op
         found = db.execute("SELECT expires FROM seen WHERE key = ?", (key,)).fetchone()
         seen = NEVER if found is None else self._time(f"seen {key!r} expiry", found[0])
@@ -628,6 +659,11 @@ class SqliteStore:
             raise StateUnavailableError(f"sqlite {self.path}: {exc}") from None
         except OSError as exc:
             raise StateUnavailableError(f"sqlite witness {self.witness.path}: {exc}") from None
+
+
+def _put(db: sqlite3.Connection, row: str | None) -> int:
+    """A paired record's row into the outbox (its id), or none (0)."""
+    return 0 if row is None else Put(row, True).apply(db)
 
 
 def _lock_held(path: Path) -> StateUnavailableError:
