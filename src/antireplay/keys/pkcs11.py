@@ -2,7 +2,7 @@
 
 Theory of operation
 -------------------
-:func:`open_key` turns an RFC 7512 URI (:mod:`.uri`) into one of three key objects, each
+:func:`antireplay.keys.open_key` turns an RFC 7512 URI (:mod:`.uri`) into one of three key objects, each
 holding one logged-in session on its token for the life of the process:
 
 * :class:`TokenSigner` signs with an Ed25519 private key (``CKM_EDDSA``), for ``sign``;
@@ -185,9 +185,3 @@ class TokenDigestKey(_TokenKey):
                 return bytes(self._session.digest([self._key, data], mechanism=Mechanism.SHA256))
             except p11.PKCS11Error as exc:
                 raise TokenUnavailableError(f"token key {self.uri}: {type(exc).__name__}") from None
-
-
-def open_key(text: str, kind: str, what: str = "key") -> TokenSigner | TokenMac | TokenDigestKey:
-    """The key ``text`` names, as ``kind`` (``ed25519``, ``hmac``, ``digest``) uses it."""
-    kinds = {"ed25519": TokenSigner, "hmac": TokenMac, "digest": TokenDigestKey}
-    return kinds[kind](text, what)

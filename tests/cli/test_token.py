@@ -1,0 +1,91 @@
+"""``sign --key pkcs11:...``: an envelope signed by an Ed25519 key in a real SoftHSMv2
+token is accepted by a gateway holding the public key; a token that is missing or locked
+(wrong PIN, no such token or object, no module) is one line and exit 2, on the real CLI."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from cryptography.hazmat.primitives import serialization
+
+from antireplay.cli.demo import write_demo_config
+from harness import serving
+from harness.softhsm import SoftToken, make_token
+from harness.stores import aged_state
+
+ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
+
+
+@pytest.fixture
+def token(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> SoftToken:
+    monkeypatch.delenv("SOFTHSM2_CONF", raising=False)
+    made = make_token(tmp_path)
+    monkeypatch.setenv("SOFTHSM2_CONF", str(made.conf))
+    return made
+
+
+def cli(token: SoftToken, *args: str, cwd: Path, **env: str) -> subprocess.CompletedProcess[str]:
+    """``antireplay ARGS`` in its own process, finding the token as an operator's shell would."""
+    return subprocess.run(
+        [sys.executable, "-m", "antireplay", *args], cwd=cwd, env=token.env(**env),
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+
+
+def sign_with(token: SoftToken, key: str, tmp_path: Path, **env: str) -> subprocess.CompletedProcess[str]:
+    return cli(token, "sign", "--key", key, "--kid", "operator", "--cmd", "move_forward",
+               "--target", ROBOT, "--param", "distance_m=0.5", cwd=tmp_path, **env)  # fmt: skip
+
+
+def test_a_token_signed_envelope_is_accepted_by_the_gateway(token: SoftToken, tmp_path: Path) -> None:
+    public = token.generate_ed25519("operator")
+    config = write_demo_config(tmp_path)
+    (tmp_path / "operator.pub.pem").write_bytes(public.public_bytes(
+        serialization.Encoding.PEM, serialization.PublicFormat.SubjectPublicKeyInfo))  # fmt: skip
+    signed = sign_with(token, token.uri("operator"), tmp_path)
+    assert signed.returncode == 0, signed.stderr
+    assert json.loads(signed.stdout)["sig"]["alg"] == "ed25519"
+    (tmp_path / "msg.json").write_text(signed.stdout)
+    aged_state(tmp_path / "state.db")
+    with serving(config) as gateway:
+        sent = cli(token, "send", "--json", gateway.url, "msg.json", cwd=tmp_path)
+    assert sent.returncode == 0, sent.stdout + sent.stderr
+    assert json.loads(sent.stdout)["body"]["accepted"] is True
+
+
+def test_the_pin_comes_from_a_pin_source_file_or_the_environment(
+    token: SoftToken, tmp_path: Path
+) -> None:
+    token.generate_ed25519("operator")
+    (tmp_path / "pin").write_text(token.pin + "\n")
+    from_file = sign_with(token, token.uri("operator", pin="", query=f"pin-source=file:{tmp_path / 'pin'}"), tmp_path)
+    from_env = sign_with(token, token.uri("operator", pin=""), tmp_path, ANTIREPLAY_PKCS11_PIN=token.pin)
+    assert (from_file.returncode, from_env.returncode) == (0, 0), from_file.stderr + from_env.stderr
+
+
+@pytest.mark.parametrize(
+    ("key", "env", "needle"),
+    [
+        ("pkcs11:token=antireplay-test;object=operator?pin-value=0000", {}, "wrong or locked PIN"),
+        ("pkcs11:token=nosuch;object=operator?pin-value=4321", {}, "no such token"),
+        ("pkcs11:token=antireplay-test;object=nosuch?pin-value=4321", {}, "no such object"),
+        ("pkcs11:token=antireplay-test;object=operator", {}, "no PIN"),
+        ("pkcs11:token=antireplay-test;objet=operator", {}, "unknown path attribute 'objet'"),
+        ("pkcs11:token=antireplay-test;object=operator?pin-value=4321",
+         {"ANTIREPLAY_PKCS11_MODULE": "/nonexistent/libp11.so"}, "module /nonexistent/libp11.so"),
+    ],
+    ids=["wrong-pin", "no-token", "no-object", "no-pin", "typo", "no-module"],
+)  # fmt: skip
+def test_a_token_that_cannot_sign_is_one_line_and_exit_2(
+    token: SoftToken, tmp_path: Path, key: str, env: dict[str, str], needle: str
+) -> None:
+    token.generate_ed25519("operator")
+    done = sign_with(token, key, tmp_path, **env)
+    assert done.returncode == 2 and done.stdout == "", done.stdout + done.stderr
+    lines = done.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("antireplay: error: --key pkcs11:"), done.stderr
+    assert needle in lines[0] and "4321" not in lines[0], lines[0]
