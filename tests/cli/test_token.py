@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 from cryptography.hazmat.primitives import serialization
 
-from antireplay.cli.demo import write_demo_config
-from harness import serving
+from antireplay.cli.demo import command, load_operator_key, write_demo_config
+from harness import post, serving
 from harness.softhsm import SoftToken, make_token
 from harness.stores import aged_state
 
@@ -36,12 +36,16 @@ def cli(token: SoftToken, *args: str, cwd: Path, **env: str) -> subprocess.Compl
     )  # fmt: skip
 
 
-def sign_with(token: SoftToken, key: str, tmp_path: Path, **env: str) -> subprocess.CompletedProcess[str]:
+def sign_with(
+    token: SoftToken, key: str, tmp_path: Path, **env: str
+) -> subprocess.CompletedProcess[str]:
     return cli(token, "sign", "--key", key, "--kid", "operator", "--cmd", "move_forward",
                "--target", ROBOT, "--param", "distance_m=0.5", cwd=tmp_path, **env)  # fmt: skip
 
 
-def test_a_token_signed_envelope_is_accepted_by_the_gateway(token: SoftToken, tmp_path: Path) -> None:
+def test_a_token_signed_envelope_is_accepted_by_the_gateway(
+    token: SoftToken, tmp_path: Path
+) -> None:
     public = token.generate_ed25519("operator")
     config = write_demo_config(tmp_path)
     (tmp_path / "operator.pub.pem").write_bytes(public.public_bytes(
@@ -62,8 +66,12 @@ def test_the_pin_comes_from_a_pin_source_file_or_the_environment(
 ) -> None:
     token.generate_ed25519("operator")
     (tmp_path / "pin").write_text(token.pin + "\n")
-    from_file = sign_with(token, token.uri("operator", pin="", query=f"pin-source=file:{tmp_path / 'pin'}"), tmp_path)
-    from_env = sign_with(token, token.uri("operator", pin=""), tmp_path, ANTIREPLAY_PKCS11_PIN=token.pin)
+    from_file = sign_with(
+        token, token.uri("operator", pin="", query=f"pin-source=file:{tmp_path / 'pin'}"), tmp_path
+    )
+    from_env = sign_with(
+        token, token.uri("operator", pin=""), tmp_path, ANTIREPLAY_PKCS11_PIN=token.pin
+    )
     assert (from_file.returncode, from_env.returncode) == (0, 0), from_file.stderr + from_env.stderr
 
 
@@ -89,3 +97,38 @@ def test_a_token_that_cannot_sign_is_one_line_and_exit_2(
     lines = done.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith("antireplay: error: --key pkcs11:"), done.stderr
     assert needle in lines[0] and "4321" not in lines[0], lines[0]
+
+
+def test_the_audit_head_key_in_a_token_macs_the_trail_and_audit_verify_uses_it(
+    token: SoftToken, tmp_path: Path
+) -> None:
+    token.import_secret("audit-mac", bytes(range(32)))
+    uri = token.uri("audit-mac")
+    audit = {"path": str(tmp_path / "audit.db"), "head_key": uri}
+    config = write_demo_config(tmp_path, audit=audit)
+    aged_state(tmp_path / "state.db")
+    with serving(config) as gateway:
+        for _ in range(3):
+            assert post(gateway, command(load_operator_key(tmp_path))).status_code == 200
+    assert not (tmp_path / "audit.db.key").exists()  # no key file: the token holds it
+    proven = cli(token, "audit", "verify", "audit.db", "--head-key", uri, cwd=tmp_path)
+    assert proven.returncode == 0, proven.stdout + proven.stderr
+    assert "head checkpoint matches row 3 (MAC verified)" in proven.stdout, proven.stdout
+    other = token.uri("other-mac")
+    token.import_secret("other-mac", bytes(32))
+    forged = cli(token, "audit", "verify", "audit.db", "--head-key", other, cwd=tmp_path)
+    assert forged.returncode != 0, forged.stdout
+    assert "does not verify" in forged.stdout + forged.stderr, forged.stdout + forged.stderr
+
+
+def test_serve_with_a_locked_audit_token_is_one_line_and_exit_2(
+    token: SoftToken, tmp_path: Path
+) -> None:
+    token.import_secret("audit-mac", bytes(range(32)))
+    audit = {"path": str(tmp_path / "audit.db"), "head_key": token.uri("audit-mac", pin="0000")}
+    config = write_demo_config(tmp_path, audit=audit)
+    done = cli(token, "serve", "--config", str(config), "--port", "0", cwd=tmp_path)
+    assert done.returncode == 2, done.stdout + done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert lines[-1].startswith("antireplay: error: audit.head_key pkcs11:"), done.stderr
+    assert "wrong or locked PIN" in lines[-1] and "Traceback" not in done.stderr, done.stderr

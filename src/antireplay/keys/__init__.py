@@ -32,8 +32,11 @@ def open_key(text: str, kind: str, what: str = "key") -> TokenSigner | TokenMac 
         raise ConfigError(what, text.partition("?")[0], "a usable PKCS#11 key", message=(
             f"{what} {text.partition('?')[0]}: python-pkcs11 is not installed ({exc}); "
             "pip install 'antireplay[pkcs11]'"))  from None  # fmt: skip
-    kinds = {"ed25519": pkcs11.TokenSigner, "hmac": pkcs11.TokenMac, "digest": pkcs11.TokenDigestKey}
-    return kinds[kind](text, what)
+    if kind == "ed25519":
+        return pkcs11.TokenSigner(text, what)
+    if kind == "hmac":
+        return pkcs11.TokenMac(text, what)
+    return pkcs11.TokenDigestKey(text, what)
 
 
 __all__ = ["Pkcs11Uri", "is_uri", "open_key", "parse"]

@@ -2,8 +2,8 @@
 
 Theory of operation
 -------------------
-:func:`antireplay.keys.open_key` turns an RFC 7512 URI (:mod:`.uri`) into one of three key objects, each
-holding one logged-in session on its token for the life of the process:
+:func:`antireplay.keys.open_key` turns an RFC 7512 URI (:mod:`.uri`) into one of three
+key objects, each holding one logged-in session on its token for the life of the process:
 
 * :class:`TokenSigner` signs with an Ed25519 private key (``CKM_EDDSA``), for ``sign``;
 * :class:`TokenMac` computes HMAC-SHA256 with a generic secret key (``CKM_SHA256_HMAC``):
@@ -24,6 +24,7 @@ operation holds the key's lock.  The PIN comes from the URI (``pin-value``,
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 from pathlib import Path
@@ -72,7 +73,9 @@ def _pin(uri: Pkcs11Uri, what: str) -> str:
             raise TokenError(what, uri.redacted(), f"pin-source {path}: {reason}") from None
     pin = os.environ.get(PIN_ENV)
     if pin is None:
-        raise TokenError(what, uri.redacted(), f"no PIN (pin-source=FILE in the URI, or ${PIN_ENV})")
+        raise TokenError(
+            what, uri.redacted(), f"no PIN (pin-source=FILE in the URI, or ${PIN_ENV})"
+        )
     return pin
 
 
@@ -132,11 +135,8 @@ class _TokenKey:
 
     def close(self) -> None:
         """Log out and close the session; later operations raise TokenUnavailableError."""
-        with self._lock:
-            try:
-                self._session.close()
-            except p11.PKCS11Error:
-                pass
+        with self._lock, contextlib.suppress(p11.PKCS11Error):
+            self._session.close()
 
 
 class TokenSigner(_TokenKey):
@@ -154,7 +154,9 @@ class TokenSigner(_TokenKey):
             point = bytes(public[Attribute.EC_POINT])
         except p11.PKCS11Error as exc:
             self._session.close()
-            raise TokenError(what, self.uri, f"no public key beside it ({type(exc).__name__})") from None
+            raise TokenError(
+                what, self.uri, f"no public key beside it ({type(exc).__name__})"
+            ) from None
         raw = point[2:] if len(point) == 34 and point[:2] == b"\x04\x20" else point  # DER octets
         self._public = Ed25519PublicKey.from_public_bytes(raw)
 
@@ -182,6 +184,7 @@ class TokenDigestKey(_TokenKey):
     def digest(self, data: bytes) -> bytes:
         with self._lock:
             try:
-                return bytes(self._session.digest([self._key, data], mechanism=Mechanism.SHA256))
+                parts = iter((self._key, data))  # C_DigestKey, then C_DigestUpdate
+                return bytes(self._session.digest(parts, mechanism=Mechanism.SHA256))
             except p11.PKCS11Error as exc:
                 raise TokenUnavailableError(f"token key {self.uri}: {type(exc).__name__}") from None
