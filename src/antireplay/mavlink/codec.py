@@ -31,7 +31,8 @@ timestamp (:mod:`antireplay.mavlink.signing`, :mod:`antireplay.mavlink.signer`);
 a signed frame is signed again: a router forwarding between links with different
 keys.  The key is 32 bytes, or a :class:`KeyedDigest` (a key in a PKCS#11 token that
 computes the signature's SHA-256 itself).  :func:`split_parsed` and
-:meth:`FrameReader.feed_parsed` hand out the parsed frames, so that a frame is parsed once on its way through a router.
+:meth:`FrameReader.feed_parsed` hand out the parsed frames, so that a frame is parsed
+once on its way through a router.
 """
 
 from __future__ import annotations
