@@ -137,3 +137,11 @@ def test_a_token_failing_under_the_writer_refuses_and_the_estop_spill_still_work
     again.close()
     assert "m2" in ids, ids
     assert verify(tmp_path / "audit.db", head_key=open_key(token.uri("audit"), "hmac")).ok
+
+
+def test_a_secret_that_may_not_sign_is_refused_at_open(token: SoftToken) -> None:
+    with token.session() as session:
+        session.generate_key(pkcs11.KeyType.GENERIC_SECRET, 256, label="no-sign", store=True,
+                             template={pkcs11.Attribute.SIGN: False})  # fmt: skip
+    with pytest.raises(TokenError, match=r"may not sign \(CKA_SIGN false\)"):
+        open_key(token.uri("no-sign"), "hmac", "audit.head_key")

@@ -85,6 +85,8 @@ class _TokenKey:
     _class: ObjectClass
     _key_type: KeyType
     _noun: str
+    #: Whether the key is used through C_Sign (a signature or an HMAC).
+    _signs = True
 
     def __init__(self, text: str, what: str = "key") -> None:
         try:
@@ -125,6 +127,9 @@ class _TokenKey:
         except p11.MultipleObjectsReturned:
             self._session.close()
             raise TokenError(what, self.uri, f"more than one {self._noun} matches") from None
+        if self._signs and not hasattr(self._key, "sign"):  # python-pkcs11: by CKA_SIGN
+            self._session.close()
+            raise TokenError(what, self.uri, f"the {self._noun} may not sign (CKA_SIGN false)")
 
     def _call(self, operation: str, *args: Any, **kwargs: Any) -> bytes:
         with self._lock:
@@ -180,6 +185,7 @@ class TokenDigestKey(_TokenKey):
     """A generic secret key digested inside the token: ``SHA-256(key || data)``."""
 
     _class, _key_type, _noun = ObjectClass.SECRET_KEY, KeyType.GENERIC_SECRET, "secret key"
+    _signs = False
 
     def digest(self, data: bytes) -> bytes:
         with self._lock:
