@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from cryptography.hazmat.primitives import serialization
 
+from antireplay.audit import AuditLog, AuditRow
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from harness import post, serving
 from harness.softhsm import SoftToken, make_token
@@ -132,3 +133,33 @@ def test_serve_with_a_locked_audit_token_is_one_line_and_exit_2(
     lines = done.stderr.strip().splitlines()
     assert lines[-1].startswith("antireplay: error: audit.head_key pkcs11:"), done.stderr
     assert "wrong or locked PIN" in lines[-1] and "Traceback" not in done.stderr, done.stderr
+
+
+def test_reanchor_moves_a_trails_head_key_into_the_token(token: SoftToken, tmp_path: Path) -> None:
+    """The operations runbook's move: a trail anchored with a key file, re-anchored under the
+    token's key, then verifies with the token (and its segment links are MACed again)."""
+    token.import_secret("audit-mac", bytes(range(32)))
+    uri = token.uri("audit-mac")
+    log = AuditLog(tmp_path / "audit.db")
+    for i in range(3):
+        log.append(AuditRow(at=1_800_000_000.0 + i, outcome="accepted", msg_type=1,
+                            sender="operator", sender_verified=True, msg_id=f"m{i}"))  # fmt: skip
+    log.close()
+    before = cli(token, "audit", "verify", "audit.db", "--head-key", uri, cwd=tmp_path)
+    assert before.returncode != 0 and "does not verify" in before.stdout + before.stderr
+    moved = cli(token, "audit", "reanchor", "audit.db", "--head-key", uri, cwd=tmp_path)
+    assert moved.returncode == 0, moved.stdout + moved.stderr
+    after = cli(token, "audit", "verify", "audit.db", "--head-key", uri, cwd=tmp_path)
+    assert after.returncode == 0 and "(MAC verified)" in after.stdout, after.stdout + after.stderr
+
+
+def test_config_check_logs_in_to_the_audit_token(token: SoftToken, tmp_path: Path) -> None:
+    token.import_secret("audit-mac", bytes(range(32)))
+    for pin, code in ((token.pin, 0), ("0000", 2)):
+        (tmp_path / pin).mkdir()
+        audit = {"path": str(tmp_path / "audit.db"), "head_key": token.uri("audit-mac", pin=pin)}
+        config = write_demo_config(tmp_path / pin, audit=audit)
+        done = cli(token, "config", "check", str(config), cwd=tmp_path)
+        assert done.returncode == code, done.stdout + done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith("antireplay: error: audit.head_key ")
+    assert "wrong or locked PIN" in done.stderr and "Traceback" not in done.stderr

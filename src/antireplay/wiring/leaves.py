@@ -166,6 +166,15 @@ def _same_volume(one: Path, other: Path) -> bool:
     return device(one) == device(other)
 
 
+def check_head_key(config: AppConfig) -> bool:
+    """``config check``: log in to the token holding ``audit.head_key`` and find the key
+    (a ``ConfigError`` if it cannot be used), then log out; ``False`` for a key file."""
+    if not is_uri(config.audit.head_key):
+        return False
+    open_key(str(config.audit.head_key), "hmac", "audit.head_key").close()
+    return True
+
+
 def open_audit(
     config: AuditConfig, clock: Clock | None = None, *, spill: str | None = None
 ) -> AuditLog:
