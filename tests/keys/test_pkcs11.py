@@ -51,7 +51,9 @@ def test_an_ed25519_signature_from_the_token_verifies_with_its_public_key(token:
 def test_hmac_and_digest_through_the_token_equal_the_in_memory_key(token: SoftToken) -> None:
     token.import_secret("k", KEY)
     assert open_key(token.uri("k"), "hmac").mac(b"data") == hmac.digest(KEY, b"data", "sha256")
-    assert open_key(token.uri("k"), "digest").digest(b"data") == hashlib.sha256(KEY + b"data").digest()
+    assert (
+        open_key(token.uri("k"), "digest").digest(b"data") == hashlib.sha256(KEY + b"data").digest()
+    )
 
 
 def test_a_mavlink_frame_signed_through_the_token_is_the_frame_signed_with_the_key(

@@ -8,9 +8,16 @@ from antireplay.keys import is_uri, parse
 
 
 def test_path_and_query_attributes_are_decoded() -> None:
-    uri = parse("pkcs11:token=my%20ops;object=audit-mac;id=%01%ff;type=secret-key"
-                "?module-path=/usr/lib/softhsm/libsofthsm2.so&pin-source=file:/run/pin")  # fmt: skip
-    assert (uri.token, uri.object, uri.id, uri.type) == ("my ops", "audit-mac", b"\x01\xff", "secret-key")
+    uri = parse(
+        "pkcs11:token=my%20ops;object=audit-mac;id=%01%ff;type=secret-key"
+        "?module-path=/usr/lib/softhsm/libsofthsm2.so&pin-source=file:/run/pin"
+    )
+    assert (uri.token, uri.object, uri.id, uri.type) == (
+        "my ops",
+        "audit-mac",
+        b"\x01\xff",
+        "secret-key",
+    )
     assert uri.module_path == "/usr/lib/softhsm/libsofthsm2.so"
     assert (uri.pin_source, uri.pin_value) == ("file:/run/pin", None)
 

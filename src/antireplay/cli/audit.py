@@ -66,7 +66,9 @@ def audit_verify(
     an exported head recorded."""
     _check_audit_file(path, _OPEN_ONLY_AUDIT)
     try:
-        report = verify(path, head_key=open_head_key(head_key), head_path=head_file, state=state, since=since)
+        report = verify(
+            path, head_key=open_head_key(head_key), head_path=head_file, state=state, since=since
+        )
     except StateFileError as exc:
         _fail(str(exc))
     for line in report.lines():
@@ -86,7 +88,9 @@ def audit_verify(
     required=True,
     help="Write the verified head, MACed with the head key, to this file (keep it elsewhere).",
 )
-def audit_head(path: Path, head_key: Path | str | None, head_file: Path | None, export: Path) -> None:
+def audit_head(
+    path: Path, head_key: Path | str | None, head_file: Path | None, export: Path
+) -> None:
     """Export the trail's verified head; `audit verify --since FILE` later proves the
     trail extends it (a rollback, truncation or rewrite before it fails)."""
     _check_audit_file(path, _OPEN_ONLY_AUDIT)
