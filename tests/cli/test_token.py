@@ -5,6 +5,7 @@ token is accepted by a gateway holding the public key; a token that is missing o
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -163,3 +164,27 @@ def test_config_check_logs_in_to_the_audit_token(token: SoftToken, tmp_path: Pat
         assert done.returncode == code, done.stdout + done.stderr
     assert done.stderr.strip().splitlines()[-1].startswith("antireplay: error: audit.head_key ")
     assert "wrong or locked PIN" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_an_audit_token_failing_while_serving_refuses_commands_and_passes_a_fresh_estop(
+    token: SoftToken, tmp_path: Path
+) -> None:
+    """The token goes away under a running gateway (its directory removed: SoftHSMv2 then
+    answers ObjectHandleInvalid): commands get 503 STATE_UNAVAILABLE, a fresh ESTOP whose
+    signature verifies is delivered (warning AUDIT_UNAVAILABLE) and its row spilled.  A
+    memory store: its audit rows are appended directly (a SQLite state's go to its outbox)."""
+    token.import_secret("audit-mac", bytes(range(32)))
+    audit = {"path": str(tmp_path / "audit.db"), "head_key": token.uri("audit-mac")}
+    config = write_demo_config(tmp_path, audit=audit, store="memory")
+    key = load_operator_key(tmp_path)
+    with serving(config) as gateway:
+        assert post(gateway, command(key)).status_code == 200
+        shutil.rmtree(token.conf.parent / "softhsm-tokens")
+        refused = post(gateway, command(key))
+        estop = post(gateway, command(key, cmd="ESTOP", type=6, safety_event="ESTOP"))
+    assert refused.status_code == 503 and refused.json()["code"] == "STATE_UNAVAILABLE", (
+        refused.text
+    )
+    assert token.pin not in refused.text
+    assert estop.status_code == 200 and estop.json()["warning"] == "AUDIT_UNAVAILABLE", estop.text
+    assert "ESTOP delivered, its row spilled" in (gateway.stderr_text or "")
