@@ -15,7 +15,7 @@ ignore them, but a typo in ``objet=`` must not select "any object").
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from urllib.parse import unquote_to_bytes
 
 SCHEME = "pkcs11:"
@@ -52,9 +52,6 @@ class Pkcs11Uri:
         text = SCHEME + ";".join(p for p in parts if p)
         tail = "&".join(q for q in query if q)
         return text + (f"?{tail}" if tail else "")
-
-    def without_pin(self) -> Pkcs11Uri:
-        return replace(self, pin_value=None)
 
 
 def is_uri(text: object) -> bool:
