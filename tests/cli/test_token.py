@@ -11,11 +11,14 @@ import sys
 from pathlib import Path
 
 import pytest
+from click.testing import CliRunner
 from cryptography.hazmat.primitives import serialization
 
+import antireplay.keys
 from antireplay.audit import AuditLog, AuditRow
+from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
-from harness import post, serving
+from harness import one_line_error, post, serving
 from harness.softhsm import SoftToken, make_token
 from harness.stores import aged_state
 
@@ -188,3 +191,14 @@ def test_an_audit_token_failing_while_serving_refuses_commands_and_passes_a_fres
     assert token.pin not in refused.text
     assert estop.status_code == 200 and estop.json()["warning"] == "AUDIT_UNAVAILABLE", estop.text
     assert "ESTOP delivered, its row spilled" in (gateway.stderr_text or "")
+
+
+def test_without_python_pkcs11_a_token_key_is_one_line_naming_the_extra(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    monkeypatch.setitem(sys.modules, "antireplay.keys.pkcs11", None)  # import fails
+    monkeypatch.delattr(antireplay.keys, "pkcs11", raising=False)
+    result = CliRunner().invoke(main, ["sign", "--key", "pkcs11:token=t;object=o?pin-value=1",
+                                       "--kid", "operator", "--cmd", "c"])  # fmt: skip
+    one_line_error(result, "python-pkcs11 is not installed", "pip install 'antireplay[pkcs11]'")
+    assert "pin-value=1" not in result.stderr
