@@ -273,16 +273,21 @@ def recording_upstream(
 
 @contextmanager
 def metrics_router(tmp_path: Path, host: str | None = None) -> Iterator[int]:
-    """A real ``antireplay mavlink-router`` (UDP in and out, memory store) serving its metrics
-    on a free port (on ``host`` if given): yields that port once it says it runs."""
+    """A real ``antireplay mavlink-router`` (UDP in and out, a SQLite state with history, so
+    no first start's fence) serving its metrics on a free port (on ``host`` if given):
+    yields that port once it says it runs."""
+    from harness.stores import aged_state  # noqa: PLC0415 - harness.stores imports this module
+
+    state = aged_state(tmp_path / "router-state.db")
     key = tmp_path / "link.key"
     key.write_bytes(bytes(range(32)))
     port = free_port()
     args = [
         sys.executable, "-m", "antireplay", "mavlink-router", "--listen",
         f"udp:127.0.0.1:{free_udp_port()}", "--forward", f"udp:127.0.0.1:{free_udp_port()}",
-        "--key-file", str(key), "--store", "memory", "--audit", str(tmp_path / "router.db"),
-        "--metrics-port", str(port), *(["--metrics-host", host] if host else []),
+        "--key-file", str(key), "--store", f"sqlite:{state}",
+        "--audit", str(tmp_path / "router.db"), "--metrics-port", str(port),
+        *(["--metrics-host", host] if host else []),
     ]  # fmt: skip
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:

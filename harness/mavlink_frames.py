@@ -44,8 +44,8 @@ def command_frame(mav: Any, sink: Sink, target: int = 1, param1: float = 1.0) ->
     return sink.frames[-1]
 
 
-def unsigned_heartbeat(sysid: int) -> bytes:
-    plain = dialect.MAVLink(Sink(), srcSystem=sysid, srcComponent=1)
+def unsigned_heartbeat(sysid: int, compid: int = 1) -> bytes:
+    plain = dialect.MAVLink(Sink(), srcSystem=sysid, srcComponent=compid)
     plain.heartbeat_send(6, 8, 0, 0, 0)
     return bytes(plain.file.frames[-1])
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import struct
 from collections.abc import Callable
+from typing import Any
 
 from cryptography.hazmat.primitives.asymmetric import mldsa, mlkem
 
@@ -19,6 +20,7 @@ os.environ["MAVLINK20"] = "1"
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 GCS_KEY = mldsa.MLDSA87PrivateKey.generate()
+STRANGER_KEY = mldsa.MLDSA87PrivateKey.generate()  # a key the vehicle end does not know
 ROBOT_KEM = mlkem.MLKEM1024PrivateKey.generate()
 ARM = 400
 
@@ -65,11 +67,29 @@ class EndPair:
         self.telemetry: list[bytes] = []  # plain frames at the ground station
         self.refused: list[str] = []
         self.captured: list[bytes] = []  # everything that went ground -> vehicle
+        self.notices: list[str] = []  # what the ground end told its operator
+        self.lose_down: Callable[[bytes], bool] = lambda raw: False  # drops vehicle -> ground
 
-    def new_ground(self) -> GroundEnd:
+    def new_ground(self, key: mldsa.MLDSA87PrivateKey = GCS_KEY, **options: Any) -> GroundEnd:
         return GroundEnd(
-            Initiator("gcs", GCS_KEY, self.clock), ROBOT_KEM.public_key(), clock=self.clock
-        )
+            Initiator("gcs", key, self.clock), ROBOT_KEM.public_key(), clock=self.clock,
+            **options,
+        )  # fmt: skip
+
+    def run(self, seconds: float, tick_s: float = 0.1) -> list[tuple[float, int]]:
+        """Tick the ground end for ``seconds`` of the manual clock (the air instant): the
+        cumulative bytes it handed out after each tick, with the time."""
+        out: list[tuple[float, int]] = []
+        start = self.clock.monotonic()
+        while self.clock.monotonic() - start < seconds:
+            self.up(self.ground.tick())
+            out.append((self.clock.monotonic() - start, self.ground_bytes()))
+            self.clock.advance(tick_s)
+        return out
+
+    def ground_bytes(self) -> int:
+        """Every byte the ground end handed to the air so far (all kinds)."""
+        return sum(self.ground.airtime.values())
 
     def connect(self) -> None:
         self.up(self.ground.handshake())
@@ -81,8 +101,10 @@ class EndPair:
         self._carry(frames, self.vehicle, self.delivered, self.down)
 
     def down(self, frames: list[bytes]) -> None:
-        """Deliver ``frames`` to the ground end; answers go back up."""
-        self._carry(frames, self.ground, self.telemetry, self.up)
+        """Deliver ``frames`` (but those :attr:`lose_down` drops) to the ground end; answers
+        go back up."""
+        kept = [raw for raw in frames if not self.lose_down(raw)]
+        self._carry(kept, self.ground, self.telemetry, self.up)
 
     def _carry(
         self,
@@ -96,8 +118,12 @@ class EndPair:
                 out = end.from_air(raw)
             except ReplayAttackError as exc:
                 self.refused.append(str(exc.code))
+                if isinstance(end, VehicleEnd):
+                    answer(end.answered())  # a refused HS1's PQ_REFUSAL, as the link sends it
                 continue
             local += out.local
+            if out.notice is not None:
+                self.notices.append(out.notice)
             answer(out.air)
 
     def commands(self) -> list[dialect.MAVLink_command_long_message]:

@@ -18,6 +18,14 @@ from antireplay.config import AuditConfig
 from harness import free_port, free_udp_port, metrics_router, until
 from harness.flood import flood_until_rotated, trail_bytes
 from harness.mavlink_frames import unsigned_heartbeat
+from harness.mavlink_router import (
+    drained,
+    frames_from,
+    host_address,
+    router_process,
+    station,
+    udp_socket,
+)
 from harness.stores import aged_state
 
 
@@ -237,3 +245,168 @@ def test_a_link_key_open_to_others_is_warned_about_by_its_flag_or_its_key(
         "keep a secret mode 0600: chmod 600 signing.keys",
     ], done.stderr
     assert failed.startswith("antireplay: error: audit.db is not an antireplay audit trail")
+
+
+# --- issue 35: authority stays local, spikes bounded in time, fences explained ---------------
+
+
+def router_args(tmp_path: Path, *extra: str, store: str | None = None) -> list[str]:
+    """A router's flags: a state with history (no first start's fence) unless ``store``."""
+    state = store or f"sqlite:{aged_state(tmp_path / 'state.db')}"
+    return ["--store", state, "--audit", str(tmp_path / "audit.db"), *extra]
+
+
+def scrape(port: int) -> str:
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
+    except httpx.HTTPError:
+        return ""
+
+
+@pytest.mark.parametrize("kind", ["udpin-any", "tcpin-host", "udpout-lan", "config"])
+def test_a_trusted_endpoint_on_the_network_is_refused_at_start(tmp_path: Path, kind: str) -> None:
+    """The router signs whatever a trusted endpoint sends with the vehicle key: one that is
+    not loopback or serial stops the start (status 2, one line naming it, nothing opened)
+    unless that exact endpoint is acknowledged; an acknowledgement naming no trusted
+    network endpoint is refused too."""
+    host = host_address() or "0.0.0.0"
+    endpoint = {
+        "udpin-any": f"udpin:0.0.0.0:{free_udp_port()}",
+        "tcpin-host": f"tcpin:{host}:{free_port()}",
+        "udpout-lan": "udpout:192.0.2.77:14550",
+        "config": f"udpin:0.0.0.0:{free_udp_port()}",
+    }[kind]
+    args = ["--vehicle", f"udpout:127.0.0.1:{free_udp_port()}", "--trusted", endpoint]
+    said = f"--trusted {endpoint}: not loopback or a serial device"
+    if kind == "config":  # an acknowledgement with a typo acknowledges nothing
+        config = tmp_path / "router.yaml"
+        config.write_text(f"mavlink:\n  trust_network: ['{endpoint}x']\n")
+        args += ["--config", str(config)]
+        said = f"--trust-network {endpoint}x: is not a --trusted endpoint"
+    done = run_router(tmp_path, args)
+    assert (done.returncode, done.stdout) == (2, ""), done.stderr
+    (line,) = done.stderr.splitlines()
+    assert line.startswith(f"antireplay: error: {said}"), line
+    assert f"--trust-network {endpoint}" in line or kind == "config"
+    assert not (tmp_path / "audit.db").exists()
+
+
+def run_router(tmp_path: Path, args: list[str]) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "MAV_PASSPHRASE": "correct-horse-battery-staple"}
+    return subprocess.run(
+        [sys.executable, "-m", "antireplay", "mavlink-router", "--passphrase-env",
+         "MAV_PASSPHRASE", "--store", "memory", "--audit", str(tmp_path / "audit.db"), *args],
+        capture_output=True, text=True, timeout=60, check=False, env=env,
+    )  # fmt: skip
+
+
+def test_an_acknowledged_network_endpoint_is_said_at_start_and_in_the_metrics(
+    tmp_path: Path,
+) -> None:
+    """``--trust-network`` that exact endpoint: the router starts, its start line says the
+    endpoint is trusted on the network, the metric counts it, and a frame a host on the
+    network sends there reaches the vehicle signed on its behalf (what was acknowledged)."""
+    vehicle, metrics = udp_socket(), free_port()
+    trusted = f"udpin:0.0.0.0:{free_udp_port()}"
+    args = router_args(
+        tmp_path, "--vehicle", f"udpout:127.0.0.1:{vehicle.getsockname()[1]}",
+        "--trusted", trusted, "--trust-network", trusted, "--metrics-port", str(metrics),
+    )  # fmt: skip
+    with router_process(args) as run:
+        assert f"trusted on the network, acknowledged (--trust-network): {trusted}" in run.line, (
+            run.line
+        )
+        until("the metrics", lambda: "network_trusted_endpoints 1.0" in scrape(metrics))
+        lan = udp_socket(host_address() or "127.0.0.1")
+        lan.sendto(unsigned_heartbeat(250), ("127.0.0.1", int(trusted.rpartition(":")[2])))
+        (frame, _), *_ = frames_from(vehicle, 0, "the heartbeat, signed on its behalf")
+        assert frame.signed and frame.link_id == 251
+
+
+def test_a_stations_ids_claimed_from_another_link_move_no_route(tmp_path: Path) -> None:
+    """The finding: a host on the (acknowledged) trusted endpoint sends an unsigned
+    HEARTBEAT claiming 255/190, the ids an authenticated ground station uses.  Refused and
+    counted (``SOURCE_BOUND``, on the record): the vehicle's COMMAND_ACK to 255/190 still
+    goes to the genuine station, none to the attacker."""
+    vehicle, gcs, metrics = udp_socket(), udp_socket(), free_port()
+    ground, trusted = free_udp_port(), f"udpin:0.0.0.0:{free_udp_port()}"
+    args = router_args(
+        tmp_path, "--vehicle", f"udpout:127.0.0.1:{vehicle.getsockname()[1]}",
+        "--ground", f"udpin:127.0.0.1:{ground}", "--trusted", trusted,
+        "--trust-network", trusted, "--metrics-port", str(metrics),
+    )  # fmt: skip
+    with router_process(args) as run:
+        mav, sink = station()
+        mav.heartbeat_send(6, 8, 0, 0, 0)
+        gcs.sendto(sink.frames[-1], ("127.0.0.1", ground))
+        *_, (_, router_side) = frames_from(vehicle, 0, "the station's heartbeat")
+        attacker = udp_socket(host_address() or "127.0.0.1")
+        attacker.sendto(
+            unsigned_heartbeat(255, 190), ("127.0.0.1", int(trusted.rpartition(":")[2]))
+        )
+        until("the spoof refused", lambda: 'code="SOURCE_BOUND"' in scrape(metrics))
+        autopilot, out = station(1, 1)
+        autopilot.command_ack_send(400, 0, 0, 0, 255, 190)
+        vehicle.sendto(out.frames[-1], router_side)
+        frames_from(gcs, 77, "the vehicle's COMMAND_ACK at the genuine station")
+        assert 77 not in [frame.msgid for frame in drained(attacker)]
+    assert "SOURCE_BOUND" in run.stderr and "claiming 255/190" in run.stderr, run.stderr
+
+
+def test_a_clock_spike_does_not_fence_a_restart_after_its_moment(tmp_path: Path) -> None:
+    """The finding: ``--max-forward-s 20``, one ground frame accepted 17 s ahead; the
+    router's clock then passes that moment (stepped 30 s), a clean stop and a restart: the
+    start line says no fence, and an honest station's first frame reaches the vehicle."""
+    vehicle, gcs, ground = udp_socket(), udp_socket(), free_udp_port()
+    args = router_args(
+        tmp_path, "--vehicle", f"udpout:127.0.0.1:{vehicle.getsockname()[1]}",
+        "--ground", f"udpin:127.0.0.1:{ground}", "--max-forward-s", "20",
+    )  # fmt: skip
+    with router_process(args, tmp=tmp_path, clock_ahead_s=0) as run:
+        mav, sink = station(ahead_s=17)
+        mav.heartbeat_send(6, 8, 0, 0, 0)
+        gcs.sendto(sink.frames[-1], ("127.0.0.1", ground))
+        frames_from(vehicle, 0, "the frame stamped 17 s ahead, accepted")
+        run.step_clock(30)  # long after that moment
+    with router_process(args, tmp=tmp_path, clock_ahead_s=30) as again:
+        assert "fenced" not in again.line, again.line
+        mav, sink = station(link_id=2, ahead_s=30)  # honest: stamps the router's clock
+        mav.heartbeat_send(6, 8, 0, 0, 0)
+        gcs.sendto(sink.frames[-1], ("127.0.0.1", ground))
+        frames_from(vehicle, 0, "the honest station's first frame")
+    assert "MESSAGE_STALE" not in again.stderr, again.stderr
+
+
+def test_a_fenced_router_says_until_when_and_why_once(tmp_path: Path) -> None:
+    """``--store memory``: the start line says the router is fenced, until when, why and what
+    removes it; 200 frames behind the fence are on the log in at most 3 lines; readiness is
+    0 while fenced, 1 after."""
+    ground, metrics, gcs = free_udp_port(), free_port(), udp_socket()
+    args = router_args(
+        tmp_path, "--vehicle", f"udpout:127.0.0.1:{free_udp_port()}",
+        "--ground", f"udpin:127.0.0.1:{ground}", "--max-forward-s", "8",
+        "--metrics-port", str(metrics), store="memory",
+    )  # fmt: skip
+    ready = 'antireplay_ready{command="mavlink-router"}'
+    with router_process(args) as run:
+        assert "; fenced until " in run.line and "s more): a memory store starts" in run.line
+        assert "--store sqlite:PATH" in run.line, run.line
+        until("the metrics", lambda: ready in scrape(metrics))
+        assert f"{ready} 0.0" in scrape(metrics)
+        senders = [station(sysid) for sysid in (250, 251)]
+        for i in range(200):
+            mav, sink = senders[i % 2]
+            mav.heartbeat_send(6, 8, 0, 0, 0)
+            gcs.sendto(sink.frames[-1], ("127.0.0.1", ground))
+        until(
+            "200 refusals counted",
+            lambda: (
+                'code="MESSAGE_STALE",direction="inbound"} 200.0' in scrape(metrics)
+                or 'direction="inbound",code="MESSAGE_STALE"} 200.0' in scrape(metrics)
+            ),
+        )
+        until("the fence passed", lambda: f"{ready} 1.0" in scrape(metrics))
+    lines = [line for line in run.stderr.splitlines() if " refused " in line]
+    assert 1 <= len(lines) <= 3, run.stderr
+    assert "restart fence" in lines[0] and "summarised every 5 s" in lines[0]
+    assert "from 2 senders" in lines[-1], lines

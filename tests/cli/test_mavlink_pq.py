@@ -9,6 +9,7 @@ import sqlite3
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -23,11 +24,11 @@ from pymavlink import mavutil
 
 from antireplay.audit import verify
 from antireplay.cli import main
-from antireplay.mavlink.pq.wire import status_frame
+from antireplay.mavlink.pq.wire import HANDSHAKE_ALLOWANCE, HANDSHAKE_SHARE, status_frame
 from harness import free_port, free_udp_port, metrics_pq, until
 from harness.flood import flood_until_rotated, trail_bytes
 from harness.pq_radio import Plan, make_keys, run_pq
-from harness.radio import SIK_BAUD, SIK_QUEUE_BYTES
+from harness.radio import SIK_BAUD, SIK_QUEUE_BYTES, Radio
 
 CLI = [sys.executable, "-m", "antireplay"]
 
@@ -111,6 +112,8 @@ def test_ground_and_vehicle_ends_carry_arm(keys: Path, fc: Any) -> None:
     assert vehicle.said("forwarded air=2;"), vehicle.lines  # HS1 and the ARM
     assert vehicle.said(f"mavlink-pq vehicle: fc udpout:127.0.0.1:{fc_port}, air udpin:")
     assert ground.said(f"mavlink-pq ground: local udpin:127.0.0.1:{local}, air udpout:")
+    for end in (ground, vehicle):  # a PQ end never starts fenced, and says why
+        assert end.said("; no restart fence: every session's keys are new at its handshake")
 
 
 def test_bad_options_are_one_line_errors(keys: Path) -> None:
@@ -375,3 +378,70 @@ def test_a_private_key_open_to_others_is_warned_about_by_its_flag_or_its_key(key
             f"keep a secret mode 0600: chmod 600 {named.split()[1]}"
         ), done.stderr
         assert "audit.db is not an antireplay audit trail" in done.stderr.splitlines()[1]
+
+
+AIR_BPS = 57_600
+#: What the misconfigured ground end may put on the air at once beyond its 5 % share: its
+#: first HS1 (29 chunks with parity, about 7.9 KB) and as much again for its repairs or a
+#: second try (HANDSHAKE_ALLOWANCE).  Past it, 5 % of 57,600 baud: 288 bytes a second.
+ALLOWANCE = HANDSHAKE_ALLOWANCE
+WINDOW_S = 12.0
+
+
+def test_a_ground_end_with_the_wrong_signing_key_is_told_why_and_stays_within_its_airtime(
+    keys: Path,
+) -> None:
+    """Finding 4: a ground end signing with a key the vehicle does not know.  The vehicle
+    end answers its HS1 with a ``PQ_REFUSAL``; the ground end verifies it and logs the
+    reason once, within seconds; what it puts on the air (counted at the relay between
+    them) stays within 5 % of ``--air-bps`` over the run, plus the first-attempt allowance
+    (on main: an HS1 every 2 s and its repairs, silent)."""
+    assert (
+        CliRunner()
+        .invoke(main, ["keygen", "--alg", "ml-dsa-87", "--out", str(keys / "stranger")])
+        .exit_code
+        == 0
+    )
+    air = free_udp_port()
+    vehicle = Process(
+        [
+            "mavlink-pq", "vehicle", "--fc", f"udpout:127.0.0.1:{free_udp_port()}",
+            "--air", f"udpin:127.0.0.1:{air}", "--kem-key", "vehicle.key.pem",
+            "--peer", "gcs=gcs.pub.pem", "--x25519-key", "vehicle-x.key.pem",
+            "--audit", "vehicle.db", "--air-bps", str(AIR_BPS),
+        ],
+        keys,
+    )  # fmt: skip
+    until("the vehicle end listening", lambda: vehicle.said("mavlink-pq vehicle"))
+    with Radio(("127.0.0.1", air)) as relay:
+        ground = Process(
+            [
+                "mavlink-pq", "ground", "--local", f"udpin:127.0.0.1:{free_udp_port()}",
+                "--air", f"udpout:127.0.0.1:{relay.port}", "--signing-key",
+                "stranger.key.pem", "--vehicle-key", "vehicle.pub.pem",
+                "--vehicle-x25519", "vehicle-x.pub.pem", "--audit", "ground.db",
+                "--air-bps", str(AIR_BPS),
+            ],
+            keys,
+        )  # fmt: skip
+        refused = "vehicle refused the handshake: HS1 signature does not verify"
+        try:
+            until("the refusal told", lambda: ground.said(refused), timeout=10)
+
+            def within_budget_until_the_window_ends() -> bool:
+                up = relay.counts()["uplink"]
+                elapsed = time.monotonic() - (up.first_at or time.monotonic())
+                budget = HANDSHAKE_SHARE * AIR_BPS / 10 * elapsed + ALLOWANCE
+                assert up.received_bytes <= budget, (up.received_bytes, elapsed)
+                return elapsed >= WINDOW_S
+
+            until("the measurement window", within_budget_until_the_window_ends, timeout=20)
+        finally:
+            ground_code, vehicle_code = ground.stop(), vehicle.stop()
+        sent = relay.counts()["uplink"].received_bytes
+        started = relay.counts()["uplink"].first_at or 0.0
+    assert ground_code == vehicle_code == 0
+    assert sum(refused in line for line in ground.lines) == 1, ground.lines
+    assert "(check --signing-key here" in next(x for x in ground.lines if refused in x)
+    assert ("rejected", "SIGNATURE_INVALID") in _audited(keys / "vehicle.db")
+    assert sent <= HANDSHAKE_SHARE * AIR_BPS / 10 * (time.monotonic() - started) + ALLOWANCE

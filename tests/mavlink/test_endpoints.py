@@ -37,6 +37,7 @@ from antireplay.mavlink.endpoints import (
     Peer,
     TcpServerTransport,
     Transport,
+    is_local,
 )
 from antireplay.wiring import router_metrics
 from harness import free_port, until
@@ -518,3 +519,22 @@ def test_transport_errors_are_logged_first_then_rate_limited(
         "udpout:127.0.0.1:9: send: refused (2 more since the last line)",
     ]
     assert transport.errors["send"] == 4
+
+
+@pytest.mark.parametrize(
+    ("text", "local"),
+    [
+        ("udpin:127.0.0.1:14551", True),
+        ("udpout:127.0.0.2:14551", True),
+        ("tcpin:localhost:5760", True),
+        ("tcp:[::1]:5760", True),
+        ("/dev/ttyACM0,115200", True),
+        ("udpin:0.0.0.0:14551", False),
+        ("tcpin:192.0.2.2:5760", False),
+        ("udpout:192.0.2.77:14550", False),
+        ("udpin:gcs.example:14550", False),  # a name may resolve anywhere
+    ],
+)
+def test_only_loopback_and_serial_endpoints_are_local(text: str, local: bool) -> None:
+    """A trusted endpoint must be local (the router signs on its behalf) unless acknowledged."""
+    assert is_local(parse_endpoint(text)) is local

@@ -22,6 +22,7 @@ from antireplay.core.errors import (
 )
 from antireplay.mavlink import TS_LIMIT, UNITS_PER_S, MavlinkGuard, mav_time
 from antireplay.mavlink.guard import FrameAdmission
+from antireplay.mavlink.policy import lease_value
 from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
 from harness.mavlink_frames import KEY, Sink, command_frame, encoder, unsigned_heartbeat
@@ -245,15 +246,40 @@ def test_sender_that_ran_ahead_raises_the_fence(tmp_path: Path, clock: ManualClo
     ahead = frames_at(clock, [30, 30.5], link_id=7)
     for frame in ahead:
         guard.open(frame)
-    assert store.writes.count("mav:ahead") == 2  # written before each frame that exceeded it
+    assert store.writes.count("mav:high") == 2  # written before each frame that passed it
     clock.advance(3)  # crash, and the lease runs out
     restarted = MavlinkGuard(KEY, clock=clock, store=SqliteStore(tmp_path / "mav.db"))
     with pytest.raises(MessageStaleError):
         restarted.open(ahead[1])
     with pytest.raises(MessageStaleError):  # a new stream, as far ahead as the fence allows
         restarted.open(frames_at(clock, [25], link_id=8)[0])
-    assert restarted.restart_fence >= mav_time(clock) + 28 * UNITS_PER_S
-    assert restarted.open(frames_at(clock, [31], link_id=9)[0]).signed
+    assert restarted.restart_fence >= mav_time(clock) + 27 * UNITS_PER_S
+    assert restarted.fenced_until() is not None
+    assert restarted.open(frames_at(clock, [29], link_id=9)[0]).signed
+    clock.advance(40)  # the wall clock passed every persisted timestamp
+    assert restarted.fenced_until() is None
+
+
+def test_a_previous_versions_ahead_margin_is_migrated_to_a_timestamp(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """A state the previous version wrote (a lease and a 13 s ``ahead`` margin): the first
+    claim fences as that version did, writes the fence as the highest timestamp, and the
+    restart after it no longer adds the margin."""
+    store = sqlite_store(tmp_path / "mav.db", clock=clock)
+    store.advance("mav:lease", lease_value(2, mav_time(clock)))  # released cleanly now
+    store.advance("mav:ahead", 13 * UNITS_PER_S)
+    guard = MavlinkGuard(KEY, clock=clock, store=store)
+    guard.start()
+    fence = guard.restart_fence
+    assert fence >= mav_time(clock) + 13 * UNITS_PER_S
+    assert store.current("mav:high") == fence
+    guard.stop()
+    clock.advance(60)
+    again = MavlinkGuard(KEY, clock=clock, store=store)
+    again.start()
+    assert again.fenced_until() is None and again.open(frames_at(clock, [0])[0]).signed
+    again.stop()
 
 
 def test_persistence_stays_off_the_frame_path_under_a_burst(

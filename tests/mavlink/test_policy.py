@@ -19,11 +19,12 @@ from antireplay.core.window import NEVER
 from antireplay.mavlink import MAV_EPOCH, UNITS_PER_S, parse_frame
 from antireplay.mavlink.codec import Frame
 from antireplay.mavlink.policy import (
-    AHEAD_STEP,
+    HIGH_STEP,
     Facts,
     FrameAdmission,
     MavPolicy,
     Persist,
+    RestartFenceError,
     lease_parts,
     lease_value,
 )
@@ -143,13 +144,15 @@ def test_bind_refuses_another_vehicles_target_and_direction_learns_from_signed_o
 # --- commit: what must be persisted first ----------------------------------------------------
 
 
-def claimed(policy: MavPolicy, now: int = NOW, found: int | None = None, ahead: int = 0) -> None:
-    """The driver's claim, with the store holding ``found`` and ``ahead``."""
-    value = policy.claim(found, ahead, NEVER, now)
+def claimed(
+    policy: MavPolicy, now: int = NOW, found: int | None = None, high: int | None = None
+) -> None:
+    """The driver's claim, with the store holding ``found`` and ``high``."""
+    value = policy.claim(found, high, NEVER, now)
     policy.claimed(value, written=True)
 
 
-def test_periodic_commit_asks_for_the_claim_the_lookup_and_the_ahead_margin_in_turn() -> None:
+def test_periodic_commit_asks_for_the_claim_the_lookup_and_the_highest_timestamp_in_turn() -> None:
     policy = MavPolicy(stored=True, periodic=True)
     frame = signed(NOW + 3 * S + 1)  # 3 s and 10 µs ahead
     assert policy.commit(frame, NOW) == Persist(claim=True)
@@ -158,9 +161,9 @@ def test_periodic_commit_asks_for_the_claim_the_lookup_and_the_ahead_margin_in_t
     assert policy.commit(frame, NOW) == Persist(lookup=key)
     facts = Facts(stored={key: None})
     step = policy.commit(frame, NOW, facts)
-    assert step == Persist(ahead=3 * S + AHEAD_STEP)  # rounded up to the next 0.1 s
+    assert step == Persist(high=NOW + 3 * S + HIGH_STEP)  # past the lease: up to the next second
     assert len(policy.streams) == 0 and policy.dirty == {}  # nothing believed before it is durable
-    policy.ahead_persisted(3 * S + AHEAD_STEP)
+    policy.high_persisted(NOW + 3 * S + HIGH_STEP)
     assert policy.commit(frame, NOW, facts) is None
     assert policy.dirty == {key: frame.timestamp}
     assert policy.take_dirty() == {key: frame.timestamp} and policy.dirty == {}
@@ -215,20 +218,21 @@ def test_a_failed_flush_leaves_its_marks_dirty() -> None:
 # --- the lease arithmetic --------------------------------------------------------------------
 
 LEASES = [
-    # (stored lease, stored ahead, now, claimed generation or a refusal, restart fence)
+    # (stored lease, stored highest timestamp, now, claimed generation or a refusal, fence)
     (None, None, NOW, 1, -1),  # a first run: nothing to fence
-    (lease_value(2, NOW - S), 0, NOW, 3, NOW - S),  # released cleanly at NOW - 1 s
-    (lease_value(2, NOW - S), 5 * S, NOW, 3, NOW + 4 * S),  # a sender ran 5 s ahead
+    (lease_value(2, NOW - S), None, NOW, 3, NOW - S),  # released cleanly at NOW - 1 s
+    (lease_value(2, NOW - S), NOW + 4 * S, NOW, 3, NOW + 4 * S),  # a frame stamped 4 s ahead
+    (lease_value(2, NOW - S), NOW - 20 * S, NOW, 3, NOW - S),  # a spike long past: no fence
     (lease_value(1, NOW + S), 0, NOW, StateUnavailableError, None),  # held and live
     (lease_value(1, NOW - S // 10), 0, NOW, StateUnavailableError, None),  # within the skew
     (lease_value(1, NOW - S), 0, NOW, 3, NOW - S),  # a crashed owner's, run out
 ]
 
 
-@pytest.mark.parametrize(("found", "ahead", "now", "claims", "fence"), LEASES)
+@pytest.mark.parametrize(("found", "high", "now", "claims", "fence"), LEASES)
 def test_lease_claims_and_restart_fences(
     found: int | None,
-    ahead: int | None,
+    high: int | None,
     now: int,
     claims: int | type[ReplayAttackError],
     fence: int | None,
@@ -236,14 +240,70 @@ def test_lease_claims_and_restart_fences(
     policy = MavPolicy(stored=True, periodic=True, lease_len=2 * S, lease_skew=S // 4)
     if not isinstance(claims, int):
         with pytest.raises(claims):
-            policy.claim(found, ahead, NEVER, now)
+            policy.claim(found, high, NEVER, now)
         assert policy.generation == 0
         return
-    value = policy.claim(found, ahead, NEVER, now)
+    value = policy.claim(found, high, NEVER, now)
     assert policy.generation == 0  # believed only once written
     policy.claimed(value, written=True)
     assert lease_parts(value) == (claims, now + 2 * S)
     assert (policy.generation, policy.lease, policy.restart_fence) == (claims, now + 2 * S, fence)
+
+
+def restarted(stored: dict[str, int | None], now: int) -> MavPolicy:
+    """A new policy (``max_forward`` 20 s) claiming the state ``stored`` at ``now``."""
+    again = MavPolicy(stored=True, periodic=True, max_forward=20 * S)
+    claimed(again, now, found=stored["mav:lease"], high=stored.get("mav:high"))
+    return again
+
+
+def test_a_clock_spike_fences_only_until_the_wall_clock_passes_it() -> None:
+    """The issue's scenario: ``max_forward_s`` 20, one frame accepted 17 s ahead, a clean
+    restart long after that moment: honest senders are accepted at once; a restart within
+    those 17 s still refuses the spiked frame and everything up to it."""
+    policy = MavPolicy(stored=True, periodic=True, max_forward=20 * S)
+    claimed(policy)
+    spike = signed(NOW + 17 * S, link_id=3)
+    facts = Facts(stored={"mav:255:190:3": None})
+    step = policy.commit(spike, NOW, facts)
+    assert step == Persist(high=NOW + 17 * S)  # made durable before the frame is believed
+    policy.high_persisted(NOW + 17 * S)
+    assert policy.commit(spike, NOW, facts) is None
+    stored = {"mav:high": NOW + 17 * S, "mav:lease": policy.release(NOW + S)}  # a clean stop
+    soon = restarted(stored, NOW + 5 * S)  # restarted within the spike
+    assert soon.restart_fence == NOW + 17 * S and soon.fence_cause == "high"
+    with pytest.raises(RestartFenceError):
+        soon.check(signed(NOW + 16 * S, link_id=4), NOW + 5 * S)
+    later = NOW + 120 * S  # long after the spike's moment
+    again = restarted(stored, later)
+    honest = signed(later + 1, link_id=5)
+    again.check(honest, later)  # not fenced: the fence is a moment long past
+    assert again.commit(honest, later, Facts(stored={"mav:255:190:5": None})) is None
+    assert again.restart_fence == NOW + 17 * S
+
+
+def test_honest_senders_never_write_the_highest_timestamp() -> None:
+    """Frames stamped within the held lease need no write: the lease's expiry (or, at a clean
+    stop, the highest timestamp accepted) fences them."""
+    policy = MavPolicy(stored=True, periodic=True, lease_len=2 * S)
+    claimed(policy)
+    facts = Facts(stored={"mav:255:190:1": None})
+    for i in range(100):
+        assert policy.commit(signed(NOW + i * S // 100 + S), NOW + i * S // 100, facts) is None
+    assert lease_parts(policy.release(NOW + S) or 0)[1] == NOW + S + 99 * S // 100
+
+
+def test_a_previous_versions_ahead_margin_fences_as_it_did_once_then_is_a_timestamp() -> None:
+    """A state written by the previous version holds ``ahead`` (a margin): read as that
+    version's fence (expiry + margin), migrated to the highest timestamp, never added again."""
+    policy = MavPolicy(stored=True, periodic=True)
+    found = lease_value(2, NOW - 100 * S)
+    policy.claimed(policy.claim(found, None, NEVER, NOW, ahead=13 * S), written=True)
+    assert policy.restart_fence == NOW - 87 * S and policy.fence_cause == "high"
+    assert policy.take_migration() == NOW - 87 * S and policy.take_migration() is None
+    fresh = MavPolicy(stored=True, periodic=True)  # a stored high wins: the margin is ignored
+    fresh.claimed(fresh.claim(found, NOW - 90 * S, NEVER, NOW, ahead=13 * S), written=True)
+    assert fresh.restart_fence == NOW - 90 * S and fresh.take_migration() is None
 
 
 def test_a_store_that_lost_data_fences_at_the_loss_plus_the_forward_bound() -> None:

@@ -44,6 +44,7 @@ from antireplay.mavlink import (
 )
 from antireplay.mavlink import guard as guard_module
 from antireplay.mavlink.codec import UNITS_PER_S, Frame
+from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
 from harness import ROOT, free_port, free_udp_port, until
 from harness.mavlink_frames import KEY, FakeTransport, Sink, unsigned_heartbeat
@@ -518,7 +519,7 @@ def signed_sender(sysid: int, key: bytes, clock: ManualClock) -> tuple[Any, Sink
 
 def test_a_frame_the_router_signed_for_a_ground_link_cannot_be_reflected() -> None:
     """RouterLink B has its own key: the router signs what it forwards there afresh (link id
-    251).  An attacker on B who sends such a copy back gets WRONG_DIRECTION: it neither
+    251).  An attacker on B who sends such a copy back is refused (SOURCE_BOUND): it neither
     reaches the vehicle twice nor steals the route of the station that sent it."""
     clock, other_key = ManualClock(1_800_000_000.0), bytes(range(1, 33))
     vehicle = FakeTransport("udpout:127.0.0.1:1")
@@ -553,7 +554,9 @@ def test_a_frame_the_router_signed_for_a_ground_link_cannot_be_reflected() -> No
     clock.advance(0.5)
     b.inject(copies[0], ("6.6.6.6", 4444))
     assert len(arms()) == 1
-    assert router.stats.dropped["inbound:WRONG_DIRECTION"] == 1
+    # 255/190 authenticated on A: bound there, refused from B before its link id is even
+    # looked at (the WRONG_DIRECTION rule for the router's own link id: test_guard)
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 1
     assert router.routes()[(255, 190)] == "udpin:0.0.0.0:2"
     router.stop()
 
@@ -720,6 +723,197 @@ def test_a_frame_is_parsed_once_from_the_transport_to_the_vehicle(
         assert isinstance(vehicle, FakeTransport)
         assert len(vehicle.sent) == 1 and router.stats.forwarded["inbound"] == 1
         assert parses == [sink.frames[-1]]  # the transport's parse, and no other
+    finally:
+        router.stop()
+        store.close()
+
+
+# --- ids bound to a ground station's link; fences folded -------------------------------------
+
+
+def station_router(
+    clock: ManualClock, *, second_ground_key: bytes | None = None
+) -> tuple[MavlinkRouter, FakeTransport, FakeTransport, FakeTransport, FakeTransport]:
+    """A router with a vehicle, a ground link (the vehicle key), a second ground link
+    (``second_ground_key``, the vehicle key if None) and a trusted link."""
+    vehicle = FakeTransport("udpout:127.0.0.1:1")
+    ground = FakeTransport("udpin:0.0.0.0:2", fixed=False)
+    other = FakeTransport("udpin:0.0.0.0:3", fixed=False)
+    trusted = FakeTransport("udpin:127.0.0.1:4", fixed=False)
+    second = second_ground_key or KEY
+    guards = {key: MavlinkGuard(key, clock=clock, system_id=1) for key in {KEY, second}}
+    router = MavlinkRouter(
+        [
+            RouterLink(vehicle, Role.VEHICLE, KEY),
+            RouterLink(ground, Role.GROUND, KEY),
+            RouterLink(other, Role.GROUND, second),
+            RouterLink(trusted, Role.TRUSTED),
+        ],
+        guards,
+        MavlinkGuard(KEY, clock=clock),
+        signers={key: TimestampSource(clock) for key in guards},
+    )
+    router.start()
+    return router, vehicle, ground, other, trusted
+
+
+def test_ids_a_ground_station_authenticated_are_refused_from_a_trusted_link() -> None:
+    """A trusted link's unsigned HEARTBEAT claiming 255/190, which a ground station signed
+    with its key, is refused (``SOURCE_BOUND``, reported): the route stays, and the
+    vehicle's COMMAND_ACK to 255/190 still goes to the genuine station."""
+    clock = ManualClock(1_800_000_000.0)
+    refused: list[FrameRefusal] = []
+    router, vehicle, ground, _, trusted = station_router(clock)
+    router.on_reject = refused.append
+    station, sink = signed_sender(255, KEY, clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    trusted.inject(unsigned_heartbeat(255, 190), ("127.0.0.1", 5555))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 1
+    assert refused and refused[-1].code == "SOURCE_BOUND" and "udpin:0.0.0.0:2" in str(refused[-1])
+    assert router.routes()[(255, 190)] == "udpin:0.0.0.0:2"
+    autopilot, out = signed_sender(1, KEY, clock)
+    autopilot.srcComponent = 1
+    autopilot.command_ack_send(400, 0, 0, 0, 255, 190)
+    vehicle.inject(out.frames[-1])
+    acks = [(peer, parse_frame(d).msgid) for d, peer in ground.sent]
+    assert (("10.0.0.1", 14550), 77) in acks
+    assert not [d for d, _ in trusted.sent if parse_frame(d).msgid == 77]
+    router.stop()
+
+
+def test_a_ground_link_with_the_same_key_may_use_the_stations_ids() -> None:
+    """The station's second radio (a ground link with the same key) is that station; a
+    ground link with another key claiming its ids is refused."""
+    clock = ManualClock(1_800_000_000.0)
+    router, _, ground, other, _ = station_router(clock)
+    station, sink = signed_sender(255, KEY, clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    clock.advance(0.01)
+    station.signing.timestamp = mav_time(clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    other.inject(sink.frames[-1], ("10.0.0.9", 14550))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 0
+    router.stop()
+    clock = ManualClock(1_800_000_000.0)
+    router, _, ground, other, _ = station_router(clock, second_ground_key=bytes(range(1, 33)))
+    station, sink = signed_sender(255, KEY, clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    rival, rival_sink = signed_sender(255, bytes(range(1, 33)), clock)
+    rival.heartbeat_send(6, 8, 0, 0, 0)
+    other.inject(rival_sink.frames[-1], ("10.0.0.9", 14550))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 1
+    assert router.routes()[(255, 190)] == "udpin:0.0.0.0:2"
+    router.stop()
+
+
+def test_refusals_behind_the_fence_are_said_once_then_one_line_per_interval() -> None:
+    """A router on a memory store is fenced for ``max_forward_s``: 200 frames behind the
+    fence are each counted, but reported as the first, then one summary per interval with
+    how many and from how many senders; the fence passed, the router says so (None)."""
+    clock = ManualClock(1_800_000_000.0)
+    store = MemoryStore(clock=clock)
+    vehicle = FakeTransport("udpout:127.0.0.1:1")
+    ground = FakeTransport("udpin:0.0.0.0:2", fixed=False)
+    guard = MavlinkGuard(KEY, clock=clock, store=store, system_id=1, max_forward_s=20)
+    router = MavlinkRouter(
+        [RouterLink(vehicle, Role.VEHICLE, KEY), RouterLink(ground, Role.GROUND, KEY)],
+        {KEY: guard},
+        MavlinkGuard(KEY, clock=clock, store=store, store_prefix="out", max_forward_s=20),
+        signers={KEY: TimestampSource(clock)},
+    )
+    refused: list[FrameRefusal] = []
+    router.on_reject = refused.append
+    router.start()
+    fence = router.fence()
+    assert fence is not None and fence[1] == "lost"
+    assert fence[0] == pytest.approx(clock.wall() + 20, abs=0.01)
+    senders = [signed_sender(system, KEY, clock) for system in (200, 201)]
+    for i in range(200):
+        mav, sink = senders[i % 2]
+        mav.signing.timestamp = mav_time(clock)
+        mav.heartbeat_send(6, 8, 0, 0, 0)
+        ground.inject(sink.frames[-1], ("10.0.0.1", 14550 + i % 2))
+    assert router.stats.dropped["inbound:MESSAGE_STALE"] == 200
+    assert len(refused) == 200 and sum(r.folded for r in refused) == 199  # a hook sees each
+    said = [r for r in refused if not r.folded]  # what the log and the audit trail get
+    (first,) = said
+    assert "restart fence" in first.reason and "summarised every 5 s" in first.reason
+    router._summarise_fenced(time.monotonic() + 6)  # the timer, an interval later
+    said = [r for r in refused if not r.folded]
+    assert len(said) == 2 and said[1].frames == 199
+    assert "from 2 senders" in str(said[1]) and str(said[1]).startswith("refused 199")
+    clock.advance(21)
+    assert router.fence() is None
+    router.stop()
+    assert len([r for r in refused if not r.folded]) == 2
+
+
+class WriteLog:
+    """A store wrapper that records every ``advance`` (a store write): its key, and whether
+    the frame path made it (not the timer thread, not an explicit tick)."""
+
+    def __init__(self, inner: SqliteStore) -> None:
+        self.inner = inner
+        self.ticking = False
+        self.frame_path: list[str] = []
+        self.timer: list[str] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def advance(self, key: str, value: int) -> bool:
+        timer = self.ticking or threading.current_thread().name == "mavlink timer"
+        (self.timer if timer else self.frame_path).append(key)
+        return self.inner.advance(key, value)
+
+
+def test_a_burst_verified_and_signed_on_behalf_writes_the_store_only_from_the_timer(
+    tmp_path: Path,
+) -> None:
+    """5,000 signed frames from a ground station and 5,000 unsigned ones signed on a trusted
+    tool's behalf, 5,000 a second on the router's clock with its timer ticking every half
+    second: every frame forwarded, and no store write on the frame path (leases, stream
+    high-waters and the signer's timestamp ceiling are the timer's, a handful per second)."""
+    clock = ManualClock(1_800_000_000.0)
+    store = WriteLog(SqliteStore(aged_state(tmp_path / "mav.db", clock), clock=clock))
+
+    def guard(prefix: str) -> MavlinkGuard:
+        return MavlinkGuard(KEY, clock=clock, store=store, store_prefix=prefix, system_id=1)
+
+    vehicle = FakeTransport("udpout:127.0.0.1:1")
+    ground = FakeTransport("udpin:0.0.0.0:2", fixed=False)
+    trusted = FakeTransport("udpin:0.0.0.0:3", fixed=False)
+    router = MavlinkRouter(
+        [
+            RouterLink(vehicle, Role.VEHICLE, KEY),
+            RouterLink(ground, Role.GROUND, KEY),
+            RouterLink(trusted, Role.TRUSTED),
+        ],
+        {KEY: guard("in")},
+        guard("out"),
+        signers={KEY: TimestampSource(clock, store=store, store_key="sign")},
+    )
+    router.start(wait_s=30)
+    station, sink = signed_sender(255, KEY, clock)
+    tool = dialect.MAVLink(Sink(), srcSystem=254, srcComponent=190)
+    try:
+        for i in range(5_000):
+            station.command_long_send(1, 1, 400, 0, i, 0, 0, 0, 0, 0, 0)
+            ground.inject(sink.frames[-1], ("10.0.0.2", 14550))
+            tool.command_long_send(1, 1, 400, 0, i, 0, 0, 0, 0, 0, 0)
+            trusted.inject(tool.file.frames[-1], ("127.0.0.1", 5760))
+            clock.advance(0.0002)
+            if i % 2_500 == 2_499:
+                store.ticking = True
+                router.tick()  # what the timer does every half second of this clock
+                store.ticking = False
+        assert router.stats.forwarded["inbound"] == 10_000 and not router.stats.dropped
+        assert len(vehicle.sent) == 10_000
+        assert store.frame_path == []
+        assert "sign" in store.timer and len(store.timer) <= 20  # a few per tick
     finally:
         router.stop()
         store.close()

@@ -10,8 +10,8 @@ preflight as ``serve``, so a configuration that passes the check starts.
 One click group, :func:`main`; each module holds one family of commands: ``serve``,
 ``config check``, ``demo``, ``bench`` (:mod:`.serve`), ``keygen``, ``sign``, ``send``
 (:mod:`.keys`), ``audit`` (:mod:`.audit`), ``state`` (:mod:`.state`),
-``mavlink-router``, ``mavlink-sim``, ``mavlink-keys`` (:mod:`.mavlink`), ``mavlink-pq``
-(:mod:`.mavlink_pq`), ``dds`` (:mod:`.dds`).
+``mavlink-router``, ``mavlink-sim`` (:mod:`.mavlink`), ``mavlink-keys``
+(:mod:`.mavlink_keys`), ``mavlink-pq`` (:mod:`.mavlink_pq`), ``dds`` (:mod:`.dds`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import copy
 
 import click
 
-from antireplay.cli import audit, dds, keys, mavlink, mavlink_pq, serve, state
+from antireplay.cli import audit, dds, keys, mavlink, mavlink_keys, mavlink_pq, serve, state
 from antireplay.cli._common import _Cli
 
 __all__ = ["main"]
@@ -44,7 +44,7 @@ for command in (
     state.state,
     mavlink.mavlink_router,
     mavlink.mavlink_sim,
-    mavlink.mavlink_keys,
+    mavlink_keys.mavlink_keys,
     mavlink_pq.mavlink_pq,
     dds.dds,
 ):

@@ -227,6 +227,7 @@ _DROPS = {
     "NO_PEER": "accepted, but no other link had a receiver yet: telemetry before a ground "
     "station authenticated",
     "NO_ROUTE": "targeted at a system never seen",
+    "SOURCE_BOUND": "claimed the ids a ground station authenticated on another link",
     "UNREACHABLE": "the link could not take the frame: disconnected or full",
 }
 

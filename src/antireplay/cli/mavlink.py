@@ -1,4 +1,4 @@
-"""``mavlink-router`` (first name ``mavlink-proxy``), ``mavlink-sim``, ``mavlink-keys``.
+"""``mavlink-router`` (first name ``mavlink-proxy``) and ``mavlink-sim``.
 
 ``mavlink-router`` parses its flags, reads ``--config`` (the ``mavlink:`` section with
 ``audit:``, ``audit_space:`` and ``state:``; each flag overrides its key) and calls
@@ -8,7 +8,9 @@
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 
@@ -21,8 +23,13 @@ from antireplay.cli._common import (
     warn_if_shared,
     why,
 )
+from antireplay.cli.mavlink_keys import reload_on_sighup
 from antireplay.core.counters import DEFAULT_WINDOW
 from antireplay.core.errors import ConfigError, ReplayAttackError, StateFileError
+
+if TYPE_CHECKING:
+    from antireplay.config import MavlinkConfig
+    from antireplay.wiring.mavlink import RouterParts
 
 
 def _signing_key(path: Path) -> bytes:
@@ -63,6 +70,13 @@ def _signing_key(path: Path) -> bytes:
     multiple=True,
     help="Trusted local tool that cannot sign (mavros, BlueOS, a script): its frames are "
     "signed on its behalf.",
+)
+@click.option(
+    "--trust-network",
+    multiple=True,
+    metavar="ENDPOINT",
+    help="Acknowledge a --trusted endpoint that is not loopback or a serial device (exactly "
+    "as given): anyone who reaches it commands the vehicle with its key.",
 )
 @click.option(
     "--listen", default=None, help="Shorthand for --ground udpin:HOST:PORT (udp:HOST:PORT)."
@@ -167,6 +181,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     vehicle: tuple[str, ...],
     ground: tuple[str, ...],
     trusted: tuple[str, ...],
+    trust_network: tuple[str, ...],
     listen: str | None,
     forward: str | None,
     key_file: Path | None,
@@ -189,7 +204,11 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     import logging  # noqa: PLC0415
 
     from antireplay.wiring.leaves import trail_path  # noqa: PLC0415
-    from antireplay.wiring.mavlink import ROUTER_AUDIT, open_router  # noqa: PLC0415
+    from antireplay.wiring.mavlink import (  # noqa: PLC0415
+        ROUTER_AUDIT,
+        fence_notice,
+        open_router,
+    )
     from antireplay.wiring.metrics import (  # noqa: PLC0415
         router_metrics,
         serve_metrics,
@@ -202,6 +221,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
         "mavlink.vehicle": ("--vehicle", tuple(vehicles)),
         "mavlink.ground": ("--ground", tuple(grounds)),
         "mavlink.trusted": ("--trusted", trusted),
+        "mavlink.trust_network": ("--trust-network", trust_network),
         "mavlink.key_file": ("--key-file", key_file and str(key_file)),
         "mavlink.passphrase_env": ("--passphrase-env", passphrase_env),
         "mavlink.signing_keys": ("--signing-keys", signing_keys and str(signing_keys)),
@@ -241,7 +261,10 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
             serve_metrics(
                 lambda: [
                     *router_metrics(parts.router),
-                    *trail_metrics("mavlink-router", parts.audit, parts.space, parts.store),
+                    *trail_metrics(
+                        "mavlink-router", parts.audit, parts.space, parts.store,
+                        lambda: fence_notice(parts.router, parts.store, time.time()),
+                    ),
                 ],
                 metrics.port, metrics.host,
             )  # fmt: skip
@@ -256,14 +279,32 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
         parts.router.start()  # claims each guard's lease, waiting out a crashed run's (seconds)
     except ReplayAttackError as exc:
         _fail(f"--store {section.store}: {exc}")
-    roles = ", ".join(f"{role} {text}" for role, text, _ in parts.endpoints)
-    click.echo(f"mavlink-router {roles} (system id {section.system_id})")  # one line
+    click.echo(_start_line(parts, section))  # one line
+    reload_on_sighup(parts.router, section)
     done.wait()
     parts.close()
     stats = parts.router.stats
     forwarded = ", ".join(f"{k} {v}" for k, v in sorted(stats.forwarded.items())) or "none"
     dropped = ", ".join(f"{k} {v}{why(k)}" for k, v in sorted(stats.dropped.items())) or "none"
     click.echo(f"forwarded {forwarded}; dropped {dropped}", err=True)
+
+
+def _start_line(parts: RouterParts, section: MavlinkConfig) -> str:
+    """The router's one start line: its endpoints, the trusted ones acknowledged on the
+    network, and its restart fence while one lies ahead (until when, why, what removes it)."""
+    from antireplay.wiring.mavlink import fence_notice  # noqa: PLC0415
+
+    roles = ", ".join(f"{role} {text}" for role, text, _ in parts.endpoints)
+    said = [f"mavlink-router {roles} (system id {section.system_id})"]
+    if section.trust_network:
+        said.append(
+            "trusted on the network, acknowledged (--trust-network): "
+            f"{', '.join(section.trust_network)} (anyone who reaches it commands the vehicle)"
+        )
+    fenced = fence_notice(parts.router, parts.store, time.time())
+    if fenced is not None:  # a memory store, a new or lost state, a spike not yet passed
+        said.append(fenced)
+    return "; ".join(said)
 
 
 def _udp_shorthand(spec: str, kind: str, option: str) -> str:
@@ -282,12 +323,15 @@ def _udp_shorthand(spec: str, kind: str, option: str) -> str:
     return f"{kind}:{rest}"
 
 
-def _sim_key(value: str | None, passphrase_env: str | None) -> bytes:
-    """``--key``: 64 hex digits, or a key file as ``--key-file`` reads it; or a passphrase."""
+def _sim_key(value: str | None, passphrase_env: str | None) -> bytes | None:
+    """``--key``: 64 hex digits, or a key file as ``--key-file`` reads it; or a passphrase;
+    neither: no key (signing off until a SETUP_SIGNING gives one)."""
     from antireplay.mavlink import passphrase_key  # noqa: PLC0415
 
-    if (value is None) == (passphrase_env is None):
-        raise click.UsageError("give --key or --passphrase-env (one of them)")
+    if value is not None and passphrase_env is not None:
+        raise click.UsageError("give --key or --passphrase-env, not both")
+    if value is None and passphrase_env is None:
+        return None
     if passphrase_env is not None:
         phrase = os.environ.get(passphrase_env)
         if not phrase:
@@ -320,7 +364,8 @@ def _sim_key(value: str | None, passphrase_env: str | None) -> bytes:
 @click.option(
     "--key",
     default=None,
-    help="The vehicle's signing key: 64 hex digits, or a key file (32 raw bytes or 64 hex).",
+    help="The vehicle's signing key: 64 hex digits, or a key file (32 raw bytes or 64 hex); "
+    "none: signing off until a SETUP_SIGNING gives one.",
 )
 @click.option(
     "--passphrase-env",
@@ -342,11 +387,19 @@ def _sim_key(value: str | None, passphrase_env: str | None) -> bytes:
     show_default=True,
     help="HEARTBEAT and ATTITUDE per second.",
 )
+@click.option("--armed", is_flag=True, help="Start armed (a SETUP_SIGNING is ignored while armed).")
 def mavlink_sim(  # noqa: PLR0917 - one option per knob
-    udp: str, pty: bool, key: str | None, passphrase_env: str | None, system_id: int, rate: float
+    udp: str,
+    pty: bool,
+    key: str | None,
+    passphrase_env: str | None,
+    system_id: int,
+    rate: float,
+    armed: bool,
 ) -> None:
     """A simulated signing vehicle: MAVLink 2 telemetry, and a COMMAND_ACK for each
-    COMMAND_LONG that verifies; prints its counts when stopped (SIGTERM or Ctrl-C)."""
+    COMMAND_LONG that verifies; takes SETUP_SIGNING as ArduPilot does (never while armed);
+    prints its counts when stopped (SIGTERM or Ctrl-C)."""
     from antireplay.mavlink.sim import SimVehicle  # noqa: PLC0415
 
     secret = _sim_key(key, passphrase_env)
@@ -354,7 +407,9 @@ def mavlink_sim(  # noqa: PLR0917 - one option per knob
     if not host or not (port.isascii() and port.isdigit()) or not 0 < int(port) < 65536:
         raise click.BadParameter(f"{udp!r}: expected HOST:PORT", param_hint="'--udp'")
     try:
-        sim = SimVehicle(secret, system_id=system_id, udp=(host, int(port)), pty=pty, rate_hz=rate)
+        sim = SimVehicle(
+            secret, system_id=system_id, udp=(host, int(port)), pty=pty, rate_hz=rate, armed=armed
+        )
     except OSError as exc:
         _fail(f"--udp {udp}: {exc.strerror or exc}")
     click.echo(f"mavlink-sim system {system_id}: router option --vehicle {sim.where}")
@@ -365,51 +420,3 @@ def mavlink_sim(  # noqa: PLR0917 - one option per knob
         sim.close()
     counts = ", ".join(f"{k} {v}" for k, v in sorted(sim.counts.items()))
     click.echo(f"sent and received: {counts or 'nothing'}", err=True)
-
-
-@click.group("mavlink-keys")
-def mavlink_keys() -> None:
-    """MAVProxy's signing.keys file (ENDPOINT PASSPHRASE per line), which --signing-keys reads."""
-
-
-@mavlink_keys.command("add")
-@click.argument("endpoint")
-@click.option(
-    "--file",
-    "path",
-    type=click.Path(dir_okay=False, path_type=Path),
-    default=Path("~/.mavproxy/signing.keys"),
-    show_default=True,
-    help="The signing.keys file (created, mode 0600, if missing).",
-)
-@click.option(
-    "--passphrase-env",
-    default="MAV_PASSPHRASE",
-    show_default=True,
-    metavar="VAR",
-    help="The environment variable holding the passphrase (never on the command line).",
-)
-def mavlink_keys_add(endpoint: str, path: Path, passphrase_env: str) -> None:
-    """Give ENDPOINT the passphrase: adds its line once (running it again changes nothing;
-    a different passphrase replaces the endpoint's line)."""
-    phrase = os.environ.get(passphrase_env)
-    if not phrase:
-        _fail(f"--passphrase-env {passphrase_env}: not set")
-    if len(phrase.split()) != 1 or phrase != phrase.strip() or len(endpoint.split()) != 1:
-        _fail("the endpoint and the passphrase must be one word each (MAVProxy skips other lines)")
-    path = path.expanduser()
-    try:
-        lines = path.read_text().splitlines() if path.exists() else []
-    except (OSError, UnicodeDecodeError) as exc:
-        _fail(f"--file {path}: unreadable ({exc})")
-    entry = f"{endpoint} {phrase}"
-    mine = [i for i, line in enumerate(lines) if line.split()[:1] == [endpoint]]
-    if [lines[i] for i in mine] == [entry]:
-        click.echo(f"{path}: {endpoint} already has this passphrase")
-        return
-    kept = [line for i, line in enumerate(lines) if i not in mine]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as handle:
-        handle.write("\n".join([*kept, entry]) + "\n")
-    click.echo(f"{path}: {endpoint} {'replaced' if mine else 'added'}")

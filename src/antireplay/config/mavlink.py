@@ -35,6 +35,9 @@ class MavlinkConfig(Section):
     vehicle: list[str] = Field(default_factory=list)
     ground: list[str] = Field(default_factory=list)
     trusted: list[str] = Field(default_factory=list)
+    #: Trusted endpoints on the network the operator acknowledges, each exactly as in
+    #: ``trusted`` (a trusted endpoint must otherwise be loopback or a serial device).
+    trust_network: list[str] = Field(default_factory=list)
     key_file: str | None = Field(default=None, min_length=1)
     passphrase_env: str | None = Field(default=None, min_length=1)
     signing_keys: str | None = Field(default=None, min_length=1)

@@ -32,6 +32,12 @@ class TokenBucket:
                 return True
             return False
 
+    def spend(self, cost: float) -> None:
+        """Take ``cost`` tokens whatever the bucket holds (into debt: what must go, goes)."""
+        if not self.take(cost):
+            with self._lock:
+                self.tokens -= cost
+
     def wait_s(self, cost: float = 1.0) -> float:
         """Seconds until ``cost`` tokens are there (0 when they are now)."""
         with self._lock:

@@ -174,6 +174,8 @@ class SealedWriter:
         """Answer the waiting challenges of fresh readers (each at a new epoch); a refused
         one is counted (``challenge_<outcome>``) and spends nothing.  :meth:`write` calls
         this first, so a writer answers within one period of its own; returns the count."""
+        if not self._pings.waiting.triggered:  # the common case: nothing to answer
+            return 0
         answered = 0
         for challenge in self._pings.take(Kind.CHALLENGE):
             try:
@@ -291,14 +293,16 @@ class SealedReader:
         with self._lock:
             verdict = self._judge(sample)
         self.counts[verdict.outcome] += 1
-        if not verdict.accepted:
+        if verdict.code is not None:  # refused
             log.debug("refused sample on %s: %s", self.topic_name, verdict.line())
             record_refusal(self._refusals, verdict, f"dds {self.topic_name}", self.counts)
         return verdict
 
     def _judge(self, sample: SealedSample) -> SampleVerdict:
         instance = sample.instance if isinstance(sample.instance, str) else ""
-        sealed = bytes(sample.sealed)
+        sealed = sample.sealed
+        if not isinstance(sealed, bytes):  # as Cyclone hands a sequence<uint8> over: ints
+            sealed = bytes(sealed)
         early = sealing.check(instance, sealed)
         if early is not None:
             return early

@@ -29,6 +29,7 @@ Not safe for concurrent use: the driver serializes.  Vectors: ``tests/vectors/ep
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import hmac
 import math
@@ -39,6 +40,7 @@ from enum import IntEnum
 from typing import NamedTuple, Protocol
 
 from cryptography.hazmat.primitives import hashes
+from cryptography.hazmat.primitives.hmac import HMAC
 from cryptography.hazmat.primitives.kdf.hkdf import HKDF
 
 from antireplay.core.counters import FencedTable
@@ -72,6 +74,7 @@ class Kind(IntEnum):
     ANSWER = 4
 
 
+_TRAILERS = {kind: bytes((VERSION, kind)) for kind in Kind}  # a tag's last two bytes
 LABELS = {Kind.ANNOUNCEMENT: "announcement", Kind.PING: "binding ping"}
 #: The kinds that carry epochs a verifier keeps marks for.
 STREAMS = (Kind.ANNOUNCEMENT, Kind.PING)
@@ -136,9 +139,17 @@ def successor_prefix(prefix: bytes) -> bytes:
     return hashlib.sha256(b"antireplay/v1 rotate" + prefix).digest()[:PREFIX_LEN]
 
 
+@functools.lru_cache(maxsize=64)
+def _keyed(key: bytes) -> HMAC:
+    """HMAC-SHA256 keyed once per key: a tag copies it (no key schedule per frame)."""
+    return HMAC(key, hashes.SHA256())
+
+
 def tag(key: bytes, kind: Kind, prefix: bytes, epoch: int, payload: bytes) -> bytes:
-    trailer = prefix + epoch.to_bytes(8, "big") + bytes([VERSION, kind])
-    return hmac.digest(key, payload + trailer, "sha256")
+    mac = _keyed(key).copy()
+    mac.update(payload)
+    mac.update(prefix + epoch.to_bytes(8, "big") + _TRAILERS[kind])
+    return mac.finalize()
 
 
 def require_size(payload: bytes) -> None:

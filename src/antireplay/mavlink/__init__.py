@@ -26,7 +26,7 @@ from antireplay.mavlink.codec import (
     target,
     target_system,
 )
-from antireplay.mavlink.endpoints import EndpointSpec, open_transport, parse_endpoint
+from antireplay.mavlink.endpoints import EndpointSpec, is_local, open_transport, parse_endpoint
 from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
 from antireplay.mavlink.policy import FrameAdmission, MavPolicy
 from antireplay.mavlink.router import FrameRefusal, MavlinkRouter, Role, RouterLink, RouterStats
@@ -58,6 +58,7 @@ __all__ = [
     "SignTimestamps",
     "TimestampSource",
     "claimed_source",
+    "is_local",
     "mav_time",
     "open_transport",
     "parse_endpoint",

@@ -60,6 +60,9 @@ MAV_EPOCH = 1_420_070_400  # 2015-01-01T00:00:00Z
 TS_LIMIT = 2**48
 UNITS_PER_S = 100_000
 _HEAD = struct.Struct("<BBBBBBBHB")  # stx len incompat compat seq sys comp msgid(lo16) msgid(hi8)
+_TRAILER = struct.Struct("<BIH")  # link id, timestamp (low 32 bits, high 16 bits)
+_V1_START = bytes((STX_V1,))
+_STARTS = (STX_V2, STX_V1)
 
 
 def mav_time(clock: Clock) -> int:
@@ -95,9 +98,17 @@ def split_parsed(datagram: bytes) -> list[Frame]:
     """Cut a datagram into whole frames (v1 or v2), each parsed strictly.  A datagram is
     judged alone, never resynchronised: a byte before, between or after its frames, or a
     frame cut short, raises ``INVALID_FRAME`` for the whole datagram."""
+    size = len(datagram)
+    if (
+        size > 2
+        and datagram[0] in _STARTS
+        and frame_length(datagram) == size
+        and isinstance(datagram, bytes)
+    ):
+        return [parse_frame(datagram)]  # one frame, the common case: no copy
     frames: list[Frame] = []
     at = 0
-    while at < len(datagram):
+    while at < size:
         if datagram[at] not in (STX_V2, STX_V1):
             raise InvalidFrameError(f"byte {at} of the datagram is no MAVLink start marker")
         length = frame_length(datagram, at)
@@ -184,7 +195,7 @@ def _parse_v1(raw: bytes) -> Frame:
 
 def parse_frame(raw: bytes) -> Frame:
     """Strictly parse one frame (length, flags, CRC for known messages); v1 is unsigned."""
-    if raw[:1] == bytes([STX_V1]):
+    if raw[:1] == _V1_START:
         return _parse_v1(raw)
     if len(raw) < HEADER + 2 or raw[0] != STX_V2:
         raise InvalidFrameError("not a MAVLink frame")
@@ -202,9 +213,8 @@ def parse_frame(raw: bytes) -> Frame:
         raise InvalidFrameError("CRC mismatch")
     if not signed:
         return Frame(raw, sysid, compid, msgid, payload, False)
-    trailer = raw[-SIG_LEN:]
-    timestamp = int.from_bytes(trailer[1:7], "little")
-    return Frame(raw, sysid, compid, msgid, payload, True, trailer[0], timestamp)
+    link_id, lo32, hi16 = _TRAILER.unpack_from(raw, len(raw) - SIG_LEN)
+    return Frame(raw, sysid, compid, msgid, payload, True, link_id, lo32 | hi16 << 32)
 
 
 def target(frame: Frame) -> tuple[int | None, int | None]:
@@ -222,12 +232,13 @@ def target(frame: Frame) -> tuple[int | None, int | None]:
 
 #: Each known message's ``crc_extra``: the byte a frame's CRC ends with.
 _CRC_EXTRA: dict[int, int] = {m: spec.crc_extra for m, spec in dialect.mavlink_map.items()}
+_BYTE = tuple(bytes((i,)) for i in range(256))  # each byte value, made once
 
 
-def _crc(raw: bytes, end: int, extra: int) -> int:
+def _crc(raw: bytes | bytearray, end: int, extra: int) -> int:
     """CRC-16/MCRF4XX (MAVLink's X.25) of ``raw[1:end]`` and ``extra``, as pymavlink's
-    ``x25crc`` computes it, in one call of its own native dependency."""
-    return mcrf4xx(bytes((extra,)), mcrf4xx(raw[1:end], 0xFFFF))
+    ``x25crc`` computes it, in calls of its own native dependency (on a view: no copy)."""
+    return mcrf4xx(_BYTE[extra], mcrf4xx(memoryview(raw)[1:end], 0xFFFF))
 
 
 @cache
@@ -297,7 +308,7 @@ def sign(
     body = bytes(head) + parsed.payload
     signed = body + _crc(body, len(body), spec.crc_extra).to_bytes(2, "little")
     timestamp = timestamps.next()
-    signed += bytes([link_id]) + timestamp.to_bytes(6, "little")
+    signed += _TRAILER.pack(link_id, timestamp & 0xFFFFFFFF, timestamp >> 32)
     keyed = hashlib.sha256(key + signed).digest() if isinstance(key, bytes) else key.digest(signed)
     signed += keyed[:6]
     return Frame(

@@ -8,7 +8,8 @@ Theory of operation
 alias of ``udpin``), ``tcp:HOST:PORT`` (connect, reconnecting), ``tcpin:HOST:PORT``
 (listen; each client is a peer) and a serial device ``/dev/ttyACM0,57600``
 (MAVProxy's ``DEVICE,BAUD``; ``DEVICE:BAUD`` as mavlink-router writes it, or a
-bare device at 57,600 baud, MAVProxy's default).
+bare device at 57,600 baud, MAVProxy's default).  :func:`is_local` says whether only this
+host reaches an endpoint (loopback or serial): a router's trusted endpoints must be.
 
 A :class:`Transport` moves bytes and nothing else: it cuts what it receives into
 frames and hands them, parsed once (:class:`~antireplay.mavlink.codec.Frame`),
@@ -23,9 +24,10 @@ where to send: :meth:`Transport.send` writes to the peer the router names
 (``None`` for the fixed destination of ``udpout``, ``tcp`` and serial).  Which
 peers may receive is the router's: a peer is learned only from an authenticated
 frame (:mod:`antireplay.mavlink.router`).  Every transport reads in its own
-thread with a short timeout so that :meth:`Transport.close` returns promptly, and
-bounds what a flood can cost: one frame of buffer per reader, ``max_clients``
-TCP clients.
+thread with a short timeout so that :meth:`Transport.close` returns promptly (a UDP
+socket is read until it is empty, then waited on: one system call per datagram under
+load, not a wait and a read), and bounds what a flood can cost: one frame of buffer
+per reader, ``max_clients`` TCP clients.
 
 **Never blocked by a network peer.**  ``send`` runs in the thread that read the
 frame (another link's reader), so it does not wait: UDP and TCP writes are
@@ -49,6 +51,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import ipaddress
 import logging
 import os
 import select
@@ -106,6 +109,18 @@ def parse_endpoint(text: str) -> EndpointSpec:
     if not (baud.isascii() and baud.isdigit()) or not hasattr(termios, f"B{int(baud)}"):
         raise ValueError(f"{text!r}: {baud!r} is not a baud rate this system supports")
     return EndpointSpec(text, "serial", device, int(baud))
+
+
+def is_local(spec: EndpointSpec) -> bool:
+    """Whether only this host reaches the endpoint: a serial device, or a loopback address
+    (``localhost``, ``127.0.0.0/8``, ``::1``).  A router signs on a trusted endpoint's
+    behalf, so one that is not local must be acknowledged by the operator."""
+    if spec.kind == "serial" or spec.host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(spec.host.strip("[]")).is_loopback
+    except ValueError:  # a host name: it may resolve anywhere
+        return False
 
 
 class Transport:
@@ -197,7 +212,7 @@ class UdpTransport(Transport):
         except OSError:
             self.sock.close()
             raise
-        self.sock.settimeout(_POLL_S)
+        self.sock.setblocking(False)  # read until empty, then wait (module docstring)
 
     @property
     def address(self) -> tuple[str, int]:
@@ -215,10 +230,14 @@ class UdpTransport(Transport):
         self.sock.close()
 
     def _run(self) -> None:
+        recvfrom, fixed = self.sock.recvfrom, self.fixed
+        poller = select.poll()
+        poller.register(self.sock, select.POLLIN)
         while not self._stop.is_set():
             try:
-                datagram, sender = self.sock.recvfrom(65_535)
-            except TimeoutError:
+                datagram, sender = recvfrom(65_535)
+            except BlockingIOError:  # drained: wait for the next (or for close())
+                poller.poll(_POLL_S * 1000)
                 continue
             except (ConnectionRefusedError, ConnectionResetError):
                 continue  # udpout: nobody listens there yet (ICMP port unreachable)
@@ -232,7 +251,7 @@ class UdpTransport(Transport):
             except InvalidFrameError:  # garbage around a frame, a frame cut short
                 frames, dropped = [], len(datagram)
             if self._deliver is not None:
-                self._deliver(self, None if self.fixed else sender, frames, dropped)
+                self._deliver(self, None if fixed else sender, frames, dropped)
 
 
 class _StalledError(OSError):

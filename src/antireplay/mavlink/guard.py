@@ -16,14 +16,17 @@ lease writes (claim, renew, release) are serialized among themselves.
 Persistence: a lease and a restart fence, not an fsync per frame.  MAVLink timestamps are
 wall-anchored, so the store keeps a **lease** (accepts only while ``now <= lease``, renewed
 by :meth:`MavlinkGuard.tick`, which its owner's timer calls every ``persist_interval_s``:
-the router's one timer for all its guards), ``ahead`` (the largest ``ts - now`` accepted,
-written before accepting a frame that exceeds it) and each stream's high-water.  At start
-the restart fence is ``previous lease expiry + ahead``: everything accepted before a stop or
-``kill -9`` is refused; after a crash the lease is claimed once the old one has expired (no
-waiting in :meth:`MavlinkGuard.start`: the owner's timer tries again).  A lost store fences
-at the loss time plus ``max_forward_s``.  The lease is exclusive (odd/even generations
-through ``advance``): a second guard on one prefix is ``STATE_UNAVAILABLE`` until it takes
-over; guards *active at once* use ``write_through=True`` (one store write per frame).
+the router's one timer for all its guards), ``high`` (the highest timestamp accepted past
+the lease, by whole seconds, written before accepting a frame that exceeds it) and each
+stream's high-water.  At start the restart fence is ``max(previous lease expiry, high)``:
+everything accepted before a stop or ``kill -9`` is refused, and a frame once accepted
+ahead of the clock fences only until the wall clock passes its timestamp; after a crash
+the lease is claimed once the old one has expired (no waiting in
+:meth:`MavlinkGuard.start`: the owner's timer tries again).  A lost store fences at the
+loss time plus ``max_forward_s``; :meth:`MavlinkGuard.fenced_until` says until when.  The
+lease is exclusive (odd/even generations through ``advance``): a second guard on one prefix
+is ``STATE_UNAVAILABLE`` until it takes over; guards *active at once* use
+``write_through=True`` (one store write per frame).
 """
 
 from __future__ import annotations
@@ -39,13 +42,13 @@ from antireplay.core.errors import (
     SignatureInvalidError,
     StateUnavailableError,
 )
-from antireplay.mavlink.codec import UNITS_PER_S, Frame, mav_time, parse_frame
+from antireplay.mavlink.codec import MAV_EPOCH, UNITS_PER_S, Frame, mav_time, parse_frame
 from antireplay.mavlink.policy import Facts, FrameAdmission, MavPolicy, Persist
 from antireplay.state import ReplayStore
 
 __all__ = ["FrameAdmission", "MavVerdict", "MavlinkGuard"]
 
-_MAX_STEPS = 8  # Persist steps one frame may need (claim, lookup, renew, ahead, through)
+_MAX_STEPS = 8  # Persist steps one frame may need (claim, lookup, renew, high, through)
 
 
 @dataclass(frozen=True, slots=True)
@@ -154,6 +157,16 @@ class MavlinkGuard:
         """Timestamps at or below this are refused (module docstring)."""
         return self.policy.restart_fence
 
+    def fenced_until(self) -> tuple[float, str] | None:
+        """While the restart fence lies ahead of the clock: until when (wall seconds) and
+        why (:attr:`MavPolicy.fence_cause <antireplay.mavlink.policy.MavPolicy.fence_cause>`);
+        ``None`` once a frame stamped now passes it."""
+        fence = self.policy.restart_fence
+        until = MAV_EPOCH + fence / UNITS_PER_S
+        if fence < 0 or self.clock.wall() > until:
+            return None
+        return until, self.policy.fence_cause
+
     @property
     def claimed(self) -> bool:
         """Whether this guard holds its lease (always true without periodic persistence)."""
@@ -216,10 +229,10 @@ class MavlinkGuard:
         elif step.renew:
             self.counts["frame_path_renewals"] += 1
             self._renew(now)
-        elif step.ahead is not None:
-            store.advance(self.policy.ahead_key, step.ahead)
+        elif step.high is not None:
+            store.advance(self.policy.high_key, step.high)
             with self._lock:
-                self.policy.ahead_persisted(step.ahead)
+                self.policy.high_persisted(step.high)
         elif step.through is not None:
             facts.through = store.advance(*step.through)
         return facts
@@ -292,13 +305,19 @@ class MavlinkGuard:
             if policy.generation:
                 return  # another thread claimed it meanwhile
             found = store.current(policy.lease_key)
-            ahead = store.current(policy.ahead_key)
+            high = store.current(policy.high_key)
+            ahead = None if high is not None else store.current(policy.ahead_key)
             lost = store.verify().fence
             with self._lock:
-                value = policy.claim(found, ahead, lost, now)
+                value = policy.claim(found, high, lost, now, ahead)
             written = store.advance(policy.lease_key, value)
             with self._lock:
                 policy.claimed(value, written)
+                migrate = policy.take_migration()
+            if migrate is not None:  # the previous version's margin, now a timestamp
+                store.advance(policy.high_key, migrate)
+                with self._lock:
+                    policy.high_persisted(migrate)
 
     def _renew(self, now: int) -> None:
         """Extend the lease to ``now + 2 intervals``; losing it to another guard fails closed."""

@@ -17,14 +17,19 @@ own link id from a ground link).
 
 :meth:`MavPolicy.commit` judges again and either commits in memory (``None``: accepted) or
 returns :class:`Persist`: what must be read or made durable first (claim the lease, a new
-stream's stored high-water, renew a lapsed lease, raise the ``ahead`` margin, or, written
-through, advance the stream).  The driver does it, reports it in :class:`Facts` (or via
-:meth:`claimed`, :meth:`renewed`, :meth:`ahead_persisted`) and calls ``commit`` again:
-persist, then believe.  Of two racers on one timestamp the second is refused by the
-re-judgement.  **Lease arithmetic**: the lease value is ``generation * 2**42 + expiry in
-ms``; odd generations are held, even released; a claim is refused while an odd lease is
-live (plus ``lease_skew``); the restart fence is the previous expiry plus ``ahead``, and
-after a store data loss the loss time plus ``max_forward``.
+stream's stored high-water, renew a lapsed lease, raise the persisted highest timestamp,
+or, written through, advance the stream).  The driver does it, reports it in
+:class:`Facts` (or via :meth:`claimed`, :meth:`renewed`, :meth:`high_persisted`) and calls
+``commit`` again: persist, then believe.  Of two racers on one timestamp the second is
+refused by the re-judgement.  **Lease arithmetic**: the lease value is ``generation *
+2**42 + expiry in ms``; odd generations are held, even released; a claim is refused while
+an odd lease is live (plus ``lease_skew``).  The restart fence is a *timestamp*, never a
+margin: the previous lease's expiry (a clean stop writes the highest timestamp accepted),
+the persisted highest timestamp (``high``: written, by whole seconds, before accepting a
+frame stamped past the held lease) and after a store data loss the loss time plus
+``max_forward``.  A clock spike fences only until the wall clock passes it.  A state of
+the previous version holds a margin (``ahead``) instead: it is read once as ``expiry +
+ahead`` (that version's fence) and migrated to ``high`` (:meth:`take_migration`).
 """
 
 from __future__ import annotations
@@ -48,7 +53,13 @@ from antireplay.mavlink.codec import MAV_EPOCH, TS_LIMIT, UNITS_PER_S, Frame, ta
 
 MS = UNITS_PER_S // 1000  # the lease's expiry is stored in milliseconds
 GENERATION = 2**42  # lease value = generation * 2**42 + expiry (ms): 139 years of expiry
-AHEAD_STEP = UNITS_PER_S // 10  # the persisted ahead margin grows by 0.1 s steps
+HIGH_STEP = UNITS_PER_S  # the persisted highest timestamp rises by whole seconds
+_CAUSES = ("lease", "high", "lost")  # a restart fence's causes, the most telling last
+
+
+class RestartFenceError(MessageStaleError):
+    """At or below the restart fence: the previous run may have accepted it (a driver
+    summarises these instead of reporting each one)."""
 
 
 class FrameAdmission(StrEnum):
@@ -65,7 +76,7 @@ class Persist:
     claim: bool = False  # the lease is not held: claim it (:meth:`MavPolicy.claim`)
     lookup: str | None = None  # a new stream: read this key's stored high-water
     renew: bool = False  # the lease has lapsed: renew it (:meth:`MavPolicy.renewal`)
-    ahead: int | None = None  # advance the ahead key to this margin
+    high: int | None = None  # advance the highest-timestamp key to this timestamp
     through: tuple[str, int] | None = None  # write-through: advance this key to this value
 
 
@@ -129,11 +140,19 @@ class MavPolicy:
         self.counts: Counter[str] = Counter()
         self.generation = 0  # odd while this guard holds the lease, 0 when it does not
         self.lease = -1  # frames are accepted only while now <= lease
-        self.ahead = 0  # the persisted largest ts - now
-        self.high = -1  # the largest receiver time at which a frame was accepted
+        self.saved_high = -1  # the persisted highest timestamp (a restart fences there)
+        self.top = -1  # the highest timestamp accepted
         self.restart_fence = -1
+        #: Why the restart fence is where it is: ``lease`` (the previous run), ``high`` (a
+        #: timestamp accepted ahead of the clock) or ``lost`` (a new or lost state).
+        self.fence_cause = ""
         self.dirty: dict[str, int] = {}
-        self._claim = (0, -1)  # a pending claim's ahead margin and restart fence
+        self._claim: tuple[int, int, str, int | None] = (-1, -1, "", None)
+        self._migrate: int | None = None
+
+    @property
+    def high_key(self) -> str:
+        return f"{self.prefix}:high"
 
     @property
     def lease_key(self) -> str:
@@ -141,6 +160,7 @@ class MavPolicy:
 
     @property
     def ahead_key(self) -> str:
+        """The previous version's margin (read once, migrated to :attr:`high_key`)."""
         return f"{self.prefix}:ahead"
 
     def store_key(self, key: tuple[int, int, int]) -> str:
@@ -214,9 +234,9 @@ class MavPolicy:
         if self.periodic:
             if now > self.lease:
                 return Persist(renew=True)
-            if ts - now > self.ahead:
-                return Persist(ahead=-(-(ts - now) // AHEAD_STEP) * AHEAD_STEP)
-            self.high = max(self.high, now)
+            if ts > max(self.lease, self.saved_high):
+                return Persist(high=-(-ts // HIGH_STEP) * HIGH_STEP)
+            self.top = max(self.top, ts)
         elif self.stored:
             if facts is None or facts.through is None:
                 return Persist(through=(self.store_key(key), ts))
@@ -236,11 +256,17 @@ class MavPolicy:
         assert last is not None
         return last
 
-    def ahead_persisted(self, margin: int) -> None:
-        """The driver made ``margin`` durable under :attr:`ahead_key`."""
-        if margin > self.ahead:
-            self.ahead = margin
-            self.counts["ahead_raises"] += 1
+    def high_persisted(self, high: int) -> None:
+        """The driver made ``high`` durable under :attr:`high_key`."""
+        if high > self.saved_high:
+            self.saved_high = high
+            self.counts["high_raises"] += 1
+
+    def take_migration(self) -> int | None:
+        """The highest timestamp a claim converted from the previous version's ``ahead``
+        margin: the driver writes it under :attr:`high_key` (then :meth:`high_persisted`)."""
+        migrate, self._migrate = self._migrate, None
+        return migrate
 
     def take_dirty(self) -> dict[str, int]:
         """The streams' high-water marks that moved since the last flush (now the driver's)."""
@@ -254,29 +280,39 @@ class MavPolicy:
 
     # --- the lease ---------------------------------------------------------------------------
 
-    def claim(self, found: int | None, ahead: int | None, lost: float, now: int) -> int:
-        """The lease value that claims the state, from the stored lease, ahead margin and the
-        store's loss time (``NEVER``: none); ``STATE_UNAVAILABLE`` while another holds it."""
+    def claim(
+        self, found: int | None, high: int | None, lost: float, now: int, ahead: int | None = None
+    ) -> int:
+        """The lease value that claims the state, from the stored lease, highest timestamp
+        (``ahead``: the previous version's margin, used only without one) and the store's
+        loss time (``NEVER``: none); ``STATE_UNAVAILABLE`` while another holds it."""
         generation, until = lease_parts(found or 0)
         if generation % 2 and now <= until + self.lease_skew:
             raise StateUnavailableError(
                 f"another guard holds the MAVLink state {self.prefix!r} on this store "
                 f"for {(until + self.lease_skew - now) / UNITS_PER_S:.2f} s more"
             )
-        fence = until + (ahead or 0) if generation else -1
+        fences = [(until if generation else -1, "lease")]
+        migrate = None
+        if high is None and ahead and generation:  # the previous version's fence, converted
+            high = migrate = until + ahead
+        fences.append((-1 if high is None else high, "high"))
         if lost != NEVER:  # a new process (memory), a lost file, a flushed Redis
-            fence = max(fence, int((lost - MAV_EPOCH) * UNITS_PER_S) + self.max_forward)
-        self._claim = (ahead or 0, fence)
+            fences.append((int((lost - MAV_EPOCH) * UNITS_PER_S) + self.max_forward, "lost"))
+        fence, cause = max(fences, key=lambda f: (f[0], _CAUSES.index(f[1])))
+        self._claim = (fence, -1 if high is None else high, cause if fence >= 0 else "", migrate)
         return lease_value(generation + (1 if generation % 2 == 0 else 2), now + self.lease_len)
 
     def claimed(self, value: int, written: bool) -> None:
         """The driver wrote the claim ``value`` (``written``: the store advanced to it)."""
         if not written:
             raise StateUnavailableError(f"another guard claimed {self.prefix!r} at once")
-        ahead, fence = self._claim
-        self.generation, self.ahead = lease_parts(value)[0], ahead
+        fence, high, cause, self._migrate = self._claim
+        self.generation = lease_parts(value)[0]
+        self.saved_high = max(self.saved_high, high)
         self.lease = max(self.lease, lease_parts(value)[1])
-        self.restart_fence = max(self.restart_fence, fence)
+        if fence > self.restart_fence:
+            self.restart_fence, self.fence_cause = fence, cause
         self.counts["lease_claims"] += 1
 
     def renewal(self, now: int) -> int:
@@ -300,13 +336,13 @@ class MavPolicy:
 
     def release(self, now: int) -> int | None:
         """Give the lease up (clean stop): the value to write, None if none is held.  The
-        expiry written is the last moment a frame was accepted, so the restart fence starts
-        there."""
+        expiry written is the stop time or the highest timestamp accepted, the later, so the
+        restart fence starts there."""
         if not self.generation:
             return None
         released = self.generation + 1
         self.generation, self.lease = 0, -1
-        return lease_value(released, max(now, self.high))
+        return lease_value(released, max(now, self.top))
 
     # --- the stream rules --------------------------------------------------------------------
 
@@ -319,7 +355,7 @@ class MavPolicy:
                 f"(limit {_s(self.max_forward)} s)"
             )
         if ts <= self.restart_fence:
-            raise MessageStaleError(
+            raise RestartFenceError(
                 f"old timestamp: {_s(self.restart_fence - ts)} s below the restart fence "
                 "(the previous run may have accepted it)"
             )

@@ -56,6 +56,14 @@ or, from the vehicle, is dropped as ``NO_ROUTE``.  A frame with no receiver at
 all is dropped as ``NO_PEER`` (counted, not reported: telemetry before a ground
 station authenticated is normal).  A source system that authenticated on one side
 is refused on the other (:meth:`~antireplay.mavlink.policy.MavPolicy.bind_direction`).
+**Ids bound to a station's link**: the ``(system, component)`` of a frame a ground link
+authenticated with its key belong to that link (and ground links sharing its key): a
+frame claiming them from any other link (a trusted tool's, signed on its behalf; another
+key's) is refused as ``SOURCE_BOUND`` before it is judged, and never moves the route.
+
+**Fences said once**: refusals behind a guard's restart fence are counted each, reported
+the first per link, then folded into one line per interval (:mod:`.fencing`);
+:meth:`MavlinkRouter.fence` says until when and why, for the start line and readiness.
 
 Bounded work: the route table holds ``max_routes`` systems, per-stream counters
 ``max_stream_stats`` streams (accepted streams only: a forged frame cannot add
@@ -75,6 +83,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -90,12 +99,14 @@ from antireplay.core.errors import (
 from antireplay.core.messages import StrEnum
 from antireplay.mavlink.codec import Frame, claimed_source, sign, target
 from antireplay.mavlink.endpoints import Peer, Transport
+from antireplay.mavlink.fencing import FENCE_SUMMARY_S, FenceFolds, until_text
 from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
-from antireplay.mavlink.policy import FrameAdmission
+from antireplay.mavlink.policy import FrameAdmission, RestartFenceError
 from antireplay.mavlink.signer import TimestampSource
 
 log = logging.getLogger("antireplay.mavlink")
 _CLAIM_RETRY_S = 0.05  # how often the timer tries a lease a crashed run still holds
+SOURCE_BOUND = "SOURCE_BOUND"  # ids a ground station authenticated, claimed on another link
 
 INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
 Location = tuple["RouterLink", Peer | None]
@@ -117,6 +128,8 @@ class RouterLink:
     role: Role
     key: bytes | None = None
     max_peers: int = 8
+    #: A trusted link the operator acknowledged on the network (not loopback or serial).
+    network: bool = False
     #: Peers that authenticated, least recent first (a ``udpin`` or ``tcpin`` link's receivers).
     peers: OrderedDict[Peer, None] = field(default_factory=OrderedDict)
 
@@ -134,8 +147,17 @@ class FrameRefusal:
     code: str
     reason: str
     raw: bytes
+    frames: int = 1  # a summary of the refusals behind a restart fence: how many
+    #: Behind a restart fence, after the first on its link: a later summary says it (the
+    #: log and the audit trail skip it; a hook that counts every refusal still sees it).
+    folded: bool = False
 
     def __str__(self) -> str:
+        if self.frames != 1:
+            return (
+                f"refused {self.frames} {self.direction} frames on {self.link}: "
+                f"{self.code}: {self.reason}"
+            )
         source = claimed_source(self.raw)
         claims = "" if source is None else f" claiming {source[0]}/{source[1]}"
         return f"refused {self.direction} frame on {self.link}{claims}: {self.code}: {self.reason}"
@@ -198,6 +220,9 @@ class MavlinkRouter:
         self.stats = RouterStats()
         self._by_transport = {id(link.transport): link for link in links}
         self._routes: OrderedDict[int, dict[int, Location]] = OrderedDict()
+        #: ``(system, component)`` a ground station authenticated with its key, to its link.
+        self._bound: OrderedDict[tuple[int, int], RouterLink] = OrderedDict()
+        self._folds = FenceFolds(max_routes)
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._claimed = threading.Event()
@@ -228,6 +253,7 @@ class MavlinkRouter:
         for link in self.links:
             link.transport.close()
         self._stop_timer()
+        self._summarise_fenced(time.monotonic(), final=True)
         for guard in self._guards():
             guard.stop()
 
@@ -243,6 +269,14 @@ class MavlinkRouter:
                 self.stats.timer_failures += 1
         if all(guard.claimed for guard in self._guards()):
             self._claimed.set()
+        self._summarise_fenced(time.monotonic())
+
+    def fence(self) -> tuple[float, str] | None:
+        """While the router refuses frames stamped now: until when (wall seconds) and why
+        (``lease``, ``high`` or ``lost``: :attr:`~antireplay.mavlink.policy.MavPolicy.fence_cause`),
+        the latest of its guards' restart fences still ahead of the clock; else ``None``."""
+        found = [fence for guard in self._guards() if (fence := guard.fenced_until())]
+        return max(found) if found else None
 
     def _run_timer(self) -> None:
         """One timer for every guard and signer (no thread per guard): the router's period
@@ -287,8 +321,21 @@ class MavlinkRouter:
                 b"",
             )
         for frame in frames:
+            if link.role is not Role.VEHICLE:
+                owner = self._bound.get((frame.sysid, frame.compid))
+                if owner is not None and not _same_station(owner, link):
+                    self._refuse(
+                        direction, link, SOURCE_BOUND,
+                        f"system {frame.sysid} component {frame.compid} authenticated on "
+                        f"{owner.name}: bound to that link, refused from this one",
+                        frame.raw,
+                    )  # fmt: skip
+                    continue
             try:
                 verdict = self._judge(link, frame)
+            except RestartFenceError as exc:
+                self._fence_refused(direction, link, exc, frame)
+                continue
             except ReplayAttackError as exc:
                 self._refuse(direction, link, exc.code, exc.reason, frame.raw)
                 continue
@@ -338,6 +385,7 @@ class MavlinkRouter:
         if verdict.signed:
             if link.role is Role.GROUND:
                 self._greet(link, peer, frame.sysid)
+                self._bind(link, frame)
             if peer is not None:
                 link.peers[peer] = None
                 link.peers.move_to_end(peer)
@@ -358,6 +406,17 @@ class MavlinkRouter:
             streams.move_to_end(key)
             if len(streams) > self.max_stream_stats:
                 streams.popitem(last=False)
+
+    def _bind(self, link: RouterLink, frame: Frame) -> None:
+        """Bind the ids a ground station authenticated with its key to its link (caller
+        holds ``_lock``); a link with the same key may use them too (a redundant link)."""
+        ids = (frame.sysid, frame.compid)
+        owner = self._bound.get(ids)
+        if owner is None or not _same_station(owner, link):
+            self._bound[ids] = link
+        self._bound.move_to_end(ids)
+        if len(self._bound) > self.max_routes:
+            self._bound.popitem(last=False)
 
     def _greet(self, link: RouterLink, peer: Peer | None, system: int) -> None:
         """Log a ground station's first authenticated frame, once per station (bounded)."""
@@ -418,12 +477,53 @@ class MavlinkRouter:
 
     def _refuse(self, direction: str, link: RouterLink, code: str, reason: str, raw: bytes) -> None:
         self.stats.dropped[f"{direction}:{code}"] += 1
+        self._report(FrameRefusal(direction, link.name, str(code), reason, raw))
+
+    def _report(self, refusal: FrameRefusal) -> None:
         if self.on_reject is None:
             return
         try:
-            self.on_reject(FrameRefusal(direction, link.name, str(code), reason, raw))
+            self.on_reject(refusal)
         except AntiReplayError:  # an audit trail that is down must not stop the forwarding
             self.stats.unaudited += 1
+
+    def _fence_refused(
+        self, direction: str, link: RouterLink, exc: RestartFenceError, frame: Frame
+    ) -> None:
+        """Count a refusal behind the restart fence; report the first on a link at once, the
+        rest marked ``folded`` and said by one line per ``FENCE_SUMMARY_S``
+        (:meth:`_summarise_fenced`)."""
+        self.stats.dropped[f"{direction}:{exc.code}"] += 1
+        sender = (frame.sysid, frame.compid)
+        if not self._folds.refused(direction, link.name, str(exc.code), sender, time.monotonic()):
+            self._report(
+                FrameRefusal(
+                    direction, link.name, str(exc.code), exc.reason, frame.raw, folded=True
+                )
+            )
+            return
+        until = until_text(self.fence(), self.outbound.clock.wall())
+        self._report(
+            FrameRefusal(
+                direction, link.name, str(exc.code),
+                f"{exc.reason}; fenced{until}: further refusals behind the fence are "
+                f"summarised every {FENCE_SUMMARY_S:g} s", frame.raw,
+            )
+        )  # fmt: skip
+
+    def _summarise_fenced(self, now: float, *, final: bool = False) -> None:
+        """Report the folded refusals behind the fence that are due (:mod:`.fencing`)."""
+        wall = self.outbound.clock.wall()
+        for line in self._folds.summaries(self.fence(), wall, now, final=final):
+            self._report(
+                FrameRefusal(line.direction, line.link, line.code, line.reason, b"", line.frames)
+            )
+
+
+def _same_station(owner: RouterLink, link: RouterLink) -> bool:
+    """Whether ``link`` may use ids authenticated on ``owner``: it is that link, or a ground
+    link with the same key (the station's other radio)."""
+    return link is owner or (link.role is Role.GROUND and link.key == owner.key)
 
 
 def _receivers(link: RouterLink) -> Iterable[Peer | None]:

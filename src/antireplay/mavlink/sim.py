@@ -8,6 +8,13 @@ and ATTITUDE at a few hertz, and answers each COMMAND_LONG that verifies with a
 COMMAND_ACK addressed to its sender.  Frames that do not verify (unsigned, another key, a
 replayed timestamp: pymavlink's own signing checks) are counted and ignored.
 
+**SETUP_SIGNING as ArduPilot handles it** (``GCS_Signing.cpp``): ignored while armed
+(``--armed``, or a MAV_CMD_COMPONENT_ARM_DISARM that verifies); otherwise the key and the
+initial timestamp are taken at once (every later frame is signed with the new key, its
+timestamp at least the one given), and an all-zero key disables signing.  Without a key
+(never provisioned) the simulator signs nothing and takes every frame, as a flight
+controller with signing off does.  ``HEARTBEAT.base_mode`` says whether it is armed.
+
 Two transports: UDP (it sends to ``HOST:PORT``, the router's ``--vehicle udpin:HOST:PORT``,
 and hears the answers on its own port) or a pseudo-terminal (the router opens its path as
 a serial ``--vehicle PATH,115200``).  :meth:`SimVehicle.run` loops until its stop event is
@@ -52,16 +59,18 @@ class SimVehicle:
 
     def __init__(
         self,
-        key: bytes,
+        key: bytes | None,
         *,
         system_id: int = 1,
         udp: tuple[str, int] | None = None,
         pty: bool = False,
         rate_hz: float = 4.0,
         clock: Clock | None = None,
+        armed: bool = False,
     ) -> None:
-        if len(key) != 32:
+        if key is not None and len(key) != 32:
             raise ValueError("a MAVLink signing key is 32 bytes")
+        self.armed = armed
         self.counts: Counter[str] = Counter()
         self.rate_hz = rate_hz
         self.timestamps = TimestampSource(clock)
@@ -78,11 +87,20 @@ class SimVehicle:
             self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self._sock.bind((self._to[0], 0))
         self.mav = dialect.MAVLink(_Out(self._send), srcSystem=system_id, srcComponent=1)
-        self.mav.signing.secret_key = key
-        self.mav.signing.sign_outgoing = True
         self.mav.signing.link_id = 0
         self.mav.signing.timestamp = self.timestamps.next()
+        self._use_key(key)
         self._started = time.monotonic()
+
+    @property
+    def key(self) -> bytes | None:
+        """The key the simulator signs and verifies with (None: signing is off)."""
+        key: bytes | None = self.mav.signing.secret_key
+        return key
+
+    def _use_key(self, key: bytes | None) -> None:
+        self.mav.signing.secret_key = key
+        self.mav.signing.sign_outgoing = key is not None
 
     @property
     def where(self) -> str:
@@ -105,8 +123,9 @@ class SimVehicle:
         """One HEARTBEAT and one ATTITUDE (a slow roll, so a ground station sees it move)."""
         boot_ms = int((time.monotonic() - self._started) * 1000) % 2**32
         self._stamp()
+        armed = dialect.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0
         self.mav.heartbeat_send(
-            dialect.MAV_TYPE_QUADROTOR, dialect.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4
+            dialect.MAV_TYPE_QUADROTOR, dialect.MAV_AUTOPILOT_ARDUPILOTMEGA, armed, 0, 4
         )
         self._stamp()
         roll = 0.2 * math.sin(boot_ms / 1000)
@@ -125,8 +144,12 @@ class SimVehicle:
             kind = message.get_type()
             if kind == "BAD_DATA":
                 self.counts["refused"] += 1
+            elif kind == "SETUP_SIGNING":
+                self._setup_signing(message)
             elif kind == "COMMAND_LONG":
                 self.counts["command"] += 1
+                if message.command == dialect.MAV_CMD_COMPONENT_ARM_DISARM:
+                    self.armed = message.param1 == 1
                 self._stamp()
                 self.mav.command_ack_send(
                     message.command, dialect.MAV_RESULT_ACCEPTED, 0, 0,
@@ -136,20 +159,36 @@ class SimVehicle:
             else:
                 self.counts["other"] += 1
 
+    def _setup_signing(self, message: Any) -> None:
+        """A new key, as ArduPilot takes it: never while armed; all zero turns signing off."""
+        if message.target_system not in {0, self.mav.srcSystem}:
+            return
+        if self.armed:
+            self.counts["setup_refused_armed"] += 1
+            return
+        key = bytes(message.secret_key)
+        self._use_key(key if any(key) else None)
+        self.mav.signing.timestamp = max(self.mav.signing.timestamp, message.initial_timestamp)
+        self.counts["setup_signing"] += 1
+
     def run(self, stop: threading.Event) -> None:
         """Telemetry every ``1 / rate_hz`` seconds, answers as frames come, until ``stop``."""
         period = 1.0 / self.rate_hz
         due = time.monotonic()
-        source = self._sock.fileno() if self._sock is not None else self._master
-        assert source is not None
         while not stop.is_set():
             now = time.monotonic()
             if now >= due:
                 self.telemetry()
                 due = max(due + period, now)
-            ready, _, _ = select.select([source], [], [], min(max(due - now, 0.0), 0.1))
-            if ready:
-                self.handle(os.read(source, 65_535))
+            self.poll(min(max(due - now, 0.0), 0.1))
+
+    def poll(self, timeout: float) -> None:
+        """Handle what arrives within ``timeout`` seconds (one read at most)."""
+        source = self._sock.fileno() if self._sock is not None else self._master
+        assert source is not None
+        ready, _, _ = select.select([source], [], [], timeout)
+        if ready:
+            self.handle(os.read(source, 65_535))
 
     def close(self) -> None:
         if self._sock is not None:

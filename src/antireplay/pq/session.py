@@ -24,7 +24,9 @@ It picks a **session sequence** (strictly increasing, from a
     session_id = seq u64 | transcript[:8]
     key(label) = HKDF-SHA256(ikm=shared_secret, salt=transcript, info="antireplay/v1 " + label)
 
-with labels ``i2r data``, ``r2i data`` and ``confirm``.
+with labels ``i2r data``, ``r2i data`` and ``confirm``.  A responder that refuses a
+parsed HS1 may say why, MACed under :func:`refusal_key` (HKDF of the ML-KEM secret alone,
+salted with SHA-256 of that HS1): only the KEM key's holder and that HS1's initiator know it.
 
 **Hybrid option** (X25519 + ML-KEM-1024, for operators who must keep a classical
 guarantee): the responder also owns a static X25519 key (``x25519_key``) that the
@@ -146,6 +148,12 @@ def _hkdf(secret: bytes, salt: bytes, label: str) -> bytes:
         algorithm=hashes.SHA256(), length=32, salt=salt, info=b"antireplay/v1 " + label.encode()
     )
     return kdf.derive(secret)
+
+
+def refusal_key(kem_secret: bytes, hs1_digest: bytes) -> bytes:
+    """A refusal's MAC key: only the KEM key's holder (the responder the HS1 is addressed
+    to) and that HS1's initiator know it, and it is new for every HS1 (one attempt)."""
+    return _hkdf(kem_secret, hs1_digest, "refusal")
 
 
 @dataclass(frozen=True)
@@ -306,6 +314,7 @@ class Initiator:
         self.signing_key = signing_key
         self._clock = resolve(clock)
         self._pending: dict[bytes, tuple[bytes, bytes]] = {}
+        self._refusal_keys: dict[bytes, bytes] = {}  # by HS1 digest (:func:`refusal_key`)
 
     def start(
         self,
@@ -328,9 +337,16 @@ class Initiator:
         body = head + raw_id + key_hash + kem_ct + share + os.urandom(NONCE_LEN)
         hs1 = body + self.signing_key.sign(body, _CTX_HS1)
         if len(self._pending) >= MAX_PENDING:
-            del self._pending[next(iter(self._pending))]  # the oldest unanswered handshake
-        self._pending[hashlib.sha256(hs1).digest()] = (hs1, secret)
+            oldest = next(iter(self._pending))  # the oldest unanswered handshake
+            del self._pending[oldest], self._refusal_keys[oldest]
+        digest = hashlib.sha256(hs1).digest()
+        self._pending[digest] = (hs1, secret)
+        self._refusal_keys[digest] = refusal_key(kem_secret, digest)
         return hs1
+
+    def refusal_key(self, hs1: bytes) -> bytes | None:
+        """The key the responder MACs its refusal of ``hs1`` under (None: not pending here)."""
+        return self._refusal_keys.get(hashlib.sha256(hs1).digest())
 
     def finish(self, hs1: bytes, hs2: bytes) -> Session:
         """Check the responder's key confirmation and derive the session; a forged HS2
@@ -348,7 +364,7 @@ class Initiator:
         keys = _HandshakeKeys.derive(secret, transcript)
         if sid[8:] != transcript[:8] or not hmac.compare_digest(mac, keys.confirmation):
             raise SignatureInvalidError("HS2 key confirmation failed")
-        del self._pending[digest]
+        del self._pending[digest], self._refusal_keys[digest]
         return Session(
             sid, Direction.I2R, "responder", keys.i2r, keys.r2i, signing_key=self.signing_key
         )
@@ -428,6 +444,16 @@ class Responder:
         with self._lock:  # a full table evicts the oldest sequence, its keys with it
             self._sessions.commit(seq, seq, lambda: session)
         return session, hs2
+
+    def refusal_key(self, hs1: bytes) -> bytes | None:
+        """The key to MAC a refusal of ``hs1`` under (:func:`refusal_key`), None for an HS1
+        that does not parse or is addressed to another key: its sender could not check it."""
+        try:
+            kem_ct = self._parse_hs1(hs1)[5]
+            secret = self.kem_key.decapsulate(kem_ct)
+        except (InvalidFrameError, ValueError):
+            return None
+        return refusal_key(secret, hashlib.sha256(hs1).digest())
 
     def _parse_hs1(self, hs1: bytes) -> tuple[str, str, float, bytes, bytes, bytes, bytes]:
         if not isinstance(hs1, bytes) or len(hs1) < _HS1_HEAD.size:

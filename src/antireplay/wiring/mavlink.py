@@ -4,7 +4,8 @@ Theory of operation
 -------------------
 :func:`open_router` is all ``mavlink-router`` does between reading its configuration and
 waiting for a signal, leaves first: the link keys (:func:`router_endpoints`: a key file,
-a passphrase from the environment, MAVProxy's ``signing.keys``), the allow-lists
+a passphrase from the environment, MAVProxy's ``signing.keys``, whose ``sysid:N`` record,
+N the router's system id, is the default key: :func:`default_key`), the allow-lists
 (:func:`allowed_messages`), the audit trail with its retention, spill and floors, and the
 store (its spec parsed once, anchored as ``state.anchor`` says) through
 :mod:`~antireplay.wiring.leaves`, the same functions ``serve`` opens its own through.
@@ -14,7 +15,10 @@ its own store prefix (``mav-in``, ``mav-out``), a durable timestamp source per k
 router signs with, and the refusal handler (:func:`mavlink_auditor`), which logs why each
 dropped frame was refused and records it with its direction and the source its header
 claims (``mav:inbound:255/190``, unverified) through the one rate-limited
-:class:`~antireplay.audit.RefusalAuditor`; what it folds is a metric.  The MAVLink stack
+:class:`~antireplay.audit.RefusalAuditor`; what it folds is a metric.  A trusted endpoint
+(signed on its behalf) must be loopback or serial unless ``trust_network`` acknowledges it
+(:func:`trusted_endpoints`); :func:`fence_notice` says a restart fence on the start line and
+in readiness.  The MAVLink stack
 is imported only when a router is built, so the gateway does not load the MAVLink dialect.
 """
 
@@ -62,6 +66,8 @@ class RouterOptions:
     max_forward_s: float = 60.0
     new_stream_max_age_s: float = 60.0
     sign_link_id: int = 251
+    #: Trusted endpoints acknowledged on the network (:func:`trusted_endpoints`).
+    trust_network: frozenset[str] = frozenset()
 
 
 def build_mavlink_router(
@@ -122,7 +128,8 @@ def build_mavlink_router(
     try:
         for role, spec, key in specs:
             try:
-                links.append(RouterLink(open_transport(spec), role, key))
+                network = role is Role.TRUSTED and spec.text in options.trust_network
+                links.append(RouterLink(open_transport(spec), role, key, network=network))
             except OSError as exc:
                 raise OSError(exc.errno, f"{spec.text}: {exc.strerror or exc}") from exc
     except BaseException:
@@ -133,6 +140,37 @@ def build_mavlink_router(
         links, inbound, outbound, signers=signers, sign_link_id=options.sign_link_id,
         on_reject=on_reject or mavlink_auditor(audit),
     )  # fmt: skip
+
+
+_FENCE_WHY = {
+    "lease": (
+        "the previous run did not release its lease (a crash?): frames it accepted up to "
+        "then may come back", "it passes by itself; a clean stop (SIGTERM) releases the "
+        "lease at the stop time",
+    ),
+    "high": (
+        "the previous run accepted a frame stamped this far ahead of the clock",
+        "it passes when the wall clock reaches that timestamp",
+    ),
+}  # fmt: skip
+
+
+def fence_notice(router: MavlinkRouter, store: ReplayStore, wall: float) -> str | None:
+    """``fenced until T (n s more): why; what removes it`` while the router's restart
+    fence lies ahead of ``wall`` (every frame stamped now is refused), else ``None``."""
+    from antireplay.mavlink.fencing import until_text  # noqa: PLC0415
+
+    fence = router.fence()
+    if fence is None:
+        return None
+    why, remedy = _FENCE_WHY.get(fence[1]) or (
+        getattr(store, "loss_reason", None)
+        or f"a {store.backend} store starts with no history of what an earlier run accepted",
+        "it passes by itself; a persistent store kept across restarts (--store "
+        "sqlite:PATH, mavlink.store) starts unfenced after a clean stop, and a state anchor "
+        "(state.anchor) proves a restored one",
+    )
+    return f"fenced{until_text(fence, wall)}: {why}; {remedy}"
 
 
 def stop_router(router: MavlinkRouter) -> None:
@@ -253,15 +291,12 @@ def allowed_messages(entries: Sequence[str]) -> tuple[Allowed, Allowed]:
     return to_vehicle, from_vehicle
 
 
-def router_endpoints(section: MavlinkConfig) -> list[tuple[Role, str, bytes | None]]:
-    """``(role, connection string, key)`` for every endpoint the section names."""
-    from antireplay.mavlink import Role  # noqa: PLC0415 - the dialect loads on use
+def default_key(section: MavlinkConfig, keys: dict[str, str]) -> bytes | None:
+    """The key of every link without a line of its own: the vehicle's provisioned record
+    (``sysid:N``, N the router's system id), else the key file or the passphrase."""
+    from antireplay.mavlink import passphrase_key  # noqa: PLC0415 - the dialect loads on use
+    from antireplay.mavlink.provision import vehicle_record  # noqa: PLC0415
 
-    if not section.vehicle:
-        raise ConfigError(
-            "mavlink.vehicle", [], "a vehicle endpoint", message="give at least one "
-            "--vehicle (or --forward; mavlink.vehicle in the configuration)",
-        )  # fmt: skip
     default = read_key_file(section.key_file) if section.key_file is not None else None
     if section.passphrase_env is not None:
         if default is not None:
@@ -271,13 +306,60 @@ def router_endpoints(section: MavlinkConfig) -> list[tuple[Role, str, bytes | No
                 "mavlink.passphrase_env), not both",
             )  # fmt: skip
         default = passphrase_from(section.passphrase_env, "mavlink.passphrase_env")
+    provisioned = keys.get(vehicle_record(section.system_id))
+    return default if provisioned is None else passphrase_key(provisioned)
+
+
+def router_endpoints(section: MavlinkConfig) -> list[tuple[Role, str, bytes | None]]:
+    """``(role, connection string, key)`` for every endpoint the section names."""
+    from antireplay.mavlink import Role  # noqa: PLC0415 - the dialect loads on use
+
+    if not section.vehicle:
+        raise ConfigError(
+            "mavlink.vehicle", [], "a vehicle endpoint", message="give at least one "
+            "--vehicle (or --forward; mavlink.vehicle in the configuration)",
+        )  # fmt: skip
     keys = read_signing_keys(section.signing_keys)
+    default = default_key(section, keys)
     endpoints: list[tuple[Role, str, bytes | None]] = [
         (Role.VEHICLE, text, link_key(text, keys, default)) for text in section.vehicle
     ]
     endpoints += [(Role.GROUND, text, link_key(text, keys, default)) for text in section.ground]
-    endpoints += [(Role.TRUSTED, text, None) for text in section.trusted]
+    endpoints += [(Role.TRUSTED, text, None) for text in trusted_endpoints(section)]
     return endpoints
+
+
+def trusted_endpoints(section: MavlinkConfig) -> list[str]:
+    """``trusted``, each loopback or a serial device unless ``trust_network`` acknowledges
+    it exactly: the router signs whatever a trusted endpoint sends with the vehicle key, so
+    on the network anyone who reaches it commands the vehicle.  ConfigError names the
+    endpoint (or an acknowledgement that names no trusted network endpoint)."""
+    from antireplay.mavlink import is_local, parse_endpoint  # noqa: PLC0415
+
+    local = {}
+    for text in section.trusted:
+        try:
+            local[text] = is_local(parse_endpoint(text))
+        except ValueError as exc:
+            raise ConfigError("mavlink.trusted", text, "an endpoint", message=str(exc)) from None
+    for text in section.trust_network:
+        if local.get(text, True):
+            said = "is not a --trusted endpoint" if text not in local else "is local already"
+            raise ConfigError(
+                "mavlink.trust_network", text, "a trusted endpoint on the network, as given",
+                message=f"--trust-network {text}: {said} (mavlink.trust_network names a "
+                "--trusted endpoint that is not loopback or serial, exactly as given)",
+            )  # fmt: skip
+    for text, is_loopback in local.items():
+        if not is_loopback and text not in section.trust_network:
+            raise ConfigError(
+                "mavlink.trusted", text, "a loopback or serial endpoint",
+                message=f"--trusted {text}: not loopback or a serial device, and the router "
+                "signs whatever it receives with the vehicle key (anyone who reaches it "
+                "commands the vehicle); bind it to 127.0.0.1, or acknowledge this exact "
+                f"endpoint with --trust-network {text} (mavlink.trust_network)",
+            )  # fmt: skip
+    return list(section.trusted)
 
 
 def router_options(section: MavlinkConfig) -> RouterOptions:
@@ -286,7 +368,7 @@ def router_options(section: MavlinkConfig) -> RouterOptions:
     return RouterOptions(
         section.system_id, to_vehicle, from_vehicle, section.reorder_window,
         section.write_through, section.max_forward_s, section.new_stream_max_age_s,
-        section.sign_link_id,
+        section.sign_link_id, frozenset(section.trust_network),
     )  # fmt: skip
 
 

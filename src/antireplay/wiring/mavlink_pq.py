@@ -10,7 +10,8 @@ and free-space floors through :func:`~antireplay.wiring.leaves.open_trail`, the 
 ``serve`` opens its own through.  Then the :class:`~antireplay.mavlink.pq.link.PqLink` on
 them: refusals go to the rate-limited refusal auditor (quiet below the first floor), and
 a change of the session (established, rekeyed, lost, resumed) is logged at INFO and
-always audited (:func:`session_recorder`: it is authentic, and rare).
+always audited (:func:`session_recorder`: it is authentic, and rare); a verified refusal
+of the ground end's handshake is logged as a warning, once per reason.
 """
 
 from __future__ import annotations
@@ -112,7 +113,10 @@ def vehicle_end(section: PqVehicleConfig) -> VehicleEnd:
     if section.x25519_key is not None:
         hybrid = load_pem(section.x25519_key, x25519.X25519PrivateKey, f"{at}.x25519_key")
     responder = Responder(kem, registry, max_sessions=section.max_sessions, x25519_key=hybrid)
-    return VehicleEnd(responder, system_id=section.system_id, max_age_s=section.max_age_s)
+    return VehicleEnd(
+        responder, system_id=section.system_id, max_age_s=section.max_age_s,
+        air_bps=section.air_bps,
+    )  # fmt: skip
 
 
 def session_recorder(audit: AuditLog, clock: Clock | None = None) -> Callable[[SessionEvent], None]:
@@ -184,6 +188,6 @@ def open_pq_end(
     refusals = mavlink_auditor(audit, quiet=space.low)
     link = PqLink(
         end, *transports, on_reject=refusals, on_session=session_recorder(audit),
-        air_bps=section.air_bps,
+        on_notice=log.warning, air_bps=section.air_bps,
     )  # fmt: skip
     return PqParts(link, local, air, audit, space, refusals)

@@ -59,9 +59,14 @@ def router_metrics(router: MavlinkRouter) -> list[Metric]:
     """The router's counters now: frames forwarded per direction, dropped per direction
     and code, accepted per stream, refusals left unaudited (trail down) or folded by the
     rate limit, transport errors per endpoint and kind."""
-    from prometheus_client.core import CounterMetricFamily  # noqa: PLC0415
+    from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily  # noqa: PLC0415
 
     stats = router.stats
+    network = GaugeMetricFamily(
+        "antireplay_mavlink_network_trusted_endpoints",
+        "Trusted (signed-on-behalf) endpoints the operator acknowledged on the network",
+    )
+    network.add_metric([], sum(link.network for link in router.links))
     forwarded = CounterMetricFamily(
         "antireplay_mavlink_forwarded", "Frames forwarded", labels=["direction"]
     )
@@ -109,7 +114,7 @@ def router_metrics(router: MavlinkRouter) -> list[Metric]:
             folded.add_metric([cls], auditor.folded[cls])
         summarised.add_metric(["recorded"], auditor.summarised)
         summarised.add_metric(["unrecorded"], auditor.unrecorded)
-    return [forwarded, dropped, streams, unaudited, folded, summarised, transport]
+    return [forwarded, dropped, streams, unaudited, folded, summarised, transport, network]
 
 
 def pq_metrics(counts: LinkCounts) -> list[Metric]:
@@ -129,14 +134,18 @@ def pq_metrics(counts: LinkCounts) -> list[Metric]:
     families: list[Metric] = [up]
     for name, text, label, fixed, counter in (
         ("sessions", "Session changes", "event", SESSION_EVENTS, counts.sessions),
-        ("handshakes", "Handshakes", "outcome", ("started", "completed", "failed"),
+        ("handshakes", "Handshakes", "outcome", ("started", "completed", "failed", "refused"),
          counts.handshakes),
+        ("handshake_refusals", "PQ_REFUSALs: sent or withheld (vehicle end: one per HS1, "
+         "within its airtime budget); verified, forged or stale (ground end)", "outcome",
+         ("sent", "withheld", "verified", "forged", "stale"), counts.handshake_refusals),
         ("chunks", "PQ_CHUNK frames", "what", ("sent", "received", "reassembled"),
          counts.chunks),
         ("air_bytes", "Bytes handed to the air, by what they carry", "kind", AIR_KINDS,
          counts.airtime),
         ("repairs", "Repair requests sent, chunks resent, held answers sent again", "what",
-         ("nack_sent", "poke_sent", "resent", "answered", "ignored"), counts.repairs),
+         ("nack_sent", "poke_sent", "resent", "answered", "ignored", "withheld"),
+         counts.repairs),
         ("retries", "A ground station's command retries, by how they were answered", "how",
          ("poked", "answered", "sending", "queued"), counts.retries),
     ):  # fmt: skip
@@ -177,17 +186,25 @@ def leaves_ready(audit: AuditLog, space: DiskSpace, store: ReplayStore | None = 
 
 
 def trail_metrics(
-    command: str, audit: AuditLog, space: DiskSpace, store: ReplayStore | None = None
+    command: str,
+    audit: AuditLog,
+    space: DiskSpace,
+    store: ReplayStore | None = None,
+    fenced: Callable[[], str | None] | None = None,
 ) -> list[Metric]:
     """A command's leaves as the gateway exports its own: readiness, the trail on disk,
-    the free space under it and the pressure against its floors."""
+    the free space under it and the pressure against its floors.  ``fenced`` says why the
+    command refuses everything stamped now (a restart fence), ``None`` if it does not:
+    readiness is 0 meanwhile."""
     from prometheus_client.core import GaugeMetricFamily  # noqa: PLC0415
 
     ready = GaugeMetricFamily(
-        "antireplay_ready", "1 while the store takes a commit and the audit trail an append",
+        "antireplay_ready", "1 while the store takes a commit and the audit trail an append "
+        "(and no restart fence refuses what is stamped now)",
         labels=["command"],
     )  # fmt: skip
-    ready.add_metric([command], int(leaves_ready(audit, space, store) is None))
+    unready = (fenced() if fenced is not None else None) or leaves_ready(audit, space, store)
+    ready.add_metric([command], int(unready is None))
     families: list[Metric] = [ready]
     values: list[tuple[str, str, float]] = [
         ("antireplay_audit_free_bytes", "Free bytes under the audit trail", space.free()),

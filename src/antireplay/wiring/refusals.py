@@ -54,6 +54,9 @@ class MavlinkRefusals:
     def __call__(self, refusal: FrameRefusal) -> None:
         from antireplay.mavlink import claimed_source  # noqa: PLC0415 - the dialect loads on use
 
+        if refusal.folded:  # behind a restart fence: its link's summary line says it
+            return
+
         source = claimed_source(refusal.raw)
         claimed = "" if source is None else f":{source[0]}/{source[1]}"
         self.auditor.record(

@@ -2,22 +2,35 @@
 
 from __future__ import annotations
 
+import itertools
 import os
+import random
+from typing import Any
 
 import pytest
 
 from antireplay import ManualClock
 from antireplay.core.errors import (
     InvalidFrameError,
+    ReplayDetectedError,
+    SignatureInvalidError,
 )
+from antireplay.mavlink.codec import parse_frame
 from antireplay.mavlink.pq import (
     REKEY_TRANSFERS,
     TRANSFER_LIMIT,
 )
+from antireplay.mavlink.pq.wire import (
+    HANDSHAKE_ALLOWANCE,
+    HANDSHAKE_SHARE,
+    LINE_BITS,
+    MSG_REFUSAL,
+    refusal_frame,
+)
 
 os.environ["MAVLINK20"] = "1"
 
-from harness.pq_ends import EndPair, arm, connected, plain
+from harness.pq_ends import STRANGER_KEY, EndPair, arm, connected, plain
 
 
 def test_queued_commands_go_out_after_the_handshake(clock: ManualClock) -> None:
@@ -81,3 +94,122 @@ def test_unknown_local_message_is_refused_before_sealing(clock: ManualClock) -> 
     raw[7:10] = (60999).to_bytes(3, "little")  # a message id nobody knows
     with pytest.raises(InvalidFrameError, match="not in the dialect"):
         link.ground.from_local(bytes(raw))
+
+
+SHARE_57600 = HANDSHAKE_SHARE * 57_600 / LINE_BITS  # 288 bytes a second
+
+
+def _misconfigured(clock: ManualClock, refusals_lost: bool = False, **options: Any) -> EndPair:
+    """A pair whose ground end signs with a key the vehicle end does not know; its first
+    handshake sent (as the link's start sends it)."""
+    pair = EndPair(clock)
+    if refusals_lost:
+        pair.lose_down = lambda raw: parse_frame(raw).msgid == MSG_REFUSAL
+    pair.ground = pair.new_ground(STRANGER_KEY, **options)
+    pair.up(pair.ground.handshake())
+    return pair
+
+
+@pytest.mark.parametrize("seconds", [30.0, 120.0])
+@pytest.mark.parametrize("refusals_lost", [False, True])
+def test_a_wrong_signing_key_takes_at_most_five_percent_of_the_air(
+    clock: ManualClock, seconds: float, refusals_lost: bool
+) -> None:
+    """Finding 4: whether its refusals arrive or not (then POKEs and repairs run), what a
+    misconfigured ground end hands to the air stays within 5 % of the line (57,600 baud
+    when ``air_bps`` is unset) after its first-attempt allowance, at every moment."""
+    pair = _misconfigured(clock, refusals_lost)
+    sent = pair.run(seconds)
+    for elapsed, total in sent:
+        assert total <= HANDSHAKE_ALLOWANCE + SHARE_57600 * elapsed, (elapsed, total)
+    assert sent[-1][1] <= 0.05 * 5_760 * seconds + HANDSHAKE_ALLOWANCE
+    assert pair.ground.handshakes["started"] >= 2  # it keeps trying, slowly
+    told = 0 if refusals_lost else 1
+    assert pair.ground.refusals["verified"] >= told and len(pair.notices) == told
+
+
+def test_a_verified_refusal_is_told_once_with_what_to_check(clock: ManualClock) -> None:
+    pair = _misconfigured(clock)
+    pair.run(60)
+    (notice,) = pair.notices
+    assert notice == (
+        "vehicle refused the handshake: HS1 signature does not verify "
+        "(check --signing-key here and the vehicle's --peer)"
+    )
+    assert pair.ground.refusals == {"verified": pair.ground.handshakes["started"]}
+    assert pair.ground.repairs["poke_sent"] == 0  # a refused attempt is over: nothing to poke
+
+
+def test_retries_back_off_doubling_with_jitter(clock: ManualClock) -> None:
+    """With a budget that never binds (a fast line), the gaps between attempts double from
+    ``retry_s`` to ``max_backoff_s``, each shortened by at most a quarter (jitter)."""
+    pair = _misconfigured(clock, air_bps=10_000_000, rng=random.Random(7))
+    starts, start = [0.0], clock.monotonic()
+    for _ in range(2_000):  # 200 s
+        pair.run(0.1)
+        if pair.ground.handshakes["started"] > len(starts):
+            starts.append(clock.monotonic() - start - 0.1)
+    gaps = [b - a for a, b in itertools.pairwise(starts)]
+    bases = [min(2.0 * 2**n, 60.0) for n in range(len(gaps))]
+    assert len(gaps) >= 6, gaps
+    for gap, base in zip(gaps, bases, strict=True):
+        assert 0.75 * base - 0.1 <= gap <= base + 0.1, (gaps, bases)
+    assert len({round(g / b, 2) for g, b in zip(gaps, bases, strict=True)}) > 1  # jittered
+
+
+def test_a_session_resets_the_backoff_and_the_budget(clock: ManualClock) -> None:
+    pair = _misconfigured(clock)
+    pair.run(40)
+    pair.responder.peers["gcs"] = STRANGER_KEY.public_key()  # the operator fixes the key
+    pair.run(60)
+    assert pair.ground.session is not None
+    assert pair.ground.budget.wait_s(HANDSHAKE_ALLOWANCE) == 0
+    assert pair.ground.next_attempt_at - pair.ground._hs_quiet <= 2.0
+
+
+def _refusal_of(hs1: bytes, transfer: int, key: bytes) -> bytes:
+    return refusal_frame(
+        hs1, key, transfer=transfer, target=(255, 197), code=1,
+        reason="HS1 signature does not verify", sysid=1, compid=197,
+    )  # fmt: skip
+
+
+def test_a_forged_refusal_is_ignored_and_counted(clock: ManualClock) -> None:
+    """Nobody without the vehicle's ML-KEM key can make the ground end give up on an
+    attempt or log a lie: a refusal of the pending HS1 under any other key is refused
+    (``SIGNATURE_INVALID``), counted, and the attempt goes on (it is still poked)."""
+    pair = EndPair(clock)
+    ground = pair.ground
+    ground.handshake()  # lost on the way
+    assert ground._pending is not None
+    hs1 = ground._pending[0]
+    with pytest.raises(SignatureInvalidError):
+        ground.from_air(_refusal_of(hs1, ground._hs_transfer, bytes(32)))
+    assert ground.refusals == {"forged": 1} and "refused" not in ground.handshakes
+    clock.advance(0.6)
+    assert ground.tick()  # a POKE: the attempt was not ended by the forgery
+
+
+def test_a_refusal_of_an_earlier_attempt_is_ignored(clock: ManualClock) -> None:
+    """A genuine refusal recorded and played back against a later attempt: its hash names
+    another HS1, so it is refused as a replay, counted, and told nothing."""
+    pair = _misconfigured(clock, air_bps=10_000_000)
+    (notice,) = pair.notices
+    first = next(raw for raw in _down_frames(pair) if parse_frame(raw).msgid == MSG_REFUSAL)
+    pair.notices.clear()
+    clock.advance(2)
+    later = pair.ground.tick()  # the second attempt, not delivered
+    assert later and pair.ground.handshakes["started"] == 2
+    with pytest.raises(ReplayDetectedError):
+        pair.ground.from_air(first)
+    assert pair.ground.refusals == {"verified": 1, "stale": 1} and not pair.notices
+    assert "does not verify" in notice
+
+
+def _down_frames(pair: EndPair) -> list[bytes]:
+    """The vehicle end's refusal of the ground end's pending HS1, made again as it made it."""
+    ground = pair.ground
+    assert ground._pending is not None
+    key = pair.responder.refusal_key(ground._pending[0])
+    assert key is not None
+    return [_refusal_of(ground._pending[0], ground._hs_transfer, key)]

@@ -11,8 +11,10 @@ import pytest
 from antireplay import ManualClock
 from antireplay.core.errors import (
     MessageStaleError,
+    SignatureInvalidError,
     UnknownSessionError,
 )
+from antireplay.mavlink.codec import parse_frame
 from antireplay.mavlink.pq import (
     CHUNK_DATA,
     ChunkKind,
@@ -20,6 +22,8 @@ from antireplay.mavlink.pq import (
     GroundEnd,
     VehicleEnd,
 )
+from antireplay.mavlink.pq.repair import Op, repair_frame
+from antireplay.mavlink.pq.wire import HANDSHAKE_SHARE, parse_refusal
 from antireplay.pq.session import Initiator, Responder
 
 os.environ["MAVLINK20"] = "1"
@@ -28,6 +32,7 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 from harness.pq_ends import (
     GCS_KEY,
     ROBOT_KEM,
+    STRANGER_KEY,
     EndPair,
     arm,
     blob,
@@ -46,7 +51,10 @@ def test_handshake_replay_never_opens_a_session(clock: ManualClock) -> None:
     assert link.refused == ["REPLAY_DETECTED"] and len(link.responder) == 1
     clock.advance(40)
     link.up(hs1)
-    assert link.refused[-1] == "MESSAGE_STALE" and len(link.responder) == 1
+    # stale: refused, and answered with a PQ_REFUSAL the ground end (no handshake pending)
+    # refuses in turn as another attempt's
+    assert link.refused[-2:] == ["MESSAGE_STALE", "REPLAY_DETECTED"]
+    assert len(link.responder) == 1
     with pytest.raises(MessageStaleError):  # the reassembled blob is the HS1 itself
         link.responder.accept_handshake(blob(hs1))
     # a replayed HS2 at the ground end finishes nothing: no handshake is pending
@@ -130,3 +138,69 @@ def test_vehicle_end_restart_the_ground_end_handshakes_again(clock: ManualClock)
     link.down(hint)
     link.up(link.ground.from_local(arm()))
     assert len(link.commands()) == 1
+
+
+def _stranger_hs1s(clock: ManualClock, count: int) -> list[list[bytes]]:
+    """``count`` HS1s signed with a key the vehicle end does not know, chunked."""
+    initiator = Initiator("gcs", STRANGER_KEY, clock)
+    sender = ChunkSender(255, 197)
+    return [
+        sender.frames(initiator.start(ROBOT_KEM.public_key()), ChunkKind.HS1, transfer=n)
+        for n in range(count)
+    ]
+
+
+def _refusals(vehicle: VehicleEnd, frames: list[bytes]) -> list[bytes]:
+    """Feed ``frames``; the ``PQ_REFUSAL`` s the vehicle end answers with (as the link
+    collects them after the error)."""
+    out: list[bytes] = []
+    for raw in frames:
+        try:
+            vehicle.from_air(raw)
+        except SignatureInvalidError:
+            out += vehicle.answered()
+    return out
+
+
+def test_a_refused_hs1_is_answered_once_under_its_own_key(clock: ManualClock) -> None:
+    """The same HS1 again (another transfer number, as a POKE's repair or an attacker
+    could send it) gets no second refusal: one per attempt."""
+    link = EndPair(clock)
+    (frames,) = _stranger_hs1s(clock, 1)
+    (refusal,) = _refusals(link.vehicle, frames)
+    again = ChunkSender(255, 197).frames(blob(frames), ChunkKind.HS1, transfer=999)
+    assert _refusals(link.vehicle, again) == []
+    assert link.vehicle.refusals == {"sent": 1, "withheld": 1}
+    parsed = parse_refusal(parse_frame(refusal))
+    key = link.responder.refusal_key(blob(frames))
+    assert key is not None and parsed.verify(blob(frames), key)
+    assert parsed.target == (255, 197) and parsed.transfer == 0 and parsed.code == 1
+
+
+def test_a_flood_of_bad_handshakes_gets_refusals_only_within_the_airtime_budget(
+    clock: ManualClock,
+) -> None:
+    """No amplifier: 40 distinct refused HS1s at once get two refusals (the burst), and
+    the rest of the vehicle's refusals over 10 s stay within 5 % of 57,600 baud."""
+    link = EndPair(clock)
+    hs1s = _stranger_hs1s(clock, 60)
+    first = _refusals(link.vehicle, [raw for frames in hs1s[:40] for raw in frames])
+    assert len(first) == 2 and link.vehicle.refusals["withheld"] == 38
+    later: list[bytes] = []
+    for frames in hs1s[40:]:
+        clock.advance(0.5)
+        later += _refusals(link.vehicle, frames)
+    assert sum(map(len, first + later)) <= 2 * 107 + HANDSHAKE_SHARE * 5_760 * 10
+
+
+def test_a_poke_for_a_refused_hs1_gets_no_nack(clock: ManualClock) -> None:
+    """Its refusal lost, the ground end pokes: the vehicle end does not ask for the whole
+    HS1 again (it would be refused again), so a lost refusal costs no repair traffic."""
+    link = EndPair(clock)
+    (frames,) = _stranger_hs1s(clock, 1)
+    assert len(_refusals(link.vehicle, frames)) == 1
+    poke = repair_frame(Op.POKE, 0, (0, 0), 0, None, sysid=255, compid=197)
+    assert link.vehicle.from_air(poke).air == []
+    assert link.vehicle.repairs["nack_sent"] == 0
+    unknown = repair_frame(Op.POKE, 1, (0, 0), 0, None, sysid=255, compid=197)
+    assert link.vehicle.from_air(unknown).air  # a transfer never seen: NACKed whole

@@ -3,8 +3,8 @@
 Theory of operation
 -------------------
 :mod:`antireplay.pq.session` makes the blobs (HS1, HS2, session frames); this module
-carries them in MAVLink v2 messages of a three-message dialect of ours,
-``antireplay_pq.xml`` (published next to this module, ids 61000 to 61002), so that
+carries them in MAVLink v2 messages of a four-message dialect of ours,
+``antireplay_pq.xml`` (published next to this module, ids 61000 to 61003), so that
 every router (MAVProxy, mavlink-router, ours) forwards them untouched: a router that
 does not know the dialect passes an unknown message id as it is.  The messages are
 packed with :mod:`struct`; the CRC extra of each is computed from the XML by
@@ -86,7 +86,8 @@ payload: 38 bytes more on air than plain MAVLink, 25 more than MAVLink signing).
 
 The two ends are sans-I/O here (:class:`GroundEnd`, :class:`VehicleEnd`); the
 adapter that moves their bytes is :mod:`antireplay.mavlink.pq.link`.  Ground end:
-starts a handshake at once and again (at most once per ``retry_s``) whenever the
+starts a handshake at once and again (``retry_s`` after the last at first, doubling,
+within an airtime budget: :mod:`.ground`) whenever the
 session nears its counter limit (:attr:`~antireplay.pq.session.Session.needs_rekey`) or
 its transfer limit, when nothing authenticated came from the vehicle for ``silence_s``
 (a restarted vehicle end), or when the vehicle end reports it has no session
@@ -96,7 +97,8 @@ commands, each for at most ``queue_ttl_s``, and drops the rest, every drop count
 (:attr:`GroundEnd.drops`); wraps every local message; unwraps telemetry.  Vehicle
 end: answers HS1 with HS2 (:meth:`~antireplay.pq.session.Responder.accept_handshake`:
 shape, freshness and the seen-set before the signature, commit after, so a replayed
-HS1 opens nothing; it draws a session id whose handle no live session has), opens
+HS1 opens nothing; it draws a session id whose handle no live session has; a refused
+one is answered with a ``PQ_REFUSAL``, :mod:`.vehicle`), opens
 frames with :meth:`~antireplay.pq.session.Responder.open` (window ``check`` before the
 signature, ``commit`` after; for a handle two live sessions still share, under each
 candidate in turn, so the tag decides and one session's window never refuses
@@ -129,6 +131,7 @@ from antireplay.mavlink.pq.wire import (
     DIALECT,
     MAX_CHUNKS,
     MSG_CHUNK,
+    MSG_REFUSAL,
     MSG_REPAIR,
     MSG_STATUS,
     REKEY_TRANSFERS,
@@ -147,6 +150,7 @@ __all__ = [
     "DIALECT",
     "MAX_CHUNKS",
     "MSG_CHUNK",
+    "MSG_REFUSAL",
     "MSG_REPAIR",
     "MSG_STATUS",
     "REKEY_TRANSFERS",

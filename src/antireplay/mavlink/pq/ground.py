@@ -21,12 +21,21 @@ passes on none twice nor one for a try it no longer has, so a replayed POKE, or 
 command with the same number, never tells a GCS that a command it sent was accepted.
 A "not delivered" answer echoing the nonce makes it send that command anew, whole.
 
+A handshake that fails costs little air (:data:`~.wire.HANDSHAKE_SHARE`): attempts back
+off exponentially from ``retry_s`` (doubling to ``MAX_BACKOFF_S``, jittered by this end's
+own randomness), and HS1s, their POKEs and their repairs draw on one airtime budget
+(:data:`~.wire.HANDSHAKE_ALLOWANCE` at once, the share of ``air_bps`` after).  A
+``PQ_REFUSAL`` that verifies for the pending HS1 (:meth:`~.wire.Refusal.verify`) ends that
+attempt (no more POKEs) and is told once (:attr:`~.repair.Output.notice`); a forged one, or
+one of another attempt, changes nothing (counted in :attr:`refusals`, a typed error).
+
 A command carries, sealed with it, its age stamp (:data:`~.wire.AGEAGE_STAMP`): milliseconds
 since its session came up here (the HS2 arrived); the vehicle end judges it.
 """
 
 from __future__ import annotations
 
+import random
 import secrets
 from collections import OrderedDict, deque
 from dataclasses import dataclass
@@ -36,9 +45,12 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay.core.clock import Clock
 from antireplay.core.errors import (
+    ReplayDetectedError,
+    SignatureInvalidError,
     UnknownSessionError,
 )
-from antireplay.mavlink.codec import parse_frame
+from antireplay.core.ratelimit import TokenBucket
+from antireplay.mavlink.codec import Frame, parse_frame
 from antireplay.mavlink.pq.chunks import (
     chunk_key,
     parse_chunk,
@@ -59,7 +71,10 @@ from antireplay.mavlink.pq.repair import (
 )
 from antireplay.mavlink.pq.wire import (
     AGE_STAMP,
+    HANDSHAKE_ALLOWANCE,
     LINE_BITS,
+    MAX_BACKOFF_S,
+    MSG_REFUSAL,
     MSG_REPAIR,
     MSG_STATUS,
     REKEY_TRANSFERS,
@@ -67,11 +82,14 @@ from antireplay.mavlink.pq.wire import (
     STATUS_NO_SESSION,
     TRANSFER_LIMIT,
     ChunkKind,
+    Refusal,
     compact,
     inner_of,
     open_compact,
+    parse_refusal,
     plain_frame,
     read_status,
+    share_rate,
 )
 from antireplay.pq.session import (
     Direction,
@@ -79,6 +97,8 @@ from antireplay.pq.session import (
     Purpose,
     Session,
 )
+
+POKE_BYTES = 35  # a PQ_REPAIR on the air
 
 
 @dataclass
@@ -115,14 +135,26 @@ class GroundEnd(RepairingEnd):
         gap_s: float = 0.25,
         retry_window_s: float = 6.0,
         air_bps: int | None = None,
+        max_backoff_s: float = MAX_BACKOFF_S,
+        rng: random.Random | None = None,
         clock: Clock | None = None,
     ) -> None:
         super().__init__(system_id, component_id, gap_s, clock)
+        self.max_backoff_s = max_backoff_s
+        self._rng = rng or random.SystemRandom()  # the backoff's jitter
+        self._attempts = 0  # handshakes started since the last session came up
+        self._backoff = retry_s  # quiet before the next attempt (doubling, jittered)
+        self._hs_size = 0  # the last HS1's air bytes
+        self._hs_refused = False  # the pending HS1 was refused (a verified PQ_REFUSAL)
+        self._told: str | None = None  # the refusal last told (once until a session)
         self.initiator, self.responder_key = initiator, responder_key
         self.hybrid = hybrid  # the vehicle's static X25519 key: hybrid handshakes
         self.signed = signed
         self.retry_s, self.silence_s = retry_s, silence_s
         self.poke_s, self.retry_window_s, self.air_bps = poke_s, retry_window_s, air_bps
+        #: Air a failing handshake may take (module docstring): HS1s, POKEs, HS1 repairs;
+        #: full again whenever a session comes up.
+        self.budget = self._full_budget()
         self._first_transfer = 0  # the sender's transfer number when the session began
         self.session: Session | None = None
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
@@ -141,6 +173,9 @@ class GroundEnd(RepairingEnd):
     def _sessions_held(self) -> list[Session]:
         return [] if self.session is None else [self.session]
 
+    def _full_budget(self) -> TokenBucket:
+        return TokenBucket(share_rate(self.air_bps), self._clock, burst=HANDSHAKE_ALLOWANCE)
+
     def _airtime_s(self, frames: list[bytes]) -> float:
         """How long ``frames`` take on a radio of ``air_bps`` baud (0 when unknown)."""
         return 0.0 if not self.air_bps else LINE_BITS * sum(map(len, frames)) / self.air_bps
@@ -152,6 +187,10 @@ class GroundEnd(RepairingEnd):
             self.handshakes["failed"] += 1  # never answered: superseded
             self._sent.forget(self._hs_transfer)
         self.handshakes["started"] += 1
+        base = min(self.retry_s * 2 ** min(self._attempts, 32), self.max_backoff_s)
+        self._backoff = base * self._rng.uniform(0.75, 1.0)
+        self._attempts += 1
+        self._hs_refused = False
         hs1 = self.initiator.start(self.responder_key, self.hybrid)
         now = self._clock.monotonic()
         self._pending = (hs1, now)
@@ -162,7 +201,14 @@ class GroundEnd(RepairingEnd):
         key = None if live is None else repair_key(live.recv_key)
         self._sent.add(self._hs_transfer, frames, key)
         self._hs_quiet, self._hs_pokes = now + self._airtime_s(frames), 0
+        self._hs_size = sum(map(len, frames))
+        self.budget.spend(self._hs_size)
         return self._air(frames)
+
+    @property
+    def next_attempt_at(self) -> float:
+        """When the pending handshake may be superseded (monotonic; budget aside)."""
+        return self._hs_quiet + self._backoff
 
     def from_local(self, raw: bytes) -> list[bytes]:
         """:meth:`handle_local`'s air frames."""
@@ -276,11 +322,16 @@ class GroundEnd(RepairingEnd):
     def _retry(self) -> list[bytes]:
         """The pending handshake's timer: quiet for ``poke_s`` after its chunks left (by
         ``air_bps``) or were last repaired, a POKE (twice at most: the HS2 may be lost, or
-        the tail of HS1); quiet for ``retry_s``, a new handshake."""
+        the tail of HS1; none after a refusal); quiet for the backoff (``retry_s`` first,
+        then doubling), a new handshake, once the airtime budget holds one."""
         now = self._clock.monotonic()
-        if self._pending is None or now - self._hs_quiet >= self.retry_s:
+        if self._pending is None or now >= self.next_attempt_at:
+            if self.budget.wait_s(self._hs_size) > 0:
+                return []
             return self.handshake()
-        if now - self._hs_quiet < self.poke_s or self._hs_pokes >= 2:
+        if now - self._hs_quiet < self.poke_s or self._hs_pokes >= 2 or self._hs_refused:
+            return []
+        if not self.budget.take(POKE_BYTES):
             return []
         self._hs_pokes += 1
         self._hs_quiet = now
@@ -294,12 +345,8 @@ class GroundEnd(RepairingEnd):
     def from_air(self, raw: bytes) -> Output:
         """One frame from the air: HS2, telemetry, a repair request, or the vehicle's hint."""
         frame = _parse(raw)
-        if frame.msgid == MSG_STATUS:  # unauthenticated: heeded only when the vehicle is silent
-            silent = self._clock.monotonic() - self._heard >= self.retry_s
-            hinted = read_status(frame) == STATUS_NO_SESSION and silent
-            return Output(air=self._retry() if hinted else [])
-        if frame.msgid == MSG_REPAIR:
-            return self._repair(parse_repair(frame))
+        if frame.msgid in (MSG_STATUS, MSG_REPAIR, MSG_REFUSAL):
+            return self._control(frame)
         keys = [chunk_key(self.session.recv_key)] if self.session is not None else []
         chunk = parse_chunk(frame)
         done = self._feed(chunk, keys)
@@ -319,24 +366,62 @@ class GroundEnd(RepairingEnd):
             return Output(authenticated=True)
         return Output(local=[plain], authenticated=True)
 
+    def _control(self, frame: Frame) -> Output:
+        """The vehicle end's hint (unauthenticated: heeded only when it is silent), a repair
+        request, or its refusal of our handshake."""
+        if frame.msgid == MSG_REPAIR:
+            return self._repair(parse_repair(frame))
+        if frame.msgid == MSG_REFUSAL:
+            return self._refused(parse_refusal(frame))
+        silent = self._clock.monotonic() - self._heard >= self.retry_s
+        hinted = read_status(frame) == STATUS_NO_SESSION and silent
+        return Output(air=self._retry() if hinted else [])
+
     def _repair(self, repair: Repair) -> Output:
         """A NACK for one of our transfers; a NACK for the pending HS1 (unauthenticated,
         module :mod:`.repair`, unless a session was live when it left: a rekey's are MACed
         in that session, so nobody can make it resend the HS1 for free) also restarts its
-        timer.  A POKE from the vehicle end is its
-        answer "never delivered" to ours (:meth:`_undelivered`)."""
+        timer; one that comes while its chunks are still leaving (by ``air_bps``) asks for
+        chunks on their way, and is ignored.  Its resends draw on the handshake budget.
+        A POKE from the vehicle end is its answer "never delivered" to ours
+        (:meth:`_undelivered`)."""
         if repair.target != (self.sender.sysid, self.sender.compid):
             return Output()
         if repair.op is Op.POKE:
             return self._undelivered(repair)
         handshake = self._pending is not None and repair.transfer == self._hs_transfer
-        if not repair.signed and (not handshake or self._hs_keyed):
+        leaving = handshake and self._clock.monotonic() < self._hs_quiet  # chunks on their way
+        if leaving or (not repair.signed and (not handshake or self._hs_keyed)):
             self.repairs["ignored"] += 1
             return Output()
-        frames = self._resend(repair)
+        frames = self._resend(repair, self.budget.take if handshake else None)
         if handshake and frames:
             self._hs_quiet = self._clock.monotonic() + self._airtime_s(frames)
         return Output(air=frames)
+
+    def _refused(self, refusal: Refusal) -> Output:
+        """The vehicle end's ``PQ_REFUSAL``: believed only for the pending HS1 (its hash,
+        its transfer, a MAC under that HS1's refusal key), then that attempt is over and
+        the reason told once; anything else raises, counted (module docstring)."""
+        if refusal.target != (self.sender.sysid, self.sender.compid):
+            return Output()  # another ground end's
+        pending = None if self._pending is None else self._pending[0]
+        if pending is None or self._hs_refused or not refusal.names(pending):
+            self.refusals["stale"] += 1
+            raise ReplayDetectedError("PQ_REFUSAL of no pending handshake (another attempt's)")
+        key = self.initiator.refusal_key(pending)
+        if key is None or refusal.transfer != self._hs_transfer or not refusal.verify(pending, key):
+            self.refusals["forged"] += 1
+            raise SignatureInvalidError("PQ_REFUSAL MAC does not verify")
+        self.refusals["verified"] += 1
+        self.handshakes["refused"] += 1
+        self._hs_refused = True
+        self._sent.forget(self._hs_transfer)
+        told = f"vehicle refused the handshake: {refusal.explained}"
+        if told == self._told:
+            return Output()
+        self._told = told
+        return Output(notice=told)
 
     def _undelivered(self, repair: Repair) -> Output:
         """The vehicle end's answer to our POKE: that transfer never opened there and never
@@ -393,6 +478,8 @@ class GroundEnd(RepairingEnd):
         self._sent.forget(self._hs_transfer)
         self._pending, self._heard, self._hs2 = None, self._clock.monotonic(), hs2
         self._epoch = self._heard
+        self._attempts, self._told = 0, None
+        self.budget = self._full_budget()  # it worked: no misconfigured end to hold back
         self._first_transfer = self.sender.transfer
         out = Output(authenticated=True)
         self._expire_queue()

@@ -21,7 +21,9 @@ rate-limited refusal auditor the command gives it; a refusal it could not record
 counted ``unaudited``), except plain MAVLink on the air (routers' heartbeats: counted
 ``air:PLAIN``).  What an end drops without an error is counted too (:attr:`~PqLink.dropped`),
 telemetry with no session among it: never logged per frame.  A vehicle end answers a
-frame for a session it does not hold with the rate-limited ``PQ_STATUS`` hint.  Each
+frame for a session it does not hold with the rate-limited ``PQ_STATUS`` hint, and a
+refused HS1 with its ``PQ_REFUSAL`` (:mod:`.vehicle`); a ground end hands a verified
+refusal's reason to ``on_notice`` (once per reason until a session comes up).  Each
 change of the live session (``established``, ``rekeyed``, ``lost``: nothing
 authenticated from the other end for ``silence_s``, ``resumed``) is counted and handed
 once to ``on_session`` (authentic: always recorded).  :meth:`~PqLink.counts` is what
@@ -36,7 +38,8 @@ get a byte for each byte of one-chunk frames (``BULK_SHARE``), so a saturating R
 override cannot starve a command or a handshake.  Telemetry beyond two seconds of queue
 is dropped (``air:PACED_OUT``), and so is a long transfer's chunk still queued after
 ``bulk_ttl_s`` (``air:PACED_STALE``): the GCS has given up on it, and it must not leave
-late.
+late (an HS1's chunks never expire: they take 10 s at 7,200 baud, and the handshake
+budget, :mod:`.ground`, already spaces them).
 """
 
 from __future__ import annotations
@@ -56,7 +59,7 @@ from antireplay.mavlink.pq.chunks import PlainFrameError
 from antireplay.mavlink.pq.ground import GroundEnd
 from antireplay.mavlink.pq.repair import Output, air_kind
 from antireplay.mavlink.pq.vehicle import VehicleEnd
-from antireplay.mavlink.pq.wire import LINE_BITS
+from antireplay.mavlink.pq.wire import LINE_BITS, ChunkKind
 from antireplay.mavlink.router import FrameRefusal
 from antireplay.pq.session import Session
 
@@ -93,6 +96,7 @@ class LinkCounts:
     airtime: Counter[str] = field(default_factory=Counter)  # air bytes by kind (AIR_KINDS)
     repairs: Counter[str] = field(default_factory=Counter)  # NACKs, POKEs, resent chunks
     retries: Counter[str] = field(default_factory=Counter)  # GCS retries, how answered
+    handshake_refusals: Counter[str] = field(default_factory=Counter)  # PQ_REFUSALs
 
 
 #: The pacer's share of the line rate (the radio's own clock and a busy host both drift),
@@ -127,7 +131,10 @@ class Pacer:
             kind = air_kind(raw)
             if kind in ("cmd", "parity") or (kind == "hs" and len(frames) > 1):
                 self.bulk.append((raw, peer))
-                self._born.append(self._clock.monotonic())
+                # a handshake's chunks (parity too) never go stale: no GCS waits on them,
+                # and on a slow radio (7,200 baud: 10 s for an HS1) a TTL cuts them short
+                handshake = ChunkKind(raw[15] & 0x0F) in (ChunkKind.HS1, ChunkKind.HS2)
+                self._born.append(float("inf") if handshake else self._clock.monotonic())
             elif kind == "passthrough" and self.queued > self.limit:
                 self.paced_out += 1
                 continue
@@ -175,6 +182,7 @@ class PqLink:
         *,
         on_reject: Callable[[FrameRefusal], Any] | None = None,
         on_session: Callable[[SessionEvent], Any] | None = None,
+        on_notice: Callable[[str], Any] | None = None,
         tap: Callable[[bytes], Any] | None = None,
         max_local_peers: int = 8,
         tick_s: float = 0.1,
@@ -184,6 +192,7 @@ class PqLink:
         self.end, self.local, self.air = end, local, air
         self.name = "ground" if isinstance(end, GroundEnd) else "vehicle"
         self.on_reject, self.on_session, self.tap = on_reject, on_session, tap
+        self.on_notice = on_notice  # what the operator must hear once (a refused handshake)
         self.max_local_peers, self.tick_s = max_local_peers, tick_s
         self._dropped: Counter[str] = Counter()
         self._refused: Counter[str] = Counter()
@@ -289,12 +298,15 @@ class PqLink:
             except ReplayAttackError as exc:
                 self._count("received", counter=self.chunks)
                 self._refuse("air", exc.code, exc.reason, raw)
-                if exc.code in _HINTED and isinstance(self.end, VehicleEnd):
+                if isinstance(self.end, VehicleEnd):
                     with self._lock:
-                        hint = self.end.hint()
+                        hint = self.end.hint() if exc.code in _HINTED else []
+                        hint += self.end.answered()  # a refused HS1's PQ_REFUSAL
                 self._to_air(hint, peer)
                 continue
             self._count("received", counter=self.chunks)
+            if out.notice is not None and self.on_notice is not None:
+                self.on_notice(out.notice)
             if out.authenticated:
                 self._learn(peer)
                 self.forwarded["air"] += 1
@@ -400,6 +412,7 @@ class PqLink:
             up = self.end.live is not None
             airtime, repairs = Counter(self.end.airtime), Counter(self.end.repairs)
             retries = Counter(self.end.retries)
+            handshake_refusals = Counter(self.end.refusals)
         dropped = self.dropped
         with self._count_lock:
             refused = Counter(self._refused)
@@ -409,7 +422,7 @@ class PqLink:
         dropped.subtract(refused)
         return LinkCounts(
             self.name, up, sessions, handshakes, chunks, refused, +dropped, unaudited,
-            airtime, repairs, retries,
+            airtime, repairs, retries, handshake_refusals,
         )  # fmt: skip
 
     def _count(self, key: str, n: int = 1, counter: Counter[str] | None = None) -> None:

@@ -33,6 +33,7 @@ from __future__ import annotations
 import hmac
 import struct
 from collections import Counter, OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
 
@@ -255,6 +256,8 @@ class Output:
     #: Answer the frame's sender without learning it (a handshake's repair: no session yet
     #: to learn the peer from; a NACK is smaller than what asked for it, nothing amplifies).
     reply: bool = False
+    #: Something the operator must hear once (the vehicle end refused our handshake).
+    notice: str | None = None
 
 
 def _parse(raw: bytes) -> Frame:
@@ -300,6 +303,10 @@ class RepairingEnd:
         #: a POKE, no new transfer), ``answered`` (the COMMAND_ACK already seen),
         #: ``sending`` (its chunks still going out), ``queued`` (waiting for a session).
         self.retries: Counter[str] = Counter()
+        #: ``PQ_REFUSAL`` s: sent or ``withheld`` (vehicle end: one per HS1, within its
+        #: airtime budget); ``verified``, ``forged`` or ``stale`` (another attempt's) at
+        #: the ground end.
+        self.refusals: Counter[str] = Counter()
 
     def _air(self, frames: list[bytes], kind: str | None = None) -> list[bytes]:
         for raw in frames:
@@ -354,9 +361,14 @@ class RepairingEnd:
             out += self._nack(key, ckey, bitmap(missing))
         return out
 
-    def _resend(self, repair: Repair) -> list[bytes]:
-        """Answer a NACK from the sent copies (:class:`~.repair.SendCache`)."""
+    def _resend(self, repair: Repair, afford: Callable[[int], bool] | None = None) -> list[bytes]:
+        """Answer a NACK from the sent copies (:class:`~.repair.SendCache`); with ``afford``
+        (an airtime budget) only the frames it affords, the rest counted ``withheld``."""
         frames = self._sent.resend(repair)
+        if afford is not None:
+            kept = [raw for raw in frames if afford(len(raw))]
+            self.repairs["withheld"] += len(frames) - len(kept)
+            frames = kept
         self.repairs["resent" if frames else "ignored"] += len(frames) or 1
         return self._air(frames, "repair")
 

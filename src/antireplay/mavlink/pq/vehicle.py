@@ -16,6 +16,15 @@ delivers nothing again; for one that never opened and never can (a later one did
 delivered" echoing the nonce.  A command repeated on purpose within the ground end's
 retry window is answered, not executed: repeat it after the window.
 
+An HS1 refused after it parsed (its signature, its identity, its timestamp: the codes of
+:data:`~.wire.REFUSALS`) is answered with one ``PQ_REFUSAL`` per HS1 (by hash), MACed
+under that HS1's refusal key (:func:`~antireplay.pq.session.refusal_key`: the vehicle's
+ML-KEM key, so the ground end can verify it against the key it pins, and it fits one
+frame where an ML-DSA-87 signature would take twenty), and only within an airtime budget
+(:data:`~.wire.HANDSHAKE_SHARE` of ``air_bps``): a flood of bad HS1s is no amplifier.
+The link sends it (:meth:`VehicleEnd.answered`) as it sends the ``PQ_STATUS`` hint; a
+POKE for a refused HS1 gets no NACK (sent again, it would be refused again).
+
 A command's age stamp (:data:`~.wire.AGEAGE_STAMP`) says when the ground end sealed it,
 in milliseconds since its session came up there.  The vehicle end refuses
 (``MESSAGE_STALE``, counted in ``drops``) a command older than ``max_age_s`` by its own
@@ -27,6 +36,7 @@ and released later is refused however the attacker times it.
 
 from __future__ import annotations
 
+import hashlib
 from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -71,6 +81,7 @@ from antireplay.mavlink.pq.wire import (
     _INNER_HEAD,
     AGE_STAMP,
     MSG_REPAIR,
+    REFUSAL_OF,
     SIGNED_MESSAGES,
     STATUS_NO_SESSION,
     ChunkKind,
@@ -78,6 +89,8 @@ from antireplay.mavlink.pq.wire import (
     inner_of,
     open_compact,
     plain_frame,
+    refusal_frame,
+    share_rate,
     status_frame,
 )
 from antireplay.pq.session import (
@@ -88,6 +101,7 @@ from antireplay.pq.session import (
 )
 
 _T = TypeVar("_T")
+_REFUSAL_AIR = 12 + 93 + 2  # a PQ_REFUSAL's air bytes at most
 
 
 def _remember(
@@ -126,9 +140,15 @@ class VehicleEnd(RepairingEnd):
         signed: frozenset[int] = SIGNED_MESSAGES,
         gap_s: float = 0.25,
         max_age_s: float = 10.0,
+        air_bps: int | None = None,
         clock: Clock | None = None,
     ) -> None:
         super().__init__(system_id, component_id, gap_s, clock)
+        # refusals: their share of the air, two at once at most, one per HS1 (by hash)
+        self._refusal_budget = TokenBucket(share_rate(air_bps), self._clock, burst=2 * _REFUSAL_AIR)
+        self._refused: OrderedDict[bytes, None] = OrderedDict()
+        self._refused_at: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # transfers
+        self._refusal_out: list[bytes] = []  # a refusal the link sends with the error
         self.responder = responder
         self.max_age_s = max_age_s  # a command older than this is refused (module docstring)
         self._epochs: dict[bytes, float] = {}  # session id -> when its HS2 left
@@ -205,8 +225,9 @@ class VehicleEnd(RepairingEnd):
         self.handshakes["started"] += 1
         try:
             session, hs2 = self.responder.accept_handshake(hs1, lambda sid: sid[-1] in handles)
-        except ReplayAttackError:
+        except ReplayAttackError as exc:
             self.handshakes["failed"] += 1
+            self._refusal_out = self._refusal(chunk, hs1, exc)
             raise
         self.handshakes["completed"] += 1
         self._sessions.append(session)
@@ -217,6 +238,37 @@ class VehicleEnd(RepairingEnd):
         frames = self.sender.frames(hs2, ChunkKind.HS2)
         _remember(self._hs2, chunk.key, frames)
         return Output(air=self._air(frames), authenticated=True)
+
+    def _refusal(self, chunk: Chunk, hs1: bytes, exc: ReplayAttackError) -> list[bytes]:
+        """A ``PQ_REFUSAL`` of ``hs1`` (module docstring): once per HS1, within budget."""
+        number = REFUSAL_OF.get(exc.code)
+        if number is None:
+            return []  # a replay, a malformed HS1: nothing its sender could act on
+        digest = hashlib.sha256(hs1).digest()
+        _remember(self._refused_at, chunk.key, None)  # a POKE for it gets no NACK
+        if digest in self._refused:
+            self.refusals["withheld"] += 1
+            return []
+        self._refused[digest] = None
+        while len(self._refused) > 64:
+            self._refused.popitem(last=False)
+        if not self._refusal_budget.take(_REFUSAL_AIR):
+            self.refusals["withheld"] += 1
+            return []
+        key = self.responder.refusal_key(hs1)  # after the budget: decapsulation costs
+        if key is None:
+            return []
+        frame = refusal_frame(
+            hs1, key, transfer=chunk.transfer, target=(chunk.sysid, chunk.compid), code=number,
+            reason=exc.reason, sysid=self.sender.sysid, compid=self.sender.compid,
+        )  # fmt: skip
+        self.refusals["sent"] += 1
+        return self._air([frame], "repair")
+
+    def answered(self) -> list[bytes]:
+        """The refusal of the HS1 just refused, once (the link sends it to its sender)."""
+        out, self._refusal_out = self._refusal_out, []
+        return out
 
     def _repair(self, repair: Repair) -> Output:
         """A NACK for our own (telemetry) transfers, or the ground end's POKE: answered
@@ -231,12 +283,14 @@ class VehicleEnd(RepairingEnd):
         return Output(air=answer, reply=True)
 
     def _poked_unsigned(self, repair: Repair) -> list[bytes]:
-        """A handshake's POKE: the HS2 held for that HS1, or a NACK for its chunks (bounded,
-        rate-limited: nothing authenticates it)."""
+        """A handshake's POKE: the HS2 held for that HS1, nothing for an HS1 refused, or a
+        NACK for its chunks (bounded, rate-limited: nothing authenticates it)."""
         at = (repair.sysid, repair.compid, repair.transfer)
         held = self._hs2.get(at)
         if held is not None:
             return self._answer(at, lambda: held)
+        if at in self._refused_at:  # refused whole: resending it would change nothing
+            return []
         found = self._reassembler.lookup(at[:2], at[2])
         if found is not None and found[0] is not ChunkKind.HS1:
             return []

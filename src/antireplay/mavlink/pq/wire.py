@@ -5,8 +5,11 @@ See :mod:`antireplay.mavlink.pq` for the theory of operation.
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import struct
 from collections.abc import Iterable
+from dataclasses import dataclass
 from enum import IntEnum
 from importlib import resources
 from typing import Protocol
@@ -16,6 +19,7 @@ from pymavlink.generator import mavparse
 from pymavlink.generator.mavcrc import x25crc
 
 from antireplay.core.errors import (
+    Code,
     InvalidFrameError,
     ReplayAttackError,
     SignatureInvalidError,
@@ -30,7 +34,7 @@ from antireplay.pq.session import (
     Session,
 )
 
-MSG_CHUNK, MSG_STATUS, MSG_REPAIR = 61000, 61001, 61002
+MSG_CHUNK, MSG_STATUS, MSG_REPAIR, MSG_REFUSAL = 61000, 61001, 61002, 61003
 CHUNK_DATA, CHUNK_MAC, MAX_CHUNKS = 249, 8, 32
 #: Parity chunks after a blob's data chunks: one per ``PARITY_EVERY`` (rounded up), at most
 #: ``MAX_PARITY``; parity chunk ``j`` is the XOR of the data chunks whose index is ``j``
@@ -38,6 +42,13 @@ CHUNK_DATA, CHUNK_MAC, MAX_CHUNKS = 249, 8, 32
 MAX_PARITY, PARITY_EVERY = 4, 10
 #: Bits a byte takes on a radio's serial line (start, 8 data, stop): ``--air-bps`` is baud.
 LINE_BITS = 10
+#: Airtime a failing handshake may take (the ground end's HS1s, POKEs and HS1 repairs; the
+#: vehicle end's refusals): ``HANDSHAKE_SHARE`` of ``--air-bps`` (``DEFAULT_AIR_BPS``, a SiK
+#: radio's, when unset) averaged over any window, beyond ``HANDSHAKE_ALLOWANCE`` bytes at
+#: once: one HS1 (about 7.9 KB with its parity) and as much again for its repairs or a
+#: second try.  Attempts back off from ``retry_s``, doubling up to ``MAX_BACKOFF_S``.
+HANDSHAKE_SHARE, DEFAULT_AIR_BPS, HANDSHAKE_ALLOWANCE = 0.05, 57_600, 16_384
+MAX_BACKOFF_S = 60.0
 #: A command's age stamp, sealed after its inner frame: ms since its session came up at the
 #: ground end (:mod:`.ground` writes it, :mod:`.vehicle` judges it).
 AGE_STAMP = struct.Struct("<I")
@@ -51,6 +62,15 @@ _FRAME = struct.Struct(">BBBB16sQ")  # a session frame's header (antireplay.pq.s
 _COMPACT = struct.Struct(">BBQ")  # handle purpose counter: the header as it travels
 _CHUNK = struct.Struct("<HBBBB")  # transfer index count len kind; then data[249]
 _V2_HEAD = struct.Struct("<BBBBBBBHB")
+_REFUSAL = struct.Struct("<H8sBBB64s16s")  # PQ_REFUSAL in wire order (fields by size)
+#: Why a vehicle end refuses an HS1 (``PQ_REFUSAL.code``): the refusal code it counts, and
+#: what the ground end's operator should check.
+REFUSALS: dict[int, tuple[Code, str]] = {
+    1: (Code.SIGNATURE_INVALID, "check --signing-key here and the vehicle's --peer"),
+    2: (Code.UNKNOWN_SENDER, "check --identity here and the vehicle's --peer NAME"),
+    3: (Code.MESSAGE_STALE, "check both clocks: the vehicle judges HS1 by its wall clock"),
+}
+REFUSAL_OF = {code: number for number, (code, _) in REFUSALS.items()}
 
 
 def _load_dialect() -> dict[int, tuple[int, int]]:
@@ -63,6 +83,11 @@ def _load_dialect() -> dict[int, tuple[int, int]]:
 
 DIALECT = _load_dialect()
 DIALECT_XML = "antireplay_pq.xml"
+
+
+def share_rate(air_bps: int | None) -> float:
+    """Bytes a second a failing handshake may take on a radio of ``air_bps`` baud."""
+    return HANDSHAKE_SHARE * (air_bps or DEFAULT_AIR_BPS) / LINE_BITS
 
 
 def parity_for(count: int) -> int:
@@ -128,6 +153,67 @@ def status_frame(code: int, sysid: int, compid: int, seq: int = 0) -> bytes:
     return pack_v2(
         MSG_STATUS, bytes([code]), DIALECT[MSG_STATUS][0], sysid=sysid, compid=compid, seq=seq
     )
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """A parsed ``PQ_REFUSAL``: the vehicle end's word that one HS1 opened no session."""
+
+    transfer: int
+    hs1_hash: bytes
+    target: tuple[int, int]
+    code: int
+    reason: str
+    mac: bytes
+
+    def names(self, hs1: bytes) -> bool:
+        """Whether this says it refuses ``hs1`` (by hash; nothing verified yet)."""
+        return hmac.compare_digest(self.hs1_hash, hashlib.sha256(hs1).digest()[:8])
+
+    def verify(self, hs1: bytes, key: bytes) -> bool:
+        """Whether this refuses exactly ``hs1`` (its hash, not another attempt's) under the
+        refusal key that HS1's KEM secret gives (:func:`antireplay.pq.session.refusal_key`)."""
+        digest = hashlib.sha256(hs1).digest()
+        if not self.names(hs1):
+            return False
+        fields = _refusal_fields(self.transfer, self.target, self.code, self.reason)
+        return hmac.compare_digest(self.mac, _refusal_mac(key, digest, fields))
+
+    @property
+    def explained(self) -> str:
+        """The reason with what to check, as the ground end logs it."""
+        code, hint = REFUSALS.get(self.code, (Code.INVALID_FRAME, "an unknown refusal code"))
+        return f"{self.reason or code} ({hint})"
+
+
+def _refusal_fields(transfer: int, target: tuple[int, int], code: int, reason: str) -> bytes:
+    return struct.pack("<HBBB", transfer, *target, code) + reason.encode("ascii")
+
+
+def _refusal_mac(key: bytes, digest: bytes, fields: bytes) -> bytes:
+    return hmac.digest(key, digest + fields, "sha256")[:16]
+
+
+def refusal_frame(
+    hs1: bytes, key: bytes, *, transfer: int, target: tuple[int, int], code: int, reason: str,
+    sysid: int, compid: int,
+) -> bytes:  # fmt: skip
+    """A ``PQ_REFUSAL`` of ``hs1`` (sent as transfer ``transfer`` by ``target``) under
+    ``key`` (its refusal key)."""
+    text = "".join(c for c in reason if " " <= c <= "~")[:64]
+    digest = hashlib.sha256(hs1).digest()
+    mac = _refusal_mac(key, digest, _refusal_fields(transfer, target, code, text))
+    payload = _REFUSAL.pack(transfer, digest[:8], *target, code, text.encode("ascii"), mac)
+    crc_extra = DIALECT[MSG_REFUSAL][0]
+    return pack_v2(MSG_REFUSAL, payload, crc_extra, sysid=sysid, compid=compid, seq=0)
+
+
+def parse_refusal(frame: Frame) -> Refusal:
+    """A ``PQ_REFUSAL`` frame's fields (CRC checked; the MAC is :meth:`Refusal.verify`'s)."""
+    transfer, digest, system, component, code, text, mac = _REFUSAL.unpack(_payload_of(frame))
+    reason = text.rstrip(b"\0").decode("ascii", "replace")
+    reason = "".join(c for c in reason if " " <= c <= "~")
+    return Refusal(transfer, digest, (system, component), code, reason, mac)
 
 
 def _payload_of(frame: Frame) -> bytes:

@@ -1,0 +1,251 @@
+"""``antireplay mavlink-keys provision`` and the router's SIGHUP reload, on real processes:
+a key goes only over a wired link, never to an armed vehicle, and is enabled (recorded in
+``signing.keys``) only once the vehicle signs with it; a reload changes the ground keys at
+once and a bad file changes nothing."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import stat
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as dialect
+
+from antireplay.core.clock import SystemClock
+from antireplay.mavlink import mav_time, passphrase_key
+from harness import free_port, free_udp_port, until
+from harness.mavlink_frames import Sink
+from harness.stores import aged_state
+
+CLI = [sys.executable, "-m", "antireplay"]
+
+
+@contextmanager
+def simulated(port: int, *extra: str, env: dict[str, str] | None = None) -> Iterator[list[str]]:
+    """``mavlink-sim`` sending to ``127.0.0.1:port``; yields the list its exit line goes in."""
+    proc = subprocess.Popen(
+        [*CLI, "mavlink-sim", "--udp", f"127.0.0.1:{port}", *extra],
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    said: list[str] = []
+    try:
+        yield said
+    finally:
+        proc.terminate()
+        said.extend(proc.communicate(timeout=30)[1].splitlines())
+
+
+def provision(
+    port: int, keys: Path, *extra: str, env: dict[str, str] | None = None
+) -> tuple[int, str, str]:
+    done = subprocess.run(
+        [*CLI, "mavlink-keys", "provision", f"udpin:127.0.0.1:{port}", "--file", str(keys), *extra],
+        capture_output=True, text=True, timeout=120, env=env, check=False,
+    )  # fmt: skip
+    return done.returncode, done.stdout, done.stderr
+
+
+def record(keys: Path, system: int = 1) -> str | None:
+    for line in keys.read_text().splitlines():
+        if line.split()[:1] == [f"sysid:{system}"]:
+            return line.split()[1]
+    return None
+
+
+def metrics_text(port: int) -> str:
+    try:
+        return httpx.get(f"http://127.0.0.1:{port}/metrics", timeout=5).text
+    except httpx.HTTPError:
+        return ""
+
+
+def counter(text: str, name: str, labels: str) -> float:
+    for line in text.splitlines():
+        if line.startswith(f"{name}_total{{") and all(part in line for part in labels.split(",")):
+            return float(line.rsplit(" ", 1)[1])
+    return 0.0
+
+
+@contextmanager
+def router(
+    tmp_path: Path, *args: str, env: dict[str, str] | None = None
+) -> Iterator[tuple[subprocess.Popen[str], int, list[str]]]:
+    """A real router on an aged SQLite state with metrics; yields it, its metrics port and
+    the lines of its stderr so far."""
+    metrics = free_port()
+    proc = subprocess.Popen(
+        [*CLI, "mavlink-router", *args, "--store", f"sqlite:{aged_state(tmp_path / 'state.db')}",
+         "--audit", str(tmp_path / "audit.db"), "--metrics-port", str(metrics)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    lines: list[str] = []
+    assert proc.stderr is not None and proc.stdout is not None
+    reader = threading.Thread(target=lambda: lines.extend(iter(proc.stderr.readline, "")))  # type: ignore[union-attr]
+    reader.start()
+    try:
+        assert "mavlink-router" in proc.stdout.readline(), lines
+        yield proc, metrics, lines
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=30)
+        reader.join(timeout=30)
+
+
+def vehicle_only(port: int, keys: Path) -> list[str]:
+    """A router's options: the sim's port as its vehicle, its keys from ``keys`` only."""
+    ground = f"udpin:127.0.0.1:{free_udp_port()}"
+    return ["--vehicle", f"udpin:127.0.0.1:{port}", "--ground", ground, "--signing-keys", str(keys)]
+
+
+def test_a_provisioned_key_is_recorded_and_the_router_verifies_the_vehicle_with_it(
+    tmp_path: Path,
+) -> None:
+    """The sim (no key yet) takes SETUP_SIGNING over loopback; the record is written once
+    it signs with the key (mode 0600, other lines kept); a router reading only that file
+    accepts the sim's frames."""
+    port, keys = free_udp_port(), tmp_path / "signing.keys"
+    keys.write_text("udp:10.0.0.9:14550 someone-elses\n")
+    with simulated(port) as sim:
+        code, out, err = provision(port, keys)
+        assert code == 0, err
+        assert "key enabled" in out.splitlines()[-1], out
+        assert stat.S_IMODE(keys.stat().st_mode) == 0o600
+        assert keys.read_text().splitlines()[0] == "udp:10.0.0.9:14550 someone-elses"
+        assert record(keys) is not None
+        with router(tmp_path, *vehicle_only(port, keys)) as (_, m, _):
+            until("the sim's frames accepted", lambda: 'code="NO_PEER"' in metrics_text(m))
+            assert 'code="SIGNATURE_INVALID"' not in metrics_text(m)
+    assert any("setup_signing 1" in line for line in sim), sim
+
+
+@pytest.mark.parametrize("link", ["udpin:192.0.2.1:14550", "tcp:vehicle.example:5760",
+                                  "udpin:0.0.0.0:14550"])  # fmt: skip
+def test_a_link_that_is_not_wired_is_refused_by_name(tmp_path: Path, link: str) -> None:
+    keys = tmp_path / "signing.keys"
+    done = subprocess.run(
+        [*CLI, "mavlink-keys", "provision", link, "--file", str(keys)],
+        capture_output=True, text=True, timeout=60, check=False,
+    )  # fmt: skip
+    assert (done.returncode, done.stdout) == (2, ""), done.stderr
+    (line,) = done.stderr.splitlines()
+    assert line.startswith(f"antireplay: error: {link}: not a wired link"), line
+    assert not keys.exists()
+
+
+def test_an_armed_vehicle_is_refused_and_nothing_is_written(tmp_path: Path) -> None:
+    port, keys = free_udp_port(), tmp_path / "signing.keys"
+    with simulated(port, "--armed") as sim:
+        code, _, err = provision(port, keys, "--timeout", "20")
+    assert code == 1 and "is armed" in err, err
+    assert not keys.exists()
+    assert not any("setup_signing" in line for line in sim), sim  # never sent
+
+
+def test_a_vehicle_that_never_signs_with_the_new_key_enables_nothing(tmp_path: Path) -> None:
+    """The sim signs with a key the file does not know: the unsigned SETUP_SIGNING is not
+    taken, no confirmation comes, the attempt times out and writes nothing."""
+    port, keys = free_udp_port(), tmp_path / "signing.keys"
+    with simulated(port, "--key", "ab" * 32):
+        code, _, err = provision(port, keys, "--timeout", "2")
+    assert code == 1, err
+    assert "timed out: no HEARTBEAT signed with the new key" in err and "nothing enabled" in err
+    assert not keys.exists()
+
+
+def test_a_rotation_is_signed_with_the_old_key_and_replaces_it_once_confirmed(
+    tmp_path: Path,
+) -> None:
+    """The vehicle signs with A (provisioned); rotating to B sends SETUP_SIGNING signed with A
+    (the sim takes nothing unsigned now) and replaces A's record only once the sim signs
+    with B; a router then verifies B and no longer A."""
+    port, keys = free_udp_port(), tmp_path / "signing.keys"
+    env = {**os.environ, "NEW_PASSPHRASE": "rotated-passphrase"}
+    with simulated(port) as sim:
+        assert provision(port, keys)[0] == 0
+        old = record(keys)
+        code, out, err = provision(port, keys, "--passphrase-env", "NEW_PASSPHRASE", env=env)
+        assert code == 0 and "key rotated" in out, err
+        assert record(keys) == "rotated-passphrase" != old
+        assert sum(line.startswith("sysid:1 ") for line in keys.read_text().splitlines()) == 1
+        with router(tmp_path, *vehicle_only(port, keys)) as (_, m, _):
+            until("the sim's frames accepted", lambda: 'code="NO_PEER"' in metrics_text(m))
+    assert any("setup_signing 2" in line for line in sim), sim
+
+
+class Gcs:
+    """A ground station on a UDP socket signing HEARTBEATs with a passphrase's key."""
+
+    def __init__(self, to: int) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.to = ("127.0.0.1", to)
+
+    def beat(self, passphrase: str) -> None:
+        sink = Sink()
+        mav = dialect.MAVLink(sink, srcSystem=255, srcComponent=190)
+        mav.signing.secret_key, mav.signing.sign_outgoing = passphrase_key(passphrase), True
+        mav.signing.link_id = 1
+        mav.signing.timestamp = mav_time(SystemClock())
+        mav.heartbeat_send(dialect.MAV_TYPE_GCS, dialect.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        self.sock.sendto(sink.frames[-1], self.to)
+
+    @staticmethod
+    def counts(metrics: int) -> tuple[float, float]:
+        """Frames forwarded towards the vehicle, and refused for their signature."""
+        text = metrics_text(metrics)
+        forwarded = counter(text, "antireplay_mavlink_forwarded", 'direction="inbound"')
+        return forwarded, counter(text, "antireplay_mavlink_dropped", 'code="SIGNATURE_INVALID"')
+
+    def judged(self, metrics: int, passphrase: str) -> str:
+        """Send one HEARTBEAT until the router counts it: ``accepted`` or ``refused``."""
+        before = self.counts(metrics)
+        seen: list[str] = []
+
+        def counted() -> bool:
+            self.beat(passphrase)
+            now = self.counts(metrics)
+            if now[0] > before[0]:
+                seen.append("accepted")
+            elif now[1] > before[1]:
+                seen.append("refused")
+            return bool(seen)
+
+        until(f"a HEARTBEAT signed with {passphrase} counted", counted)
+        return seen[0]
+
+
+def test_sighup_reloads_the_ground_keys_and_a_bad_file_keeps_them(tmp_path: Path) -> None:
+    ground = free_udp_port()
+    keys = tmp_path / "signing.keys"
+    keys.write_text(f"udpin:127.0.0.1:{ground} gcs-one\n")
+    env = {**os.environ, "MAV_PASSPHRASE": "vehicle-passphrase"}
+    args = ["--vehicle", f"udpin:127.0.0.1:{free_udp_port()}", "--ground",
+            f"udpin:127.0.0.1:{ground}", "--signing-keys", str(keys),
+            "--passphrase-env", "MAV_PASSPHRASE"]  # fmt: skip
+    with router(tmp_path, *args, env=env) as (proc, metrics, lines):
+        gcs = Gcs(ground)
+        assert gcs.judged(metrics, "gcs-one") == "accepted"
+        keys.write_text(f"udpin:127.0.0.1:{ground} gcs-two\n")
+        proc.send_signal(signal.SIGHUP)
+        until("the reload logged", lambda: any("signing keys reloaded" in x for x in lines))
+        assert gcs.judged(metrics, "gcs-one") == "refused"  # the removed key, at once
+        assert gcs.judged(metrics, "gcs-two") == "accepted"  # the new one
+        keys.write_bytes(b"\xff\xfe not a text file\n")
+        proc.send_signal(signal.SIGHUP)
+        until("the bad file logged", lambda: any("not reloaded" in x for x in lines))
+        assert gcs.judged(metrics, "gcs-two") == "accepted"  # the old keys stay
+        assert proc.poll() is None
+        keys.write_text("")  # its line gone: the link falls back to the default key
+        proc.send_signal(signal.SIGHUP)
+        until("the removal logged", lambda: sum("signing keys reloaded" in x for x in lines) == 2)
+        assert gcs.judged(metrics, "gcs-two") == "refused"
+        assert gcs.judged(metrics, "vehicle-passphrase") == "accepted"
+    assert sum("not reloaded" in line for line in lines) == 1, lines
