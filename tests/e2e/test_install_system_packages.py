@@ -41,6 +41,7 @@ def test_a_quiet_install_is_one_line_and_keeps_apt_gets_log(tmp_path: Path) -> N
     assert done.stdout.count("\n") == 1 and done.stderr == "", done.stdout + done.stderr
     assert done.stdout.startswith("system packages: installing redis-server wrk strace curl")
     assert (tmp_path / "antireplay-apt.log").read_text().count("noise") == 1000  # update + install
+    assert done.stdout.split(" (apt-get")[0].endswith(" softhsm2")  # its tokens: tests/keys
 
 
 def test_a_failed_install_shows_the_end_of_apt_gets_log(tmp_path: Path) -> None:

@@ -5,7 +5,8 @@ row chains from :data:`GENESIS`, or, in a later segment of the trail, from the l
 hash of the segment before it, which the segment's one ``segment`` row records (its
 :class:`Link`, MACed with the head key).  A file without that row is segment 1.  The
 head ``(rows, last hash, oldest segment kept)`` is MACed with a key kept outside the
-database and checkpointed to a file beside it (:class:`HeadAnchor`).
+database and checkpointed to a file beside it (:class:`HeadAnchor`); the key is a file's
+32 bytes, or a key kept in a token that computes the HMAC itself (:class:`MacKey`).
 The writer (:mod:`.writer`), the reader (:mod:`.reader`) and the verifier
 (:mod:`.verifier`) share these definitions and nothing else.  A row to write is one
 :class:`AuditRow`, whichever adapter builds it; a row read back is a :class:`Record`, the
@@ -24,7 +25,7 @@ import sqlite3
 import tempfile
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, TypeAlias
 
 from antireplay.core.errors import AuditFileError
 from antireplay.state.durable import atomic_write
@@ -155,6 +156,31 @@ def _aside(path: Path) -> str:
     )
 
 
+class MacKey(Protocol):
+    """A head key that never leaves its token: HMAC-SHA256 computed there
+    (:class:`antireplay.keys.pkcs11.TokenMac`); a failing token raises ``OSError``."""
+
+    def mac(self, data: bytes, /) -> bytes: ...
+
+
+#: The head key: a key file's 32 bytes, or a key in a token.
+HeadKey: TypeAlias = "bytes | MacKey"
+
+
+def hexmac(key: HeadKey, message: bytes) -> str:
+    """HMAC-SHA256 of ``message`` under the head key, in hex."""
+    if isinstance(key, bytes):
+        return hmac.new(key, message, "sha256").hexdigest()
+    return key.mac(message).hex()
+
+
+def spill_key(key: HeadKey) -> bytes:
+    """The ESTOP spill's MAC key: the head key itself, or for a key in a token one derived
+    from it at open, so ESTOP rows are still spilled (and verified at the next open) after
+    the token has failed."""
+    return key if isinstance(key, bytes) else key.mac(b"antireplay/v1 audit spill key")
+
+
 @dataclass(frozen=True)
 class Checkpoint:
     """A MAC-verified chain head read from the checkpoint file."""
@@ -185,9 +211,15 @@ FIRST_LINK = Link(1, 1, GENESIS)
 class HeadAnchor:
     """The chain head, MACed with a key kept outside the database, checkpointed outside it."""
 
-    def __init__(self, db: Path, key_path: Path | None = None, head_path: Path | None = None):
+    def __init__(
+        self, db: Path, key_path: str | Path | MacKey | None = None,
+        head_path: str | Path | None = None,
+    ) -> None:  # fmt: skip
         self.db = db
-        self.key_path = Path(key_path) if key_path else db.with_name(db.name + ".key")
+        #: A key in a token, instead of the key file.
+        self.token = None if key_path is None or isinstance(key_path, (str, Path)) else key_path
+        named = isinstance(key_path, (str, Path)) and str(key_path)
+        self.key_path = Path(key_path) if named else db.with_name(db.name + ".key")  # type: ignore[arg-type]
         self.path = Path(head_path) if head_path else db.with_name(db.name + ".head")
 
     def _read(self, path: Path) -> bytes | None:
@@ -201,8 +233,10 @@ class HeadAnchor:
                 str(path), f"unreadable ({exc.strerror})", recovery=_recovery(self.db)
             ) from None
 
-    def load_key(self) -> bytes | None:
+    def load_key(self) -> HeadKey | None:
         """The head key, ``None`` if there is none yet; a damaged or exposed key refuses."""
+        if self.token is not None:
+            return self.token
         raw = self._read(self.key_path)
         if raw is None:
             return None
@@ -222,9 +256,12 @@ class HeadAnchor:
             )  # fmt: skip
         return key
 
-    def create_key(self) -> bytes:
+    def create_key(self) -> HeadKey:
         """Make the key (0600) on first use: written whole to a temporary file, then linked
-        into place, so nobody ever reads a half-written key; a concurrent creator's key wins."""
+        into place, so nobody ever reads a half-written key; a concurrent creator's key wins.
+        A key in a token is made by its operator, never here."""
+        if self.token is not None:
+            return self.token
         key = secrets.token_bytes(32)
         fd, tmp = tempfile.mkstemp(prefix=f".{self.key_path.name}.", dir=self.key_path.parent)
         try:
@@ -242,30 +279,29 @@ class HeadAnchor:
         return key
 
     @staticmethod
-    def mac(key: bytes, rows: int, head: str, first: int = 1) -> str:
+    def mac(key: HeadKey, rows: int, head: str, first: int = 1) -> str:
         """The head's MAC; version 1 (``first == 1``, nothing removed) keeps its old message."""
         text = f"antireplay/v1 audit head|{rows}|{head}" + (f"|first {first}" if first > 1 else "")
-        return hmac.new(key, text.encode(), "sha256").hexdigest()
+        return hexmac(key, text.encode())
 
     @classmethod
-    def mac_ok(cls, key: bytes, head: Checkpoint, mac: str) -> bool:
+    def mac_ok(cls, key: HeadKey, head: Checkpoint, mac: str) -> bool:
         """Whether ``mac`` is ``head``'s MAC under ``key``."""
         return hmac.compare_digest(mac, cls.mac(key, head.rows, head.hash, head.first))
 
     @staticmethod
-    def link(key: bytes, n: int, first: int, prev: str) -> Link:
+    def link(key: HeadKey, n: int, first: int, prev: str) -> Link:
         """A segment's start, MACed: proof that the writer, not a deleter, cut the chain there."""
-        unsigned = Link(n, first, prev)
-        return Link(n, first, prev, hmac.new(key, unsigned.message(), "sha256").hexdigest())
+        return Link(n, first, prev, hexmac(key, Link(n, first, prev).message()))
 
     @staticmethod
-    def link_ok(key: bytes, link: Link) -> bool:
+    def link_ok(key: HeadKey, link: Link) -> bool:
         if link == FIRST_LINK:
             return True  # segment 1 starts from GENESIS: nothing to prove
-        expected = hmac.new(key, link.message(), "sha256").hexdigest()
+        expected = hexmac(key, link.message())
         return hmac.compare_digest(link.mac, expected)
 
-    def record(self, key: bytes, rows: int, head: str, first: int = 1) -> bytes:
+    def record(self, key: HeadKey, rows: int, head: str, first: int = 1) -> bytes:
         """The checkpoint as one fixed-size record (JSON padded with spaces, then a newline);
         version 2 adds the oldest segment kept, once retention has removed one."""
         body: dict[str, Any] = {"format": HEAD_FORMAT, "version": HEAD_VERSION, "rows": rows,
@@ -274,7 +310,9 @@ class HeadAnchor:
             body.update(version=2, first=first)
         return json.dumps(body, sort_keys=True).encode().ljust(HEAD_RECORD - 1) + b"\n"
 
-    def write(self, key: bytes, rows: int, head: str, *, sync: bool = True, first: int = 1) -> None:
+    def write(
+        self, key: HeadKey, rows: int, head: str, *, sync: bool = True, first: int = 1
+    ) -> None:
         """Checkpoint the head: in place when the file already holds one record, so that
         ``sync=False`` costs no fsync yet survives a ``kill -9``; whole files (first
         write, an operator's edit) go through :func:`~antireplay.state.durable.atomic_write`."""
@@ -296,7 +334,7 @@ class HeadAnchor:
         # so the directory fsync is skipped; the file's own fsync keeps it whole.
         atomic_write(self.path, record, sync_dir=False)
 
-    def read(self, key: bytes | None) -> Checkpoint | None:
+    def read(self, key: HeadKey | None) -> Checkpoint | None:
         """The checkpoint (``None`` if missing); a garbage or forged checkpoint refuses.
 
         Without a key the MAC cannot be checked and the checkpoint is returned unproven."""

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from antireplay.audit import segments
-from antireplay.audit.chain import Checkpoint, HeadAnchor, _connect, _last, _link
+from antireplay.audit.chain import Checkpoint, HeadAnchor, HeadKey, _connect, _last, _link
 from antireplay.state.outbox import TrailHead
 
 __all__ = ["ROLLED_BACK", "Consistency", "TrailHead", "extends"]
@@ -49,7 +49,7 @@ class Consistency:
         return self.problem is None
 
 
-def recorded(head: TrailHead, key: bytes) -> Checkpoint | None:
+def recorded(head: TrailHead, key: HeadKey) -> Checkpoint | None:
     """The state's record as a checkpoint if its MAC verifies under ``key``, else ``None``."""
     rows, digest, first, mac = head
     if not HeadAnchor.mac_ok(key, Checkpoint(rows, digest, first), mac):
@@ -86,7 +86,7 @@ def _first_row(file: Path) -> int:
 
 
 def against_state(path: Path, live: sqlite3.Connection, head: TrailHead | None,
-                  key: bytes) -> Consistency | None:  # fmt: skip
+                  key: HeadKey) -> Consistency | None:  # fmt: skip
     """The trail against the state database's record (``None``: nothing recorded yet)."""
     if head is None:
         return None
@@ -100,12 +100,12 @@ def against_state(path: Path, live: sqlite3.Connection, head: TrailHead | None,
     return extends(path, live, checkpoint)
 
 
-def read_export(file: Path, key: bytes | None, trail: Path) -> Checkpoint | None:
+def read_export(file: Path, key: HeadKey | None, trail: Path) -> Checkpoint | None:
     """An exported head (``audit head --export``), MAC-checked under ``key``."""
     return HeadAnchor(trail, head_path=file).read(key)
 
 
-def export(anchor: HeadAnchor, key: bytes, head: Checkpoint, file: Path) -> None:
+def export(anchor: HeadAnchor, key: HeadKey, head: Checkpoint, file: Path) -> None:
     """Write ``head`` (a verified checkpoint) to ``file`` for an operator to keep elsewhere."""
     HeadAnchor(anchor.db, anchor.key_path, file).write(key, head.rows, head.hash,
                                                        first=head.first)  # fmt: skip

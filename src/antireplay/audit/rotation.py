@@ -29,6 +29,7 @@ from antireplay.audit import segments
 from antireplay.audit.chain import (
     Checkpoint,
     HeadAnchor,
+    HeadKey,
     Link,
     _compare,
     _connect,
@@ -55,7 +56,7 @@ class SegmentLifecycle:
     retention: Retention
     _clock: Clock
     _lock: threading.Lock
-    _key: bytes
+    _key: HeadKey
     _rows: int
     _head: str
     _first: int
@@ -105,7 +106,7 @@ class SegmentLifecycle:
             ),
         )
 
-    def _open_anchor(self, db: sqlite3.Connection) -> bytes:
+    def _open_anchor(self, db: sqlite3.Connection) -> HeadKey:
         """Check the database against its checkpoint before appending anything."""
         key = self.anchor.load_key()
         checkpoint = self.anchor.read(key)

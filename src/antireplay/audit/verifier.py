@@ -27,6 +27,8 @@ from antireplay.audit.chain import (
     GENESIS,
     Checkpoint,
     HeadAnchor,
+    HeadKey,
+    MacKey,
     _aside,
     _connect,
     _digest,
@@ -153,7 +155,7 @@ class _Trail:
     def check_order(self, first: int) -> None:
         segments.check_order(self.path, list(zip(self.files, self.links, strict=True)), first)
 
-    def walk(self, key: bytes | None) -> tuple[ChainReport, str]:
+    def walk(self, key: HeadKey | None) -> tuple[ChainReport, str]:
         """Recompute every link of every segment, oldest first; the report and the last
         hash that links."""
         start = self.links[0]
@@ -187,7 +189,7 @@ class _Trail:
 def verify(
     path: str | PathLike[str],
     *,
-    head_key: str | Path | None = None,
+    head_key: str | Path | MacKey | None = None,
     head_path: str | Path | None = None,
     state: str | Path | None = None,
     since: str | Path | None = None,
@@ -203,7 +205,7 @@ def verify(
     report = _verify(Path(path), head_key, head_path)
     if state is None and since is None:
         return report
-    anchor = HeadAnchor(Path(path), Path(head_key) if head_key else None)
+    anchor = HeadAnchor(Path(path), head_key)
     key = anchor.load_key()
     if key is None:
         return replace(report, unproven=("head key missing: recorded heads not compared",))
@@ -239,9 +241,11 @@ def _state_head(path: Path) -> consistency.TrailHead | None:
         ) from None
 
 
-def _verify(path: Path, head_key: str | Path | None, head_path: str | Path | None) -> ChainReport:
+def _verify(
+    path: Path, head_key: str | Path | MacKey | None, head_path: str | Path | None
+) -> ChainReport:
     """:func:`verify` without recorded heads."""
-    anchor = HeadAnchor(path, Path(head_key) if head_key else None,
+    anchor = HeadAnchor(path, head_key,
                         Path(head_path) if head_path else None)  # fmt: skip
     trail = _Trail(path)
     try:
@@ -292,7 +296,7 @@ def _walk(
 def reanchor(
     path: str | PathLike[str],
     *,
-    head_key: str | Path | None = None,
+    head_key: str | Path | MacKey | None = None,
     head_path: str | Path | None = None,
 ) -> ChainReport:
     """Accept the current, intact chain as the new head (after an operator checked it),
@@ -301,7 +305,7 @@ def reanchor(
     Creates a new key when the old one is gone (a damaged or exposed key is replaced,
     never reused) and re-MACs the segment links with it.  Refuses a broken chain."""
     path = Path(path)
-    anchor = HeadAnchor(path, Path(head_key) if head_key else None,
+    anchor = HeadAnchor(path, head_key,
                         Path(head_path) if head_path else None)  # fmt: skip
     try:
         key = anchor.load_key()
@@ -332,7 +336,7 @@ def export_head(
     path: str | PathLike[str],
     file: str | Path,
     *,
-    head_key: str | Path | None = None,
+    head_key: str | Path | MacKey | None = None,
     head_path: str | Path | None = None,
 ) -> ChainReport:
     """Write the trail's head checkpoint, MACed with the head key, to ``file`` (for an
@@ -342,7 +346,7 @@ def export_head(
     if not report.ok or report.checkpoint_rows is None:
         raise AuditFileError(str(path), "not exported: " + "; ".join(report.lines()),
                              recovery=f"antireplay audit verify {path}")  # fmt: skip
-    anchor = HeadAnchor(Path(path), Path(head_key) if head_key else None,
+    anchor = HeadAnchor(Path(path), head_key,
                         Path(head_path) if head_path else None)  # fmt: skip
     key = anchor.load_key()
     checkpoint = anchor.read(key)

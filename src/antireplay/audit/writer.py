@@ -41,12 +41,14 @@ from antireplay.audit.chain import (
     AuditRow,
     Checkpoint,
     HeadAnchor,
+    MacKey,
     Record,
     _compare,
     _digest,
     _last,
     _recovery,
     sanitize,
+    spill_key,
     valid_at,
 )
 from antireplay.audit.rotation import SegmentLifecycle, mark_of, rows_in
@@ -100,7 +102,7 @@ class AuditLog(SegmentLifecycle):
         self,
         path: str | PathLike[str],
         *,
-        head_key: str | Path | None = None,
+        head_key: str | Path | MacKey | None = None,
         head_path: str | Path | None = None,
         head_sync_s: float = 1.0,
         clock: Clock | None = None,
@@ -110,7 +112,7 @@ class AuditLog(SegmentLifecycle):
     ) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.anchor = HeadAnchor(self.path, Path(head_key) if head_key else None,
+        self.anchor = HeadAnchor(self.path, head_key,
                                  Path(head_path) if head_path else None)  # fmt: skip
         #: Longest a checkpoint stays un-fsynced while rows are appended (power cuts only).
         self.head_sync_s = head_sync_s
@@ -164,7 +166,7 @@ class AuditLog(SegmentLifecycle):
             return None
         where = Path(path) if path else self.path.with_name(self.path.name + ".spill")
         try:
-            spill = Spill(where, self._key, slots=slots)
+            spill = Spill(where, spill_key(self._key), slots=slots)
         except AuditFileError as exc:
             log.error("audit spill unavailable (%s): ESTOP rows are held in memory", exc)
             return None

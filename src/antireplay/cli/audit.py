@@ -23,6 +23,8 @@ if TYPE_CHECKING:
     pass
 
 from antireplay.cli._common import _OPEN_ONLY_AUDIT, _check_audit_file, _fail, console
+from antireplay.cli._token import KeyOrUri
+from antireplay.cli._token import head_key as open_head_key
 
 
 @click.group()
@@ -31,7 +33,10 @@ def audit() -> None:
 
 
 _HEAD_KEY = click.option(
-    "--head-key", type=click.Path(path_type=Path), default=None, help="Default: PATH.key"
+    "--head-key",
+    type=KeyOrUri(exists=False),
+    default=None,
+    help="Default: PATH.key; or the head key in a token (pkcs11:token=...;object=...).",
 )
 _HEAD_FILE = click.option(
     "--head", "head_file", type=click.Path(path_type=Path), default=None, help="Default: PATH.head"
@@ -51,7 +56,7 @@ def _recorded(name: str, text: str) -> Callable[[Callable[..., None]], Callable[
 @_recorded("state", "The SQLite state database: prove the trail extends the head it recorded.")
 @_recorded("since", "A head exported by `audit head --export`: prove the trail extends it.")
 def audit_verify(
-    path: Path, head_key: Path | None, head_file: Path | None, state: Path | None,
+    path: Path, head_key: Path | str | None, head_file: Path | None, state: Path | None,
     since: Path | None,
 ) -> None:  # fmt: skip
     """Check the hash chain and the head checkpoint; say what is proven and what is not.
@@ -61,7 +66,9 @@ def audit_verify(
     an exported head recorded."""
     _check_audit_file(path, _OPEN_ONLY_AUDIT)
     try:
-        report = verify(path, head_key=head_key, head_path=head_file, state=state, since=since)
+        report = verify(
+            path, head_key=open_head_key(head_key), head_path=head_file, state=state, since=since
+        )
     except StateFileError as exc:
         _fail(str(exc))
     for line in report.lines():
@@ -81,12 +88,14 @@ def audit_verify(
     required=True,
     help="Write the verified head, MACed with the head key, to this file (keep it elsewhere).",
 )
-def audit_head(path: Path, head_key: Path | None, head_file: Path | None, export: Path) -> None:
+def audit_head(
+    path: Path, head_key: Path | str | None, head_file: Path | None, export: Path
+) -> None:
     """Export the trail's verified head; `audit verify --since FILE` later proves the
     trail extends it (a rollback, truncation or rewrite before it fails)."""
     _check_audit_file(path, _OPEN_ONLY_AUDIT)
     try:
-        report = export_head(path, export, head_key=head_key, head_path=head_file)
+        report = export_head(path, export, head_key=open_head_key(head_key), head_path=head_file)
     except StateFileError as exc:
         _fail(str(exc))
         return
@@ -97,10 +106,10 @@ def audit_head(path: Path, head_key: Path | None, head_file: Path | None, export
 @click.argument("path", type=click.Path(exists=True, path_type=Path))
 @_HEAD_KEY
 @_HEAD_FILE
-def audit_reanchor(path: Path, head_key: Path | None, head_file: Path | None) -> None:
+def audit_reanchor(path: Path, head_key: Path | str | None, head_file: Path | None) -> None:
     """Accept the current intact chain as the new head (after checking it with verify)."""
     try:
-        report = reanchor(path, head_key=head_key, head_path=head_file)
+        report = reanchor(path, head_key=open_head_key(head_key), head_path=head_file)
     except StateFileError as exc:
         _fail(str(exc))
         return

@@ -26,6 +26,7 @@ from antireplay.rcan.auth import (
     SDK_PRIVATE_MAGIC,
     PrivateKey,
     SdkKeyPair,
+    SigningKey,
     UnsignedFieldsError,
     sdk_key_id,
     sign_envelope,
@@ -38,6 +39,7 @@ if TYPE_CHECKING:
     pass
 
 from antireplay.cli._common import _fail, console, warn_if_shared
+from antireplay.cli._token import KeyOrUri, token_signer
 
 KEY_TYPES: dict[str, Any] = {
     "ed25519": ed25519.Ed25519PrivateKey,
@@ -113,8 +115,9 @@ def _private_key(
     "key_paths",
     multiple=True,
     required=True,
-    type=click.Path(exists=True, dir_okay=False, path_type=Path),
-    help="Private key (PEM); twice for ed25519+ml-dsa-65, Ed25519 first.",
+    type=KeyOrUri(),
+    help="Private key (PEM, or an Ed25519 key in a token: pkcs11:token=...;object=...); "
+    "twice for ed25519+ml-dsa-65, Ed25519 first.",
 )
 @click.option("--kid", default=None, help="Required, except with --sdk (the key's SDK key id).")
 @click.option(
@@ -147,7 +150,7 @@ def _private_key(
 )
 @click.option("--scope", default=None, help="Scope the message needs of its key.")
 def sign(  # noqa: PLR0917 - one option per envelope field
-    key_paths: tuple[Path, ...],
+    key_paths: tuple[Path | str, ...],
     kid: str | None,
     alg: str,
     sdk: bool,
@@ -186,11 +189,11 @@ def sign(  # noqa: PLR0917 - one option per envelope field
         body.setdefault("params", {})[name] = value
     try:
         if sdk:
-            signed = sign_sdk(body, _sdk_key(key_paths, kid))
+            signed = sign_sdk(body, _sdk_key(_files(key_paths), kid))
         elif kid is None:
             _fail("--kid is required (except with --sdk)")
         else:
-            signed = sign_envelope(body, kid, alg, _matching(_private_key(key_paths), alg))
+            signed = sign_envelope(body, kid, alg, _signing_keys(key_paths, alg))
     except (ValueError, ReplayAttackError) as exc:
         hint = ""
         if isinstance(exc, UnsignedFieldsError) and {"type", "safety_event", "scope"} & set(
@@ -199,6 +202,17 @@ def sign(  # noqa: PLR0917 - one option per envelope field
             hint = "; with --sdk, --cmd ESTOP/STOP/RESUME is a safety message"
         _fail(f"cannot sign: {exc}{hint}")
     click.echo(json.dumps(signed))
+
+
+def _signing_keys(keys: tuple[Path | str, ...], alg: str) -> SigningKey | tuple[SigningKey, ...]:
+    """The keys to sign with: files, or one Ed25519 key in a token (a ``pkcs11:`` URI)."""
+    uris = [k for k in keys if isinstance(k, str)]
+    if not uris:
+        return _matching(_private_key(tuple(Path(k) for k in keys)), alg)
+    if alg != "ed25519" or len(keys) != 1:
+        _fail(f"--key {uris[0]}: a token key signs --alg ed25519 alone (CKM_EDDSA)")
+    signer: SigningKey = token_signer(uris[0])
+    return signer
 
 
 def _robot_uri(text: str) -> bool:
@@ -223,6 +237,13 @@ def _matching(
 #: A private key's class name -> the --alg that signs with it.
 _KEY_NAMES = {"Ed25519PrivateKey": "ed25519", "MLDSA65PrivateKey": "ml-dsa-65",
               "MLDSA87PrivateKey": "ml-dsa-87"}  # fmt: skip
+
+
+def _files(keys: tuple[Path | str, ...]) -> tuple[Path, ...]:
+    """``--key`` files (``--sdk`` signs with files only)."""
+    if any(isinstance(k, str) for k in keys):
+        _fail("--sdk signs with a key file (ML-DSA-65), not a token key")
+    return tuple(Path(k) for k in keys)
 
 
 def _sdk_key(paths: tuple[Path, ...], kid: str | None) -> mldsa.MLDSA65PrivateKey | SdkKeyPair:

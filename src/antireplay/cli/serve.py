@@ -318,12 +318,14 @@ def config_check(path: Path, verbose: bool) -> None:
 def _check_sections(cfg: AppConfig) -> list[str]:
     """What the commands other than ``serve`` would load from their sections (key files,
     allow-lists, PEM keys), loaded and dropped: nothing opened, nothing bound."""
-    from antireplay.wiring.leaves import check_state  # noqa: PLC0415
+    from antireplay.wiring.leaves import check_head_key, check_state  # noqa: PLC0415
     from antireplay.wiring.mavlink import router_endpoints, router_options  # noqa: PLC0415
     from antireplay.wiring.mavlink_pq import ground_end, vehicle_end  # noqa: PLC0415
 
     said = []
     given = cfg.model_fields_set
+    if check_head_key(cfg):
+        said.append("audit.head_key: the token logs in and holds the key")
     if "mavlink" in given and cfg.mavlink.vehicle:
         endpoints = router_endpoints(cfg.mavlink)
         router_options(cfg.mavlink)

@@ -72,6 +72,9 @@ class AuditConfig(BaseModel):
     segment_age_s: float = Field(default=86_400.0, ge=1, le=366 * 86_400)
     max_bytes: int | None = Field(default=1024 * _MIB, ge=2 * 64 * 1024, le=1 << 50)
     max_age_s: float | None = Field(default=None, ge=60, le=100 * 366 * 86_400)
+    #: The head key: a file (default PATH.key, made on first use), or a generic secret in a
+    #: PKCS#11 token (``pkcs11:token=...;object=...``) that computes the HMAC itself.
+    head_key: str | None = Field(default=None, min_length=1)
 
     @model_validator(mode="before")
     @classmethod

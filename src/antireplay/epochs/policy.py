@@ -37,7 +37,7 @@ import struct
 from collections import deque
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 from cryptography.hazmat.primitives import hashes
 from cryptography.hazmat.primitives.hmac import HMAC
@@ -95,17 +95,35 @@ class Announcement:
     warning: WarningCode | None = None
 
 
-def derive_key(psk: bytes, kind: Kind) -> bytes:
+class FleetKey(Protocol):
+    """A fleet key kept in a PKCS#11 token as its HKDF-extracted PRK
+    (``HMAC-SHA256(32 zero bytes, psk)``): ``.mac(data)`` is ``HMAC-SHA256(PRK, data)``
+    computed there (:class:`antireplay.keys.pkcs11.TokenMac`)."""
+
+    def mac(self, data: bytes, /) -> bytes: ...
+
+
+def hkdf32(psk: bytes | FleetKey, info: bytes) -> bytes:
+    """``HKDF-SHA256(psk, salt=None, info)``, 32 bytes; from a :class:`FleetKey` the token
+    runs the expand step (``T(1) = HMAC(PRK, info | 0x01)``, RFC 5869), so both give the
+    same key and a token-held fleet key interoperates with a file-held one."""
+    if isinstance(psk, bytes):
+        if len(psk) < 16:
+            raise ValueError("psk must be at least 16 bytes")
+        return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(psk)
+    if not callable(getattr(psk, "mac", None)):
+        raise ValueError("psk must be at least 16 bytes, or a fleet key in a token")
+    return psk.mac(info + b"\x01")
+
+
+def derive_key(psk: bytes | FleetKey, kind: Kind) -> bytes:
     """HKDF-SHA256 with a fixed label per kind; challenges and answers use the ping key
     (the kind byte under the MAC keeps the three apart)."""
-    if not isinstance(psk, bytes) or len(psk) < 16:
-        raise ValueError("psk must be at least 16 bytes")
     label = LABELS[kind if kind in STREAMS else Kind.PING]
-    info = b"antireplay/v1 epoch " + label.encode()
-    return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(psk)
+    return hkdf32(psk, b"antireplay/v1 epoch " + label.encode())
 
 
-def derive_keys(psk: bytes) -> dict[Kind, bytes]:
+def derive_keys(psk: bytes | FleetKey) -> dict[Kind, bytes]:
     """The key of every kind (two HKDF runs: challenges and answers share the ping key)."""
     keys = {k: derive_key(psk, k) for k in STREAMS}
     return keys | {Kind.CHALLENGE: keys[Kind.PING], Kind.ANSWER: keys[Kind.PING]}

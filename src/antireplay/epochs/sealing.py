@@ -30,9 +30,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from cryptography.hazmat.primitives import hashes
-from cryptography.hazmat.primitives.kdf.hkdf import HKDF
-
 from antireplay.core.errors import (
     Code,
     EpochReplayedError,
@@ -43,7 +40,17 @@ from antireplay.core.errors import (
     SignatureInvalidError,
     StateUnavailableError,
 )
-from antireplay.epochs.policy import HEAD, LABELS, MAX_LEN, MIN_LEN, TAG_LEN, Announcement, Kind
+from antireplay.epochs.policy import (
+    HEAD,
+    LABELS,
+    MAX_LEN,
+    MIN_LEN,
+    TAG_LEN,
+    Announcement,
+    FleetKey,
+    Kind,
+    hkdf32,
+)
 
 _ILEN = struct.Struct(">H")
 #: The shortest sealed sample: an announcement carrying an empty instance and no data.
@@ -66,15 +73,13 @@ OUTCOMES: dict[type[ReplayAttackError], str] = {
 }
 
 
-def topic_key(psk: bytes, topic: str, type_name: str, domain_id: int = 0) -> bytes:
+def topic_key(psk: bytes | FleetKey, topic: str, type_name: str, domain_id: int = 0) -> bytes:
     """The per-topic MAC secret: binds the domain id, the topic name and the type name, so a
     sample captured on one domain (one robot's ROS_DOMAIN_ID) fails the MAC on another."""
-    if not isinstance(psk, bytes) or len(psk) < 16:
-        raise ValueError("psk must be at least 16 bytes")
     info = b"antireplay/v1 dds topic"
     for part in (str(domain_id).encode(), topic.encode(), type_name.encode()):
         info += _ILEN.pack(len(part)) + part
-    return HKDF(algorithm=hashes.SHA256(), length=32, salt=None, info=info).derive(psk)
+    return hkdf32(psk, info)
 
 
 def frame(instance: str, data: bytes) -> bytes:

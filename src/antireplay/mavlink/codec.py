@@ -29,8 +29,10 @@ key from a passphrase as MAVProxy, QGroundControl and Mission Planner do
 (:func:`sign`: the signed :class:`Frame`) signs a v2 frame with a link's next
 timestamp (:mod:`antireplay.mavlink.signing`, :mod:`antireplay.mavlink.signer`);
 a signed frame is signed again: a router forwarding between links with different
-keys.  :func:`split_parsed` and :meth:`FrameReader.feed_parsed` hand out the
-parsed frames, so that a frame is parsed once on its way through a router.
+keys.  The key is 32 bytes, or a :class:`KeyedDigest` (a key in a PKCS#11 token that
+computes the signature's SHA-256 itself).  :func:`split_parsed` and
+:meth:`FrameReader.feed_parsed` hand out the parsed frames, so that a frame is parsed
+once on its way through a router.
 """
 
 from __future__ import annotations
@@ -275,13 +277,24 @@ class Timestamps(Protocol):
     def next(self) -> int: ...
 
 
-def sign_frame(frame: bytes | Frame, key: bytes, link_id: int, timestamps: Timestamps) -> bytes:
+class KeyedDigest(Protocol):
+    """A link key that never leaves its token: ``SHA-256(key || data)`` computed there
+    (C_DigestKey; :class:`antireplay.keys.pkcs11.TokenDigestKey`)."""
+
+    def digest(self, data: bytes, /) -> bytes: ...
+
+
+def sign_frame(
+    frame: bytes | Frame, key: bytes | KeyedDigest, link_id: int, timestamps: Timestamps
+) -> bytes:
     """Sign a v2 frame of a message known to the dialect with ``key``; a signed frame is
     signed again (a router forwarding between links with different keys)."""
     return sign(frame, key, link_id, timestamps).raw
 
 
-def sign(frame: bytes | Frame, key: bytes, link_id: int, timestamps: Timestamps) -> Frame:
+def sign(
+    frame: bytes | Frame, key: bytes | KeyedDigest, link_id: int, timestamps: Timestamps
+) -> Frame:
     """:func:`sign_frame`, as the parsed :class:`Frame` of the signed bytes (built, not
     parsed again)."""
     parsed = frame if isinstance(frame, Frame) else parse_frame(frame)
@@ -296,7 +309,8 @@ def sign(frame: bytes | Frame, key: bytes, link_id: int, timestamps: Timestamps)
     signed = body + _crc(body, len(body), spec.crc_extra).to_bytes(2, "little")
     timestamp = timestamps.next()
     signed += _TRAILER.pack(link_id, timestamp & 0xFFFFFFFF, timestamp >> 32)
-    signed += hashlib.sha256(key + signed).digest()[:6]
+    keyed = hashlib.sha256(key + signed).digest() if isinstance(key, bytes) else key.digest(signed)
+    signed += keyed[:6]
     return Frame(
         signed, parsed.sysid, parsed.compid, parsed.msgid, parsed.payload, True, link_id, timestamp
     )

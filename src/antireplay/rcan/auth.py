@@ -338,8 +338,15 @@ def _time_claim(claims: dict[str, Any], name: str) -> float | None:
 PrivateKey = ed25519.Ed25519PrivateKey | mldsa.MLDSA65PrivateKey | mldsa.MLDSA87PrivateKey
 
 
+class SigningKey(Protocol):
+    """What signs an envelope: a private key, or a key in a token
+    (:class:`antireplay.keys.pkcs11.TokenSigner`)."""
+
+    def sign(self, data: bytes, /) -> bytes: ...
+
+
 def sign_envelope(
-    message: dict[str, Any], kid: str, alg: str, keys: PrivateKey | tuple[PrivateKey, ...]
+    message: dict[str, Any], kid: str, alg: str, keys: SigningKey | tuple[SigningKey, ...]
 ) -> dict[str, Any]:
     """Return ``message`` with a ``sig`` block over its canonical form (the sender's side).
 

@@ -10,7 +10,8 @@ the file says about them holds for each alike:
   :func:`trail_path`, so two commands never share one trail unasked),
   rotated and retained as ``audit:`` says (:func:`open_audit`), with its ESTOP spill
   (``audit_space.spill``) and the free-space floors under it (``audit_space``, a
-  :class:`~antireplay.audit.space.DiskSpace` the command's refusal auditor goes quiet by);
+  :class:`~antireplay.audit.space.DiskSpace` the command's refusal auditor goes quiet by),
+  its head key a file or a key in a PKCS#11 token (``audit.head_key``, :mod:`antireplay.keys`);
 * :func:`open_state` opens a store from its parsed spec (:class:`~antireplay.state.StoreSpec`)
   with its anchor outside its directory when ``state.anchor`` names one
   (:func:`build_anchor`); :func:`anchor_summary` and :func:`anchor_warnings` say, for the
@@ -24,10 +25,12 @@ from __future__ import annotations
 from pathlib import Path
 
 from antireplay.audit import AuditLog, Retention
+from antireplay.audit.chain import MacKey
 from antireplay.audit.space import DiskSpace
 from antireplay.config import AppConfig, AuditConfig
 from antireplay.core.clock import Clock
 from antireplay.core.errors import ConfigError
+from antireplay.keys import is_uri, open_key
 from antireplay.state import ReplayStore, StoreSpec, open_store
 from antireplay.state.anchor import StateAnchor, check_anchor_path
 
@@ -163,15 +166,30 @@ def _same_volume(one: Path, other: Path) -> bool:
     return device(one) == device(other)
 
 
+def check_head_key(config: AppConfig) -> bool:
+    """``config check``: log in to the token holding ``audit.head_key`` and find the key
+    (a ``ConfigError`` if it cannot be used), then log out; ``False`` for a key file."""
+    if not is_uri(config.audit.head_key):
+        return False
+    open_key(str(config.audit.head_key), "hmac", "audit.head_key").close()
+    return True
+
+
 def open_audit(
     config: AuditConfig, clock: Clock | None = None, *, spill: str | None = None
 ) -> AuditLog:
     """The audit trail at ``audit.path``, rotated and retained as ``audit:`` says, with its
-    ESTOP spill file (``audit_space.spill``, beside the trail by default)."""
+    ESTOP spill file (``audit_space.spill``, beside the trail by default) and its head key
+    (``audit.head_key``: a file, or a key in a token, opened here: a ``ConfigError`` if not)."""
     retention = Retention(
         segment_bytes=config.segment_bytes,
         segment_age_s=config.segment_age_s,
         max_bytes=config.max_bytes,
         max_age_s=config.max_age_s,
     )
-    return AuditLog(config.path, clock=clock, retention=retention, spill_path=spill)
+    head_key: str | MacKey | None = config.head_key
+    if is_uri(head_key):
+        head_key = open_key(str(head_key), "hmac", "audit.head_key")
+    return AuditLog(
+        config.path, head_key=head_key, clock=clock, retention=retention, spill_path=spill
+    )
