@@ -282,6 +282,22 @@ def test_saturated_memory_store_fails_closed_and_evictions_raise_the_watermark()
     assert err.value.detail == "watermark"
 
 
+def test_a_slot_left_mid_drain_keeps_its_filings() -> None:
+    """A forced commit filed ahead of the slot being drained (an ESTOP expiring sooner)
+    must not orphan that slot's remaining filings: every entry still leaves, by eviction
+    or purge, raising the watermark."""
+    store = MemoryStore(max_entries=4, restart_fence=False)
+    for i in range(4):
+        store.commit(f"a{i}", 100.01 + i * 0.01, 50.0)  # one slot
+    store.commit("b0", 200.0, 50.0)  # evicts from that slot, which starts draining
+    store.commit("estop", 60.0, 50.0, force=True)  # evicts again; filed in a sooner slot
+    store.commit("b1", 200.0, 50.0)  # evicts the ESTOP's entry, the soonest
+    assert store.evictions == 3
+    assert store.purge(1_000.0) == 4  # the two left of the first slot, b0 and b1
+    assert len(store) == 0
+    assert store.watermark() == 200.0
+
+
 # --- restarts -----------------------------------------------------------------------------------
 
 

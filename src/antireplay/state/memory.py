@@ -30,7 +30,8 @@ keeps the store contract (:mod:`antireplay.state`) with a bounded table:
 A lock makes ``commit`` and ``advance`` atomic across threads; it is never held
 across I/O (there is none).  Like the window, this module is compiled with
 mypyc in a normal install, hence its style (``Final`` constants, typed
-attributes, dicts of ``None`` that the garbage collector does not track).
+attributes, dicts of ``None`` that the garbage collector does not track; the one
+list, the filings of the slot being drained, holds a single slot).
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ class MemoryStore:
         if isinstance(max_entries, bool) or not isinstance(max_entries, int) or max_entries < 1:
             raise ValueError("max_entries must be a positive integer")
         self.max_entries: Final = max_entries
-        self._fence: float = resolve(clock).wall() if restart_fence else NEVER
+        self._fence: Final[float] = resolve(clock).wall() if restart_fence else NEVER
         self._started: Final = self._fence  # every start has no history: fenced as such
         self._watermark: float = NEVER
         self._expiry: dict[str, float] = {}  # msg_id -> expiry of its entry
@@ -73,8 +74,8 @@ class MemoryStore:
         self._slot_keys: list[int] = []  # min-heap of the keys of _slots
         self._tail_key = -1  # the slot that took the last insert (most inserts hit it again)
         self._tail: dict[str, None] = {}
-        self._head_key = -1  # the soonest slot, as last looked up by _forget
-        self._head: dict[str, None] = {}
+        self._head_key = -1  # the slot being drained by _forget
+        self._drain: list[str] = []  # its filings, moved out of its dict
         self._counters: dict[str, int] = {}
         lock = threading.Lock()
         self._acquire: Callable[[], object] = lock.acquire
@@ -107,26 +108,41 @@ class MemoryStore:
 
     def commit(self, key: str, expires_at: float, now: float, force: bool = False) -> Seen:
         """Record ``key`` unless it has a live entry; a forced commit extends a live one."""
+        expiry, watermark, recorded, full = self.commit_fields(key, expires_at, now, force)
+        return Seen(expiry, watermark, self._fence, recorded, full)
+
+    def commit_fields(
+        self, key: str, expires_at: float, now: float, force: bool = False
+    ) -> tuple[float, float, bool, bool]:
+        """:meth:`commit` as the fields of its ``Seen``: ``(expiry, watermark, recorded,
+        full)`` (the fence is :meth:`fence`, fixed at construction; nothing is ever lost).
+        The replay cache's hot path: a compiled caller gets them unboxed, with no object
+        allocated."""
         self._acquire()
         try:
             keys = self._slot_keys
             if keys and keys[0] < now * SLOTS_PER_SECOND - 1:
                 self._forget(int(now * SLOTS_PER_SECOND), PURGE_BATCH)
-            seen = self._expiry.get(key)
+            table = self._expiry
+            seen = table.get(key)
             if seen is not None and seen >= now:
                 if force and seen < expires_at:
                     self._file(key, expires_at)
-                return Seen(seen, self._watermark, self._fence)
-            slot = int(expires_at * SLOTS_PER_SECOND)
+                return seen, self._watermark, False, False
             watermark = self._watermark  # this commit's own eviction does not apply to itself
-            if seen is None and len(self._expiry) >= self.max_entries:
+            slot_key = int(expires_at * SLOTS_PER_SECOND)
+            if seen is None and len(table) >= self.max_entries:
                 # Evicting helps only if the newcomer outlives the whole soonest slot.
-                if not force and slot <= keys[0]:
-                    return Seen(NEVER, self._watermark, self._fence, False, True)
+                if not force and slot_key <= keys[0]:
+                    return NEVER, watermark, False, True
                 self._forget(ANY_SLOT, 1)
                 self.evictions += 1
-            self._file(key, expires_at)
-            return Seen(NEVER if seen is None else seen, watermark, self._fence, True)
+            if slot_key == self._tail_key:  # _file's common case, inline
+                self._tail[key] = None
+                table[key] = expires_at
+            else:
+                self._file(key, expires_at)
+            return (NEVER if seen is None else seen), watermark, True, False
         finally:
             self._release()
 
@@ -167,17 +183,29 @@ class MemoryStore:
         """Forget up to ``limit`` live entries, soonest slot first, from slots below ``horizon``.
 
         The one way entries leave the table: every forgotten expiry raises the
-        watermark, and empty slots are dropped at once, so ``_slot_keys[0]`` always
-        names a non-empty slot.
+        watermark.  Entering a slot moves its filings into the drain list (popped
+        natively, where ``popitem`` is a method call and a tuple per entry); the slot's
+        dict stays, empty, to take a late filing, drained in turn.  A drained slot is
+        dropped at once, so ``_slot_keys[0]`` always names a slot with filings left.
         """
         table, slots, keys, removed = self._expiry, self._slots, self._slot_keys, 0
+        drain = self._drain
         while keys and keys[0] < horizon and removed < limit:
             key = keys[0]
+            slot = slots[key]
             if key != self._head_key:
-                self._head_key, self._head = key, slots[key]
-            slot = self._head
-            while slot and removed < limit:
-                mid = slot.popitem()[0]
+                if drain:  # a sooner slot was filed ahead of the one draining: refile
+                    parked = slots[self._head_key]
+                    for mid in drain:
+                        parked[mid] = None
+                drain = self._drain = list(slot)
+                slot.clear()
+                self._head_key = key
+            elif not drain:
+                drain = self._drain = list(slot)
+                slot.clear()
+            while drain and removed < limit:
+                mid = drain.pop()
                 expires = table.get(mid)
                 if expires is None or int(expires * SLOTS_PER_SECOND) != key:
                     continue  # a filing left behind by an entry forgotten or moved later
@@ -185,7 +213,7 @@ class MemoryStore:
                 removed += 1
                 if expires > self._watermark:  # noqa: PLR1730 - max() is a slow generic call
                     self._watermark = expires
-            if not slot:
+            if not drain and not slot:
                 del slots[heapq.heappop(keys)]
                 self._head_key = -1
                 if key == self._tail_key:

@@ -204,10 +204,14 @@ class ReplayCache:
         if isinstance(plan, Refusal):
             return plan
         memory = self._memory
-        if memory is not None:  # process memory: no outage, no index, a native call
-            return self._decided(
-                plan, now, memory.commit(plan.msg_id, plan.expires_at, now, plan.estop)
+        if memory is not None:  # process memory: no outage, no loss, no index, no Seen
+            expiry, watermark, recorded, full = memory.commit_fields(
+                plan.msg_id, plan.expires_at, now, plan.estop
             )
+            verdict = self.policy.decide(
+                plan, expiry, watermark, memory.fence(), recorded, full, now
+            )
+            return self._refused(verdict) if isinstance(verdict, Refusal) else verdict
         seen: Seen | StateUnavailableError
         try:
             seen = self.store.commit(plan.msg_id, plan.expires_at, now, plan.estop)
