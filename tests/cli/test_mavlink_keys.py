@@ -5,6 +5,7 @@ once and a bad file changes nothing."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -22,6 +23,8 @@ from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay.core.clock import SystemClock
 from antireplay.mavlink import mav_time, passphrase_key
+from antireplay.mavlink.sim import SimVehicle
+from antireplay.wiring.mavlink import read_signing_keys
 from harness import free_port, free_udp_port, until
 from harness.mavlink_frames import Sink
 from harness.stores import aged_state
@@ -157,7 +160,8 @@ def test_a_vehicle_that_never_signs_with_the_new_key_enables_nothing(tmp_path: P
     with simulated(port, "--key", "ab" * 32):
         code, _, err = provision(port, keys, "--timeout", "2")
     assert code == 1, err
-    assert "timed out: no HEARTBEAT signed with the new key" in err and "nothing enabled" in err
+    assert "signs with a key that is neither the file's record nor the new key" in err
+    assert "nothing sent" in err
     assert not keys.exists()
 
 
@@ -179,6 +183,104 @@ def test_a_rotation_is_signed_with_the_old_key_and_replaces_it_once_confirmed(
         with router(tmp_path, *vehicle_only(port, keys)) as (_, m, _):
             until("the sim's frames accepted", lambda: 'code="NO_PEER"' in metrics_text(m))
     assert any("setup_signing 2" in line for line in sim), sim
+
+
+def test_a_file_that_cannot_be_written_is_named_before_anything_is_sent(tmp_path: Path) -> None:
+    """Review 1: the writability is known before SETUP_SIGNING goes (exit 2, the file named)."""
+    port, blocker = free_udp_port(), tmp_path / "etc"
+    blocker.write_text("a file where the directory should be\n")
+    keys = blocker / "signing.keys"
+    with simulated(port) as sim:
+        code, _, err = provision(port, keys, "--timeout", "5")
+    assert code == 2, err
+    (line,) = err.splitlines()
+    assert f"{keys}:" in line and "nothing sent" in line, line
+    assert not any("setup_signing" in x for x in sim), sim
+
+
+def test_a_timeout_after_the_send_keeps_the_key_pending_and_a_rerun_finishes(
+    tmp_path: Path,
+) -> None:
+    """Review 1: the vehicle took the key but its confirmation never came: the random
+    passphrase is in the file as ``sysid:1:pending``, the message says so, and running the
+    same command again ends it (a fresh HEARTBEAT signed with that key)."""
+    port, keys = free_udp_port(), tmp_path / "signing.keys"
+    sim = SimVehicle(None, udp=("127.0.0.1", port))
+    try:
+        first = subprocess.Popen(
+            [*CLI, "mavlink-keys", "provision", f"udpin:127.0.0.1:{port}", "--file", str(keys),
+             "--timeout", "3"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+
+        def took_a_key() -> bool:  # one HEARTBEAT at a time until the key is taken
+            sim.telemetry()
+            sim.poll(0.05)
+            return sim.key is not None
+
+        until("the vehicle takes the key", took_a_key)
+        _, err = first.communicate(timeout=60)  # no HEARTBEAT from it any more
+        assert first.returncode == 1, err
+        pending = read_signing_keys(keys)["sysid:1:pending"]
+        assert passphrase_key(pending) == sim.key
+        assert f"kept in {keys} as sysid:1:pending" in err and "run the same command" in err
+        code_out: list[tuple[int, str, str]] = []
+        rerun = threading.Thread(target=lambda: code_out.append(provision(port, keys)))
+        rerun.start()
+
+        def finished() -> bool:
+            sim.telemetry()
+            sim.poll(0.05)
+            return bool(code_out)
+
+        until("the rerun finishes", finished)
+        rerun.join()
+        code, out, err = code_out[0]
+        assert code == 0 and "resuming" in out and "key enabled" in out, err
+        assert read_signing_keys(keys) == {"sysid:1": pending}
+    finally:
+        sim.close()
+
+
+def test_in_a_rotation_a_spoofed_disarmed_heartbeat_steers_nothing(tmp_path: Path) -> None:
+    """Review 2: the vehicle signs with the recorded key and is armed; a local socket
+    claims system 1 disarmed, unsigned, before it: it decides nothing and is sent nothing;
+    the vehicle's own (signed, armed) HEARTBEAT refuses; the file is unchanged."""
+    port, keys = free_udp_port(), tmp_path / "signing.keys"
+    keys.write_text("sysid:1 old-passphrase\n")
+    sim = SimVehicle(passphrase_key("old-passphrase"), udp=("127.0.0.1", port), armed=True)
+    spoof = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    spoof.settimeout(0.05)
+    sink = Sink()
+    dialect.MAVLink(sink, srcSystem=1, srcComponent=1).heartbeat_send(
+        dialect.MAV_TYPE_QUADROTOR, dialect.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4
+    )
+    env = {**os.environ, "NEW": "new-passphrase"}
+    done: list[tuple[int, str, str]] = []
+    got: list[bytes] = []
+    try:
+        attempt = threading.Thread(
+            target=lambda: done.append(provision(port, keys, "--passphrase-env", "NEW", env=env))
+        )
+        attempt.start()
+        for _ in range(40):  # the spoofer alone first (a bounded number of tries)
+            spoof.sendto(sink.frames[-1], ("127.0.0.1", port))
+            with contextlib.suppress(TimeoutError):
+                got.append(spoof.recv(512))
+
+        def ended() -> bool:
+            sim.telemetry()
+            sim.poll(0.05)
+            return bool(done)
+
+        until("the attempt ends", ended)
+        attempt.join()
+    finally:
+        sim.close()
+        spoof.close()
+    code, _, err = done[0]
+    assert code == 1 and "is armed" in err, err
+    assert got == [] and sim.counts.get("setup_signing", 0) == 0
+    assert keys.read_text() == "sysid:1 old-passphrase\n"
 
 
 class Gcs:

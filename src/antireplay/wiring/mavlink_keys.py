@@ -21,6 +21,8 @@ everything); a file that cannot be read keeps every key as it was.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import os
 import queue
 import secrets
@@ -31,6 +33,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from antireplay.core.errors import ConfigError
+from antireplay.mavlink.provision import vehicle_record
 from antireplay.wiring.mavlink import _fingerprint, default_key, link_key, read_signing_keys
 
 if TYPE_CHECKING:
@@ -38,8 +41,10 @@ if TYPE_CHECKING:
 
     from antireplay.config import MavlinkConfig
     from antireplay.mavlink import Frame, MavlinkGuard, MavlinkRouter
-    from antireplay.mavlink.endpoints import Peer
-    from antireplay.mavlink.provision import Step
+    from antireplay.mavlink.endpoints import Peer, Transport
+    from antireplay.mavlink.provision import Provisioning, Step
+
+_RADIO_STATUS = 109  # a radio's own frames: heard from any source (the link is not wired)
 
 
 def new_passphrase() -> str:
@@ -47,36 +52,78 @@ def new_passphrase() -> str:
     return secrets.token_urlsafe(32)
 
 
-def write_record(path: Path, name: str, passphrase: str) -> None:
-    """Give record ``name`` the passphrase: its old line replaced, every other line kept;
-    atomic, mode 0600."""
-    lines = path.read_text().splitlines() if path.exists() else []
-    kept = [line for line in lines if line.split()[:1] != [name]]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")  # mode 0600
+def pending_record(system_id: int) -> str:
+    """The record of a key sent but not yet confirmed (``sysid:N:pending PASSPHRASE``): the
+    vehicle may already use it, so it is written before SETUP_SIGNING goes out."""
+    return f"{vehicle_record(system_id)}:pending"
+
+
+def write_records(path: Path, changes: dict[str, str | None]) -> list[str]:
+    """Give each record in ``changes`` its passphrase (None: drop it), every other line kept
+    (names matched as the reader matches them: case aside).  Atomic (a temporary file in
+    the directory of the file a symlink points to, fsynced, renamed), mode 0600, owner and
+    group kept.  Returns warnings for the operator; OSError names the file."""
+    target = Path(os.path.realpath(path))
+    try:
+        before = target.stat() if target.exists() else None
+        lines = target.read_text().splitlines() if before is not None else []
+    except UnicodeDecodeError:
+        raise OSError(errno.EINVAL, "not a text file", str(path)) from None
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
+    names = {name.lower() for name in changes}
+    kept = [line for line in lines if (line.split()[:1] or [""])[0].lower() not in names]
+    added = [f"{name} {phrase}" for name, phrase in changes.items() if phrase is not None]
+    warnings = []
+    if before is not None and before.st_mode & 0o077:
+        warnings.append(f"{path}: was mode {before.st_mode & 0o777:04o}, now 0600")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, temporary = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.")
+    except OSError as exc:
+        raise OSError(exc.errno, exc.strerror, str(path)) from None
     try:
         with os.fdopen(fd, "w") as handle:
-            handle.write("\n".join([*kept, f"{name} {passphrase}"]) + "\n")
+            if before is not None:
+                with contextlib.suppress(PermissionError):  # not root: it stays ours
+                    os.fchown(handle.fileno(), before.st_uid, before.st_gid)
+            handle.write("".join(f"{line}\n" for line in [*kept, *added]))
             handle.flush()
             os.fsync(handle.fileno())
-        os.replace(temporary, path)
-    except BaseException:
+        os.replace(temporary, target)
+        directory = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)
+    except BaseException as exc:
         Path(temporary).unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise OSError(exc.errno, exc.strerror, str(path)) from None
         raise
-    directory = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(directory)
-    finally:
-        os.close(directory)
+    return warnings
+
+
+def write_record(path: Path, name: str, passphrase: str) -> list[str]:
+    """Give record ``name`` the passphrase (:func:`write_records`)."""
+    return write_records(path, {name: passphrase})
+
+
+def pending_passphrase(path: Path, system_id: int) -> str | None:
+    """The passphrase of vehicle ``system_id``'s pending record, if ``path`` has one."""
+    return read_signing_keys(path if path.exists() else None).get(pending_record(system_id))
 
 
 @dataclass(frozen=True)
 class Provisioned:
-    """How an attempt ended: ``enabled`` (the record written) or why not."""
+    """How an attempt ended: ``enabled`` (the record written) or why not; ``sent``: a
+    SETUP_SIGNING went out, so the pending record stays (the vehicle may use that key)."""
 
     enabled: bool
     reason: str
     rotated: bool = False  # the vehicle had a key in the file, now replaced
+    sent: bool = False
+    warnings: tuple[str, ...] = ()
 
 
 def provision(
@@ -91,15 +138,11 @@ def provision(
     """Provision vehicle ``system_id`` on ``link`` with ``passphrase`` (module docstring).
 
     ConfigError when ``link`` is not wired or the file cannot be read (nothing sent);
-    ValueError for a bad connection string; OSError naming a link that cannot be opened.
-    ``on_sent`` hears each SETUP_SIGNING sent."""
+    ValueError for a bad connection string; OSError naming the file or the link that
+    cannot be written or opened (nothing sent).  Once a SETUP_SIGNING is out, every
+    failure (Ctrl-C included) is an answer with ``sent``: the pending record stays."""
     from antireplay.mavlink import open_transport, parse_endpoint, passphrase_key  # noqa: PLC0415
-    from antireplay.mavlink.provision import (  # noqa: PLC0415
-        Provisioning,
-        StepKind,
-        vehicle_record,
-        wired,
-    )
+    from antireplay.mavlink.provision import Provisioning, wired  # noqa: PLC0415
 
     spec = parse_endpoint(link)
     if not wired(spec.kind, spec.host):
@@ -107,41 +150,94 @@ def provision(
             "link", link, "a wired link", message=f"{link}: not a wired link (SETUP_SIGNING "
             "goes only over a serial/USB device or a loopback address)",
         )  # fmt: skip
-    record = vehicle_record(system_id)
+    record, pending = vehicle_record(system_id), pending_record(system_id)
     current = read_signing_keys(path if path.exists() else None).get(record)
     old_key = passphrase_key(current) if current else None
     new_key = passphrase_key(passphrase)
+    created = not path.exists()
+    warnings = write_records(path, {pending: passphrase})  # writable, and kept, before a send
+
+    def unsent() -> None:  # nothing went out: the pending record goes (and a file it made)
+        if created:
+            Path(os.path.realpath(path)).unlink(missing_ok=True)
+        else:
+            write_records(path, {pending: None})
+
     try:
         transport = open_transport(spec)
     except OSError as exc:
-        raise OSError(exc.errno, f"{link}: {exc.strerror or exc}") from exc
-    heard: queue.Queue[tuple[Peer | None, list[Frame]]] = queue.Queue()
-    transport.start(lambda _t, peer, frames, _skipped: heard.put((peer, frames)))
-    attempt = Provisioning(new_key, system_id, time.time(), timeout_s=timeout_s)
-    peer: Peer | None = None
+        unsent()
+        busy = exc.errno in (errno.EADDRINUSE, errno.EBUSY)
+        hint = " (stop the router using it first)" if busy else ""
+        raise OSError(exc.errno, f"{link}: {exc.strerror or exc}{hint}") from exc
+    attempt = Provisioning(new_key, system_id, time.time(), current=old_key, timeout_s=timeout_s)
     try:
-        while True:
-            try:
-                came_from, frames = heard.get(timeout=0.1)
-            except queue.Empty:
-                steps = [attempt.tick(time.time())]
-            else:
-                steps = [attempt.heard(frame, time.time()) for frame in frames]
-                if any(frame.sysid == system_id for frame in frames):
-                    peer = came_from
-            for step in steps:
-                if step.kind is StepKind.SEND:
-                    setup = _setup_signing(step.target, new_key, step.timestamp, old_key)
-                    transport.send(setup, peer)
-                    if on_sent is not None:
-                        on_sent(step)
-                elif step.kind is StepKind.REFUSE:
-                    return Provisioned(False, step.reason)
-                elif step.kind is StepKind.ENABLE:
-                    write_record(path, record, passphrase)
-                    return Provisioned(True, step.reason, rotated=current is not None)
+        step = _drive(transport, attempt, new_key, on_sent)
+    except (Exception, KeyboardInterrupt) as exc:
+        if not attempt.sent:
+            unsent()
+            raise
+        said = "interrupted" if isinstance(exc, KeyboardInterrupt) else f"failed ({exc})"
+        return Provisioned(False, said, sent=True)
     finally:
         transport.close()
+    if not step.enabled:
+        if not attempt.sent:
+            unsent()
+        return Provisioned(False, step.reason, sent=attempt.sent, warnings=tuple(warnings))
+    try:
+        write_records(path, {record: passphrase, pending: None})
+    except OSError as exc:
+        return Provisioned(False, f"{exc}", sent=True, warnings=tuple(warnings))
+    return Provisioned(True, step.reason, rotated=current is not None, warnings=tuple(warnings))
+
+
+@dataclass(frozen=True)
+class _Ended:
+    enabled: bool
+    reason: str
+
+
+def _drive(
+    transport: Transport, attempt: Provisioning, new_key: bytes,
+    on_sent: Callable[[Step], object] | None,
+) -> _Ended:  # fmt: skip
+    """Run ``attempt`` on ``transport`` until it enables or refuses.  The source whose
+    HEARTBEAT set the target is pinned: from then on only its frames are heard (and it
+    alone is sent to); any other source still aborts with RADIO_STATUS or an armed
+    HEARTBEAT, never steers."""
+    from antireplay.mavlink.provision import StepKind, heartbeat_state  # noqa: PLC0415
+
+    def alarming(frame: Frame) -> bool:
+        state = heartbeat_state(frame)
+        return frame.msgid == _RADIO_STATUS or (state is not None and state[1])
+
+    heard: queue.Queue[tuple[Peer | None, list[Frame]]] = queue.Queue()
+    transport.start(lambda _t, peer, frames, _skipped: heard.put((peer, frames)))
+    pinned: list[Peer | None] = []
+    while True:
+        try:
+            came_from, frames = heard.get(timeout=0.1)
+        except queue.Empty:
+            steps = [attempt.tick(time.time())]
+        else:
+            if pinned and came_from != pinned[0]:
+                frames = [frame for frame in frames if alarming(frame)]
+            steps = []
+            for frame in frames:
+                steps.append(attempt.heard(frame, time.time()))
+                if not pinned and attempt.target is not None:
+                    pinned.append(came_from)
+        for step in steps:
+            if step.kind is StepKind.SEND:
+                setup = _setup_signing(step.target, new_key, step.timestamp, step.sign_with)
+                transport.send(setup, pinned[0])
+                if on_sent is not None:
+                    on_sent(step)
+            elif step.kind is StepKind.REFUSE:
+                return _Ended(False, step.reason)
+            elif step.kind is StepKind.ENABLE:
+                return _Ended(True, step.reason)
 
 
 def _setup_signing(
