@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import contextlib
 import os
+import resource
 import signal
 import socket
+import sqlite3
 import stat
 import subprocess
 import sys
@@ -351,3 +353,116 @@ def test_sighup_reloads_the_ground_keys_and_a_bad_file_keeps_them(tmp_path: Path
         assert gcs.judged(metrics, "gcs-two") == "refused"
         assert gcs.judged(metrics, "vehicle-passphrase") == "accepted"
     assert sum("not reloaded" in line for line in lines) == 1, lines
+
+
+def _rows(db: Path, like: str) -> int:
+    with sqlite3.connect(db) as conn:
+        return int(
+            conn.execute("select count(*) from counters where key like ?", (like,)).fetchone()[0]
+        )
+
+
+def test_reloads_of_a_link_left_keyless_keep_one_guard(tmp_path: Path) -> None:
+    """Review 7: a ground line removed with no default key: the first SIGHUP moves the link
+    to the one key nobody holds; 19 more change nothing and add no guard, signer or lease."""
+    vehicle, ground = free_udp_port(), free_udp_port()
+    keys = tmp_path / "signing.keys"
+    keys.write_text(f"udpin:127.0.0.1:{vehicle} vehicle-pass\nudpin:127.0.0.1:{ground} gcs\n")
+    args = ["--vehicle", f"udpin:127.0.0.1:{vehicle}", "--ground", f"udpin:127.0.0.1:{ground}",
+            "--signing-keys", str(keys)]  # fmt: skip
+    with router(tmp_path, *args) as (proc, _, lines):
+        keys.write_text(f"udpin:127.0.0.1:{vehicle} vehicle-pass\n")
+        proc.send_signal(signal.SIGHUP)
+        until("the first reload", lambda: any("reloaded" in x for x in lines))
+        assert any(f"udpin:127.0.0.1:{ground} changed" in x for x in lines), lines
+        db = tmp_path / "state.db"
+        until("the keyless guard stored", lambda: _rows(db, "mav-in-%lease%") > 0)
+        after_one = _rows(db, "mav-%")
+        for count in range(2, 21):
+            proc.send_signal(signal.SIGHUP)
+            until(f"reload {count}", lambda c=count: sum("reloaded" in x for x in lines) == c)
+        assert sum("no link changed" in x for x in lines) == 19, lines
+        assert _rows(db, "mav-%") == after_one
+        assert proc.poll() is None
+
+
+def test_a_sighup_during_start_up_reloads_and_never_kills(tmp_path: Path) -> None:
+    """Review 8: a router waiting out a killed run's lease (its metrics already served) is
+    sent SIGHUP: it reloads, then starts."""
+    vehicle = free_udp_port()
+    keys = tmp_path / "signing.keys"
+    keys.write_text(f"udpin:127.0.0.1:{vehicle} vehicle-pass\n")
+    args = ["--vehicle", f"udpin:127.0.0.1:{vehicle}", "--signing-keys", str(keys)]
+    with router(tmp_path, *args) as (crashed, _, _):
+        crashed.kill()  # its lease stays held until it expires
+        crashed.wait(timeout=30)
+    metrics = free_port()
+    proc = subprocess.Popen(
+        [*CLI, "mavlink-router", *args, "--store", f"sqlite:{tmp_path / 'state.db'}",
+         "--audit", str(tmp_path / "audit2.db"), "--metrics-port", str(metrics)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        until("metrics served (start-up under way)", lambda: bool(metrics_text(metrics)))
+        proc.send_signal(signal.SIGHUP)
+        assert proc.stdout is not None
+        assert "mavlink-router" in proc.stdout.readline()
+        assert proc.poll() is None
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0 and "signing keys reloaded" in err, err
+
+
+def test_a_changed_vehicle_record_moves_no_link_and_says_restart(tmp_path: Path) -> None:
+    """Review 4: a rotation rewrote ``sysid:1``; SIGHUP keeps the vehicle and the ground
+    links on the key they started with (ground frames signed with it still pass) and
+    says to restart."""
+    ground = free_udp_port()
+    keys = tmp_path / "signing.keys"
+    keys.write_text("sysid:1 old-vehicle\n")
+    args = ["--vehicle", f"udpin:127.0.0.1:{free_udp_port()}", "--ground",
+            f"udpin:127.0.0.1:{ground}", "--signing-keys", str(keys)]  # fmt: skip
+    with router(tmp_path, *args) as (proc, metrics, lines):
+        gcs = Gcs(ground)
+        assert gcs.judged(metrics, "old-vehicle") == "accepted"
+        keys.write_text("sysid:1 new-vehicle\n")
+        proc.send_signal(signal.SIGHUP)
+        until("the reload logged", lambda: any("reloaded" in x for x in lines))
+        (line,) = [x for x in lines if "reloaded" in x]
+        assert "no link changed" in line and "restart the router to use it" in line, line
+        assert gcs.judged(metrics, "old-vehicle") == "accepted"
+
+
+def test_provision_refuses_a_port_the_router_holds(tmp_path: Path) -> None:
+    """Review 4: the router's vehicle port is bound: provision says to stop it first,
+    sends nothing and leaves the file as it was."""
+    vehicle = free_udp_port()
+    keys = tmp_path / "signing.keys"
+    keys.write_text("sysid:1 vehicle-pass\n")
+    with router(tmp_path, *vehicle_only(vehicle, keys)):
+        code, _, err = provision(vehicle, keys)
+    assert code == 2 and "stop the router using it first" in err and "nothing sent" in err, err
+    assert keys.read_text() == "sysid:1 vehicle-pass\n"
+
+
+def test_add_writes_atomically_and_names_the_file(tmp_path: Path) -> None:
+    """Review 5: a write cut short by the file-size limit leaves the file whole (the
+    provisioned record kept) and names it."""
+    keys = tmp_path / "signing.keys"
+    lines = [f"udpout:10.0.0.{i}:14550 groundpass{i}" for i in range(60)]
+    keys.write_text("\n".join([*lines, "sysid:1 RANDOMvehiclepassphrase"]) + "\n")
+    before = keys.read_text()
+
+    def limited() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1024, 1024))
+
+    done = subprocess.run(
+        [*CLI, "mavlink-keys", "add", "--file", str(keys), "udpout:127.0.0.1:14550"],
+        capture_output=True, text=True, timeout=60, check=False, preexec_fn=limited,
+        env={**os.environ, "MAV_PASSPHRASE": "newgs"},
+    )  # fmt: skip
+    assert done.returncode == 2 and str(keys) in done.stderr, done.stderr
+    assert keys.read_text() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["signing.keys"]

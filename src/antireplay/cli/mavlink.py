@@ -188,6 +188,9 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     """Route MAVLink between vehicle, trusted and ground endpoints; forward only what the
     guards accept (also answers to its first name, mavlink-proxy)."""
     import logging  # noqa: PLC0415
+    import signal  # noqa: PLC0415
+
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # until the reload handler: start-up survives
 
     from antireplay.wiring.leaves import trail_path  # noqa: PLC0415
     from antireplay.wiring.mavlink import ROUTER_AUDIT, open_router  # noqa: PLC0415
@@ -253,13 +256,13 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
             )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = stop_on_signal()
+    reload_on_sighup(parts.router, section)  # before start: a SIGHUP then reloads, never kills
     try:
         parts.router.start()  # claims each guard's lease, waiting out a crashed run's (seconds)
     except ReplayAttackError as exc:
         _fail(f"--store {section.store}: {exc}")
     roles = ", ".join(f"{role} {text}" for role, text, _ in parts.endpoints)
     click.echo(f"mavlink-router {roles} (system id {section.system_id})")  # one line
-    reload_on_sighup(parts.router, section)
     done.wait()
     parts.close()
     stats = parts.router.stats

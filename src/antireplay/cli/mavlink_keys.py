@@ -29,13 +29,19 @@ _DEFAULT_FILE = Path("~/.mavproxy/signing.keys")
 
 def reload_on_sighup(router: MavlinkRouter, section: MavlinkConfig) -> None:
     """SIGHUP reads ``signing.keys`` again (one log line each time; a bad file keeps the
-    old keys)."""
+    old keys).  Installed before the router starts: a SIGHUP during start-up reloads."""
+    import secrets  # noqa: PLC0415
+
+    from antireplay.wiring.mavlink import default_key, read_signing_keys  # noqa: PLC0415
     from antireplay.wiring.mavlink_keys import reload_signing_keys  # noqa: PLC0415
+
+    default = default_key(section, read_signing_keys(section.signing_keys))
+    nobody = secrets.token_bytes(32)  # one key nobody holds, for every link left keyless
 
     def handler(_signum: int, _frame: FrameType | None) -> None:
         log = logging.getLogger("antireplay.mavlink")
         try:
-            log.warning(reload_signing_keys(router, section))
+            log.warning(reload_signing_keys(router, section, default, nobody))
         except Exception as exc:  # a reload never stops the router
             log.warning("signing keys not reloaded, the old ones stay: %s", exc)
 

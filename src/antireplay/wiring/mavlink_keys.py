@@ -255,14 +255,20 @@ def _setup_signing(
     return bytes(message.pack(mav))
 
 
-def reload_signing_keys(router: MavlinkRouter, section: MavlinkConfig) -> str:
+def reload_signing_keys(
+    router: MavlinkRouter, section: MavlinkConfig, default: bytes | None, nobody: bytes
+) -> str:
     """The router's SIGHUP (module docstring): one line saying what changed, or why
-    nothing did.  The vehicle key is kept (it changes at a restart)."""
+    nothing did.  ``default`` is the start-time default key, kept for every link without a
+    line (the vehicle link keeps its key until a restart, so ground and vehicle never part
+    on a changed ``sysid:N`` record: the line says to restart); ``nobody`` is the one key
+    nobody holds, for a link left with no key (one guard, however many reloads).  Guards no
+    link uses any more are stopped and dropped."""
     from antireplay.mavlink import Role, TimestampSource  # noqa: PLC0415
 
     try:
         keys = read_signing_keys(section.signing_keys)
-        default = default_key(section, keys)
+        now_default = default_key(section, keys)
     except ConfigError as exc:
         return f"signing keys not reloaded, the old ones stay: {exc}"
     changed = []
@@ -272,7 +278,7 @@ def reload_signing_keys(router: MavlinkRouter, section: MavlinkConfig) -> str:
         try:
             key = link_key(link.name, keys, default)
         except ConfigError:  # its line is gone and no default: a key nobody holds
-            key = secrets.token_bytes(32)
+            key = nobody
         if key == link.key:
             continue
         if key not in router.inbound:
@@ -285,8 +291,26 @@ def reload_signing_keys(router: MavlinkRouter, section: MavlinkConfig) -> str:
             router.signers = {**router.signers, key: signer}
         link.key = key
         changed.append(link.name)
+    _drop_unused(router)
     links = ", ".join(changed) or "no link"
-    return f"signing keys reloaded from {section.signing_keys}: {links} changed"
+    said = f"signing keys reloaded from {section.signing_keys}: {links} changed"
+    if now_default != default:
+        said += (
+            f"; the vehicle's key changed in {section.signing_keys}: restart the router to "
+            "use it (until then every link keeps the key it started with)"
+        )
+    return said
+
+
+def _drop_unused(router: MavlinkRouter) -> None:
+    """Stop (flush, release the lease) and drop every guard and signer no link uses."""
+    used = {router.vehicle_key} | {link.key for link in router.links if link.key is not None}
+    unused = [guard for key, guard in router.inbound.items() if key not in used]
+    router.inbound = {k: g for k, g in router.inbound.items() if k in used}
+    router.signers = {k: s for k, s in router.signers.items() if k in used}
+    for guard in unused:
+        with contextlib.suppress(Exception):  # a store that fails: its lease expires alone
+            guard.stop()
 
 
 def _sibling(template: MavlinkGuard, key: bytes) -> MavlinkGuard:
