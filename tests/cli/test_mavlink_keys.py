@@ -466,3 +466,27 @@ def test_add_writes_atomically_and_names_the_file(tmp_path: Path) -> None:
     assert done.returncode == 2 and str(keys) in done.stderr, done.stderr
     assert keys.read_text() == before
     assert [p.name for p in tmp_path.iterdir()] == ["signing.keys"]
+
+
+def test_the_start_line_names_skipped_lines_and_an_overriding_record(tmp_path: Path) -> None:
+    """Review 10: a three-word line is named once; a ``sysid:1`` record that overrides
+    ``--passphrase-env`` says so in the start line."""
+    keys = tmp_path / "signing.keys"
+    keys.write_text("sysid:2 three words here\nSYSID:1 vehicle-pass\n")
+    args = ["--vehicle", f"udpin:127.0.0.1:{free_udp_port()}", "--signing-keys", str(keys),
+            "--passphrase-env", "MAV_PASSPHRASE"]  # fmt: skip
+    metrics = free_port()
+    proc = subprocess.Popen(
+        [*CLI, "mavlink-router", *args, "--store", f"sqlite:{aged_state(tmp_path / 'st.db')}",
+         "--audit", str(tmp_path / "audit.db"), "--metrics-port", str(metrics)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        env={**os.environ, "MAV_PASSPHRASE": "flag-pass"},
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+    assert f"{keys} line 1: not ENDPOINT PASSPHRASE, skipped" in line, line
+    assert f"default key: the sysid:1 record of {keys}, not --passphrase-env" in line, line

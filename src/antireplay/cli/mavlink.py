@@ -256,13 +256,13 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
             )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = stop_on_signal()
-    reload_on_sighup(parts.router, section)  # before start: a SIGHUP then reloads, never kills
+    keys_said = reload_on_sighup(parts.router, section)  # before start: SIGHUP never kills
     try:
         parts.router.start()  # claims each guard's lease, waiting out a crashed run's (seconds)
     except ReplayAttackError as exc:
         _fail(f"--store {section.store}: {exc}")
     roles = ", ".join(f"{role} {text}" for role, text, _ in parts.endpoints)
-    click.echo(f"mavlink-router {roles} (system id {section.system_id})")  # one line
+    click.echo(f"mavlink-router {roles} (system id {section.system_id}){keys_said}")  # one line
     done.wait()
     parts.close()
     stats = parts.router.stats

@@ -27,13 +27,15 @@ if TYPE_CHECKING:
 _DEFAULT_FILE = Path("~/.mavproxy/signing.keys")
 
 
-def reload_on_sighup(router: MavlinkRouter, section: MavlinkConfig) -> None:
+def reload_on_sighup(router: MavlinkRouter, section: MavlinkConfig) -> str:
     """SIGHUP reads ``signing.keys`` again (one log line each time; a bad file keeps the
-    old keys).  Installed before the router starts: a SIGHUP during start-up reloads."""
+    old keys).  Installed before the router starts: a SIGHUP during start-up reloads.
+    Returns what the start line adds about the file (skipped lines, the default key's
+    source when a ``sysid:N`` record overrides a flag), once."""
     import secrets  # noqa: PLC0415
 
     from antireplay.wiring.mavlink import default_key, read_signing_keys  # noqa: PLC0415
-    from antireplay.wiring.mavlink_keys import reload_signing_keys  # noqa: PLC0415
+    from antireplay.wiring.mavlink_keys import key_file_notes, reload_signing_keys  # noqa: PLC0415
 
     default = default_key(section, read_signing_keys(section.signing_keys))
     nobody = secrets.token_bytes(32)  # one key nobody holds, for every link left keyless
@@ -46,6 +48,7 @@ def reload_on_sighup(router: MavlinkRouter, section: MavlinkConfig) -> None:
             log.warning("signing keys not reloaded, the old ones stay: %s", exc)
 
     signal.signal(signal.SIGHUP, handler)
+    return "".join(f"; {note}" for note in key_file_notes(section))
 
 
 @click.group("mavlink-keys")

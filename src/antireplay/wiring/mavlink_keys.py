@@ -255,6 +255,31 @@ def _setup_signing(
     return bytes(message.pack(mav))
 
 
+def key_file_notes(section: MavlinkConfig) -> list[str]:
+    """What an operator should hear once about ``signing.keys``: lines skipped (not
+    ``ENDPOINT PASSPHRASE``), and a ``sysid:N`` record that overrides ``--key-file`` or
+    ``--passphrase-env`` as the default key."""
+    path = section.signing_keys
+    if path is None:
+        return []
+    try:
+        lines = Path(path).read_text().splitlines()
+    except (OSError, UnicodeDecodeError):
+        return []  # the router's own reading names it
+    notes = [
+        f"{path} line {number}: not ENDPOINT PASSPHRASE, skipped"
+        for number, line in enumerate(lines, 1)
+        if line.strip() and not line.lstrip().startswith("#") and len(line.split()) != 2
+    ]
+    record = vehicle_record(section.system_id)
+    if record in read_signing_keys(path):
+        given = [flag for flag, value in (("--key-file", section.key_file),
+                 ("--passphrase-env", section.passphrase_env)) if value]  # fmt: skip
+        if given:
+            notes.append(f"default key: the {record} record of {path}, not {' or '.join(given)}")
+    return notes
+
+
 def reload_signing_keys(
     router: MavlinkRouter, section: MavlinkConfig, default: bytes | None, nobody: bytes
 ) -> str:
