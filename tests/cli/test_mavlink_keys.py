@@ -24,7 +24,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as dialect
 
 from antireplay.core.clock import SystemClock
-from antireplay.mavlink import mav_time, passphrase_key
+from antireplay.mavlink import mav_time, open_transport, parse_endpoint, passphrase_key
 from antireplay.mavlink.sim import SimVehicle
 from antireplay.wiring.mavlink import read_signing_keys
 from harness import free_port, free_udp_port, until
@@ -490,3 +490,25 @@ def test_the_start_line_names_skipped_lines_and_an_overriding_record(tmp_path: P
         proc.communicate(timeout=30)
     assert f"{keys} line 1: not ENDPOINT PASSPHRASE, skipped" in line, line
     assert f"default key: the sysid:1 record of {keys}, not --passphrase-env" in line, line
+
+
+def test_provision_refuses_a_serial_device_another_process_holds(tmp_path: Path) -> None:
+    """Review 4: a router holds the vehicle's serial device (here its transport, locked as
+    the router's is): provision says to stop it, sends nothing, writes nothing."""
+    leader, follower = os.openpty()
+    device = os.ttyname(follower)
+    held = open_transport(parse_endpoint(f"{device},115200"))
+    keys = tmp_path / "signing.keys"
+    try:
+        done = subprocess.run(
+            [*CLI, "mavlink-keys", "provision", f"{device},115200", "--file", str(keys)],
+            capture_output=True, text=True, timeout=60, check=False,
+        )  # fmt: skip
+    finally:
+        held.close()
+        os.close(leader)
+        os.close(follower)
+    (line,) = done.stderr.splitlines()
+    assert done.returncode == 2, line
+    assert "held by another process (stop the router using it first); nothing sent" in line
+    assert not keys.exists()

@@ -394,9 +394,7 @@ class SerialTransport(Transport):
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # one process per device
         except BlockingIOError:
             os.close(fd)
-            raise OSError(
-                errno.EBUSY, "held by another process (a router? stop it first)", self.spec.host
-            ) from None
+            raise OSError(errno.EBUSY, "held by another process", self.spec.host) from None
         try:
             tty.setraw(fd)
             attrs = termios.tcgetattr(fd)

@@ -169,7 +169,7 @@ def provision(
         unsent()
         busy = exc.errno in (errno.EADDRINUSE, errno.EBUSY)
         hint = " (stop the router using it first)" if busy else ""
-        raise OSError(exc.errno, f"{link}: {exc.strerror or exc}{hint}") from exc
+        raise OSError(exc.errno, f"{exc.strerror or exc}{hint}", link) from exc
     attempt = Provisioning(new_key, system_id, time.time(), current=old_key, timeout_s=timeout_s)
     try:
         step = _drive(transport, attempt, new_key, on_sent)
