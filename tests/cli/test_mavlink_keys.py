@@ -516,3 +516,28 @@ def test_provision_refuses_a_serial_device_another_process_holds(tmp_path: Path)
     assert done.returncode == 2, line
     assert "held by another process (stop the router using it first); nothing sent" in line
     assert not keys.exists()
+
+
+def test_a_link_carrying_radio_status_is_refused_as_not_wired(tmp_path: Path) -> None:
+    """Review 11: a SiK radio injects RADIO_STATUS: the key would go over the air, so
+    nothing is sent and nothing written, and the message says why."""
+    port, keys = free_udp_port(), tmp_path / "signing.keys"
+    radio = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sink = Sink()
+    dialect.MAVLink(sink, srcSystem=51, srcComponent=68).radio_status_send(1, 2, 3, 4, 5, 6, 7)
+    done: list[tuple[int, str, str]] = []
+    attempt = threading.Thread(target=lambda: done.append(provision(port, keys)))
+    attempt.start()
+
+    def refused() -> bool:
+        radio.sendto(sink.frames[-1], ("127.0.0.1", port))
+        return bool(done)
+
+    try:
+        until("the attempt ends", refused)
+        attempt.join()
+    finally:
+        radio.close()
+    code, _, err = done[0]
+    assert code == 1 and "RADIO_STATUS heard" in err and "nothing sent" in err, err
+    assert not keys.exists()

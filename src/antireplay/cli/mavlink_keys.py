@@ -1,9 +1,11 @@
 """``mavlink-keys``: the ``signing.keys`` file (``add``) and a vehicle's key (``provision``).
 
 ``provision`` parses its flags and calls :func:`~antireplay.wiring.mavlink_keys.provision`,
-which refuses a link that is not wired (exit 2, naming it), refuses an armed vehicle and
-enables the key (writes its ``sysid:N`` record) only once the vehicle signs with it (exit
-1 otherwise, nothing written).  :func:`reload_on_sighup` is the router's SIGHUP hook.
+which refuses a link that is not wired or a file it cannot write (exit 2, naming it, nothing
+sent), refuses an armed vehicle and enables the key (its ``sysid:N`` record) only once the
+vehicle signs with it, freshly; otherwise exit 1, and if a SETUP_SIGNING went out the message
+says where the pending key is kept (running the command again resumes with it).
+:func:`reload_on_sighup` is the router's SIGHUP hook.
 """
 
 from __future__ import annotations

@@ -5,18 +5,22 @@ Theory of operation
 The file is MAVProxy's: lines ``ENDPOINT PASSPHRASE`` (the key is SHA-256 of the
 passphrase).  A provisioned vehicle is one more such line, ``sysid:N PASSPHRASE``
 (:func:`vehicle_record`): MAVProxy and older routers skip it (no device is named so), a
-router whose ``--system-id`` is N takes it as its default key.  :func:`write_record`
-replaces one record and keeps every other line, written atomically (a temporary file of
-mode 0600 in the same directory, fsynced, renamed over the old one).
+router whose ``--system-id`` is N takes it as its default key.  :func:`write_records`
+replaces records and keeps every other line, written atomically (a temporary file of mode
+0600 beside the file a symlink points to, fsynced, renamed; owner and group kept); ``add``
+uses it too.
 
 :func:`provision` drives :class:`~antireplay.mavlink.provision.Provisioning` on one link:
-refused before anything is opened unless the link is wired; SETUP_SIGNING signed with the
-vehicle's current key when the file has one (a vehicle with signing on takes only that),
-unsigned otherwise; the new record is written only after a HEARTBEAT signed with the new
-key verifies.  :func:`reload_signing_keys` is the router's SIGHUP: it reads the file again
+refused before anything is opened unless the link is wired; the new passphrase is written
+first as a pending record (``sysid:N:pending``: the file proven writable, and the key kept if
+anything fails once SETUP_SIGNING is out); SETUP_SIGNING is signed with the key the deciding
+HEARTBEAT was signed with, sent only to that HEARTBEAT's source (the only one heard after);
+the record replaces the pending one only once a fresh HEARTBEAT signed with the new key
+verifies.  A port or device another process holds is refused (stop the router first).
+:func:`reload_signing_keys` is the router's SIGHUP: it reads the file again
 and gives each ground link the key the file now names (a new key gets its guard and its
-timestamp source; a link whose line is gone falls back to the default key, or refuses
-everything); a file that cannot be read keeps every key as it was.
+timestamp source; a link whose line is gone falls back to the start-time default, or to one
+key nobody holds; unused guards are dropped); a file that cannot be read keeps every key.
 """
 
 from __future__ import annotations
