@@ -541,3 +541,29 @@ def test_a_link_carrying_radio_status_is_refused_as_not_wired(tmp_path: Path) ->
     code, _, err = done[0]
     assert code == 1 and "RADIO_STATUS heard" in err and "nothing sent" in err, err
     assert not keys.exists()
+
+
+def test_ctrl_c_after_the_send_keeps_the_key_pending(tmp_path: Path) -> None:
+    """Review 1: SIGINT once the vehicle took the key: exit 1, "interrupted", the passphrase
+    the vehicle now uses kept as ``sysid:1:pending`` and the message says where."""
+    port, keys = free_udp_port(), tmp_path / "signing.keys"
+    sim = SimVehicle(None, udp=("127.0.0.1", port))
+    try:
+        proc = subprocess.Popen(
+            [*CLI, "mavlink-keys", "provision", f"udpin:127.0.0.1:{port}", "--file", str(keys),
+             "--timeout", "120"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+
+        def took_a_key() -> bool:
+            sim.telemetry()
+            sim.poll(0.05)
+            return sim.key is not None
+
+        until("the vehicle takes the key", took_a_key)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        sim.close()
+    assert proc.returncode == 1 and "interrupted" in err, err
+    assert f"kept in {keys} as sysid:1:pending" in err, err
+    assert passphrase_key(read_signing_keys(keys)["sysid:1:pending"]) == sim.key
