@@ -118,10 +118,11 @@ def test_a_provisioned_key_is_recorded_and_the_router_verifies_the_vehicle_with_
     it signs with the key (mode 0600, other lines kept); a router reading only that file
     accepts the sim's frames."""
     port, keys = free_udp_port(), tmp_path / "signing.keys"
-    keys.write_text("udp:10.0.0.9:14550 someone-elses\n")
+    keys.write_text("udp:10.0.0.9:14550 someone-elses\nsysid:2 three words here\n")
     with simulated(port) as sim:
         code, out, err = provision(port, keys)
         assert code == 0, err
+        assert f"{keys} line 2: not ENDPOINT PASSPHRASE, skipped" in err, err  # review 10
         assert "key enabled" in out.splitlines()[-1], out
         assert stat.S_IMODE(keys.stat().st_mode) == 0o600
         assert keys.read_text().splitlines()[0] == "udp:10.0.0.9:14550 someone-elses"

@@ -145,6 +145,7 @@ def mavlink_keys_provision(
         pending_passphrase,
         pending_record,
         provision,
+        skipped_lines,
     )
 
     path = path.expanduser()
@@ -163,6 +164,8 @@ def mavlink_keys_provision(
             "the vehicle may already use: finish it first (run again without --passphrase-env)"
         )
     phrase = given or pending or new_passphrase()
+    for skipped in skipped_lines(path):
+        click.echo(f"antireplay: warning: {skipped}", err=True)
     if pending is not None:
         click.echo(f"{path}: resuming system {system_id}'s pending key")
     try:

@@ -259,24 +259,34 @@ def _setup_signing(
     return bytes(message.pack(mav))
 
 
-def key_file_notes(section: MavlinkConfig) -> list[str]:
-    """What an operator should hear once about ``signing.keys``: lines skipped (not
-    ``ENDPOINT PASSPHRASE``), and a ``sysid:N`` record that overrides ``--key-file`` or
-    ``--passphrase-env`` as the default key."""
-    path = section.signing_keys
-    if path is None:
-        return []
+def skipped_lines(path: str | Path) -> list[str]:
+    """Lines of ``signing.keys`` that MAVProxy and the router skip (not ``ENDPOINT
+    PASSPHRASE``), named for the operator; none if it cannot be read (its reader says so)."""
     try:
         lines = Path(path).read_text().splitlines()
     except (OSError, UnicodeDecodeError):
-        return []  # the router's own reading names it
-    notes = [
+        return []
+    return [
         f"{path} line {number}: not ENDPOINT PASSPHRASE, skipped"
         for number, line in enumerate(lines, 1)
         if line.strip() and not line.lstrip().startswith("#") and len(line.split()) != 2
     ]
+
+
+def key_file_notes(section: MavlinkConfig) -> list[str]:
+    """What an operator should hear once about ``signing.keys``: :func:`skipped_lines`, and
+    a ``sysid:N`` record that overrides ``--key-file`` or ``--passphrase-env`` as the
+    default key."""
+    path = section.signing_keys
+    if path is None:
+        return []
+    notes = skipped_lines(path)
     record = vehicle_record(section.system_id)
-    if record in read_signing_keys(path):
+    try:
+        recorded = record in read_signing_keys(path)
+    except ConfigError:  # gone since the router read it: the next reload says so
+        recorded = False
+    if recorded:
         given = [flag for flag, value in (("--key-file", section.key_file),
                  ("--passphrase-env", section.passphrase_env)) if value]  # fmt: skip
         if given:
