@@ -35,18 +35,21 @@ def test_an_unsigned_or_foreign_frame_is_counted_never_raised() -> None:
     assert sim.counts["refused"] == 2
 
 
-def _setup_signing(key: bytes, timestamp: int, signer: bytes | None) -> bytes:
+def _setup_signing(
+    key: bytes, timestamp: int, signer: bytes | None, signed_at: int | None = None
+) -> bytes:
     out = _Frames()
     mav = dialect.MAVLink(out, srcSystem=255, srcComponent=190)
     if signer is not None:
         mav.signing.secret_key, mav.signing.sign_outgoing = signer, True
-        mav.signing.timestamp = timestamp  # fresh: the vehicle's own time
+        mav.signing.timestamp = signed_at or timestamp  # fresh: the vehicle's own time
     mav.setup_signing_send(1, 1, list(key), timestamp)
     return out.data
 
 
 def test_setup_signing_is_taken_as_ardupilot_takes_it() -> None:
-    """Key and timestamp taken at once; ignored while armed; an all-zero key turns signing off."""
+    """Key and timestamp taken at once; ignored while armed (the issue's rule); an all-zero
+    key turns signing off only with a zero timestamp, as in GCS_Signing.cpp."""
     sim = SimVehicle(None, udp=("127.0.0.1", 9))
     assert sim.key is None  # never provisioned: signs nothing
     sim.armed = True
@@ -58,4 +61,6 @@ def test_setup_signing_is_taken_as_ardupilot_takes_it() -> None:
     sim.handle(_setup_signing(b"m" * 32, 2**40, None))  # unsigned: signing is on now
     assert sim.key == b"n" * 32
     sim.handle(_setup_signing(bytes(32), sim.mav.signing.timestamp + 100, b"n" * 32))
+    assert sim.key == bytes(32) and sim.mav.signing.sign_outgoing  # a timestamp: a key
+    sim.handle(_setup_signing(bytes(32), 0, bytes(32), sim.mav.signing.timestamp + 200))
     assert sim.key is None and not sim.mav.signing.sign_outgoing

@@ -1,11 +1,15 @@
 """``signing.keys`` records and provisioning driven step by step: a rotation the vehicle took
-but never confirmed leaves the old record; a retry with the same key confirms at once."""
+but never confirmed leaves the old record and a pending one; a retry with that key confirms;
+every write is atomic, through a symlink to its target, keeping owner and group."""
 
 from __future__ import annotations
 
+import os
 import stat
 import threading
 from pathlib import Path
+
+import pytest
 
 from antireplay.mavlink import passphrase_key
 from antireplay.mavlink.sim import SimVehicle
@@ -53,8 +57,11 @@ def test_an_unconfirmed_rotation_keeps_the_old_record_and_a_retry_confirms(
         until("the vehicle takes the new key", took_the_new_key)
         thread.join()  # the vehicle never says so: no HEARTBEAT signed with the new key
         (first,) = done
-        assert not first.enabled and "no HEARTBEAT signed with the new key" in first.reason
-        assert read_signing_keys(keys)["sysid:1"] == "old-one"  # the old key stays in use
+        assert not first.enabled and first.sent
+        assert "no fresh HEARTBEAT signed with the new key" in first.reason
+        recorded = read_signing_keys(keys)
+        assert recorded["sysid:1"] == "old-one"  # the old key stays in use
+        assert recorded["sysid:1:pending"] == "new-one"  # and the one the vehicle may use
 
         thread, done = _attempt(port, keys, timeout_s=30.0)
 
@@ -66,7 +73,36 @@ def test_an_unconfirmed_rotation_keeps_the_old_record_and_a_retry_confirms(
         until("the retry confirms", confirmed)
         thread.join()
         assert done[0].enabled and done[0].rotated
-        assert read_signing_keys(keys)["sysid:1"] == "new-one"
-        assert sim.counts["setup_signing"] == 1  # the retry sent nothing
+        assert read_signing_keys(keys) == {"sysid:1": "new-one"}  # the pending one gone
+        assert sim.counts["setup_signing"] == 2  # the retry's, signed with the new key
     finally:
         sim.close()
+
+
+def test_a_symlinked_file_is_updated_in_its_target_keeping_owner_and_group(
+    tmp_path: Path,
+) -> None:
+    """Review 6: the link stays a link, the target gets the record (mode 0600, a warning
+    for its old 0644), its owner and group kept."""
+    (tmp_path / "etc").mkdir()
+    real = tmp_path / "etc" / "real.keys"
+    real.write_text("sysid:1 old\n")
+    real.chmod(0o644)
+    os.chown(real, 65534, 65534)  # nobody (the tests run as root)
+    link = tmp_path / "signing.keys"
+    link.symlink_to(real)
+    warnings = write_record(link, "SYSID:1", "new")
+    assert link.is_symlink() and real.read_text() == "SYSID:1 new\n"  # review 10: case
+    after = real.stat()
+    assert (after.st_uid, after.st_gid, stat.S_IMODE(after.st_mode)) == (65534, 65534, 0o600)
+    assert warnings == [f"{link}: was mode 0644, now 0600"]
+    assert sorted(p.name for p in (tmp_path / "etc").iterdir()) == ["real.keys"]
+
+
+def test_a_failed_write_names_the_file_and_changes_nothing(tmp_path: Path) -> None:
+    blocker = tmp_path / "etc"
+    blocker.write_text("a file where the directory should be\n")
+    with pytest.raises(OSError) as caught:
+        write_record(blocker / "signing.keys", "sysid:1", "new")
+    assert caught.value.filename == str(blocker / "signing.keys")
+    assert blocker.read_text() == "a file where the directory should be\n"

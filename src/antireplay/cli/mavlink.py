@@ -202,6 +202,9 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     """Route MAVLink between vehicle, trusted and ground endpoints; forward only what the
     guards accept (also answers to its first name, mavlink-proxy)."""
     import logging  # noqa: PLC0415
+    import signal  # noqa: PLC0415
+
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # until the reload handler: start-up survives
 
     from antireplay.wiring.leaves import trail_path  # noqa: PLC0415
     from antireplay.wiring.mavlink import (  # noqa: PLC0415
@@ -275,12 +278,12 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
             )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = stop_on_signal()
+    keys_said = reload_on_sighup(parts.router, section)  # before start: SIGHUP never kills
     try:
         parts.router.start()  # claims each guard's lease, waiting out a crashed run's (seconds)
     except ReplayAttackError as exc:
         _fail(f"--store {section.store}: {exc}")
-    click.echo(_start_line(parts, section))  # one line
-    reload_on_sighup(parts.router, section)
+    click.echo(_start_line(parts, section) + keys_said)  # one line
     done.wait()
     parts.close()
     stats = parts.router.stats

@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import fcntl
 import ipaddress
 import logging
 import os
@@ -403,6 +404,11 @@ class SerialTransport(Transport):
     def _open(self) -> int:
         """Open and configure the device; OSError (naming it) if it cannot be."""
         fd = os.open(self.spec.host, os.O_RDWR | os.O_NOCTTY)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # one process per device
+        except BlockingIOError:
+            os.close(fd)
+            raise OSError(errno.EBUSY, "held by another process", self.spec.host) from None
         try:
             tty.setraw(fd)
             attrs = termios.tcgetattr(fd)

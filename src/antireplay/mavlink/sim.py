@@ -8,12 +8,17 @@ and ATTITUDE at a few hertz, and answers each COMMAND_LONG that verifies with a
 COMMAND_ACK addressed to its sender.  Frames that do not verify (unsigned, another key, a
 replayed timestamp: pymavlink's own signing checks) are counted and ignored.
 
-**SETUP_SIGNING as ArduPilot handles it** (``GCS_Signing.cpp``): ignored while armed
-(``--armed``, or a MAV_CMD_COMPONENT_ARM_DISARM that verifies); otherwise the key and the
-initial timestamp are taken at once (every later frame is signed with the new key, its
-timestamp at least the one given), and an all-zero key disables signing.  Without a key
-(never provisioned) the simulator signs nothing and takes every frame, as a flight
-controller with signing off does.  ``HEARTBEAT.base_mode`` says whether it is armed.
+**SETUP_SIGNING as ArduPilot's ``GCS_Signing.cpp`` handles it** (read at commits 006b972
+and 5353d03): the key and ``initial_timestamp`` are stored and used at once, and a key of
+all zeros *with* a zero timestamp turns signing off.  The timestamp then only rises: the
+sim's is wall-anchored, as ArduPilot's is once ``update_signing_timestamp`` has GPS time,
+so it signs with ``max(initial_timestamp, its own)``.  Differences, on purpose: those
+ArduPilot versions have **no armed check** in ``handle_setup_signing`` (the issue asks for
+the refusal, so the sim ignores SETUP_SIGNING while armed: ``--armed`` or a verified
+MAV_CMD_COMPONENT_ARM_DISARM), and they accept unsigned frames on channel 0 (USB) while
+the sim, once keyed, takes only frames signed with its key.  Without a key (never
+provisioned) the sim signs nothing and takes every frame.  ``HEARTBEAT.base_mode`` says
+whether it is armed.
 
 Two transports: UDP (it sends to ``HOST:PORT``, the router's ``--vehicle udpin:HOST:PORT``,
 and hears the answers on its own port) or a pseudo-terminal (the router opens its path as
@@ -160,14 +165,15 @@ class SimVehicle:
                 self.counts["other"] += 1
 
     def _setup_signing(self, message: Any) -> None:
-        """A new key, as ArduPilot takes it: never while armed; all zero turns signing off."""
+        """A new key, as ArduPilot takes it (module docstring): all zero with a zero timestamp
+        turns signing off; never while armed (the issue's rule, beyond ArduPilot's)."""
         if message.target_system not in {0, self.mav.srcSystem}:
             return
         if self.armed:
             self.counts["setup_refused_armed"] += 1
             return
         key = bytes(message.secret_key)
-        self._use_key(key if any(key) else None)
+        self._use_key(key if any(key) or message.initial_timestamp else None)
         self.mav.signing.timestamp = max(self.mav.signing.timestamp, message.initial_timestamp)
         self.counts["setup_signing"] += 1
 
