@@ -11,7 +11,7 @@ import re
 import signal
 import sys
 import time
-from datetime import UTC, datetime, timedelta
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 from typing import Any
 
@@ -213,7 +213,7 @@ def test_keys_outside_their_validity_period_are_refused_with_their_own_codes(
     state.mkdir()
     config = write_demo_config(state)
     key = load_operator_key(state)
-    now = datetime.now(UTC)
+    now = datetime.now(timezone.utc)
     base = yaml.safe_load(config.read_text())
     operator = base["keys"][0]
     base["keys"] = [

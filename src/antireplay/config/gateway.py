@@ -15,7 +15,7 @@ The store, anchor and audit sections the gateway shares with every other command
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Literal, Self
+from typing import Literal
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
 
@@ -34,7 +34,7 @@ class KeyConfig(BaseModel):
     not_after: AwareDatetime | None = Field(default=None, strict=False)
 
     @model_validator(mode="after")
-    def _period(self) -> Self:
+    def _period(self) -> KeyConfig:
         if self.not_before and self.not_after and self.not_after <= self.not_before:
             raise ValueError("not_after must be later than not_before")
         return self
