@@ -260,7 +260,7 @@ def test_a_stale_revocation_list_passes_only_a_fresh_authentic_estop(
     """Past ``fresh_until`` the list may miss a revocation: fail closed (503
     STATE_UNAVAILABLE) for all but an ESTOP whose signature verifies."""
     keys = receiver.keys
-    keys.clock = clock
+    keys.freshness = clock
     keys.fresh_until = clock.monotonic() + 1.0
     assert codes(receiver.receive(signed())) == (True, 200, None)
     clock.advance(1.5)

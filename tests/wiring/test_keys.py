@@ -36,7 +36,8 @@ def watched(tmp_path: Path, **kwargs: object) -> tuple[KeyWatcher, Flaky, Manual
     keys.clock = clock
     flaky = Flaky()
     audit = AuditLog(tmp_path / "audit.db")
-    return KeyWatcher(keys, flaky, audit=audit, **kwargs), flaky, clock  # type: ignore[arg-type]
+    watcher = KeyWatcher(keys, flaky, audit=audit, clock=clock, **kwargs)  # type: ignore[arg-type]
+    return watcher, flaky, clock
 
 
 def test_a_revocation_reaches_the_registry_at_the_next_poll(tmp_path: Path) -> None:

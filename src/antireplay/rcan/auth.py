@@ -30,8 +30,9 @@ lookup and two comparisons, no store round trip): a kid in ``revoked`` (the shar
 revocation list, kept fresh by the gateway's watcher, :mod:`antireplay.wiring.keys`) is
 ``KEY_REVOKED``; outside its ``not_before`` / ``not_after`` a key is ``KEY_NOT_YET_VALID`` /
 ``KEY_EXPIRED``.  Past ``fresh_until`` (the watcher's last good refresh plus its 1 s
-promise, on the monotonic clock) the list may be stale: every message but an ESTOP is
-``STATE_UNAVAILABLE``; an ESTOP from a key not known revoked still needs its signature.
+promise, on the watcher's monotonic clock, ``freshness``) the list may be stale: every
+message but an ESTOP is ``STATE_UNAVAILABLE``; an ESTOP from a key not known revoked still
+needs its signature.
 :meth:`KeyRegistry.replace` swaps in a reloaded key set in one assignment.
 
 Key files: :func:`load_public_key` is the one loader (``config check``,
@@ -203,8 +204,10 @@ class KeyRegistry:
     clock: Clock | None = None
     #: Revoked kids (the shared list, replaced whole by the watcher).
     revoked: frozenset[str] = frozenset()
-    #: Monotonic time until which ``revoked`` is known fresh (then: refuse all but an ESTOP).
+    #: Monotonic time until which ``revoked`` is known fresh (then: refuse all but an ESTOP),
+    #: on ``freshness`` (the watcher's clock: real time; ``None``: the system clock).
     fresh_until: float = math.inf
+    freshness: Clock | None = None
 
     def add(
         self,
@@ -260,7 +263,7 @@ class KeyRegistry:
 
     def stale(self) -> bool:
         """Whether the revocation list is past its promise (the watcher has not refreshed it)."""
-        return resolve(self.clock).monotonic() > self.fresh_until
+        return resolve(self.freshness).monotonic() > self.fresh_until
 
     def _check_period(self, entry: KeyEntry) -> None:
         now = resolve(self.clock).wall()

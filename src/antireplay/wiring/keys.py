@@ -10,7 +10,8 @@ registry's ``fresh_until`` to the last good poll plus :data:`PROMISE_S`.  So a r
 reaches every gateway on the state within :data:`PROMISE_S`, or the gateway fails closed:
 past ``fresh_until`` the registry answers ``STATE_UNAVAILABLE`` to everything but an ESTOP
 (whose key must still not be known revoked and its signature verify).  The first failure
-and the recovery are each logged once and audited.
+and the recovery are each logged once and audited; while it fails, the watcher retries every
+:data:`RETRY_S`, so a store that is back serves again at once.
 
 Reloads: ``SIGHUP`` (:meth:`KeyWatcher.request_reload`, safe in a signal handler: it sets a
 flag the next poll reads) or ``antireplay keys reload`` (the list's ``reloads`` counter,
@@ -35,7 +36,7 @@ from prometheus_client.registry import Collector
 from antireplay.audit import AuditLog
 from antireplay.audit.chain import AuditRow
 from antireplay.config import AppConfig
-from antireplay.core.clock import resolve
+from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import AntiReplayError, Code, StateUnavailableError
 from antireplay.rcan.auth import KeyRegistry
 from antireplay.state.revocations import RELOADS, REVOCATIONS, RevocationList, open_revocations
@@ -45,6 +46,8 @@ log = logging.getLogger("antireplay.keys")
 
 #: How often the watcher reads the list's counters.
 POLL_S = 0.25
+#: How often while the list is unreachable (so a recovered store serves again at once).
+RETRY_S = 0.05
 #: How long after its last good read the revocation list is still trusted.
 PROMISE_S = 1.0
 
@@ -59,12 +62,14 @@ class KeyWatcher:
         *,
         load: Callable[[], KeyRegistry] | None = None,
         audit: AuditLog | None = None,
+        clock: Clock | None = None,
     ) -> None:
         self.registry = registry
         self.revocations = revocations
         self.load = load
         self.audit = audit
-        self.clock = resolve(registry.clock)  # the registry reads fresh_until on this clock
+        self.clock = resolve(clock)  # real time: the thread polls on it (tests: a manual one)
+        registry.freshness = clock  # the registry reads fresh_until on the same clock
         self.reloads = {"ok": 0, "failed": 0}
         self._seen: dict[str, int] | None = None
         self._reload_asked = False
@@ -127,7 +132,7 @@ class KeyWatcher:
         if self.audit is None:
             return
         with contextlib.suppress(AntiReplayError):
-            self.audit.append(AuditRow(self.clock.wall(), "keys", code, what))
+            self.audit.append(AuditRow(resolve(self.registry.clock).wall(), "keys", code, what))
 
     def start(self) -> KeyWatcher:
         """Poll every :data:`POLL_S` on a daemon thread until :meth:`stop`."""
@@ -136,7 +141,7 @@ class KeyWatcher:
         return self
 
     def _run(self) -> None:
-        while not self._stop.wait(POLL_S):
+        while not self._stop.wait(RETRY_S if self._failing else POLL_S):
             self.refresh()
 
     def stop(self) -> None:
@@ -178,7 +183,7 @@ class KeyMetrics(Collector):
             "Seconds until the key's not_after (negative: expired)",
             labels=["kid"],
         )
-        now = self.watcher.clock.wall()
+        now = resolve(registry.clock).wall()  # key periods run on the registry's clock
         for entry in {e.kid: e for e in registry.entries.values()}.values():
             if entry.not_after is not None:
                 expiry.add_metric([entry.kid], entry.not_after - now)
