@@ -107,21 +107,31 @@ class SqliteRevocations:
 
     def __init__(self, path: str | Path, timeout_s: float = 0.5) -> None:
         self.path = Path(path)
+        self.timeout_s = timeout_s
         self._lock = threading.Lock()
-        try:
-            self._db = sqlite3.connect(
-                self.path, timeout=timeout_s, isolation_level=None, check_same_thread=False
+        self._db: sqlite3.Connection | None = None
+
+    def _open(self) -> sqlite3.Connection:
+        """The connection, opened (and the schema made) on first use: a file that cannot be
+        made yet (a full disk) is ``STATE_UNAVAILABLE`` now and tried again next time."""
+        if self._db is None:
+            db = sqlite3.connect(
+                self.path, timeout=self.timeout_s, isolation_level=None, check_same_thread=False
             )
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=FULL")
-            self._db.executescript(_SCHEMA)
-        except sqlite3.Error as exc:
-            raise StateUnavailableError(f"revocation list {self.path}: {exc}") from None
+            try:
+                db.execute("PRAGMA journal_mode=WAL")
+                db.execute("PRAGMA synchronous=FULL")
+                db.executescript(_SCHEMA)
+            except sqlite3.Error:
+                db.close()
+                raise
+            self._db = db
+        return self._db
 
     def _run(self, sql: str, *args: Any) -> list[tuple[Any, ...]]:
         try:
             with self._lock:
-                return self._db.execute(sql, args).fetchall()
+                return self._open().execute(sql, args).fetchall()
         except sqlite3.Error as exc:
             raise StateUnavailableError(f"revocation list {self.path}: {exc}") from None
 
@@ -140,14 +150,15 @@ class SqliteRevocations:
     def _change(self, sql: str, kid: str) -> bool:
         try:
             with self._lock:
-                self._db.execute("BEGIN IMMEDIATE")
+                db = self._open()
+                db.execute("BEGIN IMMEDIATE")
                 try:
-                    changed = self._db.execute(sql, (kid,)).rowcount > 0
-                    self._db.execute("UPDATE counters SET n = n + 1 WHERE name = 'revocations'")
+                    changed = db.execute(sql, (kid,)).rowcount > 0
+                    db.execute("UPDATE counters SET n = n + 1 WHERE name = 'revocations'")
                 except BaseException:
-                    self._db.execute("ROLLBACK")
+                    db.execute("ROLLBACK")
                     raise
-                self._db.execute("COMMIT")
+                db.execute("COMMIT")
                 return changed
         except sqlite3.Error as exc:
             raise StateUnavailableError(f"revocation list {self.path}: {exc}") from None
@@ -157,7 +168,9 @@ class SqliteRevocations:
 
     def close(self) -> None:
         with self._lock:
-            self._db.close()
+            if self._db is not None:
+                self._db.close()
+                self._db = None
 
 
 class RedisRevocations:
