@@ -68,7 +68,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, mldsa
 
-from antireplay.core.clock import Clock, resolve
+from antireplay.core.clock import Clock, SystemClock, resolve
 from antireplay.core.errors import (
     AuthFailedError,
     KeyExpiredError,
@@ -113,6 +113,7 @@ class KeyEntry:
 
 
 _ESTOP = (int(MessageType.SAFETY), str(SafetyEvent.ESTOP))
+_SYSTEM_CLOCK = SystemClock()  # one, not one per request (the freshness check)
 
 
 @dataclass(frozen=True)
@@ -263,7 +264,8 @@ class KeyRegistry:
 
     def stale(self) -> bool:
         """Whether the revocation list is past its promise (the watcher has not refreshed it)."""
-        return resolve(self.freshness).monotonic() > self.fresh_until
+        clock = self.freshness if self.freshness is not None else _SYSTEM_CLOCK
+        return clock.monotonic() > self.fresh_until
 
     def _check_period(self, entry: KeyEntry) -> None:
         now = resolve(self.clock).wall()
