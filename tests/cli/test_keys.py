@@ -13,7 +13,6 @@ import sys
 import time
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
-from typing import Any
 
 import httpx
 import pytest
@@ -25,8 +24,17 @@ from rcan.signing import MLDSAKeyPair
 from antireplay.audit import AuditLog
 from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
-from antireplay.rcan.auth import sign_envelope, write_key_pair
-from harness import GatewayProcess, antireplay, metric, one_line_error, post, serving, until
+from antireplay.rcan.auth import write_key_pair
+from harness import (
+    GatewayProcess,
+    antireplay,
+    metric,
+    one_line_error,
+    post,
+    serving,
+    signed_by,
+    until,
+)
 from harness.redis_server import RedisServer
 from harness.stores import aged_state
 from harness.wrk import WrkLoad
@@ -118,12 +126,6 @@ def test_send_json_is_one_object_with_status_code_reason_and_body(tmp_path: Path
 
 
 # --- keys revoke / unrevoke / reload, and key validity periods, on real gateways ------------
-
-
-def _as(key: ed25519.Ed25519PrivateKey, kid: str, **fields: Any) -> bytes:
-    """A fresh command signed by ``key`` under ``kid``."""
-    body = {k: v for k, v in json.loads(command(key, **fields)).items() if k != "sig"}
-    return json.dumps(sign_envelope(body, kid, "ed25519", key)).encode()
 
 
 def _code(gateway: GatewayProcess, raw: bytes) -> str | None:
@@ -228,8 +230,8 @@ def test_keys_outside_their_validity_period_are_refused_with_their_own_codes(
     assert "keys.soon expires in 3.0 days" in checked.stderr
     with serving(config) as gateway:
         assert _code(gateway, command(key)) == "KEY_EXPIRED"
-        assert _code(gateway, _as(key, "later")) == "KEY_NOT_YET_VALID"
-        assert _code(gateway, _as(key, "soon")) is None
+        assert _code(gateway, signed_by(key, "later")) == "KEY_NOT_YET_VALID"
+        assert _code(gateway, signed_by(key, "soon")) is None
         assert _expiry(gateway, "operator") < 0 < _expiry(gateway, "soon") <= 3 * 86400
         assert metric(gateway, "antireplay_rejected_total", '{code="KEY_EXPIRED"}') == 1
     codes = {r.code for r in AuditLog(state / "audit.db").tail(50)}
@@ -258,12 +260,15 @@ def test_sighup_reloads_a_rotated_key_while_wrk_runs_and_drops_no_request(
     with serving(config) as gateway:
         assert gateway.proc is not None
         bodies = [command(key) for _ in range(200)]  # stamped after the first start's fence
-        assert _code(gateway, _as(new, "operator-2")) == "UNKNOWN_SENDER"
+        assert _code(gateway, signed_by(new, "operator-2")) == "UNKNOWN_SENDER"
         load = WrkLoad(gateway.url, bodies, tmp_path, seconds=4)
         until("wrk to be under way", lambda: metric(gateway, "antireplay_accepted_total") >= 20)
         config.write_text(yaml.safe_dump({**written, "keys": [*written["keys"], rotated]}))
         gateway.proc.send_signal(signal.SIGHUP)
-        until("the new key to be accepted", lambda: _code(gateway, _as(new, "operator-2")) is None)
+        until(
+            "the new key to be accepted",
+            lambda: _code(gateway, signed_by(new, "operator-2")) is None,
+        )
         run = load.result()
         assert run.socket_errors == 0, run
         assert set(run.statuses) <= {200, 409} and run.statuses[200] == len(bodies), run
@@ -274,7 +279,7 @@ def test_sighup_reloads_a_rotated_key_while_wrk_runs_and_drops_no_request(
             "the bad reload",
             lambda: metric(gateway, "antireplay_key_reloads_total", '{result="failed"}'),
         )
-        assert _code(gateway, _as(new, "operator-2")) is None
+        assert _code(gateway, signed_by(new, "operator-2")) is None
         assert metric(gateway, "antireplay_key_reloads_total", '{result="ok"}') == 1
     failed = [ln for ln in (gateway.stderr_text or "").splitlines() if "reload failed" in ln]
     assert len(failed) == 1 and "keeping the 2 loaded keys" in failed[0]
