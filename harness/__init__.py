@@ -42,6 +42,7 @@ from click.testing import Result
 
 from antireplay import ManualClock, MessageType, ReplayAttackError, ReplayCache, safety_class
 from antireplay.cli.demo import JSON, command, load_operator_key, start_gateway, stop_gateway
+from antireplay.rcan.auth import sign_envelope
 from antireplay.rcan.envelope import parse
 from antireplay.rcan.receive import Receiver
 
@@ -173,6 +174,13 @@ def post(to: GatewayProcess | httpx.Client, raw: bytes, **headers: str) -> httpx
     if isinstance(to, GatewayProcess):
         return httpx.post(f"{to.url}/v1/messages", content=raw, headers=sent, timeout=10)
     return to.post("/v1/messages", content=raw, headers=sent)
+
+
+def signed_by(key: Any, kid: str, **fields: Any) -> bytes:
+    """A fresh demo command (:func:`~antireplay.cli.demo.command`) signed by Ed25519 ``key``
+    under ``kid`` (a second key of the operator: a rotation)."""
+    body = {k: v for k, v in json.loads(command(key, **fields)).items() if k != "sig"}
+    return json.dumps(sign_envelope(body, kid, "ed25519", key)).encode()
 
 
 def metric(of: GatewayProcess | httpx.Client, name: str, labels: str = "") -> float:

@@ -1,23 +1,43 @@
 """``antireplay keygen``, ``sign`` and ``send``: what ``sign --sdk`` refuses, each as one line
-naming the input; secrets written mode 0600 and a warning for a shared one; ``send --json``."""
+naming the input; secrets written mode 0600 and a warning for a shared one; ``send --json``.
+``keys revoke|unrevoke|list|reload`` and key validity periods on real ``serve`` processes
+(two replicas on one Redis, one SQLite host, a SIGHUP reload under wrk)."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
+import signal
 import sys
+import time
+from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
+import httpx
 import pytest
+import yaml
 from click.testing import CliRunner, Result
 from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa
 from rcan.signing import MLDSAKeyPair
 
+from antireplay.audit import AuditLog
 from antireplay.cli import main
 from antireplay.cli.demo import command, load_operator_key, write_demo_config
 from antireplay.rcan.auth import write_key_pair
-from harness import antireplay, one_line_error, serving
+from harness import (
+    GatewayProcess,
+    antireplay,
+    metric,
+    one_line_error,
+    post,
+    serving,
+    signed_by,
+    until,
+)
+from harness.redis_server import RedisServer
 from harness.stores import aged_state
+from harness.wrk import WrkLoad
 
 ROBOT = "rcan://registry.rcan.dev/acme/arm/v2/unit-001"
 
@@ -103,3 +123,163 @@ def test_send_json_is_one_object_with_status_code_reason_and_body(tmp_path: Path
     assert accepted["sent_as"] == "sent cmd move_forward as COMMAND"
     assert (refused["status"], refused["code"]) == (409, "REPLAY_DETECTED")
     assert refused["reason"].startswith("REPLAY_DETECTED: ") and refused["body"]["type"] == 18
+
+
+# --- keys revoke / unrevoke / reload, and key validity periods, on real gateways ------------
+
+
+def _code(gateway: GatewayProcess, raw: bytes) -> str | None:
+    reply = post(gateway, raw)
+    return None if reply.status_code == 200 else reply.json()["code"]
+
+
+def _revoke_reaches(gateway: GatewayProcess, key: ed25519.Ed25519PrivateKey, *cli: str) -> float:
+    """Run ``antireplay keys revoke operator CLI...``; seconds from its return until
+    ``gateway`` refuses the key (polled with a deadline, never slept)."""
+    done = antireplay("keys", "revoke", "operator", *cli, cwd=Path.cwd())
+    returned = time.monotonic()
+    assert done.returncode == 0, done.stderr
+    until("the revocation to reach the gateway", lambda: _code(gateway, command(key)), 10)
+    took = time.monotonic() - returned
+    assert _code(gateway, command(key)) == "KEY_REVOKED"
+    return took
+
+
+def test_a_revoke_on_one_redis_replica_reaches_the_other_within_one_second(
+    tmp_path: Path,
+) -> None:
+    """Two ``serve`` processes on one Redis: ``keys revoke`` (pointed at the same config)
+    and the other replica refuses the key (401 KEY_REVOKED, a NACK, counted, audited)
+    within 1 s of the command's return; ``keys unrevoke`` lets it in again."""
+    server = RedisServer(tmp_path)
+    server.start()
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state, store=server.url)
+    key = load_operator_key(state)
+    a, b = GatewayProcess(config), GatewayProcess(config)
+    try:
+        a.start()
+        b.start()
+        assert _code(b, command(key)) is None
+        took = _revoke_reaches(b, key, "--config", str(config))
+        assert took <= 1.0, f"the revocation took {took:.3f} s to reach the other replica"
+        assert _code(a, command(key)) == "KEY_REVOKED"
+        assert metric(b, "antireplay_rejected_total", '{code="KEY_REVOKED"}') >= 1
+        assert metric(b, "antireplay_keys_revoked") == 1
+        listed = antireplay("keys", "list", "--config", str(config), cwd=tmp_path)
+        assert listed.stdout.split() == ["operator"]
+        undone = antireplay("keys", "unrevoke", "operator", "--config", str(config), cwd=tmp_path)
+        assert undone.returncode == 0, undone.stderr
+        until("the unrevoke to reach the gateway", lambda: _code(a, command(key)) is None, 10)
+    finally:
+        a.stop()
+        b.stop()
+        server.stop()
+    rows = AuditLog(state / "audit.db").tail(500)
+    changes = [(r.code, r.warning) for r in rows if r.outcome == "keys"]
+    assert changes == [("KEY_REVOKE", "kid=operator"), ("KEY_UNREVOKE", "kid=operator")]
+    refused = [r for r in rows if r.code == "KEY_REVOKED"]
+    assert refused and all(r.sender == "kid:operator" and not r.sender_verified for r in refused)
+
+
+def test_a_revoke_on_a_sqlite_state_reaches_its_gateway_within_one_second(tmp_path: Path) -> None:
+    """One host: the revocation list sits beside the SQLite state (``--store``/``--audit``
+    name it as the gateway's config does)."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    with serving(config) as gateway:
+        assert _code(gateway, command(key)) is None
+        store, audit = f"sqlite:{state / 'state.db'}", str(state / "audit.db")
+        took = _revoke_reaches(gateway, key, "--store", store, "--audit", audit)
+        assert took <= 1.0, f"the revocation took {took:.3f} s to reach the gateway"
+    assert (state / "state.revocations.db").exists()
+
+
+def _expiry(gateway: GatewayProcess, kid: str) -> float:
+    text = httpx.get(f"{gateway.url}/metrics", timeout=10).text
+    found = re.search(rf'^antireplay_key_expiry_seconds{{kid="{kid}"}} (\S+)$', text, re.M)
+    assert found is not None, text
+    return float(found.group(1))
+
+
+def test_keys_outside_their_validity_period_are_refused_with_their_own_codes(
+    tmp_path: Path,
+) -> None:
+    """``not_after`` past: 401 KEY_EXPIRED; ``not_before`` ahead: 401 KEY_NOT_YET_VALID; the
+    expiry metric per kid; ``config check`` warns of the expired key and of one within
+    14 days."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    now = datetime.now(timezone.utc)
+    base = yaml.safe_load(config.read_text())
+    operator = base["keys"][0]
+    base["keys"] = [
+        {**operator, "not_after": (now - timedelta(hours=1)).isoformat()},
+        {**operator, "kid": "soon", "not_after": (now + timedelta(days=3)).isoformat()},
+        {**operator, "kid": "later", "not_before": (now + timedelta(days=1)).isoformat()},
+    ]
+    config.write_text(yaml.safe_dump(base))
+    checked = antireplay("config", "check", str(config), cwd=tmp_path)
+    assert checked.returncode == 0, checked.stderr
+    assert "keys.operator expired" in checked.stderr
+    assert "keys.soon expires in 3.0 days" in checked.stderr
+    with serving(config) as gateway:
+        assert _code(gateway, command(key)) == "KEY_EXPIRED"
+        assert _code(gateway, signed_by(key, "later")) == "KEY_NOT_YET_VALID"
+        assert _code(gateway, signed_by(key, "soon")) is None
+        assert _expiry(gateway, "operator") < 0 < _expiry(gateway, "soon") <= 3 * 86400
+        assert metric(gateway, "antireplay_rejected_total", '{code="KEY_EXPIRED"}') == 1
+    codes = {r.code for r in AuditLog(state / "audit.db").tail(50)}
+    assert {"KEY_EXPIRED", "KEY_NOT_YET_VALID"} <= codes
+
+
+def test_sighup_reloads_a_rotated_key_while_wrk_runs_and_drops_no_request(
+    tmp_path: Path,
+) -> None:
+    """A rotation: the new key (a second kid of the same owner) is added to the file and
+    ``serve`` gets SIGHUP while wrk sends old-key commands: the new key is accepted after
+    the reload, and every wrk answer is 200 (each command once) or 409 (its replays), with
+    no socket error.  A file that no longer parses then keeps the keys (one log line)."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    new = ed25519.Ed25519PrivateKey.generate()
+    write_key_pair(new, state / "next.key.pem", state / "next.pub.pem")
+    written = yaml.safe_load(config.read_text())
+    rotated = {
+        **written["keys"][0],
+        "kid": "operator-2",
+        "public_keys": [str(state / "next.pub.pem")],
+    }
+    with serving(config) as gateway:
+        assert gateway.proc is not None
+        bodies = [command(key) for _ in range(200)]  # stamped after the first start's fence
+        assert _code(gateway, signed_by(new, "operator-2")) == "UNKNOWN_SENDER"
+        load = WrkLoad(gateway.url, bodies, tmp_path, seconds=4)
+        until("wrk to be under way", lambda: metric(gateway, "antireplay_accepted_total") >= 20)
+        config.write_text(yaml.safe_dump({**written, "keys": [*written["keys"], rotated]}))
+        gateway.proc.send_signal(signal.SIGHUP)
+        until(
+            "the new key to be accepted",
+            lambda: _code(gateway, signed_by(new, "operator-2")) is None,
+        )
+        run = load.result()
+        assert run.socket_errors == 0, run
+        assert set(run.statuses) <= {200, 409} and run.statuses[200] == len(bodies), run
+        assert sum(run.statuses.values()) == run.requests
+        config.write_text("keys: [oops\n")
+        gateway.proc.send_signal(signal.SIGHUP)
+        until(
+            "the bad reload",
+            lambda: metric(gateway, "antireplay_key_reloads_total", '{result="failed"}'),
+        )
+        assert _code(gateway, signed_by(new, "operator-2")) is None
+        assert metric(gateway, "antireplay_key_reloads_total", '{result="ok"}') == 1
+    failed = [ln for ln in (gateway.stderr_text or "").splitlines() if "reload failed" in ln]
+    assert len(failed) == 1 and "keeping the 2 loaded keys" in failed[0]

@@ -19,22 +19,26 @@ import httpx
 import pytest
 import yaml
 from click.testing import CliRunner, Result
+from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 
 from antireplay.audit import AuditLog, tail
 from antireplay.audit.segments import bytes_of
 from antireplay.cli import main
 from antireplay.cli._common import importable_cwd
-from antireplay.cli.demo import command, load_operator_key, write_demo_config
+from antireplay.cli.demo import JSON, command, load_operator_key, write_demo_config
 from antireplay.cli.serve import settled_heap
+from antireplay.rcan.auth import write_key_pair
 from antireplay.state.sqlite import SqliteStore
 from harness import (
     GatewayProcess,
+    antireplay,
     child_pids,
     free_port,
     metric,
     one_line_error,
     post,
     serving,
+    signed_by,
     until,
     wait_past_fence,
 )
@@ -674,3 +678,49 @@ def _answers(client: httpx.Client) -> bool:
         return client.get("/healthz").status_code == 200
     except httpx.HTTPError:
         return False
+
+
+def test_serve_workers_each_reload_keys_and_apply_a_revocation(tmp_path: Path) -> None:
+    """``serve --workers 2`` and ``antireplay keys reload``: each worker re-reads the file (a
+    ``KEYS_RELOADED`` row each) and takes the rotated key; ``keys revoke`` then refuses it on
+    every connection, whichever worker answers."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    new = Ed25519PrivateKey.generate()
+    write_key_pair(new, state / "next.key.pem", state / "next.pub.pem")
+    written = yaml.safe_load(config.read_text())
+    rotated = {**written["keys"][0], "kid": "next", "public_keys": [str(state / "next.pub.pem")]}
+    port = free_port()
+    args = [sys.executable, "-m", "antireplay", "serve", "--config", str(config)]
+    proc = subprocess.Popen(
+        [*args, "--port", str(port), "--workers", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    url = f"http://127.0.0.1:{port}"
+
+    def codes() -> set[str | None]:  # fresh commands, each on a connection of its own
+        replies = [httpx.post(f"{url}/v1/messages", content=signed_by(new, "next"),
+                              headers=JSON, timeout=10) for _ in range(8)]  # fmt: skip
+        return {None if r.status_code == 200 else r.json()["code"] for r in replies}
+
+    try:
+        until("serving", lambda: len(_workers_of(proc.pid)) == 2 and _healthy(url), 60)
+        wait_past_fence(url)
+        config.write_text(yaml.safe_dump({**written, "keys": [*written["keys"], rotated]}))
+        asked = antireplay("keys", "reload", "--config", str(config), cwd=tmp_path)
+        assert asked.returncode == 0, asked.stderr
+
+        def reloaded() -> bool:
+            rows = AuditLog(state / "audit.db").tail(50)
+            return sum(r.code == "KEYS_RELOADED" for r in rows) == 2
+
+        until("both workers to reload", reloaded)
+        assert codes() == {None}
+        revoked = antireplay("keys", "revoke", "next", "--config", str(config), cwd=tmp_path)
+        assert revoked.returncode == 0, revoked.stderr
+        until("the revocation", lambda: codes() == {"KEY_REVOKED"}, 10)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=60)
+    assert proc.returncode == 0

@@ -1,4 +1,5 @@
-"""Authentication: JWT rules, signature encodings and the key registry's SDK-compat mode."""
+"""Authentication: JWT rules, signature encodings, the key registry's SDK-compat mode and
+its key lifecycle (revocation, validity periods, a stale revocation list, reloads)."""
 
 from __future__ import annotations
 
@@ -15,10 +16,12 @@ from rcan import RCANMessage
 from rcan.signing import MLDSAKeyPair, verify_message
 
 from antireplay import ManualClock, SecurityConfig
+from antireplay.audit import AuditLog
 from antireplay.cli.demo import write_demo_config
 from antireplay.core.errors import SignatureInvalidError
 from antireplay.rcan.auth import (
     JwtVerifier,
+    KeyRegistry,
     b64decode,
     b64encode,
     load_public_key,
@@ -31,6 +34,7 @@ from harness import antireplay, fresh_receiver, serving
 from harness.envelopes import (
     ED,
     JWT_KEY,
+    MARKER,
     NOW,
     PQ,
     codes,
@@ -202,3 +206,77 @@ def test_an_sdk_key_id_without_sdk_compat_gets_a_hint_naming_it(tmp_path: Path) 
     )
     assert "shaped like an RCAN SDK key id" in answers["deadbeef"]["body"]["detail"]
     assert "detail" not in answers["nobody"]["body"]
+
+
+# --- key lifecycle: revocation, validity periods, a stale list, reloads ----------------------
+
+
+def test_a_revoked_key_is_refused_before_its_signature_and_never_touches_the_seen_set(
+    receiver: Receiver, tmp_path: Path
+) -> None:
+    """Revoked = unauthenticated: 401 KEY_REVOKED with a NACK, no cryptography, audited
+    with the code and the kid and no payload; the msg_id is not spent (after unrevoke the
+    same message is accepted)."""
+    raw = signed()
+    receiver.keys.revoked = frozenset({"op-ed"})
+    before = receiver.keys.verifications
+    out = receiver.receive(raw)
+    assert codes(out) == (False, 401, "KEY_REVOKED")
+    nack = out.nack
+    assert nack is not None and nack["code"] == "KEY_REVOKED"
+    assert receiver.keys.verifications == before
+    row = AuditLog(tmp_path / "audit.db").tail(1)[0]
+    assert (row.code, row.sender, row.warning) == ("KEY_REVOKED", "kid:op-ed", "kid=op-ed")
+    assert MARKER not in repr(row)
+    receiver.keys.revoked = frozenset()
+    assert codes(receiver.receive(raw)) == (True, 200, None)
+
+
+def test_a_fresh_estop_signed_with_a_revoked_key_is_refused(receiver: Receiver) -> None:
+    receiver.keys.revoked = frozenset({"op-ed"})
+    out = receiver.receive(signed(type=6, cmd="ESTOP"))
+    assert codes(out) == (False, 401, "KEY_REVOKED")
+
+
+def test_a_key_is_refused_outside_its_validity_period(
+    receiver: Receiver, clock: ManualClock
+) -> None:
+    keys = receiver.keys
+    keys.clock = clock
+    keys.add("op-new", "operator", "ed25519", ED.public_key(), {"control"},
+             not_before=NOW + 10, not_after=NOW + 100)  # fmt: skip
+    assert codes(receiver.receive(signed("op-new"))) == (False, 401, "KEY_NOT_YET_VALID")
+    clock.step_wall(10)
+    assert codes(receiver.receive(signed("op-new", timestamp=NOW + 9))) == (True, 200, None)
+    clock.step_wall(90)
+    expired = receiver.receive(signed("op-new", timestamp=NOW + 99))
+    assert codes(expired) == (False, 401, "KEY_EXPIRED")
+    assert expired.error is not None and expired.error.detail == "kid=op-new"
+
+
+def test_a_stale_revocation_list_passes_only_a_fresh_authentic_estop(
+    receiver: Receiver, clock: ManualClock
+) -> None:
+    """Past ``fresh_until`` the list may miss a revocation: fail closed (503
+    STATE_UNAVAILABLE) for all but an ESTOP whose signature verifies."""
+    keys = receiver.keys
+    keys.freshness = clock
+    keys.fresh_until = clock.monotonic() + 1.0
+    assert codes(receiver.receive(signed())) == (True, 200, None)
+    clock.advance(1.5)
+    refused = receiver.receive(signed())
+    assert codes(refused) == (False, 503, "STATE_UNAVAILABLE")
+    assert refused.error is not None and refused.error.detail == "revocations"
+    assert receiver.receive(signed(type=6, cmd="ESTOP")).accepted
+    forged = json.loads(signed(type=6, cmd="ESTOP"))
+    forged["sig"]["value"] = b64encode(b"\0" * 64)
+    bad = receiver.receive(json.dumps(forged).encode())
+    assert codes(bad) == (False, 401, "SIGNATURE_INVALID")
+
+
+def test_replace_swaps_the_whole_key_set_and_keeps_the_revocations() -> None:
+    keys, fresh = registry(), KeyRegistry()
+    keys.revoked = frozenset({"op-pq"})
+    fresh.add("op-new", "operator", "ed25519", ED.public_key())
+    keys.replace(fresh)
+    assert set(keys.entries) == {"op-new"} and keys.revoked == {"op-pq"}

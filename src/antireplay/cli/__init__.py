@@ -8,7 +8,7 @@ gives click's own usage errors the same shape).  ``config check`` runs the same
 preflight as ``serve``, so a configuration that passes the check starts.
 
 One click group, :func:`main`; each module holds one family of commands: ``serve``,
-``config check``, ``demo``, ``bench`` (:mod:`.serve`), ``keygen``, ``sign``, ``send``
+``config check``, ``demo``, ``bench`` (:mod:`.serve`), ``keygen``, ``sign``, ``send``, ``keys``
 (:mod:`.keys`), ``audit`` (:mod:`.audit`), ``state`` (:mod:`.state`),
 ``mavlink-router``, ``mavlink-sim`` (:mod:`.mavlink`), ``mavlink-keys``
 (:mod:`.mavlink_keys`), ``mavlink-pq`` (:mod:`.mavlink_pq`), ``dds`` (:mod:`.dds`).
@@ -40,6 +40,7 @@ for command in (
     keys.keygen,
     keys.sign,
     keys.send,
+    keys.keys_group,
     audit.audit,
     state.state,
     mavlink.mavlink_router,

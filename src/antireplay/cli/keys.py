@@ -1,4 +1,6 @@
-"""``keygen``, ``sign`` and ``send``: keys, signed envelopes, and sending one to a gateway."""
+"""``keygen``, ``sign`` and ``send``: keys, signed envelopes, and sending one to a gateway;
+``keys revoke|unrevoke|list|reload``: operator keys at runtime, on the state every gateway
+shares (:mod:`antireplay.state.revocations`), each change audited."""
 
 from __future__ import annotations
 
@@ -19,7 +21,8 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa, mlkem, x25519
 from rich.table import Table
 
-from antireplay.core.errors import ReplayAttackError
+from antireplay.config import AppConfig
+from antireplay.core.errors import ConfigError, ReplayAttackError
 from antireplay.core.messages import MessageType
 from antireplay.rcan.auth import (
     ALGORITHMS,
@@ -38,7 +41,7 @@ from antireplay.rcan.envelope import parse, safety_class
 if TYPE_CHECKING:
     pass
 
-from antireplay.cli._common import _fail, console, warn_if_shared
+from antireplay.cli._common import _fail, console, load_with_flags, warn_if_shared
 from antireplay.cli._token import KeyOrUri, token_signer
 
 KEY_TYPES: dict[str, Any] = {
@@ -336,3 +339,127 @@ def _sent_as(raw: bytes) -> str | None:
     except ValueError:
         name = str(kind)
     return f"sent cmd {env.cmd} as {name}" + (f"/{event}" if event else "")
+
+
+@click.group("keys")
+def keys_group() -> None:
+    """Operator keys at runtime: revoke, unrevoke, reload, list (every gateway on the state)."""
+
+
+_STATE_OPTIONS = (
+    click.option(
+        "--config",
+        "config_path",
+        type=click.Path(path_type=Path),
+        default=None,
+        help="The gateways' YAML configuration (its store and audit trail).",
+    ),
+    click.option("--store", default=None, help="The gateways' store spec (over --config's)."),
+    click.option(
+        "--audit",
+        "audit_path",
+        default=None,
+        help="Audit trail to record the change in (over --config's).",
+    ),
+    click.option(
+        "--state-dir",
+        default=Path(".antireplay"),
+        show_default=True,
+        type=click.Path(path_type=Path),
+        help="Without --config or --store: the embedded default's state (as `serve`).",
+    ),
+)
+
+
+def _state_options(fn: Any) -> Any:
+    for option in reversed(_STATE_OPTIONS):
+        fn = option(fn)
+    return fn
+
+
+def _state_config(
+    config_path: Path | None, store: str | None, audit_path: str | None, state_dir: Path
+) -> AppConfig:
+    """The configuration naming the gateways' state (serve's embedded default without one)."""
+    if config_path is None and store is None:
+        store = f"sqlite:{state_dir / 'state.db'}"
+        audit_path = audit_path or str(state_dir / "audit.db")
+    return load_with_flags(
+        config_path, {"store": ("--store", store), "audit.path": ("--audit", audit_path)}
+    )
+
+
+def _change(config: AppConfig, kid: str, *, revoke: bool) -> None:
+    from antireplay.wiring.keys import change_revocation  # noqa: PLC0415
+
+    try:
+        changed = change_revocation(config, kid, revoke=revoke)
+    except (ReplayAttackError, ConfigError) as exc:
+        _fail(f"store {config.store_spec.redacted()}: {exc}")
+    verb = "revoked" if revoke else "unrevoked"
+    already = "" if changed else f" (it already was {'' if revoke else 'not '}revoked)"
+    click.echo(
+        f"{verb} {kid}{already}: every gateway on {config.store_spec.redacted()} "
+        f"applies it within 1 s; audited in {config.audit}"
+    )
+
+
+@keys_group.command("revoke")
+@click.argument("kid")
+@_state_options
+def keys_revoke(
+    kid: str, config_path: Path | None, store: str | None, audit_path: str | None, state_dir: Path
+) -> None:
+    """Put KID on the shared revocation list: its messages are refused (401 KEY_REVOKED)."""
+    _change(_state_config(config_path, store, audit_path, state_dir), kid, revoke=True)
+
+
+@keys_group.command("unrevoke")
+@click.argument("kid")
+@_state_options
+def keys_unrevoke(
+    kid: str, config_path: Path | None, store: str | None, audit_path: str | None, state_dir: Path
+) -> None:
+    """Take KID off the shared revocation list."""
+    _change(_state_config(config_path, store, audit_path, state_dir), kid, revoke=False)
+
+
+@keys_group.command("list")
+@_state_options
+def keys_list(
+    config_path: Path | None, store: str | None, audit_path: str | None, state_dir: Path
+) -> None:
+    """Print the revoked kids, one a line."""
+    from antireplay.state.revocations import open_revocations  # noqa: PLC0415
+
+    config = _state_config(config_path, store, audit_path, state_dir)
+    try:
+        revocations = open_revocations(config.store_spec)
+        try:
+            kids = sorted(revocations.revoked())
+        finally:
+            revocations.close()
+    except ReplayAttackError as exc:
+        _fail(f"store {config.store_spec.redacted()}: {exc}")
+    for kid in kids:
+        click.echo(kid)
+
+
+@keys_group.command("reload")
+@_state_options
+def keys_reload(
+    config_path: Path | None, store: str | None, audit_path: str | None, state_dir: Path
+) -> None:
+    """Ask every gateway on the state to re-read its keys configuration (within 0.25 s)."""
+    from antireplay.state.revocations import open_revocations  # noqa: PLC0415
+
+    config = _state_config(config_path, store, audit_path, state_dir)
+    try:
+        revocations = open_revocations(config.store_spec)
+        try:
+            revocations.request_reload()
+        finally:
+            revocations.close()
+    except ReplayAttackError as exc:
+        _fail(f"store {config.store_spec.redacted()}: {exc}")
+    click.echo(f"reload asked of every gateway on {config.store_spec.redacted()}")

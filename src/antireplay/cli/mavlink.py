@@ -204,7 +204,9 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     import logging  # noqa: PLC0415
     import signal  # noqa: PLC0415
 
-    signal.signal(signal.SIGHUP, signal.SIG_IGN)  # until the reload handler: start-up survives
+    # A SIGHUP during start-up waits (blocked, pending) for the reload handler: never lost,
+    # never the default action (exit).
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGHUP})
 
     from antireplay.wiring.leaves import trail_path  # noqa: PLC0415
     from antireplay.wiring.mavlink import (  # noqa: PLC0415
@@ -279,6 +281,7 @@ def mavlink_router(  # noqa: PLR0917 - one option per knob
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     done = stop_on_signal()
     keys_said = reload_on_sighup(parts.router, section)  # before start: SIGHUP never kills
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGHUP})  # a pending one reloads now
     try:
         parts.router.start()  # claims each guard's lease, waiting out a crashed run's (seconds)
     except ReplayAttackError as exc:

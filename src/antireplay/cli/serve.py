@@ -7,6 +7,11 @@ disk: the store's commit is the one atomic step, so of two processes racing a ms
 exactly one accepts it, and the audit writer chains inside ``BEGIN IMMEDIATE``, so the
 processes extend one chain.  A memory store is refused above one process (its seen-set
 would be one process's).  Metrics are per process.
+
+Keys reload without a restart (:mod:`antireplay.wiring.keys`): ``SIGHUP`` to a one-process
+``serve``, or ``antireplay keys reload`` (every process and replica on the state; with
+``--workers`` a ``SIGHUP`` to the supervisor is uvicorn's own: it replaces the workers one
+by one).  A file that does not load keeps the old keys and logs one line.
 """
 
 from __future__ import annotations
@@ -14,10 +19,13 @@ from __future__ import annotations
 import gc
 import json
 import os
+import signal
 import socket
 import sqlite3
 import subprocess
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from urllib.parse import urlsplit
@@ -27,7 +35,7 @@ from rich.progress import Progress
 from rich.table import Table
 
 from antireplay.cli.demo import StepResult, run_gateway_demo, run_window_demo
-from antireplay.config import AppConfig
+from antireplay.config import AppConfig, KeyConfig
 from antireplay.core.errors import AntiReplayError, ConfigError, StateUnavailableError
 
 if TYPE_CHECKING:
@@ -111,7 +119,7 @@ def serve(  # noqa: PLR0917 - one option per knob
     preflight(config)
     try:
         shared_state(config, workers)
-        app = create_app(config)
+        app = create_app(config, reload=reloader(config_path, state_dir))
     except ConfigError as exc:
         _fail(str(exc))
     except sqlite3.DatabaseError as exc:
@@ -151,8 +159,10 @@ def serve(  # noqa: PLR0917 - one option per knob
         click.echo(fenced)
     if workers == 1:
         settled_heap()
+        signal.signal(signal.SIGHUP, lambda _n, _f: app.state.keys.request_reload())
         with until_stopped(lambda: f"served {_served(app)}"):
             uvicorn.Server(settings).run(sockets=[sock])
+        app.state.keys.stop()
         return
     _release(app)  # it only checked the configuration: each worker builds its own
     building = {"config": config_path, "state_dir": state_dir}
@@ -216,9 +226,17 @@ def worker_app() -> Starlette:
 
     settings = json.loads(os.environ[_SERVE_ENV])
     path = None if settings["config"] is None else Path(settings["config"])
-    app = create_app(_load_config(path, Path(settings["state_dir"])))
+    state_dir = Path(settings["state_dir"])
+    app = create_app(_load_config(path, state_dir), reload=reloader(path, state_dir))
     settled_heap()
     return app
+
+
+def reloader(path: Path | None, state_dir: Path) -> Callable[[], AppConfig]:
+    """What a keys reload re-reads (raises, never exits: it runs on the watcher's thread)."""
+    from antireplay.wiring import embedded_default  # noqa: PLC0415
+
+    return lambda: AppConfig.from_yaml(path) if path is not None else embedded_default(state_dir)
 
 
 def settled_heap() -> None:
@@ -233,6 +251,7 @@ def settled_heap() -> None:
 def _release(app: Starlette) -> None:
     """Close what building ``app`` opened (its audit trail and store)."""
     receiver = app.state.receiver
+    app.state.keys.stop()
     receiver.close()
     receiver.cache.store.close()
 
@@ -308,7 +327,7 @@ def config_check(path: Path, verbose: bool) -> None:
     if not cfg.keys and not others:  # a file for the router, a PQ end or DDS needs none
         click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
                    "so every command will be refused", err=True)  # fmt: skip
-    for warning in [*anchor_warnings(cfg), *_sdk_key_hints(cfg)]:
+    for warning in [*anchor_warnings(cfg), *_sdk_key_hints(cfg), *expiry_warnings(cfg)]:
         click.echo(f"antireplay: warning: {warning}", err=True)
     click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
     for line in sections:
@@ -368,6 +387,24 @@ def _sdk_key_hints(cfg: AppConfig) -> list[str]:
                 "sdk_compat: true (else 401 UNKNOWN_SENDER)"
             )
     return hints
+
+
+#: ``config check`` warns of a key that expires within this many days.
+EXPIRY_WARNING_DAYS = 14
+
+
+def expiry_warnings(cfg: AppConfig, now: float | None = None) -> list[str]:
+    """Keys expired, or expiring within :data:`EXPIRY_WARNING_DAYS` (rotate them now)."""
+    now = time.time() if now is None else now
+    said = []
+    for entry in cfg.keys:
+        end = KeyConfig.seconds(entry.not_after)
+        if end is None or end - now > EXPIRY_WARNING_DAYS * 86400:
+            continue
+        when = entry.not_after.isoformat() if entry.not_after else ""
+        state = "expired" if end <= now else f"expires in {(end - now) / 86400:.1f} days"
+        said.append(f"keys.{entry.kid} {state} (not_after {when}): rotate it (docs/operations.md)")
+    return said
 
 
 def _probe_upstream(upstream: str | None, timeout_s: float) -> None:

@@ -5,15 +5,19 @@ Theory of operation
 Each block is a strict, frozen model: a wrong type or an unknown key is an error, never a
 default.  Key files are named here, never read: :mod:`antireplay.wiring.gateway` loads
 them into a key registry (the one loader, :func:`~antireplay.rcan.auth.load_public_key`).
+A key may carry a validity period (``not_before`` / ``not_after``, ISO 8601 with a zone,
+e.g. ``2027-01-01T00:00:00Z``): outside it the gateway refuses the key
+(``KEY_NOT_YET_VALID`` / ``KEY_EXPIRED``), so a rotation overlaps two kids of one owner.
 The store, anchor and audit sections the gateway shares with every other command live in
 :mod:`antireplay.config.common`; the whole file is :class:`~antireplay.config.AppConfig`.
 """
 
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
 
 
 class KeyConfig(BaseModel):
@@ -26,6 +30,19 @@ class KeyConfig(BaseModel):
     alg: Literal["ed25519", "ml-dsa-65", "ml-dsa-87", "ed25519+ml-dsa-65"]
     public_keys: list[str] = Field(min_length=1, max_length=2)  # PEM file paths
     scopes: list[str] = Field(default_factory=lambda: ["control"])
+    not_before: AwareDatetime | None = Field(default=None, strict=False)  # ISO 8601, a zone
+    not_after: AwareDatetime | None = Field(default=None, strict=False)
+
+    @model_validator(mode="after")
+    def _period(self) -> KeyConfig:
+        if self.not_before and self.not_after and self.not_after <= self.not_before:
+            raise ValueError("not_after must be later than not_before")
+        return self
+
+    @staticmethod
+    def seconds(moment: datetime | None) -> float | None:
+        """A bound as Unix seconds (``None``: unbounded)."""
+        return None if moment is None else moment.timestamp()
 
 
 class JwtConfig(BaseModel):

@@ -55,6 +55,9 @@ class Code(StrEnum):
     SIGNATURE_INVALID = "SIGNATURE_INVALID"
     SIGNATURE_REQUIRED = "SIGNATURE_REQUIRED"
     UNKNOWN_SENDER = "UNKNOWN_SENDER"
+    KEY_REVOKED = "KEY_REVOKED"
+    KEY_EXPIRED = "KEY_EXPIRED"
+    KEY_NOT_YET_VALID = "KEY_NOT_YET_VALID"
     SCOPE_DENIED = "SCOPE_DENIED"
     WRONG_TARGET = "WRONG_TARGET"
     INVALID_COUNTER = "INVALID_COUNTER"
@@ -86,6 +89,9 @@ HTTP_STATUS: dict[Code, int] = {
     Code.SIGNATURE_INVALID: 401,
     Code.SIGNATURE_REQUIRED: 401,
     Code.UNKNOWN_SENDER: 401,
+    Code.KEY_REVOKED: 401,
+    Code.KEY_EXPIRED: 401,
+    Code.KEY_NOT_YET_VALID: 401,
     Code.SCOPE_DENIED: 403,
     Code.WRONG_TARGET: 403,
     Code.INVALID_COUNTER: 400,
@@ -298,6 +304,24 @@ class UnknownSenderError(ReplayAttackError):
     """The message names a key or identity this receiver does not know."""
 
     code = Code.UNKNOWN_SENDER
+
+
+class KeyRevokedError(ReplayAttackError):
+    """The message names a key on the revocation list (``antireplay keys revoke``)."""
+
+    code = Code.KEY_REVOKED
+
+
+class KeyExpiredError(ReplayAttackError):
+    """The message names a key past its ``not_after``."""
+
+    code = Code.KEY_EXPIRED
+
+
+class KeyNotYetValidError(ReplayAttackError):
+    """The message names a key before its ``not_before``."""
+
+    code = Code.KEY_NOT_YET_VALID
 
 
 class WrongTargetError(ReplayAttackError):

@@ -25,6 +25,16 @@ can answer to it as well (:meth:`KeyRegistry.alias`, done by
 :func:`~antireplay.wiring.build_registry` in compatibility mode), and
 :func:`sign_sdk` signs the way the SDK's ``sign_message`` does.
 
+Key lifecycle, checked in :meth:`KeyRegistry.signing_key` before any cryptography (a set
+lookup and two comparisons, no store round trip): a kid in ``revoked`` (the shared
+revocation list, kept fresh by the gateway's watcher, :mod:`antireplay.wiring.keys`) is
+``KEY_REVOKED``; outside its ``not_before`` / ``not_after`` a key is ``KEY_NOT_YET_VALID`` /
+``KEY_EXPIRED``.  Past ``fresh_until`` (the watcher's last good refresh plus its 1 s
+promise, on the watcher's monotonic clock, ``freshness``) the list may be stale: every
+message but an ESTOP is ``STATE_UNAVAILABLE``; an ESTOP from a key not known revoked still
+needs its signature.
+:meth:`KeyRegistry.replace` swaps in a reloaded key set in one assignment.
+
 Key files: :func:`load_public_key` is the one loader (``config check``,
 ``serve``, the library): PEM, or the SDK's raw ML-DSA public key file.
 
@@ -58,18 +68,24 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec, ed25519, mldsa
 
-from antireplay.core.clock import Clock, resolve
+from antireplay.core.clock import Clock, SystemClock, resolve
 from antireplay.core.errors import (
     AuthFailedError,
+    KeyExpiredError,
+    KeyNotYetValidError,
+    KeyRevokedError,
     SignatureInvalidError,
     SignatureRequiredError,
+    StateUnavailableError,
     UnknownSenderError,
 )
+from antireplay.core.messages import MessageType, SafetyEvent
 from antireplay.rcan.envelope import (
     Envelope,
     Signature,
     canonical_bytes,
     parse,
+    safety_class,
     sdk_signed_bytes,
     unsigned_policy_fields,
 )
@@ -92,6 +108,12 @@ class KeyEntry:
     alg: str
     public_keys: tuple[PublicKey, ...]
     scopes: frozenset[str] = frozenset({"control"})
+    not_before: float | None = None  # Unix seconds; None: unbounded
+    not_after: float | None = None
+
+
+_ESTOP = (int(MessageType.SAFETY), str(SafetyEvent.ESTOP))
+_SYSTEM_CLOCK = SystemClock()  # one, not one per request (the freshness check)
 
 
 @dataclass(frozen=True)
@@ -180,6 +202,13 @@ class KeyRegistry:
     entries: dict[str, KeyEntry] = field(default_factory=dict)
     sdk_compat: bool = False
     verifications: int = 0
+    clock: Clock | None = None
+    #: Revoked kids (the shared list, replaced whole by the watcher).
+    revoked: frozenset[str] = frozenset()
+    #: Monotonic time until which ``revoked`` is known fresh (then: refuse all but an ESTOP),
+    #: on ``freshness`` (the watcher's clock: real time; ``None``: the system clock).
+    fresh_until: float = math.inf
+    freshness: Clock | None = None
 
     def add(
         self,
@@ -188,6 +217,9 @@ class KeyRegistry:
         alg: str,
         public_keys: PublicKey | tuple[PublicKey, ...],
         scopes: frozenset[str] | set[str] = frozenset({"control"}),
+        *,
+        not_before: float | None = None,
+        not_after: float | None = None,
     ) -> KeyEntry:
         keys = public_keys if isinstance(public_keys, tuple) else (public_keys,)
         expected = ALGORITHMS.get(alg)
@@ -198,7 +230,7 @@ class KeyRegistry:
                 raise ValueError(f"{alg} needs a {kind.__name__}, got {type(key).__name__}")
         if kid in self.entries:  # two keys under one kid: which one signed would be unknowable
             raise ValueError(f"kid {kid!r} is already registered")
-        entry = KeyEntry(kid, owner, alg, keys, frozenset(scopes))
+        entry = KeyEntry(kid, owner, alg, keys, frozenset(scopes), not_before, not_after)
         self.entries[kid] = entry
         return entry
 
@@ -219,7 +251,33 @@ class KeyRegistry:
         entry = self.entries.get(sig.kid)
         if entry is None:
             raise UnknownSenderError("unknown signing key", detail=self._sdk_hint(sig.kid))
+        if self.revoked and (entry.kid in self.revoked or sig.kid in self.revoked):
+            raise KeyRevokedError("signing key is revoked", detail=f"kid={entry.kid}")
+        if entry.not_before is not None or entry.not_after is not None:
+            self._check_period(entry)
+        if self.fresh_until < math.inf and self.stale() and safety_class(env) != _ESTOP:
+            raise StateUnavailableError(
+                "revocation list not refreshed in time; only a fresh ESTOP passes",
+                detail="revocations",
+            )
         return sig, entry
+
+    def stale(self) -> bool:
+        """Whether the revocation list is past its promise (the watcher has not refreshed it)."""
+        clock = self.freshness if self.freshness is not None else _SYSTEM_CLOCK
+        return clock.monotonic() > self.fresh_until
+
+    def _check_period(self, entry: KeyEntry) -> None:
+        now = resolve(self.clock).wall()
+        if entry.not_before is not None and now < entry.not_before:
+            raise KeyNotYetValidError("signing key is not valid yet", detail=f"kid={entry.kid}")
+        if entry.not_after is not None and now >= entry.not_after:
+            raise KeyExpiredError("signing key has expired", detail=f"kid={entry.kid}")
+
+    def replace(self, other: KeyRegistry) -> None:
+        """Take ``other``'s keys in one assignment (a reload: a request sees the old set or
+        the new one, never a mix); the revocation state stays."""
+        self.entries = other.entries
 
     def _sdk_hint(self, kid: str) -> str | None:
         """Why an unknown kid may be an RCAN SDK key id (the SDK always signs with it, and
@@ -238,8 +296,9 @@ class KeyRegistry:
         return f"sig.kid {kid} is {whose}; SDK-signed messages verify only with sdk_compat: true"
 
     def verify(self, env: Envelope) -> Signer:
-        """Verify ``env.sig``; raises ``SIGNATURE_REQUIRED``, ``UNKNOWN_SENDER`` or
-        ``SIGNATURE_INVALID`` (all 401)."""
+        """Verify ``env.sig``; raises ``SIGNATURE_REQUIRED``, ``UNKNOWN_SENDER``,
+        ``KEY_REVOKED``, ``KEY_EXPIRED``, ``KEY_NOT_YET_VALID`` or ``SIGNATURE_INVALID``
+        (all 401), or ``STATE_UNAVAILABLE`` (503) while the revocation list is stale."""
         sig, entry = self.signing_key(env)
         if sig.alg != entry.alg:
             raise SignatureInvalidError("signature algorithm does not match the key")

@@ -10,6 +10,7 @@ checked for data loss at boot (``verify()``: a store that is down now is noticed
 first commit instead), and the audit trail with its floors (:func:`~.leaves.open_trail`,
 the one every command opens its trail through).  :func:`create_app` hands the receiver,
 the resolved upstream and its time budget to :func:`~antireplay.http.app.gateway_app`;
+The app's keys are watched (:func:`watch_keys`: the shared revocation list, reloads).
 :class:`Guard` and :class:`RcanGuard` are the guard middleware and dependency on a
 receiver built from a configuration (without one, :func:`embedded_default`: SQLite under
 ``./.antireplay/`` and a demo key pair).
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from cryptography.hazmat.primitives.asymmetric import ed25519
@@ -41,7 +43,9 @@ from antireplay.rcan.auth import (
     write_key_pair,
 )
 from antireplay.rcan.receive import Receiver
+from antireplay.state.revocations import open_revocations
 from antireplay.state.sqlite import SqliteStore
+from antireplay.wiring.keys import KeyMetrics, KeyWatcher
 from antireplay.wiring.leaves import open_state, open_trail
 
 DEMO_KID = "demo-operator"
@@ -50,20 +54,27 @@ ANSWER_SLACK_S = 1.0
 #: Audit records and log lines per second for refused MAVLink frames (the rest are counted).
 
 
-def build_registry(config: AppConfig) -> KeyRegistry:
+def build_registry(config: AppConfig, clock: Clock | None = None) -> KeyRegistry:
     """The sender keys the configuration names, loaded by the one loader
     (:func:`~antireplay.rcan.auth.load_public_key`: PEM or the RCAN SDK's raw key file; a bad
     key file is a ConfigError), for ``config check`` and ``serve`` alike.  With
     ``sdk_compat``, an ML-DSA-65 key also answers to its SDK key id
-    (:func:`~antireplay.rcan.auth.sdk_key_id`), the kid the SDK always signs with."""
-    keys = KeyRegistry(sdk_compat=config.sdk_compat)
+    (:func:`~antireplay.rcan.auth.sdk_key_id`), the kid the SDK always signs with.  Each
+    key keeps its validity period (``not_before`` / ``not_after``, read on ``clock``)."""
+    keys = KeyRegistry(sdk_compat=config.sdk_compat, clock=clock)
     added = []
     for entry in config.keys:
         if entry.kid in keys.entries:
             raise ConfigError(f"keys.{entry.kid}.kid", entry.kid, "a kid no other key uses")
         try:
             loaded = tuple(load_public_key(Path(p).read_bytes()) for p in entry.public_keys)
-            added.append(keys.add(entry.kid, entry.owner, entry.alg, loaded, set(entry.scopes)))
+            period = {
+                "not_before": KeyConfig.seconds(entry.not_before),
+                "not_after": KeyConfig.seconds(entry.not_after),
+            }
+            added.append(
+                keys.add(entry.kid, entry.owner, entry.alg, loaded, set(entry.scopes), **period)
+            )
         except FileNotFoundError as exc:
             raise ConfigError.file_not_found(
                 f"keys.{entry.kid}.public_keys", exc.filename
@@ -121,7 +132,7 @@ def build_receiver(config: AppConfig, clock: Clock | None = None) -> Receiver:
         audit.attach(store.outbox())
     return Receiver(
         config.security,
-        build_registry(config),
+        build_registry(config, clock),
         store,
         audit,
         clock,
@@ -154,13 +165,49 @@ def embedded_default(state_dir: Path = Path(".antireplay")) -> AppConfig:
     )
 
 
-def create_app(config: AppConfig, *, clock: Clock | None = None) -> Starlette:
-    """The gateway application for ``config`` (:func:`~antireplay.http.app.gateway_app`)."""
+def create_app(
+    config: AppConfig,
+    *,
+    clock: Clock | None = None,
+    reload: Callable[[], AppConfig] | None = None,
+) -> Starlette:
+    """The gateway application for ``config`` (:func:`~antireplay.http.app.gateway_app`),
+    its keys watched (:func:`watch_keys`; ``reload`` re-reads the configuration)."""
     receiver = build_receiver(config, clock)
     # A retry waits for its original while that is still within its upstream budget.
     receiver.answer_wait_s = config.upstream_timeout_s + ANSWER_SLACK_S
     upstream = resolve_upstream(config.upstream, config.upstream_timeout_s)
-    return gateway_app(receiver, upstream, config.upstream_timeout_s)
+    app = gateway_app(receiver, upstream, config.upstream_timeout_s)
+    app.state.keys = watch_keys(config, receiver, reload, clock)
+    if app.state.keys is not None:
+        app.state.metrics.registry.register(KeyMetrics(app.state.keys))
+    return app
+
+
+def watch_keys(
+    config: AppConfig,
+    receiver: Receiver,
+    reload: Callable[[], AppConfig] | None = None,
+    clock: Clock | None = None,
+) -> KeyWatcher | None:
+    """The running watcher of ``receiver``'s keys (:mod:`.keys`): the revocation list of
+    the state ``config`` names and, with ``reload``, key reloads.  ``None`` for a memory
+    store without ``reload`` (no other process can reach its list)."""
+    if config.store_spec.backend == "memory" and reload is None:
+        return None
+    try:
+        revocations = open_revocations(config.store_spec)
+    except StateUnavailableError as exc:
+        raise ConfigError("store", config.store_spec.redacted(), exc.reason) from None
+
+    def load() -> KeyRegistry:
+        assert reload is not None
+        return build_registry(reload(), clock)
+
+    watcher = KeyWatcher(
+        receiver.keys, revocations, load=None if reload is None else load, audit=receiver.audit
+    )
+    return watcher.start()
 
 
 def _guard_receiver(
