@@ -126,6 +126,7 @@ def test_command_carrying_messages_are_signed_by_default(
 
 def test_vehicle_end_restart_the_ground_end_handshakes_again(clock: ManualClock) -> None:
     link = connected(clock)
+    link.down(link.vehicle.from_local(plain(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), sysid=1)))
     link.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
     link.vehicle = VehicleEnd(link.responder, clock=clock)  # restarted: no session
     with pytest.raises(UnknownSessionError):

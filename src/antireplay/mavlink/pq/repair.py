@@ -361,12 +361,12 @@ class RepairingEnd:
             out += self._nack(key, ckey, bitmap(missing))
         return out
 
-    def _resend(self, repair: Repair, afford: Callable[[int], bool] | None = None) -> list[bytes]:
+    def _resend(self, repair: Repair, afford: Callable[[bytes], bool] | None = None) -> list[bytes]:
         """Answer a NACK from the sent copies (:class:`~.repair.SendCache`); with ``afford``
         (an airtime budget) only the frames it affords, the rest counted ``withheld``."""
         frames = self._sent.resend(repair)
         if afford is not None:
-            kept = [raw for raw in frames if afford(len(raw))]
+            kept = [raw for raw in frames if afford(raw)]
             self.repairs["withheld"] += len(frames) - len(kept)
             frames = kept
         self.repairs["resent" if frames else "ignored"] += len(frames) or 1
