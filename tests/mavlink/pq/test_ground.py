@@ -21,6 +21,7 @@ from antireplay.mavlink.pq import (
     REKEY_TRANSFERS,
     TRANSFER_LIMIT,
 )
+from antireplay.mavlink.pq.repair import EVERYTHING, Op, repair_frame
 from antireplay.mavlink.pq.wire import (
     HANDSHAKE_SHARE,
     LINE_BITS,
@@ -30,7 +31,15 @@ from antireplay.mavlink.pq.wire import (
 
 os.environ["MAVLINK20"] = "1"
 
-from harness.pq_ends import GCS_KEY, STRANGER_KEY, EndPair, arm, connected, plain
+from harness.pq_ends import (
+    FAST_AIR_BPS,
+    GCS_KEY,
+    STRANGER_KEY,
+    EndPair,
+    arm,
+    connected,
+    plain,
+)
 
 
 def test_queued_commands_go_out_after_the_handshake(clock: ManualClock) -> None:
@@ -223,11 +232,15 @@ def test_a_forged_refusal_is_ignored_and_counted(clock: ManualClock) -> None:
 
 
 def test_a_refusal_of_an_earlier_attempt_is_ignored(clock: ManualClock) -> None:
-    """A genuine refusal recorded and played back against a later attempt: its hash names
-    another HS1, so it is refused as a replay, counted, and told nothing."""
-    pair = _misconfigured(clock, air_bps=10_000_000)
+    """A genuine refusal (the very frame the vehicle end sent) recorded and played back
+    against a later attempt: its hash names another HS1, so it is refused as a replay,
+    counted, and told nothing."""
+    pair, down = EndPair(clock), list[bytes]()
+    pair.lose_down = lambda raw: down.append(raw) is not None  # record, lose nothing
+    pair.ground = pair.new_ground(STRANGER_KEY, air_bps=FAST_AIR_BPS)
+    pair.up(pair.ground.handshake())
     (notice,) = pair.notices
-    first = next(raw for raw in _down_frames(pair) if parse_frame(raw).msgid == MSG_REFUSAL)
+    (first,) = [raw for raw in down if parse_frame(raw).msgid == MSG_REFUSAL]
     pair.notices.clear()
     clock.advance(2)
     later = pair.ground.tick()  # the second attempt, not delivered
@@ -236,15 +249,6 @@ def test_a_refusal_of_an_earlier_attempt_is_ignored(clock: ManualClock) -> None:
         pair.ground.from_air(first)
     assert pair.ground.refusals == {"verified": 1, "stale": 1} and not pair.notices
     assert "does not verify" in notice
-
-
-def _down_frames(pair: EndPair) -> list[bytes]:
-    """The vehicle end's refusal of the ground end's pending HS1, made again as it made it."""
-    ground = pair.ground
-    assert ground._pending is not None
-    key = pair.responder.refusal_key(ground._pending[0])
-    assert key is not None
-    return [_refusal_of(ground._pending[0], ground._hs_transfer, key)]
 
 
 def test_a_refusal_addressed_to_another_ground_end_is_counted(clock: ManualClock) -> None:
@@ -261,3 +265,29 @@ def test_a_refusal_addressed_to_another_ground_end_is_counted(clock: ManualClock
     )  # fmt: skip
     assert ground.from_air(other).air == []
     assert ground.refusals == {"elsewhere": 1} and not ground._hs_refused
+
+
+def test_a_forged_nack_resends_each_hs1_chunk_once_and_never_delays_the_next_try(
+    clock: ManualClock,
+) -> None:
+    """Review 6: an unsigned NACK for the first HS1 (anybody can send one) resends each
+    chunk at most once per attempt, and the next attempt comes when it would have."""
+    ground = EndPair(clock, air_bps=FAST_AIR_BPS).ground
+    hs1 = ground.handshake()  # the vehicle is unreachable
+    clock.advance(0.1)
+    due = ground.next_attempt_at
+    forged = repair_frame(
+        Op.NACK, ground._hs_transfer, (255, 197), EVERYTHING, None, sysid=1, compid=197
+    )
+    assert len(ground.from_air(forged).air) == len(hs1)
+    for _ in range(5):
+        clock.advance(0.1)
+        assert ground.from_air(forged).air == []
+    assert ground.next_attempt_at == due
+    clock.advance(due - clock.monotonic())
+    assert len(ground.tick()) == len(hs1)  # the next attempt, on time
+    clock.advance(0.2)  # its budget refilled: a new attempt's chunks may be resent once
+    forged = repair_frame(
+        Op.NACK, ground._hs_transfer, (255, 197), EVERYTHING, None, sysid=1, compid=197
+    )
+    assert len(ground.from_air(forged).air) == len(hs1)
