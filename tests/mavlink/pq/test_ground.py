@@ -20,6 +20,7 @@ from antireplay.mavlink.codec import parse_frame
 from antireplay.mavlink.pq import (
     REKEY_TRANSFERS,
     TRANSFER_LIMIT,
+    VehicleEnd,
 )
 from antireplay.mavlink.pq.repair import EVERYTHING, Op, repair_frame
 from antireplay.mavlink.pq.wire import (
@@ -28,12 +29,14 @@ from antireplay.mavlink.pq.wire import (
     MSG_REFUSAL,
     refusal_frame,
 )
+from antireplay.pq.session import Responder
 
 os.environ["MAVLINK20"] = "1"
 
 from harness.pq_ends import (
     FAST_AIR_BPS,
     GCS_KEY,
+    ROBOT_KEM,
     STRANGER_KEY,
     EndPair,
     arm,
@@ -291,3 +294,33 @@ def test_a_forged_nack_resends_each_hs1_chunk_once_and_never_delays_the_next_try
         Op.NACK, ground._hs_transfer, (255, 197), EVERYTHING, None, sysid=1, compid=197
     )
     assert len(ground.from_air(forged).air) == len(hs1)
+
+
+def _vehicle_clock(pair: EndPair, clock: ManualClock, skew_s: float) -> ManualClock:
+    """Give ``pair`` a vehicle end whose wall clock reads ``skew_s`` ahead of the ground's."""
+    ahead = ManualClock(wall=clock.wall() + skew_s, monotonic=clock.monotonic())
+    pair.responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=ahead)
+    pair.vehicle = VehicleEnd(pair.responder, clock=ahead)
+    return ahead
+
+
+def test_a_delayed_hs1_is_told_as_delayed_not_as_a_clock_problem(clock: ManualClock) -> None:
+    """Review 4: an honest HS1 held 31 s on the link, then delivered (both clocks agree):
+    the ground end knows when it left, so it says delayed, not "check both clocks"."""
+    pair = EndPair(clock, air_bps=FAST_AIR_BPS)
+    ahead = _vehicle_clock(pair, clock, 0.0)
+    held = pair.ground.handshake()
+    clock.advance(31)
+    ahead.advance(31)
+    pair.up(held)
+    (notice,) = pair.notices
+    assert "it was delayed on the link, not a clock problem" in notice, notice
+    assert "check both clocks" not in notice
+
+
+def test_a_stale_hs1_from_disagreeing_clocks_blames_the_clocks(clock: ManualClock) -> None:
+    pair = EndPair(clock, air_bps=FAST_AIR_BPS)
+    _vehicle_clock(pair, clock, 40.0)
+    pair.up(pair.ground.handshake())
+    (notice,) = pair.notices
+    assert "+40.0 s older than this end's: check both clocks" in notice, notice

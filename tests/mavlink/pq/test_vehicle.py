@@ -249,3 +249,13 @@ def test_a_poke_for_a_refused_hs1_gets_no_nack(clock: ManualClock) -> None:
     assert link.vehicle.repairs["nack_sent"] == 0
     unknown = repair_frame(Op.POKE, 1, (0, 0), 0, None, sysid=255, compid=197)
     assert link.vehicle.from_air(unknown).air  # a transfer never seen: NACKed whole
+
+
+@pytest.mark.parametrize("air_bps", [0, -7_200])
+def test_the_vehicle_end_refuses_an_air_rate_that_is_not_positive(
+    clock: ManualClock, air_bps: int
+) -> None:
+    """Review 8: a zero or negative rate would make the refusal budget unbounded."""
+    responder = Responder(ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock)
+    with pytest.raises(ValueError, match="air_bps must be positive"):
+        VehicleEnd(responder, air_bps=air_bps, clock=clock)

@@ -40,6 +40,7 @@ since its session came up here (the HS2 arrived); the vehicle end judges it.
 from __future__ import annotations
 
 import random
+import re
 import secrets
 from collections import OrderedDict, deque
 from collections.abc import Callable
@@ -103,6 +104,8 @@ from antireplay.pq.session import (
 )
 
 POKE_BYTES = 35  # a PQ_REPAIR on the air
+STALE_REFUSAL, STALE_SLACK_S = 3, 2.0  # a stale HS1's refusal code; clock agreement slack
+_AGED = re.compile(r"message is (-?[0-9.]+)s old")
 
 
 @dataclass
@@ -455,11 +458,31 @@ class GroundEnd(RepairingEnd):
         self.handshakes["refused"] += 1
         self._hs_refused = True
         self._sent.forget(self._hs_transfer)
-        told = f"vehicle refused the handshake: {refusal.explained}"
+        told = f"vehicle refused the handshake: {self._explained(refusal)}"
         if told == self._told:
             return Output()
         self._told = told
         return Output(notice=told)
+
+    def _explained(self, refusal: Refusal) -> str:
+        """The refusal with what to check.  A stale HS1 (``MESSAGE_STALE``): the ground end
+        knows when that HS1 left; the vehicle's age for it about that long (within its
+        airtime and ``STALE_SLACK_S``) means it was held on the link, not that the clocks
+        disagree, and the operator is told so; otherwise the clocks, with the difference."""
+        aged = _AGED.search(refusal.reason) if refusal.code == STALE_REFUSAL else None
+        if aged is None or self._pending is None:
+            return refusal.explained
+        held = self._clock.monotonic() - self._pending[1]
+        off = float(aged.group(1)) - held
+        if abs(off) <= STALE_SLACK_S + self._airtime_s([self._pending[0]]):
+            return (
+                f"{refusal.reason} (this HS1 left here {held:.1f} s before: it was delayed on"
+                " the link, not a clock problem)"
+            )
+        return (
+            f"{refusal.reason} (the vehicle's clock reads it {off:+.1f} s older than this"
+            " end's: check both clocks; the vehicle judges HS1 by its wall clock)"
+        )
 
     def _undelivered(self, repair: Repair) -> Output:
         """The vehicle end's answer to our POKE: that transfer never opened there and never
