@@ -239,7 +239,12 @@ def test_a_refusal_of_an_earlier_attempt_is_ignored(clock: ManualClock) -> None:
     against a later attempt: its hash names another HS1, so it is refused as a replay,
     counted, and told nothing."""
     pair, down = EndPair(clock), list[bytes]()
-    pair.lose_down = lambda raw: down.append(raw) is not None  # record, lose nothing
+
+    def record(raw: bytes) -> bool:
+        down.append(raw)
+        return False  # lose nothing
+
+    pair.lose_down = record
     pair.ground = pair.new_ground(STRANGER_KEY, air_bps=FAST_AIR_BPS)
     pair.up(pair.ground.handshake())
     (notice,) = pair.notices
