@@ -28,7 +28,9 @@ any window of ``W`` s at most ``HANDSHAKE_SHARE * air_bps / 10 * W`` bytes plus 
 its parity (the bucket's burst), so 5 % in the long run at every line rate.  A session
 refills it (and resets the backoff) only once it carried authenticated vehicle traffic: an
 idle or dead vehicle end that still answers HS1s keeps the ground end within it.  An
-unsigned NACK resends each HS1 chunk once per attempt and never delays the next one.  A
+unsigned NACK resends each HS1 chunk once per attempt and never delays the next one; a NACK
+that comes while the HS1 is still leaving is honoured once it has left, its copies held
+(and the vehicle's partial HS1 kept) for twice its airtime (:func:`~.wire.handshake_ttl_s`).  A
 ``PQ_REFUSAL`` that verifies for the pending HS1 (:meth:`~.wire.Refusal.verify`) ends that
 attempt (no more POKEs) and is told once (:attr:`~.repair.Output.notice`); a forged one, or
 one of another attempt, changes nothing (counted in :attr:`refusals`, a typed error).
@@ -89,6 +91,7 @@ from antireplay.mavlink.pq.wire import (
     ChunkKind,
     Refusal,
     compact,
+    handshake_ttl_s,
     inner_of,
     open_compact,
     parse_refusal,
@@ -170,10 +173,13 @@ class GroundEnd(RepairingEnd):
         self.budget = TokenBucket(share_rate(air_bps), self._clock, burst=0.0)
         self._proven = False  # this session carried authenticated vehicle traffic
         self._hs_resent: set[bytes] = set()  # HS1 chunks resent on unsigned NACKs (once each)
+        self._reassembler.handshake_timeout_s = handshake_ttl_s(air_bps)  # slow radios
+        self._deferred: Repair | None = None  # a NACK that came while the HS1 was leaving
         self._first_transfer = 0  # the sender's transfer number when the session began
         self.session: Session | None = None
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
         self._hs_transfer, self._hs_quiet, self._hs_pokes = 0, 0.0, 0
+        self._hs_leaves = 0.0
         self._hs_keyed = False  # the pending HS1 is a rekey's: unsigned NACKs are refused
         self._hs2: bytes | None = None  # the HS2 that finished the session (a repeat is no news)
         self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
@@ -211,8 +217,10 @@ class GroundEnd(RepairingEnd):
         live = self.live  # a rekey: its NACKs must come MACed in the live session
         self._hs_keyed = live is not None
         key = None if live is None else repair_key(live.recv_key)
-        self._sent.add(self._hs_transfer, frames, key)
+        self._sent.add(self._hs_transfer, frames, key, handshake_ttl_s(self.air_bps))
+        self._deferred = None  # a NACK for the last attempt is no NACK for this one
         self._hs_quiet, self._hs_pokes = now + self._airtime_s(frames), 0
+        self._hs_leaves = self._hs_quiet  # when its chunks have all left (by air_bps)
         self._hs_size = sum(map(len, frames))
         self._hs_resent = set()
         if self._hs_size > self.budget.burst:  # the allowance: one HS1 (the first one's)
@@ -297,7 +305,7 @@ class GroundEnd(RepairingEnd):
         no session or this one should end (:meth:`_renew`)."""
         self._expire_queue()
         session = self._usable()
-        out = self._stale_nacks()
+        out = self._stale_nacks() + self._deferred_repair()
         return out + (self._retry() if session is None else self._renew(session))
 
     @property
@@ -415,14 +423,30 @@ class GroundEnd(RepairingEnd):
         if repair.op is Op.POKE:
             return self._undelivered(repair)
         handshake = self._pending is not None and repair.transfer == self._hs_transfer
-        leaving = handshake and self._clock.monotonic() < self._hs_quiet  # chunks on their way
-        if leaving or (not repair.signed and (not handshake or self._hs_keyed)):
+        if not repair.signed and (not handshake or self._hs_keyed):
             self.repairs["ignored"] += 1
             return Output()
+        if handshake and self._clock.monotonic() < self._hs_leaves:  # chunks on their way
+            self._deferred = repair  # honoured once they left (:meth:`tick`)
+            self.repairs["deferred"] += 1
+            return Output()
         frames = self._resend(repair, self._affords(repair.signed) if handshake else None)
+        if handshake and frames:
+            now = self._clock.monotonic()
+            self._hs_leaves = max(self._hs_leaves, now + self._airtime_s(frames))
         if handshake and frames and repair.signed:
             self._hs_quiet = self._clock.monotonic() + self._airtime_s(frames)
         return Output(air=frames)
+
+    def _deferred_repair(self) -> list[bytes]:
+        """The NACK that came while the pending HS1 was leaving, once it has left."""
+        deferred = self._deferred
+        if deferred is None or self._clock.monotonic() < self._hs_leaves:
+            return []
+        self._deferred = None
+        if self._pending is None or deferred.transfer != self._hs_transfer:
+            return []
+        return self._repair(deferred).air
 
     def _affords(self, signed: bool) -> Callable[[bytes], bool]:
         """Whether an HS1 chunk may be resent: within the budget, and once per attempt when

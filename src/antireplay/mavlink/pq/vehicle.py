@@ -91,6 +91,7 @@ from antireplay.mavlink.pq.wire import (
     STATUS_NO_SESSION,
     ChunkKind,
     compact,
+    handshake_ttl_s,
     inner_of,
     open_compact,
     plain_frame,
@@ -151,6 +152,7 @@ class VehicleEnd(RepairingEnd):
         super().__init__(system_id, component_id, gap_s, clock)
         if air_bps is not None and air_bps <= 0:
             raise ValueError(f"air_bps must be positive (baud), or None for unknown: {air_bps}")
+        self._reassembler.handshake_timeout_s = handshake_ttl_s(air_bps)  # slow radios
         # refusals: their share of the air, by claimed identity, one per HS1 (by hash)
         self._share = share_rate(air_bps)
         self._refusal_budgets: dict[str, TokenBucket] = {}
