@@ -206,6 +206,7 @@ def test_a_lost_first_handshake_is_retried_and_each_end_reports_its_session(
             "--air", f"udpout:127.0.0.1:{relay.port}", "--signing-key", "gcs.key.pem",
             "--vehicle-key", "vehicle.pub.pem", "--vehicle-x25519", "vehicle-x.pub.pem",
             "--audit", "ground.db", "--metrics-port", str(ground_metrics),
+            "--air-bps", "10000000",  # a fast line: the retry is not held for the budget
         ],
         keys,
     )  # fmt: skip
