@@ -165,13 +165,14 @@ class Radio:
             self.send(self.up, self.ground.from_local(gcs), self.to_vehicle)
         self.at(self.clock.monotonic() + 1.0, self.heartbeat)
 
-    def start(self) -> float:
-        """Hand-shake; the time the ground end's session came up (or inf after 30 s)."""
+    def start(self, within_s: float = 30.0) -> float:
+        """Hand-shake; the time the ground end's session came up (or inf after
+        ``within_s``)."""
         began = self.clock.monotonic()
         self.send(self.up, self.ground.handshake(), self.to_vehicle)
         self.at(began + self.tick_s, self.ticking)
         self.at(began + 1.0, self.heartbeat)
-        while self.ground.session is None and self.clock.monotonic() < began + 30:
+        while self.ground.session is None and self.clock.monotonic() < began + within_s:
             self.run_until(self.clock.monotonic() + 0.05)
         return self.clock.monotonic() - began if self.ground.session else float("inf")
 

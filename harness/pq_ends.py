@@ -56,12 +56,12 @@ def arm(target: int = 1, param1: float = 1.0) -> bytes:
 class EndPair:
     """Both ends, the air between them a list the test can reorder, drop or tamper with."""
 
-    def __init__(self, clock: ManualClock, max_sessions: int = 4) -> None:
+    def __init__(self, clock: ManualClock, max_sessions: int = 4, **ground: Any) -> None:
         self.clock = clock
         self.responder = Responder(
             ROBOT_KEM, {"gcs": GCS_KEY.public_key()}, clock=clock, max_sessions=max_sessions
         )
-        self.ground = self.new_ground()
+        self.ground = self.new_ground(**ground)
         self.vehicle = VehicleEnd(self.responder, clock=clock)
         self.delivered: list[bytes] = []  # plain frames at the flight controller
         self.telemetry: list[bytes] = []  # plain frames at the ground station
@@ -141,8 +141,12 @@ def blob(frames: list[bytes]) -> bytes:
     return b"".join(c.piece for c in sorted(chunks, key=lambda c: c.index))
 
 
-def connected(clock: ManualClock) -> EndPair:
+#: A line so fast that the handshake budget never binds (tests of timers, not of airtime).
+FAST_AIR_BPS = 100_000_000
+
+
+def connected(clock: ManualClock, **ground: Any) -> EndPair:
     """Both ends, hand-shaken."""
-    made = EndPair(clock)
+    made = EndPair(clock, **ground)
     made.connect()
     return made

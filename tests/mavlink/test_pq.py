@@ -57,6 +57,7 @@ from harness import until
 from harness.mavlink_frames import FakeTransport
 from harness.pq_ends import (
     ARM,
+    FAST_AIR_BPS,
     GCS_KEY,
     ROBOT_KEM,
     EndPair,
@@ -70,7 +71,11 @@ from harness.pq_ends import (
 
 @pytest.fixture
 def link(clock: ManualClock) -> EndPair:
-    return connected(clock)
+    """Both ends, hand-shaken, the session proven by vehicle traffic (its budget full)."""
+    made = connected(clock)
+    made.down(made.vehicle.from_local(plain(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), sysid=1)))
+    made.telemetry.clear()
+    return made
 
 
 def test_dialect_xml_crc_extras_and_pymavlink_decodes_our_chunks(tmp_path: Path) -> None:
@@ -429,7 +434,7 @@ class Wire(FakeTransport):
 
 def _ends(clock: ManualClock) -> tuple[PqLink, PqLink, Wire, Wire, list[SessionEvent]]:
     """A ground and a vehicle link whose timers never fire on their own (the test ticks)."""
-    made, events = EndPair(clock), list[SessionEvent]()
+    made, events = EndPair(clock, air_bps=FAST_AIR_BPS), list[SessionEvent]()
     ground_air, vehicle_air = Wire("udpout:1.2.3.4:5"), Wire("udpout:1.2.3.4:6")
     ground = PqLink(
         made.ground, FakeTransport("udpin:0.0.0.0:1", fixed=False), ground_air,
@@ -444,7 +449,7 @@ def _ends(clock: ManualClock) -> tuple[PqLink, PqLink, Wire, Wire, list[SessionE
 
 
 def test_the_timer_thread_retries_without_being_asked(clock: ManualClock) -> None:
-    made = EndPair(clock)
+    made = EndPair(clock, air_bps=FAST_AIR_BPS)
     air = FakeTransport("udpout:1.2.3.4:5")
     ground = PqLink(made.ground, FakeTransport("udpin:0.0.0.0:1", fixed=False), air, tick_s=0.01)
     ground.start()

@@ -445,6 +445,13 @@ class Responder:
             self._sessions.commit(seq, seq, lambda: session)
         return session, hs2
 
+    def claimed(self, hs1: bytes) -> str | None:
+        """The identity ``hs1`` claims (nothing verified), None when it does not parse."""
+        try:
+            return self._parse_hs1(hs1)[0]
+        except InvalidFrameError:
+            return None
+
     def refusal_key(self, hs1: bytes) -> bytes | None:
         """The key to MAC a refusal of ``hs1`` under (:func:`refusal_key`), None for an HS1
         that does not parse or is addressed to another key: its sender could not check it."""

@@ -137,8 +137,9 @@ def pq_metrics(counts: LinkCounts) -> list[Metric]:
         ("handshakes", "Handshakes", "outcome", ("started", "completed", "failed", "refused"),
          counts.handshakes),
         ("handshake_refusals", "PQ_REFUSALs: sent or withheld (vehicle end: one per HS1, "
-         "within its airtime budget); verified, forged or stale (ground end)", "outcome",
-         ("sent", "withheld", "verified", "forged", "stale"), counts.handshake_refusals),
+         "within its airtime budget); verified, forged, stale or elsewhere (ground end)",
+         "outcome", ("sent", "withheld", "verified", "forged", "stale", "elsewhere"),
+         counts.handshake_refusals),
         ("chunks", "PQ_CHUNK frames", "what", ("sent", "received", "reassembled"),
          counts.chunks),
         ("air_bytes", "Bytes handed to the air, by what they carry", "kind", AIR_KINDS,

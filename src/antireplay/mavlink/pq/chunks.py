@@ -261,6 +261,7 @@ class Reassembler:
     ) -> None:
         self.max_transfers, self.max_handshakes = max_transfers, max_handshakes
         self.timeout_s = timeout_s
+        self.handshake_timeout_s = timeout_s  # an HS1's, stretched on slow radios (.wire)
         self._clock = resolve(clock)
         self._frames: OrderedDict[tuple[int, int, int], _Transfer] = OrderedDict()
         self._handshakes: OrderedDict[tuple[int, int, int], _Transfer] = OrderedDict()
@@ -431,8 +432,12 @@ class Reassembler:
         return transfer
 
     def _expire(self) -> None:
-        horizon = self._clock.monotonic() - self.timeout_s
-        for pool in (self._frames, self._handshakes):
+        now = self._clock.monotonic()
+        for pool, timeout in (
+            (self._frames, self.timeout_s),
+            (self._handshakes, self.handshake_timeout_s),
+        ):
+            horizon = now - timeout
             for key in [k for k, t in pool.items() if t.started < horizon]:
                 del pool[key]
                 self.stats.expired += 1

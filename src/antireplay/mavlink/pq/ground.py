@@ -23,8 +23,14 @@ A "not delivered" answer echoing the nonce makes it send that command anew, whol
 
 A handshake that fails costs little air (:data:`~.wire.HANDSHAKE_SHARE`): attempts back
 off exponentially from ``retry_s`` (doubling to ``MAX_BACKOFF_S``, jittered by this end's
-own randomness), and HS1s, their POKEs and their repairs draw on one airtime budget
-(:data:`~.wire.HANDSHAKE_ALLOWANCE` at once, the share of ``air_bps`` after).  A
+own randomness), and HS1s, their POKEs and their repairs draw on one airtime budget: over
+any window of ``W`` s at most ``HANDSHAKE_SHARE * air_bps / 10 * W`` bytes plus one HS1 with
+its parity (the bucket's burst), so 5 % in the long run at every line rate.  A session
+refills it (and resets the backoff) only once it carried authenticated vehicle traffic: an
+idle or dead vehicle end that still answers HS1s keeps the ground end within it.  An
+unsigned NACK resends each HS1 chunk once per attempt and never delays the next one; a NACK
+that comes while the HS1 is still leaving is honoured once it has left, its copies held
+(and the vehicle's partial HS1 kept) for twice its airtime (:func:`~.wire.handshake_ttl_s`).  A
 ``PQ_REFUSAL`` that verifies for the pending HS1 (:meth:`~.wire.Refusal.verify`) ends that
 attempt (no more POKEs) and is told once (:attr:`~.repair.Output.notice`); a forged one, or
 one of another attempt, changes nothing (counted in :attr:`refusals`, a typed error).
@@ -36,8 +42,10 @@ since its session came up here (the HS2 arrived); the vehicle end judges it.
 from __future__ import annotations
 
 import random
+import re
 import secrets
 from collections import OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from cryptography.hazmat.primitives.asymmetric import mlkem, x25519
@@ -71,7 +79,6 @@ from antireplay.mavlink.pq.repair import (
 )
 from antireplay.mavlink.pq.wire import (
     AGE_STAMP,
-    HANDSHAKE_ALLOWANCE,
     LINE_BITS,
     MAX_BACKOFF_S,
     MSG_REFUSAL,
@@ -84,6 +91,7 @@ from antireplay.mavlink.pq.wire import (
     ChunkKind,
     Refusal,
     compact,
+    handshake_ttl_s,
     inner_of,
     open_compact,
     parse_refusal,
@@ -99,6 +107,8 @@ from antireplay.pq.session import (
 )
 
 POKE_BYTES = 35  # a PQ_REPAIR on the air
+STALE_REFUSAL, STALE_SLACK_S = 3, 2.0  # a stale HS1's refusal code; clock agreement slack
+_AGED = re.compile(r"message is (-?[0-9.]+)s old")
 
 
 @dataclass
@@ -140,6 +150,11 @@ class GroundEnd(RepairingEnd):
         clock: Clock | None = None,
     ) -> None:
         super().__init__(system_id, component_id, gap_s, clock)
+        for name, value in (("retry_s", retry_s), ("max_backoff_s", max_backoff_s)):
+            if not value > 0:
+                raise ValueError(f"{name} must be positive seconds, not {value}")
+        if air_bps is not None and air_bps <= 0:
+            raise ValueError(f"air_bps must be positive (baud), or None for unknown: {air_bps}")
         self.max_backoff_s = max_backoff_s
         self._rng = rng or random.SystemRandom()  # the backoff's jitter
         self._attempts = 0  # handshakes started since the last session came up
@@ -153,12 +168,18 @@ class GroundEnd(RepairingEnd):
         self.retry_s, self.silence_s = retry_s, silence_s
         self.poke_s, self.retry_window_s, self.air_bps = poke_s, retry_window_s, air_bps
         #: Air a failing handshake may take (module docstring): HS1s, POKEs, HS1 repairs;
-        #: full again whenever a session comes up.
-        self.budget = self._full_budget()
+        #: its burst grows to one HS1 (with parity) at the first one; full again only once
+        #: a session carried authenticated vehicle traffic.
+        self.budget = TokenBucket(share_rate(air_bps), self._clock, burst=0.0)
+        self._proven = False  # this session carried authenticated vehicle traffic
+        self._hs_resent: set[bytes] = set()  # HS1 chunks resent on unsigned NACKs (once each)
+        self._reassembler.handshake_timeout_s = handshake_ttl_s(air_bps)  # slow radios
+        self._deferred: Repair | None = None  # a NACK that came while the HS1 was leaving
         self._first_transfer = 0  # the sender's transfer number when the session began
         self.session: Session | None = None
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
         self._hs_transfer, self._hs_quiet, self._hs_pokes = 0, 0.0, 0
+        self._hs_leaves = 0.0
         self._hs_keyed = False  # the pending HS1 is a rekey's: unsigned NACKs are refused
         self._hs2: bytes | None = None  # the HS2 that finished the session (a repeat is no news)
         self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
@@ -172,9 +193,6 @@ class GroundEnd(RepairingEnd):
 
     def _sessions_held(self) -> list[Session]:
         return [] if self.session is None else [self.session]
-
-    def _full_budget(self) -> TokenBucket:
-        return TokenBucket(share_rate(self.air_bps), self._clock, burst=HANDSHAKE_ALLOWANCE)
 
     def _airtime_s(self, frames: list[bytes]) -> float:
         """How long ``frames`` take on a radio of ``air_bps`` baud (0 when unknown)."""
@@ -199,9 +217,15 @@ class GroundEnd(RepairingEnd):
         live = self.live  # a rekey: its NACKs must come MACed in the live session
         self._hs_keyed = live is not None
         key = None if live is None else repair_key(live.recv_key)
-        self._sent.add(self._hs_transfer, frames, key)
+        self._sent.add(self._hs_transfer, frames, key, handshake_ttl_s(self.air_bps))
+        self._deferred = None  # a NACK for the last attempt is no NACK for this one
         self._hs_quiet, self._hs_pokes = now + self._airtime_s(frames), 0
+        self._hs_leaves = self._hs_quiet  # when its chunks have all left (by air_bps)
         self._hs_size = sum(map(len, frames))
+        self._hs_resent = set()
+        if self._hs_size > self.budget.burst:  # the allowance: one HS1 (the first one's)
+            self.budget.tokens += self._hs_size - self.budget.burst
+            self.budget.burst = self._hs_size
         self.budget.spend(self._hs_size)
         return self._air(frames)
 
@@ -281,7 +305,7 @@ class GroundEnd(RepairingEnd):
         no session or this one should end (:meth:`_renew`)."""
         self._expire_queue()
         session = self._usable()
-        out = self._stale_nacks()
+        out = self._stale_nacks() + self._deferred_repair()
         return out + (self._retry() if session is None else self._renew(session))
 
     @property
@@ -302,8 +326,10 @@ class GroundEnd(RepairingEnd):
         ``silence_s`` (a restarted vehicle end; its ``PQ_STATUS`` hint can be lost or
         outrun by an attacker's junk)."""
         silent = self._clock.monotonic() - self._heard >= self.silence_s
-        if session.needs_rekey or silent or self._transfers_used() >= REKEY_TRANSFERS:
+        if silent:
             return self._retry()
+        if session.needs_rekey or self._transfers_used() >= REKEY_TRANSFERS:
+            return self._retry(due=True)  # traffic's rekey: its HS1 is charged, never held
         return []
 
     def _transfers_used(self) -> int:
@@ -319,14 +345,15 @@ class GroundEnd(RepairingEnd):
         self._sent.add(self.sender.transfer, frames, repair_key(session.recv_key))
         return self._air(frames)
 
-    def _retry(self) -> list[bytes]:
+    def _retry(self, due: bool = False) -> list[bytes]:
         """The pending handshake's timer: quiet for ``poke_s`` after its chunks left (by
         ``air_bps``) or were last repaired, a POKE (twice at most: the HS2 may be lost, or
         the tail of HS1; none after a refusal); quiet for the backoff (``retry_s`` first,
-        then doubling), a new handshake, once the airtime budget holds one."""
+        then doubling), a new handshake, once the airtime budget holds one (``due``: a
+        live session's rekey, which traffic itself paces, waits for none)."""
         now = self._clock.monotonic()
         if self._pending is None or now >= self.next_attempt_at:
-            if self.budget.wait_s(self._hs_size) > 0:
+            if not due and self.budget.wait_s(self._hs_size) > 0:
                 return []
             return self.handshake()
         if now - self._hs_quiet < self.poke_s or self._hs_pokes >= 2 or self._hs_refused:
@@ -360,6 +387,10 @@ class GroundEnd(RepairingEnd):
         opened = open_compact(blob, [self.session], Direction.R2I, self.session)
         self._reassembler.opened(chunk, keys[0])
         self._heard = self._clock.monotonic()
+        if not self._proven:  # the session works: no misconfigured end to hold back
+            self._proven, self._attempts, self._told = True, 0, None
+            self._backoff = self.retry_s
+            self.budget.tokens = self.budget.burst
         inner, bound = unbind_ack(opened.payload)
         plain = plain_frame(inner)
         if not self._hold_ack(plain, bound):  # a copy of an ACK passed on, or a stale one
@@ -381,8 +412,10 @@ class GroundEnd(RepairingEnd):
         """A NACK for one of our transfers; a NACK for the pending HS1 (unauthenticated,
         module :mod:`.repair`, unless a session was live when it left: a rekey's are MACed
         in that session, so nobody can make it resend the HS1 for free) also restarts its
-        timer; one that comes while its chunks are still leaving (by ``air_bps``) asks for
-        chunks on their way, and is ignored.  Its resends draw on the handshake budget.
+        timer, but an unsigned one resends each chunk once per attempt and never delays the
+        next attempt; one that comes while its chunks are still leaving (by ``air_bps``)
+        asks for chunks on their way, and is ignored.  Its resends draw on the handshake
+        budget.
         A POKE from the vehicle end is its answer "never delivered" to ours
         (:meth:`_undelivered`)."""
         if repair.target != (self.sender.sysid, self.sender.compid):
@@ -390,21 +423,53 @@ class GroundEnd(RepairingEnd):
         if repair.op is Op.POKE:
             return self._undelivered(repair)
         handshake = self._pending is not None and repair.transfer == self._hs_transfer
-        leaving = handshake and self._clock.monotonic() < self._hs_quiet  # chunks on their way
-        if leaving or (not repair.signed and (not handshake or self._hs_keyed)):
+        if not repair.signed and (not handshake or self._hs_keyed):
             self.repairs["ignored"] += 1
             return Output()
-        frames = self._resend(repair, self.budget.take if handshake else None)
+        if handshake and self._clock.monotonic() < self._hs_leaves:  # chunks on their way
+            self._deferred = repair  # honoured once they left (:meth:`tick`)
+            self.repairs["deferred"] += 1
+            return Output()
+        frames = self._resend(repair, self._affords(repair.signed) if handshake else None)
         if handshake and frames:
+            now = self._clock.monotonic()
+            self._hs_leaves = max(self._hs_leaves, now + self._airtime_s(frames))
+        if handshake and frames and repair.signed:
             self._hs_quiet = self._clock.monotonic() + self._airtime_s(frames)
         return Output(air=frames)
+
+    def _deferred_repair(self) -> list[bytes]:
+        """The NACK that came while the pending HS1 was leaving, once it has left."""
+        deferred = self._deferred
+        if deferred is None or self._clock.monotonic() < self._hs_leaves:
+            return []
+        self._deferred = None
+        if self._pending is None or deferred.transfer != self._hs_transfer:
+            return []
+        return self._repair(deferred).air
+
+    def _affords(self, signed: bool) -> Callable[[bytes], bool]:
+        """Whether an HS1 chunk may be resent: within the budget, and once per attempt when
+        the NACK asking for it is unsigned (anyone can send one)."""
+
+        def afford(raw: bytes) -> bool:
+            if not signed and raw in self._hs_resent:
+                return False
+            if not self.budget.take(len(raw)):
+                return False
+            if not signed:
+                self._hs_resent.add(raw)
+            return True
+
+        return afford
 
     def _refused(self, refusal: Refusal) -> Output:
         """The vehicle end's ``PQ_REFUSAL``: believed only for the pending HS1 (its hash,
         its transfer, a MAC under that HS1's refusal key), then that attempt is over and
         the reason told once; anything else raises, counted (module docstring)."""
         if refusal.target != (self.sender.sysid, self.sender.compid):
-            return Output()  # another ground end's
+            self.refusals["elsewhere"] += 1  # another ground end's (a shared air)
+            return Output()
         pending = None if self._pending is None else self._pending[0]
         if pending is None or self._hs_refused or not refusal.names(pending):
             self.refusals["stale"] += 1
@@ -417,11 +482,31 @@ class GroundEnd(RepairingEnd):
         self.handshakes["refused"] += 1
         self._hs_refused = True
         self._sent.forget(self._hs_transfer)
-        told = f"vehicle refused the handshake: {refusal.explained}"
+        told = f"vehicle refused the handshake: {self._explained(refusal)}"
         if told == self._told:
             return Output()
         self._told = told
         return Output(notice=told)
+
+    def _explained(self, refusal: Refusal) -> str:
+        """The refusal with what to check.  A stale HS1 (``MESSAGE_STALE``): the ground end
+        knows when that HS1 left; the vehicle's age for it about that long (within its
+        airtime and ``STALE_SLACK_S``) means it was held on the link, not that the clocks
+        disagree, and the operator is told so; otherwise the clocks, with the difference."""
+        aged = _AGED.search(refusal.reason) if refusal.code == STALE_REFUSAL else None
+        if aged is None or self._pending is None:
+            return refusal.explained
+        held = self._clock.monotonic() - self._pending[1]
+        off = float(aged.group(1)) - held
+        if abs(off) <= STALE_SLACK_S + self._airtime_s([self._pending[0]]):
+            return (
+                f"{refusal.reason} (this HS1 left here {held:.1f} s before: it was delayed on"
+                " the link, not a clock problem)"
+            )
+        return (
+            f"{refusal.reason} (the vehicle's clock reads it {off:+.1f} s older than this"
+            " end's: check both clocks; the vehicle judges HS1 by its wall clock)"
+        )
 
     def _undelivered(self, repair: Repair) -> Output:
         """The vehicle end's answer to our POKE: that transfer never opened there and never
@@ -478,8 +563,7 @@ class GroundEnd(RepairingEnd):
         self._sent.forget(self._hs_transfer)
         self._pending, self._heard, self._hs2 = None, self._clock.monotonic(), hs2
         self._epoch = self._heard
-        self._attempts, self._told = 0, None
-        self.budget = self._full_budget()  # it worked: no misconfigured end to hold back
+        self._proven = False  # the budget and backoff reset once vehicle traffic comes
         self._first_transfer = self.sender.transfer
         out = Output(authenticated=True)
         self._expire_queue()

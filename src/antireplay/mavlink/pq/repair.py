@@ -150,6 +150,7 @@ class _Sent:
     frames: list[bytes]
     key: bytes | None  # the repair key its NACKs verify under (None: an HS1's)
     born: float
+    ttl_s: float
     resent: int = 0
 
 
@@ -162,10 +163,14 @@ class SendCache:
         self._clock = resolve(clock)
         self._sent: OrderedDict[int, _Sent] = OrderedDict()
 
-    def add(self, transfer: int, frames: list[bytes], key: bytes | None) -> None:
+    def add(
+        self, transfer: int, frames: list[bytes], key: bytes | None, ttl_s: float | None = None
+    ) -> None:
+        """Hold ``frames`` for ``ttl_s`` (this cache's when None: an HS1's is longer)."""
         if len(frames) < 2:
             return
-        self._sent[transfer] = _Sent(frames, key, self._clock.monotonic())
+        held = self.ttl_s if ttl_s is None else ttl_s
+        self._sent[transfer] = _Sent(frames, key, self._clock.monotonic(), held)
         self._sent.move_to_end(transfer)
         while len(self._sent) > self.max_transfers:
             self._sent.popitem(last=False)
@@ -192,7 +197,7 @@ class SendCache:
 
     def _live(self, transfer: int) -> _Sent | None:
         sent = self._sent.get(transfer)
-        if sent is not None and self._clock.monotonic() - sent.born > self.ttl_s:
+        if sent is not None and self._clock.monotonic() - sent.born > sent.ttl_s:
             del self._sent[transfer]
             return None
         return sent
@@ -361,12 +366,12 @@ class RepairingEnd:
             out += self._nack(key, ckey, bitmap(missing))
         return out
 
-    def _resend(self, repair: Repair, afford: Callable[[int], bool] | None = None) -> list[bytes]:
+    def _resend(self, repair: Repair, afford: Callable[[bytes], bool] | None = None) -> list[bytes]:
         """Answer a NACK from the sent copies (:class:`~.repair.SendCache`); with ``afford``
         (an airtime budget) only the frames it affords, the rest counted ``withheld``."""
         frames = self._sent.resend(repair)
         if afford is not None:
-            kept = [raw for raw in frames if afford(len(raw))]
+            kept = [raw for raw in frames if afford(raw)]
             self.repairs["withheld"] += len(frames) - len(kept)
             frames = kept
         self.repairs["resent" if frames else "ignored"] += len(frames) or 1

@@ -22,8 +22,13 @@ under that HS1's refusal key (:func:`~antireplay.pq.session.refusal_key`: the ve
 ML-KEM key, so the ground end can verify it against the key it pins, and it fits one
 frame where an ML-DSA-87 signature would take twenty), and only within an airtime budget
 (:data:`~.wire.HANDSHAKE_SHARE` of ``air_bps``): a flood of bad HS1s is no amplifier.
-The link sends it (:meth:`VehicleEnd.answered`) as it sends the ``PQ_STATUS`` hint; a
-POKE for a refused HS1 gets no NACK (sent again, it would be refused again).
+The budget is shared by claimed identity: half for the vehicle's known peers (each its
+own part), half for every other claim, so junk claiming unknown names cannot starve a
+known identity's refusal (junk claiming a known name still can: it spends that name's
+part).  A refusal the budget withheld is not recorded as answered: the same HS1 again,
+or its POKE, is answered once the budget allows.  The link sends it
+(:meth:`VehicleEnd.answered`) as it sends the ``PQ_STATUS`` hint; a POKE for a refused
+HS1 gets no NACK (sent again, it would be refused again).
 
 A command's age stamp (:data:`~.wire.AGEAGE_STAMP`) says when the ground end sealed it,
 in milliseconds since its session came up there.  The vehicle end refuses
@@ -86,6 +91,7 @@ from antireplay.mavlink.pq.wire import (
     STATUS_NO_SESSION,
     ChunkKind,
     compact,
+    handshake_ttl_s,
     inner_of,
     open_compact,
     plain_frame,
@@ -144,10 +150,17 @@ class VehicleEnd(RepairingEnd):
         clock: Clock | None = None,
     ) -> None:
         super().__init__(system_id, component_id, gap_s, clock)
-        # refusals: their share of the air, two at once at most, one per HS1 (by hash)
-        self._refusal_budget = TokenBucket(share_rate(air_bps), self._clock, burst=2 * _REFUSAL_AIR)
+        if air_bps is not None and air_bps <= 0:
+            raise ValueError(f"air_bps must be positive (baud), or None for unknown: {air_bps}")
+        self._reassembler.handshake_timeout_s = handshake_ttl_s(air_bps)  # slow radios
+        # refusals: their share of the air, by claimed identity, one per HS1 (by hash)
+        self._share = share_rate(air_bps)
+        self._refusal_budgets: dict[str, TokenBucket] = {}
         self._refused: OrderedDict[bytes, None] = OrderedDict()
-        self._refused_at: OrderedDict[tuple[int, int, int], None] = OrderedDict()  # transfers
+        # transfers refused: the HS1 and why while its refusal is withheld (None: sent)
+        self._refused_at: OrderedDict[
+            tuple[int, int, int], tuple[bytes, ReplayAttackError] | None
+        ] = OrderedDict()
         self._refusal_out: list[bytes] = []  # a refusal the link sends with the error
         self.responder = responder
         self.max_age_s = max_age_s  # a command older than this is refused (module docstring)
@@ -227,7 +240,7 @@ class VehicleEnd(RepairingEnd):
             session, hs2 = self.responder.accept_handshake(hs1, lambda sid: sid[-1] in handles)
         except ReplayAttackError as exc:
             self.handshakes["failed"] += 1
-            self._refusal_out = self._refusal(chunk, hs1, exc)
+            self._refusal_out = self._refusal(chunk.key, hs1, exc)
             raise
         self.handshakes["completed"] += 1
         self._sessions.append(session)
@@ -239,31 +252,45 @@ class VehicleEnd(RepairingEnd):
         _remember(self._hs2, chunk.key, frames)
         return Output(air=self._air(frames), authenticated=True)
 
-    def _refusal(self, chunk: Chunk, hs1: bytes, exc: ReplayAttackError) -> list[bytes]:
+    def _refusal(self, at: tuple[int, int, int], hs1: bytes, exc: ReplayAttackError) -> list[bytes]:
         """A ``PQ_REFUSAL`` of ``hs1`` (module docstring): once per HS1, within budget."""
         number = REFUSAL_OF.get(exc.code)
         if number is None:
             return []  # a replay, a malformed HS1: nothing its sender could act on
         digest = hashlib.sha256(hs1).digest()
-        _remember(self._refused_at, chunk.key, None)  # a POKE for it gets no NACK
         if digest in self._refused:
             self.refusals["withheld"] += 1
             return []
+        if not self._refusal_budget(hs1).take(_REFUSAL_AIR):
+            self.refusals["withheld"] += 1
+            _remember(self._refused_at, at, (hs1, exc))  # answered when poked again
+            return []
+        _remember(self._refused_at, at, None)  # a POKE for it gets no NACK
         self._refused[digest] = None
         while len(self._refused) > 64:
             self._refused.popitem(last=False)
-        if not self._refusal_budget.take(_REFUSAL_AIR):
-            self.refusals["withheld"] += 1
-            return []
         key = self.responder.refusal_key(hs1)  # after the budget: decapsulation costs
         if key is None:
             return []
         frame = refusal_frame(
-            hs1, key, transfer=chunk.transfer, target=(chunk.sysid, chunk.compid), code=number,
+            hs1, key, transfer=at[2], target=at[:2], code=number,
             reason=exc.reason, sysid=self.sender.sysid, compid=self.sender.compid,
         )  # fmt: skip
         self.refusals["sent"] += 1
         return self._air([frame], "repair")
+
+    def _refusal_budget(self, hs1: bytes) -> TokenBucket:
+        """The part of the refusal budget the identity ``hs1`` claims draws on (module
+        docstring): half the share split among the known peers, half for the rest."""
+        claimed = self.responder.claimed(hs1)
+        peers = self.responder.peers
+        name = claimed if claimed in peers else ""
+        budget = self._refusal_budgets.get(name)
+        if budget is None:
+            rate = self._share / 2 / (max(1, len(peers)) if name else 1)
+            budget = TokenBucket(rate, self._clock, burst=2 * _REFUSAL_AIR)
+            self._refusal_budgets[name] = budget
+        return budget
 
     def answered(self) -> list[bytes]:
         """The refusal of the HS1 just refused, once (the link sends it to its sender)."""
@@ -290,7 +317,10 @@ class VehicleEnd(RepairingEnd):
         if held is not None:
             return self._answer(at, lambda: held)
         if at in self._refused_at:  # refused whole: resending it would change nothing
-            return []
+            withheld = self._refused_at[at]
+            if withheld is None:
+                return []
+            return self._refusal(at, *withheld)  # its refusal, if the budget allows now
         found = self._reassembler.lookup(at[:2], at[2])
         if found is not None and found[0] is not ChunkKind.HS1:
             return []

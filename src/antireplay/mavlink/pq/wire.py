@@ -43,12 +43,15 @@ MAX_PARITY, PARITY_EVERY = 4, 10
 #: Bits a byte takes on a radio's serial line (start, 8 data, stop): ``--air-bps`` is baud.
 LINE_BITS = 10
 #: Airtime a failing handshake may take (the ground end's HS1s, POKEs and HS1 repairs; the
-#: vehicle end's refusals): ``HANDSHAKE_SHARE`` of ``--air-bps`` (``DEFAULT_AIR_BPS``, a SiK
-#: radio's, when unset) averaged over any window, beyond ``HANDSHAKE_ALLOWANCE`` bytes at
-#: once: one HS1 (about 7.9 KB with its parity) and as much again for its repairs or a
-#: second try.  Attempts back off from ``retry_s``, doubling up to ``MAX_BACKOFF_S``.
-HANDSHAKE_SHARE, DEFAULT_AIR_BPS, HANDSHAKE_ALLOWANCE = 0.05, 57_600, 16_384
+#: vehicle end's refusals): over any window of ``W`` seconds, at most ``HANDSHAKE_SHARE`` of
+#: ``--air-bps`` (``DEFAULT_AIR_BPS``, a SiK radio's, when unset) times ``W``, plus one HS1
+#: with its parity (the bucket's burst: about 7.5 KB), so the long-run share is at most
+#: ``HANDSHAKE_SHARE`` at every line rate.  Attempts back off from ``retry_s``, doubling up
+#: to ``MAX_BACKOFF_S``.
+HANDSHAKE_SHARE, DEFAULT_AIR_BPS = 0.05, 57_600
 MAX_BACKOFF_S = 60.0
+#: An HS1 on the air with its parity, the longest identity's (about 7.5 KB with a short one).
+HS1_AIR_BYTES = 8_000
 #: A command's age stamp, sealed after its inner frame: ms since its session came up at the
 #: ground end (:mod:`.ground` writes it, :mod:`.vehicle` judges it).
 AGE_STAMP = struct.Struct("<I")
@@ -87,7 +90,17 @@ DIALECT_XML = "antireplay_pq.xml"
 
 def share_rate(air_bps: int | None) -> float:
     """Bytes a second a failing handshake may take on a radio of ``air_bps`` baud."""
+    if air_bps is not None and air_bps <= 0:
+        raise ValueError(f"air_bps must be positive (baud), not {air_bps}")
     return HANDSHAKE_SHARE * (air_bps or DEFAULT_AIR_BPS) / LINE_BITS
+
+
+def handshake_ttl_s(air_bps: int | None) -> float:
+    """How long an HS1 is reassembled and held for repair (at least 10 s): twice its time on
+    a radio of ``air_bps`` baud and 5 s more, so a slow line's HS1 arrives whole and its
+    NACK is answered (1,200 baud: 138 s; 7,200: 27 s)."""
+    airtime = LINE_BITS * HS1_AIR_BYTES / (air_bps or DEFAULT_AIR_BPS)
+    return max(10.0, 2 * airtime + 5.0)
 
 
 def parity_for(count: int) -> int:
