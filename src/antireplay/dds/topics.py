@@ -45,10 +45,24 @@ from cyclonedds.util import duration
 
 from antireplay.audit import AuditLog, RefusalAuditor
 from antireplay.core.clock import Clock, resolve
-from antireplay.core.errors import Code, ReplayAttackError, StateUnavailableError
+from antireplay.core.errors import (
+    Code,
+    InvalidFrameError,
+    ReplayAttackError,
+    StateUnavailableError,
+)
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.wire import SealedSample
 from antireplay.epochs import Announcement, EpochSigner, EpochVerifier, Kind, sealing
+from antireplay.epochs.policy import (
+    NONCE_LEN,
+    OUTSTANDING,
+    Claim,
+    KeyRing,
+    KeyRotation,
+    parse,
+    to_ns,
+)
 from antireplay.epochs.sealing import RAW, ChallengeTimer, SampleVerdict, claim, topic_key
 from antireplay.state import ReplayStore
 from antireplay.state.durable import DurableState
@@ -70,6 +84,18 @@ PINGS_PER_CALL = 64
 def default_qos(depth: int = 256) -> Qos:
     """Reliable, keep-last ``depth`` per instance: a sealed topic's defaults."""
     return Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(depth))
+
+
+def ping_qos() -> Qos:
+    """The challenge channel's QoS: reliable (a lost challenge or answer costs a retry
+    period), volatile (an old exchange is worth nothing to a new peer), keep-last
+    ``OUTSTANDING`` per instance: one slot per nonce a verifier holds, per sender, and only
+    authenticated senders get an instance (:class:`PingChannel`)."""
+    return Qos(
+        Policy.Reliability.Reliable(duration(seconds=1)),
+        Policy.Durability.Volatile,
+        Policy.History.KeepLast(OUTSTANDING),
+    )
 
 
 def _domain_of(participant: Any) -> int:
@@ -98,21 +124,79 @@ def matched_writers(reader: DataReader[Any]) -> int:
     return int(status.current_count)
 
 
-class PingChannel:
-    """A writer and a reader on :data:`PING_TOPIC` for one sealed topic's endpoint."""
+def ping_instance(topic: str, prefix: bytes) -> str:
+    """The instance of a challenge or answer on :data:`PING_TOPIC`: the topic asked about and
+    the sender's prefix (the challenger's, or the answering writer's), so each authentic
+    sender has slots of its own that nobody else's samples can push out."""
+    return f"{topic}#{prefix.hex()}"
 
-    def __init__(self, participant: DomainParticipant, topic: str) -> None:
-        qos = default_qos(PINGS_PER_CALL)
-        channel = _topic(participant, PING_TOPIC, qos)
-        self.topic = topic
-        self.writer = DataWriter(participant, channel, qos=qos)
-        self.reader = DataReader(participant, channel, qos=qos)
+
+class PingChannel:
+    """A writer and a reader on :data:`PING_TOPIC` for one sealed topic's endpoint.
+
+    The reader's topic carries a filter (Cyclone's topic filter, run as a sample arrives,
+    before it takes any history or instance space): only a frame of the ``wanted`` kind,
+    on its own sender's instance, that ``admit`` finds fresh (a cheap look, no state
+    written) and whose tag verifies under ``ring`` is kept; the rest is counted in
+    ``counts`` (``ping_dropped_<why>``, ``ping_ignored`` for the other half of the
+    exchange and other topics) and dropped.  ``ring=None``: no filter (a test's rogue)."""
+
+    def __init__(
+        self,
+        participant: DomainParticipant,
+        topic: str,
+        ring: KeyRing | None = None,
+        *,
+        wanted: Kind = Kind.ANSWER,
+        admit: Callable[[Claim], bool] | None = None,
+        counts: Counter[str] | None = None,
+    ) -> None:
+        qos = ping_qos()
+        self.topic, self.ring, self.wanted, self.admit = topic, ring, wanted, admit
+        self.counts: Counter[str] = Counter() if counts is None else counts
+        self._head = topic + "#"
+        self._count_lock = threading.Lock()
+        self.writer = DataWriter(participant, _topic(participant, PING_TOPIC, qos), qos=qos)
+        inbound = _topic(participant, PING_TOPIC, qos)
+        if ring is not None:
+            inbound.set_topic_filter(lambda _topic, sample: self._keep(sample))
+        self.reader = DataReader(participant, inbound, qos=qos)
         self.waiting = ReadCondition(
             self.reader, ViewState.Any | InstanceState.Any | SampleState.NotRead
         )
 
+    def _keep(self, sample: object) -> bool:
+        """The topic filter (Cyclone's receive path): cheapest checks first, the MAC last."""
+        why = "malformed"
+        try:
+            why = self._judge(sample)
+        finally:  # a filter must answer, whatever the sample holds
+            if why:
+                with self._count_lock:
+                    self.counts["ping_" + why] += 1
+        return not why
+
+    def _judge(self, sample: object) -> str:
+        """Why ``sample`` is dropped ("" to keep it)."""
+        assert self.ring is not None
+        if not isinstance(sample, SealedSample) or not isinstance(sample.instance, str):
+            return "dropped_malformed"
+        sealed = bytes(sample.sealed)
+        if not sample.instance.startswith(self._head) or sealed[1:2] != bytes([self.wanted]):
+            return "ignored"
+        try:
+            claim = parse(sealed, self.wanted)
+        except InvalidFrameError:
+            return "dropped_malformed"
+        if sample.instance != ping_instance(self.topic, claim.prefix):
+            return "dropped_malformed"
+        if self.admit is not None and not self.admit(claim):
+            return "dropped_stale"
+        return "" if self.ring.verify(claim) is True else "dropped_forged"
+
     def send(self, sealed: bytes) -> None:
-        self.writer.write(SealedSample(instance=self.topic, sealed=sealed))
+        prefix, _ = claim(sealed)
+        self.writer.write(SealedSample(instance=ping_instance(self.topic, prefix), sealed=sealed))
 
     def take(self, kind: Kind) -> list[bytes]:
         """The waiting frames of ``kind`` about this topic (others dropped: no crypto)."""
@@ -121,7 +205,7 @@ class PingChannel:
         return [
             sealed
             for sample in self.reader.take(N=PINGS_PER_CALL)
-            if isinstance(sample, SealedSample) and sample.instance == self.topic
+            if isinstance(sample, SealedSample) and sample.instance.startswith(self._head)
             and len(sealed := bytes(sample.sealed)) > 1 and sealed[1] == kind
         ]  # fmt: skip
 
@@ -147,24 +231,40 @@ class SealedWriter:
         reserve_s: float = 1.0,
         max_forward_s: float = MAX_FORWARD_S,
         qos: Qos | None = None,
+        rotation: KeyRotation | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
         self.counts: Counter[str] = Counter()
+        self._clock = resolve(clock)
+        self._max_forward_ns = to_ns(max_forward_s)
+        type_name, domain = type_name_of(data_type), _domain_of(participant)
+        key = topic_key(psk, topic, type_name, domain)
+        topic_rotation = rotated_for(rotation, topic, type_name, domain)
         # max_forward_s: the readers' bound (their default unless configured), so a forward
         # clock glitch the readers would refuse makes this writer rotate its prefix instead
         # of being refused until real time catches up.
         self.signer = EpochSigner(
-            topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
+            key,
             nonce_prefix=nonce_prefix,
             service_name=service_name,
             state=state,
-            clock=clock,
+            clock=self._clock,
             reserve_s=reserve_s,
             max_forward_s=max_forward_s,
+            rotation=topic_rotation,
         )
         qos = qos or default_qos()
         self._writer = DataWriter(participant, _topic(participant, topic, qos), qos=qos)
-        self._pings = PingChannel(participant, topic)
+        self._pings = PingChannel(
+            participant, topic, KeyRing(key, topic_rotation), wanted=Kind.CHALLENGE,
+            admit=self._timely, counts=self.counts,
+        )  # fmt: skip
+
+    def _timely(self, challenge: Claim) -> bool:
+        """A challenge worth a look: sent within ``max_forward_s`` of our clock (what
+        :meth:`EpochSigner.answer` checks again), carrying a nonce's length."""
+        ahead = challenge.epoch - to_ns(self._clock.wall())
+        return abs(ahead) <= self._max_forward_ns and len(challenge.payload) == NONCE_LEN
 
     @property
     def nonce_prefix(self) -> bytes:
@@ -246,6 +346,7 @@ class SealedReader:
         qos: Qos | None = None,
         challenge: bool = True,
         quiet: Callable[[], bool] | None = None,
+        rotation: KeyRotation | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
         self._decode = None if data_type is None else data_type.deserialize
@@ -259,6 +360,7 @@ class SealedReader:
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
             clock=self._clock,
+            rotation=rotated_for(rotation, topic, type_name, domain),
         )
         self.audit = audit
         self.counts: Counter[str] = Counter()
@@ -271,8 +373,13 @@ class SealedReader:
             ReadCondition(self._reader, ViewState.Any | InstanceState.Any | SampleState.NotRead)
         )
         self._pings: PingChannel | None = None
+        #: The nonces of the challenges sent (a snapshot the ping filter reads lock-free).
+        self._nonces: frozenset[bytes] = frozenset()
         if challenge and self.verifier.fenced():
-            self._pings = PingChannel(participant, topic)
+            self._pings = PingChannel(
+                participant, topic, self.verifier.policy.ring, wanted=Kind.ANSWER,
+                admit=lambda answer: answer.payload in self._nonces, counts=self.counts,
+            )  # fmt: skip
             self._waitset.attach(self._pings.waiting)
         self._timer = ChallengeTimer()
 
@@ -331,6 +438,7 @@ class SealedReader:
         if self._timer.due(pings.peers(), self._clock.monotonic()):
             challenge = self.verifier.challenge()
             if challenge is not None:
+                self._nonces = frozenset(self.verifier.policy.nonces)  # before any answer
                 pings.send(challenge)
                 self.counts["challenge_sent"] += 1
 
@@ -357,6 +465,15 @@ class SealedReader:
             self.wait(timeout_s)
             verdicts = self.take()
         return verdicts
+
+
+def rotated_for(
+    rotation: KeyRotation | None, topic: str, type_name: str, domain: int
+) -> KeyRotation | None:
+    """The fleet key's rotation as one topic sees it: the successor's topic key."""
+    if rotation is None:
+        return None
+    return KeyRotation(topic_key(rotation.next_psk, topic, type_name, domain), rotation.cutover_ns)
 
 
 def refusal_auditor(
@@ -415,7 +532,9 @@ __all__ = [
     "SealedWriter",
     "Verdict",
     "claim",
+    "ping_instance",
     "record_refusal",
     "refusal_auditor",
+    "rotated_for",
     "topic_key",
 ]

@@ -24,6 +24,10 @@ byte under the MAC) and a signer's ``ANSWER`` binds it to the signer's next (pre
 That prefix's epochs above the answered one were sealed after the nonce existed, so
 :meth:`EpochPolicy.fence_for` lowers its fence to it; every capture stays at or below.  An
 answer must bind one of the last ``OUTSTANDING`` nonces and verify before it is committed.
+**Key rotation.**  A :class:`KeyRing` holds the fleet key and, during a rotation, its
+successor and the cut-over time: an epoch after the cut-over is sealed with the successor,
+and both keys verify until then; a frame the old key seals after the cut-over is refused
+(``SIGNATURE_INVALID``, ``detail="key_retired"``).
 Not safe for concurrent use: the driver serializes.  Vectors: ``tests/vectors/epochs.json``.
 """
 
@@ -49,6 +53,7 @@ from antireplay.core.errors import (
     InvalidFrameError,
     MessageStaleError,
     ReplayAttackError,
+    SignatureInvalidError,
     WarningCode,
 )
 
@@ -106,6 +111,50 @@ def derive_keys(psk: bytes) -> dict[Kind, bytes]:
     """The key of every kind (two HKDF runs: challenges and answers share the ping key)."""
     keys = {k: derive_key(psk, k) for k in STREAMS}
     return keys | {Kind.CHALLENGE: keys[Kind.PING], Kind.ANSWER: keys[Kind.PING]}
+
+
+#: The ``detail`` of a frame sealed with the retired fleet key after the cut-over.
+KEY_RETIRED = "key_retired"
+
+
+@dataclass(frozen=True)
+class KeyRotation:
+    """A rotation of the fleet key: its successor and the cut-over (wall-anchored ns)."""
+
+    next_psk: bytes
+    cutover_ns: int
+
+
+class KeyRing:
+    """The per-kind keys of the fleet key and, during a rotation, of its successor: which
+    one seals an epoch, which ones verify a frame (module docstring)."""
+
+    def __init__(self, psk: bytes, rotation: KeyRotation | None = None) -> None:
+        self.current = derive_keys(psk)
+        self.next = None if rotation is None else derive_keys(rotation.next_psk)
+        self.cutover_ns = -1 if rotation is None else rotation.cutover_ns
+
+    def sealing(self, epoch: int) -> dict[Kind, bytes]:
+        """The keys an epoch is sealed with: the successor's from the cut-over on (a writer
+        configured early keeps the old key until then, so a reader configured later but
+        before the cut-over never meets a key it does not hold)."""
+        return self.next if self.next is not None and epoch > self.cutover_ns else self.current
+
+    def verify(self, claim: Claim) -> Refused | bool:
+        """True when the tag verifies under a key in force for the frame's epoch; False
+        when under none; a :class:`Refused` when only the retired key verifies an epoch
+        after the cut-over (authentic, but that key may be in other hands by then)."""
+        if _verifies(self.current[claim.kind], claim):
+            if self.next is not None and claim.epoch > self.cutover_ns:
+                retired = "sealed with the retired fleet key after its cut-over"
+                return Refused(SignatureInvalidError(retired, detail=KEY_RETIRED))
+            return True
+        return self.next is not None and _verifies(self.next[claim.kind], claim)
+
+
+def _verifies(key: bytes, claim: Claim) -> bool:
+    expected = tag(key, claim.kind, claim.prefix, claim.epoch, claim.payload)
+    return hmac.compare_digest(expected, claim.tag)
 
 
 def prefix_for_service(service_name: str) -> bytes:
@@ -243,9 +292,16 @@ class EpochPolicy:
     """Accepts each (prefix, epoch) at most once against its marks (module docstring)."""
 
     def __init__(
-        self, psk: bytes, *, max_age_ns: int | None, max_forward_ns: int, max_prefixes: int
+        self,
+        psk: bytes,
+        *,
+        max_age_ns: int | None,
+        max_forward_ns: int,
+        max_prefixes: int,
+        rotation: KeyRotation | None = None,
     ) -> None:
-        self.keys = derive_keys(psk)
+        self.ring = KeyRing(psk, rotation)
+        self.keys = self.ring.current
         self.max_age_ns, self.max_forward_ns = max_age_ns, max_forward_ns
         self.tables: dict[Kind, FencedTable[bytes, Recent]] = {
             k: FencedTable(max_prefixes, what=f"{LABELS[k]} prefix") for k in STREAMS
@@ -256,10 +312,9 @@ class EpochPolicy:
         #: Prefix -> the lowest epoch it answered one of those nonces with.
         self.answered: dict[bytes, int] = {}
 
-    def authentic(self, claim: Claim) -> bool:
-        """The tag verifies (constant time)."""
-        expected = tag(self.keys[claim.kind], claim.kind, claim.prefix, claim.epoch, claim.payload)
-        return hmac.compare_digest(expected, claim.tag)
+    def authentic(self, claim: Claim) -> Refused | bool:
+        """The tag verifies under a key in force (constant time; :meth:`KeyRing.verify`)."""
+        return self.ring.verify(claim)
 
     def last(self, kind: Kind, prefix: bytes) -> int | None:
         """The mark the table holds for ``prefix`` (None: not held)."""
@@ -341,7 +396,8 @@ class EpochPolicy:
         if len(nonce) != NONCE_LEN:
             raise ValueError(f"a challenge nonce is {NONCE_LEN} bytes")
         self.nonces.append(nonce)
-        return seal(self.keys[Kind.CHALLENGE], Kind.CHALLENGE, prefix, now_ns, nonce)
+        key = self.ring.sealing(now_ns)[Kind.CHALLENGE]
+        return seal(key, Kind.CHALLENGE, prefix, now_ns, nonce)
 
     def check_answer(self, claim: Claim) -> Refused | None:
         """Cheap, before the MAC: an answer must bind a nonce this run holds outstanding

@@ -43,7 +43,16 @@ from antireplay.core.errors import (
     SignatureInvalidError,
     StateUnavailableError,
 )
-from antireplay.epochs.policy import HEAD, LABELS, MAX_LEN, MIN_LEN, TAG_LEN, Announcement, Kind
+from antireplay.epochs.policy import (
+    HEAD,
+    KEY_RETIRED,
+    LABELS,
+    MAX_LEN,
+    MIN_LEN,
+    TAG_LEN,
+    Announcement,
+    Kind,
+)
 
 _ILEN = struct.Struct(">H")
 #: The shortest sealed sample: an announcement carrying an empty instance and no data.
@@ -54,7 +63,7 @@ RAW = "octets"
 #: Seconds between a fenced reader's challenges when no new peer matched (doubling up to the cap).
 RETRY_S, RETRY_MAX_S = 0.25, 2.0
 #: Outcomes whose MAC verified (refused only for freshness or order, or accepted).
-AUTHENTIC = frozenset({"accepted", "replayed", "prefix_collision", "stale", "ahead"})
+AUTHENTIC = frozenset({"accepted", "replayed", "prefix_collision", "stale", "ahead", KEY_RETIRED})
 #: Rejection class -> the outcome word counted and audited (prefix collisions are told apart).
 OUTCOMES: dict[type[ReplayAttackError], str] = {
     InvalidFrameError: "malformed",
@@ -160,6 +169,8 @@ def refused(
     verifier counted a prefix collision while judging it)."""
     prefix, epoch = claim(sealed)
     outcome = "prefix_collision" if collided else OUTCOMES.get(type(exc), "refused")
+    if exc.detail == KEY_RETIRED:  # authentic, but under the fleet key that was rotated out
+        outcome = KEY_RETIRED
     return SampleVerdict(outcome, exc.code, exc.reason, instance, prefix, epoch)
 
 
