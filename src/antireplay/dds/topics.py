@@ -16,7 +16,8 @@ returns), and only then is the data decoded and handed over.
 **Start fence.**  A reader refuses every sample sealed before it started (plus
 ``max_forward_s``) unless its store proves otherwise: a memory store cannot know what a
 previous process accepted; a SQLite store that survived sets no fence.  A fenced reader
-does not wait it out: it sends a challenge on :data:`PING_TOPIC` (when
+does not wait it out: it sends a challenge on :data:`PING_TOPIC` (:mod:`.challenge`:
+authenticated on arrival, one slot set per sender; when
 :class:`~antireplay.epochs.sealing.ChallengeTimer` says), every writer answers in its
 next :meth:`SealedWriter.write`, and the reader accepts that writer's epochs above the
 answer at once (captures stay refused; :mod:`antireplay.epochs.policy`).  Every refusal
@@ -47,20 +48,18 @@ from antireplay.audit import AuditLog, RefusalAuditor
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import (
     Code,
-    InvalidFrameError,
     ReplayAttackError,
     StateUnavailableError,
 )
+from antireplay.dds.challenge import PING_TOPIC, PingChannel
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.wire import SealedSample
 from antireplay.epochs import Announcement, EpochSigner, EpochVerifier, Kind, sealing
 from antireplay.epochs.policy import (
     NONCE_LEN,
-    OUTSTANDING,
     Claim,
     KeyRing,
     KeyRotation,
-    parse,
     to_ns,
 )
 from antireplay.epochs.sealing import RAW, ChallengeTimer, SampleVerdict, claim, topic_key
@@ -74,28 +73,11 @@ log = logging.getLogger("antireplay.dds")
 Verdict = SampleVerdict
 #: Refusals audited per second, per class (:class:`~antireplay.audit.RefusalAuditor`).
 AUDIT_PER_S = 50.0
-#: The control topic of freshness challenges and answers; the instance names the topic asked
-#: about (a cheap filter: the MAC key already binds it).
-PING_TOPIC = "antireplay/ping"
-#: Ping samples one call judges at most (the rest wait in the reader's history).
-PINGS_PER_CALL = 64
 
 
 def default_qos(depth: int = 256) -> Qos:
     """Reliable, keep-last ``depth`` per instance: a sealed topic's defaults."""
     return Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(depth))
-
-
-def ping_qos() -> Qos:
-    """The challenge channel's QoS: reliable (a lost challenge or answer costs a retry
-    period), volatile (an old exchange is worth nothing to a new peer), keep-last
-    ``OUTSTANDING`` per instance: one slot per nonce a verifier holds, per sender, and only
-    authenticated senders get an instance (:class:`PingChannel`)."""
-    return Qos(
-        Policy.Reliability.Reliable(duration(seconds=1)),
-        Policy.Durability.Volatile,
-        Policy.History.KeepLast(OUTSTANDING),
-    )
 
 
 def _domain_of(participant: Any) -> int:
@@ -122,96 +104,6 @@ def matched_writers(reader: DataReader[Any]) -> int:
     """How many writers match ``reader`` (the status, as :func:`matched_readers`)."""
     status = reader.get_subscription_matched_status()  # type: ignore[no-untyped-call]
     return int(status.current_count)
-
-
-def ping_instance(topic: str, prefix: bytes) -> str:
-    """The instance of a challenge or answer on :data:`PING_TOPIC`: the topic asked about and
-    the sender's prefix (the challenger's, or the answering writer's), so each authentic
-    sender has slots of its own that nobody else's samples can push out."""
-    return f"{topic}#{prefix.hex()}"
-
-
-class PingChannel:
-    """A writer and a reader on :data:`PING_TOPIC` for one sealed topic's endpoint.
-
-    The reader's topic carries a filter (Cyclone's topic filter, run as a sample arrives,
-    before it takes any history or instance space): only a frame of the ``wanted`` kind,
-    on its own sender's instance, that ``admit`` finds fresh (a cheap look, no state
-    written) and whose tag verifies under ``ring`` is kept; the rest is counted in
-    ``counts`` (``ping_dropped_<why>``, ``ping_ignored`` for the other half of the
-    exchange and other topics) and dropped.  ``ring=None``: no filter (a test's rogue)."""
-
-    def __init__(
-        self,
-        participant: DomainParticipant,
-        topic: str,
-        ring: KeyRing | None = None,
-        *,
-        wanted: Kind = Kind.ANSWER,
-        admit: Callable[[Claim], bool] | None = None,
-        counts: Counter[str] | None = None,
-    ) -> None:
-        qos = ping_qos()
-        self.topic, self.ring, self.wanted, self.admit = topic, ring, wanted, admit
-        self.counts: Counter[str] = Counter() if counts is None else counts
-        self._head = topic + "#"
-        self._count_lock = threading.Lock()
-        self.writer = DataWriter(participant, _topic(participant, PING_TOPIC, qos), qos=qos)
-        inbound = _topic(participant, PING_TOPIC, qos)
-        if ring is not None:
-            inbound.set_topic_filter(lambda _topic, sample: self._keep(sample))
-        self.reader = DataReader(participant, inbound, qos=qos)
-        self.waiting = ReadCondition(
-            self.reader, ViewState.Any | InstanceState.Any | SampleState.NotRead
-        )
-
-    def _keep(self, sample: object) -> bool:
-        """The topic filter (Cyclone's receive path): cheapest checks first, the MAC last."""
-        why = "malformed"
-        try:
-            why = self._judge(sample)
-        finally:  # a filter must answer, whatever the sample holds
-            if why:
-                with self._count_lock:
-                    self.counts["ping_" + why] += 1
-        return not why
-
-    def _judge(self, sample: object) -> str:
-        """Why ``sample`` is dropped ("" to keep it)."""
-        assert self.ring is not None
-        if not isinstance(sample, SealedSample) or not isinstance(sample.instance, str):
-            return "dropped_malformed"
-        sealed = bytes(sample.sealed)
-        if not sample.instance.startswith(self._head) or sealed[1:2] != bytes([self.wanted]):
-            return "ignored"
-        try:
-            claim = parse(sealed, self.wanted)
-        except InvalidFrameError:
-            return "dropped_malformed"
-        if sample.instance != ping_instance(self.topic, claim.prefix):
-            return "dropped_malformed"
-        if self.admit is not None and not self.admit(claim):
-            return "dropped_stale"
-        return "" if self.ring.verify(claim) is True else "dropped_forged"
-
-    def send(self, sealed: bytes) -> None:
-        prefix, _ = claim(sealed)
-        self.writer.write(SealedSample(instance=ping_instance(self.topic, prefix), sealed=sealed))
-
-    def take(self, kind: Kind) -> list[bytes]:
-        """The waiting frames of ``kind`` about this topic (others dropped: no crypto)."""
-        if not self.waiting.triggered:
-            return []
-        return [
-            sealed
-            for sample in self.reader.take(N=PINGS_PER_CALL)
-            if isinstance(sample, SealedSample) and sample.instance.startswith(self._head)
-            and len(sealed := bytes(sample.sealed)) > 1 and sealed[1] == kind
-        ]  # fmt: skip
-
-    def peers(self) -> int:
-        """Ping endpoints matched (a new one may answer, or need an answer)."""
-        return matched_readers(self.writer)
 
 
 class SealedWriter:
@@ -532,7 +424,6 @@ __all__ = [
     "SealedWriter",
     "Verdict",
     "claim",
-    "ping_instance",
     "record_refusal",
     "refusal_auditor",
     "rotated_for",
