@@ -206,6 +206,11 @@ class SealedWriter:
     def matched_readers(self) -> int:
         return matched_readers(self._writer)
 
+    def challenge_peers(self) -> int:
+        """Other endpoints on the challenge channel (fenced readers, other writers): only
+        then may a challenge be on its way (our own channel matches itself)."""
+        return max(0, matched_writers(self._pings.reader) - 1)
+
     def close(self) -> None:
         """Release the signer's state file (its owner lock), as a stopping process does."""
         self.signer.close()

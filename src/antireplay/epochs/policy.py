@@ -186,6 +186,19 @@ def seal(key: bytes, kind: Kind, prefix: bytes, epoch: int, payload: bytes) -> b
     )
 
 
+def fence_reason(epoch: int, restart_ns: int, max_forward_ns: int) -> str:
+    """What is known about an epoch at or below the restart fence (``restart_ns`` is the
+    store's start plus ``max_forward_ns``): sealed before that start, a previous run may have
+    accepted it; sealed after, only a sender's clock running ahead could have put it before a
+    previous run, so the verifier waits for that sender's answer to its challenge."""
+    if epoch <= restart_ns - max_forward_ns:
+        return "sealed before this verifier's state began (a previous run may have accepted it)"
+    return (
+        "sealed within max_forward_s of this verifier's start, so not yet provably fresh: "
+        "fenced, awaiting its writer's answer to this verifier's challenge"
+    )
+
+
 def to_ns(seconds: float) -> int:
     return int(seconds * 1_000_000_000)
 
@@ -331,13 +344,8 @@ class EpochPolicy:
             event = TooFarAhead(claim.prefix, epoch, epoch - now_ns) if authentic else None
             return Refused(EpochTooFarAheadError("epoch jumped beyond max_forward_s"), event)
         if epoch <= self.fence_for(claim.prefix, restart_ns):
-            return Refused(
-                MessageStaleError(
-                    "sealed before this verifier's state began "
-                    "(a previous run may have accepted it)",
-                    detail="restart_fence",
-                )
-            )
+            return Refused(MessageStaleError(fence_reason(epoch, restart_ns, self.max_forward_ns),
+                                             detail="restart_fence"))  # fmt: skip
         return None
 
     def held(self, claim: Claim) -> Refused | bool:

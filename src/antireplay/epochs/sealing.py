@@ -124,6 +124,8 @@ class SampleVerdict:
     nonce_prefix: bytes | None = None
     epoch: int | None = None
     value: Any = None
+    #: The machine detail of a refusal (``restart_fence``, ``key_retired``), if any.
+    detail: str | None = None
 
     @property
     def accepted(self) -> bool:
@@ -146,8 +148,19 @@ class SampleVerdict:
         """One printable line (what ``antireplay dds read`` prints)."""
         who = "-" if self.nonce_prefix is None else self.nonce_prefix.hex()
         head = "ACCEPTED" if self.accepted else f"REFUSED {self.code} {self.outcome}"
-        shown = self.value if self.accepted else self.reason
+        shown = readable(self.value) if self.accepted else self.reason
         return f"{head} instance={self.instance!r} prefix={who} epoch={self.epoch} {shown!r}"
+
+
+def readable(value: Any) -> Any:
+    """Bytes that are UTF-8 as text (printed ``'move 1'``); other bytes stay bytes (their
+    repr escapes them), other values as they are."""
+    if isinstance(value, bytes):
+        try:
+            return value.decode()
+        except UnicodeDecodeError:
+            return value
+    return value
 
 
 def check(instance: str, sealed: bytes) -> SampleVerdict | None:
@@ -171,7 +184,7 @@ def refused(
     outcome = "prefix_collision" if collided else OUTCOMES.get(type(exc), "refused")
     if exc.detail == KEY_RETIRED:  # authentic, but under the fleet key that was rotated out
         outcome = KEY_RETIRED
-    return SampleVerdict(outcome, exc.code, exc.reason, instance, prefix, epoch)
+    return SampleVerdict(outcome, exc.code, exc.reason, instance, prefix, epoch, detail=exc.detail)
 
 
 def accepted(
@@ -217,6 +230,7 @@ __all__ = [
     "claim",
     "claimed_instance",
     "frame",
+    "readable",
     "refused",
     "topic_key",
 ]
