@@ -20,7 +20,7 @@ import select
 import sys
 import time
 from collections.abc import Callable, Iterator
-from datetime import UTC, datetime
+from datetime import datetime, timezone
 from typing import TYPE_CHECKING
 
 import click
@@ -39,7 +39,7 @@ RESTART_FENCE = "restart_fence"
 
 
 def _clock_text(ns: int) -> str:
-    return datetime.fromtimestamp(ns / 1e9, UTC).strftime("%H:%M:%SZ")
+    return datetime.fromtimestamp(ns / 1e9, timezone.utc).strftime("%H:%M:%SZ")
 
 
 def start_line(reader: SealedReader, wired: DdsCommand) -> str:

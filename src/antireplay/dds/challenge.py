@@ -72,8 +72,9 @@ def _take(reader: DataReader[SealedSample], limit: int) -> list[SealedSample]:
     samples: list[SealedSample] = []
     try:
         for i in range(taken):
-            if infos[i].valid_data:
-                held = ct.cast(buffer[i], ct.POINTER(Sample))[0]
+            address = buffer[i]
+            if infos[i].valid_data and address:
+                held = Sample.from_address(address)
                 data = ct.string_at(held.usample, held.usample_size)
                 samples.append(SealedSample.deserialize(data))
     finally:
