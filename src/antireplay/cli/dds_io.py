@@ -111,12 +111,16 @@ def shown(verdict: SampleVerdict, *, relayed: bool = False) -> str:
 
 
 def answer_pending(writer: SealedWriter, linger_s: float) -> int:
-    """Answer fresh readers' challenges before the first sample: for up to ``linger_s``, and
-    only while another endpoint is on the challenge channel (a fenced reader or a writer);
-    stops ``QUIET_S`` after the last answer.  Returns how many were answered."""
-    deadline = time.monotonic() + linger_s
+    """Answer fresh readers' challenges before the first sample, for up to ``linger_s``: a
+    fenced reader's challenge channel is discovered a moment after its topic reader, so
+    the first half waits for anyone on that channel (none: no fenced reader, go); then
+    challenges are answered until ``QUIET_S`` after the last.  Returns how many."""
+    start = time.monotonic()
+    deadline = start + linger_s
     answered, quiet_until = 0, deadline
-    while time.monotonic() < min(deadline, quiet_until) and writer.challenge_peers() > 0:
+    while time.monotonic() < min(deadline, quiet_until):
+        if writer.challenge_peers() == 0 and time.monotonic() >= start + linger_s / 2:
+            break
         got = writer.answer_challenges()
         if got:
             answered += got
