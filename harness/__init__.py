@@ -587,6 +587,33 @@ def dds_writer_process(
                             stderr=subprocess.PIPE, text=True)  # fmt: skip
 
 
+def dds_junk_process(domain_id: int, topic: str) -> subprocess.Popen[str]:
+    """A process without the fleet key flooding the challenge channel about ``topic`` with
+    challenges and answers sealed under random keys, each on a sender instance of its own
+    (``antireplay/ping``); it prints ``flooding`` once it has written its first thousand."""
+    code = "from harness import dds_junk_main; dds_junk_main()"
+    return subprocess.Popen([sys.executable, "-c", code, str(domain_id), topic],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+
+
+def dds_junk_main() -> None:
+    """The body of :func:`dds_junk_process` (runs until killed)."""
+    from antireplay.dds.domain import join_domain  # noqa: PLC0415 - the child's own imports
+    from antireplay.dds.topics import PingChannel  # noqa: PLC0415
+    from antireplay.epochs import Kind, derive_key  # noqa: PLC0415
+    from antireplay.epochs.policy import seal  # noqa: PLC0415
+
+    domain_id, topic = int(sys.argv[1]), sys.argv[2]
+    channel = PingChannel(join_domain(domain_id), topic)  # no ring: a writer, unfiltered
+    key = derive_key(os.urandom(32), Kind.PING)
+    for n in itertools.count():
+        kind = Kind.CHALLENGE if n % 2 else Kind.ANSWER
+        epoch = time.time_ns()
+        channel.send(seal(key, kind, os.urandom(8), epoch, os.urandom(16)))
+        if n == 1000:
+            print("flooding", flush=True)
+
+
 def dds_writer_main() -> None:
     """The body of :func:`dds_writer_process` (runs until killed)."""
     from antireplay.dds.domain import join_domain  # noqa: PLC0415 - the child's own imports

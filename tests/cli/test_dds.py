@@ -32,6 +32,7 @@ from antireplay.epochs.policy import seal, to_ns
 from antireplay.epochs.sealing import RAW, frame, topic_key
 from harness import free_port, until
 from harness.flood import trail_bytes
+from harness.stores import aged_state
 
 SEGMENT = 64 * 1024
 BUDGET = 4 * SEGMENT
@@ -220,3 +221,115 @@ def test_dds_write_stopped_while_waiting_for_readers_says_what_it_sent_and_exits
         f"keep a secret mode 0600: chmod 600 {psk}"
     )
     assert out == "" and "aborted" not in said
+
+
+def _config(tmp_path: Path, domain: int, store: str, extra: str = "") -> Path:
+    config = tmp_path / "dds.yaml"
+    config.write_text(
+        f"dds:\n  domain_id: {domain}\n  psk_file: {tmp_path / 'fleet.psk'}\n  max_forward_s: 30\n"
+        f"  reader: {{topic: robot/cmd, store: '{store}'}}\n  writer: {{topic: robot/cmd}}\n"
+        + extra
+    )
+    return config
+
+
+def _first_line(process: subprocess.Popen[str]) -> str:
+    assert process.stderr is not None
+    return process.stderr.readline()
+
+
+def test_fresh_readers_say_they_are_fenced_and_writers_answer_before_they_send(
+    tmp_path: Path,
+) -> None:
+    """Review finding 6: a reader on a new, empty SQLite file says at start it is fenced
+    (until when, why, what lifts it); a one-shot ``dds write`` answers its challenge before
+    its first sample, so both commands pass a 30 s fence at once, print as text, and "sent"
+    is said for acknowledged samples only; ``--stdin`` does the same line by line."""
+    _fleet_key(tmp_path, os.urandom(32))
+    config = _config(tmp_path, _domain(), f"sqlite:{tmp_path / 'new.db'}")
+    reader = _dds("read", "--config", str(config), "--count", "4", "--timeout", "60",
+                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    try:
+        line = _first_line(reader)
+        while line.startswith("replay state "):  # the store's own word on its lost history
+            line = _first_line(reader)
+        assert "FENCED until" in line and "has no history" in line and "challenge" in line, line
+        start = time.monotonic()
+        write = _dds("write", "--config", str(config), "--instance", "arm", "move 1", "move 2",
+                     stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+        out, err = write.communicate(timeout=60)
+        assert write.returncode == 0, err
+        assert out.splitlines()[0].startswith("sent 'move 1' prefix="), out
+        assert "answered 1 reader challenge(s)" in err, err
+        pipes = {"stdin": subprocess.PIPE, "stdout": subprocess.PIPE, "stderr": subprocess.PIPE}
+        stream = _dds("write", "--config", str(config), "--stdin", "--instance", "arm", **pipes)
+        out, err = stream.communicate("stop\nhold é\n", timeout=60)
+        assert stream.returncode == 0 and out.count("sent ") == 2, (out, err)
+        verdicts, _ = reader.communicate(timeout=60)
+        elapsed = time.monotonic() - start
+    finally:
+        reader.kill()
+    lines = verdicts.splitlines()
+    assert [line.split(" instance=")[0] for line in lines] == ["ACCEPTED"] * 4, verdicts
+    assert lines[0].endswith(" 'move 1'") and lines[3].endswith(" 'hold é'"), verdicts
+    assert elapsed < 30, f"{elapsed:.1f} s: the fence was waited out, not lifted"
+
+
+def test_fence_refusals_fold_into_one_line_a_second_and_say_what_is_known(
+    tmp_path: Path,
+) -> None:
+    """Review findings 3 and 6: samples sealed after a memory-store reader started, by a
+    writer that never answers, are refused as fenced awaiting an answer (not "sealed before
+    this verifier's state began"), in one summary line a second, not one per sample."""
+    psk, domain = os.urandom(32), _domain()
+    _fleet_key(tmp_path, psk)
+    config = _config(tmp_path, domain, "memory")
+    reader = _dds("read", "--config", str(config), "--timeout", "4",
+                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    try:
+        assert "FENCED until" in _first_line(reader)
+        silent = SealedWriter(join_domain(domain), "robot/cmd", psk, max_forward_s=30)
+        until("DDS discovery", lambda: silent.matched_readers() >= 1)
+        for n in range(200):  # sealed now, published without answering any challenge
+            silent.publish(silent.seal(f"#{n}".encode(), instance="arm"))
+        silent.flush()
+        out, err = reader.communicate(timeout=60)
+    finally:
+        reader.kill()
+    lines = out.splitlines()
+    assert 1 <= len(lines) <= 5, out
+    assert all(line.startswith("REFUSED MESSAGE_STALE restart_fence: ") for line in lines), out
+    assert sum(int(line.split(": ")[1].split()[0]) for line in lines) == 200, out
+    assert "awaiting a writer's answer to this reader's challenge" in lines[0], out
+    assert "stale=200" in err and "before this verifier's state began" not in out + err
+
+
+def test_fleet_key_rotation_from_the_configuration(tmp_path: Path) -> None:
+    """``dds.key_next_file`` + ``dds.key_cutover`` (issue 37): after the cut-over a reader
+    refuses a writer still on the old key (``key_retired``) and accepts one configured with
+    the rotation (it seals with the new key)."""
+    old, domain = os.urandom(32), _domain()
+    _fleet_key(tmp_path, old)
+    (tmp_path / "next.psk").write_text(os.urandom(32).hex())
+    (tmp_path / "next.psk").chmod(0o600)
+    past = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(time.time() - 60))
+    rotation = f"  key_next_file: {tmp_path / 'next.psk'}\n  key_cutover: {past}\n"
+    store = f"sqlite:{aged_state(tmp_path / 'reader.db')}"
+    rotated = _config(tmp_path, domain, store, rotation)
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(rotated.read_text().replace(rotation, ""))
+    reader = _dds("read", "--config", str(rotated), "--count", "2", "--timeout", "60",
+                  stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+    try:
+        assert "no start fence" in _first_line(reader)
+        for config, message in ((plain, "old key"), (rotated, "new key")):
+            write = _dds("write", "--config", str(config), message,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)  # fmt: skip
+            assert write.wait(60) == 0, write.communicate()
+        out, _ = reader.communicate(timeout=60)
+    finally:
+        reader.kill()
+    first, second = out.splitlines()
+    assert first.startswith("REFUSED SIGNATURE_INVALID key_retired"), out
+    assert "retired fleet key" in first and second.startswith("ACCEPTED"), out
+    assert second.endswith(" 'new key'"), out

@@ -28,7 +28,7 @@ from antireplay.dds.config import DdsConfig
 from antireplay.epochs import EpochSigner, Kind, derive_key, signer_state
 from antireplay.epochs.policy import seal
 from antireplay.state import open_store
-from harness import dds_writer_process, started_before, until
+from harness import dds_junk_process, dds_writer_process, started_before, until
 from harness.stores import aged_state
 
 try:
@@ -755,9 +755,10 @@ def test_forged_or_replayed_answer_leaves_the_reader_fenced(
                             writer.nonce_prefix, 1, nonce))  # fmt: skip
         rogue.send(old_answer)
         reader.poll(0.05)
-        return reader.counts["answer_forged"] >= 1 and reader.counts["answer_stale"] >= 1
+        counts = reader.counts
+        return counts["ping_dropped_forged"] >= 1 and counts["ping_dropped_stale"] >= 1
 
-    until("the forged and replayed answers are refused", forged_and_replayed)
+    until("the forged and replayed answers are dropped on arrival", forged_and_replayed)
     assert reader.verifier.policy.answered == {} and stranger.rotations == 0
     reader.judge(writer.seal(b"still fenced", instance="arm"))
     assert reader.counts["stale"] == 1
@@ -807,3 +808,35 @@ def test_flush_says_false_when_readers_do_not_acknowledge_in_time(
     inner = writer._writer  # the library's writer, its timeout path forced
     inner._wait_for_acks = lambda *_: DDSException.DDS_RETCODE_TIMEOUT
     assert writer.flush(timeout_s=0.01) is False
+
+
+def test_fresh_reader_leaves_its_fence_through_a_keyless_challenge_flood(
+    record_property: Callable[[str, object], None],
+) -> None:
+    """Two processes with no key flood ``antireplay/ping`` with challenges and answers
+    (review finding 5: the topic kept 64 samples, every genuine one was pushed out and the
+    reader stayed fenced for its whole ``max_forward_s``).  Now junk is dropped by the
+    topic filter before it takes history: a fresh reader with a 30 s fence accepts the
+    genuine writer's fresh command within seconds, and counts the junk it dropped."""
+    domain_id = next(_IDS)
+    floods = [dds_junk_process(domain_id, TOPIC) for _ in range(2)]
+    writer = dds_writer_process(domain_id, PSK, TOPIC, period_s=0.1, max_forward_s=30.0)
+    try:
+        for flood in floods:
+            assert flood.stdout is not None and flood.stdout.readline() == "flooding\n"
+        assert writer.stdout is not None and writer.stdout.readline()  # it writes
+        reader = SealedReader(join_domain(domain_id), TOPIC, PSK, max_forward_s=30.0)
+        start = time.monotonic()
+        verdict = first_accepted(reader, lambda: None, timeout_s=10.0)
+        elapsed = time.monotonic() - start
+        record_property("flooded_time_to_first_accept_s", round(elapsed, 3))
+        assert verdict.epoch is not None and verdict.epoch <= reader.verifier.restart_fence()
+        dropped = {k: n for k, n in reader.counts.items() if k.startswith("ping_dropped_")}
+        assert sum(dropped.values()) > 0, dict(reader.counts)  # no nonce of ours, or forged
+        assert [f.poll() for f in floods] == [None, None]  # still flooding all along
+    finally:
+        for process in (*floods, writer):
+            process.kill()
+            process.communicate()
+    assert reader.counts["answer_accepted"] >= 1, dict(reader.counts)
+    print(f"first accept after {elapsed:.3f} s through the flood: {dict(reader.counts)}")

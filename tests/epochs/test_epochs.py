@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.core.errors import (
+    Code,
     ConfigError,
     EpochReplayedError,
     EpochTooFarAheadError,
@@ -941,3 +942,48 @@ def test_a_prefix_forgotten_by_one_verifier_stays_refused_by_another(
         b.open(capture)
     with pytest.raises(ReplayAttackError):
         EpochVerifier(PSK, store=store(), clock=clock, max_prefixes=2).open(capture)
+
+
+def test_fleet_key_rotation_overlaps_until_the_cutover_then_retires_the_old_key() -> None:
+    """``KeyRotation`` on a manual clock: writers keep the old key until the cut-over and
+    seal with the new one after it; readers accept both until the cut-over; after it, a
+    frame the old key sealed is refused with its own reason (authentic, ``key_retired``)
+    and one the new key sealed passes."""
+    from antireplay.epochs import KeyRotation  # noqa: PLC0415
+    from antireplay.epochs.policy import KEY_RETIRED  # noqa: PLC0415
+    from antireplay.epochs.sealing import refused  # noqa: PLC0415
+
+    old, new = b"o" * 32, b"n" * 32
+    clock = ManualClock(wall=1_000.0)
+    rotation = KeyRotation(new, cutover_ns=int(1_010 * 1e9))
+    verifier = started_before(clock, lambda: EpochVerifier(
+        old, clock=clock, max_age_s=30, max_forward_s=5, rotation=rotation))  # fmt: skip
+    plain = started_before(clock, lambda: EpochVerifier(old, clock=clock, max_forward_s=5))
+    rotating = EpochSigner(old, clock=clock, rotation=rotation)
+    old_only = EpochSigner(old, clock=clock)  # a writer that never got the new key
+    new_only = EpochSigner(new, clock=clock)  # one configured with the new key early
+
+    def opens(sealed: bytes) -> bool:
+        return verifier.open(sealed).epoch > 0
+
+    before = rotating.seal(b"before")
+    assert opens(before) and opens(old_only.seal(b"old key, before")) and opens(
+        new_only.seal(b"new key, before"))  # fmt: skip
+    assert plain.open(rotating.seal(b"sealed with the old key")).epoch > 0
+    clock.advance(11)  # past the cut-over
+    after = rotating.seal(b"after")
+    with pytest.raises(SignatureInvalidError):  # sealed with the new key now
+        plain.open(after)
+    assert opens(after) and opens(new_only.seal(b"new key, after"))
+    stolen = old_only.seal(b"old key, after the cut-over")
+    with pytest.raises(SignatureInvalidError) as retired:
+        verifier.open(stolen)
+    assert retired.value.detail == KEY_RETIRED and "retired fleet key" in retired.value.reason
+    verdict = refused(retired.value, "", stolen)
+    assert (verdict.outcome, verdict.code, verdict.authentic) == (
+        KEY_RETIRED,
+        Code.SIGNATURE_INVALID,
+        True,
+    )
+    with pytest.raises(SignatureInvalidError, match="does not verify"):  # a third key: forged
+        verifier.open(EpochSigner(b"x" * 32, clock=clock).seal(b"forged"))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import sys
 import time
 from collections.abc import Iterator
@@ -20,6 +21,14 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from antireplay.cli._common import _fail, stop_on_signal, until_stopped, warn_if_shared
+from antireplay.cli.dds_io import (
+    RELAYED_TOPIC,
+    FenceFold,
+    answer_pending,
+    shown,
+    start_line,
+    stdin_lines,
+)
 from antireplay.config import AppConfig
 from antireplay.core.errors import AntiReplayError, ConfigError
 
@@ -114,20 +123,25 @@ def read(  # noqa: PLR0917 - one option per knob
     metrics_port: int | None,
     metrics_host: str,
 ) -> None:
-    """Print one verdict per received sample: ACCEPTED, or REFUSED with its code."""
+    """Print one verdict per received sample: ACCEPTED, or REFUSED with its code (refusals
+    behind the start fence: one summary line per second)."""
     with _wired(config_path) as wired:
         reader = _built(wired.reader, topic)
         _serve_metrics(wired, {reader.topic_name: reader.counts}, metrics_port, metrics_host)
-        click.echo(f"reading {reader.topic_name} on domain {wired.domain_id}", err=True)
+        click.echo(start_line(reader, wired), err=True)
+        relayed = reader.topic_name == RELAYED_TOPIC
         stop = stop_on_signal()
         deadline = time.monotonic() + timeout_s if timeout_s > 0 else None
-        seen = 0
+        seen, fold = 0, FenceFold(reader)
         while not stop.is_set() and (count == 0 or seen < count):
             if deadline is not None and time.monotonic() >= deadline:
                 break
             for verdict in reader.poll(0.1)[: count - seen if count else None]:
-                click.echo(verdict.line())
+                if not fold.took(verdict):
+                    click.echo(shown(verdict, relayed=relayed))
                 seen += 1
+            fold.report(time.monotonic())
+        fold.report(math.inf)
         summary = ", ".join(f"{k}={v}" for k, v in sorted(reader.counts.items()))
         click.echo(f"verdicts: {summary or 'none'}", err=True)
     if count and seen < count:
@@ -150,33 +164,59 @@ def read(  # noqa: PLR0917 - one option per knob
     type=click.Path(path_type=Path, dir_okay=False),
     help="Also write this run's sealed samples here, one JSON line each (the file is replaced).",
 )
-@click.argument("messages", nargs=-1, required=True)
+@click.option(
+    "--linger",
+    "linger_s",
+    default=1.0,
+    type=click.FloatRange(0, 60),
+    show_default=True,
+    help="Seconds to wait for, and answer, fresh readers' challenges before the first sample.",
+)
+@click.option("--stdin", "from_stdin", is_flag=True, help="Publish each line read from stdin.")
+@click.argument("messages", nargs=-1)
 def write(  # noqa: PLR0917 - one option per knob
     config_path: Path,
     topic: str | None,
     instance: str,
     wait_readers: int,
     capture: Path | None,
+    linger_s: float,
+    from_stdin: bool,
     messages: tuple[str, ...],
 ) -> None:
-    """Seal and publish MESSAGES (after waiting for readers to match)."""
+    """Seal and publish MESSAGES (or, with --stdin, each line read) after waiting for readers
+    to match and answering their challenges; "sent" once the readers acknowledged it."""
+    if from_stdin == bool(messages):
+        _fail("give MESSAGES or --stdin (one sample per line), not both")
     with _wired(config_path) as wired:
         writer = _built(wired.writer, topic)
         sent: list[str] = []
-        with until_stopped(lambda: f"sent {len(sent)} of {len(messages)} messages"):
+        total = "" if from_stdin else f" of {len(messages)}"
+        with until_stopped(lambda: f"sent {len(sent)}{total} messages"):
             _wait_readers(writer, wait_readers)
             if capture is not None:
                 capture.write_text("", encoding="ascii")  # this run's samples only: re-runnable
-            for message in messages:
+            answered = answer_pending(writer, linger_s)
+            if answered:
+                click.echo(f"answered {answered} reader challenge(s)", err=True)
+            lines = stdin_lines(writer.answer_challenges) if from_stdin else iter(messages)
+            unacknowledged = 0
+            for message in lines:
                 sample = writer.write(message.encode(), instance=instance)
                 if capture is not None:
                     line = {"topic": writer.topic_name, "instance": instance,
                             "sealed": bytes(sample.sealed).hex()}  # fmt: skip
                     with capture.open("a", encoding="ascii") as handle:
                         handle.write(json.dumps(line) + "\n")
-                click.echo(f"sent {message!r} prefix={writer.nonce_prefix.hex()}")
-                sent.append(message)
-            writer.flush()
+                if writer.flush():
+                    click.echo(f"sent {message!r} prefix={writer.nonce_prefix.hex()}")
+                    sent.append(message)
+                else:
+                    unacknowledged += 1
+                    click.echo(f"NOT acknowledged {message!r}: no reader confirmed it in 2 s")
+            writer.answer_challenges()  # a reader that matched meanwhile: answered on the way out
+    if unacknowledged:
+        sys.exit(1)
 
 
 @dds.command()

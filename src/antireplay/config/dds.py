@@ -18,11 +18,12 @@ import math
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field, ValidationError, field_validator
+from pydantic import AwareDatetime, Field, ValidationError, field_validator, model_validator
 from pydantic_core import ErrorDetails
 
 from antireplay.config.loader import Section
 from antireplay.core.errors import ConfigError
+from antireplay.epochs.policy import KeyRotation
 from antireplay.state import STORE_SPECS, StoreSpec
 
 MAX_DOMAIN_ID = 232  # Cyclone's port arithmetic; antireplay.dds.domain checks the same
@@ -45,6 +46,8 @@ ALLOWED: dict[str, str] = {
     "max_age_s": "a number of seconds above 0 and at most 86400",
     "max_forward_s": "a number of seconds above 1 (writers reserve 1 s of epochs at a time) "
     "and at most 3600",
+    "key_cutover": "an ISO 8601 time with its zone (e.g. 2026-12-06T14:00:00Z), "
+    "set together with key_next_file",
 }
 #: Keys of earlier releases, by their dotted path under ``dds``, and what replaced them.
 RENAMED: dict[str, str] = {
@@ -91,6 +94,10 @@ class DdsConfig(Section):
     max_age_s: float = Field(default=MAX_AGE_S, gt=0, le=86_400)
     max_forward_s: float = Field(default=MAX_FORWARD_S, gt=1, le=3_600)
     audit: str | None = None
+    #: A fleet key rotation: the successor's file (hex) and the moment writers switch to it;
+    #: readers accept both until then (:class:`~antireplay.epochs.policy.KeyRing`).
+    key_next_file: str | None = None
+    key_cutover: AwareDatetime | None = None
     reader: ReaderConfig = Field(default_factory=ReaderConfig)
     writer: WriterConfig = Field(default_factory=WriterConfig)
     relay: RelayConfig | None = None
@@ -105,21 +112,39 @@ class DdsConfig(Section):
         except ValidationError as exc:
             raise _config_error(exc.errors()) from None
 
+    @model_validator(mode="after")
+    def _rotation_pair(self) -> DdsConfig:
+        if (self.key_next_file is None) != (self.key_cutover is None):
+            raise ConfigError("dds.key_cutover", self.key_cutover, ALLOWED["key_cutover"])
+        return self
+
     def psk(self) -> bytes:
         """The pre-shared key from ``psk_file`` (hex, at least 16 bytes)."""
-        try:
-            text = Path(self.psk_file).read_text(encoding="ascii").strip()
-        except FileNotFoundError:
-            raise ConfigError.file_not_found("dds.psk_file", self.psk_file) from None
-        except (OSError, UnicodeDecodeError) as exc:
-            raise ConfigError("dds.psk_file", self.psk_file, f"a readable file ({exc})") from None
-        try:
-            key = bytes.fromhex(text)
-        except ValueError:
-            raise ConfigError("dds.psk_file", self.psk_file, "a file holding hex") from None
-        if len(key) < 16:
-            raise ConfigError("dds.psk_file", self.psk_file, "a key of at least 16 bytes")
-        return key
+        return _key_file("dds.psk_file", self.psk_file)
+
+    def rotation(self) -> KeyRotation | None:
+        """The fleet key's rotation (``key_next_file`` + ``key_cutover``), if one is set."""
+        if self.key_next_file is None or self.key_cutover is None:
+            return None
+        cutover_ns = int(self.key_cutover.timestamp() * 1_000_000_000)
+        return KeyRotation(_key_file("dds.key_next_file", self.key_next_file), cutover_ns)
+
+
+def _key_file(key: str, path: str) -> bytes:
+    """A key from the file at ``path`` (hex, at least 16 bytes); ``key`` names it in errors."""
+    try:
+        text = Path(path).read_text(encoding="ascii").strip()
+    except FileNotFoundError:
+        raise ConfigError.file_not_found(key, path) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(key, path, f"a readable file ({exc})") from None
+    try:
+        value = bytes.fromhex(text)
+    except ValueError:
+        raise ConfigError(key, path, "a file holding hex") from None
+    if len(value) < 16:
+        raise ConfigError(key, path, "a key of at least 16 bytes")
+    return value
 
 
 class _Missing:
@@ -152,6 +177,8 @@ def _explain(err: ErrorDetails) -> tuple[str, object, str]:
         allowed = "no such key" + (f": it was renamed to {renamed}" if renamed else "")
         return f"dds.{path}", value, allowed
     cause = err.get("ctx", {}).get("error")
+    if isinstance(cause, ConfigError) and not err["loc"]:  # a rule across keys names its own
+        return cause.key, cause.value, cause.allowed
     allowed = (
         cause.allowed
         if isinstance(cause, ConfigError)

@@ -44,6 +44,7 @@ from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.ping import PingListener
 from antireplay.dds.topics import SealedReader, SealedWriter
 from antireplay.dds.wire import SealedSample
+from antireplay.epochs.policy import KeyRotation
 from antireplay.epochs.sealing import SampleVerdict
 from antireplay.state import ReplayStore
 from antireplay.state.durable import DurableState
@@ -117,6 +118,7 @@ class AnnouncementRelay:
         audit: AuditLog | None = None,
         ping: PingListener | None = None,
         quiet: Callable[[], bool] | None = None,
+        rotation: KeyRotation | None = None,
     ) -> None:
         self.service_name = service_name
         self._clock = resolve(clock)
@@ -132,6 +134,7 @@ class AnnouncementRelay:
             max_forward_s=max_forward_s,
             audit=audit,
             quiet=quiet,
+            rotation=rotation,
         )
         self.egress = SealedWriter(
             participant,
@@ -141,10 +144,11 @@ class AnnouncementRelay:
             state=signer_state,
             clock=self._clock,
             max_forward_s=max_forward_s,  # the subscribers' bound: rotate, never be refused
+            rotation=rotation,
         )
         self._watch = SealedReader(
             participant, egress, psk, clock=self._clock,
-            max_age_s=max_age_s, max_forward_s=max_forward_s,
+            max_age_s=max_age_s, max_forward_s=max_forward_s, rotation=rotation,
         )  # fmt: skip
         self.relay_id = os.urandom(8)
         self._emitted: deque[bytes] = deque(maxlen=EMITTED_MEMORY)

@@ -16,7 +16,8 @@ returns), and only then is the data decoded and handed over.
 **Start fence.**  A reader refuses every sample sealed before it started (plus
 ``max_forward_s``) unless its store proves otherwise: a memory store cannot know what a
 previous process accepted; a SQLite store that survived sets no fence.  A fenced reader
-does not wait it out: it sends a challenge on :data:`PING_TOPIC` (when
+does not wait it out: it sends a challenge on :data:`PING_TOPIC` (:mod:`.challenge`:
+authenticated on arrival, one slot set per sender; when
 :class:`~antireplay.epochs.sealing.ChallengeTimer` says), every writer answers in its
 next :meth:`SealedWriter.write`, and the reader accepts that writer's epochs above the
 answer at once (captures stay refused; :mod:`antireplay.epochs.policy`).  Every refusal
@@ -45,10 +46,22 @@ from cyclonedds.util import duration
 
 from antireplay.audit import AuditLog, RefusalAuditor
 from antireplay.core.clock import Clock, resolve
-from antireplay.core.errors import Code, ReplayAttackError, StateUnavailableError
+from antireplay.core.errors import (
+    Code,
+    ReplayAttackError,
+    StateUnavailableError,
+)
+from antireplay.dds.challenge import PING_TOPIC, PingChannel
 from antireplay.dds.config import MAX_AGE_S, MAX_FORWARD_S
 from antireplay.dds.wire import SealedSample
 from antireplay.epochs import Announcement, EpochSigner, EpochVerifier, Kind, sealing
+from antireplay.epochs.policy import (
+    NONCE_LEN,
+    Claim,
+    KeyRing,
+    KeyRotation,
+    to_ns,
+)
 from antireplay.epochs.sealing import RAW, ChallengeTimer, SampleVerdict, claim, topic_key
 from antireplay.state import ReplayStore
 from antireplay.state.durable import DurableState
@@ -60,11 +73,6 @@ log = logging.getLogger("antireplay.dds")
 Verdict = SampleVerdict
 #: Refusals audited per second, per class (:class:`~antireplay.audit.RefusalAuditor`).
 AUDIT_PER_S = 50.0
-#: The control topic of freshness challenges and answers; the instance names the topic asked
-#: about (a cheap filter: the MAC key already binds it).
-PING_TOPIC = "antireplay/ping"
-#: Ping samples one call judges at most (the rest wait in the reader's history).
-PINGS_PER_CALL = 64
 
 
 def default_qos(depth: int = 256) -> Qos:
@@ -98,38 +106,6 @@ def matched_writers(reader: DataReader[Any]) -> int:
     return int(status.current_count)
 
 
-class PingChannel:
-    """A writer and a reader on :data:`PING_TOPIC` for one sealed topic's endpoint."""
-
-    def __init__(self, participant: DomainParticipant, topic: str) -> None:
-        qos = default_qos(PINGS_PER_CALL)
-        channel = _topic(participant, PING_TOPIC, qos)
-        self.topic = topic
-        self.writer = DataWriter(participant, channel, qos=qos)
-        self.reader = DataReader(participant, channel, qos=qos)
-        self.waiting = ReadCondition(
-            self.reader, ViewState.Any | InstanceState.Any | SampleState.NotRead
-        )
-
-    def send(self, sealed: bytes) -> None:
-        self.writer.write(SealedSample(instance=self.topic, sealed=sealed))
-
-    def take(self, kind: Kind) -> list[bytes]:
-        """The waiting frames of ``kind`` about this topic (others dropped: no crypto)."""
-        if not self.waiting.triggered:
-            return []
-        return [
-            sealed
-            for sample in self.reader.take(N=PINGS_PER_CALL)
-            if isinstance(sample, SealedSample) and sample.instance == self.topic
-            and len(sealed := bytes(sample.sealed)) > 1 and sealed[1] == kind
-        ]  # fmt: skip
-
-    def peers(self) -> int:
-        """Ping endpoints matched (a new one may answer, or need an answer)."""
-        return matched_readers(self.writer)
-
-
 class SealedWriter:
     """A DDS writer whose every sample is sealed with a strictly increasing epoch."""
 
@@ -147,24 +123,40 @@ class SealedWriter:
         reserve_s: float = 1.0,
         max_forward_s: float = MAX_FORWARD_S,
         qos: Qos | None = None,
+        rotation: KeyRotation | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
         self.counts: Counter[str] = Counter()
+        self._clock = resolve(clock)
+        self._max_forward_ns = to_ns(max_forward_s)
+        type_name, domain = type_name_of(data_type), _domain_of(participant)
+        key = topic_key(psk, topic, type_name, domain)
+        topic_rotation = rotated_for(rotation, topic, type_name, domain)
         # max_forward_s: the readers' bound (their default unless configured), so a forward
         # clock glitch the readers would refuse makes this writer rotate its prefix instead
         # of being refused until real time catches up.
         self.signer = EpochSigner(
-            topic_key(psk, topic, type_name_of(data_type), _domain_of(participant)),
+            key,
             nonce_prefix=nonce_prefix,
             service_name=service_name,
             state=state,
-            clock=clock,
+            clock=self._clock,
             reserve_s=reserve_s,
             max_forward_s=max_forward_s,
+            rotation=topic_rotation,
         )
         qos = qos or default_qos()
         self._writer = DataWriter(participant, _topic(participant, topic, qos), qos=qos)
-        self._pings = PingChannel(participant, topic)
+        self._pings = PingChannel(
+            participant, topic, KeyRing(key, topic_rotation), wanted=Kind.CHALLENGE,
+            admit=self._timely, counts=self.counts,
+        )  # fmt: skip
+
+    def _timely(self, challenge: Claim) -> bool:
+        """A challenge worth a look: sent within ``max_forward_s`` of our clock (what
+        :meth:`EpochSigner.answer` checks again), carrying a nonce's length."""
+        ahead = challenge.epoch - to_ns(self._clock.wall())
+        return abs(ahead) <= self._max_forward_ns and len(challenge.payload) == NONCE_LEN
 
     @property
     def nonce_prefix(self) -> bytes:
@@ -216,6 +208,11 @@ class SealedWriter:
     def matched_readers(self) -> int:
         return matched_readers(self._writer)
 
+    def challenge_peers(self) -> int:
+        """Other endpoints on the challenge channel (fenced readers, other writers): only
+        then may a challenge be on its way (our own channel matches itself)."""
+        return max(0, matched_writers(self._pings.reader) - 1)
+
     def close(self) -> None:
         """Release the signer's state file (its owner lock), as a stopping process does."""
         self.signer.close()
@@ -248,6 +245,7 @@ class SealedReader:
         qos: Qos | None = None,
         challenge: bool = True,
         quiet: Callable[[], bool] | None = None,
+        rotation: KeyRotation | None = None,
     ) -> None:
         self.topic_name, self.data_type = topic, data_type
         self._decode = None if data_type is None else data_type.deserialize
@@ -261,6 +259,7 @@ class SealedReader:
             max_age_s=max_age_s,
             max_forward_s=max_forward_s,
             clock=self._clock,
+            rotation=rotated_for(rotation, topic, type_name, domain),
         )
         self.audit = audit
         self.counts: Counter[str] = Counter()
@@ -273,8 +272,13 @@ class SealedReader:
             ReadCondition(self._reader, ViewState.Any | InstanceState.Any | SampleState.NotRead)
         )
         self._pings: PingChannel | None = None
+        #: The nonces of the challenges sent (a snapshot the ping filter reads lock-free).
+        self._nonces: frozenset[bytes] = frozenset()
         if challenge and self.verifier.fenced():
-            self._pings = PingChannel(participant, topic)
+            self._pings = PingChannel(
+                participant, topic, self.verifier.policy.ring, wanted=Kind.ANSWER,
+                admit=lambda answer: answer.payload in self._nonces, counts=self.counts,
+            )  # fmt: skip
             self._waitset.attach(self._pings.waiting)
         self._timer = ChallengeTimer()
 
@@ -335,6 +339,7 @@ class SealedReader:
         if self._timer.due(pings.peers(), self._clock.monotonic()):
             challenge = self.verifier.challenge()
             if challenge is not None:
+                self._nonces = frozenset(self.verifier.policy.nonces)  # before any answer
                 pings.send(challenge)
                 self.counts["challenge_sent"] += 1
 
@@ -361,6 +366,15 @@ class SealedReader:
             self.wait(timeout_s)
             verdicts = self.take()
         return verdicts
+
+
+def rotated_for(
+    rotation: KeyRotation | None, topic: str, type_name: str, domain: int
+) -> KeyRotation | None:
+    """The fleet key's rotation as one topic sees it: the successor's topic key."""
+    if rotation is None:
+        return None
+    return KeyRotation(topic_key(rotation.next_psk, topic, type_name, domain), rotation.cutover_ns)
 
 
 def refusal_auditor(
@@ -421,5 +435,6 @@ __all__ = [
     "claim",
     "record_refusal",
     "refusal_auditor",
+    "rotated_for",
     "topic_key",
 ]

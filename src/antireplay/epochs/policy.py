@@ -24,6 +24,10 @@ byte under the MAC) and a signer's ``ANSWER`` binds it to the signer's next (pre
 That prefix's epochs above the answered one were sealed after the nonce existed, so
 :meth:`EpochPolicy.fence_for` lowers its fence to it; every capture stays at or below.  An
 answer must bind one of the last ``OUTSTANDING`` nonces and verify before it is committed.
+**Key rotation.**  A :class:`KeyRing` holds the fleet key and, during a rotation, its
+successor and the cut-over time: an epoch after the cut-over is sealed with the successor,
+and both keys verify until then; a frame the old key seals after the cut-over is refused
+(``SIGNATURE_INVALID``, ``detail="key_retired"``).
 Not safe for concurrent use: the driver serializes.  Vectors: ``tests/vectors/epochs.json``.
 """
 
@@ -51,6 +55,7 @@ from antireplay.core.errors import (
     InvalidFrameError,
     MessageStaleError,
     ReplayAttackError,
+    SignatureInvalidError,
     WarningCode,
 )
 
@@ -129,6 +134,50 @@ def derive_keys(psk: bytes | FleetKey) -> dict[Kind, bytes]:
     return keys | {Kind.CHALLENGE: keys[Kind.PING], Kind.ANSWER: keys[Kind.PING]}
 
 
+#: The ``detail`` of a frame sealed with the retired fleet key after the cut-over.
+KEY_RETIRED = "key_retired"
+
+
+@dataclass(frozen=True)
+class KeyRotation:
+    """A rotation of the fleet key: its successor and the cut-over (wall-anchored ns)."""
+
+    next_psk: bytes
+    cutover_ns: int
+
+
+class KeyRing:
+    """The per-kind keys of the fleet key and, during a rotation, of its successor: which
+    one seals an epoch, which ones verify a frame (module docstring)."""
+
+    def __init__(self, psk: bytes, rotation: KeyRotation | None = None) -> None:
+        self.current = derive_keys(psk)
+        self.next = None if rotation is None else derive_keys(rotation.next_psk)
+        self.cutover_ns = -1 if rotation is None else rotation.cutover_ns
+
+    def sealing(self, epoch: int) -> dict[Kind, bytes]:
+        """The keys an epoch is sealed with: the successor's from the cut-over on (a writer
+        configured early keeps the old key until then, so a reader configured later but
+        before the cut-over never meets a key it does not hold)."""
+        return self.next if self.next is not None and epoch > self.cutover_ns else self.current
+
+    def verify(self, claim: Claim) -> Refused | bool:
+        """True when the tag verifies under a key in force for the frame's epoch; False
+        when under none; a :class:`Refused` when only the retired key verifies an epoch
+        after the cut-over (authentic, but that key may be in other hands by then)."""
+        if _verifies(self.current[claim.kind], claim):
+            if self.next is not None and claim.epoch > self.cutover_ns:
+                retired = "sealed with the retired fleet key after its cut-over"
+                return Refused(SignatureInvalidError(retired, detail=KEY_RETIRED))
+            return True
+        return self.next is not None and _verifies(self.next[claim.kind], claim)
+
+
+def _verifies(key: bytes, claim: Claim) -> bool:
+    expected = tag(key, claim.kind, claim.prefix, claim.epoch, claim.payload)
+    return hmac.compare_digest(expected, claim.tag)
+
+
 def prefix_for_service(service_name: str) -> bytes:
     """The nonce prefix of a named discovery service (names must be unique!)."""
     return hashlib.sha256(b"antireplay/v1 prefix" + service_name.encode()).digest()[:PREFIX_LEN]
@@ -163,6 +212,19 @@ def seal(key: bytes, kind: Kind, prefix: bytes, epoch: int, payload: bytes) -> b
     require_size(payload)
     return (
         HEAD.pack(VERSION, kind, prefix, epoch) + payload + tag(key, kind, prefix, epoch, payload)
+    )
+
+
+def fence_reason(epoch: int, restart_ns: int, max_forward_ns: int) -> str:
+    """What is known about an epoch at or below the restart fence (``restart_ns`` is the
+    store's start plus ``max_forward_ns``): sealed before that start, a previous run may have
+    accepted it; sealed after, only a sender's clock running ahead could have put it before a
+    previous run, so the verifier waits for that sender's answer to its challenge."""
+    if epoch <= restart_ns - max_forward_ns:
+        return "sealed before this verifier's state began (a previous run may have accepted it)"
+    return (
+        "sealed within max_forward_s of this verifier's start, so not yet provably fresh: "
+        "fenced, awaiting its writer's answer to this verifier's challenge"
     )
 
 
@@ -272,9 +334,16 @@ class EpochPolicy:
     """Accepts each (prefix, epoch) at most once against its marks (module docstring)."""
 
     def __init__(
-        self, psk: bytes, *, max_age_ns: int | None, max_forward_ns: int, max_prefixes: int
+        self,
+        psk: bytes,
+        *,
+        max_age_ns: int | None,
+        max_forward_ns: int,
+        max_prefixes: int,
+        rotation: KeyRotation | None = None,
     ) -> None:
-        self.keys = derive_keys(psk)
+        self.ring = KeyRing(psk, rotation)
+        self.keys = self.ring.current
         self.max_age_ns, self.max_forward_ns = max_age_ns, max_forward_ns
         self.tables: dict[Kind, FencedTable[bytes, Recent]] = {
             k: FencedTable(max_prefixes, what=f"{LABELS[k]} prefix") for k in STREAMS
@@ -285,10 +354,9 @@ class EpochPolicy:
         #: Prefix -> the lowest epoch it answered one of those nonces with.
         self.answered: dict[bytes, int] = {}
 
-    def authentic(self, claim: Claim) -> bool:
-        """The tag verifies (constant time)."""
-        expected = tag(self.keys[claim.kind], claim.kind, claim.prefix, claim.epoch, claim.payload)
-        return hmac.compare_digest(expected, claim.tag)
+    def authentic(self, claim: Claim) -> Refused | bool:
+        """The tag verifies under a key in force (constant time; :meth:`KeyRing.verify`)."""
+        return self.ring.verify(claim)
 
     def last(self, kind: Kind, prefix: bytes) -> int | None:
         """The mark the table holds for ``prefix`` (None: not held)."""
@@ -305,13 +373,8 @@ class EpochPolicy:
             event = TooFarAhead(claim.prefix, epoch, epoch - now_ns) if authentic else None
             return Refused(EpochTooFarAheadError("epoch jumped beyond max_forward_s"), event)
         if epoch <= self.fence_for(claim.prefix, restart_ns):
-            return Refused(
-                MessageStaleError(
-                    "sealed before this verifier's state began "
-                    "(a previous run may have accepted it)",
-                    detail="restart_fence",
-                )
-            )
+            return Refused(MessageStaleError(fence_reason(epoch, restart_ns, self.max_forward_ns),
+                                             detail="restart_fence"))  # fmt: skip
         return None
 
     def held(self, claim: Claim) -> Refused | bool:
@@ -370,7 +433,8 @@ class EpochPolicy:
         if len(nonce) != NONCE_LEN:
             raise ValueError(f"a challenge nonce is {NONCE_LEN} bytes")
         self.nonces.append(nonce)
-        return seal(self.keys[Kind.CHALLENGE], Kind.CHALLENGE, prefix, now_ns, nonce)
+        key = self.ring.sealing(now_ns)[Kind.CHALLENGE]
+        return seal(key, Kind.CHALLENGE, prefix, now_ns, nonce)
 
     def check_answer(self, claim: Claim) -> Refused | None:
         """Cheap, before the MAC: an answer must bind a nonce this run holds outstanding

@@ -42,6 +42,7 @@ from antireplay.core.errors import (
 )
 from antireplay.epochs.policy import (
     HEAD,
+    KEY_RETIRED,
     LABELS,
     MAX_LEN,
     MIN_LEN,
@@ -61,7 +62,7 @@ RAW = "octets"
 #: Seconds between a fenced reader's challenges when no new peer matched (doubling up to the cap).
 RETRY_S, RETRY_MAX_S = 0.25, 2.0
 #: Outcomes whose MAC verified (refused only for freshness or order, or accepted).
-AUTHENTIC = frozenset({"accepted", "replayed", "prefix_collision", "stale", "ahead"})
+AUTHENTIC = frozenset({"accepted", "replayed", "prefix_collision", "stale", "ahead", KEY_RETIRED})
 #: Rejection class -> the outcome word counted and audited (prefix collisions are told apart).
 OUTCOMES: dict[type[ReplayAttackError], str] = {
     InvalidFrameError: "malformed",
@@ -120,6 +121,8 @@ class SampleVerdict:
     nonce_prefix: bytes | None = None
     epoch: int | None = None
     value: Any = None
+    #: The machine detail of a refusal (``restart_fence``, ``key_retired``), if any.
+    detail: str | None = None
 
     @property
     def accepted(self) -> bool:
@@ -142,8 +145,19 @@ class SampleVerdict:
         """One printable line (what ``antireplay dds read`` prints)."""
         who = "-" if self.nonce_prefix is None else self.nonce_prefix.hex()
         head = "ACCEPTED" if self.accepted else f"REFUSED {self.code} {self.outcome}"
-        shown = self.value if self.accepted else self.reason
+        shown = readable(self.value) if self.accepted else self.reason
         return f"{head} instance={self.instance!r} prefix={who} epoch={self.epoch} {shown!r}"
+
+
+def readable(value: Any) -> Any:
+    """Bytes that are UTF-8 as text (printed ``'move 1'``); other bytes stay bytes (their
+    repr escapes them), other values as they are."""
+    if isinstance(value, bytes):
+        try:
+            return value.decode()
+        except UnicodeDecodeError:
+            return value
+    return value
 
 
 def check(instance: str, sealed: bytes) -> SampleVerdict | None:
@@ -165,7 +179,9 @@ def refused(
     verifier counted a prefix collision while judging it)."""
     prefix, epoch = claim(sealed)
     outcome = "prefix_collision" if collided else OUTCOMES.get(type(exc), "refused")
-    return SampleVerdict(outcome, exc.code, exc.reason, instance, prefix, epoch)
+    if exc.detail == KEY_RETIRED:  # authentic, but under the fleet key that was rotated out
+        outcome = KEY_RETIRED
+    return SampleVerdict(outcome, exc.code, exc.reason, instance, prefix, epoch, detail=exc.detail)
 
 
 def accepted(
@@ -211,6 +227,7 @@ __all__ = [
     "claim",
     "claimed_instance",
     "frame",
+    "readable",
     "refused",
     "topic_key",
 ]

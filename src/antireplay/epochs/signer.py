@@ -21,12 +21,12 @@ anything it could have sent.  The file records the current prefix, the one it st
 (``base``, which ``nonce_prefix`` or ``service_name`` must match) and the rotation count; a
 rotation is saved before its first epoch.  The file has one owner (an OS lock): two signers
 on it would repeat epochs.  :meth:`EpochSigner.answer` answers a fresh verifier's challenge
-at the next epoch.
+at the next epoch.  With a ``rotation`` (:class:`~antireplay.epochs.policy.KeyRotation`) every
+epoch after the cut-over is sealed with the fleet key's successor.
 """
 
 from __future__ import annotations
 
-import hmac
 import logging
 import os
 import threading
@@ -46,14 +46,15 @@ from antireplay.epochs.policy import (
     EPOCH_LIMIT,
     NONCE_LEN,
     PREFIX_LEN,
+    KeyRing,
+    KeyRotation,
     Kind,
-    derive_keys,
+    Refused,
     parse,
     prefix_for_service,
     require_size,
     seal,
     successor_prefix,
-    tag,
     to_ns,
 )
 from antireplay.state.ceilings import counter_on_state
@@ -102,6 +103,7 @@ class EpochSigner:
         clock: Clock | None = None,
         reserve_s: float = 1.0,
         max_forward_s: float = 60.0,
+        rotation: KeyRotation | None = None,
     ) -> None:
         if nonce_prefix is not None and service_name is not None:
             raise ValueError("give nonce_prefix or service_name, not both")
@@ -111,7 +113,7 @@ class EpochSigner:
             raise ValueError(f"nonce_prefix must be {PREFIX_LEN} bytes")
         if not max_forward_s > reserve_s:
             raise ValueError("max_forward_s must exceed reserve_s (else every restart rotates)")
-        self._keys = derive_keys(psk)
+        self._ring = KeyRing(psk, rotation)
         self._clock = clock = resolve(clock)
         self._max_forward_ns = int(max_forward_s * 1_000_000_000)
         self._lock = threading.Lock()
@@ -185,7 +187,7 @@ class EpochSigner:
         """Seal one announcement (or, with ``kind=Kind.PING``, one binding ping)."""
         require_size(payload)  # before an epoch is spent on it
         prefix, epoch = self._next()
-        return seal(self._keys[kind], kind, prefix, epoch, payload)
+        return seal(self._ring.sealing(epoch)[kind], kind, prefix, epoch, payload)
 
     def seal_ping(self, payload: bytes) -> bytes:
         """A binding ping: same discipline, separate key."""
@@ -201,9 +203,10 @@ class EpochSigner:
             raise InvalidFrameError(f"a challenge carries a {NONCE_LEN}-byte nonce")
         if abs(claim.epoch - to_ns(self._clock.wall())) > self._max_forward_ns:
             raise MessageStaleError("challenge not sent within max_forward_s of now")
-        expected = tag(self._keys[Kind.CHALLENGE], Kind.CHALLENGE, claim.prefix, claim.epoch,
-                       claim.payload)  # fmt: skip
-        if not hmac.compare_digest(expected, claim.tag):
+        verified = self._ring.verify(claim)
+        if isinstance(verified, Refused):
+            raise verified.error
+        if not verified:
             raise SignatureInvalidError("challenge tag does not verify")
         return self.seal(claim.payload, kind=Kind.ANSWER)
 

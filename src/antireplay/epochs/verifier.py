@@ -68,6 +68,7 @@ from antireplay.epochs.policy import (
     Announcement,
     Claim,
     EpochPolicy,
+    KeyRotation,
     Kind,
     PrefixCollision,
     Refused,
@@ -104,6 +105,7 @@ class EpochVerifier:
         clock: Clock | None = None,
         max_prefixes: int = 4096,
         audit: AuditLog | None = None,
+        rotation: KeyRotation | None = None,
     ) -> None:
         if max_age_s is not None:
             require_bound("max_age_s", max_age_s)
@@ -115,6 +117,7 @@ class EpochVerifier:
             max_age_ns=None if max_age_s is None else to_ns(max_age_s),
             max_forward_ns=to_ns(max_forward_s),
             max_prefixes=max_prefixes,
+            rotation=rotation,
         )
         self.audit = audit
         self.namespace = namespace
@@ -175,7 +178,7 @@ class EpochVerifier:
         claim = parse(sealed, Kind.ANSWER)
         self.restart_fence()  # a store that lost state since the challenge voids its nonces
         self._judge(self.policy.check_answer(claim))
-        if not self.policy.authentic(claim):
+        if not self._judge(self.policy.authentic(claim)):
             raise SignatureInvalidError("answer tag does not verify")
         with self._lock:
             self._judge(self.policy.check_answer(claim))
@@ -206,7 +209,7 @@ class EpochVerifier:
         error otherwise.  The MAC runs before the order check because what an *authentic*
         old or far-ahead epoch means (a collision, a glitch) is counted and audited."""
         claim = parse(sealed, kind)
-        if not self.policy.authentic(claim):
+        if not self._judge(self.policy.authentic(claim)):
             raise SignatureInvalidError(f"{LABELS[kind]} tag does not verify")
         self._judge(self.policy.check_time(claim, self._now(), self.restart_fence(),
                                            authentic=True))  # fmt: skip

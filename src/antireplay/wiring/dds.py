@@ -57,6 +57,7 @@ class DdsCommand:
         self.config, self.block, self.clock = config, config.dds, clock
         self._opened = contextlib.ExitStack()
         self.psk = self.block.psk()
+        self.rotation = self.block.rotation()  # the fleet key's successor, read at start
         self.audit: AuditLog | None = None
         #: True while free space under the trail is below ``audit_space.min_free_bytes``.
         self.quiet: Callable[[], bool] | None = None
@@ -132,6 +133,7 @@ class DdsCommand:
             max_forward_s=block.max_forward_s,
             audit=self.audit,
             quiet=self.quiet,
+            rotation=self.rotation,
         )
         self._opened.callback(reader.close)
         return reader
@@ -148,6 +150,7 @@ class DdsCommand:
             state=None if path is None else signer_state(path),
             clock=self.clock,
             max_forward_s=block.max_forward_s,
+            rotation=self.rotation,
         )
         self._opened.callback(writer.close)
         return writer
@@ -180,6 +183,7 @@ class DdsCommand:
             audit=self.audit,
             ping=ping,
             quiet=self.quiet,
+            rotation=self.rotation,
         )
         self._opened.callback(service.close)
         return service
