@@ -43,6 +43,7 @@ from antireplay.mavlink import (
     parse_frame,
 )
 from antireplay.mavlink import guard as guard_module
+from antireplay.mavlink.binding import BIND_IDLE_S
 from antireplay.mavlink.codec import UNITS_PER_S, Frame
 from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
@@ -784,7 +785,7 @@ def test_ids_a_ground_station_authenticated_are_refused_from_a_trusted_link() ->
 
 def test_a_ground_link_with_the_same_key_may_use_the_stations_ids() -> None:
     """The station's second radio (a ground link with the same key) is that station; a
-    ground link with another key claiming its ids is refused."""
+    ground link with another key claiming its ids is refused while the station is live."""
     clock = ManualClock(1_800_000_000.0)
     router, _, ground, other, _ = station_router(clock)
     station, sink = signed_sender(255, KEY, clock)
@@ -801,11 +802,83 @@ def test_a_ground_link_with_the_same_key_may_use_the_stations_ids() -> None:
     station, sink = signed_sender(255, KEY, clock)
     station.heartbeat_send(6, 8, 0, 0, 0)
     ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    clock.advance(BIND_IDLE_S - 0.5)
     rival, rival_sink = signed_sender(255, bytes(range(1, 33)), clock)
     rival.heartbeat_send(6, 8, 0, 0, 0)
     other.inject(rival_sink.frames[-1], ("10.0.0.9", 14550))
     assert router.stats.dropped["inbound:SOURCE_BOUND"] == 1
     assert router.routes()[(255, 190)] == "udpin:0.0.0.0:2"
+    router.stop()
+
+
+def test_a_quiet_stations_ids_move_to_a_station_that_authenticates_them_elsewhere(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Failover (radio to LTE with another key, or a second station later): once the
+    owning link has been quiet ``BIND_IDLE_S``, an authenticated claim elsewhere takes the
+    ids (logged once) and the vehicle's answers follow; a trusted link's claim never moves
+    them while the owner is live, and a live owner is never locked out by the newcomer."""
+    clock = ManualClock(1_800_000_000.0)
+    caplog.set_level("INFO", logger="antireplay.mavlink")
+    router, vehicle, ground, other, trusted = station_router(
+        clock, second_ground_key=bytes(range(1, 33))
+    )
+    station, sink = signed_sender(255, KEY, clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    clock.advance(BIND_IDLE_S - 0.5)
+    trusted.inject(unsigned_heartbeat(255, 190), ("127.0.0.1", 5555))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 1
+    clock.advance(1.0)  # the radio died: quiet BIND_IDLE_S + 0.5 s
+    lte, lte_sink = signed_sender(255, bytes(range(1, 33)), clock)
+    lte.heartbeat_send(6, 8, 0, 0, 0)
+    other.inject(lte_sink.frames[-1], ("10.0.0.9", 14550))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 1
+    assert router.routes()[(255, 190)] == "udpin:0.0.0.0:3"
+    moved = [r.getMessage() for r in caplog.records if "moved from link" in r.getMessage()]
+    assert moved == [
+        "ids 255/190 moved from link udpin:0.0.0.0:2 (quiet 5.5 s) to link udpin:0.0.0.0:3, "
+        "authenticated"
+    ]
+    autopilot, out = signed_sender(1, KEY, clock)
+    autopilot.srcComponent = 1
+    autopilot.command_ack_send(400, 0, 0, 0, 255, 190)
+    vehicle.inject(out.frames[-1])
+    assert [peer for d, peer in other.sent if parse_frame(d).msgid == 77] == [("10.0.0.9", 14550)]
+    clock.advance(0.1)  # the old radio, live again, is now the other station
+    station.signing.timestamp = mav_time(clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 2
+    router.stop()
+
+
+def test_a_trusted_link_cannot_claim_another_component_of_a_live_stations_system() -> None:
+    """A station authenticated as 255/190: a trusted link claiming 255/0 or 255/191 is
+    refused (no route, no copies to system 255); a vehicle's other components and a
+    station of another key on another component of 255 are not."""
+    clock = ManualClock(1_800_000_000.0)
+    router, vehicle, ground, other, trusted = station_router(
+        clock, second_ground_key=bytes(range(1, 33))
+    )
+    station, sink = signed_sender(255, KEY, clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    for component in (0, 191):
+        trusted.inject(unsigned_heartbeat(255, component), ("127.0.0.1", 5555))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 2
+    assert set(router.routes()) == {(255, 190)}
+    observer, observer_sink = signed_sender(255, bytes(range(1, 33)), clock)
+    observer.srcComponent = 191
+    observer.heartbeat_send(6, 8, 0, 0, 0)
+    other.inject(observer_sink.frames[-1], ("10.0.0.9", 14550))
+    autopilot, out = signed_sender(1, KEY, clock)
+    for component in (1, 100):
+        autopilot.srcComponent = component
+        autopilot.heartbeat_send(2, 3, 0, 0, 0)
+        vehicle.inject(out.frames[-1])
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 2
+    assert {(255, 191), (1, 1), (1, 100)} <= set(router.routes())
     router.stop()
 
 
