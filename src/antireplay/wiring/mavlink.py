@@ -335,13 +335,21 @@ def trusted_endpoints(section: MavlinkConfig) -> list[str]:
     on the network anyone who reaches it commands the vehicle.  ConfigError names the
     endpoint (or an acknowledgement that names no trusted network endpoint)."""
     from antireplay.mavlink import is_local, parse_endpoint  # noqa: PLC0415
+    from antireplay.mavlink.endpoints import addresses  # noqa: PLC0415
 
-    local = {}
+    local: dict[str, bool] = {}
+    seen: dict[str, str] = {}
     for text in section.trusted:
         try:
-            local[text] = is_local(parse_endpoint(text))
+            spec = parse_endpoint(text)
         except ValueError as exc:
             raise ConfigError("mavlink.trusted", text, "an endpoint", message=str(exc)) from None
+        local[text] = is_local(spec)
+        found = (spec.host,) if local[text] else addresses(spec)
+        if not found:
+            seen[text] = f" ({spec.host} does not resolve)"
+        elif found != (spec.host.strip("[]"),):  # a name, or a literal in another form
+            seen[text] = f" ({spec.host} resolves to {', '.join(found)})"
     for text in section.trust_network:
         if local.get(text, True):
             said = "is not a --trusted endpoint" if text not in local else "is local already"
@@ -354,9 +362,10 @@ def trusted_endpoints(section: MavlinkConfig) -> list[str]:
         if not is_loopback and text not in section.trust_network:
             raise ConfigError(
                 "mavlink.trusted", text, "a loopback or serial endpoint",
-                message=f"--trusted {text}: not loopback or a serial device, and the router "
-                "signs whatever it receives with the vehicle key (anyone who reaches it "
-                "commands the vehicle); bind it to 127.0.0.1, or acknowledge this exact "
+                message=f"--trusted {text}: not loopback or a serial device"
+                f"{seen.get(text, '')}, and the router signs whatever it receives with the "
+                "vehicle key (anyone who reaches it commands the vehicle); bind it to "
+                "127.0.0.1, or acknowledge this exact "
                 f"endpoint with --trust-network {text} (mavlink.trust_network)",
             )  # fmt: skip
     return list(section.trusted)
