@@ -163,14 +163,30 @@ def fence_notice(router: MavlinkRouter, store: ReplayStore, wall: float) -> str 
     fence = router.fence()
     if fence is None:
         return None
-    why, remedy = _FENCE_WHY.get(fence[1]) or (
-        getattr(store, "loss_reason", None)
-        or f"a {store.backend} store starts with no history of what an earlier run accepted",
-        "it passes by itself; a persistent store kept across restarts (--store "
-        "sqlite:PATH, mavlink.store) starts unfenced after a clean stop, and a state anchor "
-        "(state.anchor) proves a restored one",
-    )
+    why, remedy = _FENCE_WHY.get(fence[1]) or _lost_why(store)
     return f"fenced{until_text(fence, wall)}: {why}; {remedy}"
+
+
+def _lost_why(store: ReplayStore) -> tuple[str, str]:
+    """Why a state fences as new or lost, and what removes it: the store's own reason for
+    a loss it found at this open; a memory store's missing history; else a persistent
+    state still inside the first fence it took when it began (a restart does not end it)."""
+    reason = getattr(store, "loss_reason", None)
+    passes = "it passes by itself"
+    if store.backend == "memory":
+        return (
+            reason or "a memory store starts with no history of what an earlier run accepted",
+            f"{passes}; a persistent store kept across restarts (--store sqlite:PATH, "
+            "mavlink.store) starts unfenced after a clean stop, and a state anchor "
+            "(state.anchor) proves a restored one",
+        )
+    return (
+        reason
+        or f"this {store.backend} state is new: fenced since its first start, as "
+        "it cannot know what a run before it accepted",
+        f"{passes} (a restart does not shorten it); a state anchor (state.anchor) proves "
+        "a restored one",
+    )
 
 
 def stop_router(router: MavlinkRouter) -> None:
