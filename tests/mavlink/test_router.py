@@ -914,14 +914,55 @@ def test_refusals_behind_the_fence_are_said_once_then_one_line_per_interval() ->
     said = [r for r in refused if not r.folded]  # what the log and the audit trail get
     (first,) = said
     assert "restart fence" in first.reason and "summarised every 5 s" in first.reason
-    router._summarise_fenced(time.monotonic() + 6)  # the timer, an interval later
+    clock.advance(6)  # the timer, an interval later (the fence holds 14 s more)
+    router.tick()
     said = [r for r in refused if not r.folded]
     assert len(said) == 2 and said[1].frames == 199
-    assert "from 2 senders" in str(said[1]) and str(said[1]).startswith("refused 199")
-    clock.advance(21)
+    assert "from 2 senders (claimed ids" in str(said[1]) and str(said[1]).startswith("refused 199")
+    clock.advance(15)
     assert router.fence() is None
     router.stop()
     assert len([r for r in refused if not r.folded]) == 2
+
+
+def test_a_sender_whose_clock_lags_past_the_fence_is_folded_and_told_so() -> None:
+    """The fence passed by the router's clock, a sender 12 s behind is still below it for
+    11 s: its 110 refusals are said as the first, then one line per interval (not one a
+    second), and each says what is true: its clock is behind, or these are captures."""
+    clock = ManualClock(1_800_000_000.0)
+    store = MemoryStore(clock=clock)
+    vehicle = FakeTransport("udpout:127.0.0.1:1")
+    ground = FakeTransport("udpin:0.0.0.0:2", fixed=False)
+    guard = MavlinkGuard(KEY, clock=clock, store=store, system_id=1, max_forward_s=20)
+    router = MavlinkRouter(
+        [RouterLink(vehicle, Role.VEHICLE, KEY), RouterLink(ground, Role.GROUND, KEY)],
+        {KEY: guard},
+        MavlinkGuard(KEY, clock=clock, store=store, store_prefix="out", max_forward_s=20),
+        signers={KEY: TimestampSource(clock)},
+    )
+    refused: list[FrameRefusal] = []
+    router.on_reject = refused.append
+    router.start()
+    clock.advance(21)
+    assert router.fence() is None
+    mav, sink = signed_sender(255, KEY, clock)
+    for _ in range(110):
+        mav.signing.timestamp = mav_time(clock) - 12 * UNITS_PER_S
+        mav.heartbeat_send(6, 8, 0, 0, 0)
+        ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+        clock.advance(0.1)
+        router.tick()
+    assert router.stats.dropped["inbound:MESSAGE_STALE"] == 110
+    said = [r for r in refused if not r.folded]
+    assert len(said) == 3, [str(r) for r in said]  # the first, then at 5 s and 10 s
+    assert "sender 255/190's clock is behind, or this is a capture" in said[0].reason
+    assert "fenced" not in said[0].reason
+    assert [round(r.frames, -1) for r in said[1:]] == [50, 50]
+    assert "sender 255/190's timestamps are 10.9 s below the restart fence" in said[1].reason
+    assert "its clock is behind, or these are captures" in said[1].reason
+    router.stop()
+    said = [r for r in refused if not r.folded]
+    assert len(said) == 4 and sum(r.frames for r in said) == 110  # the rest, at stop
 
 
 class WriteLog:

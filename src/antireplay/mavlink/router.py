@@ -84,7 +84,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -258,7 +257,7 @@ class MavlinkRouter:
         for link in self.links:
             link.transport.close()
         self._stop_timer()
-        self._summarise_fenced(time.monotonic(), final=True)
+        self._summarise_fenced(self.outbound.clock.monotonic(), final=True)
         for guard in self._guards():
             guard.stop()
 
@@ -274,7 +273,7 @@ class MavlinkRouter:
                 self.stats.timer_failures += 1
         if all(guard.claimed for guard in self._guards()):
             self._claimed.set()
-        self._summarise_fenced(time.monotonic())
+        self._summarise_fenced(self.outbound.clock.monotonic())
 
     def fence(self) -> tuple[float, str] | None:
         """While the router refuses frames stamped now: until when (wall seconds) and why
@@ -510,18 +509,27 @@ class MavlinkRouter:
         (:meth:`_summarise_fenced`)."""
         self.stats.dropped[f"{direction}:{exc.code}"] += 1
         sender = (frame.sysid, frame.compid)
-        if not self._folds.refused(direction, link.name, str(exc.code), sender, time.monotonic()):
+        now = self.outbound.clock.monotonic()
+        if not self._folds.refused(
+            direction, link.name, str(exc.code), sender, now, below_s=exc.below_s
+        ):
             self._report(
                 FrameRefusal(
                     direction, link.name, str(exc.code), exc.reason, frame.raw, folded=True
                 )
             )
             return
-        until = until_text(self.fence(), self.outbound.clock.wall())
+        fence = self.fence()
+        why = (
+            f"fenced{until_text(fence, self.outbound.clock.wall())}"
+            if fence is not None
+            else f"the fence has passed by this router's clock: sender {sender[0]}/{sender[1]}'s"
+            " clock is behind, or this is a capture"
+        )
         self._report(
             FrameRefusal(
                 direction, link.name, str(exc.code),
-                f"{exc.reason}; fenced{until}: further refusals behind the fence are "
+                f"{exc.reason}; {why}: further refusals behind the fence are "
                 f"summarised every {FENCE_SUMMARY_S:g} s", frame.raw,
             )
         )  # fmt: skip
