@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -288,6 +289,35 @@ def test_a_trusted_endpoint_on_the_network_is_refused_at_start(tmp_path: Path, k
     (line,) = done.stderr.splitlines()
     assert line.startswith(f"antireplay: error: {said}"), line
     assert f"--trust-network {endpoint}" in line or kind == "config"
+    assert not (tmp_path / "audit.db").exists()
+
+
+def test_a_trusted_name_is_resolved_and_every_address_must_be_loopback(tmp_path: Path) -> None:
+    """``localhost`` mapped to a LAN address (an /etc/hosts in a container, a resolver
+    fallback) is not local: the router resolves the name and stops (status 2) naming the
+    endpoint and what it resolved to; it never binds that address and signs for it.  Run
+    in a private mount namespace (unshare) with its own /etc/hosts."""
+    host = host_address() or "192.0.2.2"
+    hosts = tmp_path / "hosts"
+    hosts.write_text(f"{host} localhost\n")
+    endpoint = f"udpin:localhost:{free_udp_port()}"
+    inner = " ".join(
+        shlex.quote(a)
+        for a in [sys.executable, "-m", "antireplay", "mavlink-router", "--passphrase-env",
+                  "MAV_PASSPHRASE", "--store", "memory", "--audit", str(tmp_path / "audit.db"),
+                  "--vehicle", f"udpout:127.0.0.1:{free_udp_port()}", "--trusted", endpoint]
+    )  # fmt: skip
+    done = subprocess.run(
+        ["unshare", "-rm", "sh", "-c", f"mount --bind {hosts} /etc/hosts && exec {inner}"],
+        capture_output=True, text=True, timeout=60, check=False,
+        env={**os.environ, "MAV_PASSPHRASE": "correct-horse-battery-staple"},
+    )  # fmt: skip
+    assert (done.returncode, done.stdout) == (2, ""), done.stderr
+    (line,) = done.stderr.splitlines()
+    assert line.startswith(
+        f"antireplay: error: --trusted {endpoint}: not loopback or a serial device "
+        f"(localhost resolves to {host})"
+    ), line
     assert not (tmp_path / "audit.db").exists()
 
 

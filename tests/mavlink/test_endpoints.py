@@ -37,6 +37,7 @@ from antireplay.mavlink.endpoints import (
     Peer,
     TcpServerTransport,
     Transport,
+    addresses,
     is_local,
 )
 from antireplay.wiring import router_metrics
@@ -538,3 +539,29 @@ def test_transport_errors_are_logged_first_then_rate_limited(
 def test_only_loopback_and_serial_endpoints_are_local(text: str, local: bool) -> None:
     """A trusted endpoint must be local (the router signs on its behalf) unless acknowledged."""
     assert is_local(parse_endpoint(text)) is local
+
+
+@pytest.mark.parametrize(
+    ("answers", "local"),
+    [
+        (["127.0.0.1", "::1"], True),
+        (["192.0.2.2"], False),  # /etc/hosts or DNS maps localhost to the LAN
+        (["127.0.0.1", "192.0.2.2"], False),  # every address must be loopback
+        ([], False),  # does not resolve
+    ],
+)
+def test_a_name_is_local_only_if_every_address_it_resolves_to_is_loopback(
+    monkeypatch: pytest.MonkeyPatch, answers: list[str], local: bool
+) -> None:
+    def resolve(host: str, port: int, *args: object, **kwargs: object) -> list[Any]:
+        if not answers:
+            raise socket.gaierror(-2, "Name or service not known")
+        return [
+            (socket.AF_INET6 if ":" in a else socket.AF_INET, socket.SOCK_STREAM, 6, "", (a, port))
+            for a in answers
+        ]
+
+    monkeypatch.setattr(socket, "getaddrinfo", resolve)
+    spec = parse_endpoint("tcpin:localhost:5760")
+    assert is_local(spec) is local
+    assert addresses(spec) == tuple(answers)

@@ -43,6 +43,7 @@ from antireplay.mavlink import (
     parse_frame,
 )
 from antireplay.mavlink import guard as guard_module
+from antireplay.mavlink.binding import BIND_IDLE_S
 from antireplay.mavlink.codec import UNITS_PER_S, Frame
 from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
@@ -784,7 +785,7 @@ def test_ids_a_ground_station_authenticated_are_refused_from_a_trusted_link() ->
 
 def test_a_ground_link_with_the_same_key_may_use_the_stations_ids() -> None:
     """The station's second radio (a ground link with the same key) is that station; a
-    ground link with another key claiming its ids is refused."""
+    ground link with another key claiming its ids is refused while the station is live."""
     clock = ManualClock(1_800_000_000.0)
     router, _, ground, other, _ = station_router(clock)
     station, sink = signed_sender(255, KEY, clock)
@@ -801,11 +802,83 @@ def test_a_ground_link_with_the_same_key_may_use_the_stations_ids() -> None:
     station, sink = signed_sender(255, KEY, clock)
     station.heartbeat_send(6, 8, 0, 0, 0)
     ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    clock.advance(BIND_IDLE_S - 0.5)
     rival, rival_sink = signed_sender(255, bytes(range(1, 33)), clock)
     rival.heartbeat_send(6, 8, 0, 0, 0)
     other.inject(rival_sink.frames[-1], ("10.0.0.9", 14550))
     assert router.stats.dropped["inbound:SOURCE_BOUND"] == 1
     assert router.routes()[(255, 190)] == "udpin:0.0.0.0:2"
+    router.stop()
+
+
+def test_a_quiet_stations_ids_move_to_a_station_that_authenticates_them_elsewhere(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Failover (radio to LTE with another key, or a second station later): once the
+    owning link has been quiet ``BIND_IDLE_S``, an authenticated claim elsewhere takes the
+    ids (logged once) and the vehicle's answers follow; a trusted link's claim never moves
+    them while the owner is live, and a live owner is never locked out by the newcomer."""
+    clock = ManualClock(1_800_000_000.0)
+    caplog.set_level("INFO", logger="antireplay.mavlink")
+    router, vehicle, ground, other, trusted = station_router(
+        clock, second_ground_key=bytes(range(1, 33))
+    )
+    station, sink = signed_sender(255, KEY, clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    clock.advance(BIND_IDLE_S - 0.5)
+    trusted.inject(unsigned_heartbeat(255, 190), ("127.0.0.1", 5555))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 1
+    clock.advance(1.0)  # the radio died: quiet BIND_IDLE_S + 0.5 s
+    lte, lte_sink = signed_sender(255, bytes(range(1, 33)), clock)
+    lte.heartbeat_send(6, 8, 0, 0, 0)
+    other.inject(lte_sink.frames[-1], ("10.0.0.9", 14550))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 1
+    assert router.routes()[(255, 190)] == "udpin:0.0.0.0:3"
+    moved = [r.getMessage() for r in caplog.records if "moved from link" in r.getMessage()]
+    assert moved == [
+        "ids 255/190 moved from link udpin:0.0.0.0:2 (quiet 5.5 s) to link udpin:0.0.0.0:3, "
+        "authenticated"
+    ]
+    autopilot, out = signed_sender(1, KEY, clock)
+    autopilot.srcComponent = 1
+    autopilot.command_ack_send(400, 0, 0, 0, 255, 190)
+    vehicle.inject(out.frames[-1])
+    assert [peer for d, peer in other.sent if parse_frame(d).msgid == 77] == [("10.0.0.9", 14550)]
+    clock.advance(0.1)  # the old radio, live again, is now the other station
+    station.signing.timestamp = mav_time(clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 2
+    router.stop()
+
+
+def test_a_trusted_link_cannot_claim_another_component_of_a_live_stations_system() -> None:
+    """A station authenticated as 255/190: a trusted link claiming 255/0 or 255/191 is
+    refused (no route, no copies to system 255); a vehicle's other components and a
+    station of another key on another component of 255 are not."""
+    clock = ManualClock(1_800_000_000.0)
+    router, vehicle, ground, other, trusted = station_router(
+        clock, second_ground_key=bytes(range(1, 33))
+    )
+    station, sink = signed_sender(255, KEY, clock)
+    station.heartbeat_send(6, 8, 0, 0, 0)
+    ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+    for component in (0, 191):
+        trusted.inject(unsigned_heartbeat(255, component), ("127.0.0.1", 5555))
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 2
+    assert set(router.routes()) == {(255, 190)}
+    observer, observer_sink = signed_sender(255, bytes(range(1, 33)), clock)
+    observer.srcComponent = 191
+    observer.heartbeat_send(6, 8, 0, 0, 0)
+    other.inject(observer_sink.frames[-1], ("10.0.0.9", 14550))
+    autopilot, out = signed_sender(1, KEY, clock)
+    for component in (1, 100):
+        autopilot.srcComponent = component
+        autopilot.heartbeat_send(2, 3, 0, 0, 0)
+        vehicle.inject(out.frames[-1])
+    assert router.stats.dropped["inbound:SOURCE_BOUND"] == 2
+    assert {(255, 191), (1, 1), (1, 100)} <= set(router.routes())
     router.stop()
 
 
@@ -841,14 +914,55 @@ def test_refusals_behind_the_fence_are_said_once_then_one_line_per_interval() ->
     said = [r for r in refused if not r.folded]  # what the log and the audit trail get
     (first,) = said
     assert "restart fence" in first.reason and "summarised every 5 s" in first.reason
-    router._summarise_fenced(time.monotonic() + 6)  # the timer, an interval later
+    clock.advance(6)  # the timer, an interval later (the fence holds 14 s more)
+    router.tick()
     said = [r for r in refused if not r.folded]
     assert len(said) == 2 and said[1].frames == 199
-    assert "from 2 senders" in str(said[1]) and str(said[1]).startswith("refused 199")
-    clock.advance(21)
+    assert "from 2 senders (claimed ids" in str(said[1]) and str(said[1]).startswith("refused 199")
+    clock.advance(15)
     assert router.fence() is None
     router.stop()
     assert len([r for r in refused if not r.folded]) == 2
+
+
+def test_a_sender_whose_clock_lags_past_the_fence_is_folded_and_told_so() -> None:
+    """The fence passed by the router's clock, a sender 12 s behind is still below it for
+    11 s: its 110 refusals are said as the first, then one line per interval (not one a
+    second), and each says what is true: its clock is behind, or these are captures."""
+    clock = ManualClock(1_800_000_000.0)
+    store = MemoryStore(clock=clock)
+    vehicle = FakeTransport("udpout:127.0.0.1:1")
+    ground = FakeTransport("udpin:0.0.0.0:2", fixed=False)
+    guard = MavlinkGuard(KEY, clock=clock, store=store, system_id=1, max_forward_s=20)
+    router = MavlinkRouter(
+        [RouterLink(vehicle, Role.VEHICLE, KEY), RouterLink(ground, Role.GROUND, KEY)],
+        {KEY: guard},
+        MavlinkGuard(KEY, clock=clock, store=store, store_prefix="out", max_forward_s=20),
+        signers={KEY: TimestampSource(clock)},
+    )
+    refused: list[FrameRefusal] = []
+    router.on_reject = refused.append
+    router.start()
+    clock.advance(21)
+    assert router.fence() is None
+    mav, sink = signed_sender(255, KEY, clock)
+    for _ in range(110):
+        mav.signing.timestamp = mav_time(clock) - 12 * UNITS_PER_S
+        mav.heartbeat_send(6, 8, 0, 0, 0)
+        ground.inject(sink.frames[-1], ("10.0.0.1", 14550))
+        clock.advance(0.1)
+        router.tick()
+    assert router.stats.dropped["inbound:MESSAGE_STALE"] == 110
+    said = [r for r in refused if not r.folded]
+    assert len(said) == 3, [str(r) for r in said]  # the first, then at 5 s and 10 s
+    assert "sender 255/190's clock is behind, or this is a capture" in said[0].reason
+    assert "fenced" not in said[0].reason
+    assert [round(r.frames, -1) for r in said[1:]] == [50, 50]
+    assert "sender 255/190's timestamps are 10.9 s below the restart fence" in said[1].reason
+    assert "its clock is behind, or these are captures" in said[1].reason
+    router.stop()
+    said = [r for r in refused if not r.folded]
+    assert len(said) == 4 and sum(r.frames for r in said) == 110  # the rest, at stop
 
 
 class WriteLog:

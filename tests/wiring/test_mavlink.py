@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import socket
+import time
 from pathlib import Path
 
 import pytest
@@ -23,7 +24,9 @@ from antireplay.wiring import (
     build_mavlink_router,
     mavlink_auditor,
     open_router,
+    stop_router,
 )
+from antireplay.wiring.mavlink import fence_notice
 from harness import free_port
 from harness.mavlink_frames import KEY
 
@@ -162,3 +165,30 @@ def test_open_router_refuses_an_anchor_beside_a_store_that_is_not_sqlite(tmp_pat
     with pytest.raises(ConfigError) as refused:
         open_router(config)
     assert refused.value.key == "state.anchor" and "store memory" in refused.value.allowed
+
+
+def test_a_restart_inside_a_new_states_first_fence_says_the_state_is_new(
+    tmp_path: Path,
+) -> None:
+    """A new SQLite state fences its first ``max_forward_s``; a clean stop and a restart
+    inside it keeps the fence, and the start line says the true reason (the state is new,
+    fenced since its first start), not a memory store's text nor "use a persistent store"."""
+    options = RouterOptions(max_forward_s=60.0)
+    notices = []
+    for _ in range(2):
+        store, log = SqliteStore(tmp_path / "state.db"), AuditLog(tmp_path / "audit.db")
+        router = build_mavlink_router(
+            [(Role.VEHICLE, "udpout:127.0.0.1:9", KEY), (Role.GROUND, "udpin:127.0.0.1:0", KEY)],
+            store, log, options,
+        )  # fmt: skip
+        router.start()
+        notices.append(fence_notice(router, store, time.time()))
+        stop_router(router)
+        store.close()
+        log.close()
+    first, second = notices
+    assert first is not None and second is not None
+    assert "memory" not in second and "--store sqlite:PATH" not in second, second
+    assert ": this sqlite state is new: fenced since its first start" in second, second
+    assert "a restart does not shorten it" in second
+    assert first.split(" (")[0] == second.split(" (")[0]  # the same moment: fenced until T

@@ -69,7 +69,8 @@ def _signing_key(path: Path) -> bytes:
     "--trusted",
     multiple=True,
     help="Trusted local tool that cannot sign (mavros, BlueOS, a script): its frames are "
-    "signed on its behalf.",
+    "signed on its behalf.  Loopback or a wired serial port only: a serial telemetry radio "
+    "(SiK/RFD) or Bluetooth serial is not local and must not be --trusted.",
 )
 @click.option(
     "--trust-network",

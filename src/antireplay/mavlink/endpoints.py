@@ -113,15 +113,29 @@ def parse_endpoint(text: str) -> EndpointSpec:
 
 
 def is_local(spec: EndpointSpec) -> bool:
-    """Whether only this host reaches the endpoint: a serial device, or a loopback address
-    (``localhost``, ``127.0.0.0/8``, ``::1``).  A router signs on a trusted endpoint's
+    """Whether only this host reaches the endpoint: a serial device, or a host whose every
+    address is loopback (``127.0.0.0/8``, ``::1``; a name such as ``localhost`` is resolved,
+    since /etc/hosts or DNS may map it to the LAN).  A router signs on a trusted endpoint's
     behalf, so one that is not local must be acknowledged by the operator."""
-    if spec.kind == "serial" or spec.host.lower() == "localhost":
+    if spec.kind == "serial":
         return True
+    found = addresses(spec)
+    return bool(found) and all(ipaddress.ip_address(a).is_loopback for a in found)
+
+
+def addresses(spec: EndpointSpec) -> tuple[str, ...]:
+    """The IP addresses a network endpoint's host is (a literal) or resolves to
+    (getaddrinfo); empty if it does not resolve."""
+    host = spec.host.strip("[]")
     try:
-        return ipaddress.ip_address(spec.host.strip("[]")).is_loopback
-    except ValueError:  # a host name: it may resolve anywhere
-        return False
+        return (str(ipaddress.ip_address(host)),)
+    except ValueError:
+        pass
+    try:
+        found = socket.getaddrinfo(host, spec.port, proto=socket.IPPROTO_TCP)
+    except (OSError, UnicodeError):
+        return ()
+    return tuple(dict.fromkeys(str(info[4][0]).split("%")[0] for info in found))
 
 
 class Transport:

@@ -6,11 +6,14 @@ A router that starts fenced (a memory store, a new or lost state, a clock spike 
 run accepted) refuses every frame stamped before its fence, often hundreds a second.  Each is
 still counted (the router's ``dropped`` counter), but only the first on a link and direction
 is reported (a log line and an audit row); the rest are folded here and reported as one
-summary per ``FENCE_SUMMARY_S``: how many frames, from how many claimed senders, and until
-when the fence holds.  Once the fence has passed, what is left is reported at the next tick
-and the link starts over (a later fence, after a store loss, reports its first refusal
-again).  No I/O here: the router reports what :meth:`FenceFolds.refused` and
-:meth:`FenceFolds.summaries` hand it; times come in as arguments.
+summary per ``FENCE_SUMMARY_S``: how many frames, from how many claimed senders (unverified:
+the fence is checked before the signature), and until when the fence holds.  A sender still
+refused after the fence has passed by the router's clock stamps below it: its clock lags the
+router's, or its frames are captures; its refusals keep folding, one line per interval that
+says so.  A link quiet behind the fence for an interval after it has passed starts over (a
+later fence, after a store loss, reports its first refusal again).  No I/O here: the router
+reports what :meth:`FenceFolds.refused` and :meth:`FenceFolds.summaries` hand it; times come
+in as arguments.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ class _Fold:
     said: float  # monotonic time of the last line
     frames: int = 0
     senders: set[tuple[int, int]] = field(default_factory=set)
+    below_s: float = 0.0  # the most seconds below the fence a folded frame stamped
 
 
 @dataclass(frozen=True)
@@ -54,15 +58,24 @@ class FenceFolds:
         self._lock = threading.Lock()
 
     def refused(
-        self, direction: str, link: str, code: str, sender: tuple[int, int], now: float
+        self,
+        direction: str,
+        link: str,
+        code: str,
+        sender: tuple[int, int],
+        now: float,
+        *,
+        below_s: float = 0.0,
     ) -> bool:
-        """Fold one refusal; ``True`` if it is the first on this link (report it now)."""
+        """Fold one refusal (``below_s`` below the fence); ``True`` if it is the first on
+        this link (report it now)."""
         with self._lock:
             fold = self._folds.get((direction, link))
             if fold is None:
                 self._folds[direction, link] = _Fold(code, now)
                 return True
             fold.frames += 1
+            fold.below_s = max(fold.below_s, below_s)
             if len(fold.senders) < self.max_senders:
                 fold.senders.add(sender)
             return False
@@ -70,22 +83,45 @@ class FenceFolds:
     def summaries(
         self, fence: Fence | None, wall: float, now: float, *, final: bool = False
     ) -> list[Summary]:
-        """The lines due at monotonic ``now`` (every ``FENCE_SUMMARY_S``; all of them once
-        the fence has passed or when ``final``, at stop)."""
+        """The lines due at monotonic ``now`` (every ``FENCE_SUMMARY_S``, all when
+        ``final``, at stop); ``fence`` None: the fence has passed by the router's clock."""
         lines: list[Summary] = []
         with self._lock:
             for (direction, link), fold in list(self._folds.items()):
-                if fold.frames and (final or fence is None or now - fold.said >= FENCE_SUMMARY_S):
-                    n = len(fold.senders)
+                due = final or now - fold.said >= FENCE_SUMMARY_S
+                if fold.frames and due:
                     reason = (
-                        f"behind the restart fence{until_text(fence, wall)}: from {n} "
-                        f"sender{'' if n == 1 else 's'} in the last {now - fold.said:.0f} s"
+                        f"behind the restart fence{until_text(fence, wall)}: "
+                        f"{claimed(fold.senders)} in the last {now - fold.said:.0f} s"
+                        if fence is not None
+                        else lagging(fold.senders, fold.below_s)
                     )
                     lines.append(Summary(direction, link, fold.code, reason, fold.frames))
-                    fold.frames, fold.senders, fold.said = 0, set(), now
-                if fence is None and not fold.frames:
+                    fold.frames, fold.senders, fold.said, fold.below_s = 0, set(), now, 0.0
+                elif fence is None and due:  # quiet for an interval past the fence
                     del self._folds[direction, link]
         return lines
+
+
+def claimed(senders: set[tuple[int, int]]) -> str:
+    """``from N senders (claimed ids)``: the ids are unverified (checked before crypto)."""
+    n = len(senders)
+    return f"from {n} sender{'' if n == 1 else 's'} (claimed ids, not verified)"
+
+
+def lagging(senders: set[tuple[int, int]], below_s: float) -> str:
+    """Why frames are refused behind a fence that has passed by the router's clock."""
+    if len(senders) == 1:
+        system, component = next(iter(senders))
+        return (
+            f"sender {system}/{component}'s timestamps are {below_s:.1f} s below the restart "
+            "fence, which has passed by this router's clock: its clock is behind, or these "
+            "are captures"
+        )
+    return (
+        f"{claimed(senders)}: timestamps up to {below_s:.1f} s below the restart fence, which "
+        "has passed by this router's clock: their clocks are behind, or these are captures"
+    )
 
 
 def until_text(fence: Fence | None, wall: float) -> str:

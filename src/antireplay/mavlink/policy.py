@@ -59,7 +59,9 @@ _CAUSES = ("lease", "high", "lost")  # a restart fence's causes, the most tellin
 
 class RestartFenceError(MessageStaleError):
     """At or below the restart fence: the previous run may have accepted it (a driver
-    summarises these instead of reporting each one)."""
+    summarises these instead of reporting each one); ``below_s``: how far below."""
+
+    below_s: float = 0.0
 
 
 class FrameAdmission(StrEnum):
@@ -355,10 +357,12 @@ class MavPolicy:
                 f"(limit {_s(self.max_forward)} s)"
             )
         if ts <= self.restart_fence:
-            raise RestartFenceError(
+            fenced = RestartFenceError(
                 f"old timestamp: {_s(self.restart_fence - ts)} s below the restart fence "
                 "(the previous run may have accepted it)"
             )
+            fenced.below_s = (self.restart_fence - ts) / UNITS_PER_S
+            raise fenced
         stream = self.streams.check(key, ts)
         if stream is None:
             return None

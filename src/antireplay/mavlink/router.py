@@ -56,10 +56,11 @@ or, from the vehicle, is dropped as ``NO_ROUTE``.  A frame with no receiver at
 all is dropped as ``NO_PEER`` (counted, not reported: telemetry before a ground
 station authenticated is normal).  A source system that authenticated on one side
 is refused on the other (:meth:`~antireplay.mavlink.policy.MavPolicy.bind_direction`).
-**Ids bound to a station's link**: the ``(system, component)`` of a frame a ground link
-authenticated with its key belong to that link (and ground links sharing its key): a
-frame claiming them from any other link (a trusted tool's, signed on its behalf; another
-key's) is refused as ``SOURCE_BOUND`` before it is judged, and never moves the route.
+**Ids bound to a station's link** while it is live (:mod:`.binding`): the ``(system,
+component)`` of a frame a ground link authenticated with its key belong to that link (and
+ground links sharing its key): a frame claiming them from any other link is refused as
+``SOURCE_BOUND`` before it is judged, and never moves the route, until the owner has been
+quiet ``bind_idle_s``; then a station authenticating them elsewhere takes them over (logged).
 
 **Fences said once**: refusals behind a guard's restart fence are counted each, reported
 the first per link, then folded into one line per interval (:mod:`.fencing`);
@@ -83,7 +84,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -97,6 +97,7 @@ from antireplay.core.errors import (
     ReplayAttackError,
 )
 from antireplay.core.messages import StrEnum
+from antireplay.mavlink.binding import BIND_IDLE_S, Bindings
 from antireplay.mavlink.codec import Frame, claimed_source, sign, target
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.fencing import FENCE_SUMMARY_S, FenceFolds, until_text
@@ -197,6 +198,7 @@ class MavlinkRouter:
         on_reject: Callable[[FrameRefusal], Any] | None = None,
         max_routes: int = 1024,
         max_stream_stats: int = 1024,
+        bind_idle_s: float = BIND_IDLE_S,
     ) -> None:
         vehicle_keys = {link.key for link in links if link.role is Role.VEHICLE}
         vehicle_key = vehicle_keys.pop() if len(vehicle_keys) == 1 else None
@@ -220,8 +222,10 @@ class MavlinkRouter:
         self.stats = RouterStats()
         self._by_transport = {id(link.transport): link for link in links}
         self._routes: OrderedDict[int, dict[int, Location]] = OrderedDict()
-        #: ``(system, component)`` a ground station authenticated with its key, to its link.
-        self._bound: OrderedDict[tuple[int, int], RouterLink] = OrderedDict()
+        #: ``(system, component)`` a live ground station authenticated with its key, to its link.
+        self._bound: Bindings[RouterLink] = Bindings(
+            _same_station, max_entries=max_routes, idle_s=bind_idle_s
+        )
         self._folds = FenceFolds(max_routes)
         self._lock = threading.Lock()
         self._stopping = threading.Event()
@@ -253,7 +257,7 @@ class MavlinkRouter:
         for link in self.links:
             link.transport.close()
         self._stop_timer()
-        self._summarise_fenced(time.monotonic(), final=True)
+        self._summarise_fenced(self.outbound.clock.monotonic(), final=True)
         for guard in self._guards():
             guard.stop()
 
@@ -269,7 +273,7 @@ class MavlinkRouter:
                 self.stats.timer_failures += 1
         if all(guard.claimed for guard in self._guards()):
             self._claimed.set()
-        self._summarise_fenced(time.monotonic())
+        self._summarise_fenced(self.outbound.clock.monotonic())
 
     def fence(self) -> tuple[float, str] | None:
         """While the router refuses frames stamped now: until when (wall seconds) and why
@@ -322,12 +326,17 @@ class MavlinkRouter:
             )
         for frame in frames:
             if link.role is not Role.VEHICLE:
-                owner = self._bound.get((frame.sysid, frame.compid))
-                if owner is not None and not _same_station(owner, link):
+                with self._lock:
+                    owner = self._bound.live_owner(
+                        link, frame.sysid, frame.compid, self.outbound.clock.monotonic(),
+                        trusted=link.role is Role.TRUSTED,
+                    )  # fmt: skip
+                if owner is not None:
                     self._refuse(
                         direction, link, SOURCE_BOUND,
                         f"system {frame.sysid} component {frame.compid} authenticated on "
-                        f"{owner.name}: bound to that link, refused from this one",
+                        f"{owner.name}: bound to that link while it is live, refused from "
+                        "this one",
                         frame.raw,
                     )  # fmt: skip
                     continue
@@ -409,14 +418,19 @@ class MavlinkRouter:
 
     def _bind(self, link: RouterLink, frame: Frame) -> None:
         """Bind the ids a ground station authenticated with its key to its link (caller
-        holds ``_lock``); a link with the same key may use them too (a redundant link)."""
-        ids = (frame.sysid, frame.compid)
-        owner = self._bound.get(ids)
-        if owner is None or not _same_station(owner, link):
-            self._bound[ids] = link
-        self._bound.move_to_end(ids)
-        if len(self._bound) > self.max_routes:
-            self._bound.popitem(last=False)
+        holds ``_lock``); its whole system unless the vehicle links announce that system."""
+        vehicle = any(
+            where[0].role is Role.VEHICLE for where in self._routes.get(frame.sysid, {}).values()
+        )
+        moved = self._bound.bind(
+            link, frame.sysid, frame.compid, self.outbound.clock.monotonic(),
+            whole_system=not vehicle,
+        )  # fmt: skip
+        if moved is not None:
+            log.warning(
+                "ids %d/%d moved from link %s (quiet %.1f s) to link %s, authenticated",
+                frame.sysid, frame.compid, moved[0].name, moved[1], link.name,
+            )  # fmt: skip
 
     def _greet(self, link: RouterLink, peer: Peer | None, system: int) -> None:
         """Log a ground station's first authenticated frame, once per station (bounded)."""
@@ -495,18 +509,27 @@ class MavlinkRouter:
         (:meth:`_summarise_fenced`)."""
         self.stats.dropped[f"{direction}:{exc.code}"] += 1
         sender = (frame.sysid, frame.compid)
-        if not self._folds.refused(direction, link.name, str(exc.code), sender, time.monotonic()):
+        now = self.outbound.clock.monotonic()
+        if not self._folds.refused(
+            direction, link.name, str(exc.code), sender, now, below_s=exc.below_s
+        ):
             self._report(
                 FrameRefusal(
                     direction, link.name, str(exc.code), exc.reason, frame.raw, folded=True
                 )
             )
             return
-        until = until_text(self.fence(), self.outbound.clock.wall())
+        fence = self.fence()
+        why = (
+            f"fenced{until_text(fence, self.outbound.clock.wall())}"
+            if fence is not None
+            else f"the fence has passed by this router's clock: sender {sender[0]}/{sender[1]}'s"
+            " clock is behind, or this is a capture"
+        )
         self._report(
             FrameRefusal(
                 direction, link.name, str(exc.code),
-                f"{exc.reason}; fenced{until}: further refusals behind the fence are "
+                f"{exc.reason}; {why}: further refusals behind the fence are "
                 f"summarised every {FENCE_SUMMARY_S:g} s", frame.raw,
             )
         )  # fmt: skip

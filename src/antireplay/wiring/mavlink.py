@@ -163,14 +163,30 @@ def fence_notice(router: MavlinkRouter, store: ReplayStore, wall: float) -> str 
     fence = router.fence()
     if fence is None:
         return None
-    why, remedy = _FENCE_WHY.get(fence[1]) or (
-        getattr(store, "loss_reason", None)
-        or f"a {store.backend} store starts with no history of what an earlier run accepted",
-        "it passes by itself; a persistent store kept across restarts (--store "
-        "sqlite:PATH, mavlink.store) starts unfenced after a clean stop, and a state anchor "
-        "(state.anchor) proves a restored one",
-    )
+    why, remedy = _FENCE_WHY.get(fence[1]) or _lost_why(store)
     return f"fenced{until_text(fence, wall)}: {why}; {remedy}"
+
+
+def _lost_why(store: ReplayStore) -> tuple[str, str]:
+    """Why a state fences as new or lost, and what removes it: the store's own reason for
+    a loss it found at this open; a memory store's missing history; else a persistent
+    state still inside the first fence it took when it began (a restart does not end it)."""
+    reason = getattr(store, "loss_reason", None)
+    passes = "it passes by itself"
+    if store.backend == "memory":
+        return (
+            reason or "a memory store starts with no history of what an earlier run accepted",
+            f"{passes}; a persistent store kept across restarts (--store sqlite:PATH, "
+            "mavlink.store) starts unfenced after a clean stop, and a state anchor "
+            "(state.anchor) proves a restored one",
+        )
+    return (
+        reason
+        or f"this {store.backend} state is new: fenced since its first start, as "
+        "it cannot know what a run before it accepted",
+        f"{passes} (a restart does not shorten it); a state anchor (state.anchor) proves "
+        "a restored one",
+    )
 
 
 def stop_router(router: MavlinkRouter) -> None:
@@ -335,13 +351,21 @@ def trusted_endpoints(section: MavlinkConfig) -> list[str]:
     on the network anyone who reaches it commands the vehicle.  ConfigError names the
     endpoint (or an acknowledgement that names no trusted network endpoint)."""
     from antireplay.mavlink import is_local, parse_endpoint  # noqa: PLC0415
+    from antireplay.mavlink.endpoints import addresses  # noqa: PLC0415
 
-    local = {}
+    local: dict[str, bool] = {}
+    seen: dict[str, str] = {}
     for text in section.trusted:
         try:
-            local[text] = is_local(parse_endpoint(text))
+            spec = parse_endpoint(text)
         except ValueError as exc:
             raise ConfigError("mavlink.trusted", text, "an endpoint", message=str(exc)) from None
+        local[text] = is_local(spec)
+        found = (spec.host,) if local[text] else addresses(spec)
+        if not found:
+            seen[text] = f" ({spec.host} does not resolve)"
+        elif found != (spec.host.strip("[]"),):  # a name, or a literal in another form
+            seen[text] = f" ({spec.host} resolves to {', '.join(found)})"
     for text in section.trust_network:
         if local.get(text, True):
             said = "is not a --trusted endpoint" if text not in local else "is local already"
@@ -354,9 +378,10 @@ def trusted_endpoints(section: MavlinkConfig) -> list[str]:
         if not is_loopback and text not in section.trust_network:
             raise ConfigError(
                 "mavlink.trusted", text, "a loopback or serial endpoint",
-                message=f"--trusted {text}: not loopback or a serial device, and the router "
-                "signs whatever it receives with the vehicle key (anyone who reaches it "
-                "commands the vehicle); bind it to 127.0.0.1, or acknowledge this exact "
+                message=f"--trusted {text}: not loopback or a serial device"
+                f"{seen.get(text, '')}, and the router signs whatever it receives with the "
+                "vehicle key (anyone who reaches it commands the vehicle); bind it to "
+                "127.0.0.1, or acknowledge this exact "
                 f"endpoint with --trust-network {text} (mavlink.trust_network)",
             )  # fmt: skip
     return list(section.trusted)
