@@ -14,6 +14,8 @@
   and row ONE operation (``commit_with_row_async``) from an event loop, CONCURRENCY at a
   time; prints ``ANSWERED <key>`` as each is answered.  With ``HANG``: the row of message
   number HANG prints ``HANG`` and blocks inside its batch's transaction (killed there).
+* ``paired-threads N THREADS [HANG]``: the same as the thread driver takes them
+  (``commit_with_row``, blocking), from THREADS threads.
 
 The audit writer runs on a manual clock: it never fsyncs the trail by time, only when asked.
 """
@@ -61,25 +63,59 @@ async def paired(store: SqliteStore, n: int, concurrency: int, hang: int | None)
     """Accepted messages as the event-loop driver takes them: one operation each."""
     gate = asyncio.Semaphore(concurrency)
 
-    def row_of(key: str, index: int) -> Callable[[Seen], str | None]:
-        def row_for(seen: Seen) -> str | None:
-            if index == hang:
-                sys.stdout.write("HANG\n")
-                sys.stdout.flush()
-                threading.Event().wait()  # killed here, inside the transaction
-            return stored_json(row("accepted", key)) if seen.recorded else None
-
-        return row_for
-
     async def one(index: int) -> None:
         key = f"p{index}"
+        build = row_of(key, index == hang)
         async with gate:
-            seen, put = await store.commit_with_row_async(key, NOW + 30.0, NOW, row_of(key, index))
-        if seen.recorded and put:
-            sys.stdout.write(f"ANSWERED {key}\n")
-            sys.stdout.flush()
+            seen, put = await store.commit_with_row_async(key, NOW + 30.0, NOW, build)
+        answered(key, seen, put)
 
     await asyncio.gather(*(one(i) for i in range(n)))
+
+
+def row_of(key: str, hang: bool) -> Callable[[Seen], str | None]:
+    """The row a paired commit puts for ``key``; ``hang``: announce and block inside the
+    batch's transaction (killed there)."""
+
+    def row_for(seen: Seen) -> str | None:
+        if hang:
+            sys.stdout.write("HANG\n")
+            sys.stdout.flush()
+            threading.Event().wait()  # killed here, inside the transaction
+        return stored_json(row("accepted", key)) if seen.recorded else None
+
+    return row_for
+
+
+def answered(key: str, seen: Seen, put: int) -> None:
+    if seen.recorded and put:
+        sys.stdout.write(f"ANSWERED {key}\n")
+        sys.stdout.flush()
+
+
+def paired_threads(store: SqliteStore, n: int, threads: int, hang: int | None) -> None:
+    """Accepted messages as the thread driver takes them: one blocking operation each."""
+
+    def client(t: int) -> None:
+        for index in range(t, n, threads):
+            key = f"p{index}"
+            answered(key, *store.commit_with_row(key, NOW + 30.0, NOW, row_of(key, index == hang)))
+
+    work = [threading.Thread(target=client, args=(t,)) for t in range(threads)]
+    for thread in work:
+        thread.start()
+    for thread in work:
+        thread.join()
+
+
+def run_paired(store: SqliteStore, mode: str, args: list[str]) -> None:
+    """``paired`` (an event loop) or ``paired-threads`` (threads): N, its concurrency, HANG."""
+    n, concurrency = int(args[0]), int(args[1])
+    hang = int(args[2]) if len(args) > 2 else None
+    if mode == "paired":
+        asyncio.run(paired(store, n, concurrency, hang))
+    else:
+        paired_threads(store, n, concurrency, hang)
 
 
 def main() -> None:
@@ -112,9 +148,8 @@ def main() -> None:
         sys.stdout.write("ANSWERED\n")
         sys.stdout.flush()
         threading.Event().wait()  # killed here
-    elif mode == "paired":
-        hang = int(args[2]) if len(args) > 2 else None
-        asyncio.run(paired(store, int(args[0]), int(args[1]), hang))
+    elif mode in {"paired", "paired-threads"}:
+        run_paired(store, mode, args)
     elif mode == "race":
         for key in args[0].split(","):
             if accept(store, audit, key):

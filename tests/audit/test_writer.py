@@ -3,19 +3,29 @@ and a real writer killed with SIGKILL at each step of a rotation."""
 
 from __future__ import annotations
 
+import hmac
+import logging
 import os
 import signal
+import sqlite3
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
+from prometheus_client import CollectorRegistry
 
+from antireplay import ManualClock, SecurityConfig
 from antireplay.audit import AuditLog, AuditRow, Retention, tail, verify
 from antireplay.audit.segments import bytes_of, rotated
 from antireplay.core.errors import AuditFileError, StateUnavailableError
-from harness import ROOT
+from antireplay.http.metrics import StateCollector
+from antireplay.http.status import rolled_back
+from harness import ROOT, fresh_receiver
 from harness.audit import SMALL_SEGMENT, append, trail
+from harness.envelopes import registry, signed
+from harness.stores import sqlite_store
 from harness.workers.audit_worker import BUDGET
 
 
@@ -175,3 +185,67 @@ def test_writer_processes_on_one_trail_rotate_and_retain_within_budget(tmp_path:
     assert [r.seq for r in kept] == list(range(report.first_row, 1401))
     assert len({r.msg_id for r in kept}) == len(kept)
     assert {r.msg_id for r in kept} <= set(said[0]) | set(said[1])
+
+
+class _TokenKey:
+    """A head key in a token (``MacKey``) that can be pulled: then every MAC raises, as a
+    failing PKCS#11 token does (``TokenUnavailableError`` is an ``OSError``)."""
+
+    def __init__(self) -> None:
+        self.down = False
+
+    def mac(self, data: bytes, /) -> bytes:
+        if self.down:
+            raise OSError("token removed")
+        return hmac.new(b"k" * 32, data, "sha256").digest()
+
+
+def _head_behind(registry: CollectorRegistry) -> tuple[float | None, float | None]:
+    return (
+        registry.get_sample_value("antireplay_audit_head_behind"),
+        registry.get_sample_value("antireplay_audit_head_failures_total"),
+    )
+
+
+def test_a_head_key_token_failing_on_a_sqlite_state_is_said_at_once_not_at_close(
+    tmp_path: Path, clock: ManualClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Commands keep being accepted (their rows reach the trail through the state's
+    outbox) but the head checkpoint cannot be MACed: said at once, as a log line, the
+    ``antireplay_audit_head_behind`` gauge, a failure counter and the readiness warning
+    ``AUDIT_HEAD_BEHIND``; the outbox keeps the rows; with the token back the head
+    catches up, the warning clears and the trail verifies with the key."""
+    key = _TokenKey()
+    store = sqlite_store(tmp_path / "state.db", clock=clock)
+    audit = AuditLog(tmp_path / "audit.db", clock=clock, head_key=key)
+    audit.attach(store.outbox())
+    receiver = fresh_receiver(SecurityConfig(), registry(), store, audit, clock)
+    metrics = CollectorRegistry()
+    metrics.register(StateCollector(receiver))
+    assert receiver.receive(signed(msg_id="before")).accepted
+    assert _head_behind(metrics) == (0, 0) and rolled_back(audit) is None
+    key.down = True
+    clock.advance(audit.head_sync_s)  # the next drain checkpoints the head
+    with caplog.at_level(logging.ERROR, logger="antireplay.audit"):
+        assert receiver.receive(signed(msg_id="during")).accepted  # still served
+        deadline = time.monotonic() + 30
+        while audit.head_failures == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)  # the drain runs on the audit writer's thread
+    assert audit.head_failures >= 1
+    assert any("cannot be written" in r.getMessage() for r in caplog.records)
+    behind, failures = _head_behind(metrics)
+    assert behind == 1 and failures is not None and failures >= 1
+    assert rolled_back(audit) == "AUDIT_HEAD_BEHIND: token removed"
+    with sqlite3.connect(tmp_path / "state.db") as db:  # kept until the head vouches for them
+        assert db.execute("SELECT count(*) FROM outbox").fetchone()[0] >= 1
+    key.down = False
+    clock.advance(audit.head_sync_s)
+    assert receiver.receive(signed(msg_id="after")).accepted
+    audit.drain()
+    assert audit.head_behind is None and _head_behind(metrics)[0] == 0
+    receiver.close()
+    store.close()
+    rows = {r.msg_id for r in tail(tmp_path / "audit.db", 20)}
+    assert {"before", "during", "after"} <= rows
+    report = verify(tmp_path / "audit.db", head_key=key)
+    assert report.chain_ok and report.head == "match", report.lines()

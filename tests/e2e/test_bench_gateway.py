@@ -40,3 +40,8 @@ def test_a_short_run_prints_a_verdict_for_every_row_it_ran() -> None:
     for row in ("fresh c=32", "flood c=32", "ESTOP in flood", "in-process", "refusals"):
         assert re.search(rf"^{re.escape(row)} +quiet .* (PASS|MISS)$", out, re.MULTILINE), out
     assert re.search(r"\(40/40\)", out), out  # every ESTOP accepted during the flood
+    # The ESTOP row judges the gateway's own figure; the client's is printed beside it.
+    estop = re.search(
+        r"^ESTOP in flood +quiet +p99 in the gateway .*\n +\(judged inside", out, re.M
+    )
+    assert estop is not None and "the client's p99 beside it" in out, out

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 import logging
 import sqlite3
@@ -483,3 +484,37 @@ def test_a_folded_refusal_builds_no_audit_row(
     assert all(o.code == "REPLAY_DETECTED" for o in outcomes)
     assert receiver.stats.unaudited >= 150  # folded into the summary
     assert len(built) == 200 - receiver.stats.unaudited  # one row per admitted refusal
+
+
+def test_an_accepted_command_on_a_thread_is_one_durable_trip_like_the_loops(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """The thread driver takes the loop driver's paired path: with the trail's outbox in
+    the SQLite store, an accepted command's entry and row are ONE committer operation (two
+    before); racing twins on threads get one acceptance and one refusal row; an ESTOP still
+    takes its two bounded steps; the chain verifies."""
+    store = sqlite_store(tmp_path / "state.db", clock=clock)
+    audit = AuditLog(tmp_path / "audit.db", clock=clock)
+    audit.attach(store.outbox())
+    receiver = fresh_receiver(SecurityConfig(), registry(), store, audit, clock)
+    committer = store.group_commit
+    before = committer.operations
+    assert receiver.receive(signed(msg_id="thread-1")).accepted
+    assert committer.operations - before == 1  # the entry and its row: one operation
+    twins = [signed(msg_id="twin", cmd=c) for c in ("a", "b")]
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        raced = list(pool.map(receiver.receive, twins))
+    assert sorted((o.accepted, o.code or "") for o in raced) == [
+        (False, "REPLAY_DETECTED"),
+        (True, ""),
+    ]
+    before = committer.operations
+    assert receiver.receive(signed(type=6, safety_event="ESTOP", cmd="estop")).accepted
+    assert committer.operations - before == 2  # its entry, then its row (spillable)
+    receiver.close()
+    rows = AuditLog(tmp_path / "audit.db").tail(20)
+    assert [r.outcome for r in rows if r.msg_id == "thread-1"] == ["accepted"]
+    twin = sorted((r.outcome, r.code or "") for r in rows if r.msg_id == "twin")
+    assert twin == [("accepted", ""), ("rejected", "REPLAY_DETECTED")]
+    assert verify(tmp_path / "audit.db").ok
+    store.close()

@@ -57,10 +57,14 @@ def test_concurrent_accepts_cost_at_most_one_fsync_per_batch(tmp_path: Path) -> 
     assert fsyncs < n, f"{fsyncs} fsyncs for {n} accepted messages"
 
 
-def test_a_paired_accept_is_one_operation_and_batches_fsync_once(tmp_path: Path) -> None:
-    """The gateway's trip: entry and row ONE operation (not two), one fsync per batch."""
+@pytest.mark.parametrize("driver", ["paired", "paired-threads"])
+def test_a_paired_accept_is_one_operation_and_batches_fsync_once(
+    tmp_path: Path, driver: str
+) -> None:
+    """Either driver's trip (event loop, threads): entry and row ONE operation (not two),
+    one fsync per batch."""
     n = 640
-    fsyncs, batches, ops = traced(tmp_path, "paired", str(n), "32")
+    fsyncs, batches, ops = traced(tmp_path, driver, str(n), "32")
     assert ops == n
     assert fsyncs <= batches + SETUP_FSYNCS, f"{fsyncs} fsyncs for {batches} batches"
     assert fsyncs < n, f"{fsyncs} fsyncs for {n} accepted messages"
@@ -149,14 +153,16 @@ def outbox_accepted(state: Path) -> Counter[str]:
     return Counter(m for (m,) in found)
 
 
+@pytest.mark.parametrize("driver", ["paired", "paired-threads"])
 @pytest.mark.parametrize("hang", [0, 7, 150])
 def test_kill_9_inside_a_paired_batch_keeps_entry_and_row_together(
-    tmp_path: Path, hang: int
+    tmp_path: Path, hang: int, driver: str
 ) -> None:
     """Killed inside a batch's transaction (a row being built, its entry written but not
-    committed): that batch leaves neither entries nor rows; every answered message has
-    both; no entry without its row, no row without its entry, before and after a restart."""
-    printed = run_until(tmp_path, "HANG", "paired", "200", "16", str(hang))
+    committed), under either driver (event loop, threads): that batch leaves neither
+    entries nor rows; every answered message has both; no entry without its row, no row
+    without its entry, before and after a restart."""
+    printed = run_until(tmp_path, "HANG", driver, "200", "16", str(hang))
     answered = {line.split()[1] for line in printed if line.startswith("ANSWERED")}
     assert f"p{hang}" not in answered
     seen = seen_keys(tmp_path / "state.db")

@@ -28,7 +28,7 @@ import json
 import logging
 import sqlite3
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future
 from os import PathLike
 from pathlib import Path
@@ -149,6 +149,11 @@ class AuditLog(SegmentLifecycle):
         #: not), and how often; the flag holds until the process stops.
         self.rolled_back: str | None = None
         self.rollbacks = 0
+        #: Why the last head checkpoint could not be written (a head key in a token that
+        #: failed, the head file): the rows are in the trail but its head lags them
+        #: (``None``: written).  ``head_failures`` counts failed checkpoints.
+        self.head_behind: str | None = None
+        self.head_failures = 0
         self._last_moved = 0
         #: The connection whose ``synchronous`` was last set, and to FULL (True) or not.
         self._synchronous: tuple[sqlite3.Connection | None, bool] = (None, True)
@@ -261,10 +266,9 @@ class AuditLog(SegmentLifecycle):
                 if self._live_since is None and done.first_at is not None:
                     self._live_since = valid_at(done.first_at)
                 if outbox is None:  # the head under the lock: never a retention's stale mark
-                    self._checkpoint()
+                    self._head_written(self._checkpoint)
                 elif sync:  # the head claims only rows made durable; so does the outbox's delete
-                    self._checkpoint(sync=True)
-                    self._forget(outbox, done.mark)
+                    self._head_written(lambda: self._checkpoint(sync=True, forget=done.mark))
                 else:
                     self._head_dirty = True
             if spilled:
@@ -393,15 +397,38 @@ class AuditLog(SegmentLifecycle):
         else:
             log.warning("audit trail writable again: %d spilled rows merged", n)
 
-    def _checkpoint(self, *, sync: bool = False) -> None:
+    def _head_written(self, checkpoint: Callable[[], None]) -> None:
+        """Run ``checkpoint``; a head that cannot be written is said at once (logged when
+        it starts and ends, :attr:`head_behind` for the metric and readiness), never only
+        at close: the batch still fails, so the outbox keeps the rows it moved."""
+        try:
+            checkpoint()
+        except (OSError, sqlite3.Error, AuditFileError) as exc:
+            self.head_failures += 1
+            if self.head_behind is None:
+                log.error(
+                    "audit head %s cannot be written (%s): rows still reach the trail but its "
+                    "head checkpoint lags them and the state's outbox keeps them; AUDIT_HEAD_"
+                    "BEHIND until a checkpoint is written", self.anchor.path, exc,
+                )  # fmt: skip
+            self.head_behind = str(exc)[:200] or type(exc).__name__
+            raise
+        if self.head_behind is not None:
+            log.warning("audit head %s written again", self.anchor.path)
+            self.head_behind = None
+
+    def _checkpoint(self, *, sync: bool = False, forget: Mark | None = None) -> None:
         """Rewrite the head after a batch (the caller holds the lock); fsync it only once
-        ``head_sync_s`` has passed since the last fsync (see the module docstring)."""
+        ``head_sync_s`` has passed since the last fsync (see the module docstring); then,
+        given the drained ``forget`` mark, the outbox forgets what the trail holds."""
         now = self._clock.monotonic()
         sync = sync or now - self._head_synced >= self.head_sync_s
         self.anchor.write(self._key, self._rows, self._head, sync=sync, first=self._first)
         if sync:
             self._head_synced = now
         self._head_dirty = not sync
+        if forget is not None and self._outbox is not None:
+            self._forget(self._outbox, forget)
 
     def tail(self, n: int = 20) -> list[Record]:
         """The newest ``n`` records across segments (read-only connections), the outbox's

@@ -228,6 +228,9 @@ class StateCollector(Collector):
             ("antireplay_audit_rolled_back",
              "Trails found rolled back against the head the state database recorded",
              0 if receiver.audit is None else receiver.audit.rollbacks),
+            ("antireplay_audit_head_failures",
+             "Audit head checkpoints that could not be written (a failing head key token)",
+             0 if receiver.audit is None else receiver.audit.head_failures),
             ("antireplay_audit_rotations_postponed",
              "Due rotations that waited for another writer or reader of the trail",
              0 if receiver.audit is None else receiver.audit.rotations_postponed),
@@ -238,6 +241,9 @@ class StateCollector(Collector):
         gauges: list[tuple[str, str, float]] = [
             ("antireplay_audit_refusals_pending", "Folded refusals not summarised yet",
              auditor.pending),
+            ("antireplay_audit_head_behind", "1 while the audit head checkpoint cannot be "
+             "written (rows reach the trail, its head lags them), else 0",
+             0 if receiver.audit is None or receiver.audit.head_behind is None else 1),
         ]  # fmt: skip
         if receiver.space is not None:
             gauges += [

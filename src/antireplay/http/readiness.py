@@ -5,11 +5,13 @@ and the audit trail an append now, free space under the trail is above its secon
 the store's fence (a start with no history, a loss it noticed) no longer lies ahead; else 503
 with the reason, since every command would be refused too (``fenced until T``: a fresh ESTOP
 still passes).  A trail found behind the state's record of it adds a ``warning``
-(``AUDIT_ROLLED_BACK``) without failing readiness: the replay state is intact.  The probes
-record nothing (the store's ``ready()``: a read, a write lock taken and released; the same
-lock on the audit file), so a probe never notices a loss in place of the commit that fences
-and audits it.  The gateway serves :func:`ready_endpoint` at ``/readyz``; an app that embeds
-the guard mounts the same endpoint (``GuardBase.ready_endpoint``).
+(``AUDIT_ROLLED_BACK``) without failing readiness: the replay state is intact; so does
+a head checkpoint that cannot be written (``AUDIT_HEAD_BEHIND``: a failing head key
+token).  The probes record nothing (the store's ``ready()``: a read, a write lock taken
+and released; the same lock on the audit file), so a probe never notices a loss in place
+of the commit that fences and audits it.  The gateway serves :func:`ready_endpoint` at
+``/readyz``; an app that embeds the guard mounts the same endpoint
+(``GuardBase.ready_endpoint``).
 """
 
 from __future__ import annotations

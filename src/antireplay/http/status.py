@@ -76,8 +76,12 @@ Samples = dict[str, list[tuple[dict[str, str], float]]]
 
 def rolled_back(audit: AuditLog) -> str | None:
     """``AUDIT_ROLLED_BACK: why`` while the trail was found rolled back against the state's
-    record of its head (commands are still served: the replay state is intact)."""
-    return None if audit.rolled_back is None else f"AUDIT_ROLLED_BACK: {audit.rolled_back}"
+    record of its head, else ``AUDIT_HEAD_BEHIND: why`` while its head checkpoint cannot be
+    written (commands are still served: the replay state is intact, every row reaches the
+    trail; what lags is the MACed head that vouches for them)."""
+    if audit.rolled_back is not None:
+        return f"AUDIT_ROLLED_BACK: {audit.rolled_back}"
+    return None if audit.head_behind is None else f"AUDIT_HEAD_BEHIND: {audit.head_behind}"
 
 
 def snapshot(

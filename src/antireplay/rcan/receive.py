@@ -8,7 +8,9 @@ accepted bodies, the disk floor, QoS retransmissions, the refusal auditor, what 
 failure does to the answer) are :class:`~antireplay.rcan.receive_shared.ReceiverBase`'s,
 written once.  This module is the thread driver: :meth:`Receiver.receive` parses, checks,
 authenticates, commits (:class:`~antireplay.state.replay.ReplayCache`) and queues the
-audit row on the calling thread, then blocks until the row is durable.  The event-loop
+audit row on the calling thread, then blocks until the row is durable; with the trail's
+outbox in the SQLite store an accepted command's entry and row are ONE operation of one
+batch (:meth:`~ReceiverBase._pair`, the rule both drivers share).  The event-loop
 driver (:class:`~antireplay.rcan.receive_loop.LoopDriver`) serves
 :meth:`Receiver.receive_async`: it refuses junk and known replays on the loop and hands a
 thread at most one job (the signature).
@@ -25,7 +27,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from functools import cached_property
 
-from antireplay.core.errors import ReplayAttackError
+from antireplay.core.errors import ReplayAttackError, StateUnavailableError
+from antireplay.core.window import Seen
 from antireplay.rcan.receive_loop import LoopDriver
 from antireplay.rcan.receive_shared import (
     HELD_ROWS,
@@ -37,8 +40,9 @@ from antireplay.rcan.receive_shared import (
     queue_row,
     wait,
 )
-from antireplay.rcan.steps import Checked, NeedsCommit, Outcome
+from antireplay.rcan.steps import Checked, Done, NeedsCommit, Outcome
 from antireplay.state import Offload
+from antireplay.state.sqlite import SqliteStore
 
 __all__ = ["HELD_ROWS", "SHAPE_ERRORS", "Offload", "Outcome", "Pending", "Receiver", "Stats"]
 
@@ -67,6 +71,9 @@ class Receiver(ReceiverBase):
         )
         step = self._floor(step)
         if isinstance(step, NeedsCommit):
+            paired = self._paired_store(step)
+            if paired is not None:
+                return self._commit_paired(raw, step, paired)
             env = step.env
             try:
                 verdict = self.cache.commit(env.msg_id, env.seconds, *step.cls)
@@ -74,12 +81,32 @@ class Receiver(ReceiverBase):
                 step = step.refused(exc)
             else:
                 return self._accept(raw, step, verdict)
-        entry, step = self._retry_entry(step)
+        return self._refused(step)
+
+    def _refused(self, done: Done) -> Pending:
+        """The refusal, or a QoS retransmission's original answer when it is held here."""
+        entry, done = self._retry_entry(done)
         if entry is not None and entry.answer is not None:
-            return self._answer_retry(entry, entry.answer, step)
+            return self._answer_retry(entry, entry.answer, done)
         if entry is not None:  # in flight: only an event loop waits (receive_async)
-            step = not_held(step, "original answer not held here yet (still in flight)")
-        return self._reject(step)
+            done = not_held(done, "original answer not held here yet (still in flight)")
+        return self._reject(done)
+
+    def _commit_paired(self, raw: bytes, step: NeedsCommit, store: SqliteStore) -> Pending:
+        """One durable trip, the loop driver's rule (:meth:`ReceiverBase._pair`,
+        :meth:`ReceiverBase._paired`): the entry and its accepted row in one operation of
+        the store's next batch, waited for on this thread; a refusal goes on as below."""
+        try:
+            plan, now, row = self._pair(step)
+        except ReplayAttackError as exc:
+            return self._refused(step.refused(exc))
+        found: Seen | StateUnavailableError
+        try:
+            found, put = store.commit_with_row(plan.msg_id, plan.expires_at, now, row)
+        except StateUnavailableError as exc:
+            found, put = exc, 0
+        got = self._paired(raw, step, plan=plan, now=now, found=found, put=put)
+        return self._refused(got) if isinstance(got, Done) else got
 
     # --- the event-loop driver's entry points ------------------------------------------------
 

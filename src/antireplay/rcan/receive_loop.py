@@ -13,8 +13,9 @@ hand-off; the rest (the signature, and a network store's check) is ONE job in
 ``urgent`` (the lane the gateway's workers take first; on a network store, chosen before
 its check).  The store's ``commit_async`` and every audit row are awaited on the loop.
 With the trail's outbox in the SQLite store, an accepted command's entry and row are ONE
-operation of one batch (one fsync, one answer back to the loop); an ESTOP's stay apart
-(their bounded waits and the spill need them so).
+operation of one batch (one fsync, one answer back to the loop), by the rule the thread
+driver follows too (:meth:`ReceiverBase._pair`); an ESTOP's stay apart (their bounded
+waits and the spill need them so).
 
 A QoS retransmission whose original is still in flight waits on the loop for the
 original's answer (at most ``answer_wait_s``).  An accepted message whose audit row failed
@@ -26,13 +27,10 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Mapping
-from dataclasses import replace
-from typing import cast
 
-from antireplay.audit.writer import stored_json
 from antireplay.core.errors import ReplayAttackError, StateUnavailableError
 from antireplay.core.messages import MessageType
-from antireplay.core.window import Refusal, Seen, is_estop
+from antireplay.core.window import Seen
 from antireplay.rcan.receive_shared import (
     Pending,
     ReceiverBase,
@@ -40,7 +38,7 @@ from antireplay.rcan.receive_shared import (
     patience,
     queue_row,
 )
-from antireplay.rcan.steps import Done, NeedsCommit, Outcome, accepted_row, may_retry
+from antireplay.rcan.steps import Done, NeedsCommit, Outcome, may_retry
 from antireplay.state import Offload, in_executor
 from antireplay.state.sqlite import SqliteStore
 
@@ -121,8 +119,9 @@ class LoopDriver:
         step = r._floor(step)
         if isinstance(step, Done):
             return await self._refuse(step)
-        if r.audit is not None and not is_estop(*step.cls) and r.audit.pairs_with(r.cache.store):
-            return await self._commit_paired(raw, step)
+        paired = r._paired_store(step)
+        if paired is not None:
+            return await self._commit_paired(raw, step, paired)
         env = step.env
         try:
             verdict = await r.cache.commit_async(env.msg_id, env.seconds, *step.cls, run)
@@ -130,41 +129,22 @@ class LoopDriver:
             return await self._refuse(step.refused(exc))
         return self._queued(r._accept(raw, step, verdict))
 
-    async def _commit_paired(self, raw: bytes, step: NeedsCommit) -> Pending:
-        """One durable trip: the entry and its accepted row in one operation of the SQLite
-        store's next batch (:class:`~antireplay.state.outbox.Paired`).  The writer judges the
-        commit with the window's own pure ``decide`` (what :meth:`ReplayCache.finish_commit`
-        judges here after it) and puts the row only if it accepts; a refusal's row is
-        queued apart, as before."""
+    async def _commit_paired(self, raw: bytes, step: NeedsCommit, store: SqliteStore) -> Pending:
+        """One durable trip (:meth:`ReceiverBase._pair`, :meth:`ReceiverBase._paired`, the
+        rule both drivers share): the entry and its accepted row in one operation of the
+        store's next batch, awaited on the loop; a refusal's row is queued apart."""
         r = self.receiver
-        cache, env = r.cache, step.env
         try:
-            plan, now = cache.begin_commit(env.msg_id, env.seconds, *step.cls)
+            plan, now, row = r._pair(step)
         except ReplayAttackError as exc:
             return await self._refuse(step.refused(exc))
-        decide = cache.policy.decide
-        template = accepted_row(step, r.clock.wall())
-
-        def row(seen: Seen) -> str | None:
-            verdict = decide(
-                plan, seen.expiry, seen.watermark, seen.fence, seen.recorded, seen.full, now
-            )
-            if isinstance(verdict, Refusal):
-                return None
-            warning = verdict.warning
-            return stored_json(template if warning is None else replace(template, warning=warning))
-
-        store = cast(SqliteStore, cache.store)
         found: Seen | StateUnavailableError
         try:
             found, put = await store.commit_with_row_async(plan.msg_id, plan.expires_at, now, row)
         except StateUnavailableError as exc:
             found, put = exc, 0
-        try:
-            verdict = cache.finish_commit(plan, now, found)
-        except ReplayAttackError as exc:
-            return await self._refuse(step.refused(exc))
-        return self._queued(r._accept(raw, step, verdict, audited=put > 0))
+        got = r._paired(raw, step, plan=plan, now=now, found=found, put=put)
+        return await self._refuse(got) if isinstance(got, Done) else self._queued(got)
 
     def reject_known_copy(self, raw: bytes) -> Pending | None:
         """Step 0 without blocking: a byte-identical copy of an accepted message is refused

@@ -32,14 +32,16 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import Future
 from dataclasses import dataclass, field, replace
+from typing import cast
 
 from antireplay.audit import AuditLog, AuditRow, RefusalAuditor
 from antireplay.audit.refusals import AUDIT_PER_S
 from antireplay.audit.space import DiskSpace
 from antireplay.audit.spill import SLOTS as HELD_ROWS  # ESTOP rows held for the trail
+from antireplay.audit.writer import stored_json
 from antireplay.core.clock import Clock, resolve
 from antireplay.core.errors import (
     Code,
@@ -49,7 +51,7 @@ from antireplay.core.errors import (
     WarningCode,
 )
 from antireplay.core.settings import SecurityConfig
-from antireplay.core.window import Refusal, Verdict, estop_survives, is_estop
+from antireplay.core.window import Refusal, Seen, Verdict, estop_survives, is_estop
 from antireplay.rcan.answers import QOS_RETRY, AnswerMemo, Entry, HeldAnswer
 from antireplay.rcan.auth import JwtVerifier, KeyRegistry
 from antireplay.rcan.envelope import MAX_BYTES
@@ -59,13 +61,14 @@ from antireplay.rcan.steps import (
     NeedsCommit,
     Outcome,
     Steps,
+    accepted_row,
     audit_row,
     may_retry,
     row_sender,
 )  # fmt: skip
 from antireplay.state import ReplayStore
 from antireplay.state.replay import ReplayCache
-from antireplay.state.sqlite import SAFETY_WAIT_S
+from antireplay.state.sqlite import SAFETY_WAIT_S, SqliteStore
 
 SHAPE_ERRORS = frozenset({Code.INVALID_ENVELOPE, Code.INVALID_MESSAGE_ID, Code.INVALID_TIMESTAMP})
 
@@ -247,6 +250,58 @@ class ReceiverBase:
         memo = (raw, verdict.expires_at, accepted.qos) if accepted.memo else None
         pending = Pending(accepted.outcome, memo=memo, estop=verdict.estop)
         return pending if audited else self._with_row(pending)
+
+    # --- one durable trip: an accepted command's entry and row as one operation -------------
+
+    def _paired_store(self, step: NeedsCommit) -> SqliteStore | None:
+        """The SQLite store whose next batch takes ``step``'s entry and its accepted row as
+        ONE operation (:class:`~antireplay.state.outbox.Paired`: one fsync, one answer), or
+        ``None``: two apart (no trail, a trail not in that store's outbox, or an ESTOP,
+        whose bounded waits and spill need them apart).  Both drivers ask here."""
+        audit = self.audit
+        if audit is None or is_estop(*step.cls) or not audit.pairs_with(self.cache.store):
+            return None
+        return cast(SqliteStore, self.cache.store)
+
+    def _pair(self, step: NeedsCommit) -> tuple[Verdict, float, Callable[[Seen], str | None]]:
+        """The paired commit's first half: the plan on a fresh ``now`` (raises the
+        refusal the known fence or watermark gives) and the row the store's writer puts
+        with the entry, in the same transaction, only if the window's own pure ``decide``
+        accepts what the commit found (what :meth:`ReplayCache.finish_commit` judges after)."""
+        cache = self.cache
+        plan, now = cache.begin_commit(step.env.msg_id, step.env.seconds, *step.cls)
+        decide = cache.policy.decide
+        template = accepted_row(step, self.clock.wall())
+
+        def row(seen: Seen) -> str | None:
+            verdict = decide(
+                plan, seen.expiry, seen.watermark, seen.fence, seen.recorded, seen.full, now
+            )
+            if isinstance(verdict, Refusal):
+                return None
+            warning = verdict.warning
+            return stored_json(template if warning is None else replace(template, warning=warning))
+
+        return plan, now, row
+
+    def _paired(
+        self,
+        raw: bytes,
+        step: NeedsCommit,
+        *,
+        plan: Verdict,
+        now: float,
+        found: Seen | StateUnavailableError,
+        put: int,
+    ) -> Pending | Done:
+        """The paired commit's second half: the accepted message (its row durable already
+        when the writer ``put`` it: a row id, 0 for none), or the refusal for the driver
+        to answer."""
+        try:
+            verdict = self.cache.finish_commit(plan, now, found)
+        except ReplayAttackError as exc:
+            return step.refused(exc)
+        return self._accept(raw, step, verdict, audited=put > 0)
 
     def _with_row(self, pending: Pending) -> Pending:
         """``pending`` with its audit row (always recorded: not a refusal's)."""

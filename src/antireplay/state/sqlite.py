@@ -428,6 +428,13 @@ class SqliteStore:
             return cast("asyncio.Future[Seen]", waiter)
         return asyncio.ensure_future(_bounded(cast("asyncio.Future[Seen]", waiter), self.path))
 
+    def commit_with_row(
+        self, key: str, expires_at: float, now: float, row: Callable[[Seen], str | None]
+    ) -> PairedResult:
+        """:meth:`commit_with_row_async` for a thread: block until the batch is durable."""
+        waiter = self._committer.enqueue(Paired((key, expires_at, now, False), row))
+        return cast(PairedResult, waiter.result())
+
     def commit_with_row_async(
         self, key: str, expires_at: float, now: float, row: Callable[[Seen], str | None]
     ) -> asyncio.Future[PairedResult]:
