@@ -75,7 +75,7 @@ async def paired(store: SqliteStore, n: int, concurrency: int, hang: int | None)
         key = f"p{index}"
         async with gate:
             seen, put = await store.commit_with_row_async(key, NOW + 30.0, NOW, row_of(key, index))
-        if seen.recorded and put:
+        if isinstance(seen, Seen) and seen.recorded and put:
             sys.stdout.write(f"ANSWERED {key}\n")
             sys.stdout.flush()
 

@@ -66,6 +66,14 @@ def test_a_paired_accept_is_one_operation_and_batches_fsync_once(tmp_path: Path)
     assert fsyncs < n, f"{fsyncs} fsyncs for {n} accepted messages"
 
 
+def test_a_paired_accept_is_fsynced_before_its_answer(tmp_path: Path) -> None:
+    """Persist, then believe: one at a time (c=1), each paired entry and row is answered
+    only after an fsync of its own batch (``Paired.durable``), like an ``accept``'s row."""
+    n = 60
+    fsyncs, _, _ = traced(tmp_path, "paired", str(n), "1")
+    assert n <= fsyncs <= n + SETUP_FSYNCS, f"{fsyncs} fsyncs for {n} accepted messages"
+
+
 def test_refusals_are_answered_without_an_fsync(tmp_path: Path) -> None:
     fsyncs, batches, _ = traced(tmp_path, "refuse", "200")
     assert batches >= 200 and fsyncs <= SETUP_FSYNCS
