@@ -480,6 +480,7 @@ class SqliteStore:
         # this thread (a stat on the loop waits for the GIL after it), before BEGIN (never
         # holding the write lock); a check that fails is "not there", never the batch's.
         rows = not any(isinstance(op, Paired) for op in ops) or self._trail_there()
+        lost = False  # a loss still unheard after the batch (by body)
 
         def body(db: sqlite3.Connection) -> tuple[list[Seen | int | PairedResult], _Meta]:
             generation, watermark, fence, losses = self._meta_checked(db)
@@ -510,8 +511,6 @@ class SqliteStore:
                 lost = lost and not heard
                 done.append(answer)
             return done, (generation, watermark, fence, losses)
-
-        lost = False
 
         def tx() -> list[Seen | int | PairedResult]:
             answers = self._transaction(body, durable=any(self._durable(op) for op in ops))
