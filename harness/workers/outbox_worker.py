@@ -87,8 +87,8 @@ def row_of(key: str, hang: bool) -> Callable[[Seen], str | None]:
     return row_for
 
 
-def answered(key: str, seen: Seen, put: int) -> None:
-    if seen.recorded and put:
+def answered(key: str, seen: Seen | Exception, put: int) -> None:
+    if isinstance(seen, Seen) and seen.recorded and put:
         sys.stdout.write(f"ANSWERED {key}\n")
         sys.stdout.flush()
 

@@ -678,3 +678,27 @@ def test_a_refusal_flood_is_answered_with_its_nack_encoded_once(receiver: Receiv
         assert guard._nack_body(failed, failed.error) is not guard._nack_body(failed, failed.error)
     finally:
         guard.close()
+
+
+def test_a_cached_nack_is_never_another_messages(receiver: Receiver) -> None:
+    """Two replays refused with the same code, reason and detail but different msg_ids: each
+    body names its own msg_id (the cache key holds it); ``None`` and ``""`` differ too."""
+    guard = GuardBase(receiver)
+    try:
+        bodies = []
+        for msg_id in ("replay-a", "replay-b"):
+            raw = signed(msg_id=msg_id)
+            assert receiver.receive(raw).accepted
+            again = receiver.receive(raw)
+            assert again.error is not None
+            bodies.append((again, json.loads(guard._nack_body(again, again.error))))
+        (a, body_a), (b, body_b) = bodies
+        assert a.error is not None and b.error is not None
+        assert (a.error.coded_reason, a.error.detail) == (b.error.coded_reason, b.error.detail)
+        assert body_a["ref_msg_id"] == "replay-a" and body_b["ref_msg_id"] == "replay-b"
+        assert body_a == a.nack and body_b == b.nack
+        blank = Outcome(False, 409, msg_id="", error=a.error)
+        unnamed = Outcome(False, 409, msg_id=None, error=a.error)
+        assert guard._nack_body(blank, a.error) != guard._nack_body(unnamed, a.error)
+    finally:
+        guard.close()

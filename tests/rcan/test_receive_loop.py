@@ -159,3 +159,47 @@ def test_a_paired_row_is_not_put_once_the_trail_is_gone(tmp_path: Path, clock: M
     rows = [(r.msg_id, r.outcome) for r in AuditLog(trail).tail(20)]
     assert ("gone-1", "accepted") not in rows and ("back-1", "accepted") in rows
     store.close()
+
+
+def test_a_trail_that_cannot_be_stated_is_unavailable_typed(
+    tmp_path: Path, clock: ManualClock
+) -> None:
+    """The trail's directory replaced by a regular file (``stat``: ENOTDIR, as EIO or
+    EACCES): never a raw ``OSError`` from the loop or the state writer's batch.  Commands
+    are refused ``STATE_UNAVAILABLE``; a fresh ESTOP, alone or between paired commands, is
+    delivered flagged ``AUDIT_UNAVAILABLE``, its row spilled and its entry recorded."""
+    store = sqlite_store(tmp_path / "state.db", clock=clock)
+    (tmp_path / "trail").mkdir()
+    audit = AuditLog(tmp_path / "trail" / "audit.db", clock=clock, spill_path=tmp_path / "s.db")
+    audit.attach(store.outbox())
+    receiver = fresh_receiver(SecurityConfig(), registry(), store, audit, clock)
+
+    async def offload(fn: Callable[..., Any], *args: Any) -> Any:
+        return fn(*args)
+
+    def estop(msg_id: str) -> bytes:
+        return signed(type=6, safety_event="ESTOP", cmd="estop", msg_id=msg_id)
+
+    async def scenario() -> list[Outcome]:
+        first = await receiver.receive_async(signed(msg_id="cmd-1"), None, offload)
+        alone = await receiver.receive_async(estop("es-1"), None, offload, offload)
+        mixed = await asyncio.gather(
+            receiver.receive_async(signed(msg_id="cmd-2"), None, offload),
+            receiver.receive_async(estop("es-2"), None, offload, offload),
+            receiver.receive_async(signed(msg_id="cmd-3"), None, offload),
+        )
+        return [first, alone, *mixed]
+
+    assert asyncio.run(receiver.receive_async(signed(msg_id="ok-1"), None, offload)).accepted
+    (tmp_path / "trail").rename(tmp_path / "aside")
+    (tmp_path / "trail").write_text("not a directory")
+    cmd1, es1, cmd2, es2, cmd3 = asyncio.run(scenario())
+    for refused in (cmd1, cmd2, cmd3):
+        assert (refused.accepted, refused.code) == (False, "STATE_UNAVAILABLE")
+    for delivered in (es1, es2):
+        assert delivered.accepted and delivered.warning == "AUDIT_UNAVAILABLE"
+    assert receiver.stats.spilled == 2
+    keys = store.read_outbox(lambda db: {k for (k,) in db.execute("SELECT key FROM seen")})
+    assert {"es-1", "es-2"} <= keys
+    receiver.close()
+    store.close()

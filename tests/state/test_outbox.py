@@ -3,6 +3,7 @@ answered before their fsync, kill -9 at the worst points, processes sharing one 
 
 from __future__ import annotations
 
+import asyncio
 import os
 import re
 import signal
@@ -14,9 +15,15 @@ from pathlib import Path
 
 import pytest
 
+from antireplay import SecurityConfig
 from antireplay.audit import AuditLog, verify
 from antireplay.core.clock import ManualClock
+from antireplay.core.errors import StateUnavailableError
+from antireplay.core.window import Seen
 from antireplay.state.sqlite import SqliteStore
+from harness import fresh_receiver
+from harness.envelopes import NOW, registry, signed
+from harness.stores import sqlite_store
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"}
@@ -68,6 +75,14 @@ def test_a_paired_accept_is_one_operation_and_batches_fsync_once(
     assert ops == n
     assert fsyncs <= batches + SETUP_FSYNCS, f"{fsyncs} fsyncs for {batches} batches"
     assert fsyncs < n, f"{fsyncs} fsyncs for {n} accepted messages"
+
+
+def test_a_paired_accept_is_fsynced_before_its_answer(tmp_path: Path) -> None:
+    """Persist, then believe: one at a time (c=1), each paired entry and row is answered
+    only after an fsync of its own batch (``Paired.durable``), like an ``accept``'s row."""
+    n = 60
+    fsyncs, _, _ = traced(tmp_path, "paired", str(n), "1")
+    assert n <= fsyncs <= n + SETUP_FSYNCS, f"{fsyncs} fsyncs for {n} accepted messages"
 
 
 def test_refusals_are_answered_without_an_fsync(tmp_path: Path) -> None:
@@ -212,3 +227,58 @@ def test_processes_sharing_one_state_and_trail_accept_once_and_chain_once(
     assert outbox_rows(tmp_path / "state.db") == 0
     report = verify(tmp_path / "audit.db")
     assert report.chain_ok and report.head == "match", report.lines()
+
+
+def test_a_live_rollback_noticed_by_an_outbox_only_batch_is_still_audited(
+    tmp_path: Path,
+) -> None:
+    """The state restored under a running gateway, noticed first by a batch of one outbox
+    Forget (no seen-set record to tell): the loss waits for the next record, which puts a
+    ``STATE_LOST`` row on the trail (open + live: two), never consumed silently."""
+    clock = ManualClock(wall=NOW)
+    store = sqlite_store(tmp_path / "state.db", clock=clock)
+    audit = AuditLog(tmp_path / "audit.db", clock=clock)
+    audit.attach(store.outbox())
+    receiver = fresh_receiver(SecurityConfig(), registry(), store, audit, clock)
+    assert receiver.receive(signed(msg_id="a")).accepted
+    db = sqlite3.connect(tmp_path / "state.db")
+    db.execute("UPDATE meta SET generation = 0")
+    db.commit()
+    db.close()
+    store.outbox().flush()  # a batch of one Forget notices the rollback
+    clock.step_wall(60)
+    assert receiver.receive(signed(msg_id="c", timestamp=NOW + 60)).accepted
+    receiver.close()
+    assert receiver.stats.losses == 2
+    rows = [r.outcome for r in AuditLog(tmp_path / "audit.db").tail(20)]
+    assert rows.count("state") == 2
+    store.close()
+
+
+def test_a_row_that_raises_fails_its_own_operation_only(tmp_path: Path) -> None:
+    """A paired row builder that raises: its operation is answered a typed
+    ``StateUnavailableError``; an ESTOP's record and a paired command sharing the writer
+    commit as usual."""
+    store = SqliteStore(tmp_path / "state.db")
+    audit = AuditLog(tmp_path / "audit.db", clock=ManualClock(wall=NOW))
+    audit.attach(store.outbox())
+
+    def broken(seen: Seen) -> str | None:
+        raise ValueError("no row")
+
+    async def scenario() -> list[object]:
+        return list(
+            await asyncio.gather(
+                store.commit_with_row_async("bad", NOW + 30, NOW, broken),
+                store.commit_async("estop", NOW + 30, NOW, True),
+                store.commit_with_row_async("good", NOW + 30, NOW, lambda seen: None),
+                return_exceptions=True,
+            )
+        )
+
+    bad, estop, good = asyncio.run(scenario())
+    assert isinstance(bad, tuple) and isinstance(bad[0], StateUnavailableError)
+    assert isinstance(estop, Seen) and estop.recorded
+    assert isinstance(good, tuple) and isinstance(good[0], Seen) and good[0].recorded
+    audit.close()
+    store.close()

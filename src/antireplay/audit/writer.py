@@ -230,7 +230,7 @@ class AuditLog(SegmentLifecycle):
         lose it, durable with the next fsynced batch."""
         if self._outbox is not None:
             sync = row.outcome == "accepted" if durable is None else durable
-            if file_identity(self.path) is None:  # the row would wait for a lost trail
+            if not self._there():  # the row would wait for a lost trail
                 return _failed(self._gone(), on_loop=on_loop)
             if on_loop:
                 return self._outbox.put_async(_stored(row), durable=sync)
@@ -330,8 +330,13 @@ class AuditLog(SegmentLifecycle):
         outbox.on_rows = self._wake
 
     def _there(self) -> bool:
-        """Whether the live segment is still there (not deleted under this writer)."""
-        return file_identity(self.path) is not None
+        """Whether the live segment is still there (not deleted under this writer); a path
+        that cannot be stat'ed (EIO, EACCES, ENOTDIR) is not there either: fail closed,
+        typed, never a raw ``OSError`` on the loop or in the state writer's batch."""
+        try:
+            return file_identity(self.path) is not None
+        except OSError:
+            return False
 
     def _roll_back(self, problem: str) -> None:
         """The trail disagrees with the state's record of its head: say so (log, flag,

@@ -89,8 +89,9 @@ _Record = tuple[str, float, float, bool]
 #: What the writer takes: a seen-set commit, one paired with its row, or an outbox row (or
 #: its deletion).
 _Op = _Record | Paired | Put | Forget | Renew
-#: What a paired commit answers: what the commit found, and the id of the row it put (0: none).
-PairedResult = tuple[Seen, int]
+#: What a paired commit answers: what the commit found (or why its row failed, typed), and
+#: the id of the row it put (0: none).
+PairedResult = tuple[Seen | StateUnavailableError, int]
 #: How long a fresh ESTOP's commit waits for the write lock before it is delivered anyway.
 SAFETY_WAIT_S: Final = 0.2
 #: How long a transaction waits for the write lock after a wait ran out (see ``_begin``).
@@ -482,7 +483,11 @@ class SqliteStore:
         outbox rows, meta once, one COMMIT (with an fsync if any operation needs one)."""
         records = [op.record if isinstance(op, Paired) else op for op in ops
                    if isinstance(op, (tuple, Paired))]  # fmt: skip
-        paired_ops = any(isinstance(op, Paired) for op in ops)
+        # Paired rows only into an outbox whose trail is still there: once per batch, on
+        # this thread (a stat on the loop waits for the GIL after it), before BEGIN (never
+        # holding the write lock); a check that fails is "not there", never the batch's.
+        rows = not any(isinstance(op, Paired) for op in ops) or self._trail_there()
+        lost = False  # a loss still unheard after the batch (by body)
 
         def body(db: sqlite3.Connection) -> tuple[list[Seen | int | PairedResult], _Meta]:
             generation, watermark, fence, losses = self._meta_checked(db)
@@ -496,12 +501,9 @@ class SqliteStore:
             # What the callers are answered: the watermark and fence this transaction commits.
             wm = NEVER if watermark <= _FLOOR else watermark
             fenced = NEVER if fence <= _FLOOR else fence
-            lost = self._lost_pending  # said to the batch's first record only
+            nonlocal lost
+            lost = self._lost_pending  # said to the first record answered a Seen
             done: list[Seen | int | PairedResult] = []
-            # Paired rows only into an outbox whose trail is still there (once per batch,
-            # here and not on the event loop: a stat there waits for the GIL after it).
-            there = self._outbox.trail_there if self._outbox is not None else None
-            rows = not paired_ops or there is None or there()
             for op in ops:
                 if isinstance(op, (Put, Forget, Renew)):
                     done.append(op.apply(db))
@@ -509,16 +511,17 @@ class SqliteStore:
                 paired = op if isinstance(op, Paired) else None
                 expiry, recorded = self._record(db, op.record if isinstance(op, Paired) else op)
                 seen = Seen(expiry, wm, fenced, recorded, False, lost)
-                lost = False
-                if paired is None:
-                    done.append(seen)
-                else:  # not put: the caller queues its row apart, which fails (trail gone)
-                    done.append((seen, _put(db, paired.row(seen)) if rows else 0))
+                answer: Seen | PairedResult = seen
+                if paired is not None:  # not put: its row is queued apart, which fails
+                    answer = _paired(db, paired, seen) if rows else (seen, 0)
+                heard = isinstance(answer, Seen) or isinstance(answer[0], Seen)
+                lost = lost and not heard
+                done.append(answer)
             return done, (generation, watermark, fence, losses)
 
         def tx() -> list[Seen | int | PairedResult]:
             answers = self._transaction(body, durable=any(self._durable(op) for op in ops))
-            self._lost_pending = False
+            self._lost_pending = lost  # a loss no record heard (outbox ops only) waits
             return answers
 
         with self._lock:
@@ -527,6 +530,16 @@ class SqliteStore:
         if wake is not None and any(isinstance(op, (Put, Paired)) for op in ops):
             wake()
         return answers
+
+    def _trail_there(self) -> bool:
+        """Whether the outbox's trail is still there (``True`` with no trail attached); a
+        check that raises counts as not there (logged)."""
+        there = self._outbox.trail_there if self._outbox is not None else None
+        try:
+            return there is None or there()
+        except Exception as exc:
+            log.error("audit trail check failed (paired rows not put): %r", exc)
+            return False
 
     def _meta_checked(self, db: sqlite3.Connection) -> tuple[int, float, float, int]:
         """The meta row, fenced first if the database went back under this process."""
@@ -668,9 +681,15 @@ class SqliteStore:
             raise StateUnavailableError(f"sqlite witness {self.witness.path}: {exc}") from None
 
 
-def _put(db: sqlite3.Connection, row: str | None) -> int:
-    """A paired record's row into the outbox (its id), or none (0)."""
-    return 0 if row is None else Put(row, True).apply(db)
+def _paired(db: sqlite3.Connection, paired: Paired, seen: Seen) -> PairedResult:
+    """A paired record's row into the outbox (its id), or none (0).  A ``row`` that raises
+    fails its own operation only, typed (its batch-mates, ESTOPs included, commit)."""
+    try:
+        row = paired.row(seen)
+    except Exception as exc:
+        log.error("audit row of %r not built: %r", paired.record[0], exc)
+        return StateUnavailableError(f"audit row of {paired.record[0]!r} not built: {exc!r}"), 0
+    return seen, 0 if row is None else Put(row, True).apply(db)
 
 
 def _lock_held(path: Path) -> StateUnavailableError:
