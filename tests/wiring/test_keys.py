@@ -15,9 +15,11 @@ from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.core.errors import ConfigError, StateUnavailableError
 from antireplay.rcan.auth import KeyRegistry
-from antireplay.state.revocations import MemoryRevocations, SqliteRevocations
+from antireplay.state import StoreSpec
+from antireplay.state.revocations import MemoryRevocations, SqliteRevocations, open_revocations
 from antireplay.wiring.keys import PROMISE_S, KeyMetrics, KeyWatcher
 from harness.envelopes import ED, NOW, registry
+from harness.redis_server import RedisServer
 
 
 class Flaky(MemoryRevocations):
@@ -151,3 +153,37 @@ def test_a_state_file_replaced_by_an_older_copy_keeps_the_revocations_and_reseed
     metrics = CollectorRegistry()
     metrics.register(KeyMetrics(watcher))
     assert metrics.get_sample_value("antireplay_revocations_lost_total") == 1
+
+
+def test_a_flushed_or_restarted_redis_never_unrevokes_and_the_list_is_reseeded(
+    tmp_path: Path,
+) -> None:
+    server = RedisServer(tmp_path)
+    server.start()
+    spec = StoreSpec.parse(server.url)
+    audit = AuditLog(tmp_path / "audit.db")
+    first, second = registry(), registry()
+    a = KeyWatcher(first, open_revocations(spec), audit=audit)
+    b = KeyWatcher(second, open_revocations(spec), audit=audit)
+    try:
+        a.revocations.revoke("op-ed")
+        for watcher in (a, b):
+            watcher.refresh()
+        server.client().flushall()
+        for watcher in (a, b):
+            watcher.refresh()
+        assert first.revoked == second.revoked == {"op-ed"}
+        assert b.revocations.revoked() == {"op-ed"}  # re-seeded by the first to see the loss
+        server.kill()
+        server.start()  # no persistence: an empty list
+        for watcher in (b, a):
+            watcher.refresh()
+        assert first.revoked == second.revoked == {"op-ed"}
+        assert a.revocations.revoked() == {"op-ed"}
+        assert a.lost + b.lost == 2
+        codes = [r.code for r in AuditLog(tmp_path / "audit.db").tail(5)]
+        assert codes.count("REVOCATIONS_LOST") == 2
+    finally:
+        a.revocations.close()
+        b.revocations.close()
+        server.stop()
