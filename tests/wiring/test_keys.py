@@ -5,6 +5,7 @@ or keeps them when the file is bad; the lifecycle metrics."""
 from __future__ import annotations
 
 import logging
+import shutil
 from pathlib import Path
 
 import pytest
@@ -14,9 +15,11 @@ from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.core.errors import ConfigError, StateUnavailableError
 from antireplay.rcan.auth import KeyRegistry
-from antireplay.state.revocations import MemoryRevocations
+from antireplay.state import StoreSpec
+from antireplay.state.revocations import MemoryRevocations, SqliteRevocations, open_revocations
 from antireplay.wiring.keys import PROMISE_S, KeyMetrics, KeyWatcher
 from harness.envelopes import ED, NOW, registry
+from harness.redis_server import RedisServer
 
 
 class Flaky(MemoryRevocations):
@@ -113,3 +116,74 @@ def test_the_metrics_show_seconds_to_expiry_per_kid_and_the_lists_state(tmp_path
     assert metrics.get_sample_value("antireplay_revocations_fresh") == 1
     reloads = metrics.get_sample_value("antireplay_key_reloads_total", {"result": "ok"})
     assert reloads == 0
+
+
+def test_a_state_file_replaced_by_an_older_copy_keeps_the_revocations_and_reseeds_them(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "state.revocations.db"
+    store = SqliteRevocations(path)
+    store.revoke("op-old")
+    store.close()
+    old = tmp_path / "old.db"
+    shutil.copy(path, old)
+    keys = registry()
+    watcher = KeyWatcher(keys, SqliteRevocations(path), audit=AuditLog(tmp_path / "audit.db"))
+    other = SqliteRevocations(path)
+    other.revoke("op-ed")
+    other.unrevoke("op-old")
+    watcher.refresh()
+    assert keys.revoked == {"op-ed"}
+    watcher.revocations.close()
+    other.close()
+    for wal in tmp_path.glob("state.revocations.db-*"):
+        wal.unlink()
+    shutil.copy(old, path)  # the older copy: op-ed not revoked, op-old revoked, counter smaller
+    watcher.revocations = SqliteRevocations(path)
+    with caplog.at_level(logging.ERROR, "antireplay.keys"):
+        watcher.refresh()
+        watcher.refresh()
+    assert "op-ed" in keys.revoked  # never un-revoked because the list went backwards
+    assert "op-ed" in SqliteRevocations(path).revoked()  # written back for the other replicas
+    assert [r.getMessage() for r in caplog.records].count(
+        "antireplay: revocation list went backwards; re-seeded 1 kid(s): op-ed"
+    ) == 1
+    codes = [r.code for r in AuditLog(tmp_path / "audit.db").tail(5)]
+    assert codes.count("REVOCATIONS_LOST") == 1
+    metrics = CollectorRegistry()
+    metrics.register(KeyMetrics(watcher))
+    assert metrics.get_sample_value("antireplay_revocations_lost_total") == 1
+
+
+def test_a_flushed_or_restarted_redis_never_unrevokes_and_the_list_is_reseeded(
+    tmp_path: Path,
+) -> None:
+    server = RedisServer(tmp_path)
+    server.start()
+    spec = StoreSpec.parse(server.url)
+    audit = AuditLog(tmp_path / "audit.db")
+    first, second = registry(), registry()
+    a = KeyWatcher(first, open_revocations(spec), audit=audit)
+    b = KeyWatcher(second, open_revocations(spec), audit=audit)
+    try:
+        a.revocations.revoke("op-ed")
+        for watcher in (a, b):
+            watcher.refresh()
+        server.client().flushall()
+        for watcher in (a, b):
+            watcher.refresh()
+        assert first.revoked == second.revoked == {"op-ed"}
+        assert b.revocations.revoked() == {"op-ed"}  # re-seeded by the first to see the loss
+        server.kill()
+        server.start()  # no persistence: an empty list
+        for watcher in (b, a):
+            watcher.refresh()
+        assert first.revoked == second.revoked == {"op-ed"}
+        assert a.revocations.revoked() == {"op-ed"}
+        assert a.lost + b.lost == 2
+        codes = [r.code for r in AuditLog(tmp_path / "audit.db").tail(5)]
+        assert codes.count("REVOCATIONS_LOST") == 2
+    finally:
+        a.revocations.close()
+        b.revocations.close()
+        server.stop()

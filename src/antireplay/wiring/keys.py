@@ -11,7 +11,10 @@ reaches every gateway on the state within :data:`PROMISE_S`, or the gateway fail
 past ``fresh_until`` the registry answers ``STATE_UNAVAILABLE`` to everything but an ESTOP
 (whose key must still not be known revoked and its signature verify).  The first failure
 and the recovery are each logged once and audited; while it fails, the watcher retries every
-:data:`RETRY_S`, so a store that is back serves again at once.
+:data:`RETRY_S`, so a store that is back serves again at once.  The revocation counter only
+grows (unrevoke bumps it too): one that went backwards (a flushed or restarted Redis, an older
+SQLite file) is a lost list: the watcher keeps the kids it knew, writes them back, logs once,
+audits ``REVOCATIONS_LOST`` and counts ``antireplay_revocations_lost_total``.
 
 Reloads: ``SIGHUP`` (:meth:`KeyWatcher.request_reload`, safe in a signal handler: it sets a
 flag the next poll reads) or ``antireplay keys reload`` (the list's ``reloads`` counter,
@@ -71,6 +74,7 @@ class KeyWatcher:
         self.clock = resolve(clock)  # real time: the thread polls on it (tests: a manual one)
         registry.freshness = clock  # the registry reads fresh_until on the same clock
         self.reloads = {"ok": 0, "failed": 0}
+        self.lost = 0  # times the shared list went backwards (flushed / restored) and was re-seeded
         self._seen: dict[str, int] | None = None
         self._reload_asked = False
         self._failing = False
@@ -87,6 +91,8 @@ class KeyWatcher:
         """One poll: the counters, the revoked set if it moved, a reload if one was asked."""
         try:
             counters = self.revocations.counters()
+            if self._seen is not None and counters[REVOCATIONS] < self._seen[REVOCATIONS]:
+                counters = self._reseed()
             if self._seen is None or counters[REVOCATIONS] != self._seen[REVOCATIONS]:
                 self.registry.revoked = self.revocations.revoked()
             asked = self._seen is not None and counters[RELOADS] != self._seen[RELOADS]
@@ -108,6 +114,21 @@ class KeyWatcher:
         if (asked or self._reload_asked) and self.load is not None:
             self._reload_asked = False
             self.reload()
+
+    def _reseed(self) -> dict[str, int]:
+        """The list's counter only grows (``unrevoke`` bumps it too), so a smaller one means the
+        store lost the list (flushed, restarted without persistence, an older file): keep what
+        we knew, write it back so a restarted replica learns it, say so once per loss."""
+        known = self.registry.revoked
+        missing = sorted(known - self.revocations.revoked())
+        for kid in missing:
+            self.revocations.revoke(kid)
+        self.lost += 1
+        kids = ",".join(missing)
+        why = f"revocation list went backwards; re-seeded {len(missing)} kid(s): {kids}"
+        log.error("antireplay: %s", why)
+        self._record("REVOCATIONS_LOST", why[:200])
+        return self.revocations.counters()
 
     def reload(self) -> bool:
         """Swap in the keys ``load`` returns; a failure keeps the old keys (one log line)."""
@@ -202,6 +223,11 @@ class KeyMetrics(Collector):
         for result, count in self.watcher.reloads.items():
             reloads.add_metric([result], count)
         yield reloads
+        yield CounterMetricFamily(
+            "antireplay_revocations_lost",
+            "Times the shared revocation list went backwards and was re-seeded",
+            value=self.watcher.lost,
+        )
 
 
 __all__ = ["POLL_S", "PROMISE_S", "KeyMetrics", "KeyWatcher", "change_revocation"]
