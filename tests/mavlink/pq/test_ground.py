@@ -194,10 +194,11 @@ def test_only_vehicle_traffic_resets_the_backoff_and_the_budget(clock: ManualClo
     pair.run(60)
     ground = pair.ground
     assert ground.session is not None
-    assert ground.budget.wait_s(ground.budget.burst) > 0  # an HS2 alone proves nothing
+    bucket = ground.budget.bucket
+    assert bucket.wait_s(bucket.burst) > 0  # an HS2 alone proves nothing
     pair.down(pair.vehicle.from_local(plain(lambda m: m.heartbeat_send(2, 3, 0, 0, 4), sysid=1)))
-    assert ground.budget.wait_s(ground.budget.burst) == 0
-    assert ground._attempts == 0 and ground.next_attempt_at - ground._hs_quiet <= 2.0
+    assert bucket.wait_s(bucket.burst) == 0
+    assert ground.budget.attempts == 0 and ground.next_attempt_at - ground._hs_quiet <= 2.0
 
 
 @pytest.mark.parametrize(

@@ -2,41 +2,25 @@
 
 Theory of operation
 -------------------
-Sans-I/O: bytes and a time in, frames out; :mod:`.link` drives it over transports and
-calls ``tick`` on a timer, so that a transfer gone quiet is repaired (:mod:`.repair`)
-and a lost handshake is poked, then retried, whether or not local traffic arrives: the
-ground end POKEs its HS1 ``poke_s`` after its chunks left (by ``air_bps``) or were last
-repaired (twice at most; the vehicle end answers with its held HS2 or a NACK), and
-hand-shakes anew only after ``retry_s`` of quiet, so repairs never race a new HS1.
-:attr:`GroundEnd.live` is the session held while something authenticated was heard from
-the vehicle end within ``silence_s``; handshakes, drops, repairs and airtime are counted.
+Sans-I/O: bytes and a time in, frames out; :mod:`.link` drives it and calls ``tick`` on a
+timer, so a quiet transfer is repaired (:mod:`.repair`) and a lost handshake is poked,
+then retried, whether or not local traffic arrives: the HS1 is POKEd ``poke_s`` after its
+chunks left (by ``air_bps``) or were last repaired (twice at most), and a new one starts
+only after the backoff, so repairs never race a new HS1.  Failing handshakes draw on one
+airtime budget (:mod:`.budget`).  :attr:`GroundEnd.live` is the session while something
+authenticated came from the vehicle end within ``silence_s``.
 
-A GCS retry (:meth:`GroundEnd.handle_local`) is keyed on what the ground end itself
-sealed and sent: a later identical command within ``retry_window_s`` of the first try
-(a fixed window, a GCS's whole retry horizon: repeats never keep it open) asks the
-vehicle end, by an authenticated POKE naming that transfer (and a fresh nonce), for what
-it holds (:mod:`.vehicle`).  Every ACK travels bound to the transfer it answers
-(:func:`~.repair.bind_ack`): the ground end gives a try only its own transfer's ACK, and
-passes on none twice nor one for a try it no longer has, so a replayed POKE, or another
-command with the same number, never tells a GCS that a command it sent was accepted.
-A "not delivered" answer echoing the nonce makes it send that command anew, whole.
+A GCS retry (:meth:`GroundEnd.handle_local`), an identical command within ``retry_window_s``
+of the first try (a fixed window), asks the vehicle end by an authenticated POKE naming
+that transfer (and a fresh nonce) what it holds (:mod:`.vehicle`).  Every ACK travels
+bound to the transfer it answers (:func:`~.repair.bind_ack`): a try gets only its own
+transfer's ACK, none twice, so a replayed POKE or another command with the same number
+never tells a GCS that its command was accepted.  A "not delivered" answer echoing the
+nonce makes it send that command anew, whole.
 
-A handshake that fails costs little air (:data:`~.wire.HANDSHAKE_SHARE`): attempts back
-off exponentially from ``retry_s`` (doubling to ``MAX_BACKOFF_S``, jittered by this end's
-own randomness), and HS1s, their POKEs and their repairs draw on one airtime budget: over
-any window of ``W`` s at most ``HANDSHAKE_SHARE * air_bps / 10 * W`` bytes plus one HS1 with
-its parity (the bucket's burst), so 5 % in the long run at every line rate.  A session
-refills it (and resets the backoff) only once it carried authenticated vehicle traffic: an
-idle or dead vehicle end that still answers HS1s keeps the ground end within it.  An
-unsigned NACK resends each HS1 chunk once per attempt and never delays the next one; a NACK
-that comes while the HS1 is still leaving is honoured once it has left, its copies held
-(and the vehicle's partial HS1 kept) for twice its airtime (:func:`~.wire.handshake_ttl_s`).  A
-``PQ_REFUSAL`` that verifies for the pending HS1 (:meth:`~.wire.Refusal.verify`) ends that
-attempt (no more POKEs) and is told once (:attr:`~.repair.Output.notice`); a forged one, or
-one of another attempt, changes nothing (counted in :attr:`refusals`, a typed error).
-
-A command carries, sealed with it, its age stamp (:data:`~.wire.AGEAGE_STAMP`): milliseconds
-since its session came up here (the HS2 arrived); the vehicle end judges it.
+A verified ``PQ_REFUSAL`` for the pending HS1 ends that attempt and is told once; a forged
+one, or another attempt's, changes nothing.  A command carries, sealed with it, its age
+stamp (:data:`~.wire.AGE_STAMP`: ms since its session came up here); the vehicle judges it.
 """
 
 from __future__ import annotations
@@ -45,7 +29,6 @@ import random
 import re
 import secrets
 from collections import OrderedDict, deque
-from collections.abc import Callable
 from dataclasses import dataclass
 
 from cryptography.hazmat.primitives.asymmetric import mlkem, x25519
@@ -57,8 +40,8 @@ from antireplay.core.errors import (
     SignatureInvalidError,
     UnknownSessionError,
 )
-from antireplay.core.ratelimit import TokenBucket
 from antireplay.mavlink.codec import Frame, parse_frame
+from antireplay.mavlink.pq.budget import HandshakeBudget
 from antireplay.mavlink.pq.chunks import (
     chunk_key,
     parse_chunk,
@@ -97,7 +80,6 @@ from antireplay.mavlink.pq.wire import (
     parse_refusal,
     plain_frame,
     read_status,
-    share_rate,
 )
 from antireplay.pq.session import (
     Direction,
@@ -106,7 +88,6 @@ from antireplay.pq.session import (
     Session,
 )
 
-POKE_BYTES = 35  # a PQ_REPAIR on the air
 STALE_REFUSAL, STALE_SLACK_S = 3, 2.0  # a stale HS1's refusal code; clock agreement slack
 _AGED = re.compile(r"message is (-?[0-9.]+)s old")
 
@@ -150,16 +131,10 @@ class GroundEnd(RepairingEnd):
         clock: Clock | None = None,
     ) -> None:
         super().__init__(system_id, component_id, gap_s, clock)
-        for name, value in (("retry_s", retry_s), ("max_backoff_s", max_backoff_s)):
-            if not value > 0:
-                raise ValueError(f"{name} must be positive seconds, not {value}")
-        if air_bps is not None and air_bps <= 0:
-            raise ValueError(f"air_bps must be positive (baud), or None for unknown: {air_bps}")
-        self.max_backoff_s = max_backoff_s
-        self._rng = rng or random.SystemRandom()  # the backoff's jitter
-        self._attempts = 0  # handshakes started since the last session came up
-        self._backoff = retry_s  # quiet before the next attempt (doubling, jittered)
-        self._hs_size = 0  # the last HS1's air bytes
+        #: Air a failing handshake may take, and its backoff (:mod:`.budget`).
+        self.budget = HandshakeBudget(
+            self._clock, retry_s=retry_s, max_backoff_s=max_backoff_s, air_bps=air_bps, rng=rng
+        )
         self._hs_refused = False  # the pending HS1 was refused (a verified PQ_REFUSAL)
         self._told: str | None = None  # the refusal last told (once until a session)
         self.initiator, self.responder_key = initiator, responder_key
@@ -167,12 +142,7 @@ class GroundEnd(RepairingEnd):
         self.signed = signed
         self.retry_s, self.silence_s = retry_s, silence_s
         self.poke_s, self.retry_window_s, self.air_bps = poke_s, retry_window_s, air_bps
-        #: Air a failing handshake may take (module docstring): HS1s, POKEs, HS1 repairs;
-        #: its burst grows to one HS1 (with parity) at the first one; full again only once
-        #: a session carried authenticated vehicle traffic.
-        self.budget = TokenBucket(share_rate(air_bps), self._clock, burst=0.0)
         self._proven = False  # this session carried authenticated vehicle traffic
-        self._hs_resent: set[bytes] = set()  # HS1 chunks resent on unsigned NACKs (once each)
         self._reassembler.handshake_timeout_s = handshake_ttl_s(air_bps)  # slow radios
         self._deferred: Repair | None = None  # a NACK that came while the HS1 was leaving
         self._first_transfer = 0  # the sender's transfer number when the session began
@@ -205,9 +175,6 @@ class GroundEnd(RepairingEnd):
             self.handshakes["failed"] += 1  # never answered: superseded
             self._sent.forget(self._hs_transfer)
         self.handshakes["started"] += 1
-        base = min(self.retry_s * 2 ** min(self._attempts, 32), self.max_backoff_s)
-        self._backoff = base * self._rng.uniform(0.75, 1.0)
-        self._attempts += 1
         self._hs_refused = False
         hs1 = self.initiator.start(self.responder_key, self.hybrid)
         now = self._clock.monotonic()
@@ -221,18 +188,13 @@ class GroundEnd(RepairingEnd):
         self._deferred = None  # a NACK for the last attempt is no NACK for this one
         self._hs_quiet, self._hs_pokes = now + self._airtime_s(frames), 0
         self._hs_leaves = self._hs_quiet  # when its chunks have all left (by air_bps)
-        self._hs_size = sum(map(len, frames))
-        self._hs_resent = set()
-        if self._hs_size > self.budget.burst:  # the allowance: one HS1 (the first one's)
-            self.budget.tokens += self._hs_size - self.budget.burst
-            self.budget.burst = self._hs_size
-        self.budget.spend(self._hs_size)
+        self.budget.attempt(sum(map(len, frames)))
         return self._air(frames)
 
     @property
     def next_attempt_at(self) -> float:
         """When the pending handshake may be superseded (monotonic; budget aside)."""
-        return self._hs_quiet + self._backoff
+        return self._hs_quiet + self.budget.backoff
 
     def from_local(self, raw: bytes) -> list[bytes]:
         """:meth:`handle_local`'s air frames."""
@@ -353,12 +315,12 @@ class GroundEnd(RepairingEnd):
         live session's rekey, which traffic itself paces, waits for none)."""
         now = self._clock.monotonic()
         if self._pending is None or now >= self.next_attempt_at:
-            if not due and self.budget.wait_s(self._hs_size) > 0:
+            if not due and not self.budget.holds_hs1():
                 return []
             return self.handshake()
         if now - self._hs_quiet < self.poke_s or self._hs_pokes >= 2 or self._hs_refused:
             return []
-        if not self.budget.take(POKE_BYTES):
+        if not self.budget.take_poke():
             return []
         self._hs_pokes += 1
         self._hs_quiet = now
@@ -388,9 +350,8 @@ class GroundEnd(RepairingEnd):
         self._reassembler.opened(chunk, keys[0])
         self._heard = self._clock.monotonic()
         if not self._proven:  # the session works: no misconfigured end to hold back
-            self._proven, self._attempts, self._told = True, 0, None
-            self._backoff = self.retry_s
-            self.budget.tokens = self.budget.burst
+            self._proven, self._told = True, None
+            self.budget.proven()
         inner, bound = unbind_ack(opened.payload)
         plain = plain_frame(inner)
         if not self._hold_ack(plain, bound):  # a copy of an ACK passed on, or a stale one
@@ -430,7 +391,7 @@ class GroundEnd(RepairingEnd):
             self._deferred = repair  # honoured once they left (:meth:`tick`)
             self.repairs["deferred"] += 1
             return Output()
-        frames = self._resend(repair, self._affords(repair.signed) if handshake else None)
+        frames = self._resend(repair, self.budget.affords(repair.signed) if handshake else None)
         if handshake and frames:
             now = self._clock.monotonic()
             self._hs_leaves = max(self._hs_leaves, now + self._airtime_s(frames))
@@ -447,21 +408,6 @@ class GroundEnd(RepairingEnd):
         if self._pending is None or deferred.transfer != self._hs_transfer:
             return []
         return self._repair(deferred).air
-
-    def _affords(self, signed: bool) -> Callable[[bytes], bool]:
-        """Whether an HS1 chunk may be resent: within the budget, and once per attempt when
-        the NACK asking for it is unsigned (anyone can send one)."""
-
-        def afford(raw: bytes) -> bool:
-            if not signed and raw in self._hs_resent:
-                return False
-            if not self.budget.take(len(raw)):
-                return False
-            if not signed:
-                self._hs_resent.add(raw)
-            return True
-
-        return afford
 
     def _refused(self, refusal: Refusal) -> Output:
         """The vehicle end's ``PQ_REFUSAL``: believed only for the pending HS1 (its hash,
