@@ -2,19 +2,8 @@
 
 Theory of operation
 -------------------
-A :class:`MavlinkRouter` joins any number of :class:`RouterLink` s, each a transport
-(:mod:`antireplay.mavlink.endpoints`) with a **role**:
-
-* ``vehicle``: the flight controller side (a serial port, SITL, a companion's
-  mavlink-router).  Its frames are judged by the **outbound** guard (the vehicle
-  key); they are "outbound".
-* ``ground``: an untrusted ground link (radio, LTE, a GCS on the network).  Its
-  frames must verify with the link's key, judged by that key's **inbound** guard.
-* ``trusted``: a local tool that cannot sign (mavros, BlueOS, Cockpit,
-  mavlink2rest, a script).  Its unsigned v2 frames are **signed on its behalf**
-  with the vehicle key, the router's ``sign_link_id`` and a durable
-  :class:`~antireplay.mavlink.signer.TimestampSource` (never repeats, even across
-  restarts), then judged by the vehicle key's inbound guard like any frame.
+A :class:`MavlinkRouter` joins any number of :class:`~.links.RouterLink` s, each a
+transport with a role (``vehicle``, ``ground``, ``trusted``: :mod:`.links`).
 
 The router holds no replay rule: every frame goes through exactly one guard
 call (:meth:`~antireplay.mavlink.guard.MavlinkGuard.open`, two when a ground
@@ -84,9 +73,8 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections import Counter, OrderedDict
-from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections import OrderedDict
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 from antireplay.core.errors import (
@@ -96,88 +84,29 @@ from antireplay.core.errors import (
     NonceExhaustedError,
     ReplayAttackError,
 )
-from antireplay.core.messages import StrEnum
 from antireplay.mavlink.binding import BIND_IDLE_S, Bindings
-from antireplay.mavlink.codec import Frame, claimed_source, sign, target
+from antireplay.mavlink.codec import Frame, sign, target
 from antireplay.mavlink.endpoints import Peer, Transport
 from antireplay.mavlink.fencing import FENCE_SUMMARY_S, FenceFolds, until_text
 from antireplay.mavlink.guard import MavlinkGuard, MavVerdict
+from antireplay.mavlink.links import (
+    INBOUND,
+    OUTBOUND,
+    FrameRefusal,
+    Location,
+    Role,
+    RouterLink,
+    RouterStats,
+    receivers,
+    same_station,
+)
 from antireplay.mavlink.policy import FrameAdmission, RestartFenceError
 from antireplay.mavlink.signer import TimestampSource
 
 log = logging.getLogger("antireplay.mavlink")
 _CLAIM_RETRY_S = 0.05  # how often the timer tries a lease a crashed run still holds
 SOURCE_BOUND = "SOURCE_BOUND"  # ids a ground station authenticated, claimed on another link
-
-INBOUND, OUTBOUND = "inbound", "outbound"  # towards the vehicle, from the vehicle
-Location = tuple["RouterLink", Peer | None]
-
-
-class Role(StrEnum):
-    """What an endpoint is (module docstring)."""
-
-    VEHICLE = "vehicle"
-    TRUSTED = "trusted"
-    GROUND = "ground"
-
-
-@dataclass(eq=False)
-class RouterLink:
-    """One endpoint of the router: a transport, its role and its key (None: trusted)."""
-
-    transport: Transport
-    role: Role
-    key: bytes | None = None
-    max_peers: int = 8
-    #: A trusted link the operator acknowledged on the network (not loopback or serial).
-    network: bool = False
-    #: Peers that authenticated, least recent first (a ``udpin`` or ``tcpin`` link's receivers).
-    peers: OrderedDict[Peer, None] = field(default_factory=OrderedDict)
-
-    @property
-    def name(self) -> str:
-        return self.transport.spec.text
-
-
-@dataclass(frozen=True)
-class FrameRefusal:
-    """A dropped frame: where, the code, and why (the log line an operator reads)."""
-
-    direction: str
-    link: str
-    code: str
-    reason: str
-    raw: bytes
-    frames: int = 1  # a summary of the refusals behind a restart fence: how many
-    #: Behind a restart fence, after the first on its link: a later summary says it (the
-    #: log and the audit trail skip it; a hook that counts every refusal still sees it).
-    folded: bool = False
-
-    def __str__(self) -> str:
-        if self.frames != 1:
-            return (
-                f"refused {self.frames} {self.direction} frames on {self.link}: "
-                f"{self.code}: {self.reason}"
-            )
-        source = claimed_source(self.raw)
-        claims = "" if source is None else f" claiming {source[0]}/{source[1]}"
-        return f"refused {self.direction} frame on {self.link}{claims}: {self.code}: {self.reason}"
-
-
-@dataclass
-class RouterStats:
-    """What the router did: per direction, per code, per accepted stream."""
-
-    forwarded: Counter[str] = field(default_factory=Counter)
-    dropped: Counter[str] = field(default_factory=Counter)  # "direction:CODE"
-    #: Refusals the handler could not record (the audit trail is down): still dropped.
-    unaudited: int = 0
-    #: Timer ticks whose signer reservation failed (the store is down).
-    timer_failures: int = 0
-    #: Accepted frames per stream ``(link name, system, component, link id)``, bounded.
-    streams: OrderedDict[tuple[str, int, int, int], int] = field(default_factory=OrderedDict)
-    #: Ground stations ``(link name, peer, system)`` whose first authentication was logged.
-    stations: OrderedDict[tuple[str, Peer | None, int], None] = field(default_factory=OrderedDict)
+__all__ = ["FrameRefusal", "MavlinkRouter", "Role", "RouterLink", "RouterStats"]
 
 
 class MavlinkRouter:
@@ -224,7 +153,7 @@ class MavlinkRouter:
         self._routes: OrderedDict[int, dict[int, Location]] = OrderedDict()
         #: ``(system, component)`` a live ground station authenticated with its key, to its link.
         self._bound: Bindings[RouterLink] = Bindings(
-            _same_station, max_entries=max_routes, idle_s=bind_idle_s
+            same_station, max_entries=max_routes, idle_s=bind_idle_s
         )
         self._folds = FenceFolds(max_routes)
         self._lock = threading.Lock()
@@ -458,7 +387,7 @@ class MavlinkRouter:
         system, component = aimed
         if not system:
             return [
-                (link, to) for link in self.links if link is not source for to in _receivers(link)
+                (link, to) for link in self.links if link is not source for to in receivers(link)
             ]
         table = self._routes.get(system, {})
         seen = [where for where in table.values() if where[0] is not source]
@@ -470,10 +399,7 @@ class MavlinkRouter:
         if source.role is Role.VEHICLE:
             return []
         return [
-            (link, to)
-            for link in self.links
-            if link.role is Role.VEHICLE
-            for to in _receivers(link)
+            (link, to) for link in self.links if link.role is Role.VEHICLE for to in receivers(link)
         ]
 
     def _send(self, link: RouterLink, to: Peer | None, frame: Frame) -> None:
@@ -541,17 +467,6 @@ class MavlinkRouter:
             self._report(
                 FrameRefusal(line.direction, line.link, line.code, line.reason, b"", line.frames)
             )
-
-
-def _same_station(owner: RouterLink, link: RouterLink) -> bool:
-    """Whether ``link`` may use ids authenticated on ``owner``: it is that link, or a ground
-    link with the same key (the station's other radio)."""
-    return link is owner or (link.role is Role.GROUND and link.key == owner.key)
-
-
-def _receivers(link: RouterLink) -> Iterable[Peer | None]:
-    """A fixed endpoint's one destination, or the peers that authenticated on it."""
-    return (None,) if link.transport.fixed else list(link.peers)
 
 
 def _unique(found: list[Location]) -> list[Location]:

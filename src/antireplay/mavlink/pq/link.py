@@ -55,12 +55,12 @@ from antireplay.core.errors import AntiReplayError, Code, ReplayAttackError
 from antireplay.core.ratelimit import TokenBucket
 from antireplay.mavlink.codec import Frame
 from antireplay.mavlink.endpoints import Peer, Transport
+from antireplay.mavlink.links import FrameRefusal
 from antireplay.mavlink.pq.chunks import PlainFrameError
 from antireplay.mavlink.pq.ground import GroundEnd
 from antireplay.mavlink.pq.repair import Output, air_kind
 from antireplay.mavlink.pq.vehicle import VehicleEnd
 from antireplay.mavlink.pq.wire import LINE_BITS, ChunkKind
-from antireplay.mavlink.router import FrameRefusal
 from antireplay.pq.session import Session
 
 _HINTED = {Code.UNKNOWN_SESSION, Code.SESSION_CLOSED}
