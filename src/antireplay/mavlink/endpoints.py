@@ -1,50 +1,28 @@
-"""MAVLink endpoints: the connection strings MAVLink users type, and their transports.
+"""MAVLink endpoints: the transports behind the connection strings MAVLink users type.
 
 Theory of operation
 -------------------
-:func:`parse_endpoint` reads the syntax of pymavlink's ``mavutil`` and MAVProxy's
-``--master``/``--out``: ``udpin:HOST:PORT`` (bind and answer whoever sent),
-``udpout:HOST:PORT`` (send to a fixed address), ``udp:HOST:PORT`` (mavutil's
-alias of ``udpin``), ``tcp:HOST:PORT`` (connect, reconnecting), ``tcpin:HOST:PORT``
-(listen; each client is a peer) and a serial device ``/dev/ttyACM0,57600``
-(MAVProxy's ``DEVICE,BAUD``; ``DEVICE:BAUD`` as mavlink-router writes it, or a
-bare device at 57,600 baud, MAVProxy's default).  :func:`is_local` says whether only this
-host reaches an endpoint (loopback or serial): a router's trusted endpoints must be.
+The strings (:func:`parse_endpoint`, :func:`is_local`) are :mod:`.endpoint_spec`'s.  A
+:class:`Transport` moves bytes and nothing else: it cuts what it receives into frames,
+parsed once (:class:`~antireplay.mavlink.codec.Frame`), and hands them with their peer and
+the garbage bytes dropped to the router's ``deliver``.  A stream (TCP, serial) resyncs
+past garbage (:class:`~antireplay.mavlink.codec.FrameReader`) as flight stacks do; a UDP
+datagram is whole frames or nothing, dropped whole, so an authentic frame wrapped in
+garbage never passes.  :meth:`Transport.send` writes to the peer the router names
+(``None``: the fixed destination of ``udpout``, ``tcp``, serial); which peers may receive
+is the router's (learned from authenticated frames).  Each transport reads in its own
+thread with a short timeout (prompt :meth:`Transport.close`) and bounds a flood: one frame
+of buffer per reader, ``max_clients`` TCP clients.
 
-A :class:`Transport` moves bytes and nothing else: it cuts what it receives into
-frames and hands them, parsed once (:class:`~antireplay.mavlink.codec.Frame`),
-with the peer they came from and the count of garbage bytes dropped, to the
-router's ``deliver``.  A stream (a TCP client, a serial
-port) goes through its own :class:`~antireplay.mavlink.codec.FrameReader`, which
-resynchronises past garbage as flight stacks do; a UDP datagram is whole frames
-or nothing (:func:`~antireplay.mavlink.codec.split_parsed`): one that is not is
-dropped whole, all its bytes counted, so an authentic frame wrapped in garbage
-never passes.  It never decides
-where to send: :meth:`Transport.send` writes to the peer the router names
-(``None`` for the fixed destination of ``udpout``, ``tcp`` and serial).  Which
-peers may receive is the router's: a peer is learned only from an authenticated
-frame (:mod:`antireplay.mavlink.router`).  Every transport reads in its own
-thread with a short timeout so that :meth:`Transport.close` returns promptly (a UDP
-socket is read until it is empty, then waited on: one system call per datagram under
-load, not a wait and a read), and bounds what a flood can cost: one frame of buffer
-per reader, ``max_clients`` TCP clients.
-
-**Never blocked by a network peer.**  ``send`` runs in the thread that read the
-frame (another link's reader), so it does not wait: UDP and TCP writes are
-non-blocking, and a TCP peer whose socket cannot take the whole frame now is
-hung up on (counted as ``stalled``) rather than waited for or sent more after
-part of a frame; a TCP ground station reconnects, the ``tcp`` client reconnects
-by itself.  (A serial write waits for the local driver's buffer.)  **A full ``tcpin`` makes
-room**: the router calls :meth:`Transport.authenticated` for each peer that sent
-a frame it accepted, and a new client takes the slot of the client connected
-longest that never did (``clients_evicted``); only when every slot is
-authenticated is the newcomer refused (``clients_refused``).  **A serial device
-that goes away** (flight controller reboot, USB unplugged) reads as end of file:
-counted (``eof``), closed, and opened again with a backoff of
-``REOPEN_S`` doubling to ``REOPEN_MAX_S`` (``reopen``: failed attempts) until
-it is back.  Every such event is counted in :attr:`Transport.errors` per kind
-(exported as ``antireplay_mavlink_transport_errors_total``) and logged, the
-first of each kind at once, then at most once per ``LOG_EVERY_S`` per kind.
+**Never blocked by a network peer**: writes are non-blocking, and a TCP peer that cannot
+take a whole frame now is hung up on (``stalled``).  **A full ``tcpin`` makes room**: a new
+client takes the slot of the longest-connected one that never authenticated
+(:meth:`Transport.authenticated`; ``clients_evicted``), else is refused
+(``clients_refused``).  **A serial device that goes away** reads as end of file (``eof``)
+and is reopened with a backoff of ``REOPEN_S`` doubling to ``REOPEN_MAX_S`` (``reopen``).
+Every such event is counted in :attr:`Transport.errors` per kind
+(``antireplay_mavlink_transport_errors_total``) and logged, at most once per
+``LOG_EVERY_S`` per kind after the first.
 """
 
 from __future__ import annotations
@@ -52,7 +30,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
-import ipaddress
 import logging
 import os
 import select
@@ -63,79 +40,31 @@ import time
 import tty
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass
 from functools import partial
 
 from antireplay.core.errors import InvalidFrameError
 from antireplay.mavlink.codec import Frame, FrameReader, split_parsed
+from antireplay.mavlink.endpoint_spec import (
+    DEFAULT_BAUD,
+    EndpointSpec,
+    addresses,
+    is_local,
+    parse_endpoint,
+)
 
 #: A ``udpin`` sender's address or a ``tcpin`` client's connection number.
 Peer = tuple[str, int] | int
 #: ``deliver(transport, peer, frames, dropped_bytes)``: what a transport hands the router.
 Deliver = Callable[["Transport", Peer | None, list[Frame], int], None]
-DEFAULT_BAUD = 57_600
 REOPEN_S, REOPEN_MAX_S = 0.05, 2.0  # a serial device's reopen backoff: first, longest
 LOG_EVERY_S = 60.0  # one log line per endpoint and error kind at most this often
 _POLL_S = 0.2  # read timeout: how soon a reader notices close()
 log = logging.getLogger("antireplay.mavlink")
-
-
-@dataclass(frozen=True)
-class EndpointSpec:
-    """One parsed connection string; ``text`` names the link in logs, metrics and key files."""
-
-    text: str
-    kind: str  # udpin, udpout, tcp, tcpin, serial
-    host: str  # the device, for serial
-    port: int  # the baud rate, for serial
-
-
-def parse_endpoint(text: str) -> EndpointSpec:
-    """Parse a mavutil/MAVProxy connection string (module docstring); ValueError if not one."""
-    scheme, sep, rest = text.partition(":")
-    if sep and scheme in {"udp", "udpin", "udpout", "tcp", "tcpin"}:
-        host, _, port = rest.rpartition(":")
-        if not host or not (port.isascii() and port.isdigit()) or int(port) > 65_535:
-            raise ValueError(f"{text!r}: expected {scheme}:HOST:PORT with PORT 0..65535")
-        return EndpointSpec(text, "udpin" if scheme == "udp" else scheme, host, int(port))
-    if not text.startswith("/") and not text.upper().startswith("COM"):
-        raise ValueError(
-            f"{text!r}: expected udpin:, udpout:, tcp:, tcpin:HOST:PORT or a serial DEVICE,BAUD"
-        )
-    device, baud = text, str(DEFAULT_BAUD)
-    for separator in (",", ":"):
-        if separator in text:
-            device, _, baud = text.rpartition(separator)
-            break
-    if not (baud.isascii() and baud.isdigit()) or not hasattr(termios, f"B{int(baud)}"):
-        raise ValueError(f"{text!r}: {baud!r} is not a baud rate this system supports")
-    return EndpointSpec(text, "serial", device, int(baud))
-
-
-def is_local(spec: EndpointSpec) -> bool:
-    """Whether only this host reaches the endpoint: a serial device, or a host whose every
-    address is loopback (``127.0.0.0/8``, ``::1``; a name such as ``localhost`` is resolved,
-    since /etc/hosts or DNS may map it to the LAN).  A router signs on a trusted endpoint's
-    behalf, so one that is not local must be acknowledged by the operator."""
-    if spec.kind == "serial":
-        return True
-    found = addresses(spec)
-    return bool(found) and all(ipaddress.ip_address(a).is_loopback for a in found)
-
-
-def addresses(spec: EndpointSpec) -> tuple[str, ...]:
-    """The IP addresses a network endpoint's host is (a literal) or resolves to
-    (getaddrinfo); empty if it does not resolve."""
-    host = spec.host.strip("[]")
-    try:
-        return (str(ipaddress.ip_address(host)),)
-    except ValueError:
-        pass
-    try:
-        found = socket.getaddrinfo(host, spec.port, proto=socket.IPPROTO_TCP)
-    except (OSError, UnicodeError):
-        return ()
-    return tuple(dict.fromkeys(str(info[4][0]).split("%")[0] for info in found))
+__all__ = [  # the connection strings' names stay importable from here
+    "DEFAULT_BAUD", "LOG_EVERY_S", "REOPEN_MAX_S", "REOPEN_S", "Deliver", "EndpointSpec", "Peer",
+    "SerialTransport", "TcpClientTransport", "TcpServerTransport", "Transport", "UdpTransport",
+    "addresses", "is_local", "open_transport", "parse_endpoint",
+]  # fmt: skip
 
 
 class Transport:

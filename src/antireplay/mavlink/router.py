@@ -106,6 +106,7 @@ from antireplay.mavlink.signer import TimestampSource
 log = logging.getLogger("antireplay.mavlink")
 _CLAIM_RETRY_S = 0.05  # how often the timer tries a lease a crashed run still holds
 SOURCE_BOUND = "SOURCE_BOUND"  # ids a ground station authenticated, claimed on another link
+#: links.py's names, still importable from here
 __all__ = ["FrameRefusal", "MavlinkRouter", "Role", "RouterLink", "RouterStats"]
 
 
