@@ -34,7 +34,6 @@ class HandshakeBudget:
     def __init__(
         self,
         clock: Clock,
-        *,
         retry_s: float = 2.0,
         max_backoff_s: float = MAX_BACKOFF_S,
         air_bps: int | None = None,

@@ -26,7 +26,6 @@ stamp (:data:`~.wire.AGE_STAMP`: ms since its session came up here); the vehicle
 from __future__ import annotations
 
 import random
-import re
 import secrets
 from collections import OrderedDict, deque
 from dataclasses import dataclass
@@ -88,8 +87,7 @@ from antireplay.pq.session import (
     Session,
 )
 
-STALE_REFUSAL, STALE_SLACK_S = 3, 2.0  # a stale HS1's refusal code; clock agreement slack
-_AGED = re.compile(r"message is (-?[0-9.]+)s old")
+STALE_SLACK_S = 2.0  # clock agreement slack (:meth:`~.wire.Refusal.explained_after`)
 
 
 @dataclass
@@ -132,15 +130,12 @@ class GroundEnd(RepairingEnd):
     ) -> None:
         super().__init__(system_id, component_id, gap_s, clock)
         #: Air a failing handshake may take, and its backoff (:mod:`.budget`).
-        self.budget = HandshakeBudget(
-            self._clock, retry_s=retry_s, max_backoff_s=max_backoff_s, air_bps=air_bps, rng=rng
-        )
+        self.budget = HandshakeBudget(self._clock, retry_s, max_backoff_s, air_bps, rng)
         self._hs_refused = False  # the pending HS1 was refused (a verified PQ_REFUSAL)
         self._told: str | None = None  # the refusal last told (once until a session)
         self.initiator, self.responder_key = initiator, responder_key
         self.hybrid = hybrid  # the vehicle's static X25519 key: hybrid handshakes
-        self.signed = signed
-        self.retry_s, self.silence_s = retry_s, silence_s
+        self.signed, self.retry_s, self.silence_s = signed, retry_s, silence_s
         self.poke_s, self.retry_window_s, self.air_bps = poke_s, retry_window_s, air_bps
         self._proven = False  # this session carried authenticated vehicle traffic
         self._reassembler.handshake_timeout_s = handshake_ttl_s(air_bps)  # slow radios
@@ -148,8 +143,7 @@ class GroundEnd(RepairingEnd):
         self._first_transfer = 0  # the sender's transfer number when the session began
         self.session: Session | None = None
         self._pending: tuple[bytes, float] | None = None  # HS1 and when it left
-        self._hs_transfer, self._hs_quiet, self._hs_pokes = 0, 0.0, 0
-        self._hs_leaves = 0.0
+        self._hs_transfer, self._hs_quiet, self._hs_pokes, self._hs_leaves = 0, 0.0, 0, 0.0
         self._hs_keyed = False  # the pending HS1 is a rekey's: unsigned NACKs are refused
         self._hs2: bytes | None = None  # the HS2 that finished the session (a repeat is no news)
         self.max_queued, self.queue_ttl_s = max_queued, queue_ttl_s
@@ -416,7 +410,7 @@ class GroundEnd(RepairingEnd):
         if refusal.target != (self.sender.sysid, self.sender.compid):
             self.refusals["elsewhere"] += 1  # another ground end's (a shared air)
             return Output()
-        pending = None if self._pending is None else self._pending[0]
+        pending, left = self._pending or (None, 0.0)
         if pending is None or self._hs_refused or not refusal.names(pending):
             self.refusals["stale"] += 1
             raise ReplayDetectedError("PQ_REFUSAL of no pending handshake (another attempt's)")
@@ -428,31 +422,12 @@ class GroundEnd(RepairingEnd):
         self.handshakes["refused"] += 1
         self._hs_refused = True
         self._sent.forget(self._hs_transfer)
-        told = f"vehicle refused the handshake: {self._explained(refusal)}"
+        held, slack = self._clock.monotonic() - left, STALE_SLACK_S + self._airtime_s([pending])
+        told = f"vehicle refused the handshake: {refusal.explained_after(held, slack)}"
         if told == self._told:
             return Output()
         self._told = told
         return Output(notice=told)
-
-    def _explained(self, refusal: Refusal) -> str:
-        """The refusal with what to check.  A stale HS1 (``MESSAGE_STALE``): the ground end
-        knows when that HS1 left; the vehicle's age for it about that long (within its
-        airtime and ``STALE_SLACK_S``) means it was held on the link, not that the clocks
-        disagree, and the operator is told so; otherwise the clocks, with the difference."""
-        aged = _AGED.search(refusal.reason) if refusal.code == STALE_REFUSAL else None
-        if aged is None or self._pending is None:
-            return refusal.explained
-        held = self._clock.monotonic() - self._pending[1]
-        off = float(aged.group(1)) - held
-        if abs(off) <= STALE_SLACK_S + self._airtime_s([self._pending[0]]):
-            return (
-                f"{refusal.reason} (this HS1 left here {held:.1f} s before: it was delayed on"
-                " the link, not a clock problem)"
-            )
-        return (
-            f"{refusal.reason} (the vehicle's clock reads it {off:+.1f} s older than this"
-            " end's: check both clocks; the vehicle judges HS1 by its wall clock)"
-        )
 
     def _undelivered(self, repair: Repair) -> Output:
         """The vehicle end's answer to our POKE: that transfer never opened there and never

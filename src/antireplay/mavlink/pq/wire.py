@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import re
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -74,6 +75,7 @@ REFUSALS: dict[int, tuple[Code, str]] = {
     3: (Code.MESSAGE_STALE, "check both clocks: the vehicle judges HS1 by its wall clock"),
 }
 REFUSAL_OF = {code: number for number, (code, _) in REFUSALS.items()}
+_AGED = re.compile(r"message is (-?[0-9.]+)s old")  # a stale refusal's reason
 
 
 def _load_dialect() -> dict[int, tuple[int, int]]:
@@ -197,6 +199,25 @@ class Refusal:
         """The reason with what to check, as the ground end logs it."""
         code, hint = REFUSALS.get(self.code, (Code.INVALID_FRAME, "an unknown refusal code"))
         return f"{self.reason or code} ({hint})"
+
+    def explained_after(self, held_s: float, slack_s: float) -> str:
+        """:attr:`explained`, told better for a stale HS1 (``MESSAGE_STALE``) that left the
+        ground end ``held_s`` ago: the vehicle's age for it about that long (within
+        ``slack_s``: its airtime and the clocks' slack) means it was held on the link, not
+        that the clocks disagree, and the operator is told so; otherwise the difference."""
+        aged = _AGED.search(self.reason) if self.code == REFUSAL_OF[Code.MESSAGE_STALE] else None
+        if aged is None:
+            return self.explained
+        off = float(aged.group(1)) - held_s
+        if abs(off) <= slack_s:
+            return (
+                f"{self.reason} (this HS1 left here {held_s:.1f} s before: it was delayed on"
+                " the link, not a clock problem)"
+            )
+        return (
+            f"{self.reason} (the vehicle's clock reads it {off:+.1f} s older than this"
+            " end's: check both clocks; the vehicle judges HS1 by its wall clock)"
+        )
 
 
 def _refusal_fields(transfer: int, target: tuple[int, int], code: int, reason: str) -> bytes:
