@@ -282,6 +282,47 @@ def test_a_previous_versions_ahead_margin_is_migrated_to_a_timestamp(
     again.stop()
 
 
+class Killed(BaseException):
+    """The process dies (``kill -9``) at a store write: nothing after it runs."""
+
+
+class CrashingStore:
+    """A store wrapper whose process dies at the first write of ``key`` (before it lands)."""
+
+    def __init__(self, inner: SqliteStore, key: str) -> None:
+        self.inner, self.key = inner, key
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.inner, name)
+
+    def advance(self, key: str, value: int) -> bool:
+        if key == self.key:
+            raise Killed(key)
+        return self.inner.advance(key, value)
+
+
+@pytest.mark.parametrize("dies_at", ["mav:high", "mav:lease"])
+def test_the_ahead_migration_survives_a_kill_between_its_writes(
+    tmp_path: Path, clock: ManualClock, dies_at: str
+) -> None:
+    """A kill (or a failed write) during the first claim of a previous version's state: the
+    next start converts ``ahead`` from that version's own lease again, never from a lease
+    the dead run wrote, so the old margin is not added to a newer expiry."""
+    store = sqlite_store(tmp_path / "mav.db", clock=clock)
+    released = mav_time(clock)
+    store.advance("mav:lease", lease_value(2, released))
+    store.advance("mav:ahead", 13 * UNITS_PER_S)
+    dying = MavlinkGuard(KEY, clock=clock, store=CrashingStore(store, dies_at))
+    with pytest.raises(Killed):
+        dying.start()
+    clock.advance(5)  # past any lease the dead run could have claimed
+    again = MavlinkGuard(KEY, clock=clock, store=store)
+    again.start()
+    assert again.restart_fence == released + 13 * UNITS_PER_S
+    assert store.current("mav:high") == released + 13 * UNITS_PER_S
+    again.stop()
+
+
 def test_persistence_stays_off_the_frame_path_under_a_burst(
     tmp_path: Path, clock: ManualClock
 ) -> None:

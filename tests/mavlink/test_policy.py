@@ -293,17 +293,19 @@ def test_honest_senders_never_write_the_highest_timestamp() -> None:
     assert lease_parts(policy.release(NOW + S) or 0)[1] == NOW + S + 99 * S // 100
 
 
-def test_a_previous_versions_ahead_margin_fences_as_it_did_once_then_is_a_timestamp() -> None:
-    """A state written by the previous version holds ``ahead`` (a margin): read as that
-    version's fence (expiry + margin), migrated to the highest timestamp, never added again."""
-    policy = MavPolicy(stored=True, periodic=True)
+def test_a_previous_versions_ahead_margin_converts_from_its_own_lease_only() -> None:
+    """A state written by the previous version holds ``ahead`` (a margin): converted to that
+    version's fence (the expiry of the lease it wrote plus the margin) while ``high`` is
+    absent, never once ``high`` exists, whatever newer lease is found; the claim fences there."""
     found = lease_value(2, NOW - 100 * S)
-    policy.claimed(policy.claim(found, None, NEVER, NOW, ahead=13 * S), written=True)
+    assert MavPolicy.migration(found, None, 13 * S) == NOW - 87 * S
+    assert MavPolicy.migration(found, None, None) is None  # not the previous version's state
+    newer = lease_value(3, NOW + 2 * S)  # a claim after ``high`` was written (then a kill)
+    assert MavPolicy.migration(newer, NOW - 87 * S, 13 * S) is None
+    assert MavPolicy.migration(None, None, 13 * S) == 13 * S  # no lease: the margin alone
+    policy = MavPolicy(stored=True, periodic=True)
+    policy.claimed(policy.claim(found, NOW - 87 * S, NEVER, NOW), written=True)
     assert policy.restart_fence == NOW - 87 * S and policy.fence_cause == "high"
-    assert policy.take_migration() == NOW - 87 * S and policy.take_migration() is None
-    fresh = MavPolicy(stored=True, periodic=True)  # a stored high wins: the margin is ignored
-    fresh.claimed(fresh.claim(found, NOW - 90 * S, NEVER, NOW, ahead=13 * S), written=True)
-    assert fresh.restart_fence == NOW - 90 * S and fresh.take_migration() is None
 
 
 def test_a_store_that_lost_data_fences_at_the_loss_plus_the_forward_bound() -> None:

@@ -307,17 +307,18 @@ class MavlinkGuard:
             found = store.current(policy.lease_key)
             high = store.current(policy.high_key)
             ahead = None if high is not None else store.current(policy.ahead_key)
+            migrate = policy.migration(found, high, ahead)
+            if migrate is not None:  # the previous version's margin, written before the claim
+                store.advance(policy.high_key, migrate)
+                high = store.current(policy.high_key)
+                with self._lock:
+                    policy.high_persisted(migrate)
             lost = store.verify().fence
             with self._lock:
-                value = policy.claim(found, high, lost, now, ahead)
+                value = policy.claim(found, high, lost, now)
             written = store.advance(policy.lease_key, value)
             with self._lock:
                 policy.claimed(value, written)
-                migrate = policy.take_migration()
-            if migrate is not None:  # the previous version's margin, now a timestamp
-                store.advance(policy.high_key, migrate)
-                with self._lock:
-                    policy.high_persisted(migrate)
 
     def _renew(self, now: int) -> None:
         """Extend the lease to ``now + 2 intervals``; losing it to another guard fails closed."""

@@ -28,8 +28,10 @@ margin: the previous lease's expiry (a clean stop writes the highest timestamp a
 the persisted highest timestamp (``high``: written, by whole seconds, before accepting a
 frame stamped past the held lease) and after a store data loss the loss time plus
 ``max_forward``.  A clock spike fences only until the wall clock passes it.  A state of
-the previous version holds a margin (``ahead``) instead: it is read once as ``expiry +
-ahead`` (that version's fence) and migrated to ``high`` (:meth:`take_migration`).
+the previous version holds a margin (``ahead``) instead: while ``high`` is absent it is
+converted once (:meth:`migration`: that version's fence, ``expiry + ahead`` of the lease it
+wrote) and written as ``high`` before any claim, so a crash or a failed write converts it
+again from the same lease, never from a newer one.
 """
 
 from __future__ import annotations
@@ -149,8 +151,7 @@ class MavPolicy:
         #: timestamp accepted ahead of the clock) or ``lost`` (a new or lost state).
         self.fence_cause = ""
         self.dirty: dict[str, int] = {}
-        self._claim: tuple[int, int, str, int | None] = (-1, -1, "", None)
-        self._migrate: int | None = None
+        self._claim: tuple[int, int, str] = (-1, -1, "")
 
     @property
     def high_key(self) -> str:
@@ -264,11 +265,17 @@ class MavPolicy:
             self.saved_high = high
             self.counts["high_raises"] += 1
 
-    def take_migration(self) -> int | None:
-        """The highest timestamp a claim converted from the previous version's ``ahead``
-        margin: the driver writes it under :attr:`high_key` (then :meth:`high_persisted`)."""
-        migrate, self._migrate = self._migrate, None
-        return migrate
+    @staticmethod
+    def migration(found: int | None, high: int | None, ahead: int | None) -> int | None:
+        """The highest timestamp to write under :attr:`high_key` before claiming, converted
+        from the previous version's ``ahead`` margin: that version's fence, the expiry of
+        the lease ``found`` (the one it wrote) plus the margin.  None once ``high`` exists:
+        the driver writes ``high`` first, so a lease newer than the margin's never meets an
+        absent ``high``, and a retry after a crash or a failed write converts the same."""
+        if high is not None or ahead is None:
+            return None
+        generation, until = lease_parts(found or 0)
+        return (until if generation else 0) + ahead
 
     def take_dirty(self) -> dict[str, int]:
         """The streams' high-water marks that moved since the last flush (now the driver's)."""
@@ -282,34 +289,28 @@ class MavPolicy:
 
     # --- the lease ---------------------------------------------------------------------------
 
-    def claim(
-        self, found: int | None, high: int | None, lost: float, now: int, ahead: int | None = None
-    ) -> int:
+    def claim(self, found: int | None, high: int | None, lost: float, now: int) -> int:
         """The lease value that claims the state, from the stored lease, highest timestamp
-        (``ahead``: the previous version's margin, used only without one) and the store's
-        loss time (``NEVER``: none); ``STATE_UNAVAILABLE`` while another holds it."""
+        (after :meth:`migration`) and the store's loss time (``NEVER``: none);
+        ``STATE_UNAVAILABLE`` while another holds it."""
         generation, until = lease_parts(found or 0)
         if generation % 2 and now <= until + self.lease_skew:
             raise StateUnavailableError(
                 f"another guard holds the MAVLink state {self.prefix!r} on this store "
                 f"for {(until + self.lease_skew - now) / UNITS_PER_S:.2f} s more"
             )
-        fences = [(until if generation else -1, "lease")]
-        migrate = None
-        if high is None and ahead and generation:  # the previous version's fence, converted
-            high = migrate = until + ahead
-        fences.append((-1 if high is None else high, "high"))
+        fences = [(until if generation else -1, "lease"), (-1 if high is None else high, "high")]
         if lost != NEVER:  # a new process (memory), a lost file, a flushed Redis
             fences.append((int((lost - MAV_EPOCH) * UNITS_PER_S) + self.max_forward, "lost"))
         fence, cause = max(fences, key=lambda f: (f[0], _CAUSES.index(f[1])))
-        self._claim = (fence, -1 if high is None else high, cause if fence >= 0 else "", migrate)
+        self._claim = (fence, -1 if high is None else high, cause if fence >= 0 else "")
         return lease_value(generation + (1 if generation % 2 == 0 else 2), now + self.lease_len)
 
     def claimed(self, value: int, written: bool) -> None:
         """The driver wrote the claim ``value`` (``written``: the store advanced to it)."""
         if not written:
             raise StateUnavailableError(f"another guard claimed {self.prefix!r} at once")
-        fence, high, cause, self._migrate = self._claim
+        fence, high, cause = self._claim
         self.generation = lease_parts(value)[0]
         self.saved_high = max(self.saved_high, high)
         self.lease = max(self.lease, lease_parts(value)[1])
