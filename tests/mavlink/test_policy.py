@@ -272,7 +272,8 @@ def test_a_clock_spike_fences_only_until_the_wall_clock_passes_it() -> None:
     stored = {"mav:high": NOW + 17 * S, "mav:lease": policy.release(NOW + S)}  # a clean stop
     soon = restarted(stored, NOW + 5 * S)  # restarted within the spike
     assert soon.restart_fence == NOW + 17 * S and soon.fence_cause == "high"
-    with pytest.raises(RestartFenceError):
+    stale = r"1\.00 s below the restart fence \(the previous run accepted a frame stamped 12\.00 s"
+    with pytest.raises(RestartFenceError, match=stale):  # how far ahead, said
         soon.check(signed(NOW + 16 * S, link_id=4), NOW + 5 * S)
     later = NOW + 120 * S  # long after the spike's moment
     again = restarted(stored, later)

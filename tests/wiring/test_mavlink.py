@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import socket
 import time
 from pathlib import Path
@@ -11,9 +12,9 @@ import pytest
 
 from antireplay.audit import AuditLog, Retention
 from antireplay.config import AppConfig
-from antireplay.core.clock import ManualClock
+from antireplay.core.clock import ManualClock, SystemClock
 from antireplay.core.errors import ConfigError
-from antireplay.mavlink import FrameRefusal, Role, passphrase_key
+from antireplay.mavlink import UNITS_PER_S, FrameRefusal, Role, mav_time, passphrase_key
 from antireplay.state.memory import MemoryStore
 from antireplay.state.sqlite import SqliteStore
 from antireplay.wiring import (
@@ -192,3 +193,26 @@ def test_a_restart_inside_a_new_states_first_fence_says_the_state_is_new(
     assert ": this sqlite state is new: fenced since its first start" in second, second
     assert "a restart does not shorten it" in second
     assert first.split(" (")[0] == second.split(" (")[0]  # the same moment: fenced until T
+
+
+def test_a_clock_spikes_fence_says_how_far_ahead_the_frame_was_stamped(tmp_path: Path) -> None:
+    """The previous run persisted a highest timestamp 120 s ahead (a spoofed clock): the start
+    line says the fence's cause with how far ahead of this clock that frame was stamped."""
+    store, log = SqliteStore(tmp_path / "state.db"), AuditLog(tmp_path / "audit.db")
+    ahead = mav_time(SystemClock()) + 120 * UNITS_PER_S
+    store.advance("mav-in:high", ahead)
+    router = build_mavlink_router(
+        [(Role.VEHICLE, "udpout:127.0.0.1:9", KEY), (Role.GROUND, "udpin:127.0.0.1:0", KEY)],
+        store, log, RouterOptions(max_forward_s=60.0),
+    )  # fmt: skip
+    try:
+        router.start()
+        notice = fence_notice(router, store, time.time())
+    finally:
+        stop_router(router)
+        store.close()
+        log.close()
+    assert notice is not None
+    said = re.search(r"accepted a frame stamped ([0-9.]+) s ahead of this clock", notice)
+    assert said is not None, notice
+    assert 115 <= float(said.group(1)) <= 120, notice

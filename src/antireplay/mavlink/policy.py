@@ -358,9 +358,14 @@ class MavPolicy:
                 f"(limit {_s(self.max_forward)} s)"
             )
         if ts <= self.restart_fence:
+            why = "the previous run may have accepted it"
+            if self.fence_cause == "high" and self.restart_fence > now:  # a clock spike's
+                why = (
+                    f"the previous run accepted a frame stamped {_s(self.restart_fence - now)} s"
+                    " ahead of this clock"
+                )
             fenced = RestartFenceError(
-                f"old timestamp: {_s(self.restart_fence - ts)} s below the restart fence "
-                "(the previous run may have accepted it)"
+                f"old timestamp: {_s(self.restart_fence - ts)} s below the restart fence ({why})"
             )
             fenced.below_s = (self.restart_fence - ts) / UNITS_PER_S
             raise fenced

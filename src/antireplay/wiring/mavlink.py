@@ -149,8 +149,9 @@ _FENCE_WHY = {
         "lease at the stop time",
     ),
     "high": (
-        "the previous run accepted a frame stamped this far ahead of the clock",
-        "it passes when the wall clock reaches that timestamp",
+        "the previous run accepted a frame stamped {ahead:.1f} s ahead of this clock (its "
+        "highest timestamp, by whole seconds)", "it passes when the wall clock reaches that "
+        "timestamp",
     ),
 }  # fmt: skip
 
@@ -164,6 +165,8 @@ def fence_notice(router: MavlinkRouter, store: ReplayStore, wall: float) -> str 
     if fence is None:
         return None
     why, remedy = _FENCE_WHY.get(fence[1]) or _lost_why(store)
+    if fence[1] == "high":  # how far ahead, said (the store's loss reason is never formatted)
+        why = why.format(ahead=max(0.0, fence[0] - wall))
     return f"fenced{until_text(fence, wall)}: {why}; {remedy}"
 
 
