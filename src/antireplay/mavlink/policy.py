@@ -27,11 +27,9 @@ an odd lease is live (plus ``lease_skew``).  The restart fence is a *timestamp*,
 margin: the previous lease's expiry (a clean stop writes the highest timestamp accepted),
 the persisted highest timestamp (``high``: written, by whole seconds, before accepting a
 frame stamped past the held lease) and after a store data loss the loss time plus
-``max_forward``.  A clock spike fences only until the wall clock passes it.  A state of
-the previous version holds a margin (``ahead``) instead: while ``high`` is absent it is
-converted once (:meth:`migration`: that version's fence, ``expiry + ahead`` of the lease it
-wrote) and written as ``high`` before any claim, so a crash or a failed write converts it
-again from the same lease, never from a newer one.
+``max_forward``.  A clock spike fences only until the wall clock passes it.  The previous
+version's margin (``ahead``) is converted while ``high`` is absent (:meth:`migration`: the
+expiry of the lease it wrote plus ``ahead``) and written as ``high`` before the claim.
 """
 
 from __future__ import annotations

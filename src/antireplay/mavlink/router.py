@@ -2,71 +2,28 @@
 
 Theory of operation
 -------------------
-A :class:`MavlinkRouter` joins any number of :class:`~.links.RouterLink` s, each a
-transport with a role (``vehicle``, ``ground``, ``trusted``: :mod:`.links`).
+A :class:`MavlinkRouter` joins :class:`~.links.RouterLink` s, each a transport with a role
+(``vehicle``, ``ground``, ``trusted``: :mod:`.links`).  It holds no replay rule: a frame
+goes through one guard call (:meth:`~.guard.MavlinkGuard.open`; two when a ground link has
+its own key: its guard, then the vehicle key's on the frame signed again), and what a guard
+refuses is a counted drop handed to ``on_reject`` (:class:`~.links.FrameRefusal`).  The
+guard says what to sign on a trusted link's behalf (committed in the vehicle key's inbound
+guard, so its capture is a replay on any link), refuses the router's ``sign_link_id`` from a
+ground link (``WRONG_DIRECTION``: a reflected copy of a frame signed for a link with its own
+key would be a new stream) and binds a system to its side; the router signs, forwards,
+drops, counts and reports.  Frames travel in the vehicle key's form, signed again for a
+ground link with its own key; unsigned allow-listed frames are never signed.
 
-The router holds no replay rule: every frame goes through exactly one guard
-call (:meth:`~antireplay.mavlink.guard.MavlinkGuard.open`, two when a ground
-link has its own key: its guard, then the vehicle key's guard on the frame the
-router signed again), and whatever the guard refuses is a counted drop with its
-code and reason, handed to ``on_reject`` (:class:`FrameRefusal`, one line that says
-why: bad signature, old timestamp and the gap in seconds, wrong link, not
-allow-listed).  Frames the router signs are committed in the vehicle key's
-inbound guard, so a capture of them replayed on a ground link that shares the
-vehicle key is a replay there too.  Frames the router signs for a ground link
-with a key of its own are not committed anywhere (they leave, they never came
-in), so a ground link refuses every frame carrying the router's
-``sign_link_id`` (``WRONG_DIRECTION``): otherwise a copy reflected back would
-be a new stream for that link's guard and reach the vehicle again.  Ground
-stations must therefore not sign with that link id (251 unless configured).
-These rules (sign on a trusted link's behalf, refuse the router's own link id
-from a ground link, bind a source system to its side) are the guard's
-(:meth:`~antireplay.mavlink.guard.MavlinkGuard.admit`,
-:meth:`~antireplay.mavlink.guard.MavlinkGuard.bind_direction`); the router acts
-on its answers: signs, forwards, drops, counts and reports.
-
-**Keys per link.**  Frames travel in the vehicle key's form: a frame from a ground
-link with its own key is signed again with the vehicle key (and committed, as
-above); a signed frame going to a ground link with another key is signed again
-with that link's key.  Frames to trusted links go as they are; unsigned
-allow-listed frames are never signed by the router (anyone can make those).
-
-**Routing like mavlink-router**, learned only from authenticated frames (signed
-and accepted, or signed on a trusted link's behalf): the source system and
-component of such a frame become a route to the link (and peer) it came from,
-and the peer (a ``udpin`` sender, a ``tcpin`` client) may receive from then on;
-at most ``max_peers`` per link, the least recently authenticated dropped
-first.  Unsigned allow-listed frames, garbage, forged and replayed frames teach
-nothing.  A frame without a target (or target system 0) goes to every other
-link's receivers; a targeted frame goes where its target was seen (the
-component where known, else every link that saw the system); a targeted frame
-for a system nobody announced goes to the vehicle links (the configured side),
-or, from the vehicle, is dropped as ``NO_ROUTE``.  A frame with no receiver at
-all is dropped as ``NO_PEER`` (counted, not reported: telemetry before a ground
-station authenticated is normal).  A source system that authenticated on one side
-is refused on the other (:meth:`~antireplay.mavlink.policy.MavPolicy.bind_direction`).
-**Ids bound to a station's link** while it is live (:mod:`.binding`): the ``(system,
-component)`` of a frame a ground link authenticated with its key belong to that link (and
-ground links sharing its key): a frame claiming them from any other link is refused as
-``SOURCE_BOUND`` before it is judged, and never moves the route, until the owner has been
-quiet ``bind_idle_s``; then a station authenticating them elsewhere takes them over (logged).
-
-**Fences said once**: refusals behind a guard's restart fence are counted each, reported
-the first per link, then folded into one line per interval (:mod:`.fencing`);
-:meth:`MavlinkRouter.fence` says until when and why, for the start line and readiness.
-
-Bounded work: the route table holds ``max_routes`` systems, per-stream counters
-``max_stream_stats`` streams (accepted streams only: a forged frame cannot add
-one), transports buffer one frame per reader; a refused frame costs a parse and
-at most one HMAC.  Routing decisions are made under one lock; writes happen
-outside it, so a slow TCP client cannot stall the other links.
-
-**Parsed once, one timer.**  A transport parses each frame once; the router, the guards
-and the signer share that :class:`~antireplay.mavlink.codec.Frame` (a frame the router
-signs is built as a ``Frame``, not parsed again).  One timer thread per router
-(:meth:`MavlinkRouter.tick`) claims and renews every guard's lease, flushes its streams and
-reserves every signer's timestamps ahead; :meth:`MavlinkRouter.start` waits for it to hold
-every lease (a crashed run's runs out), then starts the transports.
+**Routing like mavlink-router**, learned only from authenticated frames: their (system,
+component) route to the link and peer they came from (at most ``max_peers`` receivers per
+link, the least recently authenticated dropped).  Untargeted frames go to every other link's
+receivers, targeted ones where the target was seen, else to the vehicle side (from it:
+``NO_ROUTE``); no receiver at all is ``NO_PEER`` (counted only).  Ids a ground link
+authenticated are its own while it is live (:mod:`.binding`, ``SOURCE_BOUND``); refusals
+behind a restart fence are folded (:mod:`.fencing`).  Decisions are made under one lock,
+writes outside it (a slow TCP client stalls no other link); tables are bounded.  One timer
+(:meth:`MavlinkRouter.tick`) claims and renews every guard's lease, flushes and reserves
+signer timestamps; :meth:`MavlinkRouter.start` waits for every lease, then starts transports.
 """
 
 from __future__ import annotations
