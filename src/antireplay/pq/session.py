@@ -73,6 +73,9 @@ happened to other sessions since; the answer is a new handshake), one for a
 sequence never issued ``UNKNOWN_SESSION``, and a frame sent in this side's
 own direction (reflected back at its sender) ``WRONG_DIRECTION``, as in
 MAVLink; all three before any cryptography.
+
+Size: one idea, the handshake both roles run: the transcript, the key schedule and the
+refusal key are shared by initiator and responder, and apart they would be written twice.
 """
 
 from __future__ import annotations

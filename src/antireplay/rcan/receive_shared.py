@@ -25,6 +25,9 @@ accepted message whose row failed is refused ``STATE_UNAVAILABLE``, except a fre
 authentic ESTOP (:func:`~antireplay.core.window.estop_survives`): delivered flagged
 ``AUDIT_UNAVAILABLE``, its row spilled to the trail's reserved file
 (:mod:`~antireplay.audit.spill`), merged into the trail later.  Nothing raises.
+
+Size: one idea, the rules between the core's calls that both drivers run (the paired
+one-trip commit included); splitting it would make each driver carry half of them.
 """
 
 from __future__ import annotations
