@@ -283,3 +283,23 @@ def test_sighup_reloads_a_rotated_key_while_wrk_runs_and_drops_no_request(
         assert metric(gateway, "antireplay_key_reloads_total", '{result="ok"}') == 1
     failed = [ln for ln in (gateway.stderr_text or "").splitlines() if "reload failed" in ln]
     assert len(failed) == 1 and "keeping the 2 loaded keys" in failed[0]
+
+
+def test_a_revoked_key_is_refused_under_its_second_kid_and_config_check_warns(
+    tmp_path: Path,
+) -> None:
+    """One public key under two kids: ``config check`` warns, and ``keys revoke`` of one
+    kid refuses the key under the other too (the signer picks ``sig.kid``)."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    base = yaml.safe_load(config.read_text())
+    base["keys"].append({**base["keys"][0], "kid": "operator-2"})
+    config.write_text(yaml.safe_dump(base))
+    checked = antireplay("config", "check", str(config), cwd=tmp_path)
+    assert "keys.operator-2 and keys.operator are one public key" in checked.stderr
+    with serving(config) as gateway:
+        assert _code(gateway, signed_by(key, "operator-2")) is None
+        _revoke_reaches(gateway, key, "--config", str(config))
+        assert _code(gateway, signed_by(key, "operator-2")) == "KEY_REVOKED"

@@ -327,7 +327,12 @@ def config_check(path: Path, verbose: bool) -> None:
     if not cfg.keys and not others:  # a file for the router, a PQ end or DDS needs none
         click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
                    "so every command will be refused", err=True)  # fmt: skip
-    for warning in [*anchor_warnings(cfg), *_sdk_key_hints(cfg), *expiry_warnings(cfg)]:
+    for warning in [
+        *anchor_warnings(cfg),
+        *_sdk_key_hints(cfg),
+        *_shared_key_warnings(cfg),
+        *expiry_warnings(cfg),
+    ]:
         click.echo(f"antireplay: warning: {warning}", err=True)
     click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
     for line in sections:
@@ -387,6 +392,25 @@ def _sdk_key_hints(cfg: AppConfig) -> list[str]:
                 "sdk_compat: true (else 401 UNKNOWN_SENDER)"
             )
     return hints
+
+
+def _shared_key_warnings(cfg: AppConfig) -> list[str]:
+    """One public key under two kids: legal (a rename), but both kids are one key to revoke,
+    and ``keys revoke`` of either refuses both."""
+    from antireplay.rcan.auth import load_public_key  # noqa: PLC0415
+
+    first: dict[bytes, str] = {}
+    said = []
+    for entry in cfg.keys:
+        for path in entry.public_keys:
+            raw = load_public_key(Path(path).read_bytes()).public_bytes_raw()
+            other = first.setdefault(raw, entry.kid)
+            if other != entry.kid:
+                said.append(
+                    f"keys.{entry.kid} and keys.{other} are one public key ({path}): revoking "
+                    "either refuses both"
+                )
+    return said
 
 
 #: ``config check`` warns of a key that expires within this many days.
