@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
+import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -36,7 +38,7 @@ from pkcs11 import Attribute, KeyType, Mechanism, ObjectClass
 from pkcs11 import exceptions as p11
 
 from antireplay.core.errors import ConfigError
-from antireplay.keys.uri import Pkcs11Uri, parse
+from antireplay.keys.uri import Pkcs11Uri, mask_pins, parse
 
 PIN_ENV = "ANTIREPLAY_PKCS11_PIN"
 MODULE_ENV = "ANTIREPLAY_PKCS11_MODULE"
@@ -49,7 +51,9 @@ class TokenError(ConfigError):
     """A token key that cannot be used at start: one line naming the URI (PIN redacted)."""
 
     def __init__(self, what: str, uri: str, problem: str) -> None:
-        super().__init__(what, uri, "a usable PKCS#11 key", message=f"{what} {uri}: {problem}")
+        uri = mask_pins(uri)
+        message = f"{what} {uri}: {mask_pins(problem)}"
+        super().__init__(what, uri, "a usable PKCS#11 key", message=message)
 
 
 class TokenUnavailableError(OSError):
@@ -61,11 +65,22 @@ def module_path(uri: Pkcs11Uri) -> str:
     return uri.module_path or os.environ.get(MODULE_ENV) or DEFAULT_MODULE
 
 
+def _warn_if_shared(path: Path) -> None:
+    """The PIN file is a secret like a key file: one warning if group or others may read it."""
+    with contextlib.suppress(OSError):  # unreadable: the read below names why
+        mode = path.stat().st_mode
+        if mode & (stat.S_IRWXG | stat.S_IRWXO):
+            print(f"antireplay: warning: pin-source {path} is open to group or others (mode "
+                  f"{stat.S_IMODE(mode):04o}); keep a secret mode 0600: chmod 600 {path}",
+                  file=sys.stderr)  # fmt: skip
+
+
 def _pin(uri: Pkcs11Uri, what: str) -> str:
     if uri.pin_value is not None:
         return uri.pin_value
     if uri.pin_source is not None:
         path = Path(uri.pin_source.removeprefix("file:"))
+        _warn_if_shared(path)
         try:
             return path.read_text(encoding="utf-8").strip()
         except (OSError, UnicodeDecodeError) as exc:
@@ -92,7 +107,7 @@ class _TokenKey:
         try:
             uri = parse(text)
         except ValueError as exc:
-            raise TokenError(what, text.partition("?")[0], str(exc)) from None
+            raise TokenError(what, text, str(exc)) from None
         self.uri, self._lock = uri.redacted(), threading.Lock()
         module = module_path(uri)
         try:
