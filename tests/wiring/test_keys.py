@@ -5,6 +5,7 @@ or keeps them when the file is bad; the lifecycle metrics."""
 from __future__ import annotations
 
 import logging
+import threading
 from pathlib import Path
 
 import pytest
@@ -16,6 +17,7 @@ from antireplay.core.errors import ConfigError, StateUnavailableError
 from antireplay.rcan.auth import KeyRegistry
 from antireplay.state.revocations import MemoryRevocations
 from antireplay.wiring.keys import PROMISE_S, KeyMetrics, KeyWatcher
+from harness import until
 from harness.envelopes import ED, NOW, registry
 
 
@@ -113,3 +115,30 @@ def test_the_metrics_show_seconds_to_expiry_per_kid_and_the_lists_state(tmp_path
     assert metrics.get_sample_value("antireplay_revocations_fresh") == 1
     reloads = metrics.get_sample_value("antireplay_key_reloads_total", {"result": "ok"})
     assert reloads == 0
+
+
+def test_a_slow_reload_does_not_let_the_revocation_list_go_stale(tmp_path: Path) -> None:
+    """A load that takes longer than ``PROMISE_S`` (here 1.5 s of the watcher's clock) runs
+    off the poll thread: the polls go on and the registry stays fresh, so no request is
+    refused STATE_UNAVAILABLE because keys are being reloaded."""
+    started, release = threading.Event(), threading.Event()
+    fresh = KeyRegistry()
+    fresh.add("op-new", "operator", "ed25519", ED.public_key())
+
+    def slow_load() -> KeyRegistry:
+        clock.advance(1.5 * PROMISE_S)  # the load has taken 1.5 s so far
+        started.set()
+        release.wait(10)
+        return fresh
+
+    watcher, _, clock = watched(tmp_path, load=slow_load)
+    watcher.start()
+    try:
+        watcher.request_reload()
+        until("the slow load to start", started.is_set, 10)
+        until("a poll past the load's 1.5 s", lambda: not watcher.registry.stale(), 3)
+    finally:
+        release.set()
+        until("the reload to end", lambda: watcher.reloads["ok"] == 1, 10)
+        watcher.stop()
+    assert set(watcher.registry.entries) == {"op-new"}
