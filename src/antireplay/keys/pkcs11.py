@@ -44,6 +44,10 @@ PIN_ENV = "ANTIREPLAY_PKCS11_PIN"
 MODULE_ENV = "ANTIREPLAY_PKCS11_MODULE"
 #: Where Debian's softhsm2 (libsofthsm2) puts its module.
 DEFAULT_MODULE = "/usr/lib/softhsm/libsofthsm2.so"
+#: ``type=`` in a URI (RFC 7512) as the object class it names.
+_CLASSES = {"public": ObjectClass.PUBLIC_KEY, "private": ObjectClass.PRIVATE_KEY,
+            "secret-key": ObjectClass.SECRET_KEY, "cert": ObjectClass.CERTIFICATE,
+            "data": ObjectClass.DATA}  # fmt: skip
 _LOCKED = (p11.PinIncorrect, p11.PinLocked, p11.PinExpired, p11.PinInvalid, p11.PinLenRange)
 
 
@@ -109,6 +113,8 @@ class _TokenKey:
         except ValueError as exc:
             raise TokenError(what, text, str(exc)) from None
         self.uri, self._lock = uri.redacted(), threading.Lock()
+        if uri.type is not None and _CLASSES[uri.type] != self._class:
+            raise TokenError(what, self.uri, f"type={uri.type} names no {self._noun}")
         module = module_path(uri)
         try:
             lib = pkcs11.lib(module)
@@ -137,14 +143,26 @@ class _TokenKey:
                 object_class=self._class, key_type=self._key_type, label=uri.object, id=uri.id
             )
         except p11.NoSuchKey:
+            other = self._kind_of(uri)
             self._session.close()
-            raise TokenError(what, self.uri, f"no such object: {self._noun}") from None
+            problem = (f"wrong key type: the object is {other} (wanted: {self._noun})" if other
+                       else f"no such object: {self._noun}")  # fmt: skip
+            raise TokenError(what, self.uri, problem) from None
         except p11.MultipleObjectsReturned:
             self._session.close()
             raise TokenError(what, self.uri, f"more than one {self._noun} matches") from None
         if self._signs and not hasattr(self._key, "sign"):  # python-pkcs11: by CKA_SIGN
             self._session.close()
             raise TokenError(what, self.uri, f"the {self._noun} may not sign (CKA_SIGN false)")
+
+    def _kind_of(self, uri: Pkcs11Uri) -> str | None:
+        """What the object the URI names is, if it exists but is not the key wanted."""
+        for cls in (self._class, None):
+            with contextlib.suppress(p11.PKCS11Error):
+                found = self._session.get_key(object_class=cls, label=uri.object, id=uri.id)
+                kind = getattr(getattr(found, "key_type", None), "name", "other")
+                return f"a {kind} {getattr(found.object_class, 'name', 'other')}".lower()
+        return None
 
     def _call(self, operation: str, *args: Any, **kwargs: Any) -> bytes:
         with self._lock:
