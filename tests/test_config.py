@@ -212,3 +212,16 @@ def test_flags_override_keys_and_are_held_to_the_same_rules(tmp_path: Path) -> N
         AppConfig.load(path, {"mavlink.system_id": 300})
     assert err.value.key == "mavlink.system_id"
     assert AppConfig.load(None).mavlink.store == "sqlite:.antireplay/mavlink.db"
+
+
+@pytest.mark.parametrize(
+    ("kid", "needle"),
+    [("a b", "whitespace"), ("a\x07", "control"), ("k" * 129, "128"), ("\udcff", "unicode")],
+    ids=["space", "control", "long", "not-utf8"],
+)
+def test_a_config_kid_is_printable_short_utf8_without_whitespace(kid: str, needle: str) -> None:
+    """The grammar ``antireplay keys revoke`` holds a kid to (``config.gateway.kid_problem``)."""
+    key = {"kid": kid, "owner": "op", "alg": "ed25519", "public_keys": ["op.pem"]}
+    with pytest.raises(ConfigError) as err:
+        AppConfig.from_mapping({"keys": [key]})
+    assert err.value.key.startswith("keys") and needle in str(err.value), err.value

@@ -287,3 +287,94 @@ def test_sighup_reloads_a_rotated_key_while_wrk_runs_and_drops_no_request(
         assert metric(gateway, "antireplay_key_reloads_total", '{result="ok"}') == 1
     failed = [ln for ln in (gateway.stderr_text or "").splitlines() if "reload failed" in ln]
     assert len(failed) == 1 and "keeping the 2 loaded keys" in failed[0]
+
+
+def test_a_revoked_key_is_refused_under_its_second_kid_and_config_check_warns(
+    tmp_path: Path,
+) -> None:
+    """One public key under two kids: ``config check`` warns, and ``keys revoke`` of one
+    kid refuses the key under the other too (the signer picks ``sig.kid``)."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    key = load_operator_key(state)
+    base = yaml.safe_load(config.read_text())
+    base["keys"].append({**base["keys"][0], "kid": "operator-2"})
+    config.write_text(yaml.safe_dump(base))
+    checked = antireplay("config", "check", str(config), cwd=tmp_path)
+    assert "keys.operator-2 and keys.operator are one public key" in checked.stderr
+    with serving(config) as gateway:
+        assert _code(gateway, signed_by(key, "operator-2")) is None
+        _revoke_reaches(gateway, key, "--config", str(config))
+        assert _code(gateway, signed_by(key, "operator-2")) == "KEY_REVOKED"
+
+
+@pytest.mark.parametrize(
+    ("kid", "needle"),
+    [
+        (os.fsdecode(b"\xff"), "valid UTF-8"),
+        ("a\nb", "no whitespace or control"),
+        ("op erator", "no whitespace or control"),
+        ("k" * 129, "at most 128"),
+    ],
+    ids=["not-utf8", "newline", "space", "too-long"],
+)
+def test_keys_revoke_refuses_a_kid_outside_the_config_grammar(
+    tmp_path: Path, kid: str, needle: str
+) -> None:
+    """One line, exit 2, nothing stored (a newline kid would read as two in ``keys list``)."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    done = antireplay("keys", "revoke", "--config", str(config), "--force", kid, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith("antireplay: error: kid ") and needle in done.stderr
+    assert len(done.stderr.splitlines()) == 1 and "Traceback" not in done.stderr
+    listed = antireplay("keys", "list", "--config", str(config), cwd=tmp_path)
+    assert listed.returncode == 0 and listed.stdout == ""
+
+
+def test_keys_revoke_refuses_a_kid_the_config_does_not_name_and_a_memory_store(
+    tmp_path: Path,
+) -> None:
+    """A case variant or a typo exits 2 naming the near match (the key stays trusted, so a
+    success line would lie); ``--force`` revokes it (before deployment); ``--store memory``
+    reaches no gateway."""
+    state = tmp_path / "state"
+    state.mkdir()
+    config = write_demo_config(state)
+    for kid, near in (("Operator", "operator"), ("operatr", "operator")):
+        done = antireplay("keys", "revoke", "--config", str(config), kid, cwd=tmp_path)
+        assert done.returncode == 2, done.stderr
+        assert f"did you mean {near}?" in done.stderr and "--force" in done.stderr
+        assert len(done.stderr.splitlines()) == 1
+    forced = antireplay(
+        "keys", "revoke", "--config", str(config), "--force", "next-op", cwd=tmp_path
+    )
+    assert forced.returncode == 0, forced.stderr
+    listed = antireplay("keys", "list", "--config", str(config), cwd=tmp_path)
+    assert listed.stdout.split() == ["next-op"]
+    audit = str(tmp_path / "x.db")
+    memory = antireplay(
+        "keys", "revoke", "--store", "memory", "--audit", audit, "operator", cwd=tmp_path
+    )
+    assert memory.returncode == 2 and "store memory" in memory.stderr
+    assert len(memory.stderr.splitlines()) == 1
+
+
+def test_a_revoke_whose_audit_row_fails_says_the_key_is_revoked(tmp_path: Path) -> None:
+    """The list changed, only the row did not: exit 1 with the truth, never an error that
+    reads as if the revoke (or the unrevoke) had not happened."""
+    state = tmp_path / "state"
+    state.mkdir()
+    (tmp_path / "afile").write_text("")
+    store, audit = f"sqlite:{state / 'state.db'}", str(tmp_path / "afile" / "audit.db")
+    for verb in ("revoke", "unrevoke"):
+        done = antireplay(
+            "keys", verb, "--store", store, "--audit", audit, "operator", cwd=tmp_path
+        )
+        assert done.returncode == 1, done.stderr
+        assert f"{verb}d operator on sqlite:" in done.stderr
+        assert "its audit row could not be written" in done.stderr
+        listed = antireplay("keys", "list", "--store", store, cwd=tmp_path)
+        assert listed.stdout.split() == (["operator"] if verb == "revoke" else [])

@@ -724,3 +724,35 @@ def test_serve_workers_each_reload_keys_and_apply_a_revocation(tmp_path: Path) -
         proc.terminate()
         proc.communicate(timeout=60)
     assert proc.returncode == 0
+
+
+def _sighup_blocked(pid: int) -> bool:
+    """Whether ``pid``'s main thread blocks SIGHUP (``SigBlk`` in ``/proc``: bit 0)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigBlk:"):
+            return bool(int(line.split()[1], 16) & 1)
+    return False
+
+
+def test_a_sighup_during_start_up_never_kills_serve_and_reloads(tmp_path: Path) -> None:
+    """SIGHUP as soon as the command runs (before the reload handler exists): blocked and
+    pending until the handler is in place, then one reload; the gateway serves."""
+    config = write_demo_config(tmp_path)
+    port = free_port()
+    err = (tmp_path / "serve.err").open("wb")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "antireplay", "serve", "--config", str(config),
+         "--host", "127.0.0.1", "--port", str(port)],
+        stdout=subprocess.DEVNULL, stderr=err,
+    )  # fmt: skip
+    try:
+        until("serve to block SIGHUP", lambda: proc.poll() is not None or _sighup_blocked(proc.pid))
+        proc.send_signal(signal.SIGHUP)
+        text = (tmp_path / "serve.err").read_text
+        until("the reload", lambda: proc.poll() is not None or "keys reloaded" in text(), 30)
+        assert proc.poll() is None, text()
+        assert httpx.get(f"http://127.0.0.1:{port}/healthz", timeout=10).status_code == 200
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+        err.close()

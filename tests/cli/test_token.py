@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 from click.testing import CliRunner
 from cryptography.hazmat.primitives import serialization
 
@@ -202,3 +203,43 @@ def test_without_python_pkcs11_a_token_key_is_one_line_naming_the_extra(
                                        "--kid", "operator", "--cmd", "c"])  # fmt: skip
     one_line_error(result, "python-pkcs11 is not installed", "pip install 'antireplay[pkcs11]'")
     assert "pin-value=1" not in result.stderr
+
+
+@pytest.mark.parametrize(
+    "key",
+    [
+        "pkcs11:token=nope;object=x;pin-value=SECRET123",
+        "pkcs11:token=antireplay-test;object=operator&pin-value=SECRET123",
+        "PKCS11:token=antireplay-test;object=operator?pin-value=SECRET123",
+    ],
+    ids=["pin-in-path", "ampersand-typo", "upper-case-scheme"],
+)
+def test_a_malformed_uri_never_echoes_its_pin(token: SoftToken, tmp_path: Path, key: str) -> None:
+    done = sign_with(token, key, tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert "SECRET123" not in done.stderr + done.stdout and "pin-value=***" in done.stderr
+
+
+def test_config_check_never_echoes_a_pin_in_the_audit_head_key(
+    token: SoftToken, tmp_path: Path
+) -> None:
+    config = write_demo_config(tmp_path)
+    data = yaml.safe_load(config.read_text())
+    data["audit"] = {
+        "path": data["audit"],
+        "head_key": "pkcs11:token=nope;object=x;pin-value=SECRET99",
+    }
+    config.write_text(yaml.safe_dump(data))
+    done = cli(token, "config", "check", str(config), cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert "SECRET99" not in done.stderr and "pin-value=***" in done.stderr
+
+
+def test_a_pin_source_open_to_others_is_warned_about(token: SoftToken, tmp_path: Path) -> None:
+    token.generate_ed25519("operator")
+    pin = tmp_path / "pin"
+    pin.write_text(token.pin + "\n")
+    pin.chmod(0o644)
+    done = sign_with(token, token.uri("operator", pin="", query=f"pin-source=file:{pin}"), tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert f"pin-source {pin} is open to group or others (mode 0644)" in done.stderr

@@ -147,3 +147,30 @@ def test_a_secret_that_may_not_sign_is_refused_at_open(token: SoftToken) -> None
                              template={pkcs11.Attribute.SIGN: False})  # fmt: skip
     with pytest.raises(TokenError, match=r"may not sign \(CKA_SIGN false\)"):
         open_key(token.uri("no-sign"), "hmac", "audit.head_key")
+
+
+def test_type_in_the_uri_must_match_the_key_it_opens(token: SoftToken) -> None:
+    """``type=`` narrows the object (RFC 7512): a signer named ``type=secret-key`` or
+    ``type=public`` is refused, not silently served by the private key."""
+    token.generate_ed25519("operator")
+    for kind in ("secret-key", "public"):
+        uri = token.uri("operator").replace("object=operator", f"object=operator;type={kind}")
+        with pytest.raises(TokenError, match=f"type={kind} names no Ed25519 private key"):
+            open_key(uri, "ed25519", "--key")
+    uri = token.uri("operator").replace("object=operator", "object=operator;type=private")
+    open_key(uri, "ed25519", "--key").close()
+
+
+def test_a_key_of_another_type_says_wrong_key_type(token: SoftToken) -> None:
+    """An HMAC secret or a P-256 key where an Ed25519 key is needed: its type, one line."""
+    token.import_secret("mac", KEY)
+    with token.session() as session:
+        session.generate_keypair(
+            pkcs11.KeyType.EC, store=True, label="p256", id=b"p256",
+            mechanism=pkcs11.Mechanism.EC_KEY_PAIR_GEN,
+            public_template={pkcs11.Attribute.EC_PARAMS: bytes.fromhex("06082a8648ce3d030107")},
+        )  # fmt: skip
+    with pytest.raises(TokenError, match="wrong key type: the object is a generic_secret secret"):
+        open_key(token.uri("mac"), "ed25519", "--key")
+    with pytest.raises(TokenError, match="wrong key type: the object is a ec private_key"):
+        open_key(token.uri("p256"), "ed25519", "--key")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from antireplay.keys import is_uri, parse
+from antireplay.keys import is_uri, mask_pins, parse
 
 
 def test_path_and_query_attributes_are_decoded() -> None:
@@ -54,3 +54,17 @@ def test_each_mistake_is_one_line(text: str, needle: str) -> None:
 def test_only_pkcs11_text_is_a_uri() -> None:
     assert is_uri("pkcs11:token=t;object=o")
     assert not is_uri("/etc/antireplay/audit.key") and not is_uri(None)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "pkcs11:token=nope;object=x;pin-value=SECRET123",
+        "pkcs11:token=rk;object=ed&pin-value=SECRET123",
+        "pkcs11:token=rk;object=ed?PIN-VALUE=SECRET123&module-path=/x.so",
+        "PKCS11:token=rk;object=ed?pin-value=SECRET123",
+    ],
+    ids=["in-path", "ampersand-typo", "upper-case", "not-a-uri"],
+)
+def test_mask_pins_hides_a_pin_value_wherever_it_stands(text: str) -> None:
+    assert "SECRET123" not in mask_pins(text) and "***" in mask_pins(text)

@@ -18,7 +18,7 @@ from rcan.signing import MLDSAKeyPair, verify_message
 from antireplay import ManualClock, SecurityConfig
 from antireplay.audit import AuditLog
 from antireplay.cli.demo import write_demo_config
-from antireplay.core.errors import SignatureInvalidError
+from antireplay.core.errors import KeyRevokedError, SignatureInvalidError
 from antireplay.rcan.auth import (
     JwtVerifier,
     KeyRegistry,
@@ -29,6 +29,7 @@ from antireplay.rcan.auth import (
     sign_envelope,
     sign_sdk,
 )
+from antireplay.rcan.envelope import parse
 from antireplay.rcan.receive import Receiver
 from harness import antireplay, fresh_receiver, serving
 from harness.envelopes import (
@@ -280,3 +281,24 @@ def test_replace_swaps_the_whole_key_set_and_keeps_the_revocations() -> None:
     fresh.add("op-new", "operator", "ed25519", ED.public_key())
     keys.replace(fresh)
     assert set(keys.entries) == {"op-new"} and keys.revoked == {"op-pq"}
+
+
+def test_revoking_a_kid_revokes_its_key_under_every_kid_that_names_it(clock: ManualClock) -> None:
+    """The signer picks ``sig.kid``: a second ``keys:`` entry with the same public key, or
+    the SDK's 8-hex alias, is refused too, and a reload keeps the key refused."""
+    keys = registry()
+    keys.add("op-ed-2", "operator", "ed25519", ED.public_key())
+    keys.revoked = frozenset({"op-ed"})
+    for kid in ("op-ed", "op-ed-2"):
+        with pytest.raises(KeyRevokedError):
+            keys.verify(parse(signed(kid=kid)))
+    fresh = KeyRegistry()
+    fresh.add("op-ed-3", "operator", "ed25519", ED.public_key())
+    keys.replace(fresh)
+    with pytest.raises(KeyRevokedError):
+        keys.verify(parse(signed(kid="op-ed-3")))
+    alias = KeyRegistry(sdk_compat=True)
+    entry = alias.add("op-pq", "operator", "ml-dsa-65", PQ.public_key())
+    alias.alias(sdk_key_id(PQ.public_key()), entry)
+    alias.revoked = frozenset({sdk_key_id(PQ.public_key())})
+    assert alias.refused == {"op-pq", sdk_key_id(PQ.public_key())}

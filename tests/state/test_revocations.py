@@ -4,6 +4,7 @@ watchers poll, the set is what every process reads, and a store that is down is
 
 from __future__ import annotations
 
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from antireplay.state.revocations import (
     REVOCATIONS,
     MemoryRevocations,
     RevocationList,
+    SqliteRevocations,
     open_revocations,
     sqlite_path,
 )
@@ -74,3 +76,11 @@ def test_an_unreachable_redis_is_state_unavailable(tmp_path: Path) -> None:
     for call in (revocations.counters, revocations.revoked, lambda: revocations.revoke("k")):
         with pytest.raises(StateUnavailableError):
             call()
+
+
+def test_the_sqlite_list_is_created_0600(tmp_path: Path) -> None:
+    revocations = SqliteRevocations(tmp_path / "state.revocations.db")
+    revocations.revoke("op-1")
+    revocations.close()
+    for made in tmp_path.glob("state.revocations.db*"):
+        assert stat.S_IMODE(made.stat().st_mode) == 0o600, made

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import threading
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,7 @@ from antireplay.rcan.auth import KeyRegistry
 from antireplay.state import StoreSpec
 from antireplay.state.revocations import MemoryRevocations, SqliteRevocations, open_revocations
 from antireplay.wiring.keys import PROMISE_S, KeyMetrics, KeyWatcher
+from harness import until
 from harness.envelopes import ED, NOW, registry
 from harness.redis_server import RedisServer
 
@@ -187,3 +189,30 @@ def test_a_flushed_or_restarted_redis_never_unrevokes_and_the_list_is_reseeded(
         a.revocations.close()
         b.revocations.close()
         server.stop()
+
+
+def test_a_slow_reload_does_not_let_the_revocation_list_go_stale(tmp_path: Path) -> None:
+    """A load that takes longer than ``PROMISE_S`` (here 1.5 s of the watcher's clock) runs
+    off the poll thread: the polls go on and the registry stays fresh, so no request is
+    refused STATE_UNAVAILABLE because keys are being reloaded."""
+    started, release = threading.Event(), threading.Event()
+    fresh = KeyRegistry()
+    fresh.add("op-new", "operator", "ed25519", ED.public_key())
+
+    def slow_load() -> KeyRegistry:
+        clock.advance(1.5 * PROMISE_S)  # the load has taken 1.5 s so far
+        started.set()
+        release.wait(10)
+        return fresh
+
+    watcher, _, clock = watched(tmp_path, load=slow_load)
+    watcher.start()
+    try:
+        watcher.request_reload()
+        until("the slow load to start", started.is_set, 10)
+        until("a poll past the load's 1.5 s", lambda: not watcher.registry.stale(), 3)
+    finally:
+        release.set()
+        until("the reload to end", lambda: watcher.reloads["ok"] == 1, 10)
+        watcher.stop()
+    assert set(watcher.registry.entries) == {"op-new"}

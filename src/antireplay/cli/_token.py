@@ -11,7 +11,7 @@ import click
 
 from antireplay.cli._common import _fail
 from antireplay.core.errors import ConfigError
-from antireplay.keys import is_uri, open_key
+from antireplay.keys import is_uri, mask_pins, open_key
 
 if TYPE_CHECKING:
     from antireplay.keys.pkcs11 import TokenMac, TokenSigner
@@ -30,7 +30,10 @@ class KeyOrUri(click.ParamType):  # type: ignore[type-arg]
         if is_uri(value):
             return str(value)
         kind = click.Path(exists=self.exists, dir_okay=False, path_type=Path)
-        return kind.convert(value, param, ctx)
+        try:
+            return kind.convert(value, param, ctx)
+        except click.BadParameter as exc:  # a mistyped URI (PKCS11:...) may carry a PIN
+            self.fail(mask_pins(exc.message), param, ctx)
 
 
 def head_key(value: Path | str | None, what: str = "--head-key") -> Path | TokenMac | None:

@@ -4,6 +4,8 @@ shares (:mod:`antireplay.state.revocations`), each change audited."""
 
 from __future__ import annotations
 
+import contextlib
+import difflib
 import importlib
 import json
 import os
@@ -22,6 +24,7 @@ from cryptography.hazmat.primitives.asymmetric import ed25519, mldsa, mlkem, x25
 from rich.table import Table
 
 from antireplay.config import AppConfig
+from antireplay.config.gateway import kid_problem
 from antireplay.core.errors import ConfigError, ReplayAttackError
 from antireplay.core.messages import MessageType
 from antireplay.rcan.auth import (
@@ -389,39 +392,101 @@ def _state_config(
     )
 
 
-def _change(config: AppConfig, kid: str, *, revoke: bool) -> None:
+_FORCE = click.option(
+    "--force",
+    is_flag=True,
+    help="Change a kid --config's keys: does not name (e.g. revoke one before it is deployed).",
+)
+
+
+def _configured(config: AppConfig, kid: str) -> None:
+    """Refuse a kid the configuration names no key by (a typo would protect nothing)."""
+    from antireplay.wiring.gateway import build_registry  # noqa: PLC0415
+
+    kids = {entry.kid for entry in config.keys}
+    with contextlib.suppress(ConfigError):
+        kids |= set(build_registry(config).entries)  # and the SDK aliases (sdk_compat)
+    if kid in kids:
+        return
+    near = [k for k in kids if k.casefold() == kid.casefold()]
+    near = near or difflib.get_close_matches(kid, sorted(kids), n=1)
+    hint = f" (did you mean {near[0]}?)" if near else ""
+    _fail(
+        f"kid {kid} names no key in the configuration's keys:{hint}; to change it anyway "
+        "(e.g. revoke a key before it is deployed) add --force"
+    )
+
+
+def _change(
+    config_path: Path | None, config: AppConfig, kid: str, *, revoke: bool, force: bool
+) -> None:
+    from antireplay.state.revocations import open_revocations  # noqa: PLC0415
     from antireplay.wiring.keys import change_revocation  # noqa: PLC0415
 
+    problem = kid_problem(kid)
+    if problem is not None:
+        _fail(f"kid {kid!a}: {problem}")
+    spec = config.store_spec.redacted()
+    if config.store_spec.backend == "memory":
+        _fail("store memory: a revocation list in this process reaches no gateway; "
+              "name the gateways' sqlite: or redis:// store")  # fmt: skip
+    if config_path is not None and not force:
+        _configured(config, kid)
+    verb = "revoked" if revoke else "unrevoked"
     try:
         changed = change_revocation(config, kid, revoke=revoke)
-    except (ReplayAttackError, ConfigError) as exc:
-        _fail(f"store {config.store_spec.redacted()}: {exc}")
-    verb = "revoked" if revoke else "unrevoked"
+    except (ReplayAttackError, ConfigError, OSError) as exc:
+        with contextlib.suppress(ReplayAttackError, OSError):
+            revocations = open_revocations(config.store_spec)
+            try:
+                applied = (kid in revocations.revoked()) == revoke
+            finally:
+                revocations.close()
+            if applied:  # the list changed; only the audit row did not
+                click.echo(f"antireplay: {verb} {kid} on {spec}; its audit row could not be "
+                           f"written to {config.audit}: {exc}", err=True)  # fmt: skip
+                sys.exit(1)
+        _fail(f"store {spec}: {kid} not {verb}: {exc}")
     already = "" if changed else f" (it already was {'' if revoke else 'not '}revoked)"
     click.echo(
-        f"{verb} {kid}{already}: every gateway on {config.store_spec.redacted()} "
-        f"applies it within 1 s; audited in {config.audit}"
+        f"{verb} {kid}{already}: every gateway on {spec} applies it within 1 s; "
+        f"audited in {config.audit}"
     )
 
 
 @keys_group.command("revoke")
 @click.argument("kid")
 @_state_options
-def keys_revoke(
-    kid: str, config_path: Path | None, store: str | None, audit_path: str | None, state_dir: Path
+@_FORCE
+def keys_revoke(  # noqa: PLR0917 - the state options
+    kid: str,
+    config_path: Path | None,
+    store: str | None,
+    audit_path: str | None,
+    state_dir: Path,
+    force: bool,
 ) -> None:
-    """Put KID on the shared revocation list: its messages are refused (401 KEY_REVOKED)."""
-    _change(_state_config(config_path, store, audit_path, state_dir), kid, revoke=True)
+    """Put KID on the shared revocation list: its key is refused (401 KEY_REVOKED) under
+    every kid that names it."""
+    config = _state_config(config_path, store, audit_path, state_dir)
+    _change(config_path, config, kid, revoke=True, force=force)
 
 
 @keys_group.command("unrevoke")
 @click.argument("kid")
 @_state_options
-def keys_unrevoke(
-    kid: str, config_path: Path | None, store: str | None, audit_path: str | None, state_dir: Path
+@_FORCE
+def keys_unrevoke(  # noqa: PLR0917 - the state options
+    kid: str,
+    config_path: Path | None,
+    store: str | None,
+    audit_path: str | None,
+    state_dir: Path,
+    force: bool,
 ) -> None:
     """Take KID off the shared revocation list."""
-    _change(_state_config(config_path, store, audit_path, state_dir), kid, revoke=False)
+    config = _state_config(config_path, store, audit_path, state_dir)
+    _change(config_path, config, kid, revoke=False, force=force)
 
 
 @keys_group.command("list")

@@ -39,6 +39,8 @@ from antireplay.config import AppConfig, KeyConfig
 from antireplay.core.errors import AntiReplayError, ConfigError, StateUnavailableError
 
 if TYPE_CHECKING:
+    from types import FrameType
+
     from starlette.applications import Starlette
 
 from antireplay.cli._common import _fail, _load_config, console, preflight, until_stopped
@@ -88,7 +90,7 @@ from antireplay.cli._common import _fail, _load_config, console, preflight, unti
     default=None,
     help="The certificate's PEM private key.",
 )
-def serve(  # noqa: PLR0917 - one option per knob
+def serve(  # noqa: PLR0915, PLR0917 - one option per knob, start-up in order
     config_path: Path | None,
     host: str,
     port: int,
@@ -105,6 +107,10 @@ def serve(  # noqa: PLR0917 - one option per knob
     then "fenced until T (...): why" while a fence lies ahead (a state with no history);
     GET /healthz is liveness, GET /readyz readiness (store and audit)."""
     import socket  # noqa: PLC0415
+
+    # A SIGHUP during start-up waits (blocked, pending) for the reload handler: never the
+    # default action (exit); a pending one reloads once the handler is in place.
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGHUP})
 
     import uvicorn  # noqa: PLC0415
     from uvicorn.config import LOGGING_CONFIG  # noqa: PLC0415
@@ -159,7 +165,7 @@ def serve(  # noqa: PLR0917 - one option per knob
         click.echo(fenced)
     if workers == 1:
         settled_heap()
-        signal.signal(signal.SIGHUP, lambda _n, _f: app.state.keys.request_reload())
+        _take_sighup(lambda _n, _f: app.state.keys.request_reload())  # a pending one reloads
         with until_stopped(lambda: f"served {_served(app)}"):
             uvicorn.Server(settings).run(sockets=[sock])
         app.state.keys.stop()
@@ -173,8 +179,17 @@ def serve(  # noqa: PLR0917 - one option per knob
         ssl_certfile=settings.ssl_certfile, ssl_keyfile=settings.ssl_keyfile,
     )  # fmt: skip
     click.echo(f"{workers} worker processes (metrics per process)")
+    # the workers read the file fresh; until uvicorn's supervisor takes SIGHUP it is a no-op
+    _take_sighup(lambda _n, _f: None)  # unblocked first: the workers must not inherit the mask
     Multiprocess(settings, sockets=[sock]).run()  # its own handlers stop the workers
     click.echo(f"stopped: {workers} worker processes ended (counts were per process)", err=True)
+
+
+def _take_sighup(handler: Callable[[int, FrameType | None], None]) -> None:
+    """Install ``handler`` for SIGHUP, then unblock it (blocked since the command began):
+    a SIGHUP sent during start-up is delivered now, to the handler."""
+    signal.signal(signal.SIGHUP, handler)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGHUP})
 
 
 #: The startup's short form of ``config check``'s no-anchor warning (said in full there).
@@ -327,7 +342,12 @@ def config_check(path: Path, verbose: bool) -> None:
     if not cfg.keys and not others:  # a file for the router, a PQ end or DDS needs none
         click.echo(f"antireplay: warning: {path} configures no keys: no signature can verify, "
                    "so every command will be refused", err=True)  # fmt: skip
-    for warning in [*anchor_warnings(cfg), *_sdk_key_hints(cfg), *expiry_warnings(cfg)]:
+    for warning in [
+        *anchor_warnings(cfg),
+        *_sdk_key_hints(cfg),
+        *_shared_key_warnings(cfg),
+        *expiry_warnings(cfg),
+    ]:
         click.echo(f"antireplay: warning: {warning}", err=True)
     click.echo(f"ok: {len(cfg.keys)} keys, store {cfg.store}, audit {cfg.audit}")
     for line in sections:
@@ -387,6 +407,25 @@ def _sdk_key_hints(cfg: AppConfig) -> list[str]:
                 "sdk_compat: true (else 401 UNKNOWN_SENDER)"
             )
     return hints
+
+
+def _shared_key_warnings(cfg: AppConfig) -> list[str]:
+    """One public key under two kids: legal (a rename), but both kids are one key to revoke,
+    and ``keys revoke`` of either refuses both."""
+    from antireplay.rcan.auth import load_public_key  # noqa: PLC0415
+
+    first: dict[bytes, str] = {}
+    said = []
+    for entry in cfg.keys:
+        for path in entry.public_keys:
+            raw = load_public_key(Path(path).read_bytes()).public_bytes_raw()
+            other = first.setdefault(raw, entry.kid)
+            if other != entry.kid:
+                said.append(
+                    f"keys.{entry.kid} and keys.{other} are one public key ({path}): revoking "
+                    "either refuses both"
+                )
+    return said
 
 
 #: ``config check`` warns of a key that expires within this many days.

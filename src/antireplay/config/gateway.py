@@ -17,7 +17,27 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Literal
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, model_validator
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, field_validator, model_validator
+
+#: The longest kid (config and ``antireplay keys``).
+KID_MAX = 128
+
+
+def kid_problem(kid: str) -> str | None:
+    """Why ``kid`` is not a kid (``None``: it is): printable, no whitespace or control
+    characters, at most :data:`KID_MAX` characters, valid UTF-8 (a kid ends up in lists,
+    audit rows and NACKs an operator reads)."""
+    if not kid:
+        return "a kid is not empty"
+    if len(kid) > KID_MAX:
+        return f"a kid is at most {KID_MAX} characters (this one has {len(kid)})"
+    try:
+        kid.encode()
+    except UnicodeEncodeError:
+        return "a kid is valid UTF-8"
+    if any(c.isspace() or not c.isprintable() for c in kid):
+        return "a kid has no whitespace or control characters"
+    return None
 
 
 class KeyConfig(BaseModel):
@@ -25,13 +45,21 @@ class KeyConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
 
-    kid: str = Field(min_length=1, max_length=128)
+    kid: str = Field(min_length=1, max_length=KID_MAX)
     owner: str = Field(min_length=1, max_length=128)
     alg: Literal["ed25519", "ml-dsa-65", "ml-dsa-87", "ed25519+ml-dsa-65"]
     public_keys: list[str] = Field(min_length=1, max_length=2)  # PEM file paths
     scopes: list[str] = Field(default_factory=lambda: ["control"])
     not_before: AwareDatetime | None = Field(default=None, strict=False)  # ISO 8601, a zone
     not_after: AwareDatetime | None = Field(default=None, strict=False)
+
+    @field_validator("kid")
+    @classmethod
+    def _kid(cls, kid: str) -> str:
+        problem = kid_problem(kid)
+        if problem is not None:
+            raise ValueError(problem)
+        return kid
 
     @model_validator(mode="after")
     def _period(self) -> KeyConfig:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Literal, overload
 
 from antireplay.core.errors import ConfigError
-from antireplay.keys.uri import Pkcs11Uri, is_uri, parse
+from antireplay.keys.uri import Pkcs11Uri, is_uri, mask_pins, parse
 
 if TYPE_CHECKING:
     from antireplay.keys.pkcs11 import TokenDigestKey, TokenMac, TokenSigner
@@ -29,8 +29,9 @@ def open_key(text: str, kind: str, what: str = "key") -> TokenSigner | TokenMac 
     try:
         from antireplay.keys import pkcs11  # noqa: PLC0415 - python-pkcs11 only when used
     except ImportError as exc:
-        raise ConfigError(what, text.partition("?")[0], "a usable PKCS#11 key", message=(
-            f"{what} {text.partition('?')[0]}: python-pkcs11 is not installed ({exc}); "
+        shown = mask_pins(text)
+        raise ConfigError(what, shown, "a usable PKCS#11 key", message=(
+            f"{what} {shown}: python-pkcs11 is not installed ({exc}); "
             "pip install 'antireplay[pkcs11]'"))  from None  # fmt: skip
     if kind == "ed25519":
         return pkcs11.TokenSigner(text, what)
@@ -39,4 +40,4 @@ def open_key(text: str, kind: str, what: str = "key") -> TokenSigner | TokenMac 
     return pkcs11.TokenDigestKey(text, what)
 
 
-__all__ = ["Pkcs11Uri", "is_uri", "open_key", "parse"]
+__all__ = ["Pkcs11Uri", "is_uri", "mask_pins", "open_key", "parse"]

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import stat
+import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -36,12 +38,16 @@ from pkcs11 import Attribute, KeyType, Mechanism, ObjectClass
 from pkcs11 import exceptions as p11
 
 from antireplay.core.errors import ConfigError
-from antireplay.keys.uri import Pkcs11Uri, parse
+from antireplay.keys.uri import Pkcs11Uri, mask_pins, parse
 
 PIN_ENV = "ANTIREPLAY_PKCS11_PIN"
 MODULE_ENV = "ANTIREPLAY_PKCS11_MODULE"
 #: Where Debian's softhsm2 (libsofthsm2) puts its module.
 DEFAULT_MODULE = "/usr/lib/softhsm/libsofthsm2.so"
+#: ``type=`` in a URI (RFC 7512) as the object class it names.
+_CLASSES = {"public": ObjectClass.PUBLIC_KEY, "private": ObjectClass.PRIVATE_KEY,
+            "secret-key": ObjectClass.SECRET_KEY, "cert": ObjectClass.CERTIFICATE,
+            "data": ObjectClass.DATA}  # fmt: skip
 _LOCKED = (p11.PinIncorrect, p11.PinLocked, p11.PinExpired, p11.PinInvalid, p11.PinLenRange)
 
 
@@ -49,7 +55,9 @@ class TokenError(ConfigError):
     """A token key that cannot be used at start: one line naming the URI (PIN redacted)."""
 
     def __init__(self, what: str, uri: str, problem: str) -> None:
-        super().__init__(what, uri, "a usable PKCS#11 key", message=f"{what} {uri}: {problem}")
+        uri = mask_pins(uri)
+        message = f"{what} {uri}: {mask_pins(problem)}"
+        super().__init__(what, uri, "a usable PKCS#11 key", message=message)
 
 
 class TokenUnavailableError(OSError):
@@ -61,11 +69,22 @@ def module_path(uri: Pkcs11Uri) -> str:
     return uri.module_path or os.environ.get(MODULE_ENV) or DEFAULT_MODULE
 
 
+def _warn_if_shared(path: Path) -> None:
+    """The PIN file is a secret like a key file: one warning if group or others may read it."""
+    with contextlib.suppress(OSError):  # unreadable: the read below names why
+        mode = path.stat().st_mode
+        if mode & (stat.S_IRWXG | stat.S_IRWXO):
+            print(f"antireplay: warning: pin-source {path} is open to group or others (mode "
+                  f"{stat.S_IMODE(mode):04o}); keep a secret mode 0600: chmod 600 {path}",
+                  file=sys.stderr)  # fmt: skip
+
+
 def _pin(uri: Pkcs11Uri, what: str) -> str:
     if uri.pin_value is not None:
         return uri.pin_value
     if uri.pin_source is not None:
         path = Path(uri.pin_source.removeprefix("file:"))
+        _warn_if_shared(path)
         try:
             return path.read_text(encoding="utf-8").strip()
         except (OSError, UnicodeDecodeError) as exc:
@@ -92,8 +111,10 @@ class _TokenKey:
         try:
             uri = parse(text)
         except ValueError as exc:
-            raise TokenError(what, text.partition("?")[0], str(exc)) from None
+            raise TokenError(what, text, str(exc)) from None
         self.uri, self._lock = uri.redacted(), threading.Lock()
+        if uri.type is not None and _CLASSES[uri.type] != self._class:
+            raise TokenError(what, self.uri, f"type={uri.type} names no {self._noun}")
         module = module_path(uri)
         try:
             lib = pkcs11.lib(module)
@@ -122,14 +143,26 @@ class _TokenKey:
                 object_class=self._class, key_type=self._key_type, label=uri.object, id=uri.id
             )
         except p11.NoSuchKey:
+            other = self._kind_of(uri)
             self._session.close()
-            raise TokenError(what, self.uri, f"no such object: {self._noun}") from None
+            problem = (f"wrong key type: the object is {other} (wanted: {self._noun})" if other
+                       else f"no such object: {self._noun}")  # fmt: skip
+            raise TokenError(what, self.uri, problem) from None
         except p11.MultipleObjectsReturned:
             self._session.close()
             raise TokenError(what, self.uri, f"more than one {self._noun} matches") from None
         if self._signs and not hasattr(self._key, "sign"):  # python-pkcs11: by CKA_SIGN
             self._session.close()
             raise TokenError(what, self.uri, f"the {self._noun} may not sign (CKA_SIGN false)")
+
+    def _kind_of(self, uri: Pkcs11Uri) -> str | None:
+        """What the object the URI names is, if it exists but is not the key wanted."""
+        for cls in (self._class, None):
+            with contextlib.suppress(p11.PKCS11Error):
+                found = self._session.get_key(object_class=cls, label=uri.object, id=uri.id)
+                kind = getattr(getattr(found, "key_type", None), "name", "other")
+                return f"a {kind} {getattr(found.object_class, 'name', 'other')}".lower()
+        return None
 
     def _call(self, operation: str, *args: Any, **kwargs: Any) -> bytes:
         with self._lock:

@@ -9,12 +9,13 @@ the module (``module-path=/usr/lib/softhsm/libsofthsm2.so``) and the PIN: ``pin-
 inline (RFC 7512 section 2.3) or ``pin-source=`` (a file, ``file:`` or a path); without
 either the driver reads ``$ANTIREPLAY_PKCS11_PIN``.  Parsing is pure: values in, a
 :class:`Pkcs11Uri` or a one-line :class:`ValueError` out (never the PIN in a message:
-:meth:`Pkcs11Uri.redacted`).  Unknown attributes refuse (RFC 7512 lets a consumer
-ignore them, but a typo in ``objet=`` must not select "any object").
+:meth:`Pkcs11Uri.redacted`; :func:`mask_pins` for raw text).  Unknown attributes refuse
+(RFC 7512 lets a consumer ignore them, but a typo in ``objet=`` must not select "any object").
 """
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from urllib.parse import unquote_to_bytes
 
@@ -52,6 +53,15 @@ class Pkcs11Uri:
         text = SCHEME + ";".join(p for p in parts if p)
         tail = "&".join(q for q in query if q)
         return text + (f"?{tail}" if tail else "")
+
+
+_PIN = re.compile(r"(pin-value\s*(?:=|%3d))[^;&?\s'\"]*", re.IGNORECASE)
+
+
+def mask_pins(text: str) -> str:
+    """``text`` with every ``pin-value=`` value replaced by ``***``, wherever it stands (path
+    or query, a malformed URI, a whole error message): the one mask every message uses."""
+    return _PIN.sub(r"\1***", text)
 
 
 def is_uri(text: object) -> bool:

@@ -209,6 +209,33 @@ class KeyRegistry:
     #: on ``freshness`` (the watcher's clock: real time; ``None``: the system clock).
     fresh_until: float = math.inf
     freshness: Clock | None = None
+    #: Every kid refused: the revoked kids and every kid naming one of their public keys
+    #: (a second ``keys:`` entry, the SDK alias); derived whenever ``revoked`` or ``entries``
+    #: is assigned, so the request path stays one set lookup.
+    refused: frozenset[str] = field(default=frozenset(), init=False, compare=False)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        object.__setattr__(self, name, value)
+        if name in ("revoked", "entries"):
+            self._derive_refused()
+
+    def _derive_refused(self) -> None:
+        """Revocation is of the key, not of the kid string (the signer picks ``sig.kid``);
+        a kid's keys are remembered after a reload drops it, so renaming does not un-revoke."""
+        revoked: frozenset[str] = getattr(self, "revoked", frozenset())
+        entries: dict[str, KeyEntry] = getattr(self, "entries", {})
+        known: dict[str, frozenset[bytes]] = self.__dict__.setdefault("_known", {})
+        for kid, entry in entries.items():
+            known[kid] = known.get(kid, frozenset()) | {
+                k.public_bytes_raw() for k in entry.public_keys
+            }
+        keys = frozenset().union(*(known.get(kid, frozenset()) for kid in revoked))
+        named = {
+            kid
+            for kid, entry in entries.items()
+            if any(key.public_bytes_raw() in keys for key in entry.public_keys)
+        }
+        object.__setattr__(self, "refused", frozenset(revoked | named))
 
     def add(
         self,
@@ -232,6 +259,7 @@ class KeyRegistry:
             raise ValueError(f"kid {kid!r} is already registered")
         entry = KeyEntry(kid, owner, alg, keys, frozenset(scopes), not_before, not_after)
         self.entries[kid] = entry
+        self._derive_refused()
         return entry
 
     def alias(self, kid: str, entry: KeyEntry) -> None:
@@ -241,6 +269,7 @@ class KeyRegistry:
         if other is not None and other != entry:
             raise ValueError(f"kid {kid!r} (the SDK key id of {entry.kid!r}) names another key")
         self.entries[kid] = entry
+        self._derive_refused()
 
     def signing_key(self, env: Envelope) -> tuple[Signature, KeyEntry]:
         """The signature block and the registered key it names (no cryptography); raises
@@ -251,7 +280,7 @@ class KeyRegistry:
         entry = self.entries.get(sig.kid)
         if entry is None:
             raise UnknownSenderError("unknown signing key", detail=self._sdk_hint(sig.kid))
-        if self.revoked and (entry.kid in self.revoked or sig.kid in self.revoked):
+        if self.refused and (entry.kid in self.refused or sig.kid in self.refused):
             raise KeyRevokedError("signing key is revoked", detail=f"kid={entry.kid}")
         if entry.not_before is not None or entry.not_after is not None:
             self._check_period(entry)

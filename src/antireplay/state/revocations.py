@@ -18,6 +18,8 @@ is down); the watcher turns a long enough run of those into a fail-closed gatewa
 
 from __future__ import annotations
 
+import contextlib
+import os
 import sqlite3
 import threading
 from pathlib import Path
@@ -115,6 +117,8 @@ class SqliteRevocations:
         """The connection, opened (and the schema made) on first use: a file that cannot be
         made yet (a full disk) is ``STATE_UNAVAILABLE`` now and tried again next time."""
         if self._db is None:
+            with contextlib.suppress(OSError):  # 0600 (WAL/SHM take its mode); else connect says
+                os.close(os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600))
             db = sqlite3.connect(
                 self.path, timeout=self.timeout_s, isolation_level=None, check_same_thread=False
             )

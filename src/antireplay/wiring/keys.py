@@ -80,6 +80,7 @@ class KeyWatcher:
         self._failing = False
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._reloading: threading.Thread | None = None
         registry.fresh_until = -1.0  # unknown until the first good read
         self.refresh()
 
@@ -113,7 +114,21 @@ class KeyWatcher:
                 self._record("REVOCATIONS_RESTORED", "revocation list reachable again")
         if (asked or self._reload_asked) and self.load is not None:
             self._reload_asked = False
+            self._reload_soon()
+
+    def _reload_soon(self) -> None:
+        """On the poll thread, reload on a thread of its own: a slow load (a big ``keys:``, a
+        slow disk) must not stop the polls that keep the list fresh (else every request but
+        an ESTOP would be refused meanwhile); inline when called directly."""
+        if threading.current_thread() is not self._thread:
             self.reload()
+        elif self._reloading is not None and self._reloading.is_alive():
+            self._reload_asked = True  # after the one under way
+        else:
+            self._reloading = threading.Thread(
+                target=self.reload, name="antireplay-keys-reload", daemon=True
+            )
+            self._reloading.start()
 
     def _reseed(self) -> dict[str, int]:
         """The list's counter only grows (``unrevoke`` bumps it too), so a smaller one means the
