@@ -576,6 +576,26 @@ class SdkReplayAdapter:
         return True, verdict.warning or ""
 
 
+class Reaper:
+    """The child processes a test started, killed and reaped when it ends, passed or failed
+    (use it from an autouse fixture): a hung or failed test never leaves a child running."""
+
+    def __init__(self) -> None:
+        self._started: list[subprocess.Popen[str]] = []
+
+    def __call__(self, process: subprocess.Popen[str]) -> subprocess.Popen[str]:
+        self._started.append(process)
+        return process
+
+    def reap(self) -> None:
+        """Kill every child still running, then collect its exit and pipes (bounded)."""
+        while self._started:
+            process = self._started.pop()
+            if process.poll() is None:
+                process.kill()
+            process.communicate(timeout=30)
+
+
 def dds_writer_process(
     domain_id: int, psk: bytes, topic: str, *, period_s: float, max_forward_s: float
 ) -> subprocess.Popen[str]:

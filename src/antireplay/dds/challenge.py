@@ -53,6 +53,12 @@ PING_TOPIC = "antireplay/ping"
 #: Ping samples one call takes at most (the rest wait in the reader's history).
 PINGS_PER_CALL = 64
 
+#: Every topic filter's ctypes callback, held for the life of the process: Cyclone keeps
+#: calling a filter as long as its C topic lives, and the binding ties the callback to the
+#: Python ``Topic`` object, which the garbage collector may free first (a freed callback
+#: crashed ``dds_write`` in ``content_filter_accepts``).  One small entry per channel.
+_FILTERS: list[object] = []
+
 _ddsc = load_cyclonedds()
 _ddsc.dds_take.argtypes = [ct.c_int32, ct.POINTER(ct.c_void_p),
                            ct.POINTER(dds_c_t.sample_info), ct.c_size_t, ct.c_uint32]  # fmt: skip
@@ -133,6 +139,7 @@ class PingChannel:
         inbound = Topic(participant, PING_TOPIC, SealedSample, qos=qos)
         if ring is not None:
             inbound.set_topic_filter(lambda _topic, sample: self._keep(sample))
+            _FILTERS.append(inbound._topic_filter)  # see _FILTERS
         self.reader = DataReader(participant, inbound, qos=qos)
         self.waiting = ReadCondition(
             self.reader, ViewState.Any | InstanceState.Any | SampleState.NotRead
