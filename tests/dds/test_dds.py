@@ -25,7 +25,7 @@ import pytest
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.core.errors import Code, ConfigError, StateFileError
-from antireplay.dds.config import DdsConfig
+from antireplay.dds.config import MAX_FORWARD_S, DdsConfig
 from antireplay.epochs import EpochSigner, Kind, derive_key, signer_state
 from antireplay.epochs.policy import seal
 from antireplay.state import open_store
@@ -745,6 +745,13 @@ def test_fresh_reader_accepts_after_an_answer_without_waiting_out_its_fence(
     verdict = first_accepted(reader, lambda: sent.append(writer.write(b"tick", instance="arm")))
     assert verdict.epoch is not None and verdict.epoch <= reader.verifier.restart_fence()
     assert reader.counts["answer_accepted"] >= 1 and writer.counts["challenge_answered"] >= 1
+    clock.advance(MAX_FORWARD_S + 1)  # the fence ends: the reader leaves the ping topic
+
+    def left() -> bool:
+        reader.poll(0.01)
+        return writer.challenge_peers() == 0
+
+    until("past its fence, the reader leaves the challenge channel at once", left, 10.0)
     rogue = rogue_writer(participant)
     for sample in (captured, *sent):
         rogue.publish(sample)

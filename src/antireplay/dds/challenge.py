@@ -24,7 +24,8 @@ it so:
 The filter runs on Cyclone's receive thread and takes the GIL while Cyclone holds the
 reader's cache lock; the binding's own take and write keep the GIL while they wait for that
 lock, a deadlock.  So this channel takes and writes through ``ddsc`` with ctypes, which
-lets the GIL go (:func:`_take`, :func:`_write`).
+lets the GIL go (:func:`_take`, :func:`_write`).  A reader past its fence leaves with
+:meth:`PingChannel.close`; filter callbacks stay pinned (:data:`_FILTERS`).
 """
 
 from __future__ import annotations
@@ -188,6 +189,12 @@ class PingChannel:
             if isinstance(sample.instance, str) and sample.instance.startswith(self._head)
             and len(sealed := bytes(sample.sealed)) > 1 and sealed[1] == kind
         ]  # fmt: skip
+
+    def close(self) -> None:
+        """Leave the channel: its reader (and with it the filter) and writer are deleted now,
+        not whenever the garbage collector frees them (their callback stays pinned)."""
+        for entity in (self.waiting, self.reader, self.writer):
+            entity.__del__()
 
     def peers(self) -> int:
         """Ping endpoints matched (a new one may answer, or need an answer)."""
