@@ -576,6 +576,26 @@ class SdkReplayAdapter:
         return True, verdict.warning or ""
 
 
+class Reaper:
+    """The child processes a test started, killed and reaped when it ends, passed or failed
+    (use it from an autouse fixture): a hung or failed test never leaves a child running."""
+
+    def __init__(self) -> None:
+        self._started: list[subprocess.Popen[str]] = []
+
+    def __call__(self, process: subprocess.Popen[str]) -> subprocess.Popen[str]:
+        self._started.append(process)
+        return process
+
+    def reap(self) -> None:
+        """Kill every child still running, then collect its exit and pipes (bounded)."""
+        while self._started:
+            process = self._started.pop()
+            if process.poll() is None:
+                process.kill()
+            process.communicate(timeout=30)
+
+
 def dds_writer_process(
     domain_id: int, psk: bytes, topic: str, *, period_s: float, max_forward_s: float
 ) -> subprocess.Popen[str]:
@@ -589,27 +609,41 @@ def dds_writer_process(
 
 def dds_junk_process(domain_id: int, topic: str) -> subprocess.Popen[str]:
     """A process without the fleet key flooding the challenge channel about ``topic`` with
-    challenges and answers sealed under random keys, each on a sender instance of its own
+    challenges and answers sealed under random keys, on sender instances of its own
     (``antireplay/ping``); it prints ``flooding`` once it has written its first thousand."""
     code = "from harness import dds_junk_main; dds_junk_main()"
     return subprocess.Popen([sys.executable, "-c", code, str(domain_id), topic],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
 
 
+#: Sender instances one junk process cycles through: its writer's instance table (keep-last
+#: per instance) stays bounded however long it floods.
+JUNK_SENDERS = 256
+
+
 def dds_junk_main() -> None:
-    """The body of :func:`dds_junk_process` (runs until killed)."""
-    from antireplay.dds.domain import join_domain  # noqa: PLC0415 - the child's own imports
-    from antireplay.dds.topics import PingChannel  # noqa: PLC0415
+    """The body of :func:`dds_junk_process` (runs until killed).  A writer only: no reader,
+    so nothing in this process grows with the traffic it meets (an unfiltered reader here
+    once held every other junk process's instances, 11.8 GB)."""
+    from cyclonedds.pub import DataWriter  # noqa: PLC0415 - the child's own imports
+    from cyclonedds.topic import Topic  # noqa: PLC0415
+
+    from antireplay.dds.challenge import PING_TOPIC, ping_instance, ping_qos  # noqa: PLC0415
+    from antireplay.dds.domain import join_domain  # noqa: PLC0415
+    from antireplay.dds.wire import SealedSample  # noqa: PLC0415
     from antireplay.epochs import Kind, derive_key  # noqa: PLC0415
     from antireplay.epochs.policy import seal  # noqa: PLC0415
 
     domain_id, topic = int(sys.argv[1]), sys.argv[2]
-    channel = PingChannel(join_domain(domain_id), topic)  # no ring: a writer, unfiltered
+    participant, qos = join_domain(domain_id), ping_qos()
+    writer = DataWriter(participant, Topic(participant, PING_TOPIC, SealedSample, qos=qos), qos=qos)
     key = derive_key(os.urandom(32), Kind.PING)
+    senders = [os.urandom(8) for _ in range(JUNK_SENDERS)]
     for n in itertools.count():
         kind = Kind.CHALLENGE if n % 2 else Kind.ANSWER
-        epoch = time.time_ns()
-        channel.send(seal(key, kind, os.urandom(8), epoch, os.urandom(16)))
+        prefix = senders[n % JUNK_SENDERS]
+        sealed = seal(key, kind, prefix, time.time_ns(), os.urandom(16))
+        writer.write(SealedSample(instance=ping_instance(topic, prefix), sealed=sealed))
         if n == 1000:
             print("flooding", flush=True)
 

@@ -17,6 +17,7 @@ import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
@@ -30,7 +31,7 @@ from antireplay.dds.wire import SealedSample
 from antireplay.epochs import Kind, derive_key
 from antireplay.epochs.policy import seal, to_ns
 from antireplay.epochs.sealing import RAW, frame, topic_key
-from harness import free_port, until
+from harness import Reaper, free_port, until
 from harness.flood import trail_bytes
 from harness.stores import aged_state
 
@@ -47,9 +48,23 @@ def _domain() -> int:
     return random.randrange(150, 232)
 
 
+#: Each test's bound: a hung child fails it (stacks dumped) instead of hanging the run.
+pytestmark = pytest.mark.timeout(120)
+#: Every ``dds`` process a test here starts (killed when the test ends, passed or failed).
+_CHILDREN = Reaper()
+
+
+@pytest.fixture(autouse=True)
+def _reaped() -> Iterator[None]:
+    yield
+    _CHILDREN.reap()
+
+
 def _dds(*args: str, **kwargs: object) -> subprocess.Popen[str]:
-    return subprocess.Popen(  # type: ignore[call-overload, no-any-return]
-        [sys.executable, "-m", "antireplay", "dds", *args], text=True, **kwargs
+    return _CHILDREN(
+        subprocess.Popen(  # type: ignore[call-overload]
+            [sys.executable, "-m", "antireplay", "dds", *args], text=True, **kwargs
+        )
     )
 
 

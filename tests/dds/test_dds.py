@@ -8,6 +8,7 @@ epochs and freshness.
 
 from __future__ import annotations
 
+import gc
 import itertools
 import json
 import os
@@ -15,7 +16,7 @@ import random
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,11 +25,11 @@ import pytest
 from antireplay import ManualClock
 from antireplay.audit import AuditLog
 from antireplay.core.errors import Code, ConfigError, StateFileError
-from antireplay.dds.config import DdsConfig
+from antireplay.dds.config import MAX_FORWARD_S, DdsConfig
 from antireplay.epochs import EpochSigner, Kind, derive_key, signer_state
 from antireplay.epochs.policy import seal
 from antireplay.state import open_store
-from harness import dds_junk_process, dds_writer_process, started_before, until
+from harness import Reaper, dds_junk_process, dds_writer_process, started_before, until
 from harness.stores import aged_state
 
 try:
@@ -510,10 +511,26 @@ def test_relay_pump_judges_a_bounded_number_of_pings(
         sender.close()
 
 
+#: Every child process a test here starts (killed when the test ends, passed or failed).
+_CHILDREN = Reaper()
+
+
+@pytest.fixture(autouse=True)
+def _reaped() -> Iterator[None]:
+    """Each test starts after a full garbage collection (earlier tests' DDS objects freed:
+    a topic filter whose callback is freed under a live C topic crashes here every run,
+    not at random) and ends with its children killed."""
+    gc.collect()
+    yield
+    _CHILDREN.reap()
+
+
 def _antireplay(*args: str, **kwargs: Any) -> subprocess.Popen[str]:
     command = [str(Path(sys.executable).with_name("antireplay")), "dds", *args]
-    return subprocess.Popen(
-        command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs
+    return _CHILDREN(
+        subprocess.Popen(
+            command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kwargs
+        )
     )
 
 
@@ -728,6 +745,13 @@ def test_fresh_reader_accepts_after_an_answer_without_waiting_out_its_fence(
     verdict = first_accepted(reader, lambda: sent.append(writer.write(b"tick", instance="arm")))
     assert verdict.epoch is not None and verdict.epoch <= reader.verifier.restart_fence()
     assert reader.counts["answer_accepted"] >= 1 and writer.counts["challenge_answered"] >= 1
+    clock.advance(MAX_FORWARD_S + 1)  # the fence ends: the reader leaves the ping topic
+
+    def left() -> bool:
+        reader.poll(0.01)
+        return writer.challenge_peers() == 0
+
+    until("past its fence, the reader leaves the challenge channel at once", left, 10.0)
     rogue = rogue_writer(participant)
     for sample in (captured, *sent):
         rogue.publish(sample)
@@ -771,7 +795,9 @@ def test_fresh_reader_in_another_process_accepts_within_a_second(
     """Two processes, real clocks, the memory store: the time from the reader's start to
     its first accepted sample, and every capture refused."""
     domain_id = next(_IDS)
-    writer = dds_writer_process(domain_id, PSK, TOPIC, period_s=0.1, max_forward_s=forward_s)
+    writer = _CHILDREN(
+        dds_writer_process(domain_id, PSK, TOPIC, period_s=0.1, max_forward_s=forward_s)
+    )
     try:
         assert writer.stdout is not None
         captures = [bytes.fromhex(writer.stdout.readline()) for _ in range(3)]
@@ -819,8 +845,8 @@ def test_fresh_reader_leaves_its_fence_through_a_keyless_challenge_flood(
     topic filter before it takes history: a fresh reader with a 30 s fence accepts the
     genuine writer's fresh command within seconds, and counts the junk it dropped."""
     domain_id = next(_IDS)
-    floods = [dds_junk_process(domain_id, TOPIC) for _ in range(2)]
-    writer = dds_writer_process(domain_id, PSK, TOPIC, period_s=0.1, max_forward_s=30.0)
+    floods = [_CHILDREN(dds_junk_process(domain_id, TOPIC)) for _ in range(2)]
+    writer = _CHILDREN(dds_writer_process(domain_id, PSK, TOPIC, period_s=0.1, max_forward_s=30.0))
     try:
         for flood in floods:
             assert flood.stdout is not None and flood.stdout.readline() == "flooding\n"

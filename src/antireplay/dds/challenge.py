@@ -24,7 +24,8 @@ it so:
 The filter runs on Cyclone's receive thread and takes the GIL while Cyclone holds the
 reader's cache lock; the binding's own take and write keep the GIL while they wait for that
 lock, a deadlock.  So this channel takes and writes through ``ddsc`` with ctypes, which
-lets the GIL go (:func:`_take`, :func:`_write`).
+lets the GIL go (:func:`_take`, :func:`_write`).  A reader past its fence leaves with
+:meth:`PingChannel.close`; filter callbacks stay pinned (:data:`_FILTERS`).
 """
 
 from __future__ import annotations
@@ -52,6 +53,12 @@ from antireplay.epochs.sealing import claim
 PING_TOPIC = "antireplay/ping"
 #: Ping samples one call takes at most (the rest wait in the reader's history).
 PINGS_PER_CALL = 64
+
+#: Every topic filter's ctypes callback, held for the life of the process: Cyclone keeps
+#: calling a filter as long as its C topic lives, and the binding ties the callback to the
+#: Python ``Topic`` object, which the garbage collector may free first (a freed callback
+#: crashed ``dds_write`` in ``content_filter_accepts``).  One small entry per channel.
+_FILTERS: list[object] = []
 
 _ddsc = load_cyclonedds()
 _ddsc.dds_take.argtypes = [ct.c_int32, ct.POINTER(ct.c_void_p),
@@ -133,6 +140,7 @@ class PingChannel:
         inbound = Topic(participant, PING_TOPIC, SealedSample, qos=qos)
         if ring is not None:
             inbound.set_topic_filter(lambda _topic, sample: self._keep(sample))
+            _FILTERS.append(inbound._topic_filter)  # see _FILTERS
         self.reader = DataReader(participant, inbound, qos=qos)
         self.waiting = ReadCondition(
             self.reader, ViewState.Any | InstanceState.Any | SampleState.NotRead
@@ -181,6 +189,12 @@ class PingChannel:
             if isinstance(sample.instance, str) and sample.instance.startswith(self._head)
             and len(sealed := bytes(sample.sealed)) > 1 and sealed[1] == kind
         ]  # fmt: skip
+
+    def close(self) -> None:
+        """Leave the channel: its reader (and with it the filter) and writer are deleted now,
+        not whenever the garbage collector frees them (their callback stays pinned)."""
+        for entity in (self.waiting, self.reader, self.writer):
+            entity.__del__()
 
     def peers(self) -> int:
         """Ping endpoints matched (a new one may answer, or need an answer)."""

@@ -334,6 +334,7 @@ class SealedReader:
             self._answer(sealed)
         if not self.verifier.fenced():
             self._waitset.detach(pings.waiting)
+            pings.close()
             self._pings = None
             return
         if self._timer.due(pings.peers(), self._clock.monotonic()):
