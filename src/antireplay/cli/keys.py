@@ -1,6 +1,10 @@
 """``keygen``, ``sign`` and ``send``: keys, signed envelopes, and sending one to a gateway;
 ``keys revoke|unrevoke|list|reload``: operator keys at runtime, on the state every gateway
-shares (:mod:`antireplay.state.revocations`), each change audited."""
+shares (:mod:`antireplay.state.revocations`), each change audited.
+
+Size: one idea, the `keys` commands an operator runs (keygen, sign, send, revoke,
+unrevoke, list, reload) over one set of shared options and messages.
+"""
 
 from __future__ import annotations
 

@@ -48,6 +48,9 @@ EdDSA and ES256 always, HS256 only when a shared secret is configured.
 library's) and must be finite numbers (``NaN``, ``Infinity``, ``true`` or an
 integer beyond a float's range is ``AUTH_FAILED``), ``aud`` and ``iss`` by
 PyJWT; ``sub`` must equal the signing key's owner.
+
+Size: one idea, who may sign: the key registry with its validity periods and revocations,
+and the verification it answers; apart, each half would re-derive the other's rule.
 """
 
 from __future__ import annotations
