@@ -58,10 +58,13 @@ def gateway_app(receiver: Receiver, upstream: Upstream | None, timeout_s: float)
             receiver.refusals.flush()
 
     @asynccontextmanager
-    async def lifespan(_: Starlette) -> AsyncIterator[None]:
+    async def lifespan(served: Starlette) -> AsyncIterator[None]:
         timer = asyncio.create_task(summaries())
         yield  # the guard stops its workers once this has run
         timer.cancel()
+        keys = getattr(served.state, "keys", None)  # the key watcher wiring may have started
+        if keys is not None:
+            keys.stop()
         receiver.close()
 
     app = Starlette(

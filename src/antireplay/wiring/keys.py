@@ -31,6 +31,7 @@ import contextlib
 import logging
 import threading
 import time
+import weakref
 from collections.abc import Callable, Iterator
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -171,14 +172,14 @@ class KeyWatcher:
             self.audit.append(AuditRow(resolve(self.registry.clock).wall(), "keys", code, what))
 
     def start(self) -> KeyWatcher:
-        """Poll every :data:`POLL_S` on a daemon thread until :meth:`stop`."""
-        self._thread = threading.Thread(target=self._run, name="antireplay-keys", daemon=True)
+        """Poll every :data:`POLL_S` on a daemon thread until :meth:`stop`, or until the
+        watcher is dropped: the thread holds it weakly, so an app that is never shut down
+        (no lifespan) does not keep its receiver, trail and list open for the process."""
+        self._thread = threading.Thread(
+            target=_poll, args=(weakref.ref(self), self._stop), name="antireplay-keys", daemon=True
+        )
         self._thread.start()
         return self
-
-    def _run(self) -> None:
-        while not self._stop.wait(RETRY_S if self._failing else POLL_S):
-            self.refresh()
 
     def stop(self) -> None:
         """End the thread and release the list's connection."""
@@ -186,6 +187,17 @@ class KeyWatcher:
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=5)
         self.revocations.close()
+
+
+def _poll(ref: weakref.ref[KeyWatcher], stop: threading.Event) -> None:
+    """The watcher's thread: refresh while the watcher lives and is not stopped."""
+    while (watcher := ref()) is not None:
+        wait = RETRY_S if watcher._failing else POLL_S
+        del watcher  # not held across the wait: a dropped watcher ends this loop
+        if stop.wait(wait) or (watcher := ref()) is None:
+            return
+        watcher.refresh()
+        del watcher
 
 
 def change_revocation(config: AppConfig, kid: str, *, revoke: bool) -> bool:
