@@ -58,6 +58,10 @@ WINDOW = 64  # frames in flight in a burst: well below a forwarder's UDP receive
 LOST_S = 0.25  # a burst's frame not arrived after this is lost
 ROUNDS = 3
 DIRECT = "direct link (plain UDP relay process)"
+#: The ground station signs as 255/190; the unsigned tool on the trusted endpoint is another
+#: system (the router binds a station's authenticated system to its link while it is live,
+#: so a trusted link claiming 255 within seconds of the signed burst would be SOURCE_BOUND).
+GCS, TOOL = (255, 190), (254, 190)
 VERIFYING = "mavlink-router, verifying (SQLite store)"
 BEHALF = "mavlink-router, signing on behalf"
 MAVPROXY = "MAVProxy 1.8 forwarding, signing on"
@@ -118,7 +122,8 @@ def frames(n: int, start: int) -> list[bytes]:
 def attitudes(count: int, signed: bool) -> list[bytes]:
     """``count`` ATTITUDE frames numbered 1.., signed now (fresh whatever the run length)."""
     sink = _Sink()
-    mav = dialect.MAVLink(sink, srcSystem=255, srcComponent=190)
+    sysid, compid = GCS if signed else TOOL
+    mav = dialect.MAVLink(sink, srcSystem=sysid, srcComponent=compid)
     if signed:
         mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id = KEY, True, 1
         mav.signing.timestamp = mav_time(SystemClock())
@@ -180,7 +185,8 @@ def drive(
     receiver = threading.Thread(target=receive)
     receiver.start()
     out = _Udp(port)
-    mav = dialect.MAVLink(out, srcSystem=255, srcComponent=190)
+    sysid, compid = GCS if signed else TOOL
+    mav = dialect.MAVLink(out, srcSystem=sysid, srcComponent=compid)
     if signed:
         mav.signing.secret_key, mav.signing.sign_outgoing, mav.signing.link_id = KEY, True, 1
     wall, start = SystemClock(), time.perf_counter()

@@ -75,6 +75,7 @@ class MemoryStore:
         self._tail_key = -1  # the slot that took the last insert (most inserts hit it again)
         self._tail: dict[str, None] = {}
         self._head_key = -1  # the slot being drained by _forget
+        self._head: dict[str, None] = {}  # its dict (emptied; it takes late filings)
         self._drain: list[str] = []  # its filings, moved out of its dict
         self._counters: dict[str, int] = {}
         lock = threading.Lock()
@@ -188,16 +189,15 @@ class MemoryStore:
         dict stays, empty, to take a late filing, drained in turn.  A drained slot is
         dropped at once, so ``_slot_keys[0]`` always names a slot with filings left.
         """
-        table, slots, keys, removed = self._expiry, self._slots, self._slot_keys, 0
-        drain = self._drain
+        table, keys, removed = self._expiry, self._slot_keys, 0
+        drain, slot = self._drain, self._head
         while keys and keys[0] < horizon and removed < limit:
             key = keys[0]
-            slot = slots[key]
             if key != self._head_key:
                 if drain:  # a sooner slot was filed ahead of the one draining: refile
-                    parked = slots[self._head_key]
                     for mid in drain:
-                        parked[mid] = None
+                        slot[mid] = None
+                slot = self._head = self._slots[key]
                 drain = self._drain = list(slot)
                 slot.clear()
                 self._head_key = key
@@ -206,15 +206,16 @@ class MemoryStore:
                 slot.clear()
             while drain and removed < limit:
                 mid = drain.pop()
-                expires = table.get(mid)
-                if expires is None or int(expires * SLOTS_PER_SECOND) != key:
+                found = table.get(mid)
+                if found is None or int(found * SLOTS_PER_SECOND) != key:
                     continue  # a filing left behind by an entry forgotten or moved later
+                expires: float = found
                 del table[mid]
                 removed += 1
                 if expires > self._watermark:  # noqa: PLR1730 - max() is a slow generic call
                     self._watermark = expires
             if not drain and not slot:
-                del slots[heapq.heappop(keys)]
+                del self._slots[heapq.heappop(keys)]
                 self._head_key = -1
                 if key == self._tail_key:
                     self._tail_key = -1
