@@ -121,6 +121,8 @@ class EpochVerifier:
         )
         self.audit = audit
         self.namespace = namespace
+        #: ``NAMESPACE:KIND:`` per kind, built once (an enum's ``name`` is a property call).
+        self._keys = {kind: f"{namespace}:{kind.name.lower()}:" for kind in Kind}
         self._owns_store = store is None  # the caller that opened a store closes it
         self.store: ReplayStore = (
             MemoryStore(max_entries=1, clock=self._clock) if store is None else store
@@ -147,7 +149,7 @@ class EpochVerifier:
             self.store.close()
 
     def _key(self, kind: Kind, name: str) -> str:
-        return f"{self.namespace}:{kind.name.lower()}:{name}"
+        return self._keys[kind] + name
 
     def restart_fence(self) -> int:
         """Epochs at or below this may have been accepted by a run whose state the store
