@@ -2,7 +2,7 @@
 
 Run: ``python -m benchmarks gateway`` (needs ``wrk`` and ``strace``; the router row
 MAVProxy, the Redis row ``redis-server``).  Options: ``--rows fresh,flood,c1,estop,inproc,
-router,redis,workers,growth,stages``
+router,dds,redis,workers,growth,stages``
 (default all; ``workers`` only where ``serve --workers`` exists), ``--rounds=3``,
 ``--seconds=3`` (per wrk run), ``--passes=quiet,loaded`` (default both), ``--quick``
 (1-second runs, quiet pass only: under 3 minutes).
@@ -27,6 +27,8 @@ run (see :mod:`benchmarks._gateway_load` for the servers, the load and the count
 * **router**: a burst of 5,000 signed frames through ``antireplay mavlink-router``
   (verifying; signing on behalf) against MAVProxy forwarding with signing on
   (:mod:`benchmarks.bench_mavlink`'s sender and launchers).
+* **dds**: a sealed DDS topic against a plain one (:mod:`benchmarks.bench_dds`'s
+  throughput rounds): samples per second and added latency.
 * **redis**: the gateway on a Redis store (a redis-server started here), fresh c=32.
 * **workers**: ``serve --workers 2``, fresh c=32, when the option exists.
 * **growth**: fresh and replay at c=1, 32 and 128 against bare (lines, no goal).
@@ -53,6 +55,7 @@ import importlib.util
 import logging
 import math
 import os
+import random
 import re
 import shutil
 import statistics
@@ -102,7 +105,10 @@ from benchmarks._timing import interleaved_ns_per_op
 
 __all__ = ["WRK_SCRIPT", "envelope", "main", "signer", "stop", "wait_healthy", "write_lines", "wrk"]
 
-ROWS = ("fresh", "flood", "c1", "estop", "inproc", "router", "redis", "workers", "growth", "stages")
+ROWS = (
+    "fresh", "flood", "c1", "estop", "inproc", "router", "dds", "redis", "workers", "growth",
+    "stages",
+)  # fmt: skip
 #: Connections of the growth lines.
 GROWTH = (1, 32, 128)
 ESTOPS = 40
@@ -502,6 +508,21 @@ class Pass:
             Row("router behalf", f"burst {mav.BURST:,} frames/s", f"MAVProxy {base:,.0f}",
                 f"{rates['on behalf']:,.0f} ({behalf:.2f}x)", ">= 1.5x MAVProxy",
                 None if self.loaded else behalf >= 1.5),
+        ]  # fmt: skip
+
+    def dds(self) -> list[Row]:
+        """The sealed DDS topic beside a plain one (:mod:`benchmarks.bench_dds`'s rounds),
+        so that every row of the table is in one summary."""
+        from benchmarks import bench_dds  # noqa: PLC0415 - needs the dds extra (cyclonedds)
+
+        got = bench_dds.throughput_rows(random.randrange(150, 225), self.opts.rounds)
+        ratio, added = got["ratio"], got["added_us"]
+        refused = int(got["refused"])
+        return [
+            Row("sealed DDS", "samples/s, latency", "plain Cyclone DDS topic",
+                f"{ratio:.2f}x, +{added:.0f} us (CPU +{got['cpu_added_us']:.1f} us)",
+                ">= 0.7x, <= +15 us", None if self.loaded else ratio >= 0.7 and added <= 15,
+                broken=f"{refused} samples refused or not whole" if refused else None),
         ]  # fmt: skip
 
     def redis(self) -> list[Row]:

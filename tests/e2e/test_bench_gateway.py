@@ -27,7 +27,8 @@ def test_an_unknown_row_is_refused_with_the_list() -> None:
 
 def test_a_short_run_prints_a_verdict_for_every_row_it_ran() -> None:
     env = {**os.environ, "PYTHONPATH": f"{ROOT / 'src'}{os.pathsep}{ROOT}"}
-    args = [sys.executable, "-m", "benchmarks", "gateway", "--rows=fresh,flood,estop,inproc,stages",
+    rows = "--rows=fresh,flood,estop,inproc,dds,stages"
+    args = [sys.executable, "-m", "benchmarks", "gateway", rows,
             "--rounds=1", "--seconds=1", "--passes=quiet"]  # fmt: skip
     run = subprocess.run(
         args, check=False, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300
@@ -37,7 +38,14 @@ def test_a_short_run_prints_a_verdict_for_every_row_it_ran() -> None:
     assert "load average at start" in out and "load average at end" in out
     assert "FAIL" not in out, out  # every answer as expected (2xx fresh, 409 replays)
     assert "CPU per request, fresh c=32" in out and "inside the gateway" in out, out
-    for row in ("fresh c=32", "flood c=32", "ESTOP in flood", "in-process", "refusals"):
+    for row in (
+        "fresh c=32",
+        "flood c=32",
+        "ESTOP in flood",
+        "in-process",
+        "refusals",
+        "sealed DDS",
+    ):
         assert re.search(rf"^{re.escape(row)} +quiet .* (PASS|MISS)$", out, re.MULTILINE), out
     assert re.search(r"\(40/40\)", out), out  # every ESTOP accepted during the flood
     # The ESTOP row judges the gateway's own figure; the client's is printed beside it.
