@@ -51,6 +51,9 @@ PURGE_BATCH: Final = 64
 SLOTS_PER_SECOND: Final = 10
 #: A horizon above every slot key: "forget from the soonest slot, whatever it is".
 ANY_SLOT: Final = 1 << 60
+#: Expiries a commit takes, in seconds: a message's timestamp (below 1e11) plus its window.
+#: Slot keys are then never negative, and -1 can mean "no slot" (head and tail).
+MAX_EXPIRY: Final = 1e12
 
 
 class MemoryStore:
@@ -119,6 +122,8 @@ class MemoryStore:
         full)`` (the fence is :meth:`fence`, fixed at construction; nothing is ever lost).
         The replay cache's hot path: a compiled caller gets them unboxed, with no object
         allocated."""
+        if not 0.0 <= expires_at <= MAX_EXPIRY:  # NaN too: never filed under a bad slot
+            raise ValueError(f"expiry {expires_at!r} is not within 0..{MAX_EXPIRY:g} seconds")
         self._acquire()
         try:
             keys = self._slot_keys
