@@ -5,7 +5,8 @@ Theory of operation
 One process, the default for a store-less embed and the fastest backend.  It
 keeps the store contract (:mod:`antireplay.state`) with a bounded table:
 
-* **Entries live to their own expiry.**  Entries are grouped by expiry into
+* **Entries live to their own expiry.**  Entries are grouped by expiry (0 to
+  ``MAX_EXPIRY`` seconds; anything else is refused before it is filed) into
   0.1 s slots (a timing wheel: O(1) insert and purge, no heap sifting); each
   commit purges at most ``PURGE_BATCH`` entries from slots that ended before
   ``now``, so the work per call is bounded.
