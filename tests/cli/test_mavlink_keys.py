@@ -544,15 +544,23 @@ def test_a_link_carrying_radio_status_is_refused_as_not_wired(tmp_path: Path) ->
     assert not keys.exists()
 
 
+def _sigint_at_its_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_after_the_send_keeps_the_key_pending(tmp_path: Path) -> None:
     """Review 1: SIGINT once the vehicle took the key: exit 1, "interrupted", the passphrase
     the vehicle now uses kept as ``sysid:1:pending`` and the message says where."""
     port, keys = free_udp_port(), tmp_path / "signing.keys"
     sim = SimVehicle(None, udp=("127.0.0.1", port))
     try:
+        # Ctrl-C as at a terminal: SIGINT at its default in the child whatever this run
+        # inherited (a job started in the background by a non-interactive shell ignores
+        # SIGINT, its children too, and a Python started so never raises KeyboardInterrupt).
         proc = subprocess.Popen(
             [*CLI, "mavlink-keys", "provision", f"udpin:127.0.0.1:{port}", "--file", str(keys),
              "--timeout", "120"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            preexec_fn=_sigint_at_its_default,  # noqa: PLW1509 - one sigaction, no lock
         )  # fmt: skip
 
         def took_a_key() -> bool:
